@@ -1,0 +1,1 @@
+"""gcdtrav client library: talk to the service over Zenoh (no torch)."""

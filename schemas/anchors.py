@@ -1,0 +1,216 @@
+"""The Conceptual Anchor Set: terrain concepts placed on the traversability scale [0, 1]."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import yaml
+from gcdtrav.schemas.clip_tokens import MAX_CONCEPT_TOKENS, count_clip_tokens
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+MIN_ANCHORS = 2
+MAX_ANCHORS = 64
+
+
+class AnchorSetError(ValueError):
+    """An anchor set that cannot be used; ``messages`` lists every problem in words a person can act on."""
+
+    def __init__(self, messages: Sequence[str], source: str | None = None) -> None:
+        self.messages = list(messages)
+        self.source = source
+        where = f"{source}: " if source else ""
+        super().__init__(where + "invalid anchor set: " + "; ".join(self.messages))
+
+
+class Anchor(BaseModel):
+    """One concept of the set: its text prompt, its place on the scale and its Gaussian width."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    concept: str = Field(description="Text prompt given to the segmentation model, e.g. 'gravel'.")
+    position: float = Field(description="Traversability of the concept: 0 = untraversable, 1 = ideal ground.")
+    width: float | None = Field(
+        default=None,
+        description="Standard deviation sigma_k of this anchor's Gaussian; None uses the set's default_width.",
+    )
+
+    @field_validator("concept")
+    @classmethod
+    def _concept_is_usable(cls, value: str) -> str:
+        text = value.strip()
+        if not text:
+            raise ValueError("concept must be a non-empty text, e.g. 'gravel'")
+        tokens = count_clip_tokens(text)
+        if tokens > MAX_CONCEPT_TOKENS:
+            raise ValueError(
+                f"concept '{text[:40]}...' is {tokens} CLIP tokens long; CLIP reads at most "
+                f"{MAX_CONCEPT_TOKENS} (77 with start/end tokens): shorten it"
+            )
+        return text
+
+    @field_validator("position")
+    @classmethod
+    def _position_in_unit_interval(cls, value: float) -> float:
+        if not 0.0 <= value <= 1.0:
+            raise ValueError(f"position {value} is outside [0, 1]; 0 = untraversable, 1 = ideal ground")
+        return value
+
+    @field_validator("width")
+    @classmethod
+    def _width_not_negative(cls, value: float | None) -> float | None:
+        if value is not None and not 0.0 <= value < float("inf"):
+            raise ValueError(f"width {value} must be a finite number >= 0 (a standard deviation)")
+        return value
+
+
+class AnchorSet(BaseModel):
+    """An ordered Conceptual Anchor Set (CAS) as defined by Häuselmann et al., IFAC 2026."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field(default="custom", description="A label for people; not part of the version.")
+    default_width: float = Field(default=0.0, description="sigma_k of anchors that do not set their own.")
+    anchors: list[Anchor]
+
+    @field_validator("default_width")
+    @classmethod
+    def _default_width_not_negative(cls, value: float) -> float:
+        if not 0.0 <= value < float("inf"):
+            raise ValueError(f"default_width {value} must be a finite number >= 0")
+        return value
+
+    @field_validator("anchors")
+    @classmethod
+    def _anchor_count(cls, value: list[Anchor]) -> list[Anchor]:
+        if not MIN_ANCHORS <= len(value) <= MAX_ANCHORS:
+            raise ValueError(
+                f"an anchor set needs between {MIN_ANCHORS} and {MAX_ANCHORS} anchors, this one has {len(value)}"
+            )
+        return value
+
+    @model_validator(mode="after")
+    def _ordered_and_unique(self) -> AnchorSet:
+        problems = []
+        for before, after in zip(self.anchors, self.anchors[1:], strict=False):
+            if after.position < before.position:
+                problems.append(
+                    f"anchors must be sorted by position: '{after.concept}' ({after.position}) "
+                    f"comes after '{before.concept}' ({before.position})"
+                )
+        seen: set[str] = set()
+        for anchor in self.anchors:
+            key = anchor.concept.lower()
+            if key in seen:
+                problems.append(f"concept '{anchor.concept}' appears more than once; concepts must be unique")
+            seen.add(key)
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
+
+    # ---- derived views -------------------------------------------------------------------------------
+    @property
+    def concepts(self) -> list[str]:
+        return [a.concept for a in self.anchors]
+
+    @property
+    def positions(self) -> list[float]:
+        return [a.position for a in self.anchors]
+
+    @property
+    def widths(self) -> list[float]:
+        return [self.default_width if a.width is None else a.width for a in self.anchors]
+
+    def __len__(self) -> int:
+        return len(self.anchors)
+
+    @property
+    def version(self) -> str:
+        """Content hash of what changes results (concepts, positions, effective widths); not the name."""
+        canonical = json.dumps(
+            [[c, round(p, 9), round(w, 9)] for c, p, w in zip(self.concepts, self.positions, self.widths, strict=True)],
+            separators=(",", ":"),
+            ensure_ascii=False,
+        )
+        return hashlib.sha256(canonical.encode("utf-8")).hexdigest()[:16]
+
+    # ---- (de)serialisation ---------------------------------------------------------------------------
+    @classmethod
+    def parse(cls, data: Any, source: str | None = None) -> AnchorSet:
+        """Validate a decoded mapping, raising :class:`AnchorSetError` with readable messages."""
+        try:
+            return cls.model_validate(data)
+        except ValidationError as err:
+            raise AnchorSetError(_readable_errors(err), source) from None
+
+    @classmethod
+    def from_text(cls, text: str | bytes, source: str | None = None) -> AnchorSet:
+        """Parse JSON or YAML text (JSON is valid YAML)."""
+        try:
+            data = yaml.safe_load(text)
+        except yaml.YAMLError as err:
+            raise AnchorSetError([f"not valid JSON or YAML: {err}"], source) from None
+        if not isinstance(data, dict):
+            raise AnchorSetError(
+                ['expected a mapping with an \'anchors\' list, e.g. {"anchors": [{"concept": ..., "position": ...}]}'],
+                source,
+            )
+        return cls.parse(data, source)
+
+    @classmethod
+    def load(cls, path: str | Path) -> AnchorSet:
+        path = Path(path)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as err:
+            raise AnchorSetError([f"cannot read the file: {err}"], str(path)) from None
+        return cls.from_text(text, str(path))
+
+    def to_json(self) -> str:
+        return self.model_dump_json(indent=2, exclude_none=True)
+
+    def save(self, path: str | Path) -> None:
+        path = Path(path)
+        if path.suffix.lower() in (".yaml", ".yml"):
+            path.write_text(yaml.safe_dump(self.model_dump(exclude_none=True), sort_keys=False), "utf-8")
+        else:
+            path.write_text(self.to_json() + "\n", "utf-8")
+
+
+def _readable_errors(err: ValidationError) -> list[str]:
+    messages = []
+    for item in err.errors():
+        where = ".".join(str(part) for part in item["loc"])
+        text = item["msg"].removeprefix("Value error, ")
+        if item["type"] == "extra_forbidden":
+            text = "unknown field (allowed: name, default_width, anchors; per anchor: concept, position, width)"
+        messages.append(f"{where}: {text}" if where else text)
+    return messages
+
+
+PAPER_ANCHORS: tuple[tuple[str, float], ...] = (
+    ("water", 0.02),
+    ("mud", 0.1),
+    ("ice", 0.2),
+    ("snow", 0.3),
+    ("sand", 0.4),
+    ("moss", 0.45),
+    ("grass", 0.5),
+    ("gravel", 0.6),
+    ("soil", 0.65),
+    ("dirt", 0.7),
+    ("cobblestone", 0.8),
+    ("asphalt", 0.98),
+    ("concrete", 1.0),
+)
+
+
+def default_anchor_set() -> AnchorSet:
+    """The set used in the paper's experiments on GOOSE."""
+    return AnchorSet(
+        name="paper",
+        anchors=[Anchor(concept=c, position=p) for c, p in PAPER_ANCHORS],
+    )

@@ -1,0 +1,28 @@
+"""Configuration shapes shared by the engine, the offline CLI and the service."""
+
+from __future__ import annotations
+
+from enum import Enum
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class Method(str, Enum):
+    """How per-patch anchor weights become T and U."""
+
+    GCD = "gcd"  # the paper's method: mixture mean and standard deviation
+    ARGMAX = "argmax"  # baseline: position of the top anchor, 1 - its weight
+    GAUSSIAN = "gaussian"  # baseline: one Gaussian fitted by least squares (unimodal ablation)
+
+
+class EngineSettings(BaseModel):
+    """How the GCD engine turns logits into maps."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    method: Method = Method.GCD
+    temperature: float = Field(default=1.0, gt=0, description="Softmax temperature over the anchors' logits.")
+    normalize_uncertainty: bool = Field(
+        default=False,
+        description="Divide sigma by the largest sigma the anchor set can produce, so U spans [0, 1].",
+    )

@@ -1,0 +1,97 @@
+"""Image and map byte formats shared by the service, the offline CLI and the client."""
+
+from __future__ import annotations
+
+import struct
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+MAP_QUANTUM = 65535  # maps travel as 16-bit PNGs: value = round(x * 65535), x clipped to [0, 1]
+
+
+class ImageDecodeError(ValueError):
+    """Bytes that are not a usable image; the message says why."""
+
+
+def peek_image_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) from a PNG or JPEG header without decoding pixels; None if not recognised.
+
+    Lets a server refuse a decompression bomb before allocating its pixels.
+    """
+    if data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) >= 24 and data[12:16] == b"IHDR":
+        width, height = struct.unpack(">II", data[16:24])
+        return int(width), int(height)
+    if data[:2] == b"\xff\xd8":
+        index = 2
+        while index + 9 <= len(data):
+            if data[index] != 0xFF:
+                return None
+            marker = data[index + 1]
+            if marker in (0xD8, 0x01) or 0xD0 <= marker <= 0xD7:
+                index += 2
+                continue
+            (length,) = struct.unpack(">H", data[index + 2 : index + 4])
+            # SOF0..SOF15 except DHT (C4), JPG (C8) and DAC (CC) carry the frame size.
+            if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC):
+                height, width = struct.unpack(">HH", data[index + 5 : index + 9])
+                return int(width), int(height)
+            index += 2 + length
+    return None
+
+
+def decode_image(data: bytes, max_pixels: int | None = None) -> NDArray[np.uint8]:
+    """JPEG/PNG/any OpenCV-readable bytes to an (H, W, 3) uint8 RGB array."""
+    if not data:
+        raise ImageDecodeError("empty payload (0 bytes)")
+    size = peek_image_size(data)
+    if size is not None and max_pixels is not None and size[0] * size[1] > max_pixels:
+        raise ImageDecodeError(f"image of {size[0]}x{size[1]} pixels exceeds the limit of {max_pixels} pixels")
+    buffer = np.frombuffer(data, dtype=np.uint8)
+    try:
+        image = cv2.imdecode(buffer, cv2.IMREAD_COLOR)
+    except cv2.error as err:
+        raise ImageDecodeError(f"not a decodable image ({str(err).strip()[:120]})") from None
+    if image is None:
+        raise ImageDecodeError(f"not a decodable image ({len(data)} bytes, starts with {data[:8]!r})")
+    if image.size == 0:
+        raise ImageDecodeError("image has zero size")
+    if max_pixels is not None and image.shape[0] * image.shape[1] > max_pixels:
+        raise ImageDecodeError(
+            f"image of {image.shape[1]}x{image.shape[0]} pixels exceeds the limit of {max_pixels} pixels"
+        )
+    return np.asarray(cv2.cvtColor(image, cv2.COLOR_BGR2RGB), dtype=np.uint8)
+
+
+def encode_jpeg(image_rgb: NDArray[np.uint8], quality: int = 90) -> bytes:
+    ok, buffer = cv2.imencode(".jpg", cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise ValueError("JPEG encoding failed")
+    return buffer.tobytes()
+
+
+def encode_png(image_rgb: NDArray[np.uint8]) -> bytes:
+    ok, buffer = cv2.imencode(".png", cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buffer.tobytes()
+
+
+def quantize_map(values: NDArray[np.floating]) -> NDArray[np.uint16]:
+    return np.round(np.clip(values, 0.0, 1.0) * MAP_QUANTUM).astype(np.uint16)
+
+
+def encode_map_png16(values: NDArray[np.floating]) -> bytes:
+    """A [0, 1] map as a lossless single-channel 16-bit PNG (resolution 1/65535)."""
+    ok, buffer = cv2.imencode(".png", quantize_map(values), [cv2.IMWRITE_PNG_COMPRESSION, 3])
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buffer.tobytes()
+
+
+def decode_map_png16(data: bytes) -> NDArray[np.float32]:
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None or image.dtype != np.uint16 or image.ndim != 2:
+        raise ImageDecodeError("not a single-channel 16-bit PNG map")
+    return image.astype(np.float32) / np.float32(MAP_QUANTUM)

@@ -1,0 +1,182 @@
+"""CLIPSeg (Lüddecke & Ecker, CVPR 2022) as a segmentation backend, with the work per frame cut to what
+the decoder needs.
+
+transformers' ``CLIPSegForImageSegmentation.forward`` takes one (image, prompt) pair per batch row, so an
+anchor set of n concepts runs the ViT n times on the same image and all 12 of its layers. Here:
+  * the vision encoder runs once per image and stops after the last layer the decoder reads
+    (``config.extract_layers``, layers 3, 6 and 9 of 12 in rd64-refined, so 10 layers run);
+  * the decoder runs batched over the n concepts; layers before the FiLM conditioning run once;
+  * the text-conditional embeddings are computed once per anchor set and cached.
+The results match transformers' own forward (see tests/test_backend_clipseg.py).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from gcdtrav.service.backends.base import ModelUnavailableError
+from numpy.typing import NDArray
+
+log = logging.getLogger(__name__)
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+CLIPSEG_INPUT_SIZE = 352
+HOW_TO_PROVIDE_WEIGHTS = (
+    "to provide the weights, on a machine with internet run "
+    "`huggingface-cli download CIDAS/clipseg-rd64-refined --local-dir clipseg-rd64-refined`, "
+    "copy that directory to this machine, then pass `--model ./clipseg-rd64-refined` "
+    "or set GCDTRAV_MODEL=./clipseg-rd64-refined"
+)
+
+
+@dataclass(frozen=True)
+class Preprocessing:
+    """How an image becomes pixel values: a square resize (CLIPSeg ignores aspect) and normalisation."""
+
+    size: int = CLIPSEG_INPUT_SIZE
+    mean: tuple[float, float, float] = IMAGENET_MEAN
+    std: tuple[float, float, float] = IMAGENET_STD
+
+    @classmethod
+    def from_config_file(cls, path: Path | None) -> Preprocessing:
+        if path is None or not path.is_file():
+            return cls()
+        raw: dict[str, Any] = json.loads(path.read_text("utf-8"))
+        size = raw.get("size", CLIPSEG_INPUT_SIZE)
+        if isinstance(size, dict):
+            size = size.get("height") or size.get("shortest_edge") or CLIPSEG_INPUT_SIZE
+        return cls(
+            size=int(size),
+            mean=_triple(raw.get("image_mean", IMAGENET_MEAN)),
+            std=_triple(raw.get("image_std", IMAGENET_STD)),
+        )
+
+    def __call__(self, image_rgb: NDArray[np.uint8]) -> torch.Tensor:
+        resized = cv2.resize(image_rgb, (self.size, self.size), interpolation=cv2.INTER_LINEAR)
+        mean, std = np.asarray(self.mean, np.float32), np.asarray(self.std, np.float32)
+        scaled = (resized.astype(np.float32) / np.float32(255.0) - mean) / std
+        return torch.from_numpy(np.ascontiguousarray(scaled.transpose(2, 0, 1)))[None]
+
+
+def _triple(values: Any) -> tuple[float, float, float]:
+    first, second, third = (float(v) for v in values)
+    return first, second, third
+
+
+def _locate(model: str, filename: str) -> Path | None:
+    """A file of the checkpoint: in the directory, or in the hub cache after from_pretrained fetched it."""
+    if Path(model).is_dir():
+        candidate = Path(model) / filename
+        return candidate if candidate.is_file() else None
+    try:
+        from transformers.utils import cached_file
+
+        found = cached_file(model, filename, _raise_exceptions_for_missing_entries=False)
+    except (OSError, ValueError):
+        return None
+    return Path(found) if found else None
+
+
+class ClipSegBackend:
+    """CLIPSeg logits for every concept of an anchor set, one ViT pass per image."""
+
+    def __init__(self, model: str, device: str = "cpu", prepared_cache_size: int = 4) -> None:
+        from transformers import CLIPSegForImageSegmentation, CLIPTokenizer
+
+        self.model_id = model
+        self.device = torch.device(device)
+        if model.startswith(("/", ".", "~")) and not Path(model).expanduser().is_dir():
+            raise ModelUnavailableError(f"model directory '{model}' does not exist; {HOW_TO_PROVIDE_WEIGHTS}")
+        model = str(Path(model).expanduser()) if model.startswith("~") else model
+        try:
+            self.model = CLIPSegForImageSegmentation.from_pretrained(model).eval().to(self.device)
+            self.tokenizer = CLIPTokenizer.from_pretrained(model)
+        except (OSError, ValueError) as err:
+            reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            raise ModelUnavailableError(
+                f"cannot load the CLIPSeg model '{model}' ({reason[:200]}); {HOW_TO_PROVIDE_WEIGHTS}"
+            ) from None
+        self.preprocess = Preprocessing.from_config_file(_locate(model, "preprocessor_config.json"))
+        self.extract_layers = list(self.model.config.extract_layers)
+        self._prepared: OrderedDict[tuple[str, ...], torch.Tensor] = OrderedDict()
+        self._prepared_cache_size = prepared_cache_size
+
+    # ---- per anchor set ------------------------------------------------------------------------------
+    @torch.inference_mode()
+    def prepare(self, concepts: Sequence[str]) -> torch.Tensor:
+        """Text-conditional embeddings (n, projection_dim), cached per tuple of concepts."""
+        key = tuple(concepts)
+        if key in self._prepared:
+            self._prepared.move_to_end(key)
+            return self._prepared[key]
+        tokens = self.tokenizer(list(key), padding=True, return_tensors="pt").to(self.device)
+        embeddings = self.model.get_conditional_embeddings(
+            batch_size=len(key), input_ids=tokens["input_ids"], attention_mask=tokens["attention_mask"]
+        )
+        self._prepared[key] = embeddings
+        while len(self._prepared) > self._prepared_cache_size:
+            self._prepared.popitem(last=False)
+        return embeddings
+
+    # ---- per image -----------------------------------------------------------------------------------
+    @torch.inference_mode()
+    def vision_activations(self, pixel_values: torch.Tensor) -> list[torch.Tensor]:
+        """Hidden states after each layer in ``extract_layers``; later layers are never run."""
+        vision = self.model.clip.vision_model
+        hidden = vision.pre_layrnorm(vision.embeddings(pixel_values, interpolate_pos_encoding=True))
+        wanted = set(self.extract_layers)
+        activations = []
+        for index, layer in enumerate(vision.encoder.layers[: max(wanted) + 1]):
+            hidden = layer(hidden, None)
+            if index in wanted:
+                activations.append(hidden)
+        return activations
+
+    @torch.inference_mode()
+    def decode(self, activations: list[torch.Tensor], conditional: torch.Tensor) -> torch.Tensor:
+        """Batched decoder over the n concepts: (n, h, w) logits from a single image's activations."""
+        decoder = self.model.decoder
+        output: torch.Tensor | None = None
+        for index, (activation, layer, reduce) in enumerate(
+            zip(activations[::-1], decoder.layers, decoder.reduces, strict=True)
+        ):
+            reduced = reduce(activation)
+            output = reduced if output is None else reduced + output
+            if index == decoder.conditional_layer:
+                # FiLM broadcasts the single image's tokens (1, L, d) to the n concepts (n, L, d).
+                output = decoder.film_mul(conditional)[:, None, :] * output + decoder.film_add(conditional)[:, None, :]
+            output = layer(output, None)
+        assert output is not None
+        tokens = output[:, 1:, :].transpose(1, 2)
+        side = round(tokens.shape[2] ** 0.5)
+        grid = tokens.reshape(tokens.shape[0], tokens.shape[1], side, side)
+        return decoder.transposed_convolution(grid).squeeze(1)
+
+    @torch.inference_mode()
+    def logits(self, image_rgb: NDArray[np.uint8], prepared: object) -> NDArray[np.float32]:
+        if not isinstance(prepared, torch.Tensor):
+            raise TypeError("prepared must come from ClipSegBackend.prepare()")
+        pixels = self.preprocess(image_rgb).to(self.device)
+        result = self.decode(self.vision_activations(pixels), prepared)
+        return result.float().cpu().numpy()
+
+    @torch.inference_mode()
+    def naive_logits(self, image_rgb: NDArray[np.uint8], concepts: Sequence[str]) -> NDArray[np.float32]:
+        """transformers' own forward, the image repeated once per concept: the reference and baseline."""
+        pixels = self.preprocess(image_rgb).to(self.device).repeat(len(concepts), 1, 1, 1)
+        tokens = self.tokenizer(list(concepts), padding=True, return_tensors="pt").to(self.device)
+        out = self.model(pixel_values=pixels, input_ids=tokens["input_ids"], attention_mask=tokens["attention_mask"])
+        logits = out.logits
+        if logits.ndim == 2:  # transformers squeezes a batch of one
+            logits = logits[None]
+        return logits.float().cpu().numpy()

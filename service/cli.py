@@ -1,0 +1,135 @@
+"""The `gcdtrav` command: `infer` (offline), `serve` (Zenoh service), `bench` (benchmarks)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
+from gcdtrav.schemas.config import EngineSettings, Method
+
+EXIT_FAILURES = 1  # some inputs could not be processed
+EXIT_USAGE = 2  # bad configuration: anchor file, model weights, arguments
+
+
+def default_model() -> str:
+    from gcdtrav.service.backends import DEFAULT_MODEL
+
+    return os.environ.get("GCDTRAV_MODEL", DEFAULT_MODEL)
+
+
+def parse_probe(text: str) -> tuple[int, int]:
+    try:
+        x, y = (int(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"probe '{text}' must be X,Y in image pixels, e.g. 120,340") from None
+    return x, y
+
+
+def load_anchors(path: str | None) -> AnchorSet:
+    return default_anchor_set() if path is None else AnchorSet.load(path)
+
+
+def add_model_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--model",
+        default=None,
+        help="CLIPSeg checkpoint: a local directory (Hugging Face layout) or a hub id "
+        "[env GCDTRAV_MODEL, default CIDAS/clipseg-rd64-refined]",
+    )
+    parser.add_argument("--anchors", default=None, help="anchor-set file (JSON or YAML) [default: the paper's set]")
+    parser.add_argument(
+        "--method",
+        choices=[m.value for m in Method],
+        default=Method.GCD.value,
+        help="gcd (the paper), argmax or gaussian (its baselines) [default: gcd]",
+    )
+    parser.add_argument("--temperature", type=float, default=1.0, help="softmax temperature [default: 1]")
+    parser.add_argument(
+        "--normalize-u",
+        action="store_true",
+        help="divide U by the largest sigma the anchor set can produce, so U spans [0, 1]",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="gcdtrav", description=__doc__)
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    infer = commands.add_parser("infer", help="images on disk -> T/U maps, overlays, figures")
+    infer.add_argument("images", nargs="+", type=Path, help="image files (JPEG, PNG, ...)")
+    infer.add_argument("--out", type=Path, required=True, help="output directory (one folder per image)")
+    add_model_arguments(infer)
+    infer.add_argument(
+        "--probe",
+        type=parse_probe,
+        action="append",
+        default=[],
+        metavar="X,Y",
+        help="pixel whose context distribution the figure shows (repeatable) "
+        "[default: the most certain, median and most ambiguous pixels]",
+    )
+    infer.add_argument(
+        "--save-raw",
+        action="store_true",
+        help="also write logits.npy, T.npy, U.npy (backend resolution) and anchors.json",
+    )
+    infer.add_argument("--no-figure", action="store_true", help="skip the matplotlib figure (faster)")
+    return parser
+
+
+def build_pipeline(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    """Anchors first (cheap to validate), then the model (slow to load)."""
+    from gcdtrav.service.backends.clipseg import ClipSegBackend
+    from gcdtrav.service.pipeline import Pipeline
+
+    anchors = load_anchors(args.anchors)
+    settings = EngineSettings(
+        method=Method(args.method), temperature=args.temperature, normalize_uncertainty=args.normalize_u
+    )
+    backend = ClipSegBackend(args.model or default_model())
+    return Pipeline(backend, anchors, settings)
+
+
+def cmd_infer(args: argparse.Namespace) -> int:
+    from gcdtrav.service.offline import InferOptions, run_infer
+
+    pipeline = build_pipeline(args)
+    options = InferOptions(out_dir=args.out, probes=args.probe, save_raw=args.save_raw, figure=not args.no_figure)
+    failures = run_infer(pipeline, args.images, options)
+    done = len(args.images) - failures
+    print(f"{done} of {len(args.images)} images written to {args.out}", file=sys.stderr)
+    return EXIT_FAILURES if failures else 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    handlers = {"infer": cmd_infer}
+    try:
+        from gcdtrav.service.backends.base import ModelUnavailableError
+    except ImportError as err:  # torch missing: the client-only install
+        print(f"gcdtrav: {err}; install the service extra: pip install 'gcdtrav[service]'", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        return handlers[args.command](args)
+    except AnchorSetError as err:
+        print(f"gcdtrav: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except ModelUnavailableError as err:
+        print(f"gcdtrav: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,126 @@
+"""`gcdtrav infer`: images on disk to T/U maps, overlays and context-distribution figures."""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from gcdtrav.schemas.images import ImageDecodeError, decode_image, quantize_map
+from gcdtrav.service import viz
+from gcdtrav.service.pipeline import FrameResult, Pipeline
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True)
+class InferOptions:
+    out_dir: Path
+    probes: Sequence[tuple[int, int]] = ()
+    save_raw: bool = False
+    figure: bool = True
+
+
+def read_image(path: Path) -> NDArray[np.uint8]:
+    try:
+        data = path.read_bytes()
+    except OSError as err:
+        raise ImageDecodeError(f"cannot read the file ({err.strerror or err})") from None
+    return decode_image(data)
+
+
+def to_image_size(values: NDArray[np.float32], height: int, width: int) -> NDArray[np.float32]:
+    """Backend-resolution map to the input image's size (bilinear)."""
+    return np.asarray(cv2.resize(values, (width, height), interpolation=cv2.INTER_LINEAR), dtype=np.float32)
+
+
+def default_probes(u: NDArray[np.float32], height: int, width: int) -> list[tuple[int, int]]:
+    """Without --probe: the most certain, the median and the most ambiguous pixel of U."""
+    order = np.argsort(u, axis=None)
+    picks = [order[0], order[len(order) // 2], order[-1]]
+    scale_y, scale_x = height / u.shape[0], width / u.shape[1]
+    return [(int((i % u.shape[1] + 0.5) * scale_x), int((i // u.shape[1] + 0.5) * scale_y)) for i in picks]
+
+
+def weights_at(result: FrameResult, probes: Sequence[tuple[int, int]], height: int, width: int) -> NDArray[np.float32]:
+    """(n, len(probes)): each probe pixel's anchor weights, from the patch that covers it."""
+    h, w = result.maps.weights.shape[1:]
+    rows = [min(int(y * h / height), h - 1) for _, y in probes]
+    cols = [min(int(x * w / width), w - 1) for x, _ in probes]
+    return result.maps.weights[:, rows, cols]
+
+
+def write_outputs(stem_dir: Path, image: NDArray[np.uint8], result: FrameResult, options: InferOptions) -> None:
+    stem_dir.mkdir(parents=True, exist_ok=True)
+    height, width = image.shape[:2]
+    t = to_image_size(result.maps.traversability, height, width)
+    u = to_image_size(result.maps.uncertainty, height, width)
+    cv2.imwrite(str(stem_dir / "T.png"), quantize_map(t))
+    cv2.imwrite(str(stem_dir / "U.png"), quantize_map(u))
+    for name, colours in (
+        ("T_overlay.jpg", viz.colorize_traversability(t)),
+        ("U_overlay.jpg", viz.colorize_uncertainty(u)),
+    ):
+        cv2.imwrite(str(stem_dir / name), cv2.cvtColor(viz.overlay(image, colours), cv2.COLOR_RGB2BGR))
+    if options.save_raw:
+        np.save(stem_dir / "logits.npy", result.logits.astype(np.float32))
+        np.save(stem_dir / "T.npy", result.maps.traversability)
+        np.save(stem_dir / "U.npy", result.maps.uncertainty)
+        (stem_dir / "anchors.json").write_text(result.anchors.to_json() + "\n", "utf-8")
+    if options.figure:
+        probes = list(options.probes) or default_probes(result.maps.uncertainty, height, width)
+        probes = [(min(max(x, 0), width - 1), min(max(y, 0), height - 1)) for x, y in probes]
+        viz.save_context_figure(
+            stem_dir / "figure.png",
+            image,
+            t,
+            u,
+            weights_at(result, probes, height, width),
+            probes,
+            result.anchors,
+            title=stem_dir.name,
+        )
+
+
+def output_dirs(images: Sequence[Path], out_dir: Path) -> list[Path]:
+    """One folder per image, named by its stem; repeated stems get a numeric suffix."""
+    seen: dict[str, int] = {}
+    dirs = []
+    for path in images:
+        count = seen.get(path.stem, 0)
+        seen[path.stem] = count + 1
+        dirs.append(out_dir / (path.stem if count == 0 else f"{path.stem}_{count}"))
+    return dirs
+
+
+def run_infer(pipeline: Pipeline, images: Sequence[Path], options: InferOptions) -> int:
+    """Process every image; a bad one is reported and skipped. Returns the number of failures."""
+    from tqdm import tqdm
+
+    failures = 0
+    targets = list(zip(images, output_dirs(images, options.out_dir), strict=True))
+    progress = tqdm(targets, desc="infer", unit="img", disable=len(targets) < 2, file=sys.stderr)
+    for path, stem_dir in progress:
+        try:
+            image = read_image(path)
+        except ImageDecodeError as err:
+            failures += 1
+            progress.write(f"error: {path}: {err}", file=sys.stderr)
+            continue
+        result = pipeline.process(image)
+        write_outputs(stem_dir, image, result, options)
+        summary = {
+            "image": str(path),
+            "size": [image.shape[1], image.shape[0]],
+            "map_shape": list(result.maps.traversability.shape),
+            "anchor_set_version": result.anchors.version,
+            "method": pipeline.settings.method.value,
+            "inference_ms": round(result.inference_ms, 1),
+            "T_mean": float(result.maps.traversability.mean()),
+            "U_mean": float(result.maps.uncertainty.mean()),
+        }
+        (stem_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", "utf-8")
+    return failures

@@ -1,0 +1,82 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import TINY_INPUT_SIZE, textured_image
+
+torch = pytest.importorskip("torch")
+
+from gcdtrav.service.backends import ModelUnavailableError, SegmentationBackend  # noqa: E402
+from gcdtrav.service.backends.clipseg import ClipSegBackend  # noqa: E402
+
+CONCEPTS = ["water", "mud", "grass", "gravel", "asphalt road"]
+
+
+def test_loads_through_the_real_path_and_is_a_backend(tiny_backend: ClipSegBackend) -> None:
+    assert isinstance(tiny_backend, SegmentationBackend)
+    assert tiny_backend.preprocess.size == TINY_INPUT_SIZE  # read from preprocessor_config.json
+    assert tiny_backend.extract_layers == [1, 2, 3]
+
+
+def test_fast_path_matches_transformers_forward(tiny_backend: ClipSegBackend) -> None:
+    for seed, (h, w) in enumerate([(120, 160), (96, 96), (301, 77)]):
+        image = textured_image(h, w, seed)
+        fast = tiny_backend.logits(image, tiny_backend.prepare(CONCEPTS))
+        naive = tiny_backend.naive_logits(image, CONCEPTS)
+        assert fast.shape == naive.shape == (len(CONCEPTS), TINY_INPUT_SIZE, TINY_INPUT_SIZE)
+        assert fast.dtype == np.float32
+        np.testing.assert_allclose(fast, naive, atol=1e-4, rtol=0)
+
+
+def test_single_concept_batch(tiny_backend: ClipSegBackend) -> None:
+    image = textured_image(64, 64)
+    fast = tiny_backend.logits(image, tiny_backend.prepare(["water"]))
+    np.testing.assert_allclose(fast, tiny_backend.naive_logits(image, ["water"]), atol=1e-4)
+
+
+def test_vision_encoder_runs_once_and_stops_at_last_extracted_layer(tiny_backend: ClipSegBackend) -> None:
+    layers = tiny_backend.model.clip.vision_model.encoder.layers
+    calls = [0] * len(layers)
+    hooks = [
+        layer.register_forward_hook(lambda *_, i=i: calls.__setitem__(i, calls[i] + 1))
+        for i, layer in enumerate(layers)
+    ]
+    try:
+        tiny_backend.logits(textured_image(80, 80), tiny_backend.prepare(CONCEPTS))
+    finally:
+        for hook in hooks:
+            hook.remove()
+    assert calls == [1, 1, 1, 1, 0]  # 5 layers, extract_layers [1, 2, 3]: layer 4 never runs
+
+
+def test_text_embeddings_are_cached_per_anchor_set(tiny_backend: ClipSegBackend) -> None:
+    text_model = tiny_backend.model.clip.text_model
+    calls = []
+    hook = text_model.register_forward_hook(lambda *_: calls.append(1))
+    try:
+        first = tiny_backend.prepare(["ice", "snow"])
+        second = tiny_backend.prepare(["ice", "snow"])
+        tiny_backend.prepare(["snow", "ice"])
+    finally:
+        hook.remove()
+    assert first is second
+    assert len(calls) == 2
+
+
+def test_missing_directory_says_how_to_provide_weights(tmp_path: Path) -> None:
+    with pytest.raises(ModelUnavailableError, match=r"does not exist.*--model"):
+        ClipSegBackend(str(tmp_path / "nothing-here"))
+
+
+def test_directory_without_weights(tmp_path: Path) -> None:
+    (tmp_path / "config.json").write_text("{}")
+    with pytest.raises(ModelUnavailableError, match="GCDTRAV_MODEL"):
+        ClipSegBackend(str(tmp_path))
+
+
+def test_unreachable_hub_id_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    with pytest.raises(ModelUnavailableError, match="cannot load the CLIPSeg model 'CIDAS/clipseg-rd64-refined'"):
+        ClipSegBackend("CIDAS/clipseg-rd64-refined")

@@ -1,0 +1,29 @@
+"""The base install (schemas + client) must work on a planner's machine without torch."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+
+def test_schemas_client_and_engine_import_without_torch() -> None:
+    code = textwrap.dedent(
+        """
+        import sys
+        sys.modules["torch"] = None          # any `import torch` now raises ImportError
+        sys.modules["transformers"] = None
+        import gcdtrav.schemas, gcdtrav.client, gcdtrav.service.engine
+        from gcdtrav.schemas import default_anchor_set
+        print(default_anchor_set().version)
+        """
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert len(result.stdout.strip()) == 16
+
+
+def test_no_bare_top_level_modules() -> None:
+    code = "import importlib.util as u; print([m for m in ('service', 'client', 'schemas') if u.find_spec(m)])"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd="/")
+    assert result.stdout.strip() == "[]"
