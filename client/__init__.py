@@ -1,1 +1,21 @@
-"""gcdtrav client library: talk to the service over Zenoh (no torch)."""
+"""gcdtrav client library: talk to the traversability service over Zenoh (no torch)."""
+
+from gcdtrav.client.client import (
+    AnchorSetRejected,
+    Maps,
+    QueryTimeout,
+    ServiceError,
+    TraversabilityClient,
+)
+from gcdtrav.client.zenoh_args import add_zenoh_arguments, zenoh_config, zenoh_config_from_args
+
+__all__ = [
+    "AnchorSetRejected",
+    "Maps",
+    "QueryTimeout",
+    "ServiceError",
+    "TraversabilityClient",
+    "add_zenoh_arguments",
+    "zenoh_config",
+    "zenoh_config_from_args",
+]

@@ -78,6 +78,12 @@ def encode_png(image_rgb: NDArray[np.uint8]) -> bytes:
     return buffer.tobytes()
 
 
+def resize_map(values: NDArray[np.floating], width: int, height: int) -> NDArray[np.float32]:
+    """A map at another resolution (bilinear), e.g. from the decoder's 352x352 to the image's size."""
+    resized = cv2.resize(np.asarray(values, np.float32), (width, height), interpolation=cv2.INTER_LINEAR)
+    return np.asarray(resized, dtype=np.float32)
+
+
 def quantize_map(values: NDArray[np.floating]) -> NDArray[np.uint16]:
     return np.round(np.clip(values, 0.0, 1.0) * MAP_QUANTUM).astype(np.uint16)
 

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings, Method
+from gcdtrav.schemas.settings import SettingsError
 
 EXIT_FAILURES = 1  # some inputs could not be processed
 EXIT_USAGE = 2  # bad configuration: anchor file, model weights, arguments
@@ -80,6 +81,50 @@ def build_parser() -> argparse.ArgumentParser:
         help="also write logits.npy, T.npy, U.npy (backend resolution) and anchors.json",
     )
     infer.add_argument("--no-figure", action="store_true", help="skip the matplotlib figure (faster)")
+
+    serve = commands.add_parser(
+        "serve",
+        help="the Zenoh service: images in, T/U maps out, queries",
+        description="Run the traversability service on the Zenoh bus. Settings: "
+        "defaults < --settings YAML < GCDTRAV_* environment < flags.",
+    )
+    from gcdtrav.client.zenoh_args import add_zenoh_arguments
+
+    add_zenoh_arguments(serve)
+    group = serve.add_argument_group("service")
+    group.add_argument("--settings", default=None, metavar="FILE", help="service settings (YAML)")
+    group.add_argument("--prefix", default=None, help="key prefix of the service's keys [default: gcdtrav]")
+    group.add_argument(
+        "--input",
+        dest="inputs",
+        action="append",
+        default=None,
+        metavar="KEYEXPR",
+        help="image key expression to subscribe to (repeatable) [default: gcdtrav/in/**]",
+    )
+    group.add_argument("--model", default=None, help="CLIPSeg directory or hub id [env GCDTRAV_MODEL]")
+    group.add_argument(
+        "--anchors",
+        dest="anchors_file",
+        default=None,
+        help="anchor set to start with; a set accepted at runtime (state file) takes precedence",
+    )
+    group.add_argument("--method", choices=[m.value for m in Method], default=None)
+    group.add_argument("--history", type=int, default=None, help="frames per source kept for queries [8]")
+    group.add_argument("--state-dir", default=None, help="where the accepted anchor set is kept")
+    group.add_argument("--instance", default=None, help="instance name [default: host-pid]")
+    group.add_argument(
+        "--full-resolution", action="store_true", default=None, help="also publish T and U at the input image's size"
+    )
+    group.add_argument(
+        "--no-preview",
+        dest="preview",
+        action="store_false",
+        default=None,
+        help="don't publish the colourised JPEG preview",
+    )
+    group.add_argument("--max-payload-bytes", type=int, default=None, help="larger inputs are rejected [20 MB]")
+    group.add_argument("--threads", type=int, default=None, help="torch threads [all cores]")
     return parser
 
 
@@ -107,13 +152,52 @@ def cmd_infer(args: argparse.Namespace) -> int:
     return EXIT_FAILURES if failures else 0
 
 
+def serve_settings(args: argparse.Namespace):  # type: ignore[no-untyped-def]
+    from gcdtrav.schemas.settings import load_settings
+
+    overrides = {
+        name: getattr(args, name)
+        for name in (
+            "prefix",
+            "inputs",
+            "model",
+            "anchors_file",
+            "history",
+            "state_dir",
+            "instance",
+            "full_resolution",
+            "preview",
+            "max_payload_bytes",
+            "threads",
+        )
+    }
+    if args.method is not None:
+        overrides["engine"] = {"method": args.method}
+    return load_settings(args.settings, overrides)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    from gcdtrav.client.zenoh_args import zenoh_config_from_args
+    from gcdtrav.service.bus.run import run_service
+
+    settings = serve_settings(args)
+    try:
+        config = zenoh_config_from_args(args)
+    except Exception as err:  # zenoh raises its own error type for bad config files and values
+        print(f"gcdtrav: invalid zenoh configuration: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    if args.mode is None:
+        config.insert_json5("mode", '"peer"')
+    return run_service(settings, config)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    handlers = {"infer": cmd_infer}
+    handlers = {"infer": cmd_infer, "serve": cmd_serve}
     try:
         from gcdtrav.service.backends.base import ModelUnavailableError
     except ImportError as err:  # torch missing: the client-only install
@@ -121,7 +205,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         return handlers[args.command](args)
-    except AnchorSetError as err:
+    except (AnchorSetError, SettingsError) as err:
         print(f"gcdtrav: {err}", file=sys.stderr)
         return EXIT_USAGE
     except ModelUnavailableError as err:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from gcdtrav.schemas.images import ImageDecodeError, decode_image, quantize_map
+from gcdtrav.schemas.images import ImageDecodeError, decode_image, quantize_map, resize_map
 from gcdtrav.service import viz
 from gcdtrav.service.pipeline import FrameResult, Pipeline
 from numpy.typing import NDArray
@@ -32,11 +32,6 @@ def read_image(path: Path) -> NDArray[np.uint8]:
     return decode_image(data)
 
 
-def to_image_size(values: NDArray[np.float32], height: int, width: int) -> NDArray[np.float32]:
-    """Backend-resolution map to the input image's size (bilinear)."""
-    return np.asarray(cv2.resize(values, (width, height), interpolation=cv2.INTER_LINEAR), dtype=np.float32)
-
-
 def default_probes(u: NDArray[np.float32], height: int, width: int) -> list[tuple[int, int]]:
     """Without --probe: the most certain, the median and the most ambiguous pixel of U."""
     order = np.argsort(u, axis=None)
@@ -56,8 +51,8 @@ def weights_at(result: FrameResult, probes: Sequence[tuple[int, int]], height: i
 def write_outputs(stem_dir: Path, image: NDArray[np.uint8], result: FrameResult, options: InferOptions) -> None:
     stem_dir.mkdir(parents=True, exist_ok=True)
     height, width = image.shape[:2]
-    t = to_image_size(result.maps.traversability, height, width)
-    u = to_image_size(result.maps.uncertainty, height, width)
+    t = resize_map(result.maps.traversability, width, height)
+    u = resize_map(result.maps.uncertainty, width, height)
     cv2.imwrite(str(stem_dir / "T.png"), quantize_map(t))
     cv2.imwrite(str(stem_dir / "U.png"), quantize_map(u))
     for name, colours in (

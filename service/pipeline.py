@@ -42,12 +42,17 @@ class Pipeline:
     def anchors(self) -> AnchorSet:
         return self._active.anchors
 
-    def swap_anchors(self, anchors: AnchorSet) -> None:
-        """Prepare the new set first (slow), then replace the reference (atomic): a frame in flight keeps
-        the set it started with, the next frame uses the new one."""
-        prepared = self.backend.prepare(anchors.concepts)
+    def prepare(self, anchors: AnchorSet) -> ActiveAnchors:
+        """The slow part of a swap (text embeddings), done while frames keep flowing."""
+        return ActiveAnchors(anchors, self.backend.prepare(anchors.concepts))
+
+    def activate(self, active: ActiveAnchors) -> None:
+        """Replace the reference (atomic): a frame in flight keeps the set it started with."""
         with self._lock:
-            self._active = ActiveAnchors(anchors, prepared)
+            self._active = active
+
+    def swap_anchors(self, anchors: AnchorSet) -> None:
+        self.activate(self.prepare(anchors))
 
     def process(self, image_rgb: NDArray[np.uint8]) -> FrameResult:
         active = self._active  # read once: the whole frame uses one anchor set

@@ -1,0 +1,300 @@
+"""TraversabilityClient: publish images, receive maps, query distributions, manage the anchor set.
+
+No torch: robots and planners install only the base package.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import queue
+import time
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import zenoh
+from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.images import decode_map_png16, encode_jpeg, encode_png, peek_image_size
+from gcdtrav.schemas.messages import (
+    MSGPACK_ENCODING,
+    AnchorSetRejection,
+    AnchorSetReply,
+    ContextDistribution,
+    ErrorReply,
+    ImageEnvelope,
+    M,
+    MapsHeader,
+    MapsMessage,
+    MessageError,
+    PixelEncoding,
+    ServiceStatus,
+)
+from numpy.typing import NDArray
+
+DEFAULT_TIMEOUT_S = 5.0
+MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
+
+
+class ServiceError(RuntimeError):
+    """The service answered with an error; the message is the service's."""
+
+
+class QueryTimeout(ServiceError):
+    """No answer in time: the service is not running, not reachable, or busy."""
+
+
+class AnchorSetRejected(ServiceError):
+    """The service refused an anchor set; ``messages`` says why, the active set is unchanged."""
+
+    def __init__(self, messages: list[str], active_version: str) -> None:
+        super().__init__("anchor set rejected: " + "; ".join(messages))
+        self.messages = messages
+        self.active_version = active_version
+
+
+@dataclass(frozen=True)
+class Maps:
+    """A decoded MapsMessage: T and U in [0, 1] as float32 at the decoder's resolution."""
+
+    header: MapsHeader
+    traversability: NDArray[np.float32]
+    uncertainty: NDArray[np.float32]
+    traversability_full: NDArray[np.float32] | None = None
+    uncertainty_full: NDArray[np.float32] | None = None
+
+    @classmethod
+    def from_payload(cls, payload: bytes) -> Maps:
+        message = MapsMessage.unpack(payload)
+        return cls(
+            header=message.header,
+            traversability=decode_map_png16(message.traversability_png),
+            uncertainty=decode_map_png16(message.uncertainty_png),
+            traversability_full=_optional_map(message.traversability_full_png),
+            uncertainty_full=_optional_map(message.uncertainty_full_png),
+        )
+
+
+def _optional_map(data: bytes | None) -> NDArray[np.float32] | None:
+    return None if data is None else decode_map_png16(data)
+
+
+def _selector(key: str, params: Mapping[str, Any]) -> str:
+    return key + ("?" + ";".join(f"{name}={value}" for name, value in params.items()) if params else "")
+
+
+class TraversabilityClient:
+    """Talks to a gcdtrav service. Give it an open zenoh session, or a config to open one it then owns."""
+
+    def __init__(
+        self,
+        session: zenoh.Session | None = None,
+        config: zenoh.Config | None = None,
+        prefix: str = "gcdtrav",
+        input_prefix: str = "gcdtrav/in",
+        timeout: float = DEFAULT_TIMEOUT_S,
+    ) -> None:
+        self._owns_session = session is None
+        self.session = session if session is not None else zenoh.open(config or zenoh.Config())
+        self.prefix = prefix
+        self.input_prefix = input_prefix
+        self.timeout = timeout
+        self._publishers: dict[str, zenoh.Publisher] = {}
+
+    def close(self) -> None:
+        for publisher in self._publishers.values():
+            publisher.undeclare()
+        self._publishers.clear()
+        if self._owns_session:
+            self.session.close()
+
+    def __enter__(self) -> TraversabilityClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---- images in -----------------------------------------------------------------------------------
+    def publish_image(
+        self,
+        source: str,
+        image: NDArray[np.uint8] | bytes,
+        stamp: float | None = None,
+        frame_id: str = "",
+        compression: str | None = "jpeg",
+        jpeg_quality: int = 90,
+    ) -> None:
+        """Send one image as source ``source`` (published on ``{input_prefix}/{source}``).
+
+        ``image`` is an (H, W, 3) RGB or (H, W) mono uint8 array, or already-encoded JPEG/PNG bytes.
+        Arrays are compressed (``compression`` 'jpeg' or 'png') or sent raw (None): raw is exact but large.
+        """
+        stamp = time.time() if stamp is None else stamp
+        envelope = self._envelope(image, stamp, frame_id, compression, jpeg_quality)
+        key = f"{self.input_prefix}/{source}"
+        publisher = self._publishers.get(key)
+        if publisher is None:
+            publisher = self.session.declare_publisher(key, encoding=MSGPACK)
+            self._publishers[key] = publisher
+        publisher.put(envelope.pack())
+
+    @staticmethod
+    def _envelope(
+        image: NDArray[np.uint8] | bytes, stamp: float, frame_id: str, compression: str | None, quality: int
+    ) -> ImageEnvelope:
+        if isinstance(image, bytes | bytearray | memoryview):
+            data = bytes(image)
+            kind = PixelEncoding.PNG if data[:4] == b"\x89PNG" else PixelEncoding.JPEG
+            size = peek_image_size(data)
+            if size is None:
+                raise ValueError("image bytes must be a JPEG or PNG file")
+            return ImageEnvelope(
+                stamp=stamp, frame_id=frame_id, encoding=kind, width=size[0], height=size[1], data=data
+            )
+        array = np.asarray(image)
+        if array.dtype != np.uint8 or not (array.ndim == 2 or (array.ndim == 3 and array.shape[2] == 3)):
+            raise ValueError(f"expected an (H, W, 3) RGB or (H, W) uint8 array, got {array.dtype} {array.shape}")
+        height, width = array.shape[:2]
+        rgb = array if array.ndim == 3 else np.repeat(array[:, :, None], 3, axis=2)
+        if compression == "jpeg":
+            data, kind = encode_jpeg(rgb, quality), PixelEncoding.JPEG
+        elif compression == "png":
+            data, kind = encode_png(rgb), PixelEncoding.PNG
+        elif compression is None:
+            kind = PixelEncoding.RGB8 if array.ndim == 3 else PixelEncoding.MONO8
+            data = np.ascontiguousarray(array).tobytes()
+        else:
+            raise ValueError(f"compression must be 'jpeg', 'png' or None, not {compression!r}")
+        return ImageEnvelope(stamp=stamp, frame_id=frame_id, encoding=kind, width=width, height=height, data=data)
+
+    # ---- maps out ------------------------------------------------------------------------------------
+    def maps_key(self, selector: str = "**") -> str:
+        return f"{self.prefix}/out/{selector}/maps"
+
+    def subscribe_maps(
+        self, selector: str, callback: Callable[[Maps], None], on_error: Callable[[Exception], None] | None = None
+    ) -> zenoh.Subscriber[None]:
+        """Call ``callback`` with every decoded Maps of the matching sources ('**' = all, 'r1/*', ...).
+
+        Keep the returned subscriber; undeclare() it to stop.
+        """
+
+        def handle(sample: zenoh.Sample) -> None:
+            try:
+                maps = Maps.from_payload(sample.payload.to_bytes())
+            except (MessageError, ValueError) as err:
+                if on_error is not None:
+                    on_error(err)
+                return
+            callback(maps)
+
+        return self.session.declare_subscriber(self.maps_key(selector), handle)
+
+    def iter_maps(self, selector: str = "**", timeout: float | None = None, limit: int | None = None) -> Iterator[Maps]:
+        """Yield decoded maps as they arrive; stop after ``limit`` maps or ``timeout`` s without one."""
+        inbox: queue.Queue[bytes] = queue.Queue(maxsize=64)
+
+        def keep_newest(sample: zenoh.Sample) -> None:
+            while True:
+                try:
+                    inbox.put_nowait(sample.payload.to_bytes())
+                    return
+                except queue.Full:  # a slow consumer loses the oldest maps, never blocks zenoh
+                    with contextlib.suppress(queue.Empty):
+                        inbox.get_nowait()
+
+        subscriber = self.session.declare_subscriber(self.maps_key(selector), keep_newest)
+        try:
+            count = 0
+            while limit is None or count < limit:
+                try:
+                    payload = inbox.get(timeout=timeout)
+                except queue.Empty:
+                    return
+                yield Maps.from_payload(payload)
+                count += 1
+        finally:
+            subscriber.undeclare()
+
+    # ---- queries -------------------------------------------------------------------------------------
+    def _query(
+        self,
+        key: str,
+        reply_type: type[M],
+        params: Mapping[str, Any] | None = None,
+        payload: bytes | None = None,
+        timeout: float | None = None,
+    ) -> M:
+        timeout = self.timeout if timeout is None else timeout
+        replies = self.session.get(_selector(key, params or {}), payload=payload, timeout=timeout)
+        for reply in replies:
+            if reply.ok is not None:
+                return reply_type.unpack(reply.ok.payload.to_bytes())
+            error = reply.err.payload.to_bytes() if reply.err is not None else b""
+            raise self._error_from(error, key)
+        raise QueryTimeout(f"no reply on '{key}' within {timeout:g} s: is the gcdtrav service running and reachable?")
+
+    @staticmethod
+    def _error_from(payload: bytes, key: str) -> ServiceError:
+        try:
+            rejection = AnchorSetRejection.unpack(payload)
+            return AnchorSetRejected(rejection.errors, rejection.active_version)
+        except MessageError:
+            pass
+        try:
+            return ServiceError(ErrorReply.unpack(payload).error)
+        except MessageError:
+            return ServiceError(f"error reply on '{key}': {payload[:200]!r}")
+
+    def patch(
+        self, source: str, x: float, y: float, seq: int | None = None, timeout: float | None = None
+    ) -> ContextDistribution:
+        """The context distribution under image pixel (x, y) of ``source``'s latest (or ``seq``) frame."""
+        return self._patch_query(source, {"x": x, "y": y}, seq, timeout)
+
+    def patch_cell(
+        self, source: str, i: int, j: int, seq: int | None = None, timeout: float | None = None
+    ) -> ContextDistribution:
+        """The same by map cell: row i, column j."""
+        return self._patch_query(source, {"i": i, "j": j}, seq, timeout)
+
+    def region(
+        self,
+        source: str,
+        x0: float,
+        y0: float,
+        x1: float,
+        y1: float,
+        seq: int | None = None,
+        timeout: float | None = None,
+    ) -> ContextDistribution:
+        """The distribution pooled over a box of image pixels (mean of its patch weights)."""
+        return self._patch_query(source, {"region": f"{x0},{y0},{x1},{y1}"}, seq, timeout)
+
+    def _patch_query(
+        self, source: str, params: dict[str, Any], seq: int | None, timeout: float | None
+    ) -> ContextDistribution:
+        if seq is not None:
+            params["seq"] = seq
+        return self._query(f"{self.prefix}/out/{source}/patch", ContextDistribution, params, timeout=timeout)
+
+    def anchors(self, timeout: float | None = None) -> AnchorSetReply:
+        return self._query(f"{self.prefix}/config/anchors", AnchorSetReply, timeout=timeout)
+
+    def set_anchors(self, anchor_set: AnchorSet | Mapping[str, Any] | str, timeout: float | None = None) -> str:
+        """Swap the service's anchor set; returns the new version or raises AnchorSetRejected."""
+        if isinstance(anchor_set, AnchorSet):
+            text = anchor_set.to_json()
+        elif isinstance(anchor_set, str):
+            text = anchor_set
+        else:
+            import json
+
+            text = json.dumps(dict(anchor_set))
+        reply = self._query(
+            f"{self.prefix}/config/anchors", AnchorSetReply, payload=text.encode("utf-8"), timeout=timeout
+        )
+        return reply.version
+
+    def status(self, timeout: float | None = None) -> ServiceStatus:
+        return self._query(f"{self.prefix}/status", ServiceStatus, timeout=timeout)

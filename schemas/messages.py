@@ -1,0 +1,184 @@
+"""Messages on the bus. Every payload is msgpack of one of these models (see docs/messages.md).
+
+Service and client both import this module, so a field changes in exactly one place.
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+from typing import Any, TypeVar
+
+import msgpack
+import numpy as np
+from gcdtrav.schemas.anchors import Anchor, AnchorSet
+from gcdtrav.schemas.config import Method
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+MSGPACK_ENCODING = "application/msgpack"
+SCHEMA_VERSION = 1
+
+
+class MessageError(ValueError):
+    """A payload that is not a valid message of the expected type."""
+
+
+class Message(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    def pack(self) -> bytes:
+        return msgpack.packb(self.model_dump(mode="python"), use_bin_type=True)
+
+    @classmethod
+    def unpack(cls: type[M], payload: bytes, max_bytes: int | None = None) -> M:
+        if max_bytes is not None and len(payload) > max_bytes:
+            raise MessageError(f"{cls.__name__} of {len(payload)} bytes exceeds the limit of {max_bytes}")
+        try:
+            data = msgpack.unpackb(payload, raw=False, strict_map_key=True)
+        except (ValueError, msgpack.UnpackException, TypeError) as err:
+            raise MessageError(f"not a msgpack {cls.__name__}: {err}") from None
+        if not isinstance(data, dict):
+            raise MessageError(f"a {cls.__name__} must be a msgpack map, got {type(data).__name__}")
+        try:
+            return cls.model_validate(data)
+        except ValidationError as err:
+            problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in err.errors()[:5])
+            raise MessageError(f"invalid {cls.__name__}: {problems}") from None
+
+
+M = TypeVar("M", bound=Message)
+
+
+# ---- images in -------------------------------------------------------------------------------------
+
+
+class PixelEncoding(str, Enum):
+    RGB8 = "rgb8"
+    BGR8 = "bgr8"
+    MONO8 = "mono8"
+    JPEG = "jpeg"
+    PNG = "png"
+
+
+RAW_CHANNELS = {PixelEncoding.RGB8: 3, PixelEncoding.BGR8: 3, PixelEncoding.MONO8: 1}
+
+
+class ImageEnvelope(Message):
+    """An image with its capture time and camera frame, as the client library publishes it."""
+
+    stamp: float = Field(description="Capture time, seconds since the Unix epoch.")
+    frame_id: str = Field(default="", description="The camera's coordinate frame, passed through to the maps.")
+    encoding: PixelEncoding
+    width: int = Field(ge=1)
+    height: int = Field(ge=1)
+    data: bytes = Field(description="Row-major pixels (raw encodings) or the compressed file (jpeg, png).")
+
+
+# ---- maps out --------------------------------------------------------------------------------------
+
+
+class MapsHeader(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    schema_version: int = SCHEMA_VERSION
+    source: str = Field(description="The source: the input key after the matched prefix, e.g. 'r1/front'.")
+    key: str = Field(description="The full key the image arrived on.")
+    seq: int = Field(description="Per-source sequence number of processed frames, from 0.")
+    stamp: float = Field(description="Input capture time (envelope stamp, or receive time for bare images), s.")
+    frame_id: str = ""
+    received_at: float = Field(description="When the service received the image, s since epoch.")
+    published_at: float = Field(description="When the service published this message, s since epoch.")
+    inference_ms: float = Field(description="Model forward time for this frame, ms.")
+    model: str
+    instance: str = Field(description="The service instance that made this result.")
+    anchor_set_version: str
+    method: Method
+    map_shape: tuple[int, int] = Field(description="(height, width) of T and U in this message.")
+    image_size: tuple[int, int] = Field(description="(width, height) of the input image, pixels.")
+    scale: tuple[float, float] = Field(description="(sx, sy): image pixels per map cell along x and y.")
+
+
+class MapsMessage(Message):
+    """T and U of one frame: 16-bit PNGs, value = round(x * 65535)."""
+
+    header: MapsHeader
+    traversability_png: bytes
+    uncertainty_png: bytes
+    traversability_full_png: bytes | None = Field(default=None, description="At image size, if enabled.")
+    uncertainty_full_png: bytes | None = None
+
+
+# ---- queries ---------------------------------------------------------------------------------------
+
+
+class ContextDistribution(Message):
+    """The Gaussian Context Distribution of one patch (or the mean of a region's patch weights)."""
+
+    source: str
+    seq: int
+    stamp: float
+    frame_id: str = ""
+    anchor_set_version: str
+    anchors: list[Anchor] = Field(description="Concept, position and effective width of every anchor.")
+    weights: list[float] = Field(description="Softmax weight of each anchor, same order as anchors.")
+    patch: tuple[int, int] | None = Field(default=None, description="(i, j) = (row, column) in the map.")
+    region: tuple[int, int, int, int] | None = Field(
+        default=None, description="Map cells pooled: (i0, j0, i1, j1), end exclusive."
+    )
+    mean: float = Field(description="mu: the traversability T of this distribution.")
+    std: float = Field(description="sigma: the uncertainty U (not normalised).")
+    skewness: float
+    excess_kurtosis: float
+    entropy: float = Field(description="Entropy of the weights, nats.")
+    modes: int
+    top_anchors: list[int]
+    density_x: list[float] = Field(description="Grid on [0, 1] where the density is sampled.")
+    density: list[float] = Field(description="Mixture density at density_x (zero widths drawn at the bandwidth).")
+    density_bandwidth: float
+
+    def weights_array(self) -> NDArray[np.float32]:
+        return np.asarray(self.weights, dtype=np.float32)
+
+
+class AnchorSetReply(Message):
+    anchor_set: AnchorSet
+    version: str
+
+
+class AnchorSetRejection(Message):
+    """Error reply to a rejected anchor set; the active set is unchanged."""
+
+    errors: list[str]
+    active_version: str
+
+
+class ErrorReply(Message):
+    error: str
+
+
+class SourceStatus(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    received: int = 0
+    processed: int = 0
+    dropped: int = Field(default=0, description="Replaced by a newer frame before inference (latest-only).")
+    rejected: int = Field(default=0, description="Undecodable, oversized or malformed payloads.")
+    last_seq: int | None = None
+    latency_ms: dict[str, float] = Field(default_factory=dict, description="Receive-to-publish p50/p90/p99.")
+    inference_ms: dict[str, float] = Field(default_factory=dict)
+
+
+class ServiceStatus(Message):
+    instance: str
+    uptime_s: float
+    model: str
+    anchor_set_version: str
+    method: Method
+    queued: int = Field(description="Frames waiting for inference (at most one per source).")
+    sources: dict[str, SourceStatus]
+    rejected_by_reason: dict[str, int]
+    last_errors: list[str]
+
+
+def pack_dict(data: dict[str, Any]) -> bytes:
+    return msgpack.packb(data, use_bin_type=True)

@@ -1,0 +1,132 @@
+"""Service settings: one pydantic tree that rejects unknown fields.
+
+Sources, later ones winning: defaults < YAML file < ``GCDTRAV_*`` environment variables < command-line flags.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import socket
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import yaml
+from gcdtrav.schemas.config import EngineSettings
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+ENV_PREFIX = "GCDTRAV_"
+_KEY_CHUNK = re.compile(r"^[^*$#?\s/]+$")
+
+
+class SettingsError(ValueError):
+    pass
+
+
+def default_instance_name() -> str:
+    return f"{socket.gethostname()}-{os.getpid()}"
+
+
+class ServiceSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    prefix: str = Field(default="gcdtrav", description="Key prefix of every key the service declares.")
+    inputs: list[str] = Field(
+        default_factory=lambda: ["gcdtrav/in/**"],
+        description="Key expressions of image inputs; the source name is the key after the expression's "
+        "literal head (the chunks before the first wildcard).",
+    )
+    model: str | None = Field(default=None, description="CLIPSeg directory or hub id [env GCDTRAV_MODEL].")
+    anchors_file: Path | None = Field(default=None, description="Anchor set to start with (JSON/YAML).")
+    state_dir: Path = Field(
+        default=Path("~/.local/state/gcdtrav"),
+        description="Where the last accepted anchor set is kept across restarts.",
+    )
+    engine: EngineSettings = Field(default_factory=EngineSettings)
+    history: int = Field(default=8, ge=1, le=256, description="Frames per source kept for patch queries.")
+    max_payload_bytes: int = Field(default=20_000_000, ge=1024, description="Larger payloads are rejected unread.")
+    max_pixels: int = Field(default=40_000_000, ge=1, description="Larger images are rejected before decoding.")
+    full_resolution: bool = Field(default=False, description="Also publish T and U at the input image's size.")
+    preview: bool = Field(default=True, description="Publish a colourised JPEG on {prefix}/out/{source}/preview.")
+    preview_max_width: int = Field(default=640, ge=64)
+    instance: str = Field(default_factory=default_instance_name, description="Name in results and liveliness.")
+    threads: int | None = Field(default=None, ge=1, description="torch intra-op threads [default: all cores].")
+
+    @field_validator("prefix", "instance")
+    @classmethod
+    def _literal_key(cls, value: str) -> str:
+        chunks = value.split("/")
+        if not value or not all(_KEY_CHUNK.match(chunk) for chunk in chunks):
+            raise ValueError(f"'{value}' must be a literal zenoh key (chunks without * $ # ? or spaces)")
+        return value
+
+    @field_validator("inputs")
+    @classmethod
+    def _inputs_not_empty(cls, value: list[str]) -> list[str]:
+        if not value:
+            raise ValueError("at least one input key expression is needed, e.g. gcdtrav/in/**")
+        return value
+
+    @property
+    def state_file(self) -> Path:
+        """The last accepted anchor set. Named by prefix, not instance: a restarted process must find it."""
+        return self.state_dir.expanduser() / f"{self.prefix.replace('/', '_')}.anchors.json"
+
+
+def _env_overrides(environ: Mapping[str, str]) -> dict[str, Any]:
+    """GCDTRAV_HISTORY=4, GCDTRAV_INPUTS='["a/**","b/*"]' or 'a/**,b/*', GCDTRAV_ENGINE__METHOD=argmax."""
+    result: dict[str, Any] = {}
+    for name, raw in environ.items():
+        if not name.startswith(ENV_PREFIX):
+            continue
+        path = name[len(ENV_PREFIX) :].lower().split("__")
+        value: Any = raw
+        if path == ["inputs"] and not raw.lstrip().startswith("["):
+            value = [part.strip() for part in raw.split(",") if part.strip()]
+        elif raw.lstrip().startswith(("[", "{")):
+            value = json.loads(raw)
+        target = result
+        for part in path[:-1]:
+            target = target.setdefault(part, {})
+        target[path[-1]] = value
+    return result
+
+
+def _merge(base: dict[str, Any], override: Mapping[str, Any]) -> dict[str, Any]:
+    merged = dict(base)
+    for key, value in override.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), dict):
+            merged[key] = _merge(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def load_settings(
+    file: str | Path | None = None,
+    overrides: Mapping[str, Any] | None = None,
+    environ: Mapping[str, str] | None = None,
+) -> ServiceSettings:
+    data: dict[str, Any] = {}
+    if file is not None:
+        try:
+            loaded = yaml.safe_load(Path(file).read_text("utf-8")) or {}
+        except (OSError, yaml.YAMLError) as err:
+            raise SettingsError(f"{file}: cannot read the settings file: {err}") from None
+        if not isinstance(loaded, dict):
+            raise SettingsError(f"{file}: expected a mapping of settings")
+        data = loaded
+    env = os.environ if environ is None else environ
+    try:
+        data = _merge(data, _env_overrides(env))
+    except json.JSONDecodeError as err:
+        raise SettingsError(f"a {ENV_PREFIX}* variable is not valid JSON: {err}") from None
+    data = _merge(data, {k: v for k, v in (overrides or {}).items() if v is not None})
+    try:
+        return ServiceSettings.model_validate(data)
+    except ValidationError as err:
+        problems = [f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in err.errors()]
+        where = f"{file}: " if file else ""
+        raise SettingsError(where + "invalid settings: " + "; ".join(problems)) from None

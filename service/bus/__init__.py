@@ -1,0 +1,1 @@
+"""The Zenoh layer: subscribers, publishers and queryables around the pipeline."""

@@ -1,0 +1,345 @@
+"""The Zenoh node: a thin layer that wires the pipeline to keys on the bus.
+
+Keys (``{prefix}`` defaults to ``gcdtrav``; see docs/messages.md):
+  inputs (default gcdtrav/in/**)   images in: JPEG/PNG bytes or an ImageEnvelope
+  {prefix}/out/{source}/maps       MapsMessage per processed frame
+  {prefix}/out/{source}/preview    colourised JPEG (T overlay | U), optional
+  {prefix}/out/{source}/patch      queryable: a patch's or region's ContextDistribution
+  {prefix}/config/anchors          queryable: get the active anchor set, or swap it (payload = new set)
+  {prefix}/status                  queryable: ServiceStatus
+  {prefix}/alive/{instance}        liveliness token
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+import zenoh
+from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
+from gcdtrav.schemas.images import encode_jpeg, encode_map_png16, resize_map
+from gcdtrav.schemas.messages import (
+    MSGPACK_ENCODING,
+    AnchorSetRejection,
+    AnchorSetReply,
+    ErrorReply,
+    MapsHeader,
+    MapsMessage,
+    ServiceStatus,
+    SourceStatus,
+)
+from gcdtrav.schemas.settings import ServiceSettings, SettingsError
+from gcdtrav.service import viz
+from gcdtrav.service.bus.ingest import DecodedFrame, RejectedInput, decode_payload
+from gcdtrav.service.bus.latest import LatestFrameQueue
+from gcdtrav.service.bus.stats import ServiceStats, percentiles
+from gcdtrav.service.pipeline import FrameResult, Pipeline
+from gcdtrav.service.queries import FrameHistory, FrameRecord, QueryError, answer_patch_query
+from gcdtrav.service.state import save_anchor_state
+
+log = logging.getLogger("gcdtrav.service")
+
+MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
+
+
+@dataclass(frozen=True)
+class PendingFrame:
+    key: str
+    payload: bytes
+    encoding: str
+    received_at: float
+
+
+def literal_head(key_expr: str) -> str:
+    """The chunks of a key expression before its first wildcard: 'robot/*/cam' -> 'robot'."""
+    head = []
+    for chunk in key_expr.split("/"):
+        if "*" in chunk or "$" in chunk:
+            break
+        head.append(chunk)
+    return "/".join(head)
+
+
+def source_of(key: str, head: str) -> str:
+    """The part of ``key`` after the input's literal head; the whole key if nothing is left."""
+    if head and key.startswith(head + "/"):
+        return key[len(head) + 1 :]
+    return key
+
+
+class TraversabilityService:
+    def __init__(self, session: zenoh.Session, pipeline: Pipeline, settings: ServiceSettings) -> None:
+        self.session = session
+        self.pipeline = pipeline
+        self.settings = settings
+        self.prefix = settings.prefix
+        self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue()
+        self.history = FrameHistory(settings.history)
+        self.stats = ServiceStats(log)
+        self._seq: dict[str, int] = {}
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._declared: list[Any] = []
+        self._swap_lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._worker = threading.Thread(target=self._work, name="gcdtrav-worker", daemon=True)
+        self._started_at = time.time()
+        self._check_inputs()
+
+    def _check_inputs(self) -> None:
+        own = zenoh.KeyExpr(f"{self.prefix}/out/**")
+        for expression in self.settings.inputs:
+            try:
+                key = zenoh.KeyExpr(expression)
+            except zenoh.ZError as err:
+                raise SettingsError(f"input '{expression}' is not a valid key expression: {err}") from None
+            if key.intersects(own):
+                raise SettingsError(
+                    f"input '{expression}' overlaps the service's outputs '{self.prefix}/out/**' (maps would "
+                    f"feed back as inputs); subscribe to narrower keys, e.g. '{self.prefix}/in/**'"
+                )
+
+    # ---- lifecycle -----------------------------------------------------------------------------------
+    def start(self) -> None:
+        for expression in self.settings.inputs:
+            head = literal_head(expression)
+            self._declared.append(self.session.declare_subscriber(expression, self._image_handler(head)))
+        self._declared += [
+            self.session.declare_queryable(f"{self.prefix}/out/**/patch", self._on_patch_query),
+            self.session.declare_queryable(f"{self.prefix}/config/anchors", self._on_anchors_query, complete=True),
+            self.session.declare_queryable(f"{self.prefix}/status", self._on_status_query, complete=True),
+            self.session.liveliness().declare_token(f"{self.prefix}/alive/{self.settings.instance}"),
+        ]
+        self._worker.start()
+        log.info(
+            "serving: inputs %s, outputs %s/out/{source}/maps, model %s, anchor set %s (%d anchors), method %s",
+            self.settings.inputs,
+            self.prefix,
+            self.pipeline.backend.model_id,
+            self.pipeline.anchors.version,
+            len(self.pipeline.anchors),
+            self.pipeline.settings.method.value,
+        )
+
+    def stop(self, timeout: float = 10.0) -> None:
+        """Stop taking frames, let the one in flight finish, undeclare everything."""
+        self._stopping.set()
+        self.queue.close()
+        if self._worker.is_alive():
+            self._worker.join(timeout)
+        for entity in [*self._declared, *self._publishers.values()]:
+            try:
+                entity.undeclare()
+            except zenoh.ZError as err:  # the session may already be closing
+                log.debug("undeclare failed: %s", err)
+        self._declared.clear()
+        self._publishers.clear()
+
+    # ---- input ---------------------------------------------------------------------------------------
+    def _image_handler(self, head: str) -> Callable[[zenoh.Sample], None]:
+        return lambda sample: self._on_image(sample, head)
+
+    def _on_image(self, sample: zenoh.Sample, head: str) -> None:
+        """Runs on zenoh's thread: only size-check and enqueue; decoding happens in the worker."""
+        if self._stopping.is_set():
+            return
+        key = str(sample.key_expr)
+        source = source_of(key, head)
+        size = len(sample.payload)
+        if size > self.settings.max_payload_bytes:  # refused unread: never copied out of zenoh's buffer
+            self.queue.count_unqueued(source)
+            self.stats.rejected(
+                source, "oversized", f"{size} bytes exceeds the limit of {self.settings.max_payload_bytes}"
+            )
+            return
+        self.queue.put(source, PendingFrame(key, sample.payload.to_bytes(), str(sample.encoding), time.time()))
+
+    # ---- worker --------------------------------------------------------------------------------------
+    def _work(self) -> None:
+        while True:
+            item = self.queue.take(timeout=0.25)
+            if item is None:
+                if self._stopping.is_set():
+                    return
+                continue
+            source, pending = item
+            try:
+                self._process(source, pending)
+            except Exception as err:  # the worker must survive anything one frame does
+                log.exception("frame from %s failed", pending.key)
+                self.stats.rejected(source, "processing_failed", repr(err)[:200])
+
+    def _process(self, source: str, pending: PendingFrame) -> None:
+        try:
+            frame = decode_payload(
+                pending.payload,
+                pending.encoding,
+                pending.received_at,
+                self.settings.max_payload_bytes,
+                self.settings.max_pixels,
+            )
+        except RejectedInput as err:
+            self.stats.rejected(source, err.reason, err.detail)
+            return
+        result = self.pipeline.process(frame.image)
+        seq = self._seq.get(source, -1) + 1
+        self._seq[source] = seq
+        height, width = frame.image.shape[:2]
+        record = FrameRecord(
+            seq=seq,
+            stamp=frame.stamp,
+            frame_id=frame.frame_id,
+            weights=result.maps.weights.astype(np.float16),
+            anchors=result.anchors,
+            image_size=(width, height),
+        )
+        self.history.add(source, record)
+        self._publish(source, pending, frame, result, record)
+
+    def _publish(
+        self, source: str, pending: PendingFrame, frame: DecodedFrame, result: FrameResult, record: FrameRecord
+    ) -> None:
+        t, u = result.maps.traversability, result.maps.uncertainty
+        width, height = record.image_size
+        full_t = resize_map(t, width, height) if self.settings.full_resolution or self.settings.preview else None
+        full_u = resize_map(u, width, height) if self.settings.full_resolution or self.settings.preview else None
+        published_at = time.time()
+        header = MapsHeader(
+            source=source,
+            key=pending.key,
+            seq=record.seq,
+            stamp=frame.stamp,
+            frame_id=frame.frame_id,
+            received_at=pending.received_at,
+            published_at=published_at,
+            inference_ms=result.inference_ms,
+            model=self.pipeline.backend.model_id,
+            instance=self.settings.instance,
+            anchor_set_version=result.anchors.version,
+            method=self.pipeline.settings.method,
+            map_shape=record.map_shape,
+            image_size=record.image_size,
+            scale=record.scale,
+        )
+        message = MapsMessage(
+            header=header,
+            traversability_png=encode_map_png16(t),
+            uncertainty_png=encode_map_png16(u),
+            traversability_full_png=encode_map_png16(full_t)
+            if self.settings.full_resolution and full_t is not None
+            else None,
+            uncertainty_full_png=encode_map_png16(full_u)
+            if self.settings.full_resolution and full_u is not None
+            else None,
+        )
+        self._publisher(f"{self.prefix}/out/{source}/maps", MSGPACK).put(message.pack())
+        if self.settings.preview and full_t is not None and full_u is not None:
+            preview = self._preview(frame, full_t, full_u)
+            self._publisher(f"{self.prefix}/out/{source}/preview", zenoh.Encoding.IMAGE_JPEG).put(preview)
+        latency_ms = (time.time() - pending.received_at) * 1e3
+        self.stats.processed(source, record.seq, latency_ms, result.inference_ms)
+
+    def _preview(self, frame: DecodedFrame, t: np.ndarray, u: np.ndarray) -> bytes:
+        """T over the image, beside U, scaled to at most preview_max_width."""
+        left = viz.overlay(frame.image, viz.colorize_traversability(t))
+        panel = np.concatenate([left, viz.colorize_uncertainty(u)], axis=1)
+        if panel.shape[1] > self.settings.preview_max_width:
+            factor = self.settings.preview_max_width / panel.shape[1]
+            size = (self.settings.preview_max_width, max(1, round(panel.shape[0] * factor)))
+            panel = cv2.resize(panel, size, interpolation=cv2.INTER_AREA)
+        return encode_jpeg(panel, quality=80)
+
+    def _publisher(self, key: str, encoding: zenoh.Encoding) -> zenoh.Publisher:
+        publisher = self._publishers.get(key)
+        if publisher is None:
+            # DROP: a slow consumer loses samples instead of blocking inference.
+            publisher = self.session.declare_publisher(
+                key, encoding=encoding, congestion_control=zenoh.CongestionControl.DROP
+            )
+            self._publishers[key] = publisher
+        return publisher
+
+    # ---- queries -------------------------------------------------------------------------------------
+    def _on_patch_query(self, query: zenoh.Query) -> None:
+        key = str(query.key_expr)
+        try:
+            middle = key[len(f"{self.prefix}/out/") : -len("/patch")]
+            if not middle or "*" in middle or "$" in middle:
+                raise QueryError(f"query one source's patch key, e.g. {self.prefix}/out/r1/front/patch, not '{key}'")
+            params = {name: value for name, value in query.parameters}  # type: ignore[attr-defined]
+            reply = answer_patch_query(self.history, middle, params)
+        except QueryError as err:
+            self.stats.rejected(None, "bad_query", f"{query.selector}: {err}")
+            query.reply_err(ErrorReply(error=str(err)).pack(), encoding=MSGPACK)
+            return
+        query.reply(key, reply.pack(), encoding=MSGPACK)
+
+    def _on_anchors_query(self, query: zenoh.Query) -> None:
+        key = f"{self.prefix}/config/anchors"
+        payload = query.payload
+        if payload is None or len(payload) == 0:
+            active = self.pipeline.anchors
+            query.reply(key, AnchorSetReply(anchor_set=active, version=active.version).pack(), encoding=MSGPACK)
+            return
+        with self._swap_lock:  # one swap at a time; frames keep flowing meanwhile
+            try:
+                if len(payload) > 1_000_000:
+                    raise AnchorSetError([f"payload of {len(payload)} bytes is too large for an anchor set"])
+                anchors = AnchorSet.from_text(payload.to_bytes(), source="anchor set")
+            except AnchorSetError as err:
+                self.stats.rejected(None, "invalid_anchor_set", "; ".join(err.messages)[:300])
+                rejection = AnchorSetRejection(errors=err.messages, active_version=self.pipeline.anchors.version)
+                query.reply_err(rejection.pack(), encoding=MSGPACK)
+                return
+            try:
+                prepared = self.pipeline.prepare(anchors)
+                save_anchor_state(self.settings.state_file, anchors)
+            except Exception as err:
+                log.exception("anchor swap failed")
+                rejection = AnchorSetRejection(
+                    errors=[f"swap failed: {err}"], active_version=self.pipeline.anchors.version
+                )
+                query.reply_err(rejection.pack(), encoding=MSGPACK)
+                return
+            self.pipeline.activate(prepared)
+        log.info("anchor set swapped to %s (%d anchors)", anchors.version, len(anchors))
+        query.reply(key, AnchorSetReply(anchor_set=anchors, version=anchors.version).pack(), encoding=MSGPACK)
+
+    def status(self) -> ServiceStatus:
+        counters = self.queue.counters()
+        sources: dict[str, SourceStatus] = {}
+        with self.stats._lock:
+            names = set(counters) | set(self.stats.sources)
+            for name in sorted(names):
+                queued = counters.get(name)
+                stats = self.stats.sources.get(name)
+                sources[name] = SourceStatus(
+                    received=queued.received if queued else 0,
+                    dropped=queued.dropped if queued else 0,
+                    processed=stats.processed if stats else 0,
+                    rejected=stats.rejected if stats else 0,
+                    last_seq=stats.last_seq if stats else None,
+                    latency_ms=percentiles(stats.latency_ms) if stats else {},
+                    inference_ms=percentiles(stats.inference_ms) if stats else {},
+                )
+            rejected = dict(self.stats.rejected_by_reason)
+            errors = list(self.stats.last_errors)
+        return ServiceStatus(
+            instance=self.settings.instance,
+            uptime_s=time.time() - self._started_at,
+            model=self.pipeline.backend.model_id,
+            anchor_set_version=self.pipeline.anchors.version,
+            method=self.pipeline.settings.method,
+            queued=len(self.queue),
+            sources=sources,
+            rejected_by_reason=rejected,
+            last_errors=errors,
+        )
+
+    def _on_status_query(self, query: zenoh.Query) -> None:
+        query.reply(f"{self.prefix}/status", self.status().pack(), encoding=MSGPACK)

@@ -1,0 +1,74 @@
+"""Counters, latency percentiles and rate-limited error logging for the status queryable."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+LATENCY_WINDOW = 1000
+ERROR_LOG_INTERVAL_S = 5.0
+LAST_ERRORS = 20
+
+
+def percentiles(values: deque[float]) -> dict[str, float]:
+    if not values:
+        return {}
+    data = np.fromiter(values, dtype=np.float64)
+    p50, p90, p99 = np.percentile(data, [50, 90, 99])
+    return {"p50": round(float(p50), 2), "p90": round(float(p90), 2), "p99": round(float(p99), 2)}
+
+
+@dataclass
+class SourceStats:
+    processed: int = 0
+    rejected: int = 0
+    last_seq: int | None = None
+    latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
+    inference_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
+
+
+class ServiceStats:
+    """Thread-safe; written by the subscriber callbacks and the worker, read by the status query."""
+
+    def __init__(self, log: logging.Logger) -> None:
+        self._lock = threading.Lock()
+        self._log = log
+        self.sources: dict[str, SourceStats] = {}
+        self.rejected_by_reason: Counter[str] = Counter()
+        self.last_errors: deque[str] = deque(maxlen=LAST_ERRORS)
+        self._last_logged: dict[str, float] = {}
+        self._suppressed: Counter[str] = Counter()
+
+    def source(self, name: str) -> SourceStats:
+        with self._lock:
+            return self.sources.setdefault(name, SourceStats())
+
+    def processed(self, name: str, seq: int, latency_ms: float, inference_ms: float) -> None:
+        with self._lock:
+            stats = self.sources.setdefault(name, SourceStats())
+            stats.processed += 1
+            stats.last_seq = seq
+            stats.latency_ms.append(latency_ms)
+            stats.inference_ms.append(inference_ms)
+
+    def rejected(self, name: str | None, reason: str, detail: str) -> None:
+        """Count a bad input and log it, at most once per reason every few seconds."""
+        message = f"{name or '-'}: {reason}: {detail}"
+        with self._lock:
+            if name is not None:
+                self.sources.setdefault(name, SourceStats()).rejected += 1
+            self.rejected_by_reason[reason] += 1
+            self.last_errors.append(f"{time.strftime('%H:%M:%S')} {message}")
+            now = time.monotonic()
+            if now - self._last_logged.get(reason, -1e9) < ERROR_LOG_INTERVAL_S:
+                self._suppressed[reason] += 1
+                return
+            self._last_logged[reason] = now
+            suppressed = self._suppressed.pop(reason, 0)
+        extra = f" (+{suppressed} similar since last report)" if suppressed else ""
+        self._log.warning("rejected %s%s", message, extra)

@@ -1,0 +1,181 @@
+"""Per-source frame history and the patch/region distribution query. No middleware here.
+
+Query parameters (zenoh selector parameters, all strings):
+  x, y      image pixel          | i, j   map cell (row, column)   | region=x0,y0,x1,y1 image pixels
+  seq       a kept frame's sequence number [default: the latest]
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from gcdtrav.schemas.anchors import Anchor, AnchorSet
+from gcdtrav.schemas.messages import ContextDistribution
+from gcdtrav.service.engine import gcd
+from numpy.typing import NDArray
+
+
+class QueryError(ValueError):
+    """A query that can't be answered; the message is sent back as the error reply."""
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    seq: int
+    stamp: float
+    frame_id: str
+    weights: NDArray[np.float16]  # (n, h, w): float16 halves the history's memory; ~1e-3 relative
+    anchors: AnchorSet
+    image_size: tuple[int, int]  # (width, height)
+
+    @property
+    def map_shape(self) -> tuple[int, int]:
+        return int(self.weights.shape[1]), int(self.weights.shape[2])
+
+    @property
+    def scale(self) -> tuple[float, float]:
+        """Image pixels per map cell, (sx, sy)."""
+        h, w = self.map_shape
+        return self.image_size[0] / w, self.image_size[1] / h
+
+
+class FrameHistory:
+    """The last ``depth`` frames of every source, for queries. Thread-safe."""
+
+    def __init__(self, depth: int) -> None:
+        self.depth = depth
+        self._frames: dict[str, deque[FrameRecord]] = {}
+        self._lock = threading.Lock()
+
+    def add(self, source: str, record: FrameRecord) -> None:
+        with self._lock:
+            self._frames.setdefault(source, deque(maxlen=self.depth)).append(record)
+
+    def sources(self) -> list[str]:
+        with self._lock:
+            return list(self._frames)
+
+    def get(self, source: str, seq: int | None) -> FrameRecord:
+        with self._lock:
+            frames = list(self._frames.get(source, ()))
+        if not frames:
+            raise QueryError(f"unknown source '{source}': no frame processed yet")
+        if seq is None:
+            return frames[-1]
+        for record in frames:
+            if record.seq == seq:
+                return record
+        kept = f"{frames[0].seq}..{frames[-1].seq}"
+        raise QueryError(f"seq {seq} of '{source}' is not kept (kept: {kept}, the last {self.depth} frames)")
+
+
+def _number(params: Mapping[str, str], name: str, kind: type = float) -> float:
+    text = params[name]
+    try:
+        value = kind(text)
+    except ValueError:
+        raise QueryError(f"parameter {name}='{text}' is not a{' whole' if kind is int else ''} number") from None
+    if not math.isfinite(value):
+        raise QueryError(f"parameter {name}='{text}' is not finite")
+    return value
+
+
+def _cell_of_pixel(record: FrameRecord, x: float, y: float) -> tuple[int, int]:
+    width, height = record.image_size
+    if not (0 <= x < width and 0 <= y < height):
+        raise QueryError(f"pixel ({x:g}, {y:g}) is outside the {width}x{height} image")
+    sx, sy = record.scale
+    h, w = record.map_shape
+    return min(int(y / sy), h - 1), min(int(x / sx), w - 1)
+
+
+def _region_cells(record: FrameRecord, text: str) -> tuple[int, int, int, int]:
+    try:
+        x0, y0, x1, y1 = (float(v) for v in text.split(","))
+    except ValueError:
+        raise QueryError(f"region='{text}' must be x0,y0,x1,y1 in image pixels") from None
+    width, height = record.image_size
+    if not (0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height):
+        raise QueryError(f"region ({text}) must satisfy 0 <= x0 < x1 <= {width} and 0 <= y0 < y1 <= {height}")
+    sx, sy = record.scale
+    h, w = record.map_shape
+    i0, j0 = min(int(y0 / sy), h - 1), min(int(x0 / sx), w - 1)
+    i1, j1 = max(min(math.ceil(y1 / sy), h), i0 + 1), max(min(math.ceil(x1 / sx), w), j0 + 1)
+    return i0, j0, i1, j1
+
+
+KNOWN_PARAMETERS = {"x", "y", "i", "j", "seq", "region"}
+
+
+def answer_patch_query(history: FrameHistory, source: str, params: Mapping[str, str]) -> ContextDistribution:
+    unknown = set(params) - KNOWN_PARAMETERS
+    if unknown:
+        raise QueryError(f"unknown parameter(s) {sorted(unknown)}; use x,y or i,j or region, and optionally seq")
+    seq = int(_number(params, "seq", int)) if "seq" in params else None
+    record = history.get(source, seq)
+    forms = [form for form in (("x", "y"), ("i", "j"), ("region",)) if any(p in params for p in form)]
+    if len(forms) != 1 or not all(p in params for p in forms[0]):
+        raise QueryError("give exactly one of: x and y (image pixels), i and j (map cell), region=x0,y0,x1,y1")
+    patch: tuple[int, int] | None = None
+    region: tuple[int, int, int, int] | None = None
+    if forms[0] == ("x", "y"):
+        patch = _cell_of_pixel(record, _number(params, "x"), _number(params, "y"))
+    elif forms[0] == ("i", "j"):
+        i, j = int(_number(params, "i", int)), int(_number(params, "j", int))
+        h, w = record.map_shape
+        if not (0 <= i < h and 0 <= j < w):
+            raise QueryError(f"cell (i={i}, j={j}) is outside the {h}x{w} map")
+        patch = (i, j)
+    else:
+        region = _region_cells(record, params["region"])
+    if patch is not None:
+        weights = record.weights[:, patch[0], patch[1]].astype(np.float32)
+    else:
+        assert region is not None
+        i0, j0, i1, j1 = region
+        weights = record.weights[:, i0:i1, j0:j1].astype(np.float32).mean(axis=(1, 2))
+    weights /= weights.sum()  # float16 storage: renormalise
+    return distribution_of(weights, record, source, patch=patch, region=region)
+
+
+def distribution_of(
+    weights: NDArray[np.float32],
+    record: FrameRecord,
+    source: str,
+    patch: tuple[int, int] | None = None,
+    region: tuple[int, int, int, int] | None = None,
+) -> ContextDistribution:
+    anchors = record.anchors
+    positions, widths = np.asarray(anchors.positions), np.asarray(anchors.widths)
+    stats = gcd.mixture_statistics(weights[:, None], positions, widths)
+    grid = gcd.density_grid()
+    density = gcd.mixture_density(weights[:, None], positions, widths, grid)[0]
+    return ContextDistribution(
+        source=source,
+        seq=record.seq,
+        stamp=record.stamp,
+        frame_id=record.frame_id,
+        anchor_set_version=anchors.version,
+        anchors=[
+            Anchor(concept=c, position=float(p), width=float(w))
+            for c, p, w in zip(anchors.concepts, positions, widths, strict=True)
+        ],
+        weights=[float(v) for v in weights],
+        patch=patch,
+        region=region,
+        mean=float(stats.mean[0]),
+        std=float(stats.std[0]),
+        skewness=float(stats.skewness[0]),
+        excess_kurtosis=float(stats.excess_kurtosis[0]),
+        entropy=float(stats.entropy[0]),
+        modes=int(stats.modes[0]),
+        top_anchors=[int(v) for v in stats.top_anchors[:, 0]],
+        density_x=[float(v) for v in grid],
+        density=[float(v) for v in density],
+        density_bandwidth=gcd.DEFAULT_DENSITY_BANDWIDTH,
+    )

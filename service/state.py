@@ -1,0 +1,47 @@
+"""The accepted anchor set on disk: written atomically so a crash never leaves a torn file."""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+from pathlib import Path
+
+from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
+
+log = logging.getLogger(__name__)
+
+
+def write_atomically(path: Path, text: str) -> None:
+    """Write to a temporary file in the same folder, fsync it, rename over ``path``, fsync the folder."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            handle.write(text)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+    directory = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(directory)
+    finally:
+        os.close(directory)
+
+
+def save_anchor_state(path: Path, anchors: AnchorSet) -> None:
+    write_atomically(path, anchors.to_json() + "\n")
+
+
+def load_anchor_state(path: Path) -> AnchorSet | None:
+    """The persisted set, or None if there is none or it is unusable (then the configured set is used)."""
+    if not path.is_file():
+        return None
+    try:
+        return AnchorSet.load(path)
+    except AnchorSetError as err:
+        log.error("ignoring the anchor state file: %s", err)
+        return None
