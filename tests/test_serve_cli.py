@@ -1,0 +1,146 @@
+"""`gcdtrav serve` as a process: starts, serves, stops cleanly on signals, keeps the accepted set."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from conftest import textured_image
+from zenoh_helpers import connecting_config, free_port, wait_until
+
+pytest.importorskip("torch")
+
+from gcdtrav.client import QueryTimeout, TraversabilityClient
+
+NEW_SET = {
+    "anchors": [
+        {"concept": "lake", "position": 0.0},
+        {"concept": "trail", "position": 0.7},
+        {"concept": "road", "position": 1.0},
+    ]
+}
+
+
+def start(model: Path, state: Path, port: int) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "gcdtrav.service.cli",
+            "serve",
+            "--model",
+            str(model),
+            "-l",
+            f"tcp/127.0.0.1:{port}",
+            "--no-multicast-scouting",
+            "--state-dir",
+            str(state),
+            "--instance",
+            "cli-test",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def ready(client: TraversabilityClient) -> bool:
+    try:
+        client.status(timeout=1.0)
+        return True
+    except QueryTimeout:
+        return False
+
+
+def stop(process: subprocess.Popen[str], signum: int) -> tuple[int, float, str]:
+    began = time.monotonic()
+    process.send_signal(signum)
+    output, _ = process.communicate(timeout=20)
+    return process.returncode, time.monotonic() - began, output
+
+
+def test_serve_stops_cleanly_and_restart_keeps_the_accepted_set(tiny_model_dir: Path, tmp_path: Path) -> None:
+    port = free_port()
+    process = start(tiny_model_dir, tmp_path, port)
+    try:
+        with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
+            assert wait_until(lambda: ready(client), 60), "service did not come up"
+            maps = client.iter_maps("**", timeout=15, limit=1)
+            time.sleep(0.3)
+            client.publish_image("cam", textured_image(64, 64))
+            first = next(maps)
+            assert first.header.instance == "cli-test"
+            version = client.set_anchors(NEW_SET)
+        code, seconds, output = stop(process, signal.SIGTERM)
+        assert code == 0, output
+        assert seconds < 10
+        assert "SIGTERM received" in output and "stopped" in output
+    finally:
+        if process.poll() is None:
+            process.kill()
+
+    process = start(tiny_model_dir, tmp_path, port)
+    try:
+        with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
+            assert wait_until(lambda: ready(client), 60)
+            reply = client.anchors()
+            assert reply.version == version and [a.concept for a in reply.anchor_set.anchors] == [
+                "lake",
+                "trail",
+                "road",
+            ]
+        code, _, output = stop(process, signal.SIGINT)
+        assert code == 0, output
+    finally:
+        if process.poll() is None:
+            process.kill()
+
+
+def test_serve_with_missing_model_exits_2(tmp_path: Path) -> None:
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "gcdtrav.service.cli",
+            "serve",
+            "--model",
+            str(tmp_path / "none"),
+            "--no-multicast-scouting",
+            "-l",
+            f"tcp/127.0.0.1:{free_port()}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2
+    assert "does not exist" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_serve_rejects_inputs_that_overlap_outputs(tiny_model_dir: Path, tmp_path: Path) -> None:
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "gcdtrav.service.cli",
+            "serve",
+            "--model",
+            str(tiny_model_dir),
+            "--input",
+            "**",
+            "--no-multicast-scouting",
+            "-l",
+            f"tcp/127.0.0.1:{free_port()}",
+            "--state-dir",
+            str(tmp_path),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert result.returncode == 2
+    assert "overlaps the service's outputs" in result.stderr
