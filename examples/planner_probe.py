@@ -1,0 +1,59 @@
+"""A planner asking the service for the context distribution under a pixel, and printing it.
+
+python examples/planner_probe.py --source r1/front --x 320 --y 400 [--region X0,Y0,X1,Y1] [-e tcp/HOST:7447]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from gcdtrav.client import ServiceError, TraversabilityClient, add_zenoh_arguments, zenoh_config_from_args
+from gcdtrav.schemas.messages import ContextDistribution
+
+
+def bar(weight: float, width: int = 40) -> str:
+    return "#" * round(weight * width)
+
+
+def describe(d: ContextDistribution) -> str:
+    where = f"cell {d.patch}" if d.patch is not None else f"region {d.region}"
+    lines = [
+        f"{d.source} seq={d.seq} {where} anchors={d.anchor_set_version}",
+        f"T (mean) = {d.mean:.3f}   U (std) = {d.std:.3f}   modes = {d.modes}   entropy = {d.entropy:.2f} nats",
+        f"skewness = {d.skewness:.2f}   excess kurtosis = {d.excess_kurtosis:.2f}",
+    ]
+    for anchor, weight in zip(d.anchors, d.weights, strict=True):
+        lines.append(f"  {anchor.concept:>14} @ {anchor.position:4.2f}  {weight:6.3f} {bar(weight)}")
+    return "\n".join(lines)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--source", default="r1/front")
+    parser.add_argument("--x", type=float, default=None, help="image pixel column")
+    parser.add_argument("--y", type=float, default=None, help="image pixel row")
+    parser.add_argument("--region", default=None, help="X0,Y0,X1,Y1 in image pixels: pooled distribution")
+    parser.add_argument("--seq", type=int, default=None, help="a kept frame [default: the latest]")
+    parser.add_argument("--timeout", type=float, default=5.0)
+    add_zenoh_arguments(parser)
+    args = parser.parse_args()
+    if args.region is None and (args.x is None or args.y is None):
+        parser.error("give --x and --y, or --region")
+
+    with TraversabilityClient(config=zenoh_config_from_args(args), timeout=args.timeout) as client:
+        try:
+            if args.region is not None:
+                x0, y0, x1, y1 = (float(v) for v in args.region.split(","))
+                reply = client.region(args.source, x0, y0, x1, y1, seq=args.seq)
+            else:
+                reply = client.patch(args.source, args.x, args.y, seq=args.seq)
+        except ServiceError as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 1
+    print(describe(reply))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

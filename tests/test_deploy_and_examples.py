@@ -1,0 +1,127 @@
+"""The shipped configs parse, and the examples run against a live service."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import pytest
+import zenoh
+from conftest import textured_image
+from zenoh_helpers import free_port, listening_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize("name", ["zenoh-router.json5", "service-zenoh.json5", "access-control.json5", "tls.json5"])
+def test_zenoh_configs_parse(name: str) -> None:
+    zenoh.Config.from_file(ROOT / "deploy" / name)
+
+
+def test_service_settings_example_is_valid() -> None:
+    from gcdtrav.schemas.settings import load_settings
+
+    settings = load_settings(ROOT / "deploy" / "service.yaml", environ={})
+    assert settings.prefix == "gcdtrav" and settings.inputs == ["gcdtrav/in/**"]
+
+
+def test_example_anchor_set_is_valid() -> None:
+    from gcdtrav.schemas.anchors import AnchorSet
+
+    assert len(AnchorSet.load(ROOT / "examples" / "anchors" / "puddles.yaml")) == 8
+
+
+def test_robot_planner_and_operator_examples(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    pytest.importorskip("torch")
+    from gcdtrav.schemas.anchors import default_anchor_set
+    from gcdtrav.schemas.config import EngineSettings
+    from gcdtrav.schemas.settings import ServiceSettings
+    from gcdtrav.service.bus.node import TraversabilityService
+    from gcdtrav.service.pipeline import Pipeline
+
+    port = free_port()
+    session = zenoh.open(listening_config(port))
+    service = TraversabilityService(
+        session,
+        Pipeline(tiny_backend, default_anchor_set(), EngineSettings()),
+        ServiceSettings(state_dir=tmp_path / "state", instance="examples"),
+    )
+    service.start()
+    flags = ["-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
+    folder = tmp_path / "images"
+    folder.mkdir()
+    for index in range(3):
+        cv2.imwrite(str(folder / f"{index:03d}.jpg"), textured_image(60, 80, seed=index))
+    try:
+        time.sleep(0.3)
+        robot = subprocess.run(
+            [
+                sys.executable,
+                str(ROOT / "examples" / "robot_stream_folder.py"),
+                str(folder),
+                "--source",
+                "r9/cam",
+                "--fps",
+                "4",
+                *flags,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert robot.returncode == 0, robot.stderr
+        assert "sent 2: 002.jpg" in robot.stdout and "maps r9/cam seq=" in robot.stdout
+        planner = subprocess.run(
+            [
+                sys.executable,
+                str(ROOT / "examples" / "planner_probe.py"),
+                "--source",
+                "r9/cam",
+                "--x",
+                "40",
+                "--y",
+                "30",
+                *flags,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert planner.returncode == 0, planner.stderr
+        assert "T (mean) =" in planner.stdout and "concrete @ 1.00" in planner.stdout
+        missing = subprocess.run(
+            [
+                sys.executable,
+                str(ROOT / "examples" / "planner_probe.py"),
+                "--source",
+                "nobody",
+                "--x",
+                "1",
+                "--y",
+                "1",
+                *flags,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert missing.returncode == 1 and "unknown source 'nobody'" in missing.stderr
+        operator = subprocess.run(
+            [
+                sys.executable,
+                str(ROOT / "examples" / "set_anchors.py"),
+                str(ROOT / "examples" / "anchors" / "puddles.yaml"),
+                *flags,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert operator.returncode == 0, operator.stderr
+        assert len(service.pipeline.anchors) == 8
+    finally:
+        service.stop()
+        session.close()
