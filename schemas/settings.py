@@ -11,7 +11,7 @@ import re
 import socket
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import yaml
 from gcdtrav.schemas.config import EngineSettings
@@ -52,6 +52,10 @@ class ServiceSettings(BaseModel):
     preview: bool = Field(default=True, description="Publish a colourised JPEG on {prefix}/out/{source}/preview.")
     preview_max_width: int = Field(default=640, ge=64)
     instance: str = Field(default_factory=default_instance_name, description="Name in results and liveliness.")
+    precision: Literal["auto", "fp32", "bf16", "int8"] = Field(
+        default="auto",
+        description="Vision encoder arithmetic: auto = bf16 on CPUs with AVX512-BF16/AMX, else fp32.",
+    )
     threads: int | None = Field(default=None, ge=1, description="torch intra-op threads [default: all cores].")
 
     @field_validator("prefix", "instance")

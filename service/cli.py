@@ -55,6 +55,12 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="divide U by the largest sigma the anchor set can produce, so U spans [0, 1]",
     )
+    parser.add_argument(
+        "--precision",
+        choices=["auto", "fp32", "bf16", "int8"],
+        default="auto",
+        help="vision encoder arithmetic; auto = bf16 where the CPU has AVX512-BF16/AMX, else fp32 [auto]",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -125,6 +131,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     group.add_argument("--max-payload-bytes", type=int, default=None, help="larger inputs are rejected [20 MB]")
     group.add_argument("--threads", type=int, default=None, help="torch threads [all cores]")
+    group.add_argument(
+        "--precision",
+        choices=["auto", "fp32", "bf16", "int8"],
+        default=None,
+        help="vision encoder arithmetic [auto: bf16 on CPUs with AVX512-BF16/AMX, else fp32]",
+    )
+
+    from gcdtrav.service import bench
+
+    bench.build_parser(
+        commands.add_parser("bench", help="benchmark every backend mode on this machine", description=bench.__doc__)
+    )
     return parser
 
 
@@ -137,7 +155,7 @@ def build_pipeline(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     settings = EngineSettings(
         method=Method(args.method), temperature=args.temperature, normalize_uncertainty=args.normalize_u
     )
-    backend = ClipSegBackend(args.model or default_model())
+    backend = ClipSegBackend(args.model or default_model(), precision=args.precision)
     return Pipeline(backend, anchors, settings)
 
 
@@ -169,6 +187,7 @@ def serve_settings(args: argparse.Namespace):  # type: ignore[no-untyped-def]
             "preview",
             "max_payload_bytes",
             "threads",
+            "precision",
         )
     }
     if args.method is not None:
@@ -191,13 +210,19 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return run_service(settings, config)
 
 
+def cmd_bench(args: argparse.Namespace) -> int:
+    from gcdtrav.service import bench
+
+    return bench.run(args)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    handlers = {"infer": cmd_infer, "serve": cmd_serve}
+    handlers = {"infer": cmd_infer, "serve": cmd_serve, "bench": cmd_bench}
     try:
         from gcdtrav.service.backends.base import ModelUnavailableError
     except ImportError as err:  # torch missing: the client-only install

@@ -80,3 +80,46 @@ def test_unreachable_hub_id_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) ->
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     with pytest.raises(ModelUnavailableError, match="cannot load the CLIPSeg model 'CIDAS/clipseg-rd64-refined'"):
         ClipSegBackend("CIDAS/clipseg-rd64-refined")
+
+
+@pytest.mark.parametrize("precision", ["bf16", "int8"])
+def test_fast_modes_keep_parity_with_fp32(tiny_model_dir: Path, tiny_backend: ClipSegBackend, precision: str) -> None:
+    from gcdtrav.schemas.anchors import default_anchor_set
+    from gcdtrav.service.bench import PARITY_P99_DT_LIMIT, activation_cosine, parity
+
+    fast = ClipSegBackend(str(tiny_model_dir), precision=precision)
+    assert fast.precision == precision
+    cas = default_anchor_set()
+    image = textured_image(100, 120, seed=7)
+    reference = tiny_backend.logits(image, tiny_backend.prepare(cas.concepts))
+    candidate = fast.logits(image, fast.prepare(cas.concepts))
+    report = parity(reference, candidate, cas)
+    assert report["p99_dT"] <= PARITY_P99_DT_LIMIT
+    assert report["max_dT"] < 0.1
+    pixels = tiny_backend.preprocess(image)
+    assert activation_cosine(tiny_backend.vision_activations(pixels), fast.vision_activations(pixels)) > 0.99
+    # The fp32 model itself is untouched: transformers' forward still matches the fp32 fast path.
+    np.testing.assert_allclose(tiny_backend.naive_logits(image, cas.concepts), reference, atol=1e-4)
+
+
+def test_parity_measure_sees_errors_and_nothing_else(tiny_backend: ClipSegBackend) -> None:
+    from gcdtrav.schemas.anchors import default_anchor_set
+    from gcdtrav.service.bench import PARITY_P99_DT_LIMIT, parity
+
+    cas = default_anchor_set()
+    reference = tiny_backend.logits(textured_image(100, 120, seed=7), tiny_backend.prepare(cas.concepts))
+    same = parity(reference, reference.copy(), cas)
+    assert same["max_dT"] == 0 and same["top_anchor_changed"] == 0
+    shifted = parity(reference, reference + 123.0, cas)  # a per-patch offset: the softmax ignores it
+    assert shifted["max_dT"] < 1e-5
+    noise = np.random.default_rng(0).normal(0, 0.05 * reference.std(), size=reference.shape).astype(np.float32)
+    noisy = parity(reference, reference + noise, cas)  # 5 % anchor-dependent error: must fail the gate
+    assert noisy["p99_dT"] > PARITY_P99_DT_LIMIT and noisy["top_anchor_changed"] > 0.05
+
+
+def test_precision_is_validated() -> None:
+    from gcdtrav.service.backends.clipseg import resolve_precision
+
+    assert resolve_precision("auto") in ("bf16", "fp32")
+    with pytest.raises(ValueError, match="precision must be one of"):
+        resolve_precision("fp8")

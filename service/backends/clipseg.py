@@ -12,6 +12,7 @@ The results match transformers' own forward (see tests/test_backend_clipseg.py).
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 from collections import OrderedDict
@@ -68,6 +69,57 @@ class Preprocessing:
         return torch.from_numpy(np.ascontiguousarray(scaled.transpose(2, 0, 1)))[None]
 
 
+PRECISIONS = ("auto", "fp32", "bf16", "int8")
+
+
+def cpu_has_fast_bf16() -> bool:
+    """AVX512-BF16 or AMX: bf16 matrix products run natively (x86). Elsewhere bf16 is emulated and slow."""
+    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
+    return any(bool(getattr(torch.cpu, name, lambda: False)()) for name in checks)
+
+
+def resolve_precision(requested: str) -> str:
+    """'auto' picks the fastest mode that passes the parity bound on this CPU (see benchmarks/README.md)."""
+    if requested not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, not '{requested}'")
+    if requested == "auto":
+        return "bf16" if cpu_has_fast_bf16() else "fp32"
+    return requested
+
+
+class VisionTrunk(torch.nn.Module):
+    """The part of the ViT the decoder reads: embeddings, pre-norm, layers 0..last_layer.
+
+    fp32 shares the model's modules; bf16 and int8 (dynamic quantisation of the linear layers) work on a
+    copy, so the model itself stays the fp32 reference.
+    """
+
+    def __init__(
+        self,
+        embeddings: torch.nn.Module,
+        pre_layrnorm: torch.nn.Module,
+        layers: torch.nn.ModuleList,
+        dtype: torch.dtype,
+    ) -> None:
+        super().__init__()
+        self.embeddings, self.pre_layrnorm, self.layers, self.dtype = embeddings, pre_layrnorm, layers, dtype
+
+    @classmethod
+    def build(cls, vision: Any, last_layer: int, precision: str) -> VisionTrunk:
+        layers = torch.nn.ModuleList(list(vision.encoder.layers)[: last_layer + 1])
+        trunk = cls(vision.embeddings, vision.pre_layrnorm, layers, torch.float32)
+        if precision == "fp32":
+            return trunk
+        trunk = copy.deepcopy(trunk)
+        if precision == "bf16":
+            trunk = trunk.to(torch.bfloat16)
+            trunk.dtype = torch.bfloat16
+            return trunk
+        quantized = torch.ao.quantization.quantize_dynamic(trunk, {torch.nn.Linear}, dtype=torch.qint8)
+        assert isinstance(quantized, VisionTrunk)
+        return quantized
+
+
 def _triple(values: Any) -> tuple[float, float, float]:
     first, second, third = (float(v) for v in values)
     return first, second, third
@@ -90,7 +142,7 @@ def _locate(model: str, filename: str) -> Path | None:
 class ClipSegBackend:
     """CLIPSeg logits for every concept of an anchor set, one ViT pass per image."""
 
-    def __init__(self, model: str, device: str = "cpu", prepared_cache_size: int = 4) -> None:
+    def __init__(self, model: str, device: str = "cpu", precision: str = "fp32", prepared_cache_size: int = 4) -> None:
         from transformers import CLIPSegForImageSegmentation, CLIPTokenizer
 
         self.model_id = model
@@ -108,6 +160,8 @@ class ClipSegBackend:
             ) from None
         self.preprocess = Preprocessing.from_config_file(_locate(model, "preprocessor_config.json"))
         self.extract_layers = list(self.model.config.extract_layers)
+        self.precision = resolve_precision(precision)
+        self._trunk = VisionTrunk.build(self.model.clip.vision_model, max(self.extract_layers), self.precision)
         self._prepared: OrderedDict[tuple[str, ...], torch.Tensor] = OrderedDict()
         self._prepared_cache_size = prepared_cache_size
 
@@ -132,14 +186,14 @@ class ClipSegBackend:
     @torch.inference_mode()
     def vision_activations(self, pixel_values: torch.Tensor) -> list[torch.Tensor]:
         """Hidden states after each layer in ``extract_layers``; later layers are never run."""
-        vision = self.model.clip.vision_model
-        hidden = vision.pre_layrnorm(vision.embeddings(pixel_values, interpolate_pos_encoding=True))
+        trunk = self._trunk
+        hidden = trunk.pre_layrnorm(trunk.embeddings(pixel_values.to(trunk.dtype), interpolate_pos_encoding=True))
         wanted = set(self.extract_layers)
         activations = []
-        for index, layer in enumerate(vision.encoder.layers[: max(wanted) + 1]):
+        for index, layer in enumerate(trunk.layers):
             hidden = layer(hidden, None)
             if index in wanted:
-                activations.append(hidden)
+                activations.append(hidden.float())  # the decoder is small and stays fp32
         return activations
 
     @torch.inference_mode()

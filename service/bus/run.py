@@ -41,7 +41,8 @@ def build_service_pipeline(settings: ServiceSettings) -> Pipeline:
     if settings.threads is not None:
         torch.set_num_threads(settings.threads)
     anchors = starting_anchor_set(settings)
-    backend = ClipSegBackend(settings.model or os.environ.get("GCDTRAV_MODEL", DEFAULT_MODEL))
+    model = settings.model or os.environ.get("GCDTRAV_MODEL", DEFAULT_MODEL)
+    backend = ClipSegBackend(model, precision=settings.precision)
     return Pipeline(backend, anchors, settings.engine)
 
 

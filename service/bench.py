@@ -1,0 +1,459 @@
+"""`gcdtrav bench`: per-frame cost of every backend mode, in one process, on random weights of the real
+architecture (CLIPSeg rd64-refined: ViT-B/16 at 352x352 plus the text encoder), so the compute is real.
+
+Rows: transformers' naive forward; the fast path in fp32, bf16 and int8; attention and thread variants;
+cost against the number of anchors and the input size; the GCD engine and map encoding alone; end to
+end through zenoh on loopback. Parity of each fast mode against fp32 is measured on logits brought to a
+trained model's scale (see ``parity``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from gcdtrav.schemas.anchors import Anchor, AnchorSet, default_anchor_set
+from gcdtrav.schemas.config import EngineSettings
+from gcdtrav.schemas.images import encode_map_png16
+from gcdtrav.service.engine import gcd
+from gcdtrav.service.engine.maps import compute_maps
+from numpy.typing import NDArray
+
+TRAINED_LOGIT_STD = 3.0  # a trained CLIPSeg's logits are a few units and differ across prompts by a few units
+PARITY_P99_DT_LIMIT = 0.02
+
+
+# ---- measurement helpers ---------------------------------------------------------------------------
+
+
+def current_rss_mb() -> float:
+    try:
+        with open("/proc/self/statm") as handle:
+            return int(handle.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except OSError:  # not Linux: fall back to the process peak
+        import resource
+
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+class RssSampler:
+    """Peak resident memory while a row runs, sampled every 5 ms."""
+
+    def __enter__(self) -> RssSampler:
+        self.peak = current_rss_mb()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.005):
+            self.peak = max(self.peak, current_rss_mb())
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+@dataclass
+class Row:
+    name: str
+    group: str
+    runs: int
+    median_ms: float
+    p95_ms: float
+    fps: float
+    peak_rss_mb: float
+    note: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def time_call(fn: Callable[[], object], runs: int, warmup: int = 1) -> tuple[list[float], float]:
+    with RssSampler() as rss:
+        for _ in range(warmup):
+            fn()
+        times = []
+        for _ in range(runs):
+            began = time.perf_counter()
+            fn()
+            times.append((time.perf_counter() - began) * 1e3)
+    return times, rss.peak
+
+
+def make_row(name: str, group: str, times: list[float], peak: float, note: str = "", **extra: Any) -> Row:
+    median = statistics.median(times)
+    p95 = float(np.percentile(times, 95))
+    return Row(
+        name, group, len(times), round(median, 2), round(p95, 2), round(1000 / median, 2), round(peak, 1), note, extra
+    )
+
+
+# ---- parity ----------------------------------------------------------------------------------------
+
+
+def parity(reference: NDArray[np.float32], candidate: NDArray[np.float32], anchors: AnchorSet) -> dict[str, float]:
+    """T/U differences of a fast mode against fp32 on the same inputs, at a trained model's logit scale.
+
+    Random weights give logits whose standard deviation is in the hundreds, almost all of it shared by every
+    anchor (a per-patch offset the softmax ignores), while the anchors differ by about one unit. Compared
+    as they are, the softmax is nearly one-hot and any rounding flips it; rescaled as a whole to a standard
+    deviation of 3, the anchors become indistinguishable and no error shows. Neither is a trained model,
+    whose logits are a few units and differ across anchors by a few units. So:
+      1. the fast mode's error is kept at its relative size: (candidate - reference) * 3 / std(reference),
+         which is rescaling the decoder's last (linear) layer so the logits' standard deviation is 3;
+      2. it is added to the reference's anchor-dependent part (per-patch mean removed), scaled so that the
+         per-patch spread across anchors is 3 (median over patches).
+    T and U from both are compared: max and p99 of |dT| and |dU|, and the fraction of patches whose top
+    anchor changes.
+    """
+    error = (candidate - reference) * (TRAINED_LOGIT_STD / float(reference.std()))
+    centred = reference - reference.mean(axis=0, keepdims=True)
+    trained_like = centred * (TRAINED_LOGIT_STD / float(np.median(centred.std(axis=0))))
+    settings = EngineSettings()
+    ref = compute_maps(trained_like, anchors, settings)
+    cand = compute_maps(trained_like + error, anchors, settings)
+    d_t = np.abs(ref.traversability - cand.traversability)
+    d_u = np.abs(ref.uncertainty - cand.uncertainty)
+    top_changed = np.argmax(ref.weights, axis=0) != np.argmax(cand.weights, axis=0)
+    return {
+        "max_dT": float(d_t.max()),
+        "p99_dT": float(np.percentile(d_t, 99)),
+        "max_dU": float(d_u.max()),
+        "p99_dU": float(np.percentile(d_u, 99)),
+        "top_anchor_changed": float(top_changed.mean()),
+        "relative_logit_error": float((candidate - reference).std() / reference.std()),
+    }
+
+
+def activation_cosine(reference: list[Any], candidate: list[Any]) -> float:
+    """Smallest, over the extracted layers, of the mean per-token cosine similarity of backbone activations."""
+    import torch
+
+    values = []
+    for a, b in zip(reference, candidate, strict=True):
+        values.append(float(torch.nn.functional.cosine_similarity(a.float(), b.float(), dim=-1).mean()))
+    return min(values)
+
+
+# ---- the benchmark ---------------------------------------------------------------------------------
+
+
+def bench_image(height: int = 480, width: int = 640, seed: int = 0) -> NDArray[np.uint8]:
+    """A structured test image (gradients, blocks, noise): random weights make the content irrelevant."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:height, 0:width]
+    image = np.stack([x * 255 // width, y * 255 // height, ((x // 40 + y // 40) % 2) * 200], axis=2)
+    return np.clip(image + rng.integers(0, 30, size=image.shape), 0, 255).astype(np.uint8)
+
+
+def anchor_set_of(count: int) -> AnchorSet:
+    base = default_anchor_set()
+    if count <= len(base):
+        chosen = np.linspace(0, len(base) - 1, count).round().astype(int)
+        return AnchorSet(name=f"{count}", anchors=[base.anchors[i] for i in chosen])
+    return AnchorSet(
+        name=f"{count}", anchors=[Anchor(concept=f"terrain type {i}", position=i / (count - 1)) for i in range(count)]
+    )
+
+
+class Bench:
+    def __init__(self, model_dir: Path, runs: int, naive_runs: int, log: Callable[[str], None]) -> None:
+        self.model_dir, self.runs, self.naive_runs, self.log = model_dir, runs, naive_runs, log
+        self.rows: list[Row] = []
+        self.parity: dict[str, dict[str, float]] = {}
+        self.image = bench_image()
+        self.anchors = default_anchor_set()
+
+    def add(self, row: Row) -> None:
+        self.rows.append(row)
+        self.log(
+            f"  {row.group:>10} | {row.name:<34} median {row.median_ms:9.1f} ms  p95 {row.p95_ms:9.1f} ms  "
+            f"rss {row.peak_rss_mb:7.0f} MB {row.note}"
+        )
+
+    def frame(self, backend: Any, prepared: object) -> Callable[[], object]:
+        return lambda: backend.logits(self.image, prepared)
+
+    def backend(self, precision: str = "fp32", attention: str | None = None):  # type: ignore[no-untyped-def]
+        from gcdtrav.service.backends.clipseg import ClipSegBackend
+
+        backend = ClipSegBackend(str(self.model_dir), precision=precision)
+        if attention is not None:
+            backend.model.set_attn_implementation(attention)
+        return backend
+
+    def run_modes(self, modes: list[str]) -> None:
+        import torch
+
+        reference = self.backend("fp32")
+        prepared = reference.prepare(self.anchors.concepts)
+        pixels = reference.preprocess(self.image)
+        ref_logits = [reference.logits(bench_image(seed=s), prepared) for s in range(3)]
+        ref_acts = reference.vision_activations(pixels)
+
+        times, peak = time_call(lambda: reference.naive_logits(self.image, self.anchors.concepts), self.naive_runs)
+        self.add(make_row("transformers naive forward (fp32)", "mode", times, peak, "ViT once per concept"))
+        times, peak = time_call(lambda: reference.logits(self.image, prepared), self.runs)
+        self.add(make_row("fast path fp32", "mode", times, peak, "ViT once, 10 layers, batched decoder"))
+
+        for mode in modes:
+            backend = self.backend(mode)
+            prep = backend.prepare(self.anchors.concepts)
+            times, peak = time_call(self.frame(backend, prep), self.runs)
+            cand = [backend.logits(bench_image(seed=s), prep) for s in range(3)]
+            report = {
+                k: max(parity(r, c, self.anchors)[k] for r, c in zip(ref_logits, cand, strict=True))
+                for k in ("max_dT", "p99_dT", "max_dU", "p99_dU", "top_anchor_changed")
+            }
+            report["activation_cosine_min"] = activation_cosine(ref_acts, backend.vision_activations(pixels))
+            report["passes"] = float(report["p99_dT"] <= PARITY_P99_DT_LIMIT)
+            self.parity[mode] = report
+            self.add(
+                make_row(f"fast path {mode}", "mode", times, peak, f"p99|dT| {report['p99_dT']:.4f}", parity=report)
+            )
+
+        eager = self.backend("fp32", attention="eager")
+        prep = eager.prepare(self.anchors.concepts)
+        times, peak = time_call(self.frame(eager, prep), self.runs)
+        self.add(make_row("fast path fp32, eager attention", "attention", times, peak, "vs SDPA above"))
+
+        threads = torch.get_num_threads()
+        if threads > 1:
+            torch.set_num_threads(1)
+            try:
+                times, peak = time_call(lambda: reference.logits(self.image, prepared), self.runs)
+                self.add(make_row("fast path fp32, 1 thread", "threads", times, peak, f"default {threads}"))
+            finally:
+                torch.set_num_threads(threads)
+
+    def run_sweeps(self, precision: str) -> None:
+        from gcdtrav.service.backends.clipseg import Preprocessing
+
+        backend = self.backend(precision)
+        for count in (2, 13, 32, 64):
+            anchors = anchor_set_of(count)
+            prepared = backend.prepare(anchors.concepts)
+            times, peak = time_call(self.frame(backend, prepared), self.runs)
+            self.add(make_row(f"{count} anchors ({precision})", "anchors", times, peak))
+        prepared = backend.prepare(self.anchors.concepts)
+        default = backend.preprocess
+        for size in (224, 352, 448):
+            backend.preprocess = Preprocessing(size=size, mean=default.mean, std=default.std)
+            times, peak = time_call(lambda: backend.logits(self.image, prepared), self.runs)
+            self.add(make_row(f"input {size}x{size} ({precision})", "input", times, peak))
+        backend.preprocess = default
+
+    def run_engine(self) -> None:
+        rng = np.random.default_rng(0)
+        logits = rng.normal(0, 3, size=(13, 352, 352)).astype(np.float32)
+        settings = EngineSettings()
+        times, peak = time_call(lambda: compute_maps(logits, self.anchors, settings), self.runs * 2)
+        self.add(make_row("GCD T and U, 13x352x352", "engine", times, peak))
+        weights = gcd.softmax_weights(logits)
+        times, peak = time_call(
+            lambda: gcd.mixture_statistics(weights, self.anchors.positions, self.anchors.widths), max(3, self.runs // 2)
+        )
+        self.add(make_row("all statistics incl. modes", "engine", times, peak))
+        maps = compute_maps(logits, self.anchors, settings)
+        times, peak = time_call(
+            lambda: (encode_map_png16(maps.traversability), encode_map_png16(maps.uncertainty)), self.runs * 2
+        )
+        self.add(make_row("encode T and U as 16-bit PNG", "engine", times, peak))
+        from gcdtrav.service.engine.gcd import gaussian_fit_baseline
+
+        times, peak = time_call(lambda: gaussian_fit_baseline(weights, self.anchors.positions), 3)
+        self.add(make_row("gaussian baseline fit", "engine", times, peak))
+
+    def run_zenoh(self, precision: str, frames: int) -> None:
+        """Image put to maps received over loopback, minus inference: the service's own overhead."""
+        self.log(f"  end to end through zenoh: {frames} frames of 640x480 JPEG ...")
+        result = zenoh_end_to_end(self.model_dir, precision, frames)
+        self.add(
+            make_row(
+                f"zenoh loopback e2e ({precision})",
+                "zenoh",
+                result["latency_ms"],
+                result["peak_rss_mb"],
+                f"overhead median {result['overhead_median_ms']:.1f} ms",
+                overhead_median_ms=result["overhead_median_ms"],
+                overhead_p95_ms=result["overhead_p95_ms"],
+                frames=len(result["latency_ms"]),
+            )
+        )
+
+
+def zenoh_end_to_end(model_dir: Path, precision: str, frames: int) -> dict[str, Any]:
+    import socket
+
+    import zenoh
+    from gcdtrav.client import TraversabilityClient, zenoh_config
+    from gcdtrav.schemas.images import encode_jpeg
+    from gcdtrav.schemas.settings import ServiceSettings
+    from gcdtrav.service.backends.clipseg import ClipSegBackend
+    from gcdtrav.service.bus.node import TraversabilityService
+    from gcdtrav.service.pipeline import Pipeline
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    server = zenoh.open(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
+    with tempfile.TemporaryDirectory() as state:
+        settings = ServiceSettings(state_dir=Path(state), instance="bench", preview=False)
+        pipeline = Pipeline(ClipSegBackend(str(model_dir), precision=precision), default_anchor_set(), EngineSettings())
+        service = TraversabilityService(server, pipeline, settings)
+        service.start()
+        client = TraversabilityClient(
+            config=zenoh_config(mode="peer", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+        )
+        arrived: dict[int, tuple[float, float]] = {}
+        done = threading.Event()
+
+        def on_maps(maps: Any) -> None:
+            arrived[maps.header.seq] = (time.perf_counter(), maps.header.inference_ms)
+            done.set()
+
+        subscriber = client.subscribe_maps("bench", on_maps)
+        time.sleep(0.5)
+        jpeg = encode_jpeg(bench_image(), 90)
+        latencies, overheads = [], []
+        with RssSampler() as rss:
+            for index in range(frames + 3):  # 3 warm-up frames
+                done.clear()
+                sent = time.perf_counter()
+                client.publish_image("bench", jpeg)
+                if not done.wait(30):
+                    raise RuntimeError("no maps within 30 s")
+                received, inference = arrived[index]
+                if index >= 3:
+                    latencies.append((received - sent) * 1e3)
+                    overheads.append((received - sent) * 1e3 - inference)
+        subscriber.undeclare()
+        client.close()
+        service.stop()
+    server.close()
+    return {
+        "latency_ms": latencies,
+        "overhead_median_ms": statistics.median(overheads),
+        "overhead_p95_ms": float(np.percentile(overheads, 95)),
+        "peak_rss_mb": rss.peak,
+    }
+
+
+def format_table(rows: list[Row]) -> str:
+    header = (
+        f"| {'group':<9} | {'row':<36} | {'median ms':>9} | {'p95 ms':>9} | {'frames/s':>8} "
+        f"| {'peak RSS MB':>11} | note"
+    )
+    lines = [header, "|" + "---|" * 7]
+    for r in rows:
+        lines.append(
+            f"| {r.group:<9} | {r.name:<36} | {r.median_ms:>9.1f} | {r.p95_ms:>9.1f} | {r.fps:>8.2f} | "
+            f"{r.peak_rss_mb:>11.0f} | {r.note}"
+        )
+    return "\n".join(lines)
+
+
+def machine_info() -> dict[str, Any]:
+    import torch
+    from gcdtrav.service.backends.clipseg import cpu_has_fast_bf16
+
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "cpu": platform.processor() or platform.machine(),
+        "cores": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "fast_bf16": cpu_has_fast_bf16(),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }
+
+
+def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    parser = parser or argparse.ArgumentParser(prog="gcdtrav bench", description=__doc__)
+    parser.add_argument(
+        "--model",
+        default=None,
+        help="a checkpoint directory [default: random weights of the "
+        "real rd64-refined architecture, built in a temporary directory]",
+    )
+    parser.add_argument("--runs", type=int, default=7, help="timed runs per row (after one warm-up) [7]")
+    parser.add_argument("--naive-runs", type=int, default=5, help="timed runs of the slow naive forward [5]")
+    parser.add_argument("--modes", default="bf16,int8", help="fast modes compared with fp32 [bf16,int8]")
+    parser.add_argument("--zenoh-frames", type=int, default=100, help="frames for the end-to-end row (0: skip)")
+    parser.add_argument("--skip", default="", help="comma list of parts to skip: modes,sweeps,engine,zenoh")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/bench.json"), help="JSON output")
+    return parser
+
+
+def run(args: argparse.Namespace) -> int:
+    from gcdtrav.service.backends.clipseg import resolve_precision
+    from gcdtrav.service.backends.random_clipseg import save_random_clipseg
+
+    def log(text: str) -> None:
+        print(text, file=sys.stderr, flush=True)
+
+    skip = {part.strip() for part in args.skip.split(",") if part.strip()}
+    with tempfile.TemporaryDirectory() as scratch:
+        model_dir = Path(args.model) if args.model else Path(scratch) / "clipseg-rd64-refined-random"
+        if not args.model:
+            log("building random weights of the real architecture (CLIPSeg rd64-refined) ...")
+            save_random_clipseg(model_dir, preset="rd64-refined", input_size=352)
+        bench = Bench(model_dir, args.runs, args.naive_runs, log)
+        default_precision = resolve_precision("auto")
+        if "modes" not in skip:
+            log("backend modes (13 anchors, 640x480 image resized to 352x352):")
+            bench.run_modes([m for m in args.modes.split(",") if m])
+        if "sweeps" not in skip:
+            log(f"cost against anchors and input size ({default_precision}):")
+            bench.run_sweeps(default_precision)
+        if "engine" not in skip:
+            log("engine and encoding alone:")
+            bench.run_engine()
+        if "zenoh" not in skip and args.zenoh_frames > 0:
+            bench.run_zenoh(default_precision, args.zenoh_frames)
+    summary = {
+        "machine": machine_info(),
+        "default_precision": default_precision,
+        "parity_method": parity.__doc__,
+        "parity_limit_p99_dT": PARITY_P99_DT_LIMIT,
+        "parity": bench.parity,
+        "rows": [asdict(r) for r in bench.rows],
+    }
+    naive = next((r for r in bench.rows if r.name.startswith("transformers naive")), None)
+    fast = next((r for r in bench.rows if r.name == f"fast path {default_precision}"), None)
+    if naive and fast:
+        summary["speedup_default_vs_naive"] = round(naive.median_ms / fast.median_ms, 1)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(summary, indent=2) + "\n", "utf-8")
+    print(format_table(bench.rows))
+    if bench.parity:
+        print("\nparity against fp32 (logits scaled to std 3; worst of 3 images):")
+        for mode, report in bench.parity.items():
+            print(f"  {mode}: " + ", ".join(f"{k} {v:.4g}" for k, v in report.items()))
+    if "speedup_default_vs_naive" in summary:
+        print(
+            f"\ndefault ({default_precision}) vs transformers' naive forward: "
+            f"{summary['speedup_default_vs_naive']}x faster"
+        )
+    print(f"written: {args.out}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run(build_parser().parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
