@@ -138,6 +138,29 @@ def build_parser() -> argparse.ArgumentParser:
         help="vision encoder arithmetic [auto: bf16 on CPUs with AVX512-BF16/AMX, else fp32]",
     )
 
+    evaluate = commands.add_parser(
+        "eval",
+        help="compare T and U with label-derived ground truth",
+        description="The paper's evaluation on GOOSE-format (or RUGD, or generic) data.",
+    )
+    evaluate.add_argument("--dataset", choices=["goose", "rugd", "generic"], required=True)
+    evaluate.add_argument("--root", type=Path, required=True, help="the dataset's root folder")
+    evaluate.add_argument("--split", default=None, help="goose: val|train|test [val]; rugd: comma list of sequences")
+    evaluate.add_argument("--methods", default="gcd,argmax,gaussian", help="comma list [gcd,argmax,gaussian]")
+    evaluate.add_argument(
+        "--mapping",
+        default=None,
+        help="label -> traversability YAML [the shipped one for goose and rugd; required for generic]",
+    )
+    evaluate.add_argument("--model", default=None, help="CLIPSeg directory or hub id [env GCDTRAV_MODEL]")
+    evaluate.add_argument("--anchors", default=None, help="anchor-set file [the paper's set]")
+    evaluate.add_argument("--precision", choices=["auto", "fp32", "bf16", "int8"], default="auto")
+    evaluate.add_argument("--temperature", type=float, default=1.0)
+    evaluate.add_argument("--grid", type=int, default=8, help="sample every GRID-th pixel in x and y [8]")
+    evaluate.add_argument("--out", type=Path, default=Path("eval_out"), help="output folder [eval_out]")
+    evaluate.add_argument("--limit", type=int, default=None, help="only the first N images")
+    evaluate.add_argument("--no-figures", action="store_true")
+
     from gcdtrav.service import bench
 
     bench.build_parser(
@@ -210,6 +233,47 @@ def cmd_serve(args: argparse.Namespace) -> int:
     return run_service(settings, config)
 
 
+def cmd_eval(args: argparse.Namespace) -> int:
+    from gcdtrav.service.backends.clipseg import ClipSegBackend
+    from gcdtrav.service.eval.datasets import DatasetError, load_dataset
+    from gcdtrav.service.eval.mapping import load_mapping
+    from gcdtrav.service.eval.run import EvalOptions, run_eval
+
+    try:
+        methods = [Method(m.strip()) for m in args.methods.split(",") if m.strip()]
+    except ValueError:
+        print(f"gcdtrav: --methods must list gcd, argmax, gaussian; got '{args.methods}'", file=sys.stderr)
+        return EXIT_USAGE
+    anchors = load_anchors(args.anchors)
+    try:
+        dataset = load_dataset(args.dataset, args.root, args.split)
+        if args.mapping is None and args.dataset == "generic":
+            raise DatasetError("a generic dataset needs --mapping FILE.yaml (class name: value or ignore)")
+        table = load_mapping(args.mapping or args.dataset, dataset.class_names)
+    except DatasetError as err:
+        print(f"gcdtrav: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    backend = ClipSegBackend(args.model or default_model(), precision=args.precision)
+    options = EvalOptions(
+        out_dir=args.out,
+        methods=methods,
+        grid=args.grid,
+        limit=args.limit,
+        temperature=args.temperature,
+        figures=not args.no_figures,
+    )
+    try:
+        report = run_eval(backend, anchors, dataset, table, options)
+    except DatasetError as err:
+        print(f"gcdtrav: {err}", file=sys.stderr)
+        return EXIT_FAILURES
+    for failure in report["failures"]:
+        print(f"error: {failure}", file=sys.stderr)
+    print(report["summary_table"])
+    print(f"{report['images']} images evaluated; results in {args.out}", file=sys.stderr)
+    return EXIT_FAILURES if report["failures"] else 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from gcdtrav.service import bench
 
@@ -222,7 +286,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    handlers = {"infer": cmd_infer, "serve": cmd_serve, "bench": cmd_bench}
+    handlers = {"infer": cmd_infer, "serve": cmd_serve, "bench": cmd_bench, "eval": cmd_eval}
     try:
         from gcdtrav.service.backends.base import ModelUnavailableError
     except ImportError as err:  # torch missing: the client-only install

@@ -1,0 +1,1 @@
+"""Evaluation against labelled data: the paper's ground-truth comparison, baselines and figures."""
