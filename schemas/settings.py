@@ -52,7 +52,7 @@ class ServiceSettings(BaseModel):
     preview: bool = Field(default=True, description="Publish a colourised JPEG on {prefix}/out/{source}/preview.")
     preview_max_width: int = Field(default=640, ge=64)
     instance: str = Field(default_factory=default_instance_name, description="Name in results and liveliness.")
-    precision: Literal["auto", "fp32", "bf16", "int8"] = Field(
+    precision: Literal["auto", "fp32", "bf16", "bf16-vit", "int8"] = Field(
         default="auto",
         description="Vision encoder arithmetic: auto = bf16 on CPUs with AVX512-BF16/AMX, else fp32.",
     )

@@ -390,7 +390,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     )
     parser.add_argument("--runs", type=int, default=7, help="timed runs per row (after one warm-up) [7]")
     parser.add_argument("--naive-runs", type=int, default=5, help="timed runs of the slow naive forward [5]")
-    parser.add_argument("--modes", default="bf16,int8", help="fast modes compared with fp32 [bf16,int8]")
+    parser.add_argument("--modes", default="bf16,bf16-vit,int8", help="fast modes compared with fp32")
     parser.add_argument("--zenoh-frames", type=int, default=100, help="frames for the end-to-end row (0: skip)")
     parser.add_argument("--skip", default="", help="comma list of parts to skip: modes,sweeps,engine,zenoh")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/bench.json"), help="JSON output")

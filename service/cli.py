@@ -57,7 +57,7 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--precision",
-        choices=["auto", "fp32", "bf16", "int8"],
+        choices=["auto", "fp32", "bf16", "bf16-vit", "int8"],
         default="auto",
         help="vision encoder arithmetic; auto = bf16 where the CPU has AVX512-BF16/AMX, else fp32 [auto]",
     )
@@ -133,7 +133,7 @@ def build_parser() -> argparse.ArgumentParser:
     group.add_argument("--threads", type=int, default=None, help="torch threads [all cores]")
     group.add_argument(
         "--precision",
-        choices=["auto", "fp32", "bf16", "int8"],
+        choices=["auto", "fp32", "bf16", "bf16-vit", "int8"],
         default=None,
         help="vision encoder arithmetic [auto: bf16 on CPUs with AVX512-BF16/AMX, else fp32]",
     )
@@ -154,7 +154,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     evaluate.add_argument("--model", default=None, help="CLIPSeg directory or hub id [env GCDTRAV_MODEL]")
     evaluate.add_argument("--anchors", default=None, help="anchor-set file [the paper's set]")
-    evaluate.add_argument("--precision", choices=["auto", "fp32", "bf16", "int8"], default="auto")
+    evaluate.add_argument("--precision", choices=["auto", "fp32", "bf16", "bf16-vit", "int8"], default="auto")
     evaluate.add_argument("--temperature", type=float, default=1.0)
     evaluate.add_argument("--grid", type=int, default=8, help="sample every GRID-th pixel in x and y [8]")
     evaluate.add_argument("--out", type=Path, default=Path("eval_out"), help="output folder [eval_out]")

@@ -82,7 +82,7 @@ def test_unreachable_hub_id_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) ->
         ClipSegBackend("CIDAS/clipseg-rd64-refined")
 
 
-@pytest.mark.parametrize("precision", ["bf16", "int8"])
+@pytest.mark.parametrize("precision", ["bf16", "bf16-vit", "int8"])
 def test_fast_modes_keep_parity_with_fp32(tiny_model_dir: Path, tiny_backend: ClipSegBackend, precision: str) -> None:
     from gcdtrav.schemas.anchors import default_anchor_set
     from gcdtrav.service.bench import PARITY_P99_DT_LIMIT, activation_cosine, parity

@@ -69,7 +69,9 @@ class Preprocessing:
         return torch.from_numpy(np.ascontiguousarray(scaled.transpose(2, 0, 1)))[None]
 
 
-PRECISIONS = ("auto", "fp32", "bf16", "int8")
+# fp32: the reference. bf16: ViT and decoder in bfloat16. bf16-vit: ViT only (decoder fp32).
+# int8: dynamic int8 quantisation of the ViT's linear layers. auto: bf16 where the CPU runs it natively.
+PRECISIONS = ("auto", "fp32", "bf16", "bf16-vit", "int8")
 
 
 def cpu_has_fast_bf16() -> bool:
@@ -111,7 +113,7 @@ class VisionTrunk(torch.nn.Module):
         if precision == "fp32":
             return trunk
         trunk = copy.deepcopy(trunk)
-        if precision == "bf16":
+        if precision in ("bf16", "bf16-vit"):
             trunk = trunk.to(torch.bfloat16)
             trunk.dtype = torch.bfloat16
             return trunk
@@ -162,6 +164,9 @@ class ClipSegBackend:
         self.extract_layers = list(self.model.config.extract_layers)
         self.precision = resolve_precision(precision)
         self._trunk = VisionTrunk.build(self.model.clip.vision_model, max(self.extract_layers), self.precision)
+        self._decoder, self._decoder_dtype = self.model.decoder, torch.float32
+        if self.precision == "bf16":  # the decoder's MLPs, run once per anchor, cost as much as the ViT
+            self._decoder, self._decoder_dtype = copy.deepcopy(self.model.decoder).to(torch.bfloat16), torch.bfloat16
         self._prepared: OrderedDict[tuple[str, ...], torch.Tensor] = OrderedDict()
         self._prepared_cache_size = prepared_cache_size
 
@@ -193,13 +198,14 @@ class ClipSegBackend:
         for index, layer in enumerate(trunk.layers):
             hidden = layer(hidden, None)
             if index in wanted:
-                activations.append(hidden.float())  # the decoder is small and stays fp32
+                activations.append(hidden.to(self._decoder_dtype))
         return activations
 
     @torch.inference_mode()
     def decode(self, activations: list[torch.Tensor], conditional: torch.Tensor) -> torch.Tensor:
         """Batched decoder over the n concepts: (n, h, w) logits from a single image's activations."""
-        decoder = self.model.decoder
+        decoder = self._decoder
+        conditional = conditional.to(self._decoder_dtype)
         output: torch.Tensor | None = None
         for index, (activation, layer, reduce) in enumerate(
             zip(activations[::-1], decoder.layers, decoder.reduces, strict=True)
@@ -214,7 +220,7 @@ class ClipSegBackend:
         tokens = output[:, 1:, :].transpose(1, 2)
         side = round(tokens.shape[2] ** 0.5)
         grid = tokens.reshape(tokens.shape[0], tokens.shape[1], side, side)
-        return decoder.transposed_convolution(grid).squeeze(1)
+        return decoder.transposed_convolution(grid).squeeze(1).float()
 
     @torch.inference_mode()
     def logits(self, image_rgb: NDArray[np.uint8], prepared: object) -> NDArray[np.float32]:
