@@ -247,10 +247,20 @@ class TraversabilityClient:
             return ServiceError(f"error reply on '{key}': {payload[:200]!r}")
 
     def patch(
-        self, source: str, x: float, y: float, seq: int | None = None, timeout: float | None = None
+        self,
+        source: str,
+        x: float,
+        y: float,
+        seq: int | None = None,
+        timeout: float | None = None,
+        stamp: float | None = None,
     ) -> ContextDistribution:
-        """The context distribution under image pixel (x, y) of ``source``'s latest (or ``seq``) frame."""
-        return self._patch_query(source, {"x": x, "y": y}, seq, timeout)
+        """The context distribution under image pixel (x, y) of ``source``'s latest frame, or of the kept
+        frame with sequence number ``seq`` or input ``stamp`` (e.g. a ROS header stamp, seconds)."""
+        params: dict[str, Any] = {"x": x, "y": y}
+        if stamp is not None:
+            params["stamp"] = repr(float(stamp))
+        return self._patch_query(source, params, seq, timeout)
 
     def patch_cell(
         self, source: str, i: int, j: int, seq: int | None = None, timeout: float | None = None

@@ -15,7 +15,7 @@ from typing import Any, Literal
 
 import yaml
 from gcdtrav.schemas.config import EngineSettings
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 ENV_PREFIX = "GCDTRAV_"
 _KEY_CHUNK = re.compile(r"^[^*$#?\s/]+$")
@@ -27,6 +27,44 @@ class SettingsError(ValueError):
 
 def default_instance_name() -> str:
     return f"{socket.gethostname()}-{os.getpid()}"
+
+
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+
+
+class RosInput(BaseModel):
+    """ROS 2 camera topics reaching Zenoh through rmw_zenoh or zenoh-bridge-ros2dds (CDR payloads)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    key: str = Field(
+        description="Key expression, e.g. '0/**/sensor_msgs::msg::dds_::Image_/*' (rmw_zenoh) "
+        "or 'camera/front/image_raw' (bridge: the topic name)."
+    )
+    layout: Literal["rmw_zenoh", "bridge"] = "rmw_zenoh"
+    message_type: Literal["auto", "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"] = Field(
+        default="auto", description="auto: read from the rmw_zenoh key; bridge keys carry no type, so set it."
+    )
+
+    @model_validator(mode="after")
+    def _bridge_needs_a_type(self) -> RosInput:
+        if self.layout == "bridge" and self.message_type == "auto":
+            raise ValueError(
+                f"ros input '{self.key}': bridge keys carry no type; set message_type to one of "
+                f"{', '.join(IMAGE_TYPES)}"
+            )
+        return self
+
+
+class RosOutput(BaseModel):
+    """Maps as ROS 2 topics next to each ROS input topic: <topic>/gcdtrav/{traversability,uncertainty,preview}."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    enabled: bool = False
+    preview: Literal["compressed", "image", "none"] = Field(
+        default="compressed", description="preview as CompressedImage (jpeg), Image (rgb8), or not at all"
+    )
 
 
 class ServiceSettings(BaseModel):
@@ -52,6 +90,8 @@ class ServiceSettings(BaseModel):
     preview: bool = Field(default=True, description="Publish a colourised JPEG on {prefix}/out/{source}/preview.")
     preview_max_width: int = Field(default=640, ge=64)
     instance: str = Field(default_factory=default_instance_name, description="Name in results and liveliness.")
+    ros_inputs: list[RosInput] = Field(default_factory=list, description="ROS 2 image topics (CDR).")
+    ros_output: RosOutput = Field(default_factory=RosOutput)
     precision: Literal["auto", "fp32", "bf16", "bf16-vit", "int8"] = Field(
         default="auto",
         description="Vision encoder arithmetic: auto = bf16 on CPUs with AVX512-BF16/AMX, else fp32.",
@@ -66,12 +106,11 @@ class ServiceSettings(BaseModel):
             raise ValueError(f"'{value}' must be a literal zenoh key (chunks without * $ # ? or spaces)")
         return value
 
-    @field_validator("inputs")
-    @classmethod
-    def _inputs_not_empty(cls, value: list[str]) -> list[str]:
-        if not value:
-            raise ValueError("at least one input key expression is needed, e.g. gcdtrav/in/**")
-        return value
+    @model_validator(mode="after")
+    def _some_input(self) -> ServiceSettings:
+        if not self.inputs and not self.ros_inputs:
+            raise ValueError("at least one input is needed: inputs (e.g. gcdtrav/in/**) or ros_inputs")
+        return self
 
     @property
     def state_file(self) -> Path:

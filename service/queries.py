@@ -3,6 +3,7 @@
 Query parameters (zenoh selector parameters, all strings):
   x, y      image pixel          | i, j   map cell (row, column)   | region=x0,y0,x1,y1 image pixels
   seq       a kept frame's sequence number [default: the latest]
+  stamp     a kept frame's input stamp (s since epoch, e.g. a ROS header stamp), matched within 1 ms
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ from gcdtrav.schemas.anchors import Anchor, AnchorSet
 from gcdtrav.schemas.messages import ContextDistribution
 from gcdtrav.service.engine import gcd
 from numpy.typing import NDArray
+
+STAMP_TOLERANCE_S = 1e-3
 
 
 class QueryError(ValueError):
@@ -60,11 +63,19 @@ class FrameHistory:
         with self._lock:
             return list(self._frames)
 
-    def get(self, source: str, seq: int | None) -> FrameRecord:
+    def get(self, source: str, seq: int | None, stamp: float | None = None) -> FrameRecord:
         with self._lock:
             frames = list(self._frames.get(source, ()))
         if not frames:
             raise QueryError(f"unknown source '{source}': no frame processed yet")
+        if stamp is not None:
+            nearest = min(frames, key=lambda record: abs(record.stamp - stamp))
+            if abs(nearest.stamp - stamp) > STAMP_TOLERANCE_S:
+                raise QueryError(
+                    f"no kept frame of '{source}' has stamp {stamp:.6f} (kept: {frames[0].stamp:.6f} "
+                    f"to {frames[-1].stamp:.6f}, the last {self.depth} frames)"
+                )
+            return nearest
         if seq is None:
             return frames[-1]
         for record in frames:
@@ -109,7 +120,7 @@ def _region_cells(record: FrameRecord, text: str) -> tuple[int, int, int, int]:
     return i0, j0, i1, j1
 
 
-KNOWN_PARAMETERS = {"x", "y", "i", "j", "seq", "region"}
+KNOWN_PARAMETERS = {"x", "y", "i", "j", "seq", "stamp", "region"}
 
 
 def answer_patch_query(history: FrameHistory, source: str, params: Mapping[str, str]) -> ContextDistribution:
@@ -117,7 +128,10 @@ def answer_patch_query(history: FrameHistory, source: str, params: Mapping[str, 
     if unknown:
         raise QueryError(f"unknown parameter(s) {sorted(unknown)}; use x,y or i,j or region, and optionally seq")
     seq = int(_number(params, "seq", int)) if "seq" in params else None
-    record = history.get(source, seq)
+    stamp = _number(params, "stamp") if "stamp" in params else None
+    if seq is not None and stamp is not None:
+        raise QueryError("give seq or stamp, not both")
+    record = history.get(source, seq, stamp)
     forms = [form for form in (("x", "y"), ("i", "j"), ("region",)) if any(p in params for p in form)]
     if len(forms) != 1 or not all(p in params for p in forms[0]):
         raise QueryError("give exactly one of: x and y (image pixels), i and j (map cell), region=x0,y0,x1,y1")

@@ -125,3 +125,18 @@ def test_robot_planner_and_operator_examples(tiny_backend, tmp_path: Path) -> No
     finally:
         service.stop()
         session.close()
+
+
+@pytest.mark.parametrize("name", ["rmw_zenoh.yaml", "zenoh_bridge.yaml"])
+def test_ros_examples_are_valid_settings(name: str) -> None:
+    from gcdtrav.schemas.settings import load_settings
+
+    settings = load_settings(ROOT / "examples" / "ros2" / name, environ={})
+    assert settings.ros_output.enabled and settings.ros_inputs and settings.inputs == []
+
+
+def test_bridge_input_without_a_type_is_rejected() -> None:
+    from gcdtrav.schemas.settings import SettingsError, load_settings
+
+    with pytest.raises(SettingsError, match="bridge keys carry no type"):
+        load_settings(None, {"ros_inputs": [{"key": "cam", "layout": "bridge"}]}, environ={})

@@ -16,14 +16,14 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import cv2
 import numpy as np
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
-from gcdtrav.schemas.images import encode_jpeg, encode_map_png16, resize_map
+from gcdtrav.schemas.images import decode_image, encode_jpeg, encode_map_png16, resize_map
 from gcdtrav.schemas.messages import (
     MSGPACK_ENCODING,
     AnchorSetRejection,
@@ -34,8 +34,9 @@ from gcdtrav.schemas.messages import (
     ServiceStatus,
     SourceStatus,
 )
-from gcdtrav.schemas.settings import ServiceSettings, SettingsError
+from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
 from gcdtrav.service import viz
+from gcdtrav.service.bus import ros as ros_io
 from gcdtrav.service.bus.ingest import DecodedFrame, RejectedInput, decode_payload
 from gcdtrav.service.bus.latest import LatestFrameQueue
 from gcdtrav.service.bus.stats import ServiceStats, percentiles
@@ -54,6 +55,7 @@ class PendingFrame:
     payload: bytes
     encoding: str
     received_at: float
+    ros: ros_io.RosTopic | None = None  # set for CDR payloads from ROS 2 inputs
 
 
 def literal_head(key_expr: str) -> str:
@@ -84,6 +86,7 @@ class TraversabilityService:
         self.stats = ServiceStats(log)
         self._seq: dict[str, int] = {}
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self._rmw_attachments: dict[str, ros_io.RmwAttachment] = {}
         self._declared: list[Any] = []
         self._swap_lock = threading.Lock()
         self._stopping = threading.Event()
@@ -109,6 +112,8 @@ class TraversabilityService:
         for expression in self.settings.inputs:
             head = literal_head(expression)
             self._declared.append(self.session.declare_subscriber(expression, self._image_handler(head)))
+        for ros_input in self.settings.ros_inputs:
+            self._declared.append(self.session.declare_subscriber(ros_input.key, self._ros_handler(ros_input)))
         self._declared += [
             self.session.declare_queryable(f"{self.prefix}/out/**/patch", self._on_patch_query),
             self.session.declare_queryable(f"{self.prefix}/config/anchors", self._on_anchors_query, complete=True),
@@ -149,7 +154,27 @@ class TraversabilityService:
         if self._stopping.is_set():
             return
         key = str(sample.key_expr)
-        source = source_of(key, head)
+        self._enqueue(source_of(key, head), sample, None)
+
+    def _ros_handler(self, ros_input: RosInput) -> Callable[[zenoh.Sample], None]:
+        return lambda sample: self._on_ros_image(sample, ros_input)
+
+    def _on_ros_image(self, sample: zenoh.Sample, ros_input: RosInput) -> None:
+        if self._stopping.is_set():
+            return
+        key = str(sample.key_expr)
+        try:
+            topic = ros_io.parse_key(key, ros_input.layout)
+        except ros_io.RosDecodeError as err:
+            self.stats.rejected(key, err.reason, err.detail)
+            return
+        if ros_io.OUTPUT_NAMESPACE in topic.topic.split("/"):
+            return  # our own ROS outputs, matched by a wide input expression
+        if ros_input.message_type != "auto":
+            topic = replace(topic, msgtype=ros_input.message_type)
+        self._enqueue(topic.source, sample, topic)
+
+    def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None) -> None:
         size = len(sample.payload)
         if size > self.settings.max_payload_bytes:  # refused unread: never copied out of zenoh's buffer
             self.queue.count_unqueued(source)
@@ -157,7 +182,8 @@ class TraversabilityService:
                 source, "oversized", f"{size} bytes exceeds the limit of {self.settings.max_payload_bytes}"
             )
             return
-        self.queue.put(source, PendingFrame(key, sample.payload.to_bytes(), str(sample.encoding), time.time()))
+        pending = PendingFrame(str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), time.time(), ros)
+        self.queue.put(source, pending)
 
     # ---- worker --------------------------------------------------------------------------------------
     def _work(self) -> None:
@@ -174,8 +200,9 @@ class TraversabilityService:
                 log.exception("frame from %s failed", pending.key)
                 self.stats.rejected(source, "processing_failed", repr(err)[:200])
 
-    def _process(self, source: str, pending: PendingFrame) -> None:
-        try:
+    def _decode(self, pending: PendingFrame) -> tuple[DecodedFrame, Any]:
+        """The image and, for ROS inputs, the message header to reuse on the ROS outputs."""
+        if pending.ros is None:
             frame = decode_payload(
                 pending.payload,
                 pending.encoding,
@@ -183,6 +210,18 @@ class TraversabilityService:
                 self.settings.max_payload_bytes,
                 self.settings.max_pixels,
             )
+            return frame, None
+        if pending.ros.msgtype is None:
+            raise RejectedInput("unsupported_ros_type", f"no message type for '{pending.key}'")
+        try:
+            ros_frame = ros_io.decode_ros_image(pending.payload, pending.ros.msgtype, self.settings.max_pixels)
+        except ros_io.RosDecodeError as err:
+            raise RejectedInput(err.reason, err.detail) from None
+        return DecodedFrame(ros_frame.image, ros_frame.stamp, ros_frame.frame_id), ros_frame.header
+
+    def _process(self, source: str, pending: PendingFrame) -> None:
+        try:
+            frame, ros_header = self._decode(pending)
         except RejectedInput as err:
             self.stats.rejected(source, err.reason, err.detail)
             return
@@ -199,15 +238,23 @@ class TraversabilityService:
             image_size=(width, height),
         )
         self.history.add(source, record)
-        self._publish(source, pending, frame, result, record)
+        self._publish(source, pending, frame, result, record, ros_header)
 
     def _publish(
-        self, source: str, pending: PendingFrame, frame: DecodedFrame, result: FrameResult, record: FrameRecord
+        self,
+        source: str,
+        pending: PendingFrame,
+        frame: DecodedFrame,
+        result: FrameResult,
+        record: FrameRecord,
+        ros_header: Any,
     ) -> None:
         t, u = result.maps.traversability, result.maps.uncertainty
         width, height = record.image_size
-        full_t = resize_map(t, width, height) if self.settings.full_resolution or self.settings.preview else None
-        full_u = resize_map(u, width, height) if self.settings.full_resolution or self.settings.preview else None
+        ros_out = self.settings.ros_output.enabled and pending.ros is not None
+        need_full = self.settings.full_resolution or self.settings.preview or ros_out
+        full_t = resize_map(t, width, height) if need_full else None
+        full_u = resize_map(u, width, height) if need_full else None
         published_at = time.time()
         header = MapsHeader(
             source=source,
@@ -238,11 +285,45 @@ class TraversabilityService:
             else None,
         )
         self._publisher(f"{self.prefix}/out/{source}/maps", MSGPACK).put(message.pack())
+        preview = None
         if self.settings.preview and full_t is not None and full_u is not None:
             preview = self._preview(frame, full_t, full_u)
+        if preview is not None:
             self._publisher(f"{self.prefix}/out/{source}/preview", zenoh.Encoding.IMAGE_JPEG).put(preview)
+        if ros_out and pending.ros is not None and full_t is not None and full_u is not None:
+            self._publish_ros(pending.ros, ros_header, frame, full_t, full_u, preview)
         latency_ms = (time.time() - pending.received_at) * 1e3
         self.stats.processed(source, record.seq, latency_ms, result.inference_ms)
+
+    def _publish_ros(
+        self,
+        topic: ros_io.RosTopic,
+        header: Any,
+        frame: DecodedFrame,
+        t: np.ndarray,
+        u: np.ndarray,
+        preview: bytes | None,
+    ) -> None:
+        """T and U as 32FC1 images (and the preview) at the input's size, with the input's header."""
+        outputs = [
+            ("traversability", ros_io.IMAGE, ros_io.float_image_cdr(header, t)),
+            ("uncertainty", ros_io.IMAGE, ros_io.float_image_cdr(header, u)),
+        ]
+        kind = self.settings.ros_output.preview
+        if kind != "none":
+            jpeg = preview if preview is not None else self._preview(frame, t, u)
+            if kind == "compressed":
+                outputs.append(("preview", ros_io.COMPRESSED_IMAGE, ros_io.compressed_jpeg_cdr(header, jpeg)))
+            else:
+                outputs.append(("preview", ros_io.IMAGE, ros_io.rgb_image_cdr(header, decode_image(jpeg))))
+        for name, msgtype, payload in outputs:
+            key = ros_io.output_key(topic, f"{ros_io.OUTPUT_NAMESPACE}/{name}", msgtype)
+            attachment = self._rmw_attachments.setdefault(key, ros_io.RmwAttachment())
+            publisher = self._publisher(key, zenoh.Encoding.APPLICATION_CDR)
+            if topic.layout == "rmw_zenoh":
+                publisher.put(payload, attachment=attachment.next())
+            else:
+                publisher.put(payload)
 
     def _preview(self, frame: DecodedFrame, t: np.ndarray, u: np.ndarray) -> bytes:
         """T over the image, beside U, scaled to at most preview_max_width."""

@@ -1,0 +1,237 @@
+"""ROS 2 images over Zenoh, without a ROS installation: CDR via rosbags, pixels via rosbags-image.
+
+Two key layouts reach Zenoh:
+  rmw_zenoh                 <domain>/<topic>/<type>/<type hash>, e.g.
+                            0/camera/front/image_raw/sensor_msgs::msg::dds_::Image_/RIHS01_d31d...
+  zenoh-bridge-ros2dds      the topic name: camera/front/image_raw
+The payload is the CDR-serialised message (with its 4-byte encapsulation header) in both.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from functools import cache
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+OUTPUT_NAMESPACE = "gcdtrav"  # outputs go to <input topic>/gcdtrav/{traversability,uncertainty,preview}
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+SUPPORTED_TYPES = (IMAGE, COMPRESSED_IMAGE)
+# bytes per pixel of each raw encoding we accept; Bayer patterns are one 8-bit channel
+RAW_ENCODINGS = {
+    "rgb8": 3,
+    "bgr8": 3,
+    "rgba8": 4,
+    "bgra8": 4,
+    "mono8": 1,
+    "mono16": 2,
+    "bayer_rggb8": 1,
+    "bayer_bggr8": 1,
+    "bayer_gbrg8": 1,
+    "bayer_grbg8": 1,
+}
+
+
+class RosDecodeError(ValueError):
+    """A ROS payload that is not a usable image; ``reason`` is a short label for counting."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(f"{reason}: {detail}")
+        self.reason, self.detail = reason, detail
+
+
+@cache
+def typestore() -> Any:
+    """Message definitions of ROS 2 Jazzy (rmw_zenoh's first release): sensor_msgs are the same since Humble."""
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def dds_type_name(msgtype: str) -> str:
+    """sensor_msgs/msg/Image -> sensor_msgs::msg::dds_::Image_ (rmw_zenoh's key chunk)."""
+    package, kind, name = msgtype.split("/")
+    return f"{package}::{kind}::dds_::{name}_"
+
+
+def ros_type_name(dds_name: str) -> str | None:
+    parts = dds_name.split("::")
+    if len(parts) == 4 and parts[2] == "dds_" and parts[3].endswith("_"):
+        return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
+    return None
+
+
+def type_hash(msgtype: str) -> str:
+    return str(typestore().hash_rihs01(msgtype))
+
+
+@dataclass(frozen=True)
+class RosTopic:
+    """Where a ROS message came from: its topic, message type and the key layout it used."""
+
+    topic: str  # with a leading slash: /camera/front/image_raw
+    msgtype: str | None
+    layout: str  # "rmw_zenoh" or "bridge"
+    domain: int = 0
+
+    @property
+    def source(self) -> str:
+        return self.topic.lstrip("/")
+
+
+def parse_key(key: str, layout: str) -> RosTopic:
+    """Topic and (for rmw_zenoh) message type from a key."""
+    if layout == "bridge":
+        return RosTopic("/" + key, None, "bridge")
+    chunks = key.split("/")
+    for index, chunk in enumerate(chunks):
+        msgtype = ros_type_name(chunk)
+        if msgtype is not None and index >= 2:
+            domain = int(chunks[0]) if chunks[0].isdigit() else 0
+            return RosTopic("/" + "/".join(chunks[1:index]), msgtype, "rmw_zenoh", domain)
+    raise RosDecodeError("bad_ros_key", f"'{key}' is not <domain>/<topic>/<pkg::msg::dds_::Type_>/<hash>")
+
+
+def output_key(topic: RosTopic, suffix: str, msgtype: str) -> str:
+    """The key of a derived topic (``<input topic>/<suffix>``) in the input's layout."""
+    name = f"{topic.topic.rstrip('/')}/{suffix}".lstrip("/")
+    if topic.layout == "bridge":
+        return name
+    return f"{topic.domain}/{name}/{dds_type_name(msgtype)}/{type_hash(msgtype)}"
+
+
+@dataclass(frozen=True)
+class RosFrame:
+    image: NDArray[np.uint8]  # (H, W, 3) RGB
+    stamp: float
+    frame_id: str
+    header: Any  # std_msgs/Header, reused on the outputs
+
+
+def _stamp_seconds(header: Any) -> float:
+    return float(header.stamp.sec) + float(header.stamp.nanosec) * 1e-9
+
+
+def decode_ros_image(payload: bytes, msgtype: str, max_pixels: int) -> RosFrame:
+    """CDR Image/CompressedImage -> RGB, validating sizes before touching pixels."""
+    if msgtype not in SUPPORTED_TYPES:
+        raise RosDecodeError("unsupported_ros_type", f"{msgtype} (supported: {', '.join(SUPPORTED_TYPES)})")
+    try:
+        message = typestore().deserialize_cdr(payload, msgtype)
+    except Exception as err:  # rosbags raises assorted errors on truncated or garbled CDR
+        raise RosDecodeError("bad_cdr", f"{msgtype} does not deserialise: {type(err).__name__}: {err}") from None
+    image = _decode_compressed(message, max_pixels) if msgtype == COMPRESSED_IMAGE else _decode_raw(message, max_pixels)
+    return RosFrame(image, _stamp_seconds(message.header), str(message.header.frame_id), message.header)
+
+
+def _decode_compressed(message: Any, max_pixels: int) -> NDArray[np.uint8]:
+    from gcdtrav.schemas.images import ImageDecodeError, decode_image
+
+    try:
+        return decode_image(bytes(message.data), max_pixels)
+    except ImageDecodeError as err:
+        raise RosDecodeError("undecodable", f"CompressedImage ({message.format}): {err}") from None
+
+
+def _decode_raw(message: Any, max_pixels: int) -> NDArray[np.uint8]:
+    from rosbags.image import message_to_cvimage
+
+    encoding = str(message.encoding).lower()
+    if encoding not in RAW_ENCODINGS:
+        raise RosDecodeError("unknown_encoding", f"'{message.encoding}' (supported: {', '.join(RAW_ENCODINGS)})")
+    width, height, step = int(message.width), int(message.height), int(message.step)
+    if width <= 0 or height <= 0:
+        raise RosDecodeError("size_mismatch", f"image of {width}x{height} pixels")
+    if width * height > max_pixels:
+        raise RosDecodeError("too_many_pixels", f"{width}x{height} exceeds the limit of {max_pixels} pixels")
+    row = width * RAW_ENCODINGS[encoding]
+    data = np.asarray(message.data, dtype=np.uint8)
+    if step < row or len(data) != step * height:
+        raise RosDecodeError(
+            "size_mismatch",
+            f"{encoding} {width}x{height}, step {step}: needs step >= {row} and "
+            f"{step}x{height} = {step * height} bytes, got {len(data)}",
+        )
+    if step != row:  # drop row padding: rosbags-image assumes packed rows
+        data = np.ascontiguousarray(data.reshape(height, step)[:, :row]).ravel()
+        message = type(message)(
+            header=message.header,
+            height=height,
+            width=width,
+            encoding=message.encoding,
+            is_bigendian=message.is_bigendian,
+            step=row,
+            data=data,
+        )
+    try:
+        if encoding == "mono16":  # 16-bit to 8-bit: the top byte, as cv_bridge's mono16 -> mono8
+            mono = np.asarray(message_to_cvimage(message), dtype=np.uint16)
+            gray = (mono >> 8).astype(np.uint8)
+            return np.repeat(gray[:, :, None], 3, axis=2)
+        rgb = message_to_cvimage(message, "rgb8")
+    except Exception as err:  # rosbags-image raises its own and OpenCV errors
+        raise RosDecodeError("undecodable", f"{encoding}: {type(err).__name__}: {err}") from None
+    return np.ascontiguousarray(rgb, dtype=np.uint8)
+
+
+# ---- outputs ---------------------------------------------------------------------------------------
+
+
+def _image_message(header: Any, array: NDArray[Any], encoding: str) -> Any:
+    image_type = typestore().types[IMAGE]
+    height, width = array.shape[:2]
+    data = np.ascontiguousarray(array).view(np.uint8).ravel()
+    return image_type(
+        header=header,
+        height=height,
+        width=width,
+        encoding=encoding,
+        is_bigendian=0,
+        step=len(data) // height,
+        data=data,
+    )
+
+
+def float_image_cdr(header: Any, values: NDArray[np.floating]) -> bytes:
+    """A 32FC1 sensor_msgs/Image (little-endian), e.g. T or U."""
+    message = _image_message(header, np.asarray(values, dtype="<f4"), "32FC1")
+    return bytes(typestore().serialize_cdr(message, IMAGE))
+
+
+def rgb_image_cdr(header: Any, rgb: NDArray[np.uint8]) -> bytes:
+    return bytes(typestore().serialize_cdr(_image_message(header, rgb, "rgb8"), IMAGE))
+
+
+def compressed_jpeg_cdr(header: Any, jpeg: bytes) -> bytes:
+    message = typestore().types[COMPRESSED_IMAGE](
+        header=header, format="jpeg", data=np.frombuffer(jpeg, dtype=np.uint8)
+    )
+    return bytes(typestore().serialize_cdr(message, COMPRESSED_IMAGE))
+
+
+def make_header(stamp: float, frame_id: str) -> Any:
+    types = typestore().types
+    sec = int(stamp)
+    return types["std_msgs/msg/Header"](
+        stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=round((stamp - sec) * 1e9) % 1_000_000_000),
+        frame_id=frame_id,
+    )
+
+
+class RmwAttachment:
+    """rmw_zenoh's attachment: sequence number, source timestamp (ns) and a 16-byte publisher gid."""
+
+    def __init__(self) -> None:
+        self.gid = np.random.default_rng().integers(0, 256, 16, dtype=np.uint8).tobytes()
+        self.sequence = 0
+
+    def next(self) -> bytes:
+        from zenoh.ext import Int64, UInt8, z_serialize
+
+        self.sequence += 1
+        payload = (Int64(self.sequence), Int64(time.time_ns()), [UInt8(b) for b in self.gid])
+        return z_serialize(payload).to_bytes()
