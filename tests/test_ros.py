@@ -101,7 +101,7 @@ def test_row_padding_is_removed() -> None:
 
 @pytest.mark.parametrize("fmt", ["jpeg", "png"])
 def test_compressed_images(fmt: str) -> None:
-    ok, encoded = cv2.imencode(".jpg" if fmt == "jpeg" else ".png", RGB[:, :, ::-1])
+    _, encoded = cv2.imencode(".jpg" if fmt == "jpeg" else ".png", RGB[:, :, ::-1])
     frame = ros.decode_ros_image(compressed_cdr(encoded.tobytes(), fmt), ros.COMPRESSED_IMAGE, 10**7)
     expected = cv2.imdecode(encoded, cv2.IMREAD_COLOR)[:, :, ::-1]
     np.testing.assert_array_equal(frame.image, expected)
@@ -202,7 +202,7 @@ def test_ros_in_maps_out_both_layouts(tiny_backend, tmp_path: Path) -> None:  # 
         client.session.put(
             rmw_key, image_cdr(RGB, "rgb8", frame_id="front_optical"), encoding=zenoh.Encoding.APPLICATION_CDR
         )
-        ok, jpeg = cv2.imencode(".jpg", RGB[:, :, ::-1])
+        _, jpeg = cv2.imencode(".jpg", RGB[:, :, ::-1])
         client.session.put("cam/left", compressed_cdr(jpeg.tobytes(), "jpeg", stamp=STAMP + 1, frame_id="left"))
         assert wait_until(lambda: {"robot/front/image_raw", "cam/left"} <= set(maps), 15)
         client.session.put(rmw_key, image_cdr(RGB, "rgb8")[:50])  # truncated: counted, nothing else happens
