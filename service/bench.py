@@ -439,7 +439,7 @@ def run(args: argparse.Namespace) -> int:
     args.out.write_text(json.dumps(summary, indent=2) + "\n", "utf-8")
     print(format_table(bench.rows))
     if bench.parity:
-        print("\nparity against fp32 (logits scaled to std 3; worst of 3 images):")
+        print("\nparity against fp32 at a trained model's logit scale (worst of 3 images; see parity()):")
         for mode, report in bench.parity.items():
             print(f"  {mode}: " + ", ".join(f"{k} {v:.4g}" for k, v in report.items()))
     if "speedup_default_vs_naive" in summary:

@@ -241,3 +241,10 @@ def test_ros_in_maps_out_both_layouts(tiny_backend, tmp_path: Path) -> None:  # 
         client.close()
         service.stop()
         server.close()
+
+
+def test_topic_key_round_trips_through_parse_key() -> None:
+    topic = ros.RosTopic("/camera/front/image_raw", ros.COMPRESSED_IMAGE, "rmw_zenoh", domain=3)
+    assert ros.parse_key(ros.topic_key(topic), "rmw_zenoh") == topic
+    bridge = ros.RosTopic("/camera/front/image_raw", None, "bridge")
+    assert ros.parse_key(ros.topic_key(bridge), "bridge") == bridge

@@ -96,12 +96,20 @@ def parse_key(key: str, layout: str) -> RosTopic:
     raise RosDecodeError("bad_ros_key", f"'{key}' is not <domain>/<topic>/<pkg::msg::dds_::Type_>/<hash>")
 
 
-def output_key(topic: RosTopic, suffix: str, msgtype: str) -> str:
-    """The key of a derived topic (``<input topic>/<suffix>``) in the input's layout."""
-    name = f"{topic.topic.rstrip('/')}/{suffix}".lstrip("/")
+def topic_key(topic: RosTopic) -> str:
+    """The zenoh key a ROS publisher of ``topic`` uses in its layout."""
+    name = topic.topic.strip("/")
     if topic.layout == "bridge":
         return name
-    return f"{topic.domain}/{name}/{dds_type_name(msgtype)}/{type_hash(msgtype)}"
+    if topic.msgtype is None:
+        raise ValueError(f"an rmw_zenoh key needs the message type of {topic.topic}")
+    return f"{topic.domain}/{name}/{dds_type_name(topic.msgtype)}/{type_hash(topic.msgtype)}"
+
+
+def output_key(topic: RosTopic, suffix: str, msgtype: str) -> str:
+    """The key of a derived topic (``<input topic>/<suffix>``) in the input's layout."""
+    derived = RosTopic(f"{topic.topic.rstrip('/')}/{suffix}", msgtype, topic.layout, topic.domain)
+    return topic_key(derived)
 
 
 @dataclass(frozen=True)
