@@ -122,10 +122,13 @@ class TraversabilityService:
         ]
         self._worker.start()
         log.info(
-            "serving: inputs %s, outputs %s/out/{source}/maps, model %s, anchor set %s (%d anchors), method %s",
+            "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, model %s (%s), anchor set %s "
+            "(%d anchors), method %s",
             self.settings.inputs,
+            [r.key for r in self.settings.ros_inputs],
             self.prefix,
             self.pipeline.backend.model_id,
+            getattr(self.pipeline.backend, "precision", "-"),
             self.pipeline.anchors.version,
             len(self.pipeline.anchors),
             self.pipeline.settings.method.value,
