@@ -217,6 +217,36 @@ class TraversabilityClient:
             subscriber.undeclare()
 
     # ---- queries -------------------------------------------------------------------------------------
+    def _replies(
+        self,
+        key: str,
+        reply_type: type[M],
+        params: Mapping[str, Any] | None = None,
+        payload: bytes | None = None,
+        timeout: float | None = None,
+        every_instance: bool = False,
+    ) -> tuple[list[M], list[ServiceError]]:
+        """Answers and errors of the instances that replied; ``every_instance`` asks all of them."""
+        timeout = self.timeout if timeout is None else timeout
+        options: dict[str, Any] = {}
+        if every_instance:  # all queryables, and no merging of replies that share a key
+            options = {"target": zenoh.QueryTarget.ALL, "consolidation": zenoh.ConsolidationMode.NONE}
+        replies = self.session.get(_selector(key, params or {}), payload=payload, timeout=timeout, **options)
+        answers: list[M] = []
+        errors: list[ServiceError] = []
+        for reply in replies:
+            if reply.ok is not None:
+                answers.append(reply_type.unpack(reply.ok.payload.to_bytes()))
+                if not every_instance:
+                    break
+            else:
+                errors.append(self._error_from(reply.err.payload.to_bytes() if reply.err is not None else b"", key))
+        if not answers and not errors:
+            raise QueryTimeout(
+                f"no reply on '{key}' within {timeout:g} s: is the gcdtrav service running and reachable?"
+            )
+        return answers, errors
+
     def _query(
         self,
         key: str,
@@ -225,14 +255,10 @@ class TraversabilityClient:
         payload: bytes | None = None,
         timeout: float | None = None,
     ) -> M:
-        timeout = self.timeout if timeout is None else timeout
-        replies = self.session.get(_selector(key, params or {}), payload=payload, timeout=timeout)
-        for reply in replies:
-            if reply.ok is not None:
-                return reply_type.unpack(reply.ok.payload.to_bytes())
-            error = reply.err.payload.to_bytes() if reply.err is not None else b""
-            raise self._error_from(error, key)
-        raise QueryTimeout(f"no reply on '{key}' within {timeout:g} s: is the gcdtrav service running and reachable?")
+        answers, errors = self._replies(key, reply_type, params, payload, timeout)
+        if answers:
+            return answers[0]
+        raise errors[0]
 
     @staticmethod
     def _error_from(payload: bytes, key: str) -> ServiceError:
@@ -301,10 +327,25 @@ class TraversabilityClient:
             import json
 
             text = json.dumps(dict(anchor_set))
-        reply = self._query(
-            f"{self.prefix}/config/anchors", AnchorSetReply, payload=text.encode("utf-8"), timeout=timeout
+        # Every instance of the prefix swaps, so that all sources use the same set.
+        answers, errors = self._replies(
+            f"{self.prefix}/config/anchors",
+            AnchorSetReply,
+            payload=text.encode("utf-8"),
+            timeout=timeout,
+            every_instance=True,
         )
-        return reply.version
+        if errors:
+            raise errors[0]
+        return answers[0].version
 
     def status(self, timeout: float | None = None) -> ServiceStatus:
+        """The nearest instance's status; ``statuses()`` gives every instance's."""
         return self._query(f"{self.prefix}/status", ServiceStatus, timeout=timeout)
+
+    def statuses(self, timeout: float | None = None) -> list[ServiceStatus]:
+        """The status of every live instance that answers within ``timeout``."""
+        answers, errors = self._replies(f"{self.prefix}/status", ServiceStatus, timeout=timeout, every_instance=True)
+        if not answers and errors:
+            raise errors[0]
+        return sorted(answers, key=lambda status: status.instance)

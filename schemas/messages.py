@@ -170,6 +170,7 @@ class SourceStatus(BaseModel):
 
 class ServiceStatus(Message):
     instance: str
+    instances: list[str] = Field(default_factory=list, description="Live instances of this prefix, as seen here.")
     uptime_s: float
     model: str
     anchor_set_version: str

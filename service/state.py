@@ -36,8 +36,16 @@ def save_anchor_state(path: Path, anchors: AnchorSet) -> None:
     write_atomically(path, anchors.to_json() + "\n")
 
 
+def remove_stale_temporaries(path: Path) -> None:
+    """Temporary files of writes a crash interrupted (the state file itself is intact)."""
+    for stale in path.parent.glob(f".{path.name}.*.tmp"):
+        stale.unlink(missing_ok=True)
+
+
 def load_anchor_state(path: Path) -> AnchorSet | None:
     """The persisted set, or None if there is none or it is unusable (then the configured set is used)."""
+    if path.parent.is_dir():
+        remove_stale_temporaries(path)
     if not path.is_file():
         return None
     try:

@@ -180,6 +180,15 @@ def test_state_file_is_written_atomically(tmp_path: Path, monkeypatch: pytest.Mo
     assert list(path.parent.iterdir()) == [path]  # no temporary left behind
 
 
+def test_interrupted_writes_are_cleaned_at_start(tmp_path: Path) -> None:
+    path = tmp_path / "gcdtrav.anchors.json"
+    save_anchor_state(path, default_anchor_set())
+    stale = tmp_path / ".gcdtrav.anchors.json.abc123.tmp"
+    stale.write_text("{ half")
+    assert load_anchor_state(path) == default_anchor_set()
+    assert not stale.exists()
+
+
 def test_unusable_state_file_is_ignored(tmp_path: Path) -> None:
     path = tmp_path / "s.json"
     path.write_text('{"anchors": []}')

@@ -33,3 +33,23 @@ def wait_until(condition: Callable[[], object], timeout: float = 10.0, interval:
             return True
         time.sleep(interval)
     return bool(condition())
+
+
+def start_router(port: int):  # type: ignore[no-untyped-def]
+    """A router process on loopback; returns once it listens."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    process = subprocess.Popen(
+        [sys.executable, str(Path(__file__).with_name("zenoh_router.py")), str(port)], stdout=subprocess.PIPE, text=True
+    )
+    assert process.stdout is not None
+    line = process.stdout.readline()
+    assert "router ready" in line, line
+    return process
+
+
+def client_config(port: int) -> zenoh.Config:
+    """A client-mode session of the router on ``port``: it reconnects by itself when the router returns."""
+    return zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)

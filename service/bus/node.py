@@ -39,6 +39,7 @@ from gcdtrav.service import viz
 from gcdtrav.service.bus import ros as ros_io
 from gcdtrav.service.bus.ingest import DecodedFrame, RejectedInput, decode_payload
 from gcdtrav.service.bus.latest import LatestFrameQueue
+from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.stats import ServiceStats, percentiles
 from gcdtrav.service.pipeline import FrameResult, Pipeline
 from gcdtrav.service.queries import FrameHistory, FrameRecord, QueryError, answer_patch_query
@@ -92,6 +93,7 @@ class TraversabilityService:
         self._stopping = threading.Event()
         self._worker = threading.Thread(target=self._work, name="gcdtrav-worker", daemon=True)
         self._started_at = time.time()
+        self.membership: Membership | None = None
         self._check_inputs()
 
     def _check_inputs(self) -> None:
@@ -118,8 +120,8 @@ class TraversabilityService:
             self.session.declare_queryable(f"{self.prefix}/out/**/patch", self._on_patch_query),
             self.session.declare_queryable(f"{self.prefix}/config/anchors", self._on_anchors_query, complete=True),
             self.session.declare_queryable(f"{self.prefix}/status", self._on_status_query, complete=True),
-            self.session.liveliness().declare_token(f"{self.prefix}/alive/{self.settings.instance}"),
         ]
+        self.membership = Membership(self.session, self.prefix, self.settings.instance)
         self._worker.start()
         log.info(
             "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, model %s (%s), anchor set %s "
@@ -138,6 +140,8 @@ class TraversabilityService:
         """Stop taking frames, let the one in flight finish, undeclare everything."""
         self._stopping.set()
         self.queue.close()
+        if self.membership is not None:
+            self.membership.close()
         if self._worker.is_alive():
             self._worker.join(timeout)
         for entity in [*self._declared, *self._publishers.values()]:
@@ -177,7 +181,13 @@ class TraversabilityService:
             topic = replace(topic, msgtype=ros_input.message_type)
         self._enqueue(topic.source, sample, topic)
 
+    def owns(self, source: str) -> bool:
+        """Instances of one prefix share the sources; before start() this instance owns them all."""
+        return self.membership is None or self.membership.owns(source)
+
     def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None) -> None:
+        if not self.owns(source):
+            return  # another live instance serves this source
         size = len(sample.payload)
         if size > self.settings.max_payload_bytes:  # refused unread: never copied out of zenoh's buffer
             self.queue.count_unqueued(source)
@@ -355,6 +365,8 @@ class TraversabilityService:
             middle = key[len(f"{self.prefix}/out/") : -len("/patch")]
             if not middle or "*" in middle or "$" in middle:
                 raise QueryError(f"query one source's patch key, e.g. {self.prefix}/out/r1/front/patch, not '{key}'")
+            if not self.owns(middle):
+                return  # the owner answers; replying too would race it
             params = {name: value for name, value in query.parameters}  # type: ignore[attr-defined]
             reply = answer_patch_query(self.history, middle, params)
         except QueryError as err:
@@ -415,6 +427,7 @@ class TraversabilityService:
             errors = list(self.stats.last_errors)
         return ServiceStatus(
             instance=self.settings.instance,
+            instances=sorted(self.membership.live()) if self.membership else [self.settings.instance],
             uptime_s=time.time() - self._started_at,
             model=self.pipeline.backend.model_id,
             anchor_set_version=self.pipeline.anchors.version,

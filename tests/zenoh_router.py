@@ -1,0 +1,27 @@
+"""A zenoh router of the test's own, run as a process so that tests can kill and restart it.
+
+python tests/zenoh_router.py PORT
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+
+import zenoh
+from gcdtrav.client.zenoh_args import zenoh_config
+
+
+def main() -> None:
+    port = int(sys.argv[1])
+    session = zenoh.open(zenoh_config(mode="router", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    print("router ready", flush=True)
+    stop.wait(600)  # bounded: a test that forgets it does not leave it running for long
+    session.close()
+
+
+if __name__ == "__main__":
+    main()
