@@ -11,21 +11,23 @@ import json
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
-from hypothesis import strategies as st
-
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.schemas.images import encode_jpeg, encode_png
 from gcdtrav.schemas.messages import ImageEnvelope, MessageError, PixelEncoding
 from gcdtrav.service.bus.ingest import RejectedInput, decode_payload
 from gcdtrav.service.queries import FrameHistory, FrameRecord, QueryError, answer_patch_query
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 EXAMPLES = 500
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 LIMITS = {"received_at": 0.0, "max_bytes": 2_000_000, "max_pixels": 4_000_000}
 SMALL = np.random.default_rng(0).integers(0, 255, size=(12, 16, 3), dtype=np.uint8)
-SEEDS = [encode_png(SMALL), encode_jpeg(SMALL),
-         ImageEnvelope(stamp=1.0, encoding=PixelEncoding.RGB8, width=16, height=12, data=SMALL.tobytes()).pack()]
+SEEDS = [
+    encode_png(SMALL),
+    encode_jpeg(SMALL),
+    ImageEnvelope(stamp=1.0, encoding=PixelEncoding.RGB8, width=16, height=12, data=SMALL.tobytes()).pack(),
+]
 
 
 def mutated(seed: bytes, data: st.DataObject) -> bytes:
@@ -37,7 +39,7 @@ def mutated(seed: bytes, data: st.DataObject) -> bytes:
         if action == "flip" and buffer:
             buffer[position] ^= data.draw(st.integers(1, 255))
         elif action == "cut":
-            del buffer[position:position + data.draw(st.integers(1, 64))]
+            del buffer[position : position + data.draw(st.integers(1, 64))]
         else:
             buffer[position:position] = data.draw(st.binary(min_size=1, max_size=16))
     return bytes(buffer)
@@ -53,8 +55,10 @@ def check_decode(payload: bytes, encoding: str) -> None:
 
 
 @FUZZ
-@given(payload=st.binary(max_size=4096), encoding=st.sampled_from(["", "image/jpeg", "image/png",
-                                                                   "application/msgpack", "text/plain"]))
+@given(
+    payload=st.binary(max_size=4096),
+    encoding=st.sampled_from(["", "image/jpeg", "image/png", "application/msgpack", "text/plain"]),
+)
 def test_image_payloads_random_bytes(payload: bytes, encoding: str) -> None:
     check_decode(payload, encoding)
 
@@ -90,20 +94,29 @@ def test_envelopes_with_any_fields(fields: dict) -> None:
 def history_with_one_frame() -> FrameHistory:
     history = FrameHistory(depth=2)
     weights = np.full((13, 8, 10), 1 / 13, dtype=np.float16)
-    history.add("cam", FrameRecord(seq=0, stamp=5.0, frame_id="f", weights=weights,
-                                   anchors=default_anchor_set(), image_size=(100, 80)))
+    history.add(
+        "cam",
+        FrameRecord(
+            seq=0, stamp=5.0, frame_id="f", weights=weights, anchors=default_anchor_set(), image_size=(100, 80)
+        ),
+    )
     return history
 
 
 HISTORY = history_with_one_frame()
-parameter_values = st.one_of(st.text(max_size=30), st.integers(-10**9, 10**9).map(str),
-                             st.floats(allow_nan=True, allow_infinity=True).map(str),
-                             st.lists(st.floats(-200, 200), min_size=0, max_size=6).map(lambda v: ",".join(map(str, v))))
+parameter_values = st.one_of(
+    st.text(max_size=30),
+    st.integers(-(10**9), 10**9).map(str),
+    st.floats(allow_nan=True, allow_infinity=True).map(str),
+    st.lists(st.floats(-200, 200), min_size=0, max_size=6).map(lambda v: ",".join(map(str, v))),
+)
 
 
 @FUZZ
-@given(params=st.dictionaries(st.sampled_from(["x", "y", "i", "j", "seq", "stamp", "region", "zzz"]), parameter_values),
-       source=st.sampled_from(["cam", "other", ""]))
+@given(
+    params=st.dictionaries(st.sampled_from(["x", "y", "i", "j", "seq", "stamp", "region", "zzz"]), parameter_values),
+    source=st.sampled_from(["cam", "other", ""]),
+)
 def test_patch_query_parameters(params: dict[str, str], source: str) -> None:
     try:
         reply = answer_patch_query(HISTORY, source, params)
@@ -115,9 +128,14 @@ def test_patch_query_parameters(params: dict[str, str], source: str) -> None:
 
 anchor_like = st.recursive(
     st.one_of(st.none(), st.booleans(), st.floats(allow_nan=True), st.integers(), st.text(max_size=12)),
-    lambda children: st.one_of(st.lists(children, max_size=5), st.dictionaries(
-        st.sampled_from(["anchors", "concept", "position", "width", "name", "default_width", "x"]), children,
-        max_size=5)),
+    lambda children: st.one_of(
+        st.lists(children, max_size=5),
+        st.dictionaries(
+            st.sampled_from(["anchors", "concept", "position", "width", "name", "default_width", "x"]),
+            children,
+            max_size=5,
+        ),
+    ),
     max_leaves=30,
 )
 
@@ -158,11 +176,19 @@ def test_message_unpack_random_bytes(payload: bytes) -> None:
 def test_ros_cdr_payloads_mutated(data: st.DataObject, msgtype: str) -> None:
     ros = pytest.importorskip("gcdtrav.service.bus.ros")
     if msgtype == ros.IMAGE:
-        message = ros.typestore().types[ros.IMAGE](header=ros.make_header(1.5, "cam"), height=12, width=16,
-                                                   encoding="rgb8", is_bigendian=0, step=48, data=SMALL.ravel())
+        message = ros.typestore().types[ros.IMAGE](
+            header=ros.make_header(1.5, "cam"),
+            height=12,
+            width=16,
+            encoding="rgb8",
+            is_bigendian=0,
+            step=48,
+            data=SMALL.ravel(),
+        )
     else:
-        message = ros.typestore().types[ros.COMPRESSED_IMAGE](header=ros.make_header(1.5, "cam"), format="png",
-                                                              data=np.frombuffer(SEEDS[0], np.uint8))
+        message = ros.typestore().types[ros.COMPRESSED_IMAGE](
+            header=ros.make_header(1.5, "cam"), format="png", data=np.frombuffer(SEEDS[0], np.uint8)
+        )
     seed = bytes(ros.typestore().serialize_cdr(message, msgtype))
     try:
         frame = ros.decode_ros_image(mutated(seed, data), msgtype, 4_000_000)
