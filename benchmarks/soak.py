@@ -1,0 +1,244 @@
+"""Soak test: simulated robots stream JPEGs to several service instances through a router, on loopback.
+
+    python benchmarks/soak.py                          # 8 robots x 15 fps, 640x480, 10 min, 2 instances
+    python benchmarks/soak.py --minutes 2 --robots 4   # shorter
+
+Everything runs on this machine (127.0.0.1), is bounded in time and stops by itself. Without --model it
+uses random weights of the real CLIPSeg architecture. Reports, per instance, resident memory over time
+and, per robot, frames sent / received / processed / dropped / rejected, maps delivered, latency
+percentiles (robot stamp to maps received) and the services' errors; writes the same as JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import defaultdict
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+from gcdtrav.client import Maps, TraversabilityClient, zenoh_config
+from gcdtrav.schemas.images import encode_jpeg
+from gcdtrav.service.bench import bench_image
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+def rss_mb(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
+
+
+class Robots:
+    """Robot threads publishing at a fixed rate; counts frames sent and maps received per robot."""
+
+    def __init__(self, client: TraversabilityClient, count: int, fps: float, jpeg: bytes) -> None:
+        self.client, self.fps, self.jpeg = client, fps, jpeg
+        self.names = [f"robot{i}/front" for i in range(count)]
+        self.sent: dict[str, int] = defaultdict(int)
+        self.maps: dict[str, int] = defaultdict(int)
+        self.latency_ms: dict[str, list[float]] = defaultdict(list)
+        self.instances: dict[str, set[str]] = defaultdict(set)
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+
+    def on_maps(self, maps: Maps) -> None:
+        with self._lock:
+            source = maps.header.source
+            self.maps[source] += 1
+            self.latency_ms[source].append((time.time() - maps.header.stamp) * 1e3)
+            self.instances[source].add(maps.header.instance)
+
+    def _run(self, name: str) -> None:
+        period = 1.0 / self.fps
+        next_at = time.monotonic()
+        while not self._stop.is_set():
+            self.client.publish_image(name, self.jpeg, stamp=time.time())
+            self.sent[name] += 1
+            next_at += period
+            self._stop.wait(max(0.0, next_at - time.monotonic()))
+
+    def start(self) -> list[threading.Thread]:
+        threads = [threading.Thread(target=self._run, args=(name,), daemon=True) for name in self.names]
+        for thread in threads:
+            thread.start()
+        return threads
+
+    def stop(self) -> None:
+        self._stop.set()
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--minutes", type=float, default=10.0)
+    parser.add_argument("--robots", type=int, default=8)
+    parser.add_argument("--fps", type=float, default=15.0)
+    parser.add_argument("--instances", type=int, default=2)
+    parser.add_argument("--model", default=None, help="checkpoint directory [random weights, real architecture]")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads per instance [1]")
+    parser.add_argument("--sample-seconds", type=float, default=10.0)
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/soak.json"))
+    args = parser.parse_args()
+    deadline_s = args.minutes * 60
+
+    from gcdtrav.service.backends.random_clipseg import save_random_clipseg
+
+    scratch = tempfile.TemporaryDirectory()
+    model = args.model
+    if model is None:
+        print("building random weights of the real architecture ...", file=sys.stderr)
+        model = str(save_random_clipseg(Path(scratch.name) / "model", preset="rd64-refined"))
+    port = free_port()
+    router = zenoh.open(zenoh_config(mode="router", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
+    services = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "gcdtrav.service.cli",
+                "serve",
+                "--model",
+                model,
+                "-m",
+                "client",
+                "-e",
+                f"tcp/127.0.0.1:{port}",
+                "--no-multicast-scouting",
+                "--instance",
+                f"soak-{k}",
+                "--state-dir",
+                str(Path(scratch.name) / f"state{k}"),
+                "--threads",
+                str(args.threads),
+                "--no-preview",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for k in range(args.instances)
+    ]
+    client = TraversabilityClient(
+        config=zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False), timeout=5.0
+    )
+    rss_series: dict[str, list[tuple[float, float]]] = defaultdict(list)
+    report: dict[str, Any] = {}
+    try:
+        began = time.monotonic()
+        while time.monotonic() - began < 120:
+            try:
+                if len(client.statuses(timeout=2.0)) == args.instances:
+                    break
+            except Exception:
+                pass
+            time.sleep(1.0)
+        else:
+            raise SystemExit("the service instances did not come up within 2 minutes")
+        robots = Robots(client, args.robots, args.fps, encode_jpeg(bench_image(480, 640), 85))
+        subscriber = client.subscribe_maps("**", robots.on_maps)
+        time.sleep(0.5)
+        print(
+            f"soak: {args.robots} robots x {args.fps:g} fps, 640x480 JPEG, {args.instances} instances, "
+            f"{args.minutes:g} min",
+            file=sys.stderr,
+        )
+        threads = robots.start()
+        started = time.monotonic()
+        while (elapsed := time.monotonic() - started) < deadline_s:
+            time.sleep(min(args.sample_seconds, deadline_s - elapsed))
+            for process, k in zip(services, range(args.instances), strict=True):
+                rss_series[f"soak-{k}"].append((round(time.monotonic() - started, 1), round(rss_mb(process.pid), 1)))
+            sent = sum(robots.sent.values())
+            delivered = sum(robots.maps.values())
+            print(
+                f"  t={time.monotonic() - started:6.0f} s  sent {sent}  maps {delivered}  rss "
+                + " ".join(f"{name} {series[-1][1]:.0f} MB" for name, series in rss_series.items()),
+                file=sys.stderr,
+            )
+        robots.stop()
+        for thread in threads:
+            thread.join(5)
+        time.sleep(3.0)
+        statuses = client.statuses(timeout=5.0)
+        subscriber.undeclare()
+        per_robot = {}
+        for name in robots.names:
+            counts = {"sent": robots.sent[name], "received": 0, "processed": 0, "dropped": 0, "rejected": 0}
+            for status in statuses:
+                source = status.sources.get(name)
+                if source is not None:
+                    for key in ("received", "processed", "dropped", "rejected"):
+                        counts[key] += getattr(source, key)
+            latencies = robots.latency_ms[name]
+            counts["maps_delivered"] = robots.maps[name]
+            counts["instances"] = sorted(robots.instances[name])
+            counts["latency_ms"] = (
+                {f"p{q}": round(float(np.percentile(latencies, q)), 1) for q in (50, 90, 99)} if latencies else {}
+            )
+            per_robot[name] = counts
+        all_latency = [v for values in robots.latency_ms.values() for v in values]
+        report = {
+            "settings": vars(args) | {"out": str(args.out)},
+            "per_robot": per_robot,
+            "latency_ms_all": {f"p{q}": round(float(np.percentile(all_latency, q)), 1) for q in (50, 90, 99)}
+            if all_latency
+            else {},
+            "rss_mb": dict(rss_series),
+            "rss_growth_mb": {name: round(series[-1][1] - series[0][1], 1) for name, series in rss_series.items()},
+            "errors": {status.instance: status.rejected_by_reason for status in statuses},
+            "last_errors": {status.instance: status.last_errors for status in statuses},
+            "lost": sum(c["sent"] - c["received"] for c in per_robot.values()),
+        }
+    finally:
+        client.close()
+        for process in services:
+            process.terminate()
+        for process in services:
+            try:
+                process.communicate(timeout=20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+        router.close()
+        scratch.cleanup()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    print("| robot | sent | received | processed | dropped | rejected | maps | instance | p50 ms | p99 ms |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for name, c in report["per_robot"].items():
+        print(
+            f"| {name} | {c['sent']} | {c['received']} | {c['processed']} | {c['dropped']} | {c['rejected']} | "
+            f"{c['maps_delivered']} | {','.join(c['instances'])} | {c['latency_ms'].get('p50', '-')} | "
+            f"{c['latency_ms'].get('p99', '-')} |"
+        )
+    print(f"latency all robots: {report['latency_ms_all']}")
+    for name, series in report["rss_mb"].items():
+        values = [v for _, v in series]
+        print(
+            f"{name}: RSS {min(values):.0f}..{max(values):.0f} MB (median {statistics.median(values):.0f}), "
+            f"growth first->last {report['rss_growth_mb'][name]:+.1f} MB over {len(values)} samples"
+        )
+    print(f"errors: {report['errors']}; sent but never received by a service: {report['lost']}")
+    print(f"written: {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
