@@ -2,6 +2,7 @@
 
 from gcdtrav.client.client import (
     AnchorSetRejected,
+    Grid,
     Maps,
     QueryTimeout,
     ServiceError,
@@ -11,6 +12,7 @@ from gcdtrav.client.zenoh_args import add_zenoh_arguments, zenoh_config, zenoh_c
 
 __all__ = [
     "AnchorSetRejected",
+    "Grid",
     "Maps",
     "QueryTimeout",
     "ServiceError",

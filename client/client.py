@@ -12,6 +12,7 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import numpy as np
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet
@@ -22,11 +23,14 @@ from gcdtrav.schemas.messages import (
     AnchorSetReply,
     ContextDistribution,
     ErrorReply,
+    GridHeader,
+    GridMessage,
     ImageEnvelope,
     M,
     MapsHeader,
     MapsMessage,
     MessageError,
+    PathReply,
     PixelEncoding,
     ServiceStatus,
 )
@@ -73,6 +77,33 @@ class Maps:
             traversability_full=_optional_map(message.traversability_full_png),
             uncertainty_full=_optional_map(message.uncertainty_full_png),
         )
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A decoded GridMessage: T and U per cell (NaN where never observed) and observation counts."""
+
+    header: GridHeader
+    traversability: NDArray[np.float32]
+    uncertainty: NDArray[np.float32]
+    count: NDArray[np.int64]
+
+    @classmethod
+    def from_payload(cls, payload: bytes) -> Grid:
+        message = GridMessage.unpack(payload)
+        decoded = cv2.imdecode(np.frombuffer(message.count_png, np.uint8), cv2.IMREAD_UNCHANGED)
+        if decoded is None:
+            raise MessageError("grid count layer is not a PNG")
+        count = decoded.astype(np.int64)
+        unknown = count == 0
+        t, u = decode_map_png16(message.traversability_png), decode_map_png16(message.uncertainty_png)
+        t[unknown], u[unknown] = np.nan, np.nan
+        return cls(header=message.header, traversability=t, uncertainty=u, count=count)
+
+    def cell_index(self, x: float, y: float) -> tuple[int, int]:
+        """(row, column) of the cell holding the point (x, y), metres in the grid's frame."""
+        r = self.header.resolution
+        return int((y - self.header.origin[1]) // r), int((x - self.header.origin[0]) // r)
 
 
 def _optional_map(data: bytes | None) -> NDArray[np.float32] | None:
@@ -306,6 +337,21 @@ class TraversabilityClient:
     ) -> ContextDistribution:
         """The distribution pooled over a box of image pixels (mean of its patch weights)."""
         return self._patch_query(source, {"region": f"{x0},{y0},{x1},{y1}"}, seq, timeout)
+
+    def cell(self, source: str, x: float, y: float, timeout: float | None = None) -> ContextDistribution:
+        """The fused distribution of the ground-grid cell at (x, y), metres in the grid's frame."""
+        return self._query(f"{self.prefix}/out/{source}/cell", ContextDistribution, {"x": x, "y": y}, timeout=timeout)
+
+    def path(self, source: str, points: list[tuple[float, float]], timeout: float | None = None) -> PathReply:
+        """The known cells along a polyline (metres), with the indices of the lowest T and highest U."""
+        text = ";".join(f"{x!r},{y!r}" for x, y in points)
+        return self._query(f"{self.prefix}/out/{source}/cell", PathReply, {"path": text}, timeout=timeout)
+
+    def subscribe_grid(self, selector: str, callback: Callable[[Grid], None]) -> zenoh.Subscriber[None]:
+        """Call ``callback`` with every decoded ground grid of the matching sources."""
+        return self.session.declare_subscriber(
+            f"{self.prefix}/out/{selector}/grid", lambda sample: callback(Grid.from_payload(sample.payload.to_bytes()))
+        )
 
     def _patch_query(
         self, source: str, params: dict[str, Any], seq: int | None, timeout: float | None

@@ -135,9 +135,60 @@ class ContextDistribution(Message):
     density_x: list[float] = Field(description="Grid on [0, 1] where the density is sampled.")
     density: list[float] = Field(description="Mixture density at density_x (zero widths drawn at the bandwidth).")
     density_bandwidth: float
+    cell_xy: tuple[float, float] | None = Field(default=None, description="Grid queries: the cell's centre, m.")
+    observations: int | None = Field(default=None, description="Grid queries: pixels fused into the cell.")
 
     def weights_array(self) -> NDArray[np.float32]:
         return np.asarray(self.weights, dtype=np.float32)
+
+
+class Pose2D(Message):
+    """The robot's pose in its odometry frame, as a grid's pose stream (or nav_msgs/Odometry CDR)."""
+
+    stamp: float
+    frame_id: str = "odom"
+    x: float
+    y: float
+    yaw: float = Field(description="Heading, radians, counter-clockwise from x.")
+
+
+class GridHeader(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    source: str
+    seq: int = Field(description="Grid updates so far.")
+    stamp: float = Field(description="Stamp of the last fused frame.")
+    frame_id: str = Field(description="'base_link' (no pose stream) or the pose stream's frame.")
+    origin: tuple[float, float] = Field(description="(x, y) of the corner of cell (0, 0), metres.")
+    resolution: float = Field(description="Cell side, metres.")
+    cells: int = Field(description="The grid is cells x cells; row i is y, column j is x.")
+    robot: tuple[float, float, float] | None = Field(default=None, description="(x, y, yaw) in the grid frame.")
+    anchor_set_version: str
+    resets: int = Field(description="Times the grid was cleared (anchor set changes).")
+    last_reset: str = ""
+    known_cells: int
+    instance: str
+
+
+class GridMessage(Message):
+    """T and U per cell as 16-bit PNGs (value / 65535) and observation counts (16-bit, capped); a cell with
+    count 0 is unknown, whatever its T and U pixels hold."""
+
+    header: GridHeader
+    traversability_png: bytes
+    uncertainty_png: bytes
+    count_png: bytes
+
+
+class PathReply(Message):
+    source: str
+    stamp: float
+    anchor_set_version: str
+    points: list[tuple[float, float]] = Field(description="The polyline asked for, metres.")
+    cells: list[ContextDistribution] = Field(description="Known cells along it, in order.")
+    unknown_cells: int = Field(description="Cells along the path never observed (not in ``cells``).")
+    lowest_t: int | None = Field(default=None, description="Index in ``cells`` of the lowest T.")
+    highest_u: int | None = Field(default=None, description="Index in ``cells`` of the highest U.")
 
 
 class AnchorSetReply(Message):

@@ -67,6 +67,61 @@ class RosOutput(BaseModel):
     )
 
 
+class CameraIntrinsics(BaseModel):
+    """Pinhole intrinsics (pixels) for images of width x height; other image sizes are scaled."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
+    cx: float
+    cy: float
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+
+
+class CameraMountSettings(BaseModel):
+    """The camera body frame (x forward, y left, z up) in the robot's base frame: metres and radians."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    x: float = 0.0
+    y: float = 0.0
+    z: float = Field(default=1.0, description="Height above the ground plane z = 0.")
+    roll: float = 0.0
+    pitch: float = Field(default=0.0, description="Positive tilts the camera down.")
+    yaw: float = 0.0
+
+
+class GridSettings(BaseModel):
+    """A ground grid around the robot for one source (see docs/grid.md)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    source: str = Field(description="The source whose maps feed the grid, e.g. 'r1/front'.")
+    intrinsics: CameraIntrinsics | None = None
+    camera_info_key: str | None = Field(default=None, description="sensor_msgs/CameraInfo CDR key (overrides).")
+    mount: CameraMountSettings = Field(default_factory=CameraMountSettings)
+    size_m: float = Field(default=20.0, gt=0)
+    resolution_m: float = Field(default=0.1, gt=0)
+    max_range_m: float = Field(default=10.0, gt=0, description="Ground points farther from the camera are dropped.")
+    half_life_s: float = Field(default=2.0, gt=0, description="Old observations weigh half after this long.")
+    pose_key: str | None = Field(default=None, description="Robot pose stream: the grid then lives in its frame.")
+    pose_format: Literal["gcdtrav", "odometry"] = Field(
+        default="gcdtrav", description="gcdtrav: msgpack Pose2D; odometry: nav_msgs/msg/Odometry CDR."
+    )
+    depth_key: str | None = Field(default=None, description="Depth image (32FC1 m or 16UC1 mm, CDR) for 3-D points.")
+    occupancy_grid: bool = Field(default=False, description="Also publish nav_msgs/OccupancyGrid CDR (T and U).")
+
+    @model_validator(mode="after")
+    def _needs_intrinsics(self) -> GridSettings:
+        if self.intrinsics is None and self.camera_info_key is None:
+            raise ValueError(f"grid of '{self.source}': give intrinsics or a camera_info_key")
+        if self.size_m / self.resolution_m > 2000:
+            raise ValueError(f"grid of '{self.source}': more than 2000 x 2000 cells; coarsen resolution_m")
+        return self
+
+
 class ServiceSettings(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
@@ -90,6 +145,7 @@ class ServiceSettings(BaseModel):
     preview: bool = Field(default=True, description="Publish a colourised JPEG on {prefix}/out/{source}/preview.")
     preview_max_width: int = Field(default=640, ge=64)
     instance: str = Field(default_factory=default_instance_name, description="Name in results and liveliness.")
+    grids: list[GridSettings] = Field(default_factory=list, description="Ground grids, one per source.")
     ros_inputs: list[RosInput] = Field(default_factory=list, description="ROS 2 image topics (CDR).")
     ros_output: RosOutput = Field(default_factory=RosOutput)
     precision: Literal["auto", "fp32", "bf16", "bf16-vit", "int8"] = Field(

@@ -154,26 +154,29 @@ def answer_patch_query(history: FrameHistory, source: str, params: Mapping[str, 
         i0, j0, i1, j1 = region
         weights = record.weights[:, i0:i1, j0:j1].astype(np.float32).mean(axis=(1, 2))
     weights /= weights.sum()  # float16 storage: renormalise
-    return distribution_of(weights, record, source, patch=patch, region=region)
+    return distribution_of(weights, record.anchors, source, record.seq, record.stamp, record.frame_id, patch, region)
 
 
 def distribution_of(
     weights: NDArray[np.float32],
-    record: FrameRecord,
+    anchors: AnchorSet,
     source: str,
+    seq: int,
+    stamp: float,
+    frame_id: str = "",
     patch: tuple[int, int] | None = None,
     region: tuple[int, int, int, int] | None = None,
 ) -> ContextDistribution:
-    anchors = record.anchors
+    """The full ContextDistribution of one weight vector over ``anchors``."""
     positions, widths = np.asarray(anchors.positions), np.asarray(anchors.widths)
     stats = gcd.mixture_statistics(weights[:, None], positions, widths)
     grid = gcd.density_grid()
     density = gcd.mixture_density(weights[:, None], positions, widths, grid)[0]
     return ContextDistribution(
         source=source,
-        seq=record.seq,
-        stamp=record.stamp,
-        frame_id=record.frame_id,
+        seq=seq,
+        stamp=stamp,
+        frame_id=frame_id,
         anchor_set_version=anchors.version,
         anchors=[
             Anchor(concept=c, position=float(p), width=float(w))

@@ -16,6 +16,12 @@ from zenoh_helpers import free_port, listening_config
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def run_example(script: str, *args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, str(ROOT / "examples" / script), *args], capture_output=True, text=True, timeout=120
+    )
+
+
 @pytest.mark.parametrize("name", ["zenoh-router.json5", "service-zenoh.json5", "access-control.json5", "tls.json5"])
 def test_zenoh_configs_parse(name: str) -> None:
     zenoh.Config.from_file(ROOT / "deploy" / name)
@@ -57,69 +63,15 @@ def test_robot_planner_and_operator_examples(tiny_backend, tmp_path: Path) -> No
         cv2.imwrite(str(folder / f"{index:03d}.jpg"), textured_image(60, 80, seed=index))
     try:
         time.sleep(0.3)
-        robot = subprocess.run(
-            [
-                sys.executable,
-                str(ROOT / "examples" / "robot_stream_folder.py"),
-                str(folder),
-                "--source",
-                "r9/cam",
-                "--fps",
-                "4",
-                *flags,
-            ],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        robot = run_example("robot_stream_folder.py", str(folder), "--source", "r9/cam", "--fps", "4", *flags)
         assert robot.returncode == 0, robot.stderr
         assert "sent 2: 002.jpg" in robot.stdout and "maps r9/cam seq=" in robot.stdout
-        planner = subprocess.run(
-            [
-                sys.executable,
-                str(ROOT / "examples" / "planner_probe.py"),
-                "--source",
-                "r9/cam",
-                "--x",
-                "40",
-                "--y",
-                "30",
-                *flags,
-            ],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        planner = run_example("planner_probe.py", "--source", "r9/cam", "--x", "40", "--y", "30", *flags)
         assert planner.returncode == 0, planner.stderr
         assert "T (mean) =" in planner.stdout and "concrete @ 1.00" in planner.stdout
-        missing = subprocess.run(
-            [
-                sys.executable,
-                str(ROOT / "examples" / "planner_probe.py"),
-                "--source",
-                "nobody",
-                "--x",
-                "1",
-                "--y",
-                "1",
-                *flags,
-            ],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        missing = run_example("planner_probe.py", "--source", "nobody", "--x", "1", "--y", "1", *flags)
         assert missing.returncode == 1 and "unknown source 'nobody'" in missing.stderr
-        operator = subprocess.run(
-            [
-                sys.executable,
-                str(ROOT / "examples" / "set_anchors.py"),
-                str(ROOT / "examples" / "anchors" / "puddles.yaml"),
-                *flags,
-            ],
-            capture_output=True,
-            text=True,
-            timeout=120,
-        )
+        operator = run_example("set_anchors.py", str(ROOT / "examples" / "anchors" / "puddles.yaml"), *flags)
         assert operator.returncode == 0, operator.stderr
         assert len(service.pipeline.anchors) == 8
     finally:

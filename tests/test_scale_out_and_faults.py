@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import signal
 import subprocess
-import sys
 import threading
 import time
 from collections import defaultdict
@@ -16,7 +15,7 @@ from pathlib import Path
 import pytest
 import zenoh
 from conftest import textured_image
-from zenoh_helpers import client_config, free_port, start_router, wait_until
+from zenoh_helpers import client_config, free_port, serve_args, start_router, wait_until
 
 pytest.importorskip("torch")
 
@@ -33,29 +32,19 @@ SOURCES = [f"r{i}/front" for i in range(6)]
 
 
 def serve_process(model: Path, router_port: int, instance: str, state_dir: Path) -> subprocess.Popen[str]:
-    return subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "gcdtrav.service.cli",
-            "serve",
-            "--model",
-            str(model),
-            "-m",
-            "client",
-            "-e",
-            f"tcp/127.0.0.1:{router_port}",
-            "--no-multicast-scouting",
-            "--instance",
-            instance,
-            "--state-dir",
-            str(state_dir),
-            "--no-preview",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
+    args = serve_args(
+        model,
+        "-m",
+        "client",
+        "-e",
+        f"tcp/127.0.0.1:{router_port}",
+        "--instance",
+        instance,
+        "--state-dir",
+        str(state_dir),
+        "--no-preview",
     )
+    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
 def in_process_service(backend, router_port: int, instance: str, state_dir: Path):  # type: ignore[no-untyped-def]

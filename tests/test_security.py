@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from zenoh_helpers import free_port, wait_until
+from zenoh_helpers import free_port, service_reachable, wait_until
 
 pytest.importorskip("torch")
 
@@ -37,14 +37,6 @@ def start(backend, config: zenoh.Config, state_dir: Path) -> tuple[Traversabilit
     return service, session
 
 
-def reachable(client: TraversabilityClient) -> bool:
-    try:
-        client.status(timeout=1.0)
-        return True
-    except QueryTimeout:
-        return False
-
-
 def user_config(port: int, user: str | None, password: str | None) -> zenoh.Config:
     config = zenoh_config(mode="peer", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
     if user is not None:
@@ -63,18 +55,18 @@ def test_only_the_operator_can_change_the_anchor_set(tiny_backend, tmp_path: Pat
     service, session = start(tiny_backend, config, tmp_path)
     try:
         with TraversabilityClient(config=user_config(port, "robot", "robot-secret"), timeout=1.5) as robot:
-            assert wait_until(lambda: reachable(robot), 10)  # status and maps are open to robots
+            assert wait_until(lambda: service_reachable(robot), 10)  # status and maps are open to robots
             with pytest.raises(QueryTimeout):  # the service session's ACL drops the query: no reply at all
                 robot.set_anchors(NEW_SET)
             assert service.pipeline.anchors.version == default_anchor_set().version
         with TraversabilityClient(config=user_config(port, "operator", "operator-secret"), timeout=5.0) as operator:
-            assert wait_until(lambda: reachable(operator), 10)
+            assert wait_until(lambda: service_reachable(operator), 10)
             version = operator.set_anchors(NEW_SET)
             assert service.pipeline.anchors.version == version != default_anchor_set().version
         for user, password in ((None, None), ("robot", "wrong")):  # no session without valid credentials
             with TraversabilityClient(config=user_config(port, user, password), timeout=1.0) as stranger:
                 time.sleep(0.5)
-                assert not reachable(stranger)
+                assert not service_reachable(stranger)
     finally:
         service.stop()
         session.close()
@@ -159,11 +151,11 @@ def test_tls_example_with_mutual_authentication(tiny_backend, tmp_path: Path) ->
 
     try:
         with TraversabilityClient(config=tls_client(True), timeout=2.0) as trusted:
-            assert wait_until(lambda: reachable(trusted), 10)
+            assert wait_until(lambda: service_reachable(trusted), 10)
             assert trusted.status().instance == "secure"
         with TraversabilityClient(config=tls_client(False), timeout=1.0) as anonymous:
             time.sleep(0.5)
-            assert not reachable(anonymous)  # mutual TLS: no client certificate, no link
+            assert not service_reachable(anonymous)  # mutual TLS: no client certificate, no link
     finally:
         service.stop()
         session.close()

@@ -4,17 +4,16 @@ from __future__ import annotations
 
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 from conftest import textured_image
-from zenoh_helpers import connecting_config, free_port, wait_until
+from zenoh_helpers import connecting_config, free_port, serve_args, service_reachable, wait_until
 
 pytest.importorskip("torch")
 
-from gcdtrav.client import QueryTimeout, TraversabilityClient
+from gcdtrav.client import TraversabilityClient
 
 NEW_SET = {
     "anchors": [
@@ -26,34 +25,8 @@ NEW_SET = {
 
 
 def start(model: Path, state: Path, port: int) -> subprocess.Popen[str]:
-    return subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "gcdtrav.service.cli",
-            "serve",
-            "--model",
-            str(model),
-            "-l",
-            f"tcp/127.0.0.1:{port}",
-            "--no-multicast-scouting",
-            "--state-dir",
-            str(state),
-            "--instance",
-            "cli-test",
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-    )
-
-
-def ready(client: TraversabilityClient) -> bool:
-    try:
-        client.status(timeout=1.0)
-        return True
-    except QueryTimeout:
-        return False
+    args = serve_args(model, "-l", f"tcp/127.0.0.1:{port}", "--state-dir", str(state), "--instance", "cli-test")
+    return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
 def stop(process: subprocess.Popen[str], signum: int) -> tuple[int, float, str]:
@@ -68,7 +41,7 @@ def test_serve_stops_cleanly_and_restart_keeps_the_accepted_set(tiny_model_dir: 
     process = start(tiny_model_dir, tmp_path, port)
     try:
         with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
-            assert wait_until(lambda: ready(client), 60), "service did not come up"
+            assert wait_until(lambda: service_reachable(client), 60), "service did not come up"
             maps = client.iter_maps("**", timeout=15, limit=1)
             time.sleep(0.3)
             client.publish_image("cam", textured_image(64, 64))
@@ -86,7 +59,7 @@ def test_serve_stops_cleanly_and_restart_keeps_the_accepted_set(tiny_model_dir: 
     process = start(tiny_model_dir, tmp_path, port)
     try:
         with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
-            assert wait_until(lambda: ready(client), 60)
+            assert wait_until(lambda: service_reachable(client), 60)
             reply = client.anchors()
             assert reply.version == version and [a.concept for a in reply.anchor_set.anchors] == [
                 "lake",
@@ -101,46 +74,16 @@ def test_serve_stops_cleanly_and_restart_keeps_the_accepted_set(tiny_model_dir: 
 
 
 def test_serve_with_missing_model_exits_2(tmp_path: Path) -> None:
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "gcdtrav.service.cli",
-            "serve",
-            "--model",
-            str(tmp_path / "none"),
-            "--no-multicast-scouting",
-            "-l",
-            f"tcp/127.0.0.1:{free_port()}",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    args = serve_args(tmp_path / "none", "-l", f"tcp/127.0.0.1:{free_port()}")
+    result = subprocess.run(args, capture_output=True, text=True, timeout=60)
     assert result.returncode == 2
     assert "does not exist" in result.stderr and "Traceback" not in result.stderr
 
 
 def test_serve_rejects_inputs_that_overlap_outputs(tiny_model_dir: Path, tmp_path: Path) -> None:
-    result = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "gcdtrav.service.cli",
-            "serve",
-            "--model",
-            str(tiny_model_dir),
-            "--input",
-            "**",
-            "--no-multicast-scouting",
-            "-l",
-            f"tcp/127.0.0.1:{free_port()}",
-            "--state-dir",
-            str(tmp_path),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=60,
+    args = serve_args(
+        tiny_model_dir, "--input", "**", "-l", f"tcp/127.0.0.1:{free_port()}", "--state-dir", str(tmp_path)
     )
+    result = subprocess.run(args, capture_output=True, text=True, timeout=60)
     assert result.returncode == 2
     assert "overlaps the service's outputs" in result.stderr

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import TINY_INPUT_SIZE, textured_image
-from zenoh_helpers import connecting_config, free_port, listening_config, wait_until
+from zenoh_helpers import connecting_config, free_port, listening_config, service_reachable, wait_until
 
 pytest.importorskip("torch")
 
-from gcdtrav.client import AnchorSetRejected, Maps, QueryTimeout, ServiceError, TraversabilityClient
+from gcdtrav.client import AnchorSetRejected, Maps, ServiceError, TraversabilityClient
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.settings import ServiceSettings
@@ -71,21 +71,13 @@ def running(tiny_backend, tmp_path: Path) -> Iterator[Running]:  # type: ignore[
     client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
     received: list[Maps] = []
     subscriber = client.subscribe_maps("**", received.append)
-    assert wait_until(lambda: _status_ok(client), 10)
+    assert wait_until(lambda: service_reachable(client), 10)
     time.sleep(0.3)  # let the maps subscription reach the service
     yield Running(service, client, service.settings, received)
     subscriber.undeclare()
     client.close()
     service.stop()
     session.close()
-
-
-def _status_ok(client: TraversabilityClient) -> bool:
-    try:
-        client.status(timeout=1.0)
-        return True
-    except QueryTimeout:
-        return False
 
 
 def publish_and_wait(run: Running, source: str, image: np.ndarray, **kw: object) -> Maps:
@@ -236,7 +228,7 @@ def test_latest_only_under_load(tiny_backend, tmp_path: Path) -> None:  # type: 
     service, session, port = start_service(SlowBackend(tiny_backend, 0.08), tmp_path)
     client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
     try:
-        assert wait_until(lambda: _status_ok(client), 10)
+        assert wait_until(lambda: service_reachable(client), 10)
         image = textured_image(64, 64)
         queued = []
         for index in range(50):

@@ -53,3 +53,30 @@ def start_router(port: int):  # type: ignore[no-untyped-def]
 def client_config(port: int) -> zenoh.Config:
     """A client-mode session of the router on ``port``: it reconnects by itself when the router returns."""
     return zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+
+
+def serve_args(model: object, *extra: str) -> list[str]:
+    """The command line of `gcdtrav serve` with this Python, multicast scouting off."""
+    import sys
+
+    return [
+        sys.executable,
+        "-m",
+        "gcdtrav.service.cli",
+        "serve",
+        "--model",
+        str(model),
+        "--no-multicast-scouting",
+        *extra,
+    ]
+
+
+def service_reachable(client: object, timeout: float = 1.0) -> bool:
+    """True once a gcdtrav service answers the client's status query."""
+    from gcdtrav.client import QueryTimeout
+
+    try:
+        client.status(timeout=timeout)  # type: ignore[attr-defined]
+        return True
+    except QueryTimeout:
+        return False

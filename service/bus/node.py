@@ -31,12 +31,14 @@ from gcdtrav.schemas.messages import (
     ErrorReply,
     MapsHeader,
     MapsMessage,
+    MessageError,
     ServiceStatus,
     SourceStatus,
 )
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
 from gcdtrav.service import viz
 from gcdtrav.service.bus import ros as ros_io
+from gcdtrav.service.bus.grids import GridOutputs
 from gcdtrav.service.bus.ingest import DecodedFrame, RejectedInput, decode_payload
 from gcdtrav.service.bus.latest import LatestFrameQueue
 from gcdtrav.service.bus.membership import Membership
@@ -94,6 +96,7 @@ class TraversabilityService:
         self._worker = threading.Thread(target=self._work, name="gcdtrav-worker", daemon=True)
         self._started_at = time.time()
         self.membership: Membership | None = None
+        self.grids = GridOutputs(settings.grids, len(pipeline.anchors), settings.instance) if settings.grids else None
         self._check_inputs()
 
     def _check_inputs(self) -> None:
@@ -116,6 +119,8 @@ class TraversabilityService:
             self._declared.append(self.session.declare_subscriber(expression, self._image_handler(head)))
         for ros_input in self.settings.ros_inputs:
             self._declared.append(self.session.declare_subscriber(ros_input.key, self._ros_handler(ros_input)))
+        if self.grids is not None:
+            self._declare_grid_inputs(self.grids)
         self._declared += [
             self.session.declare_queryable(f"{self.prefix}/out/**/patch", self._on_patch_query),
             self.session.declare_queryable(f"{self.prefix}/config/anchors", self._on_anchors_query, complete=True),
@@ -198,6 +203,29 @@ class TraversabilityService:
         pending = PendingFrame(str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), time.time(), ros)
         self.queue.put(source, pending)
 
+    def _declare_grid_inputs(self, grids: GridOutputs) -> None:
+        self._declared.append(self.session.declare_queryable(f"{self.prefix}/out/**/cell", self._on_cell_query))
+        for config in self.settings.grids:
+            for key, setter, reason in (
+                (config.pose_key, grids.set_pose, "bad_pose"),
+                (config.camera_info_key, grids.set_camera_info, "bad_camera_info"),
+                (config.depth_key, grids.set_depth, "bad_depth"),
+            ):
+                if key is not None:
+                    handler = self._grid_input_handler(config.source, setter, reason)
+                    self._declared.append(self.session.declare_subscriber(key, handler))
+
+    def _grid_input_handler(
+        self, source: str, setter: Callable[[str, bytes], None], reason: str
+    ) -> Callable[[zenoh.Sample], None]:
+        def handle(sample: zenoh.Sample) -> None:
+            try:
+                setter(source, sample.payload.to_bytes())
+            except (MessageError, ValueError) as err:
+                self.stats.rejected(source, reason, str(err)[:200])
+
+        return handle
+
     # ---- worker --------------------------------------------------------------------------------------
     def _work(self) -> None:
         while True:
@@ -252,6 +280,8 @@ class TraversabilityService:
         )
         self.history.add(source, record)
         self._publish(source, pending, frame, result, record, ros_header)
+        if self.grids is not None:
+            self._publish_grid(source, record, result)
 
     def _publish(
         self,
@@ -337,6 +367,35 @@ class TraversabilityService:
                 publisher.put(payload, attachment=attachment.next())
             else:
                 publisher.put(payload)
+
+    def _publish_grid(self, source: str, record: FrameRecord, result: FrameResult) -> None:
+        assert self.grids is not None
+        message = self.grids.on_frame(source, record, result.maps.weights)
+        if message is None:
+            return
+        self._publisher(f"{self.prefix}/out/{source}/grid", MSGPACK).put(message.pack())
+        if self.grids.sources[source].config.occupancy_grid:
+            cost, uncertainty = self.grids.occupancy(message, source, result.anchors)
+            self._publisher(f"{self.prefix}/out/{source}/grid/occupancy", zenoh.Encoding.APPLICATION_CDR).put(cost)
+            self._publisher(f"{self.prefix}/out/{source}/grid/uncertainty", zenoh.Encoding.APPLICATION_CDR).put(
+                uncertainty
+            )
+
+    def _on_cell_query(self, query: zenoh.Query) -> None:
+        key = str(query.key_expr)
+        try:
+            source = key[len(f"{self.prefix}/out/") : -len("/cell")]
+            if not source or "*" in source or "$" in source:
+                raise QueryError(f"query one source's cell key, e.g. {self.prefix}/out/r1/front/cell, not '{key}'")
+            if not self.owns(source):
+                return
+            assert self.grids is not None
+            reply = self.grids.answer(source, str(query.parameters), self.pipeline.anchors)
+        except QueryError as err:
+            self.stats.rejected(None, "bad_query", f"{query.selector}: {err}")
+            query.reply_err(ErrorReply(error=str(err)).pack(), encoding=MSGPACK)
+            return
+        query.reply(key, reply.pack(), encoding=MSGPACK)
 
     def _preview(self, frame: DecodedFrame, t: np.ndarray, u: np.ndarray) -> bytes:
         """T over the image, beside U, scaled to at most preview_max_width."""

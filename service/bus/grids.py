@@ -1,0 +1,339 @@
+"""Ground grids on the bus: per configured source, project each frame's anchor weights onto the ground,
+fuse them, publish the grid, and answer cell and path queries in metres.
+
+Keys, for a source with a grid:
+  {prefix}/out/{source}/grid                      GridMessage (msgpack)
+  {prefix}/out/{source}/grid/occupancy            nav_msgs/OccupancyGrid CDR, cost = 100 (1 - T), unknown -1
+  {prefix}/out/{source}/grid/uncertainty          nav_msgs/OccupancyGrid CDR, 100 U / 0.5, unknown -1
+  {prefix}/out/{source}/cell?x=..;y=..            ContextDistribution of the cell (grid frame, metres)
+  {prefix}/out/{source}/cell?path=x0,y0;x1,y1;..  PathReply: the known cells along the polyline
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.images import encode_map_png16
+from gcdtrav.schemas.messages import ContextDistribution, GridHeader, GridMessage, MessageError, PathReply, Pose2D
+from gcdtrav.schemas.settings import GridSettings
+from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
+from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points, map_cell_pixels
+from gcdtrav.service.queries import FrameRecord, QueryError, distribution_of
+from numpy.typing import NDArray
+
+log = logging.getLogger("gcdtrav.service")
+MAX_PATH_POINTS = 256
+
+
+def yaw_of_quaternion(x: float, y: float, z: float, w: float) -> float:
+    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+def decode_pose(payload: bytes, fmt: str) -> Pose2D:
+    if fmt == "gcdtrav":
+        return Pose2D.unpack(payload)
+    from gcdtrav.service.bus import ros
+
+    try:
+        odometry = ros.typestore().deserialize_cdr(payload, "nav_msgs/msg/Odometry")
+    except Exception as err:  # rosbags raises assorted errors on bad CDR
+        raise MessageError(f"not a nav_msgs/msg/Odometry: {type(err).__name__}: {err}") from None
+    pose = odometry.pose.pose
+    q = pose.orientation
+    stamp = odometry.header.stamp.sec + odometry.header.stamp.nanosec * 1e-9
+    return Pose2D(
+        stamp=stamp,
+        frame_id=str(odometry.header.frame_id) or "odom",
+        x=float(pose.position.x),
+        y=float(pose.position.y),
+        yaw=yaw_of_quaternion(q.x, q.y, q.z, q.w),
+    )
+
+
+def decode_camera_info(payload: bytes) -> PinholeCamera:
+    from gcdtrav.service.bus import ros
+
+    try:
+        info = ros.typestore().deserialize_cdr(payload, "sensor_msgs/msg/CameraInfo")
+    except Exception as err:  # rosbags raises assorted errors on bad CDR
+        raise MessageError(f"not a sensor_msgs/msg/CameraInfo: {type(err).__name__}: {err}") from None
+    k = np.asarray(info.k, dtype=np.float64)
+    if k[0] <= 0 or k[4] <= 0 or info.width <= 0 or info.height <= 0:
+        raise MessageError("CameraInfo without focal lengths or size")
+    return PinholeCamera(fx=k[0], fy=k[4], cx=k[2], cy=k[5], width=int(info.width), height=int(info.height))
+
+
+def decode_depth(payload: bytes) -> NDArray[np.float32]:
+    """sensor_msgs/Image 32FC1 (metres) or 16UC1 (millimetres) to metres."""
+    from gcdtrav.service.bus import ros
+
+    try:
+        image = ros.typestore().deserialize_cdr(payload, ros.IMAGE)
+    except Exception as err:  # rosbags raises assorted errors on bad CDR
+        raise MessageError(f"not a sensor_msgs/msg/Image: {type(err).__name__}: {err}") from None
+    kinds = {"32fc1": ("<f4", 1.0), "16uc1": ("<u2", 1e-3), "mono16": ("<u2", 1e-3)}
+    kind = kinds.get(str(image.encoding).lower())
+    if (
+        kind is None
+        or image.step * image.height != len(image.data)
+        or image.step < image.width * (4 if kind[0] == "<f4" else 2)
+    ):
+        raise MessageError(f"depth must be 32FC1 or 16UC1 with matching size, got {image.encoding}")
+    rows = np.asarray(image.data, np.uint8).reshape(image.height, image.step)
+    values = rows[:, : image.width * np.dtype(kind[0]).itemsize].copy().view(kind[0])
+    return (values.astype(np.float32) * np.float32(kind[1])).reshape(image.height, image.width)
+
+
+@dataclass
+class SourceGrid:
+    """One source's grid and what it needs besides the maps: camera, mount, latest pose and depth."""
+
+    config: GridSettings
+    grid: GroundGrid
+    camera: PinholeCamera | None = None
+    pose: Pose2D | None = None
+    depth: NDArray[np.float32] | None = None
+    seq: int = -1
+
+    def __post_init__(self) -> None:
+        self.lock = threading.Lock()
+        self.mount = CameraMount(**self.config.mount.model_dump())
+        if self.config.intrinsics is not None and self.camera is None:
+            self.camera = PinholeCamera(**self.config.intrinsics.model_dump())
+        self._ground_cache: dict[tuple[Any, ...], tuple[NDArray[np.float64], NDArray[np.bool_]]] = {}
+
+    def camera_for(self, image_size: tuple[int, int]) -> PinholeCamera:
+        """Intrinsics scaled to the incoming image's size."""
+        camera = self.camera
+        if camera is None:
+            raise QueryError(f"no intrinsics for '{self.config.source}' yet (waiting for CameraInfo)")
+        sx, sy = image_size[0] / camera.width, image_size[1] / camera.height
+        return PinholeCamera(camera.fx * sx, camera.fy * sy, camera.cx * sx, camera.cy * sy, *image_size)
+
+    def base_points(self, map_shape: tuple[int, int], image_size: tuple[int, int]):  # type: ignore[no-untyped-def]
+        """Ground (or depth) points in the base frame of every map cell, and which cells have one."""
+        camera = self.camera_for(image_size)
+        u, v = map_cell_pixels(map_shape, image_size)
+        if self.depth is not None:
+            depth = cv2.resize(self.depth, image_size, interpolation=cv2.INTER_NEAREST)
+            return depth_points(camera, self.mount, u, v, depth, self.config.max_range_m)
+        key = (map_shape, image_size, camera)
+        if key not in self._ground_cache:  # a fixed camera: the same rays every frame
+            self._ground_cache = {key: ground_points(camera, self.mount, u, v, self.config.max_range_m)}
+        return self._ground_cache[key]
+
+    def fuse(self, weights: NDArray[np.floating], image_size: tuple[int, int], stamp: float, anchors: AnchorSet) -> int:
+        points, valid = self.base_points((weights.shape[1], weights.shape[2]), image_size)
+        flat = weights.reshape(weights.shape[0], -1)[:, valid].astype(np.float32)
+        ground = points[valid]
+        if self.pose is not None:  # into the odometry frame, and keep the robot at the grid's centre
+            c, s = math.cos(self.pose.yaw), math.sin(self.pose.yaw)
+            ground = ground @ np.array([[c, s], [-s, c]]) + np.array([self.pose.x, self.pose.y])
+            half = self.grid.spec.cells * self.grid.spec.resolution_m / 2
+            self.grid.scroll_to((self.pose.x - half, self.pose.y - half))
+        landed = self.grid.add(ground, flat, stamp, anchors.version)
+        self.seq += 1
+        return landed
+
+
+def occupancy_cdr(header: GridHeader, values: NDArray[np.floating], known: NDArray[np.bool_]) -> bytes:
+    """nav_msgs/OccupancyGrid with cells 0..100 where known, -1 elsewhere."""
+    from gcdtrav.service.bus import ros
+
+    types = ros.typestore().types
+    data = np.where(known, np.clip(np.round(np.nan_to_num(values) * 100), 0, 100), -1).astype(np.int8)
+    ros_header = ros.make_header(header.stamp, header.frame_id)
+    pose = types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=header.origin[0], y=header.origin[1], z=0.0),
+        orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+    )
+    info = types["nav_msgs/msg/MapMetaData"](
+        map_load_time=ros_header.stamp,
+        resolution=header.resolution,
+        width=header.cells,
+        height=header.cells,
+        origin=pose,
+    )
+    message = types["nav_msgs/msg/OccupancyGrid"](header=ros_header, info=info, data=data.ravel())
+    return bytes(ros.typestore().serialize_cdr(message, "nav_msgs/msg/OccupancyGrid"))
+
+
+class GridOutputs:
+    """All configured grids of a service; thread-safe (frames from the worker, queries from zenoh)."""
+
+    def __init__(self, configs: list[GridSettings], anchors: int, instance: str) -> None:
+        self.instance = instance
+        self.sources = {
+            c.source: SourceGrid(c, GroundGrid(GridSpec(c.size_m, c.resolution_m, c.half_life_s), anchors))
+            for c in configs
+        }
+
+    def set_pose(self, source: str, payload: bytes) -> None:
+        grid = self.sources[source]
+        pose = decode_pose(payload, grid.config.pose_format)
+        with grid.lock:
+            grid.pose = pose
+
+    def set_camera_info(self, source: str, payload: bytes) -> None:
+        camera = decode_camera_info(payload)
+        grid = self.sources[source]
+        with grid.lock:
+            grid.camera = camera
+
+    def set_depth(self, source: str, payload: bytes) -> None:
+        depth = decode_depth(payload)
+        grid = self.sources[source]
+        with grid.lock:
+            grid.depth = depth
+
+    def on_frame(self, source: str, record: FrameRecord, weights: NDArray[np.floating]) -> GridMessage | None:
+        """Fuse a processed frame into its source's grid; the grid message to publish, or None."""
+        grid = self.sources.get(source)
+        if grid is None:
+            return None
+        with grid.lock:
+            if grid.camera is None:
+                log.warning("grid of %s: no intrinsics yet (waiting for CameraInfo), frame not fused", source)
+                return None
+            grid.fuse(weights, record.image_size, record.stamp, record.anchors)
+            return self._message(grid, record.anchors)
+
+    def _message(self, grid: SourceGrid, anchors: AnchorSet) -> GridMessage:
+        t, u, count = grid.grid.layers(np.asarray(anchors.positions), np.asarray(anchors.widths))
+        header = self.header(grid, anchors.version)
+        return GridMessage(
+            header=header,
+            traversability_png=encode_map_png16(np.nan_to_num(t)),
+            uncertainty_png=encode_map_png16(np.nan_to_num(u)),
+            count_png=_count_png(count),
+        )
+
+    def header(self, grid: SourceGrid, version: str) -> GridHeader:
+        pose = grid.pose
+        return GridHeader(
+            source=grid.config.source,
+            seq=grid.seq,
+            stamp=grid.grid.stamp or 0.0,
+            frame_id=pose.frame_id if pose is not None else "base_link",
+            origin=grid.grid.origin,
+            resolution=grid.grid.spec.resolution_m,
+            cells=grid.grid.spec.cells,
+            robot=(pose.x, pose.y, pose.yaw) if pose is not None else (0.0, 0.0, 0.0),
+            anchor_set_version=version,
+            resets=grid.grid.resets,
+            last_reset=grid.grid.last_reset,
+            known_cells=int(grid.grid.known.sum()),
+            instance=self.instance,
+        )
+
+    def occupancy(self, message: GridMessage, source: str, anchors: AnchorSet) -> tuple[bytes, bytes]:
+        grid = self.sources[source]
+        with grid.lock:
+            t, u, _ = grid.grid.layers(np.asarray(anchors.positions), np.asarray(anchors.widths))
+            known = grid.grid.known
+        return occupancy_cdr(message.header, 1.0 - t, known), occupancy_cdr(message.header, u / 0.5, known)
+
+    # ---- queries -------------------------------------------------------------------------------------
+    def answer(self, source: str, raw_parameters: str, anchors: AnchorSet) -> ContextDistribution | PathReply:
+        grid = self.sources.get(source)
+        if grid is None:
+            raise QueryError(f"no grid for source '{source}' (grids: {sorted(self.sources)})")
+        params = raw_parameters.strip()
+        with grid.lock:
+            if grid.grid.anchor_version is None:
+                raise QueryError(f"the grid of '{source}' has no frame yet")
+            if params.startswith("path="):
+                return self._path(grid, _points(params[len("path=") :]), anchors)
+            values = dict(part.split("=", 1) for part in params.split(";") if "=" in part)
+            if set(values) != {"x", "y"}:
+                raise QueryError("give x and y (metres, grid frame), or path=x0,y0;x1,y1;...")
+            x, y = _float(values["x"], "x"), _float(values["y"], "y")
+            i, j = (int(v) for v in grid.grid.index_of(np.array(x), np.array(y)))
+            n = grid.grid.spec.cells
+            if not (0 <= i < n and 0 <= j < n):
+                lo, hi = (
+                    grid.grid.origin,
+                    (
+                        grid.grid.origin[0] + n * grid.grid.spec.resolution_m,
+                        grid.grid.origin[1] + n * grid.grid.spec.resolution_m,
+                    ),
+                )
+                raise QueryError(f"({x:g}, {y:g}) is outside the grid [{lo[0]:g}, {hi[0]:g}) x [{lo[1]:g}, {hi[1]:g})")
+            cell = self._cell(grid, i, j, anchors)
+            if cell is None:
+                raise QueryError(f"cell ({x:g}, {y:g}) is unknown: never observed")
+            return cell
+
+    def _cell(self, grid: SourceGrid, i: int, j: int, anchors: AnchorSet) -> ContextDistribution | None:
+        weights = grid.grid.cell_weights(i, j)
+        if weights is None:
+            return None
+        reply = distribution_of(
+            weights / weights.sum(),
+            anchors,
+            grid.config.source,
+            grid.seq,
+            grid.grid.stamp or 0.0,
+            self.header(grid, anchors.version).frame_id,
+            patch=(i, j),
+        )
+        return reply.model_copy(
+            update={"cell_xy": grid.grid.centre_of(i, j), "observations": int(grid.grid.count[i, j])}
+        )
+
+    def _path(self, grid: SourceGrid, points: list[tuple[float, float]], anchors: AnchorSet) -> PathReply:
+        cells, unknown = [], 0
+        for i, j in grid.grid.path_cells(points):
+            cell = self._cell(grid, i, j, anchors)
+            if cell is None:
+                unknown += 1
+            else:
+                cells.append(cell)
+        return PathReply(
+            source=grid.config.source,
+            stamp=grid.grid.stamp or 0.0,
+            anchor_set_version=anchors.version,
+            points=points,
+            cells=cells,
+            unknown_cells=unknown,
+            lowest_t=min(range(len(cells)), key=lambda k: cells[k].mean) if cells else None,
+            highest_u=max(range(len(cells)), key=lambda k: cells[k].std) if cells else None,
+        )
+
+
+def _float(text: str, name: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise QueryError(f"{name}='{text}' is not a number") from None
+    if not math.isfinite(value):
+        raise QueryError(f"{name}='{text}' is not finite")
+    return value
+
+
+def _points(text: str) -> list[tuple[float, float]]:
+    points = []
+    for part in text.split(";"):
+        if not part.strip():
+            continue
+        coordinates = part.split(",")
+        if len(coordinates) != 2:
+            raise QueryError(f"path point '{part}' must be x,y in metres")
+        points.append((_float(coordinates[0], "x"), _float(coordinates[1], "y")))
+    if not 2 <= len(points) <= MAX_PATH_POINTS:
+        raise QueryError(f"a path needs 2 to {MAX_PATH_POINTS} points x,y separated by ';', got {len(points)}")
+    return points
+
+
+def _count_png(count: NDArray[Any]) -> bytes:
+    ok, buffer = cv2.imencode(".png", np.clip(count, 0, 65535).astype(np.uint16))
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buffer.tobytes()

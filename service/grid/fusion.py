@@ -1,0 +1,167 @@
+"""A square grid of Gaussian Context Distributions, fused over pixels and frames with exponential forgetting.
+
+Each cell keeps, per anchor, the sum of the anchor weights of the pixels that fell in it, and the number of
+those pixels (its mass); both decay by one half every ``half_life_s``. The cell's distribution is
+weight_sums / mass: the mean of its pixels' weight vectors, recent frames counting more. T, U and the rest
+come from it with the same engine as the image maps. Cells never observed are unknown (NaN), not zero.
+
+Index convention (as nav_msgs/OccupancyGrid): cell (row i, column j) covers
+x in [origin_x + j r, origin_x + (j + 1) r) and y in [origin_y + i r, origin_y + (i + 1) r).
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import numpy as np
+from gcdtrav.service.engine import gcd
+from numpy.typing import NDArray
+
+ArrayT = TypeVar("ArrayT", bound=np.ndarray)
+
+
+@dataclass(frozen=True)
+class GridSpec:
+    size_m: float = 20.0
+    resolution_m: float = 0.1
+    half_life_s: float = 2.0
+
+    @property
+    def cells(self) -> int:
+        return max(1, round(self.size_m / self.resolution_m))
+
+
+class GroundGrid:
+    def __init__(self, spec: GridSpec, anchors: int, origin: tuple[float, float] | None = None) -> None:
+        self.spec = spec
+        n = spec.cells
+        self.origin = origin if origin is not None else (-n * spec.resolution_m / 2, -n * spec.resolution_m / 2)
+        self.weight_sums = np.zeros((anchors, n, n), np.float32)
+        self.mass = np.zeros((n, n), np.float64)
+        self.count = np.zeros((n, n), np.int64)
+        self.stamp: float | None = None
+        self.anchor_version: str | None = None
+        self.resets = 0
+        self.last_reset = ""
+
+    # ---- bookkeeping ---------------------------------------------------------------------------------
+    def reset(self, anchors: int, reason: str) -> None:
+        n = self.spec.cells
+        self.weight_sums = np.zeros((anchors, n, n), np.float32)
+        self.mass[:] = 0
+        self.count[:] = 0
+        self.resets += 1
+        self.last_reset = reason
+
+    def decay_to(self, stamp: float) -> None:
+        if self.stamp is not None and stamp > self.stamp:
+            factor = 0.5 ** ((stamp - self.stamp) / self.spec.half_life_s)
+            self.weight_sums *= np.float32(factor)
+            self.mass *= factor
+        self.stamp = stamp if self.stamp is None else max(self.stamp, stamp)
+
+    def index_of(self, x: NDArray[np.floating], y: NDArray[np.floating]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+        r = self.spec.resolution_m
+        return (
+            np.floor((np.asarray(y) - self.origin[1]) / r).astype(np.intp),
+            np.floor((np.asarray(x) - self.origin[0]) / r).astype(np.intp),
+        )
+
+    def centre_of(self, i: int, j: int) -> tuple[float, float]:
+        r = self.spec.resolution_m
+        return self.origin[0] + (j + 0.5) * r, self.origin[1] + (i + 0.5) * r
+
+    # ---- fusion --------------------------------------------------------------------------------------
+    def add(
+        self, points: NDArray[np.floating], weights: NDArray[np.floating], stamp: float, anchor_version: str
+    ) -> int:
+        """Fuse pixel weights (n, P) at ground points (P, 2) of the grid's frame; returns pixels that landed."""
+        if self.anchor_version is not None and anchor_version != self.anchor_version:
+            self.reset(weights.shape[0], f"anchor set changed from {self.anchor_version} to {anchor_version}")
+        elif self.weight_sums.shape[0] != weights.shape[0]:
+            self.reset(weights.shape[0], "number of anchors changed")
+        self.anchor_version = anchor_version
+        self.decay_to(stamp)
+        i, j = self.index_of(points[:, 0], points[:, 1])
+        n = self.spec.cells
+        inside = (i >= 0) & (i < n) & (j >= 0) & (j < n)
+        flat = i[inside] * n + j[inside]
+        landed = np.bincount(flat, minlength=n * n).reshape(n, n)
+        self.mass += landed
+        self.count += landed
+        sums = self.weight_sums.reshape(weights.shape[0], -1)
+        for k in range(weights.shape[0]):  # one bincount per anchor: vectorised over the pixels
+            sums[k] += np.bincount(flat, weights=weights[k, inside], minlength=n * n).astype(np.float32)
+        return int(inside.sum())
+
+    def scroll_to(self, origin: tuple[float, float]) -> None:
+        """Move the grid by whole cells, keeping what overlaps; cells that enter are unknown."""
+        r = self.spec.resolution_m
+        dj = round((origin[0] - self.origin[0]) / r)
+        di = round((origin[1] - self.origin[1]) / r)
+        if dj == 0 and di == 0:
+            return
+        self.origin = (self.origin[0] + dj * r, self.origin[1] + di * r)
+        self.weight_sums = _shift(self.weight_sums, di, dj)
+        self.mass = _shift(self.mass, di, dj)
+        self.count = _shift(self.count, di, dj)
+
+    # ---- reading -------------------------------------------------------------------------------------
+    @property
+    def known(self) -> NDArray[np.bool_]:
+        return self.count > 0
+
+    def distributions(self) -> NDArray[np.float32]:
+        """(n, N, N) normalised weights; NaN where unknown."""
+        mass = np.where(self.mass > 0, self.mass, np.nan).astype(np.float32)
+        weights = self.weight_sums / mass[None]
+        weights[:, ~self.known] = np.nan
+        return weights
+
+    def layers(
+        self, positions: NDArray[np.floating], widths: NDArray[np.floating]
+    ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[Any]]:
+        """T and U of every cell (NaN where unknown) and the observation counts."""
+        weights = self.distributions()
+        known = self.known
+        t = np.full(known.shape, np.nan, np.float32)
+        u = np.full(known.shape, np.nan, np.float32)
+        if known.any():
+            mean, std = gcd.mixture_mean_std(weights[:, known], positions, widths)
+            t[known], u[known] = mean, std
+        return t, u, self.count.copy()
+
+    def cell_weights(self, i: int, j: int) -> NDArray[np.float32] | None:
+        if not self.known[i, j]:
+            return None
+        return (self.weight_sums[:, i, j] / np.float32(self.mass[i, j])).astype(np.float32)
+
+    def path_cells(self, points: list[tuple[float, float]]) -> list[tuple[int, int]]:
+        """Cells along a polyline, sampled every resolution, each once, in order; outside cells left out."""
+        r = self.spec.resolution_m
+        cells: list[tuple[int, int]] = []
+        n = self.spec.cells
+        for (x0, y0), (x1, y1) in itertools.pairwise(points):
+            steps = max(1, math.ceil(math.hypot(x1 - x0, y1 - y0) / r))
+            for s in range(steps + 1):
+                x, y = x0 + (x1 - x0) * s / steps, y0 + (y1 - y0) * s / steps
+                i, j = (int(v) for v in self.index_of(np.array(x), np.array(y)))
+                if 0 <= i < n and 0 <= j < n and (not cells or cells[-1] != (i, j)) and (i, j) not in cells:
+                    cells.append((i, j))
+        return cells
+
+
+def _shift(array: ArrayT, di: int, dj: int) -> ArrayT:
+    """``out[..., i, j] = array[..., i + di, j + dj]``, zero where that falls outside."""
+    out = np.zeros_like(array)
+    n_i, n_j = array.shape[-2:]
+    src_i = slice(max(di, 0), n_i + min(di, 0))
+    dst_i = slice(max(-di, 0), n_i + min(-di, 0))
+    src_j = slice(max(dj, 0), n_j + min(dj, 0))
+    dst_j = slice(max(-dj, 0), n_j + min(-dj, 0))
+    if src_i.start < src_i.stop and src_j.start < src_j.stop:
+        out[..., dst_i, dst_j] = array[..., src_i, src_j]
+    return out

@@ -1,0 +1,107 @@
+"""Pinhole cameras on a robot: pixels to ground points in the robot's base frame.
+
+Frames (see docs/grid.md): the base frame is x forward, y left, z up, with the ground at z = 0. The camera's
+pose in the base frame is given for its body frame (same axes as the base); its optical frame (the image's)
+is x right, y down, z forward, as in ROS.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+# optical (x right, y down, z forward) -> body (x forward, y left, z up)
+OPTICAL_TO_BODY = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def rotation_rpy(roll: float, pitch: float, yaw: float) -> NDArray[np.float64]:
+    """R = Rz(yaw) Ry(pitch) Rx(roll), the ROS convention (radians). Positive pitch tilts x down."""
+    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+@dataclass(frozen=True)
+class PinholeCamera:
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def rays(self, u: NDArray[np.floating], v: NDArray[np.floating]) -> NDArray[np.float64]:
+        """(N, 3) optical-frame directions (z = 1) through pixel coordinates (u right, v down)."""
+        return np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u, dtype=np.float64)], axis=1)
+
+
+@dataclass(frozen=True)
+class CameraMount:
+    """The camera body frame's pose in the base frame: translation (m) and roll, pitch, yaw (rad)."""
+
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 1.0
+    roll: float = 0.0
+    pitch: float = 0.0
+    yaw: float = 0.0
+
+    @property
+    def rotation_optical(self) -> NDArray[np.float64]:
+        """Rotation from the optical frame to the base frame."""
+        return rotation_rpy(self.roll, self.pitch, self.yaw) @ OPTICAL_TO_BODY
+
+    @property
+    def origin(self) -> NDArray[np.float64]:
+        return np.array([self.x, self.y, self.z])
+
+
+def ground_points(
+    camera: PinholeCamera, mount: CameraMount, u: NDArray[np.floating], v: NDArray[np.floating], max_range: float
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Where each pixel's ray meets the ground plane z = 0 of the base frame.
+
+    Returns (N, 2) ground points (x, y) and a mask of the pixels that hit the ground: rays at or above the
+    horizon never do, and points farther than ``max_range`` (horizontally, from the camera) are left out.
+    """
+    directions = camera.rays(u, v) @ mount.rotation_optical.T
+    origin = mount.origin
+    down = directions[:, 2] < -1e-9
+    scale = np.where(down, -origin[2] / np.where(down, directions[:, 2], -1.0), np.nan)
+    points = origin[None, :2] + scale[:, None] * directions[:, :2]
+    distance = np.hypot(points[:, 0] - origin[0], points[:, 1] - origin[1])
+    valid = down & (scale > 0) & (distance <= max_range)
+    return np.where(valid[:, None], points, np.nan), valid
+
+
+def depth_points(
+    camera: PinholeCamera,
+    mount: CameraMount,
+    u: NDArray[np.floating],
+    v: NDArray[np.floating],
+    depth: NDArray[np.floating],
+    max_range: float,
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Pixels placed in 3-D by a depth image (metres along the optical axis); returns their (x, y) in the base
+    frame. Missing depth (0, NaN, inf) and points beyond ``max_range`` are left out."""
+    rows = np.clip(np.round(v).astype(int), 0, depth.shape[0] - 1)
+    cols = np.clip(np.round(u).astype(int), 0, depth.shape[1] - 1)
+    z = depth[rows, cols].astype(np.float64)
+    valid = np.isfinite(z) & (z > 0)
+    optical = camera.rays(u, v) * np.where(valid, z, 0.0)[:, None]
+    base = optical @ mount.rotation_optical.T + mount.origin[None, :]
+    distance = np.hypot(base[:, 0] - mount.x, base[:, 1] - mount.y)
+    valid &= distance <= max_range
+    return np.where(valid[:, None], base[:, :2], np.nan), valid
+
+
+def map_cell_pixels(map_shape: tuple[int, int], image_size: tuple[int, int]) -> tuple[NDArray[np.float64], ...]:
+    """Image-pixel centres (u, v) of every map cell, row-major, for a map stretched over the whole image."""
+    h, w = map_shape
+    width, height = image_size
+    v, u = np.meshgrid((np.arange(h) + 0.5) * height / h, (np.arange(w) + 0.5) * width / w, indexing="ij")
+    return u.ravel(), v.ravel()

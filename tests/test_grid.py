@@ -1,0 +1,201 @@
+"""Ground grid: projection by hand, fusion by hand, scrolling, resets, and end to end through zenoh."""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+from conftest import textured_image
+from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
+from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points
+
+CAMERA = PinholeCamera(fx=500, fy=500, cx=320, cy=240, width=640, height=480)
+HEIGHT, PITCH = 1.5, 0.3
+MOUNT = CameraMount(z=HEIGHT, pitch=PITCH)
+
+
+def project(u: float, v: float, mount: CameraMount = MOUNT, max_range: float = 100.0) -> tuple[np.ndarray, bool]:
+    points, valid = ground_points(CAMERA, mount, np.array([u]), np.array([v]), max_range)
+    return points[0], bool(valid[0])
+
+
+def test_known_pixels_land_on_known_ground_points() -> None:
+    ahead = HEIGHT / math.tan(PITCH)  # the optical axis meets the ground here
+    point, valid = project(320, 240)
+    assert valid and point == pytest.approx([ahead, 0.0], abs=1e-9)
+    # 100 px right: optical ray (0.2, 0, 1) -> base direction (cos p, -0.2, -sin p)
+    point, _ = project(420, 240)
+    assert point == pytest.approx([ahead, -0.2 * HEIGHT / math.sin(PITCH)], abs=1e-9)
+    # 60 px lower: depression p + atan(60 / 500)
+    point, _ = project(320, 300)
+    assert point == pytest.approx([HEIGHT / math.tan(PITCH + math.atan(60 / 500)), 0.0], abs=1e-9)
+    shifted, _ = project(320, 240, CameraMount(x=0.5, y=-0.2, z=HEIGHT, pitch=PITCH))
+    assert shifted == pytest.approx([ahead + 0.5, -0.2], abs=1e-9)
+    turned, _ = project(320, 240, CameraMount(z=HEIGHT, pitch=PITCH, yaw=math.pi / 2))  # looking left
+    assert turned == pytest.approx([0.0, ahead], abs=1e-9)
+
+
+def test_pixels_above_the_horizon_or_too_far_are_left_out() -> None:
+    horizon_row = 240 - 500 * math.tan(PITCH)  # about 85.4
+    assert not project(320, horizon_row - 5)[1]
+    assert not project(320, 0)[1]
+    assert project(320, horizon_row + 5, max_range=1e6)[1]  # just below the horizon: very far, but ground
+    assert not project(320, 240, max_range=4.0)[1]  # 4.84 m away
+    assert project(320, 240, max_range=5.0)[1]
+
+
+def test_depth_places_pixels_in_3d() -> None:
+    depth = np.full((480, 640), 2.0, np.float32)
+    depth[0, 0] = 0.0  # missing
+    points, valid = depth_points(CAMERA, MOUNT, np.array([320.0, 0.0]), np.array([240.0, 0.0]), depth, 50.0)
+    assert valid.tolist() == [True, False]
+    assert points[0] == pytest.approx([2.0 * math.cos(PITCH), 0.0], abs=1e-9)
+
+
+def grid_2x2() -> GroundGrid:
+    return GroundGrid(GridSpec(size_m=1.0, resolution_m=0.5, half_life_s=1.0), anchors=2, origin=(0.0, 0.0))
+
+
+def test_fusion_over_two_frames_with_a_known_half_life() -> None:
+    grid = grid_2x2()
+    # frame 1 at t=0: two pixels in cell (0, 0), one all on anchor 0, one all on anchor 1
+    grid.add(np.array([[0.1, 0.1], [0.2, 0.3]]), np.array([[1.0, 0.0], [0.0, 1.0]]), stamp=0.0, anchor_version="v")
+    np.testing.assert_allclose(grid.cell_weights(0, 0), [0.5, 0.5])
+    # frame 2 one half-life later: one pixel on anchor 0. (0.5 * (1, 1) + (1, 0)) / (0.5 * 2 + 1) = (0.75, 0.25)
+    grid.add(np.array([[0.4, 0.4]]), np.array([[1.0], [0.0]]), stamp=1.0, anchor_version="v")
+    np.testing.assert_allclose(grid.cell_weights(0, 0), [0.75, 0.25], atol=1e-6)
+    assert grid.count[0, 0] == 3
+    t, u, count = grid.layers(np.array([0.0, 1.0]), np.array([0.0, 0.0]))
+    assert t[0, 0] == pytest.approx(0.25) and u[0, 0] == pytest.approx(math.sqrt(0.75 * 0.25))
+    # unknown cells stay unknown
+    assert grid.cell_weights(1, 1) is None and np.isnan(t[1, 1]) and np.isnan(u[0, 1]) and count[1, 0] == 0
+    assert np.isnan(grid.distributions()[:, 1, 1]).all()
+    # points outside the grid are ignored
+    assert grid.add(np.array([[5.0, 5.0]]), np.array([[1.0], [0.0]]), stamp=1.0, anchor_version="v") == 0
+
+
+def test_scrolling_by_whole_cells_keeps_content() -> None:
+    grid = GroundGrid(GridSpec(size_m=2.0, resolution_m=0.5, half_life_s=10.0), anchors=2, origin=(0.0, 0.0))
+    grid.add(np.array([[1.2, 0.7]]), np.array([[0.2], [0.8]]), stamp=0.0, anchor_version="v")  # cell (1, 2)
+    grid.scroll_to((0.5, 0.0))  # the robot moved one cell along +x
+    assert grid.origin == (0.5, 0.0)
+    np.testing.assert_allclose(grid.cell_weights(1, 1), [0.2, 0.8])  # same place in the world, new index
+    assert grid.count.sum() == 1
+    grid.scroll_to((2.5, 0.0))  # beyond the grid: everything leaves, cells entering are unknown
+    assert not grid.known.any()
+
+
+def test_a_new_anchor_set_resets_the_grid() -> None:
+    grid = grid_2x2()
+    grid.add(np.array([[0.1, 0.1]]), np.array([[1.0], [0.0]]), stamp=0.0, anchor_version="old")
+    grid.add(np.array([[0.6, 0.6]]), np.array([[0.0], [1.0], [0.0]]), stamp=0.1, anchor_version="new")
+    assert grid.resets == 1 and "from old to new" in grid.last_reset
+    assert grid.cell_weights(0, 0) is None and grid.cell_weights(1, 1).tolist() == [0.0, 1.0, 0.0]
+
+
+def test_path_cells_in_order() -> None:
+    grid = GroundGrid(GridSpec(size_m=2.0, resolution_m=0.5), anchors=2, origin=(0.0, 0.0))
+    assert grid.path_cells([(0.1, 0.1), (1.9, 0.1)]) == [(0, 0), (0, 1), (0, 2), (0, 3)]
+    assert grid.path_cells([(0.1, 0.1), (0.1, 1.1), (-3.0, 1.1)]) == [(0, 0), (1, 0), (2, 0)]
+
+
+# ---- end to end ----------------------------------------------------------------------------------------
+
+
+def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    pytest.importorskip("rosbags")
+    from gcdtrav.client import Grid, TraversabilityClient
+    from gcdtrav.schemas.anchors import default_anchor_set
+    from gcdtrav.schemas.config import EngineSettings
+    from gcdtrav.schemas.messages import Pose2D
+    from gcdtrav.schemas.settings import ServiceSettings
+    from gcdtrav.service.bus import ros
+    from gcdtrav.service.bus.node import TraversabilityService
+    from gcdtrav.service.pipeline import Pipeline
+    from zenoh_helpers import connecting_config, free_port, listening_config, wait_until
+
+    settings = ServiceSettings.model_validate(
+        {
+            "state_dir": str(tmp_path),
+            "instance": "grid-test",
+            "preview": False,
+            "grids": [
+                {
+                    "source": "cam",
+                    "intrinsics": {"fx": 60, "fy": 60, "cx": 40, "cy": 30, "width": 80, "height": 60},
+                    "mount": {"z": 1.0, "pitch": 0.6},
+                    "size_m": 8.0,
+                    "resolution_m": 0.25,
+                    "max_range_m": 6.0,
+                    "half_life_s": 5.0,
+                    "pose_key": "robot/pose",
+                    "occupancy_grid": True,
+                }
+            ],
+        }
+    )
+    port = free_port()
+    server = zenoh.open(listening_config(port))
+    service = TraversabilityService(server, Pipeline(tiny_backend, default_anchor_set(), EngineSettings()), settings)
+    service.start()
+    client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
+    grids: list[Grid] = []
+    occupancy: list[bytes] = []
+    subscriptions = [
+        client.subscribe_grid("cam", grids.append),
+        client.session.declare_subscriber(
+            "gcdtrav/out/cam/grid/occupancy", lambda s: occupancy.append(s.payload.to_bytes())
+        ),
+    ]
+    try:
+        time.sleep(0.5)
+        for step in range(3):  # drive 0.5 m along x per frame
+            client.session.put("robot/pose", Pose2D(stamp=100.0 + step, x=0.5 * step, y=0.0, yaw=0.0).pack())
+            time.sleep(0.2)
+            client.publish_image("cam", textured_image(60, 80, seed=step), stamp=100.0 + step)
+            assert wait_until(lambda n=step + 1: len(grids) >= n and len(occupancy) >= n, 15)
+        grid = grids[-1]
+        header = grid.header
+        assert header.frame_id == "odom" and header.robot == (1.0, 0.0, 0.0) and header.seq == 2
+        assert header.cells == 32 and header.resolution == 0.25
+        assert header.origin == pytest.approx((1.0 - 4.0, -4.0))  # the robot at the centre
+        assert header.known_cells > 0 and (grid.count > 0).sum() == header.known_cells
+        assert np.isnan(grid.traversability[grid.count == 0]).all()
+        # The camera looks forward: cells behind the robot are unknown, cells ahead known.
+        assert grid.count[grid.cell_index(0.0, 0.0)] == 0 and grid.count[grid.cell_index(2.7, 0.0)] > 0
+        cell = client.cell("cam", 2.7, 0.0)
+        i, j = grid.cell_index(2.7, 0.0)
+        assert cell.patch == (i, j) and cell.observations == grid.count[i, j]
+        assert cell.mean == pytest.approx(grid.traversability[i, j], abs=2 / 65535)
+        path = client.path("cam", [(0.0, 0.0), (4.5, 0.0)])
+        assert path.unknown_cells > 0 and path.cells and path.lowest_t is not None
+        assert path.cells[path.lowest_t].mean == min(c.mean for c in path.cells)
+        with pytest.raises(Exception, match="unknown: never observed"):
+            client.cell("cam", -2.0, 0.0)
+        with pytest.raises(Exception, match="outside the grid"):
+            client.cell("cam", 50.0, 0.0)
+        # The OccupancyGrid CDR decodes with the CDR library and matches the msgpack grid.
+        message = ros.typestore().deserialize_cdr(occupancy[-1], "nav_msgs/msg/OccupancyGrid")
+        data = np.asarray(message.data, np.int8).reshape(message.info.height, message.info.width)
+        assert message.header.frame_id == "odom" and message.info.resolution == pytest.approx(0.25)
+        assert message.info.origin.position.x == pytest.approx(header.origin[0])
+        assert ((data == -1) == (grid.count == 0)).all()
+        known = grid.count > 0
+        expected = np.round((1 - grid.traversability[known]) * 100)
+        assert np.abs(data[known] - expected).max() <= 1
+        # A new anchor set resets the grid, and the grid says so.
+        client.set_anchors({"anchors": [{"concept": "lake", "position": 0.0}, {"concept": "road", "position": 1.0}]})
+        client.publish_image("cam", textured_image(60, 80, seed=9), stamp=104.0)
+        assert wait_until(lambda: grids[-1].header.resets == 1, 15)
+        assert "anchor set changed" in grids[-1].header.last_reset
+        assert len(client.cell("cam", 2.7, 0.0).weights) == 2
+    finally:
+        for subscription in subscriptions:
+            subscription.undeclare()
+        client.close()
+        service.stop()
+        server.close()
