@@ -92,3 +92,10 @@ def test_bridge_input_without_a_type_is_rejected() -> None:
 
     with pytest.raises(SettingsError, match="bridge keys carry no type"):
         load_settings(None, {"ros_inputs": [{"key": "cam", "layout": "bridge"}]}, environ={})
+
+
+def test_grid_example_settings_are_valid() -> None:
+    from gcdtrav.schemas.settings import load_settings
+
+    settings = load_settings(ROOT / "examples" / "grid.yaml", environ={})
+    assert settings.grids[0].source == "cam" and settings.grids[0].pose_key == "robot/pose"

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
-from gcdtrav.schemas.images import decode_image, encode_jpeg, encode_map_png16, resize_map
+from gcdtrav.schemas.images import decode_image, encode_jpeg, encode_maps_png16, resize_map
 from gcdtrav.schemas.messages import (
     MSGPACK_ENCODING,
     AnchorSetRejection,
@@ -316,16 +316,14 @@ class TraversabilityService:
             image_size=record.image_size,
             scale=record.scale,
         )
+        full = self.settings.full_resolution and full_t is not None and full_u is not None
+        encoded = encode_maps_png16(t, u, *((full_t, full_u) if full else ()))
         message = MapsMessage(
             header=header,
-            traversability_png=encode_map_png16(t),
-            uncertainty_png=encode_map_png16(u),
-            traversability_full_png=encode_map_png16(full_t)
-            if self.settings.full_resolution and full_t is not None
-            else None,
-            uncertainty_full_png=encode_map_png16(full_u)
-            if self.settings.full_resolution and full_u is not None
-            else None,
+            traversability_png=encoded[0],
+            uncertainty_png=encoded[1],
+            traversability_full_png=encoded[2] if full else None,
+            uncertainty_full_png=encoded[3] if full else None,
         )
         self._publisher(f"{self.prefix}/out/{source}/maps", MSGPACK).put(message.pack())
         preview = None
