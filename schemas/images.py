@@ -91,8 +91,10 @@ def quantize_map(values: NDArray[np.floating]) -> NDArray[np.uint16]:
 
 def encode_map_png16(values: NDArray[np.floating]) -> bytes:
     """A [0, 1] map as a lossless single-channel 16-bit PNG (resolution 1/65535)."""
-    # Level 1: on these maps it is as small as level 3 and, per frame, it is on the service's hot path.
-    ok, buffer = cv2.imencode(".png", quantize_map(values), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    # Run-length deflate at level 1: on 16-bit maps it is as small as the default strategy at level 3 and
+    # half as slow, and encoding is on the service's per-frame path.
+    params = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE]
+    ok, buffer = cv2.imencode(".png", quantize_map(values), params)
     if not ok:
         raise ValueError("PNG encoding failed")
     return buffer.tobytes()
