@@ -214,12 +214,16 @@ def test_pose_camera_info_and_depth_messages() -> None:
         position=types["geometry_msgs/msg/Point"](x=3.0, y=-1.0, z=0.0),
         orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)),
     )
-    twist = types["geometry_msgs/msg/Twist"](linear=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
-                                             angular=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0))
+    twist = types["geometry_msgs/msg/Twist"](
+        linear=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+        angular=types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0),
+    )
     odometry = types["nav_msgs/msg/Odometry"](
-        header=header, child_frame_id="base_link",
+        header=header,
+        child_frame_id="base_link",
         pose=types["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36)),
-        twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)))
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+    )
     decoded = decode_pose(bytes(ros.typestore().serialize_cdr(odometry, "nav_msgs/msg/Odometry")), "odometry")
     assert (decoded.x, decoded.y, decoded.frame_id, decoded.stamp) == (3.0, -1.0, "odom", 12.5)
     assert decoded.yaw == pytest.approx(yaw)
@@ -229,14 +233,31 @@ def test_pose_camera_info_and_depth_messages() -> None:
 
     info_type = types["sensor_msgs/msg/CameraInfo"]
     roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
-    info = info_type(header=header, height=480, width=640, distortion_model="plumb_bob", d=np.zeros(5),
-                     k=np.array([500.0, 0, 320, 0, 510.0, 240, 0, 0, 1]), r=np.eye(3).ravel(), p=np.zeros(12),
-                     binning_x=0, binning_y=0, roi=roi)
+    info = info_type(
+        header=header,
+        height=480,
+        width=640,
+        distortion_model="plumb_bob",
+        d=np.zeros(5),
+        k=np.array([500.0, 0, 320, 0, 510.0, 240, 0, 0, 1]),
+        r=np.eye(3).ravel(),
+        p=np.zeros(12),
+        binning_x=0,
+        binning_y=0,
+        roi=roi,
+    )
     camera = decode_camera_info(bytes(ros.typestore().serialize_cdr(info, "sensor_msgs/msg/CameraInfo")))
     assert (camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height) == (500, 510, 320, 240, 640, 480)
 
     millimetres = np.array([[1000, 2500], [0, 65535]], np.uint16)
-    image = types[ros.IMAGE](header=header, height=2, width=2, encoding="16UC1", is_bigendian=0, step=4,
-                             data=millimetres.view(np.uint8).ravel())
+    image = types[ros.IMAGE](
+        header=header,
+        height=2,
+        width=2,
+        encoding="16UC1",
+        is_bigendian=0,
+        step=4,
+        data=millimetres.view(np.uint8).ravel(),
+    )
     depth = decode_depth(bytes(ros.typestore().serialize_cdr(image, ros.IMAGE)))
     np.testing.assert_allclose(depth, millimetres * 1e-3, rtol=1e-6)

@@ -72,7 +72,7 @@ class GroundGrid:
 
     def centre_of(self, i: int, j: int) -> tuple[float, float]:
         r = self.spec.resolution_m
-        return self.origin[0] + (j + 0.5) * r, self.origin[1] + (i + 0.5) * r
+        return round(self.origin[0] + (j + 0.5) * r, 9), round(self.origin[1] + (i + 0.5) * r, 9)
 
     # ---- fusion --------------------------------------------------------------------------------------
     def add(
