@@ -85,8 +85,8 @@ class FrameHistory:
         raise QueryError(f"seq {seq} of '{source}' is not kept (kept: {kept}, the last {self.depth} frames)")
 
 
-def _number(params: Mapping[str, str], name: str, kind: type = float) -> float:
-    text = params[name]
+def parse_number(text: str, name: str, kind: type = float) -> float:
+    """A finite number from a query parameter, or a QueryError that names the parameter."""
     try:
         value = kind(text)
     except ValueError:
@@ -94,6 +94,10 @@ def _number(params: Mapping[str, str], name: str, kind: type = float) -> float:
     if not math.isfinite(value):
         raise QueryError(f"parameter {name}='{text}' is not finite")
     return value
+
+
+def _number(params: Mapping[str, str], name: str, kind: type = float) -> float:
+    return parse_number(params[name], name, kind)
 
 
 def _cell_of_pixel(record: FrameRecord, x: float, y: float) -> tuple[int, int]:

@@ -25,7 +25,7 @@ from gcdtrav.schemas.messages import ContextDistribution, GridHeader, GridMessag
 from gcdtrav.schemas.settings import GridSettings
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points, map_cell_pixels
-from gcdtrav.service.queries import FrameRecord, QueryError, distribution_of
+from gcdtrav.service.queries import FrameRecord, QueryError, distribution_of, parse_number
 from numpy.typing import NDArray
 
 log = logging.getLogger("gcdtrav.service")
@@ -254,7 +254,7 @@ class GridOutputs:
             values = dict(part.split("=", 1) for part in params.split(";") if "=" in part)
             if set(values) != {"x", "y"}:
                 raise QueryError("give x and y (metres, grid frame), or path=x0,y0;x1,y1;...")
-            x, y = _float(values["x"], "x"), _float(values["y"], "y")
+            x, y = parse_number(values["x"], "x"), parse_number(values["y"], "y")
             i, j = (int(v) for v in grid.grid.index_of(np.array(x), np.array(y)))
             n = grid.grid.spec.cells
             if not (0 <= i < n and 0 <= j < n):
@@ -308,16 +308,6 @@ class GridOutputs:
         )
 
 
-def _float(text: str, name: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise QueryError(f"{name}='{text}' is not a number") from None
-    if not math.isfinite(value):
-        raise QueryError(f"{name}='{text}' is not finite")
-    return value
-
-
 def _points(text: str) -> list[tuple[float, float]]:
     points = []
     for part in text.split(";"):
@@ -326,7 +316,7 @@ def _points(text: str) -> list[tuple[float, float]]:
         coordinates = part.split(",")
         if len(coordinates) != 2:
             raise QueryError(f"path point '{part}' must be x,y in metres")
-        points.append((_float(coordinates[0], "x"), _float(coordinates[1], "y")))
+        points.append((parse_number(coordinates[0], "x"), parse_number(coordinates[1], "y")))
     if not 2 <= len(points) <= MAX_PATH_POINTS:
         raise QueryError(f"a path needs 2 to {MAX_PATH_POINTS} points x,y separated by ';', got {len(points)}")
     return points
