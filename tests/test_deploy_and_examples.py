@@ -99,3 +99,41 @@ def test_grid_example_settings_are_valid() -> None:
 
     settings = load_settings(ROOT / "examples" / "grid.yaml", environ={})
     assert settings.grids[0].source == "cam" and settings.grids[0].pose_key == "robot/pose"
+
+
+def test_readme_python_example_runs(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """The README's client snippet, copied as it is, against a live service (only the zenoh config swapped
+    for a loopback one without multicast)."""
+    pytest.importorskip("torch")
+    import re
+
+    from gcdtrav.schemas.anchors import default_anchor_set
+    from gcdtrav.schemas.config import EngineSettings
+    from gcdtrav.schemas.settings import ServiceSettings
+    from gcdtrav.service.bus.node import TraversabilityService
+    from gcdtrav.service.pipeline import Pipeline
+
+    readme = (ROOT / "README.md").read_text()
+    snippet = re.search(r"```python\n(.*?)```", readme, re.S)
+    assert snippet is not None
+    port = free_port()
+    code = snippet.group(1).replace(
+        'zenoh_config(mode="peer")',
+        f'zenoh_config(mode="peer", connect=["tcp/127.0.0.1:{port}"], multicast_scouting=False)',
+    )
+    assert code != snippet.group(1)
+    session = zenoh.open(listening_config(port))
+    service = TraversabilityService(
+        session,
+        Pipeline(tiny_backend, default_anchor_set(), EngineSettings()),
+        ServiceSettings(state_dir=tmp_path, instance="readme"),
+    )
+    service.start()
+    try:
+        result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+        assert result.returncode == 0, result.stderr
+        assert "'r1/front': SourceStatus(received=1, processed=1" in result.stdout
+        assert len(service.pipeline.anchors) == 2
+    finally:
+        service.stop()
+        session.close()
