@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import logging
 import os
 import sys
@@ -13,6 +14,7 @@ from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_se
 from gcdtrav.schemas.config import EngineSettings, Method
 from gcdtrav.schemas.settings import SettingsError
 
+SERVICE_MODULES = ("torch", "transformers", "matplotlib", "tqdm")
 EXIT_FAILURES = 1  # some inputs could not be processed
 EXIT_USAGE = 2  # bad configuration: anchor file, model weights, arguments
 
@@ -287,10 +289,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     handlers = {"infer": cmd_infer, "serve": cmd_serve, "bench": cmd_bench, "eval": cmd_eval}
-    try:
-        from gcdtrav.service.backends.base import ModelUnavailableError
-    except ImportError as err:  # torch missing: the client-only install
-        print(f"gcdtrav: {err}; install the service extra: pip install 'gcdtrav[service]'", file=sys.stderr)
+    from gcdtrav.service.backends.base import ModelUnavailableError
+
+    missing = [name for name in SERVICE_MODULES if importlib.util.find_spec(name) is None]
+    if missing:  # the client-only install: say what to install instead of a traceback
+        print(
+            f"gcdtrav {args.command}: needs {', '.join(missing)}; install CPU torch, then the service extra: "
+            "pip install torch==2.13.0 && pip install 'gcdtrav[service]'",
+            file=sys.stderr,
+        )
         return EXIT_USAGE
     try:
         return handlers[args.command](args)

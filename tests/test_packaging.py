@@ -27,3 +27,19 @@ def test_no_bare_top_level_modules() -> None:
     code = "import importlib.util as u; print([m for m in ('service', 'client', 'schemas') if u.find_spec(m)])"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd="/")
     assert result.stdout.strip() == "[]"
+
+
+def test_cli_without_torch_says_what_to_install(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    code = textwrap.dedent(
+        """
+        import sys, importlib.util
+        real = importlib.util.find_spec
+        importlib.util.find_spec = lambda name, *a: None if name == "torch" else real(name, *a)
+        from gcdtrav.service.cli import main
+        sys.exit(main(["infer", "x.jpg", "--out", "o"]))
+        """
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    assert "needs torch" in result.stderr and "pip install torch==2.13.0" in result.stderr
+    assert "Traceback" not in result.stderr
