@@ -114,6 +114,8 @@ class TraversabilityService:
 
     # ---- lifecycle -----------------------------------------------------------------------------------
     def start(self) -> None:
+        # Membership first: a frame arriving during start-up must already go to its owner only.
+        self.membership = Membership(self.session, self.prefix, self.settings.instance)
         for expression in self.settings.inputs:
             head = literal_head(expression)
             self._declared.append(self.session.declare_subscriber(expression, self._image_handler(head)))
@@ -126,7 +128,6 @@ class TraversabilityService:
             self.session.declare_queryable(f"{self.prefix}/config/anchors", self._on_anchors_query, complete=True),
             self.session.declare_queryable(f"{self.prefix}/status", self._on_status_query, complete=True),
         ]
-        self.membership = Membership(self.session, self.prefix, self.settings.instance)
         self._worker.start()
         log.info(
             "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, model %s (%s), anchor set %s "
