@@ -38,7 +38,7 @@ def softmax_weights(logits: FloatArray, temperature: float = 1.0) -> NDArray[np.
     scaled = np.asarray(logits, dtype=np.float32) / np.float32(temperature)
     scaled = scaled - scaled.max(axis=0, keepdims=True)
     np.exp(scaled, out=scaled)
-    scaled /= scaled.sum(axis=0, keepdims=True)
+    scaled *= np.reciprocal(scaled.sum(axis=0, keepdims=True))  # one division per patch, not per weight
     return scaled
 
 
@@ -55,11 +55,19 @@ def mixture_mean_std(
     weights: FloatArray, positions: FloatArray, widths: FloatArray
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """T and U as the paper defines them: the mixture's mean and standard deviation."""
-    mean = mixture_mean(weights, positions)
-    offsets = _column(positions, weights.ndim) - mean
-    spread = offsets * offsets + _column(widths, weights.ndim) ** 2
-    variance = np.einsum("k...,k...->...", weights, spread, dtype=np.float32)
-    return np.clip(mean, 0.0, 1.0), np.sqrt(np.maximum(variance, 0.0))
+    w = np.asarray(weights, dtype=np.float32)
+    p = np.asarray(positions, dtype=np.float64)
+    s = np.asarray(widths, dtype=np.float64)
+    # E[x] and E[x^2] in one float64 product: no (n, ...) temporaries, and float64 keeps
+    # E[x^2] - E[x]^2 exact to float32 precision even for a single dominant anchor (variance 0).
+    moments = np.stack([p, p * p + s * s]) @ w.reshape(w.shape[0], -1)
+    mean, second = moments[0], moments[1]
+    variance = np.maximum(second - mean * mean, 0.0)
+    shape = w.shape[1:]
+    return (
+        np.clip(mean, 0.0, 1.0).astype(np.float32).reshape(shape),
+        np.sqrt(variance).astype(np.float32).reshape(shape),
+    )
 
 
 def max_mixture_std(positions: FloatArray, widths: FloatArray) -> float:
