@@ -6,7 +6,7 @@ Service and client both import this module, so a field changes in exactly one pl
 from __future__ import annotations
 
 from enum import Enum
-from typing import Any, TypeVar
+from typing import TypeVar
 
 import msgpack
 import numpy as np
@@ -230,7 +230,3 @@ class ServiceStatus(Message):
     sources: dict[str, SourceStatus]
     rejected_by_reason: dict[str, int]
     last_errors: list[str]
-
-
-def pack_dict(data: dict[str, Any]) -> bytes:
-    return msgpack.packb(data, use_bin_type=True)

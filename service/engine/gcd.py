@@ -47,10 +47,6 @@ def _column(values: FloatArray, ndim: int) -> NDArray[np.float32]:
     return np.asarray(values, dtype=np.float32).reshape((-1,) + (1,) * (ndim - 1))
 
 
-def mixture_mean(weights: FloatArray, positions: FloatArray) -> NDArray[np.float32]:
-    return np.tensordot(np.asarray(positions, np.float32), weights, axes=(0, 0)).astype(np.float32)
-
-
 def mixture_mean_std(
     weights: FloatArray, positions: FloatArray, widths: FloatArray
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:

@@ -7,7 +7,7 @@ indices into the dataset's class list; traversability values come from a mapping
 from __future__ import annotations
 
 import csv
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from importlib import resources
@@ -153,7 +153,3 @@ def load_dataset(kind: str, root: Path, split: str | None) -> Dataset:
     if kind == "generic":
         return load_generic(root)
     raise DatasetError(f"unknown dataset kind '{kind}' (goose, rugd, generic)")
-
-
-def iterate(dataset: Dataset, limit: int | None) -> Iterator[Sample]:
-    yield from dataset.samples[:limit] if limit else dataset.samples
