@@ -19,31 +19,27 @@ from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import Any
 
-import cv2
 import numpy as np
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
-from gcdtrav.schemas.images import decode_image, encode_jpeg, encode_maps_png16, resize_map
 from gcdtrav.schemas.messages import (
     MSGPACK_ENCODING,
     AnchorSetRejection,
     AnchorSetReply,
     ErrorReply,
-    MapsHeader,
-    MapsMessage,
     MessageError,
     ServiceStatus,
     SourceStatus,
 )
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
-from gcdtrav.service import viz
 from gcdtrav.service.bus import ros as ros_io
 from gcdtrav.service.bus.grids import GridOutputs
 from gcdtrav.service.bus.ingest import DecodedFrame, RejectedInput, decode_payload
 from gcdtrav.service.bus.latest import LatestFrameQueue
 from gcdtrav.service.bus.membership import Membership
+from gcdtrav.service.bus.outputs import FrameOutputs, ProcessedFrame
 from gcdtrav.service.bus.stats import ServiceStats, percentiles
-from gcdtrav.service.pipeline import FrameResult, Pipeline
+from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.queries import FrameHistory, FrameRecord, QueryError, answer_patch_query
 from gcdtrav.service.state import save_anchor_state
 
@@ -88,8 +84,6 @@ class TraversabilityService:
         self.history = FrameHistory(settings.history)
         self.stats = ServiceStats(log)
         self._seq: dict[str, int] = {}
-        self._publishers: dict[str, zenoh.Publisher] = {}
-        self._rmw_attachments: dict[str, ros_io.RmwAttachment] = {}
         self._declared: list[Any] = []
         self._swap_lock = threading.Lock()
         self._stopping = threading.Event()
@@ -97,6 +91,7 @@ class TraversabilityService:
         self._started_at = time.time()
         self.membership: Membership | None = None
         self.grids = GridOutputs(settings.grids, len(pipeline.anchors), settings.instance) if settings.grids else None
+        self.outputs = FrameOutputs(session, settings, pipeline.backend.model_id, self.grids)
         self._check_inputs()
 
     def _check_inputs(self) -> None:
@@ -150,13 +145,13 @@ class TraversabilityService:
             self.membership.close()
         if self._worker.is_alive():
             self._worker.join(timeout)
-        for entity in [*self._declared, *self._publishers.values()]:
+        for entity in self._declared:
             try:
                 entity.undeclare()
             except zenoh.ZError as err:  # the session may already be closing
                 log.debug("undeclare failed: %s", err)
         self._declared.clear()
-        self._publishers.clear()
+        self.outputs.close()
 
     # ---- input ---------------------------------------------------------------------------------------
     def _image_handler(self, head: str) -> Callable[[zenoh.Sample], None]:
@@ -280,105 +275,10 @@ class TraversabilityService:
             image_size=(width, height),
         )
         self.history.add(source, record)
-        self._publish(source, pending, frame, result, record, ros_header)
-        if self.grids is not None:
-            self._publish_grid(source, record, result)
-
-    def _publish(
-        self,
-        source: str,
-        pending: PendingFrame,
-        frame: DecodedFrame,
-        result: FrameResult,
-        record: FrameRecord,
-        ros_header: Any,
-    ) -> None:
-        t, u = result.maps.traversability, result.maps.uncertainty
-        width, height = record.image_size
-        ros_out = self.settings.ros_output.enabled and pending.ros is not None
-        need_full = self.settings.full_resolution or self.settings.preview or ros_out
-        full_t = resize_map(t, width, height) if need_full else None
-        full_u = resize_map(u, width, height) if need_full else None
-        published_at = time.time()
-        header = MapsHeader(
-            source=source,
-            key=pending.key,
-            seq=record.seq,
-            stamp=frame.stamp,
-            frame_id=frame.frame_id,
-            received_at=pending.received_at,
-            published_at=published_at,
-            inference_ms=result.inference_ms,
-            model=self.pipeline.backend.model_id,
-            instance=self.settings.instance,
-            anchor_set_version=result.anchors.version,
-            method=self.pipeline.settings.method,
-            map_shape=record.map_shape,
-            image_size=record.image_size,
-            scale=record.scale,
-        )
-        full = self.settings.full_resolution and full_t is not None and full_u is not None
-        encoded = encode_maps_png16(t, u, *((full_t, full_u) if full else ()))
-        message = MapsMessage(
-            header=header,
-            traversability_png=encoded[0],
-            uncertainty_png=encoded[1],
-            traversability_full_png=encoded[2] if full else None,
-            uncertainty_full_png=encoded[3] if full else None,
-        )
-        self._publisher(f"{self.prefix}/out/{source}/maps", MSGPACK).put(message.pack())
-        preview = None
-        if self.settings.preview and full_t is not None and full_u is not None:
-            preview = self._preview(frame, full_t, full_u)
-        if preview is not None:
-            self._publisher(f"{self.prefix}/out/{source}/preview", zenoh.Encoding.IMAGE_JPEG).put(preview)
-        if ros_out and pending.ros is not None and full_t is not None and full_u is not None:
-            self._publish_ros(pending.ros, ros_header, frame, full_t, full_u, preview)
+        done = ProcessedFrame(source, pending.key, pending.received_at, frame, result, record, pending.ros, ros_header)
+        self.outputs.publish(done, self.pipeline.settings.method)
         latency_ms = (time.time() - pending.received_at) * 1e3
         self.stats.processed(source, record.seq, latency_ms, result.inference_ms)
-
-    def _publish_ros(
-        self,
-        topic: ros_io.RosTopic,
-        header: Any,
-        frame: DecodedFrame,
-        t: np.ndarray,
-        u: np.ndarray,
-        preview: bytes | None,
-    ) -> None:
-        """T and U as 32FC1 images (and the preview) at the input's size, with the input's header."""
-        outputs = [
-            ("traversability", ros_io.IMAGE, ros_io.float_image_cdr(header, t)),
-            ("uncertainty", ros_io.IMAGE, ros_io.float_image_cdr(header, u)),
-        ]
-        kind = self.settings.ros_output.preview
-        if kind != "none":
-            jpeg = preview if preview is not None else self._preview(frame, t, u)
-            if kind == "compressed":
-                outputs.append(("preview", ros_io.COMPRESSED_IMAGE, ros_io.compressed_jpeg_cdr(header, jpeg)))
-            else:
-                outputs.append(("preview", ros_io.IMAGE, ros_io.rgb_image_cdr(header, decode_image(jpeg))))
-        for name, msgtype, payload in outputs:
-            key = ros_io.output_key(topic, f"{ros_io.OUTPUT_NAMESPACE}/{name}", msgtype)
-            attachment = self._rmw_attachments.setdefault(key, ros_io.RmwAttachment())
-            publisher = self._publisher(key, zenoh.Encoding.APPLICATION_CDR)
-            if topic.layout == "rmw_zenoh":
-                publisher.put(payload, attachment=attachment.next())
-            else:
-                publisher.put(payload)
-
-    def _publish_grid(self, source: str, record: FrameRecord, result: FrameResult) -> None:
-        assert self.grids is not None
-        message = self.grids.on_frame(source, record, result.maps.weights)
-        if message is None:
-            return
-        self._publisher(f"{self.prefix}/out/{source}/grid", MSGPACK).put(message.pack())
-        if self.grids.sources[source].config.occupancy_grid:
-            cost, uncertainty = self.grids.occupancy(message, source, result.anchors)
-            self._publisher(f"{self.prefix}/out/{source}/grid/occupancy", zenoh.Encoding.APPLICATION_CDR).put(cost)
-            self._publisher(f"{self.prefix}/out/{source}/grid/uncertainty", zenoh.Encoding.APPLICATION_CDR).put(
-                uncertainty
-            )
 
     def _on_cell_query(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
@@ -395,26 +295,6 @@ class TraversabilityService:
             query.reply_err(ErrorReply(error=str(err)).pack(), encoding=MSGPACK)
             return
         query.reply(key, reply.pack(), encoding=MSGPACK)
-
-    def _preview(self, frame: DecodedFrame, t: np.ndarray, u: np.ndarray) -> bytes:
-        """T over the image, beside U, scaled to at most preview_max_width."""
-        left = viz.overlay(frame.image, viz.colorize_traversability(t))
-        panel = np.concatenate([left, viz.colorize_uncertainty(u)], axis=1)
-        if panel.shape[1] > self.settings.preview_max_width:
-            factor = self.settings.preview_max_width / panel.shape[1]
-            size = (self.settings.preview_max_width, max(1, round(panel.shape[0] * factor)))
-            panel = cv2.resize(panel, size, interpolation=cv2.INTER_AREA)
-        return encode_jpeg(panel, quality=80)
-
-    def _publisher(self, key: str, encoding: zenoh.Encoding) -> zenoh.Publisher:
-        publisher = self._publishers.get(key)
-        if publisher is None:
-            # DROP: a slow consumer loses samples instead of blocking inference.
-            publisher = self.session.declare_publisher(
-                key, encoding=encoding, congestion_control=zenoh.CongestionControl.DROP
-            )
-            self._publishers[key] = publisher
-        return publisher
 
     # ---- queries -------------------------------------------------------------------------------------
     def _on_patch_query(self, query: zenoh.Query) -> None:

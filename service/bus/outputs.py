@@ -1,0 +1,171 @@
+"""What the service publishes for each processed frame: maps, preview, ROS images, ground grid.
+
+Publishers are declared once per key with congestion control DROP, so a slow consumer loses samples
+instead of blocking inference.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+import zenoh
+from gcdtrav.schemas.images import decode_image, encode_jpeg, encode_maps_png16, resize_map
+from gcdtrav.schemas.messages import MSGPACK_ENCODING, MapsHeader, MapsMessage
+from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.service import viz
+from gcdtrav.service.bus import ros as ros_io
+from gcdtrav.service.bus.grids import GridOutputs
+from gcdtrav.service.bus.ingest import DecodedFrame
+from gcdtrav.service.pipeline import FrameResult
+from gcdtrav.service.queries import FrameRecord
+
+log = logging.getLogger("gcdtrav.service")
+MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
+CDR = zenoh.Encoding.APPLICATION_CDR
+
+
+@dataclass(frozen=True)
+class ProcessedFrame:
+    """One frame after inference, with what its outputs need to know about where it came from."""
+
+    source: str
+    key: str
+    received_at: float
+    frame: DecodedFrame
+    result: FrameResult
+    record: FrameRecord
+    ros_topic: ros_io.RosTopic | None = None
+    ros_header: Any = None
+
+
+def preview_jpeg(image: np.ndarray, t: np.ndarray, u: np.ndarray, max_width: int) -> bytes:
+    """T over the image, beside U, scaled to at most ``max_width``."""
+    left = viz.overlay(image, viz.colorize_traversability(t))
+    panel = np.concatenate([left, viz.colorize_uncertainty(u)], axis=1)
+    if panel.shape[1] > max_width:
+        size = (max_width, max(1, round(panel.shape[0] * max_width / panel.shape[1])))
+        panel = cv2.resize(panel, size, interpolation=cv2.INTER_AREA)
+    return encode_jpeg(panel, quality=80)
+
+
+class FrameOutputs:
+    def __init__(
+        self, session: zenoh.Session, settings: ServiceSettings, model_id: str, grids: GridOutputs | None
+    ) -> None:
+        self.session = session
+        self.settings = settings
+        self.prefix = settings.prefix
+        self.model_id = model_id
+        self.grids = grids
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._rmw_attachments: dict[str, ros_io.RmwAttachment] = {}
+
+    def publish(self, done: ProcessedFrame, method: Any) -> None:
+        t, u = done.result.maps.traversability, done.result.maps.uncertainty
+        width, height = done.record.image_size
+        ros_out = self.settings.ros_output.enabled and done.ros_topic is not None
+        full = None
+        if self.settings.full_resolution or self.settings.preview or ros_out:
+            full = resize_map(t, width, height), resize_map(u, width, height)
+        self._put(f"{self.prefix}/out/{done.source}/maps", self._maps(done, method, full).pack(), MSGPACK)
+        preview = None
+        if self.settings.preview and full is not None:
+            preview = preview_jpeg(done.frame.image, *full, self.settings.preview_max_width)
+            self._put(f"{self.prefix}/out/{done.source}/preview", preview, zenoh.Encoding.IMAGE_JPEG)
+        if ros_out and done.ros_topic is not None and full is not None:
+            self._publish_ros(done, *full, preview)
+        if self.grids is not None:
+            self._publish_grid(done)
+
+    def _maps(self, done: ProcessedFrame, method: Any, full: tuple[np.ndarray, np.ndarray] | None) -> MapsMessage:
+        record, result = done.record, done.result
+        header = MapsHeader(
+            source=done.source,
+            key=done.key,
+            seq=record.seq,
+            stamp=done.frame.stamp,
+            frame_id=done.frame.frame_id,
+            received_at=done.received_at,
+            published_at=time.time(),
+            inference_ms=result.inference_ms,
+            model=self.model_id,
+            instance=self.settings.instance,
+            anchor_set_version=result.anchors.version,
+            method=method,
+            map_shape=record.map_shape,
+            image_size=record.image_size,
+            scale=record.scale,
+        )
+        with_full = self.settings.full_resolution and full is not None
+        maps = [result.maps.traversability, result.maps.uncertainty, *(full if with_full and full else ())]
+        encoded = encode_maps_png16(*maps)
+        return MapsMessage(
+            header=header,
+            traversability_png=encoded[0],
+            uncertainty_png=encoded[1],
+            traversability_full_png=encoded[2] if with_full else None,
+            uncertainty_full_png=encoded[3] if with_full else None,
+        )
+
+    def _publish_ros(self, done: ProcessedFrame, t: np.ndarray, u: np.ndarray, preview: bytes | None) -> None:
+        """T and U as 32FC1 images (and the preview) at the input's size, with the input's header."""
+        topic, header = done.ros_topic, done.ros_header
+        assert topic is not None
+        outputs = [
+            ("traversability", ros_io.IMAGE, ros_io.float_image_cdr(header, t)),
+            ("uncertainty", ros_io.IMAGE, ros_io.float_image_cdr(header, u)),
+        ]
+        kind = self.settings.ros_output.preview
+        if kind != "none":
+            jpeg = (
+                preview
+                if preview is not None
+                else preview_jpeg(done.frame.image, t, u, self.settings.preview_max_width)
+            )
+            if kind == "compressed":
+                outputs.append(("preview", ros_io.COMPRESSED_IMAGE, ros_io.compressed_jpeg_cdr(header, jpeg)))
+            else:
+                outputs.append(("preview", ros_io.IMAGE, ros_io.rgb_image_cdr(header, decode_image(jpeg))))
+        for name, msgtype, payload in outputs:
+            key = ros_io.output_key(topic, f"{ros_io.OUTPUT_NAMESPACE}/{name}", msgtype)
+            attachment = None
+            if topic.layout == "rmw_zenoh":  # rmw_zenoh subscribers expect its attachment
+                attachment = self._rmw_attachments.setdefault(key, ros_io.RmwAttachment()).next()
+            self._put(key, payload, CDR, attachment)
+
+    def _publish_grid(self, done: ProcessedFrame) -> None:
+        assert self.grids is not None
+        message = self.grids.on_frame(done.source, done.record, done.result.maps.weights)
+        if message is None:
+            return
+        base = f"{self.prefix}/out/{done.source}/grid"
+        self._put(base, message.pack(), MSGPACK)
+        if self.grids.sources[done.source].config.occupancy_grid:
+            cost, uncertainty = self.grids.occupancy(message, done.source, done.result.anchors)
+            self._put(f"{base}/occupancy", cost, CDR)
+            self._put(f"{base}/uncertainty", uncertainty, CDR)
+
+    def _put(self, key: str, payload: bytes, encoding: zenoh.Encoding, attachment: bytes | None = None) -> None:
+        publisher = self._publishers.get(key)
+        if publisher is None:
+            publisher = self.session.declare_publisher(
+                key, encoding=encoding, congestion_control=zenoh.CongestionControl.DROP
+            )
+            self._publishers[key] = publisher
+        if attachment is None:
+            publisher.put(payload)
+        else:
+            publisher.put(payload, attachment=attachment)
+
+    def close(self) -> None:
+        for publisher in self._publishers.values():
+            try:
+                publisher.undeclare()
+            except zenoh.ZError as err:  # the session may already be closing
+                log.debug("undeclare failed: %s", err)
+        self._publishers.clear()
