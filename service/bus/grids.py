@@ -165,6 +165,15 @@ def occupancy_cdr(header: GridHeader, values: NDArray[np.floating], known: NDArr
     return bytes(ros.typestore().serialize_cdr(message, "nav_msgs/msg/OccupancyGrid"))
 
 
+@dataclass(frozen=True)
+class GridUpdate:
+    """One frame's grid outputs: the message, and the OccupancyGrid CDRs (cost, uncertainty) if enabled."""
+
+    message: GridMessage
+    occupancy: bytes | None = None
+    uncertainty: bytes | None = None
+
+
 class GridOutputs:
     """All configured grids of a service; thread-safe (frames from the worker, queries from zenoh)."""
 
@@ -193,8 +202,8 @@ class GridOutputs:
         with grid.lock:
             grid.depth = depth
 
-    def on_frame(self, source: str, record: FrameRecord, weights: NDArray[np.floating]) -> GridMessage | None:
-        """Fuse a processed frame into its source's grid; the grid message to publish, or None."""
+    def on_frame(self, source: str, record: FrameRecord, weights: NDArray[np.floating]) -> GridUpdate | None:
+        """Fuse a processed frame into its source's grid; what to publish, or None."""
         grid = self.sources.get(source)
         if grid is None:
             return None
@@ -203,17 +212,19 @@ class GridOutputs:
                 log.warning("grid of %s: no intrinsics yet (waiting for CameraInfo), frame not fused", source)
                 return None
             grid.fuse(weights, record.image_size, record.stamp, record.anchors)
-            return self._message(grid, record.anchors)
-
-    def _message(self, grid: SourceGrid, anchors: AnchorSet) -> GridMessage:
-        t, u, count = grid.grid.layers(np.asarray(anchors.positions), np.asarray(anchors.widths))
-        header = self.header(grid, anchors.version)
-        return GridMessage(
+            anchors = record.anchors
+            t, u, count = grid.grid.layers(np.asarray(anchors.positions), np.asarray(anchors.widths))
+            header = self.header(grid, anchors.version)
+        message = GridMessage(
             header=header,
             traversability_png=encode_map_png16(np.nan_to_num(t)),
             uncertainty_png=encode_map_png16(np.nan_to_num(u)),
             count_png=_count_png(count),
         )
+        if not grid.config.occupancy_grid:
+            return GridUpdate(message)
+        known = count > 0
+        return GridUpdate(message, occupancy_cdr(header, 1.0 - t, known), occupancy_cdr(header, u / 0.5, known))
 
     def header(self, grid: SourceGrid, version: str) -> GridHeader:
         pose = grid.pose
@@ -232,13 +243,6 @@ class GridOutputs:
             known_cells=int(grid.grid.known.sum()),
             instance=self.instance,
         )
-
-    def occupancy(self, message: GridMessage, source: str, anchors: AnchorSet) -> tuple[bytes, bytes]:
-        grid = self.sources[source]
-        with grid.lock:
-            t, u, _ = grid.grid.layers(np.asarray(anchors.positions), np.asarray(anchors.widths))
-            known = grid.grid.known
-        return occupancy_cdr(message.header, 1.0 - t, known), occupancy_cdr(message.header, u / 0.5, known)
 
     # ---- queries -------------------------------------------------------------------------------------
     def answer(self, source: str, raw_parameters: str, anchors: AnchorSet) -> ContextDistribution | PathReply:

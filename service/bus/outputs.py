@@ -140,15 +140,14 @@ class FrameOutputs:
 
     def _publish_grid(self, done: ProcessedFrame) -> None:
         assert self.grids is not None
-        message = self.grids.on_frame(done.source, done.record, done.result.maps.weights)
-        if message is None:
+        update = self.grids.on_frame(done.source, done.record, done.result.maps.weights)
+        if update is None:
             return
         base = f"{self.prefix}/out/{done.source}/grid"
-        self._put(base, message.pack(), MSGPACK)
-        if self.grids.sources[done.source].config.occupancy_grid:
-            cost, uncertainty = self.grids.occupancy(message, done.source, done.result.anchors)
-            self._put(f"{base}/occupancy", cost, CDR)
-            self._put(f"{base}/uncertainty", uncertainty, CDR)
+        self._put(base, update.message.pack(), MSGPACK)
+        if update.occupancy is not None and update.uncertainty is not None:
+            self._put(f"{base}/occupancy", update.occupancy, CDR)
+            self._put(f"{base}/uncertainty", update.uncertainty, CDR)
 
     def _put(self, key: str, payload: bytes, encoding: zenoh.Encoding, attachment: bytes | None = None) -> None:
         publisher = self._publishers.get(key)
