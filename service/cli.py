@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import logging
-import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -13,16 +12,11 @@ from pathlib import Path
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings, Method
 from gcdtrav.schemas.settings import SettingsError
+from gcdtrav.service.backends import default_model
 
 SERVICE_MODULES = ("torch", "transformers", "matplotlib", "tqdm")
 EXIT_FAILURES = 1  # some inputs could not be processed
 EXIT_USAGE = 2  # bad configuration: anchor file, model weights, arguments
-
-
-def default_model() -> str:
-    from gcdtrav.service.backends import DEFAULT_MODEL
-
-    return os.environ.get("GCDTRAV_MODEL", DEFAULT_MODEL)
 
 
 def parse_probe(text: str) -> tuple[int, int]:

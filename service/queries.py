@@ -59,10 +59,6 @@ class FrameHistory:
         with self._lock:
             self._frames.setdefault(source, deque(maxlen=self.depth)).append(record)
 
-    def sources(self) -> list[str]:
-        with self._lock:
-            return list(self._frames)
-
     def get(self, source: str, seq: int | None, stamp: float | None = None) -> FrameRecord:
         with self._lock:
             frames = list(self._frames.get(source, ()))

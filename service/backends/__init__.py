@@ -4,4 +4,12 @@ from gcdtrav.service.backends.base import ModelUnavailableError, SegmentationBac
 
 DEFAULT_MODEL = "CIDAS/clipseg-rd64-refined"
 
-__all__ = ["DEFAULT_MODEL", "ModelUnavailableError", "SegmentationBackend"]
+
+def default_model() -> str:
+    """The checkpoint to load when none is given: $GCDTRAV_MODEL, else the hub id."""
+    import os
+
+    return os.environ.get("GCDTRAV_MODEL", DEFAULT_MODEL)
+
+
+__all__ = ["DEFAULT_MODEL", "ModelUnavailableError", "SegmentationBackend", "default_model"]

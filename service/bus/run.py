@@ -32,16 +32,15 @@ def starting_anchor_set(settings: ServiceSettings) -> AnchorSet:
 
 
 def build_service_pipeline(settings: ServiceSettings) -> Pipeline:
-    import os
 
     import torch
-    from gcdtrav.service.backends import DEFAULT_MODEL
+    from gcdtrav.service.backends import default_model
     from gcdtrav.service.backends.clipseg import ClipSegBackend
 
     if settings.threads is not None:
         torch.set_num_threads(settings.threads)
     anchors = starting_anchor_set(settings)
-    model = settings.model or os.environ.get("GCDTRAV_MODEL", DEFAULT_MODEL)
+    model = settings.model or default_model()
     backend = ClipSegBackend(model, precision=settings.precision)
     return Pipeline(backend, anchors, settings.engine)
 

@@ -44,10 +44,6 @@ class ServiceStats:
         self._last_logged: dict[str, float] = {}
         self._suppressed: Counter[str] = Counter()
 
-    def source(self, name: str) -> SourceStats:
-        with self._lock:
-            return self.sources.setdefault(name, SourceStats())
-
     def processed(self, name: str, seq: int, latency_ms: float, inference_ms: float) -> None:
         with self._lock:
             stats = self.sources.setdefault(name, SourceStats())
