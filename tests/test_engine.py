@@ -116,8 +116,45 @@ def test_method_selection_and_shapes(rng: np.random.Generator) -> None:
         assert maps.weights.shape == (13, 6, 7)
     with pytest.raises(ValueError, match="do not match"):
         compute_maps(logits[:5], PAPER, EngineSettings())
-    with pytest.raises(ValueError, match="NaN"):
-        compute_maps(np.full((13, 2, 2), np.nan, np.float32), PAPER, EngineSettings())
+    for method in Method:
+        for bad in (np.nan, np.inf):
+            one_bad_patch = logits.copy()
+            one_bad_patch[4, 5, 6] = bad
+            with pytest.raises(ValueError, match="NaN or infinity"):
+                compute_maps(one_bad_patch, PAPER, EngineSettings(method=method))
+
+
+def test_minus_infinity_is_a_weight_of_zero() -> None:
+    cas = anchor_set([0.1, 0.6, 0.9])
+    logits = np.array([-np.inf, 2.0, 2.0], np.float32).reshape(3, 1, 1)
+    maps = compute_maps(logits, cas, EngineSettings())
+    assert maps.weights[:, 0, 0].tolist() == [0.0, 0.5, 0.5]
+    assert maps.traversability[0, 0] == pytest.approx(0.75, abs=1e-6)
+    with pytest.raises(ValueError, match="NaN or infinity"):  # no finite logit: no distribution
+        compute_maps(np.full((3, 1, 1), -np.inf, np.float32), cas, EngineSettings())
+
+
+@pytest.mark.parametrize("shape", [(13, 1, 1), (13, 61, 67), (13, 352, 352), (5, 9000)])
+@pytest.mark.parametrize("temperature", [1.0, 0.37])
+def test_fused_blocks_equal_the_separate_passes(
+    rng: np.random.Generator, shape: tuple[int, ...], temperature: float
+) -> None:
+    """The per-frame fused pass gives exactly the numbers of softmax, then mean and std, over whole arrays."""
+    cas = anchor_set(sorted(rng.uniform(0, 1, shape[0]).tolist()), rng.uniform(0, 0.1, shape[0]).tolist())
+    logits = rng.normal(0, 4, size=shape).astype(np.float32)
+    weights, mean, std = gcd.softmax_mean_std(logits, cas.positions, cas.widths, temperature)
+    scaled = logits / np.float32(temperature)
+    exp = np.exp(scaled - scaled.max(axis=0))
+    expected_weights = exp * np.reciprocal(exp.sum(axis=0))
+    np.testing.assert_array_equal(weights, expected_weights)
+    np.testing.assert_array_equal(gcd.softmax_weights(logits, temperature), expected_weights)
+    moments = np.stack([np.asarray(cas.positions), np.asarray(cas.positions) ** 2 + np.asarray(cas.widths) ** 2])
+    raw = np.tensordot(moments, expected_weights.astype(np.float64), axes=(1, 0))
+    np.testing.assert_allclose(mean, np.clip(raw[0], 0, 1), rtol=0, atol=1e-7)
+    np.testing.assert_allclose(std, np.sqrt(np.maximum(raw[1] - raw[0] ** 2, 0)), rtol=0, atol=1e-6)
+    separate_mean, separate_std = gcd.mixture_mean_std(expected_weights, cas.positions, cas.widths)
+    np.testing.assert_array_equal(mean, separate_mean)
+    np.testing.assert_array_equal(std, separate_std)
 
 
 def numeric_moments(w: np.ndarray, p: np.ndarray, s: np.ndarray) -> tuple[float, float, float, float]:

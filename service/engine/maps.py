@@ -23,16 +23,17 @@ class TraversabilityMaps:
 def compute_maps(logits: NDArray[np.floating], anchors: AnchorSet, settings: EngineSettings) -> TraversabilityMaps:
     if logits.ndim < 2 or logits.shape[0] != len(anchors):
         raise ValueError(f"logits of shape {logits.shape} do not match an anchor set of {len(anchors)} anchors")
-    if not np.all(np.isfinite(logits)):
-        raise ValueError("logits contain NaN or infinity")
-    weights = gcd.softmax_weights(logits, settings.temperature)
     positions = np.asarray(anchors.positions, np.float32)
-    if settings.method is Method.ARGMAX:
-        t, u = gcd.argmax_baseline(weights, positions)
-    elif settings.method is Method.GAUSSIAN:
-        t, u = gcd.gaussian_fit_baseline(weights, positions)
-    else:
-        t, u = gcd.mixture_mean_std(weights, positions, np.asarray(anchors.widths, np.float32))
+    if settings.method is Method.GCD:
+        weights, t, u = gcd.softmax_mean_std(logits, positions, anchors.widths, settings.temperature)
         if settings.normalize_uncertainty:
-            u = u / np.float32(max(gcd.max_mixture_std(anchors.positions, anchors.widths), 1e-12))
+            u /= np.float32(max(gcd.max_mixture_std(anchors.positions, anchors.widths), 1e-12))
+    else:
+        weights = gcd.softmax_weights(logits, settings.temperature)
+        baseline = gcd.argmax_baseline if settings.method is Method.ARGMAX else gcd.gaussian_fit_baseline
+        t, u = baseline(weights, positions)
+    if not (np.isfinite(t).all() and np.isfinite(u).all()):
+        # A NaN or +inf logit (or a patch of only -inf) turns its patch's softmax, hence T or U, into NaN;
+        # checking the maps instead of the logits saves a pass over the largest array. A lone -inf is weight 0.
+        raise ValueError("logits contain NaN or infinity")
     return TraversabilityMaps(traversability=t, uncertainty=u, weights=weights)
