@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 import torch
 from gcdtrav.service.backends.base import ModelUnavailableError
+from gcdtrav.service.backends.decoder import FastDecoder
 from numpy.typing import NDArray
 
 log = logging.getLogger(__name__)
@@ -125,23 +126,6 @@ class VisionTrunk(torch.nn.Module):
 DECODER_CHUNK = 8  # concepts per decoder batch (measured best of 1, 2, 4, 8, all on 2 cores; benchmarks/)
 
 
-def decoder_layer(layer: Any, hidden: torch.Tensor) -> torch.Tensor:
-    """CLIPSegDecoderLayer.forward (post-norm attention and MLP) with an in-place ReLU in the MLP.
-
-    The same arithmetic as transformers' layer (tests compare the two); the in-place activation saves
-    writing a second copy of the largest tensor of the decoder.
-    """
-    residual = hidden
-    hidden, _ = layer.self_attn(hidden_states=hidden, attention_mask=None)
-    hidden = layer.layer_norm1(residual + hidden)
-    mlp = layer.mlp
-    if isinstance(mlp.activation_fn, torch.nn.ReLU):
-        expanded = torch.relu_(mlp.fc1(hidden))
-    else:
-        expanded = mlp.activation_fn(mlp.fc1(hidden))
-    return layer.layer_norm2(hidden + mlp.fc2(expanded))
-
-
 def _triple(values: Any) -> tuple[float, float, float]:
     first, second, third = (float(v) for v in values)
     return first, second, third
@@ -184,9 +168,10 @@ class ClipSegBackend:
         self.extract_layers = list(self.model.config.extract_layers)
         self.precision = resolve_precision(precision)
         self._trunk = VisionTrunk.build(self.model.clip.vision_model, max(self.extract_layers), self.precision)
-        self._decoder, self._decoder_dtype = self.model.decoder, torch.float32
+        decoder, self._decoder_dtype = self.model.decoder, torch.float32
         if self.precision == "bf16":  # the decoder's MLPs, run once per anchor, cost as much as the ViT
-            self._decoder, self._decoder_dtype = copy.deepcopy(self.model.decoder).to(torch.bfloat16), torch.bfloat16
+            decoder, self._decoder_dtype = copy.deepcopy(decoder).to(torch.bfloat16), torch.bfloat16
+        self._decoder = FastDecoder(decoder, self._decoder_dtype)
         self._prepared: OrderedDict[tuple[str, ...], torch.Tensor] = OrderedDict()
         self._prepared_cache_size = prepared_cache_size
 
@@ -230,28 +215,10 @@ class ClipSegBackend:
         """
         conditional = conditional.to(self._decoder_dtype)
         chunks = [
-            self._decode_chunk(activations, conditional[k : k + DECODER_CHUNK])
+            self._decoder(activations, conditional[k : k + DECODER_CHUNK])
             for k in range(0, conditional.shape[0], DECODER_CHUNK)
         ]
         return torch.cat(chunks).float()
-
-    def _decode_chunk(self, activations: list[torch.Tensor], conditional: torch.Tensor) -> torch.Tensor:
-        decoder = self._decoder
-        output: torch.Tensor | None = None
-        for index, (activation, layer, reduce) in enumerate(
-            zip(activations[::-1], decoder.layers, decoder.reduces, strict=True)
-        ):
-            reduced = reduce(activation)
-            output = reduced if output is None else reduced + output
-            if index == decoder.conditional_layer:
-                # FiLM broadcasts the single image's tokens (1, L, d) to the n concepts (n, L, d).
-                output = decoder.film_mul(conditional)[:, None, :] * output + decoder.film_add(conditional)[:, None, :]
-            output = decoder_layer(layer, output)
-        assert output is not None
-        tokens = output[:, 1:, :].transpose(1, 2)
-        side = round(tokens.shape[2] ** 0.5)
-        grid = tokens.reshape(tokens.shape[0], tokens.shape[1], side, side)
-        return decoder.transposed_convolution(grid).squeeze(1)
 
     @torch.inference_mode()
     def logits(self, image_rgb: NDArray[np.uint8], prepared: object) -> NDArray[np.float32]:

@@ -1,0 +1,93 @@
+"""The CPU-arranged decoder pieces give transformers' numbers (the end-to-end check is in test_backend_clipseg)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import textured_image
+
+torch = pytest.importorskip("torch")
+
+from gcdtrav.service.backends import decoder as fast  # noqa: E402
+from gcdtrav.service.backends.clipseg import ClipSegBackend  # noqa: E402
+
+nn = torch.nn
+
+
+def refined_upsampler(channels: int = 16) -> torch.nn.Module:
+    """The layout of CLIPSeg rd64-refined's transposed_convolution, at a smaller width."""
+    return nn.Sequential(
+        nn.Conv2d(channels, channels, kernel_size=3, padding=1),
+        nn.ReLU(),
+        nn.ConvTranspose2d(channels, channels // 2, kernel_size=4, stride=4),
+        nn.ReLU(),
+        nn.ConvTranspose2d(channels // 2, 1, kernel_size=4, stride=4),
+    )
+
+
+@pytest.mark.parametrize(
+    ("name", "module"),
+    [
+        ("refined", refined_upsampler()),
+        ("plain (use_complex_transposed_convolution=False)", nn.ConvTranspose2d(16, 1, kernel_size=16, stride=16)),
+        ("rectangular blocks, several channels out", nn.Sequential(nn.ConvTranspose2d(16, 3, (2, 3), (2, 3)))),
+        ("two steps, no activation", nn.Sequential(nn.ConvTranspose2d(16, 4, 2, 2), nn.ConvTranspose2d(4, 2, 3, 3))),
+        ("no bias", nn.ConvTranspose2d(16, 2, kernel_size=4, stride=4, bias=False)),
+    ],
+)
+def test_patchwise_upsampler_equals_the_module(name: str, module: torch.nn.Module) -> None:
+    torch.manual_seed(0)
+    module = module.eval()
+    grid = torch.randn(5, 16, 7, 6)
+    upsampler = fast.PatchwiseUpsampler(module)
+    assert upsampler.fallback is None and upsampler.steps, name
+    with torch.inference_mode():
+        expected, got = module(grid), upsampler(grid)
+    assert got.shape == expected.shape
+    torch.testing.assert_close(got, expected, atol=2e-5, rtol=1e-5)
+
+
+def test_overlapping_transposed_convolution_runs_the_module_itself() -> None:
+    torch.manual_seed(1)
+    module = nn.Sequential(nn.Conv2d(8, 8, 3, padding=1), nn.ConvTranspose2d(8, 1, kernel_size=4, stride=2)).eval()
+    upsampler = fast.PatchwiseUpsampler(module)
+    mixed = fast.PatchwiseUpsampler(nn.Sequential(nn.ConvTranspose2d(8, 4, 2, 2), nn.ConvTranspose2d(4, 1, 4, 2)))
+    assert mixed.fallback is not None  # a patchwise step followed by an overlapping one
+    assert not upsampler.steps  # nothing to rearrange: the module runs as it is
+    grid = torch.randn(2, 8, 5, 5)
+    with torch.inference_mode():
+        torch.testing.assert_close(upsampler(grid), module(grid))
+
+
+@pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
+def test_fused_linear_relu_equals_linear_then_relu(dtype: str) -> None:
+    torch.manual_seed(2)
+    linear = nn.Linear(16, 64).to(getattr(torch, dtype))
+    hidden = torch.randn(3, 11, 16, dtype=linear.weight.dtype)
+    with torch.inference_mode():
+        got = fast.fused_linear_relu(linear.weight.dtype)(hidden, linear)
+        expected = torch.relu(linear(hidden))
+    assert got.shape == expected.shape and bool((got >= 0).all())
+    torch.testing.assert_close(got, expected)
+
+
+def test_fused_linear_relu_falls_back_without_onednn(monkeypatch: pytest.MonkeyPatch) -> None:
+    def missing(*_: object) -> None:
+        raise RuntimeError("no oneDNN in this build")
+
+    monkeypatch.setattr(torch.ops.mkldnn, "_linear_pointwise", missing)
+    assert fast.fused_linear_relu(torch.float32) is fast._linear_relu_unfused
+
+
+def test_backend_without_onednn_still_matches_transformers(
+    tiny_model_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(fast, "fused_linear_relu", lambda dtype: fast._linear_relu_unfused)
+    backend = ClipSegBackend(str(tiny_model_dir))
+    concepts = ["water", "grass", "asphalt road"]
+    image = textured_image(90, 70, seed=3)
+    np.testing.assert_allclose(
+        backend.logits(image, backend.prepare(concepts)), backend.naive_logits(image, concepts), atol=1e-4, rtol=0
+    )
