@@ -14,6 +14,12 @@ from gcdtrav.service.backends.clipseg import ClipSegBackend  # noqa: E402
 CONCEPTS = ["water", "mud", "grass", "gravel", "asphalt road"]
 
 
+def assert_same_logits(fast: np.ndarray, reference: np.ndarray) -> None:
+    """Equal up to float32 rounding, relative to the logits' scale (hundreds with random weights)."""
+    assert fast.shape == reference.shape
+    assert float(np.abs(fast - reference).max()) <= 1e-6 * float(np.abs(reference).max())
+
+
 def test_loads_through_the_real_path_and_is_a_backend(tiny_backend: ClipSegBackend) -> None:
     assert isinstance(tiny_backend, SegmentationBackend)
     assert tiny_backend.preprocess.size == TINY_INPUT_SIZE  # read from preprocessor_config.json
@@ -27,20 +33,20 @@ def test_fast_path_matches_transformers_forward(tiny_backend: ClipSegBackend) ->
         naive = tiny_backend.naive_logits(image, CONCEPTS)
         assert fast.shape == naive.shape == (len(CONCEPTS), TINY_INPUT_SIZE, TINY_INPUT_SIZE)
         assert fast.dtype == np.float32
-        np.testing.assert_allclose(fast, naive, atol=1e-4, rtol=0)
+        assert_same_logits(fast, naive)
 
 
 def test_single_concept_batch(tiny_backend: ClipSegBackend) -> None:
     image = textured_image(64, 64)
     fast = tiny_backend.logits(image, tiny_backend.prepare(["water"]))
-    np.testing.assert_allclose(fast, tiny_backend.naive_logits(image, ["water"]), atol=1e-4)
+    assert_same_logits(fast, tiny_backend.naive_logits(image, ["water"]))
 
 
 def test_vision_encoder_runs_once_and_stops_at_last_extracted_layer(tiny_backend: ClipSegBackend) -> None:
     layers = tiny_backend.model.clip.vision_model.encoder.layers
     calls = [0] * len(layers)
     hooks = [
-        layer.register_forward_hook(lambda *_, i=i: calls.__setitem__(i, calls[i] + 1))
+        layer.layer_norm1.register_forward_hook(lambda *_, i=i: calls.__setitem__(i, calls[i] + 1))
         for i, layer in enumerate(layers)
     ]
     try:
@@ -99,7 +105,7 @@ def test_fast_modes_keep_parity_with_fp32(tiny_model_dir: Path, tiny_backend: Cl
     pixels = tiny_backend.preprocess(image)
     assert activation_cosine(tiny_backend.vision_activations(pixels), fast.vision_activations(pixels)) > 0.99
     # The fp32 model itself is untouched: transformers' forward still matches the fp32 fast path.
-    np.testing.assert_allclose(tiny_backend.naive_logits(image, cas.concepts), reference, atol=1e-4)
+    assert_same_logits(reference, tiny_backend.naive_logits(image, cas.concepts))
 
 
 def test_parity_measure_sees_errors_and_nothing_else(tiny_backend: ClipSegBackend) -> None:

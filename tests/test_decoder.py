@@ -11,6 +11,7 @@ from conftest import textured_image
 torch = pytest.importorskip("torch")
 
 from gcdtrav.service.backends import decoder as fast  # noqa: E402
+from gcdtrav.service.backends import onednn  # noqa: E402
 from gcdtrav.service.backends.clipseg import ClipSegBackend  # noqa: E402
 
 nn = torch.nn
@@ -67,27 +68,50 @@ def test_fused_linear_relu_equals_linear_then_relu(dtype: str) -> None:
     linear = nn.Linear(16, 64).to(getattr(torch, dtype))
     hidden = torch.randn(3, 11, 16, dtype=linear.weight.dtype)
     with torch.inference_mode():
-        got = fast.fused_linear_relu(linear.weight.dtype)(hidden, linear)
+        got = onednn.fused_linear_relu(linear.weight.dtype)(hidden, linear)
         expected = torch.relu(linear(hidden))
     assert got.shape == expected.shape and bool((got >= 0).all())
     torch.testing.assert_close(got, expected)
 
 
-def test_fused_linear_relu_falls_back_without_onednn(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_fused_ops_fall_back_without_onednn(monkeypatch: pytest.MonkeyPatch, tiny_backend: ClipSegBackend) -> None:
     def missing(*_: object) -> None:
         raise RuntimeError("no oneDNN in this build")
 
     monkeypatch.setattr(torch.ops.mkldnn, "_linear_pointwise", missing)
-    assert fast.fused_linear_relu(torch.float32) is fast._linear_relu_unfused
+    assert not onednn.onednn_has("relu", torch.float32) and not onednn.onednn_has("swish", torch.bfloat16)
+    assert onednn.fused_linear_relu(torch.float32) is onednn.linear_then_relu
+    layer = tiny_backend.model.clip.vision_model.encoder.layers[0]
+    assert onednn.QuickGeluMLP.build(layer.layer_norm2, layer.mlp, torch.float32) is None
+
+
+@pytest.mark.parametrize(("dtype", "tolerance"), [("float32", 1e-5), ("bfloat16", 0.05)])
+def test_fused_quick_gelu_layer_equals_transformers_layer(
+    tiny_backend: ClipSegBackend, dtype: str, tolerance: float
+) -> None:
+    import copy
+
+    layer = copy.deepcopy(tiny_backend.model.clip.vision_model.encoder.layers[2]).to(getattr(torch, dtype))
+    mlp = onednn.QuickGeluMLP.build(layer.layer_norm2, layer.mlp, getattr(torch, dtype))
+    assert mlp is not None  # this machine's torch has oneDNN's swish post-op
+    torch.manual_seed(4)
+    hidden = torch.randn(2, 17, layer.layer_norm1.normalized_shape[0]).to(getattr(torch, dtype))
+    with torch.inference_mode():
+        expected, got = layer(hidden, None), onednn.clip_encoder_layer(layer, hidden, mlp)
+    scale = float(expected.float().abs().max())
+    assert float((got.float() - expected.float()).abs().max()) <= tolerance * scale
+    assert onednn.clip_encoder_layer(layer, hidden, None).equal(expected)  # no fused MLP: transformers' layer
 
 
 def test_backend_without_onednn_still_matches_transformers(
     tiny_model_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(fast, "fused_linear_relu", lambda dtype: fast._linear_relu_unfused)
+    monkeypatch.setattr(onednn, "onednn_has", lambda attr, dtype: False)
     backend = ClipSegBackend(str(tiny_model_dir))
+    assert all(mlp is None for mlp in backend._trunk.fused_mlps)
+    assert backend._decoder.linear_relu is onednn.linear_then_relu
     concepts = ["water", "grass", "asphalt road"]
     image = textured_image(90, 70, seed=3)
     np.testing.assert_allclose(
         backend.logits(image, backend.prepare(concepts)), backend.naive_logits(image, concepts), atol=1e-4, rtol=0
-    )
+    )  # no rescaled quick-GELU here: the same operations as transformers, to the last bits

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from gcdtrav.service.backends.base import ModelUnavailableError
 from gcdtrav.service.backends.decoder import FastDecoder
+from gcdtrav.service.backends.onednn import QuickGeluMLP, clip_encoder_layer
 from numpy.typing import NDArray
 
 log = logging.getLogger(__name__)
@@ -106,21 +107,34 @@ class VisionTrunk(torch.nn.Module):
     ) -> None:
         super().__init__()
         self.embeddings, self.pre_layrnorm, self.layers, self.dtype = embeddings, pre_layrnorm, layers, dtype
+        self.fused_mlps: list[QuickGeluMLP | None] = [None] * len(layers)
 
     @classmethod
     def build(cls, vision: Any, last_layer: int, precision: str) -> VisionTrunk:
         layers = torch.nn.ModuleList(list(vision.encoder.layers)[: last_layer + 1])
         trunk = cls(vision.embeddings, vision.pre_layrnorm, layers, torch.float32)
-        if precision == "fp32":
-            return trunk
-        trunk = copy.deepcopy(trunk)
+        if precision != "fp32":
+            trunk = copy.deepcopy(trunk)
         if precision in ("bf16", "bf16-vit"):
             trunk = trunk.to(torch.bfloat16)
             trunk.dtype = torch.bfloat16
-            return trunk
-        quantized = torch.ao.quantization.quantize_dynamic(trunk, {torch.nn.Linear}, dtype=torch.qint8)
-        assert isinstance(quantized, VisionTrunk)
-        return quantized
+        elif precision == "int8":
+            quantized = torch.ao.quantization.quantize_dynamic(trunk, {torch.nn.Linear}, dtype=torch.qint8)
+            assert isinstance(quantized, VisionTrunk)
+            trunk = quantized
+        # Quick-GELU as a fused oneDNN post-op where it applies (not on int8's quantised linears).
+        trunk.fused_mlps = [QuickGeluMLP.build(layer.layer_norm2, layer.mlp, trunk.dtype) for layer in trunk.layers]
+        return trunk
+
+    def run(self, pixel_values: torch.Tensor, wanted: set[int]) -> list[torch.Tensor]:
+        """Hidden states after each layer in ``wanted``; layers after the last one kept are never run."""
+        hidden = self.pre_layrnorm(self.embeddings(pixel_values.to(self.dtype), interpolate_pos_encoding=True))
+        kept = []
+        for index, layer in enumerate(self.layers):
+            hidden = clip_encoder_layer(layer, hidden, self.fused_mlps[index])
+            if index in wanted:
+                kept.append(hidden)
+        return kept
 
 
 DECODER_CHUNK = 8  # concepts per decoder batch (measured best of 1, 2, 4, 8, all on 2 cores; benchmarks/)
@@ -196,15 +210,7 @@ class ClipSegBackend:
     @torch.inference_mode()
     def vision_activations(self, pixel_values: torch.Tensor) -> list[torch.Tensor]:
         """Hidden states after each layer in ``extract_layers``; later layers are never run."""
-        trunk = self._trunk
-        hidden = trunk.pre_layrnorm(trunk.embeddings(pixel_values.to(trunk.dtype), interpolate_pos_encoding=True))
-        wanted = set(self.extract_layers)
-        activations = []
-        for index, layer in enumerate(trunk.layers):
-            hidden = layer(hidden, None)
-            if index in wanted:
-                activations.append(hidden.to(self._decoder_dtype))
-        return activations
+        return [hidden.to(self._decoder_dtype) for hidden in self._trunk.run(pixel_values, set(self.extract_layers))]
 
     @torch.inference_mode()
     def decode(self, activations: list[torch.Tensor], conditional: torch.Tensor) -> torch.Tensor:

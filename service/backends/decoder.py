@@ -13,35 +13,15 @@ on a CPU, both exact (tests compare with transformers' forward):
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, TypeGuard
 
 import torch
-
-LinearReLU = Callable[[torch.Tensor, torch.nn.Linear], torch.Tensor]
-
-
-def _linear_relu_unfused(hidden: torch.Tensor, linear: torch.nn.Linear) -> torch.Tensor:
-    return torch.relu_(linear(hidden))
+from gcdtrav.service.backends.onednn import LinearReLU, fused_linear_relu, linear_then_relu
 
 
-def _linear_relu_onednn(hidden: torch.Tensor, linear: torch.nn.Linear) -> torch.Tensor:
-    return torch.ops.mkldnn._linear_pointwise(hidden, linear.weight, linear.bias, "relu", [], "")
-
-
-def fused_linear_relu(dtype: torch.dtype) -> LinearReLU:
-    """oneDNN's linear with a ReLU post-op where this torch build has it for ``dtype``, else linear + ReLU."""
-    try:
-        probe = torch.ones(2, 3, dtype=dtype)
-        weight, bias = torch.ones(4, 3, dtype=dtype), torch.zeros(4, dtype=dtype)
-        out = torch.ops.mkldnn._linear_pointwise(probe, weight, bias, "relu", [], "")
-    except (AttributeError, RuntimeError, NotImplementedError):
-        return _linear_relu_unfused
-    return _linear_relu_onednn if bool((out == 3).all()) else _linear_relu_unfused
-
-
-def decoder_layer(layer: Any, hidden: torch.Tensor, linear_relu: LinearReLU = _linear_relu_unfused) -> torch.Tensor:
+def decoder_layer(layer: Any, hidden: torch.Tensor, linear_relu: LinearReLU = linear_then_relu) -> torch.Tensor:
     """CLIPSegDecoderLayer.forward (post-norm attention, then MLP) with the MLP's ReLU fused."""
     residual = hidden
     hidden, _ = layer.self_attn(hidden_states=hidden, attention_mask=None)
