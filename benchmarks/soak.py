@@ -13,12 +13,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -26,15 +24,10 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from gcdtrav.client import Maps, TraversabilityClient, zenoh_config
+from gcdtrav.client import TraversabilityClient, zenoh_config
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.service.bench import bench_image
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+from gcdtrav.service.loopback import SimulatedRobots, free_port
 
 
 def rss_mb(pid: int) -> float:
@@ -45,45 +38,6 @@ def rss_mb(pid: int) -> float:
     except OSError:
         pass
     return float("nan")
-
-
-class Robots:
-    """Robot threads publishing at a fixed rate; counts frames sent and maps received per robot."""
-
-    def __init__(self, client: TraversabilityClient, count: int, fps: float, jpeg: bytes) -> None:
-        self.client, self.fps, self.jpeg = client, fps, jpeg
-        self.names = [f"robot{i}/front" for i in range(count)]
-        self.sent: dict[str, int] = defaultdict(int)
-        self.maps: dict[str, int] = defaultdict(int)
-        self.latency_ms: dict[str, list[float]] = defaultdict(list)
-        self.instances: dict[str, set[str]] = defaultdict(set)
-        self._stop = threading.Event()
-        self._lock = threading.Lock()
-
-    def on_maps(self, maps: Maps) -> None:
-        with self._lock:
-            source = maps.header.source
-            self.maps[source] += 1
-            self.latency_ms[source].append((time.time() - maps.header.stamp) * 1e3)
-            self.instances[source].add(maps.header.instance)
-
-    def _run(self, name: str) -> None:
-        period = 1.0 / self.fps
-        next_at = time.monotonic()
-        while not self._stop.is_set():
-            self.client.publish_image(name, self.jpeg, stamp=time.time())
-            self.sent[name] += 1
-            next_at += period
-            self._stop.wait(max(0.0, next_at - time.monotonic()))
-
-    def start(self) -> list[threading.Thread]:
-        threads = [threading.Thread(target=self._run, args=(name,), daemon=True) for name in self.names]
-        for thread in threads:
-            thread.start()
-        return threads
-
-    def stop(self) -> None:
-        self._stop.set()
 
 
 def main() -> int:
@@ -152,7 +106,8 @@ def main() -> int:
             time.sleep(1.0)
         else:
             raise SystemExit("the service instances did not come up within 2 minutes")
-        robots = Robots(client, args.robots, args.fps, encode_jpeg(bench_image(480, 640), 85))
+        names = [f"robot{i}/front" for i in range(args.robots)]
+        robots = SimulatedRobots(client, names, args.fps, encode_jpeg(bench_image(480, 640), 85))
         subscriber = client.subscribe_maps("**", robots.on_maps)
         time.sleep(0.5)
         print(
@@ -160,7 +115,7 @@ def main() -> int:
             f"{args.minutes:g} min",
             file=sys.stderr,
         )
-        threads = robots.start()
+        robots.start()
         started = time.monotonic()
         while (elapsed := time.monotonic() - started) < deadline_s:
             time.sleep(min(args.sample_seconds, deadline_s - elapsed))
@@ -174,8 +129,6 @@ def main() -> int:
                 file=sys.stderr,
             )
         robots.stop()
-        for thread in threads:
-            thread.join(5)
         time.sleep(3.0)
         statuses = client.statuses(timeout=5.0)
         subscriber.undeclare()

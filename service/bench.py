@@ -3,9 +3,8 @@ architecture (CLIPSeg rd64-refined: ViT-B/16 at 352x352 plus the text encoder), 
 
 Rows: transformers' naive forward; the fast path in fp32, bf16 and int8; attention and thread variants;
 cost against the number of anchors and the input size; the GCD engine and map encoding alone; end to
-end through zenoh on loopback. Parity of each fast mode against fp32 is measured on logits brought to a
-trained model's scale (see ``parity``).
-"""
+end through zenoh on loopback; service throughput with 1, 4 and 8 simulated robots. Parity of each fast
+mode against fp32 is measured on logits brought to a trained model's scale (see ``parity``)."""
 
 from __future__ import annotations
 
@@ -332,30 +331,36 @@ class Bench:
             )
         )
 
+    def run_robots(self, precision: str, counts: list[int], fps: float, seconds: float) -> None:
+        """Service throughput with several robots streaming at once (latest-only keeps one frame per robot)."""
+        from gcdtrav.schemas.images import encode_jpeg
+        from gcdtrav.service.loopback import loopback_service, robots_throughput
+
+        jpeg = encode_jpeg(bench_image(), 90)
+        with loopback_service(self.model_dir, precision) as client:
+            for count in counts:
+                self.log(f"  {count} simulated robots x {fps:g} fps for {seconds:g} s ...")
+                with RssSampler() as rss:
+                    result = robots_throughput(client, jpeg, count, fps, seconds, warmup_s=min(2.0, seconds))
+                latency = result.pop("latency_ms")
+                row = make_row(
+                    f"{count} robots x {fps:g} fps ({precision})",
+                    "robots",
+                    latency,
+                    rss.peak,
+                    f"{result['maps_per_s']:.2f} maps/s in all; per robot {result['maps_per_robot_min']}"
+                    f"-{result['maps_per_robot_max']} in {result['seconds']:g} s; latency = stamp to maps",
+                    **result,
+                )
+                row.fps = round(result["maps_per_s"], 2)  # throughput, not 1 / latency
+                self.add(row)
+
 
 def zenoh_end_to_end(model_dir: Path, precision: str, frames: int) -> dict[str, Any]:
-    import socket
-
-    import zenoh
-    from gcdtrav.client import TraversabilityClient, zenoh_config
     from gcdtrav.schemas.images import encode_jpeg
-    from gcdtrav.schemas.settings import ServiceSettings
-    from gcdtrav.service.backends.clipseg import ClipSegBackend
-    from gcdtrav.service.bus.node import TraversabilityService
-    from gcdtrav.service.pipeline import Pipeline
+    from gcdtrav.service.loopback import loopback_service
 
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
-    server = zenoh.open(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
-    with tempfile.TemporaryDirectory() as state:
-        settings = ServiceSettings(state_dir=Path(state), instance="bench", preview=False)
-        pipeline = Pipeline(ClipSegBackend(str(model_dir), precision=precision), default_anchor_set(), EngineSettings())
-        service = TraversabilityService(server, pipeline, settings)
-        service.start()
-        client = TraversabilityClient(
-            config=zenoh_config(mode="peer", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
-        )
+    with loopback_service(model_dir, precision) as client:
         arrived: dict[int, tuple[float, float]] = {}
         done = threading.Event()
 
@@ -379,9 +384,6 @@ def zenoh_end_to_end(model_dir: Path, precision: str, frames: int) -> dict[str, 
                     latencies.append((received - sent) * 1e3)
                     overheads.append((received - sent) * 1e3 - inference)
         subscriber.undeclare()
-        client.close()
-        service.stop()
-    server.close()
     return {
         "latency_ms": latencies,
         "overhead_median_ms": statistics.median(overheads),
@@ -431,7 +433,10 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     parser.add_argument("--naive-runs", type=int, default=5, help="timed runs of the slow naive forward [5]")
     parser.add_argument("--modes", default="bf16,bf16-vit,int8", help="fast modes compared with fp32")
     parser.add_argument("--zenoh-frames", type=int, default=100, help="frames for the end-to-end row (0: skip)")
-    parser.add_argument("--skip", default="", help="comma list of parts to skip: modes,sweeps,engine,zenoh")
+    parser.add_argument("--robots", default="1,4,8", help="simulated robot counts for the throughput rows [1,4,8]")
+    parser.add_argument("--robot-fps", type=float, default=10.0, help="frames/s each simulated robot sends [10]")
+    parser.add_argument("--robot-seconds", type=float, default=10.0, help="measured seconds per robot count [10]")
+    parser.add_argument("--skip", default="", help="comma list of parts to skip: modes,sweeps,engine,zenoh,robots")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/bench.json"), help="JSON output")
     return parser
 
@@ -462,6 +467,10 @@ def run(args: argparse.Namespace) -> int:
             bench.run_engine()
         if "zenoh" not in skip and args.zenoh_frames > 0:
             bench.run_zenoh(default_precision, args.zenoh_frames)
+        if "robots" not in skip:
+            log("service throughput with simulated robots (one instance, loopback):")
+            counts = [int(n) for n in args.robots.split(",") if n.strip()]
+            bench.run_robots(default_precision, counts, args.robot_fps, args.robot_seconds)
     summary = {
         "machine": machine_info(),
         "default_precision": default_precision,

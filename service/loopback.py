@@ -1,0 +1,137 @@
+"""Simulated robots and an in-process service on 127.0.0.1, for the benchmark and the soak test.
+
+Everything here stays on loopback, with multicast scouting off, and stops when its context ends.
+"""
+
+from __future__ import annotations
+
+import socket
+import statistics
+import tempfile
+import threading
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from gcdtrav.client import Maps, TraversabilityClient, zenoh_config
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@contextmanager
+def loopback_service(model_dir: Path, precision: str, instance: str = "bench") -> Iterator[TraversabilityClient]:
+    """A service (default anchors, no preview) in this process and a client connected to it."""
+    import zenoh
+    from gcdtrav.schemas.anchors import default_anchor_set
+    from gcdtrav.schemas.config import EngineSettings
+    from gcdtrav.schemas.settings import ServiceSettings
+    from gcdtrav.service.backends.clipseg import ClipSegBackend
+    from gcdtrav.service.bus.node import TraversabilityService
+    from gcdtrav.service.pipeline import Pipeline
+
+    port = free_port()
+    server = zenoh.open(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
+    try:
+        with tempfile.TemporaryDirectory() as state:
+            settings = ServiceSettings(state_dir=Path(state), instance=instance, preview=False)
+            backend = ClipSegBackend(str(model_dir), precision=precision)
+            service = TraversabilityService(server, Pipeline(backend, default_anchor_set(), EngineSettings()), settings)
+            service.start()
+            client = TraversabilityClient(
+                config=zenoh_config(mode="peer", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+            )
+            try:
+                yield client
+            finally:
+                client.close()
+                service.stop()
+    finally:
+        server.close()
+
+
+class SimulatedRobots:
+    """Robot threads publishing one JPEG at a fixed rate; counts frames sent and maps received per robot."""
+
+    def __init__(self, client: TraversabilityClient, names: list[str], fps: float, jpeg: bytes) -> None:
+        self.client, self.fps, self.jpeg, self.names = client, fps, jpeg, names
+        self.sent: dict[str, int] = defaultdict(int)
+        self.maps: dict[str, int] = defaultdict(int)
+        self.latency_ms: dict[str, list[float]] = defaultdict(list)
+        self.arrivals: list[tuple[float, str, float]] = []  # (time.monotonic(), source, latency ms) per maps
+        self.instances: dict[str, set[str]] = defaultdict(set)
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self._threads: list[threading.Thread] = []
+
+    def on_maps(self, maps: Maps) -> None:
+        with self._lock:
+            source = maps.header.source
+            if source not in self.names:
+                return
+            latency_ms = (time.time() - maps.header.stamp) * 1e3
+            self.maps[source] += 1
+            self.latency_ms[source].append(latency_ms)
+            self.arrivals.append((time.monotonic(), source, latency_ms))
+            self.instances[source].add(maps.header.instance)
+
+    def _run(self, name: str) -> None:
+        period = 1.0 / self.fps
+        next_at = time.monotonic()
+        while not self._stop.is_set():
+            self.client.publish_image(name, self.jpeg, stamp=time.time())
+            self.sent[name] += 1
+            next_at += period
+            self._stop.wait(max(0.0, next_at - time.monotonic()))
+
+    def start(self) -> None:
+        self._threads = [threading.Thread(target=self._run, args=(name,), daemon=True) for name in self.names]
+        for thread in self._threads:
+            thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        for thread in self._threads:
+            thread.join(5)
+
+
+def robots_throughput(
+    client: TraversabilityClient, jpeg: bytes, robots: int, fps: float, seconds: float, warmup_s: float = 2.0
+) -> dict[str, Any]:
+    """N robots streaming at ``fps`` each for ``seconds`` (after a warm-up): maps/s and latency."""
+    names = [f"robot{robots}-{k}/front" for k in range(robots)]
+    fleet = SimulatedRobots(client, names, fps, jpeg)
+    subscriber = client.subscribe_maps("**", fleet.on_maps)
+    time.sleep(0.3)
+    try:
+        fleet.start()
+        time.sleep(warmup_s)
+        began = time.monotonic()
+        time.sleep(seconds)
+        ended = time.monotonic()
+    finally:
+        fleet.stop()
+        time.sleep(0.5)
+        subscriber.undeclare()
+    with fleet._lock:
+        window = [(source, latency) for at, source, latency in fleet.arrivals if began <= at < ended]
+    per_robot = [sum(1 for source, _ in window if source == name) for name in names]
+    latency = [value for _, value in window]
+    return {
+        "robots": robots,
+        "fps_per_robot": fps,
+        "seconds": round(ended - began, 2),
+        "maps_per_s": len(window) / (ended - began),
+        "maps_per_robot_min": min(per_robot),
+        "maps_per_robot_max": max(per_robot),
+        "latency_ms": latency or [float("nan")],
+        "latency_median_ms": statistics.median(latency) if latency else float("nan"),
+        "latency_p95_ms": float(np.percentile(latency, 95)) if latency else float("nan"),
+    }

@@ -1,0 +1,44 @@
+"""`gcdtrav bench` end to end on a tiny model: every group produces rows and the JSON says what it measured.
+
+Timings themselves are not asserted (they belong to the benchmark's output, not to tests).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("torch")
+
+
+def test_bench_runs_every_group_and_writes_json(tiny_model_dir: Path, tmp_path: Path) -> None:
+    from gcdtrav.service import bench
+
+    out = tmp_path / "bench.json"
+    argv = ["--model", str(tiny_model_dir), "--runs", "1", "--naive-runs", "1", "--zenoh-frames", "2"]
+    argv += ["--robots", "1,2", "--robot-fps", "5", "--robot-seconds", "1", "--skip", "engine", "--out", str(out)]
+    assert bench.main(argv) == 0
+    summary = json.loads(out.read_text("utf-8"))
+    rows = summary["rows"]
+    assert {"mode", "attention", "anchors", "input", "zenoh", "robots"} <= {row["group"] for row in rows}
+    assert [row["name"] for row in rows if row["group"] == "anchors"] == [
+        f"{n} anchors ({summary['default_precision']})" for n in (2, 13, 32, 64)
+    ]
+    assert all(row["median_ms"] > 0 and math.isfinite(row["p95_ms"]) for row in rows)
+
+    assert set(summary["parity"]) == {"bf16", "bf16-vit", "int8"}
+    for report in summary["parity"].values():
+        assert {"max_dT", "p99_dT", "max_dU", "p99_dU", "top_anchor_changed", "activation_cosine_min"} <= set(report)
+    assert "trained model" in summary["parity_method"]
+
+    robots = [row for row in rows if row["group"] == "robots"]
+    assert [row["extra"]["robots"] for row in robots] == [1, 2]
+    for row in robots:  # a tiny model keeps up with 5 fps per robot: every robot gets maps in the window
+        assert row["extra"]["maps_per_robot_min"] > 0 and row["fps"] == pytest.approx(
+            row["extra"]["maps_per_s"], abs=0.01
+        )
+    zenoh_row = next(row for row in rows if row["group"] == "zenoh")
+    assert zenoh_row["runs"] == 2 and "overhead_median_ms" in zenoh_row["extra"]
