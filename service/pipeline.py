@@ -23,6 +23,15 @@ class ActiveAnchors:
 
 
 @dataclass(frozen=True)
+class Inference:
+    """A frame's logits, between the backend and the engine (the service runs the two in different threads)."""
+
+    logits: NDArray[np.float32]
+    anchors: AnchorSet
+    inference_ms: float
+
+
+@dataclass(frozen=True)
 class FrameResult:
     maps: TraversabilityMaps
     logits: NDArray[np.float32]
@@ -54,17 +63,24 @@ class Pipeline:
     def swap_anchors(self, anchors: AnchorSet) -> None:
         self.activate(self.prepare(anchors))
 
-    def process(self, image_rgb: NDArray[np.uint8]) -> FrameResult:
-        active = self._active  # read once: the whole frame uses one anchor set
+    def infer(self, image_rgb: NDArray[np.uint8]) -> Inference:
+        """The backend's forward with the active anchor set (read once: the whole frame uses one set)."""
+        active = self._active
         start = time.perf_counter()
         logits = self.backend.logits(image_rgb, active.prepared)
-        inferred = time.perf_counter()
-        maps = compute_maps(logits, active.anchors, self.settings)
-        done = time.perf_counter()
+        return Inference(logits, active.anchors, (time.perf_counter() - start) * 1e3)
+
+    def finish(self, inference: Inference) -> FrameResult:
+        """Logits to T and U with the anchor set the logits were computed for."""
+        start = time.perf_counter()
+        maps = compute_maps(inference.logits, inference.anchors, self.settings)
         return FrameResult(
             maps=maps,
-            logits=logits,
-            anchors=active.anchors,
-            inference_ms=(inferred - start) * 1e3,
-            engine_ms=(done - inferred) * 1e3,
+            logits=inference.logits,
+            anchors=inference.anchors,
+            inference_ms=inference.inference_ms,
+            engine_ms=(time.perf_counter() - start) * 1e3,
         )
+
+    def process(self, image_rgb: NDArray[np.uint8]) -> FrameResult:
+        return self.finish(self.infer(image_rgb))

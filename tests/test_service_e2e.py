@@ -19,7 +19,7 @@ from gcdtrav.client import AnchorSetRejected, Maps, ServiceError, Traversability
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.bus.node import TraversabilityService
+from gcdtrav.service.bus.node import TraversabilityService, usable_cpus
 from gcdtrav.service.bus.run import starting_anchor_set
 from gcdtrav.service.engine import gcd
 from gcdtrav.service.pipeline import Pipeline
@@ -63,11 +63,20 @@ def start_service(backend, state_dir: Path, **settings_kw: object) -> tuple[Trav
     return service, session, port
 
 
-@pytest.fixture()
-def running(tiny_backend, tmp_path: Path) -> Iterator[Running]:  # type: ignore[no-untyped-def]
+# threads=None: torch has every CPU, one thread does all per-frame work. threads=1 on a box with more CPUs:
+# outputs of frame n are published by a second thread while frame n + 1 is inferred.
+PIPELINES = [
+    pytest.param(None, id="serial"),
+    pytest.param(1, id="overlapped", marks=pytest.mark.skipif(usable_cpus() < 2, reason="needs 2 CPUs")),
+]
+
+
+@pytest.fixture(params=PIPELINES)
+def running(tiny_backend, tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Running]:  # type: ignore[no-untyped-def]
     service, session, port = start_service(
-        tiny_backend, tmp_path, history=3, max_payload_bytes=300_000, full_resolution=True
+        tiny_backend, tmp_path, history=3, max_payload_bytes=300_000, full_resolution=True, threads=request.param
     )
+    assert service.overlap_outputs == (request.param is not None)
     client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
     received: list[Maps] = []
     subscriber = client.subscribe_maps("**", received.append)
@@ -224,8 +233,9 @@ def test_bad_payloads_are_counted_and_the_next_frame_processed(running: Running)
     assert len(status.last_errors) == 4 and status.uptime_s > 0
 
 
-def test_latest_only_under_load(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
-    service, session, port = start_service(SlowBackend(tiny_backend, 0.08), tmp_path)
+@pytest.mark.parametrize("threads", PIPELINES)
+def test_latest_only_under_load(tiny_backend, tmp_path: Path, threads: int | None) -> None:  # type: ignore[no-untyped-def]
+    service, session, port = start_service(SlowBackend(tiny_backend, 0.08), tmp_path, threads=threads)
     client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
     try:
         assert wait_until(lambda: service_reachable(client), 10)
@@ -246,6 +256,7 @@ def test_latest_only_under_load(tiny_backend, tmp_path: Path) -> None:  # type: 
         assert burst.processed + burst.dropped + burst.rejected == burst.received
         assert burst.dropped > 0 and burst.processed >= 2
         assert status.sources["steady"].processed >= 1  # not starved by the burst
+        assert status.sources["burst"].last_seq == burst.processed - 1  # every processed frame published, in order
     finally:
         client.close()
         service.stop()
