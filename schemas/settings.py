@@ -152,7 +152,11 @@ class ServiceSettings(BaseModel):
         default="auto",
         description="Vision encoder arithmetic: auto = bf16 on CPUs with AVX512-BF16/AMX, else fp32.",
     )
-    threads: int | None = Field(default=None, ge=1, description="torch intra-op threads [default: all cores].")
+    threads: int | None = Field(
+        default=None,
+        ge=1,
+        description="torch intra-op threads [default: the usable CPUs, within a container's CPU quota].",
+    )
 
     @field_validator("prefix", "instance")
     @classmethod

@@ -126,7 +126,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="don't publish the colourised JPEG preview",
     )
     group.add_argument("--max-payload-bytes", type=int, default=None, help="larger inputs are rejected [20 MB]")
-    group.add_argument("--threads", type=int, default=None, help="torch threads [all cores]")
+    group.add_argument(
+        "--threads", type=int, default=None, help="torch threads [the usable CPUs, within a container's CPU quota]"
+    )
     group.add_argument(
         "--precision",
         choices=["auto", "fp32", "bf16", "bf16-vit", "int8"],

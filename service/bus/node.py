@@ -13,7 +13,6 @@ Keys (``{prefix}`` defaults to ``gcdtrav``; see docs/messages.md):
 from __future__ import annotations
 
 import logging
-import os
 import queue
 import threading
 import time
@@ -41,6 +40,7 @@ from gcdtrav.service.bus.latest import LatestFrameQueue
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs, ProcessedFrame
 from gcdtrav.service.bus.stats import ServiceStats, percentiles
+from gcdtrav.service.cpus import usable_cpus
 from gcdtrav.service.pipeline import Inference, Pipeline
 from gcdtrav.service.queries import FrameHistory, FrameRecord, QueryError, answer_patch_query
 from gcdtrav.service.state import save_anchor_state
@@ -74,13 +74,6 @@ class InferredItem:
     inference: Inference
 
 
-def usable_cpus() -> int:
-    """CPUs this process may run on (its affinity mask where the OS has one)."""
-    if hasattr(os, "sched_getaffinity"):
-        return len(os.sched_getaffinity(0))
-    return os.cpu_count() or 1
-
-
 def literal_head(key_expr: str) -> str:
     """The chunks of a key expression before its first wildcard: 'robot/*/cam' -> 'robot'."""
     head = []
@@ -111,7 +104,7 @@ class TraversabilityService:
         self._declared: list[Any] = []
         self._swap_lock = threading.Lock()
         self._stopping = threading.Event()
-        # With a CPU left over by torch (threads set below the CPUs this process may use), a second thread
+        # With a CPU left over by torch (threads below the CPUs this process may use), a second thread
         # runs the last frame's engine work, encoding and publishing while the next frame is decoded and
         # inferred: +9 % frames/s with 1 torch thread on 2 cores (benchmarks/README.md). When torch has every
         # CPU, overlapping only makes both compete (-3 % frames/s, +25 ms latency measured), so one thread

@@ -10,6 +10,7 @@ from types import FrameType
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings, SettingsError
+from gcdtrav.service.cpus import usable_cpus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.state import load_anchor_state
 
@@ -45,9 +46,21 @@ def build_service_pipeline(settings: ServiceSettings) -> Pipeline:
     return Pipeline(backend, anchors, settings.engine)
 
 
+def with_torch_threads(settings: ServiceSettings) -> ServiceSettings:
+    """``threads`` made explicit: as configured, else torch's default capped by the CPUs really usable."""
+    import torch
+
+    if settings.threads is not None:
+        return settings
+    threads = min(torch.get_num_threads(), usable_cpus())
+    log.info("torch threads: %d (CPUs usable by this process: %d)", threads, usable_cpus())
+    return settings.model_copy(update={"threads": threads})
+
+
 def run_service(settings: ServiceSettings, config: zenoh.Config) -> int:
     from gcdtrav.service.bus.node import TraversabilityService
 
+    settings = with_torch_threads(settings)
     pipeline = build_service_pipeline(settings)
     stop = threading.Event()
 
