@@ -12,9 +12,9 @@ percentiles (robot stamp to maps received) and the services' errors; writes the 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
@@ -27,17 +27,7 @@ import zenoh
 from gcdtrav.client import TraversabilityClient, zenoh_config
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.service.bench import bench_image
-from gcdtrav.service.loopback import SimulatedRobots, free_port
-
-
-def rss_mb(pid: int) -> float:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return float("nan")
+from gcdtrav.service.loopback import SimulatedRobots, free_port, rss_mb, service_processes, wait_for_statuses
 
 
 def main() -> int:
@@ -62,50 +52,23 @@ def main() -> int:
         model = str(save_random_clipseg(Path(scratch.name) / "model", preset="rd64-refined"))
     port = free_port()
     router = zenoh.open(zenoh_config(mode="router", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
-    services = [
-        subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "gcdtrav.service.cli",
-                "serve",
-                "--model",
-                model,
-                "-m",
-                "client",
-                "-e",
-                f"tcp/127.0.0.1:{port}",
-                "--no-multicast-scouting",
-                "--instance",
-                f"soak-{k}",
-                "--state-dir",
-                str(Path(scratch.name) / f"state{k}"),
-                "--threads",
-                str(args.threads),
-                "--no-preview",
-            ],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for k in range(args.instances)
+    common = ["--model", model, "-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
+    common += ["--threads", str(args.threads), "--no-preview"]
+    state = Path(scratch.name)
+    arguments = [
+        [*common, "--instance", f"soak-{k}", "--state-dir", str(state / f"state{k}")] for k in range(args.instances)
     ]
+    stack = contextlib.ExitStack()
+    stack.callback(scratch.cleanup)
+    stack.callback(router.close)
+    services = stack.enter_context(service_processes(arguments))  # stopped first, then the router
     client = TraversabilityClient(
         config=zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False), timeout=5.0
     )
     rss_series: dict[str, list[tuple[float, float]]] = defaultdict(list)
     report: dict[str, Any] = {}
     try:
-        began = time.monotonic()
-        while time.monotonic() - began < 120:
-            try:
-                if len(client.statuses(timeout=2.0)) == args.instances:
-                    break
-            except Exception:
-                pass
-            time.sleep(1.0)
-        else:
-            raise SystemExit("the service instances did not come up within 2 minutes")
+        wait_for_statuses(client, args.instances)
         names = [f"robot{i}/front" for i in range(args.robots)]
         robots = SimulatedRobots(client, names, args.fps, encode_jpeg(bench_image(480, 640), 85))
         subscriber = client.subscribe_maps("**", robots.on_maps)
@@ -162,15 +125,7 @@ def main() -> int:
         }
     finally:
         client.close()
-        for process in services:
-            process.terminate()
-        for process in services:
-            try:
-                process.communicate(timeout=20)
-            except subprocess.TimeoutExpired:
-                process.kill()
-        router.close()
-        scratch.cleanup()
+        stack.close()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2) + "\n")
     print("| robot | sent | received | processed | dropped | rejected | maps | instance | p50 ms | p99 ms |")

@@ -188,7 +188,8 @@ class Bench:
     def backend(self, precision: str = "fp32", attention: str | None = None):  # type: ignore[no-untyped-def]
         from gcdtrav.service.backends.clipseg import ClipSegBackend
 
-        backend = ClipSegBackend(str(self.model_dir), precision=precision)
+        # fp32 keeps transformers' whole model: it is also the naive reference
+        backend = ClipSegBackend(str(self.model_dir), precision=precision, keep_reference=precision == "fp32")
         if attention is not None:
             backend.model.set_attn_implementation(attention)
         return backend
@@ -332,28 +333,51 @@ class Bench:
         )
 
     def run_robots(self, precision: str, counts: list[int], fps: float, seconds: float) -> None:
-        """Service throughput with several robots streaming at once (latest-only keeps one frame per robot)."""
+        """Service throughput with several robots streaming at once (latest-only keeps one frame per robot).
+
+        The service runs as its own ``gcdtrav serve`` process, as deployed: the robots and their client do
+        not share its interpreter, and the memory column is the service's alone.
+        """
+        from gcdtrav.client import TraversabilityClient, zenoh_config
         from gcdtrav.schemas.images import encode_jpeg
-        from gcdtrav.service.loopback import loopback_service, robots_throughput
+        from gcdtrav.service.loopback import (
+            ProcessRssPeak,
+            free_port,
+            robots_throughput,
+            service_processes,
+            wait_for_statuses,
+        )
 
         jpeg = encode_jpeg(bench_image(), 90)
-        with loopback_service(self.model_dir, precision) as client:
-            for count in counts:
-                self.log(f"  {count} simulated robots x {fps:g} fps for {seconds:g} s ...")
-                with RssSampler() as rss:
-                    result = robots_throughput(client, jpeg, count, fps, seconds, warmup_s=min(2.0, seconds))
-                latency = result.pop("latency_ms")
-                row = make_row(
-                    f"{count} robots x {fps:g} fps ({precision})",
-                    "robots",
-                    latency,
-                    rss.peak,
-                    f"{result['maps_per_s']:.2f} maps/s in all; per robot {result['maps_per_robot_min']}"
-                    f"-{result['maps_per_robot_max']} in {result['seconds']:g} s; latency = stamp to maps",
-                    **result,
+        port = free_port()
+        with tempfile.TemporaryDirectory() as state:
+            serve = ["--model", str(self.model_dir), "--precision", precision, "-l", f"tcp/127.0.0.1:{port}"]
+            serve += ["--no-multicast-scouting", "--instance", "bench-robots", "--state-dir", state, "--no-preview"]
+            with service_processes([serve]) as (process,):
+                endpoint = [f"tcp/127.0.0.1:{port}"]
+                client = TraversabilityClient(
+                    config=zenoh_config(mode="peer", connect=endpoint, multicast_scouting=False)
                 )
-                row.fps = round(result["maps_per_s"], 2)  # throughput, not 1 / latency
-                self.add(row)
+                try:
+                    wait_for_statuses(client, 1)
+                    for count in counts:
+                        self.log(f"  {count} simulated robots x {fps:g} fps for {seconds:g} s ...")
+                        with ProcessRssPeak(process.pid) as rss:
+                            result = robots_throughput(client, jpeg, count, fps, seconds, warmup_s=min(2.0, seconds))
+                        self.add(robots_row(count, fps, precision, result, rss.peak))
+                finally:
+                    client.close()
+
+
+def robots_row(count: int, fps: float, precision: str, result: dict[str, Any], service_rss_mb: float) -> Row:
+    latency = result.pop("latency_ms")
+    note = (
+        f"{result['maps_per_s']:.2f} maps/s in all; per robot {result['maps_per_robot_min']}"
+        f"-{result['maps_per_robot_max']} in {result['seconds']:g} s; latency = stamp to maps; RSS = service's"
+    )
+    row = make_row(f"{count} robots x {fps:g} fps ({precision})", "robots", latency, service_rss_mb, note, **result)
+    row.fps = round(result["maps_per_s"], 2)  # throughput, not 1 / latency
+    return row
 
 
 def zenoh_end_to_end(model_dir: Path, precision: str, frames: int) -> dict[str, Any]:

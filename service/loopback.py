@@ -7,11 +7,13 @@ from __future__ import annotations
 
 import socket
 import statistics
+import subprocess
+import sys
 import tempfile
 import threading
 import time
 from collections import defaultdict
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -24,6 +26,76 @@ def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
+
+
+def rss_mb(pid: int) -> float:
+    """Resident memory of a process (Linux /proc), NaN where unavailable."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    return float("nan")
+
+
+class ProcessRssPeak:
+    """Peak resident memory of another process while a block runs, sampled every 50 ms."""
+
+    def __init__(self, pid: int) -> None:
+        self.pid, self.peak = pid, float("nan")
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> ProcessRssPeak:
+        self.peak = rss_mb(self.pid)
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.05):
+            self.peak = max(self.peak, rss_mb(self.pid))
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+@contextmanager
+def service_processes(arguments: Sequence[Sequence[str]]) -> Iterator[list[subprocess.Popen[str]]]:
+    """``gcdtrav serve ARGS`` once per argument list, as child processes; stopped (SIGTERM, then kill) at exit."""
+    processes = [
+        subprocess.Popen(
+            [sys.executable, "-m", "gcdtrav.service.cli", "serve", *args],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for args in arguments
+    ]
+    try:
+        yield processes
+    finally:
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            try:
+                process.communicate(timeout=20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+
+
+def wait_for_statuses(client: TraversabilityClient, instances: int, timeout_s: float = 120.0) -> None:
+    """Until ``instances`` services answer status queries (model loading takes a while)."""
+    began = time.monotonic()
+    while time.monotonic() - began < timeout_s:
+        try:
+            if len(client.statuses(timeout=2.0)) >= instances:
+                return
+        except Exception:  # not up yet: no reply, or a reply from a service still starting
+            pass
+        time.sleep(0.5)
+    raise RuntimeError(f"{instances} service instance(s) did not come up within {timeout_s:.0f} s")
 
 
 @contextmanager

@@ -31,7 +31,7 @@ def tiny_model_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def tiny_backend(tiny_model_dir: Path):  # type: ignore[no-untyped-def]
     from gcdtrav.service.backends.clipseg import ClipSegBackend
 
-    return ClipSegBackend(str(tiny_model_dir))
+    return ClipSegBackend(str(tiny_model_dir), keep_reference=True)  # naive_logits is the tests' reference
 
 
 @pytest.fixture()

@@ -129,3 +129,41 @@ def test_precision_is_validated() -> None:
     assert resolve_precision("auto") in ("bf16", "fp32")
     with pytest.raises(ValueError, match="precision must be one of"):
         resolve_precision("fp8")
+
+
+@pytest.mark.parametrize(("precision", "layers_left"), [("fp32", 4), ("bf16", 0)])
+def test_service_backend_releases_the_vision_layers_it_does_not_run(
+    tiny_model_dir: Path, tiny_backend: ClipSegBackend, precision: str, layers_left: int
+) -> None:
+    lean = ClipSegBackend(str(tiny_model_dir), precision=precision)  # as the service builds it
+    assert not lean.keeps_reference
+    # tiny model: 5 ViT layers, decoder reads 1..3; fp32 shares layers 0..3 with the trunk, bf16 copies them
+    assert len(lean.model.clip.vision_model.encoder.layers) == layers_left
+    with pytest.raises(RuntimeError, match="keep_reference=True"):
+        lean.naive_logits(textured_image(64, 64), CONCEPTS)
+    image = textured_image(100, 90, seed=11)
+    reference = tiny_backend.logits(image, tiny_backend.prepare(CONCEPTS))
+    logits = lean.logits(image, lean.prepare(CONCEPTS))
+    if precision == "fp32":
+        assert_same_logits(logits, reference)  # releasing changes nothing the fast path computes
+    else:
+        assert np.corrcoef(logits.ravel(), reference.ravel())[0, 1] > 0.999
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="Linux only")
+def test_release_pages_frees_only_whole_pages_inside_the_tensor() -> None:
+    import mmap
+
+    from gcdtrav.service.backends.clipseg import release_pages
+
+    block = torch.ones(8 * mmap.PAGESIZE // 4 + 123, dtype=torch.float32)  # malloc'd: not page aligned in general
+    tensor = block[5:]  # a view: its storage is the whole block
+    release_pages(tensor)
+    values = block.numpy()
+    start = block.untyped_storage().data_ptr()
+    offsets = start + np.arange(values.size) * 4
+    first = -(-start // mmap.PAGESIZE) * mmap.PAGESIZE
+    last = (start + values.size * 4) // mmap.PAGESIZE * mmap.PAGESIZE
+    inside = (offsets >= first) & (offsets + 4 <= last)
+    assert inside.sum() >= 6 * mmap.PAGESIZE // 4  # most of it was released (anonymous memory reads as 0)
+    assert (values[inside] == 0).all() and (values[~inside] == 1).all()

@@ -37,6 +37,7 @@ def test_bench_runs_every_group_and_writes_json(tiny_model_dir: Path, tmp_path: 
     robots = [row for row in rows if row["group"] == "robots"]
     assert [row["extra"]["robots"] for row in robots] == [1, 2]
     for row in robots:  # a tiny model keeps up with 5 fps per robot: every robot gets maps in the window
+        assert row["peak_rss_mb"] > 50  # the service process's own memory, model included
         assert row["extra"]["maps_per_robot_min"] > 0 and row["fps"] == pytest.approx(
             row["extra"]["maps_per_s"], abs=0.01
         )

@@ -107,7 +107,7 @@ def test_backend_without_onednn_still_matches_transformers(
     tiny_model_dir: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     monkeypatch.setattr(onednn, "onednn_has", lambda attr, dtype: False)
-    backend = ClipSegBackend(str(tiny_model_dir))
+    backend = ClipSegBackend(str(tiny_model_dir), keep_reference=True)
     assert all(mlp is None for mlp in backend._trunk.fused_mlps)
     assert backend._decoder.linear_relu is onednn.linear_then_relu
     concepts = ["water", "grass", "asphalt road"]

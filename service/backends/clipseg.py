@@ -13,8 +13,13 @@ The results match transformers' own forward (see tests/test_backend_clipseg.py).
 from __future__ import annotations
 
 import copy
+import ctypes
+import ctypes.util
+import gc
 import json
 import logging
+import mmap
+import sys
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -30,6 +35,10 @@ from gcdtrav.service.backends.onednn import QuickGeluMLP, clip_encoder_layer
 from numpy.typing import NDArray
 
 log = logging.getLogger(__name__)
+
+_PAGE = mmap.PAGESIZE
+_MADV_DONTNEED = 4  # Linux
+_LIBC = ctypes.CDLL(ctypes.util.find_library("c"), use_errno=True) if sys.platform == "linux" else None
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -113,13 +122,15 @@ class VisionTrunk(torch.nn.Module):
     def build(cls, vision: Any, last_layer: int, precision: str) -> VisionTrunk:
         layers = torch.nn.ModuleList(list(vision.encoder.layers)[: last_layer + 1])
         trunk = cls(vision.embeddings, vision.pre_layrnorm, layers, torch.float32)
-        if precision != "fp32":
-            trunk = copy.deepcopy(trunk)
         if precision in ("bf16", "bf16-vit"):
-            trunk = trunk.to(torch.bfloat16)
-            trunk.dtype = torch.bfloat16
+            # Copied one module at a time: never a second fp32 copy of the whole trunk in memory.
+            copies = [copy.deepcopy(module).to(torch.bfloat16) for module in (vision.embeddings, vision.pre_layrnorm)]
+            bf16_layers = torch.nn.ModuleList(copy.deepcopy(layer).to(torch.bfloat16) for layer in layers)
+            trunk = cls(copies[0], copies[1], bf16_layers, torch.bfloat16)
         elif precision == "int8":
-            quantized = torch.ao.quantization.quantize_dynamic(trunk, {torch.nn.Linear}, dtype=torch.qint8)
+            quantized = torch.ao.quantization.quantize_dynamic(
+                copy.deepcopy(trunk), {torch.nn.Linear}, dtype=torch.qint8
+            )
             assert isinstance(quantized, VisionTrunk)
             trunk = quantized
         # Quick-GELU as a fused oneDNN post-op where it applies (not on int8's quantised linears).
@@ -145,6 +156,21 @@ def _triple(values: Any) -> tuple[float, float, float]:
     return first, second, third
 
 
+def release_pages(tensor: torch.Tensor) -> None:
+    """Give the memory pages that lie wholly inside a tensor about to be dropped back to the OS now.
+
+    transformers memory-maps the checkpoint, and every weight keeps the whole mapping alive: the pages of
+    fp32 layers read once (to make the bf16 copy) would stay resident for the process's life. Pages
+    shared with a neighbouring tensor are left alone; on a private file mapping a released page would
+    read back from the file, on anonymous memory as zeros, but the tensor is dropped right after.
+    """
+    storage = tensor.untyped_storage()
+    start, end = storage.data_ptr(), storage.data_ptr() + storage.nbytes()
+    first, last = -(-start // _PAGE) * _PAGE, end // _PAGE * _PAGE
+    if _LIBC is not None and last > first:
+        _LIBC.madvise(ctypes.c_void_p(first), ctypes.c_size_t(last - first), _MADV_DONTNEED)
+
+
 def _locate(model: str, filename: str) -> Path | None:
     """A file of the checkpoint: in the directory, or in the hub cache after from_pretrained fetched it."""
     if Path(model).is_dir():
@@ -162,10 +188,24 @@ def _locate(model: str, filename: str) -> Path | None:
 class ClipSegBackend:
     """CLIPSeg logits for every concept of an anchor set, one ViT pass per image."""
 
-    def __init__(self, model: str, device: str = "cpu", precision: str = "fp32", prepared_cache_size: int = 4) -> None:
+    def __init__(
+        self,
+        model: str,
+        device: str = "cpu",
+        precision: str = "fp32",
+        prepared_cache_size: int = 4,
+        keep_reference: bool = False,
+    ) -> None:
+        """``keep_reference``: keep transformers' complete fp32 model for ``naive_logits`` (benchmark, tests).
+
+        Without it, the vision layers the fast path does not use are released: the fp32 ViT when the
+        trunk is a bf16 or int8 copy (about 340 MB for rd64-refined), the layers after the last one the
+        decoder reads otherwise.
+        """
         from transformers import CLIPSegForImageSegmentation, CLIPTokenizer
 
         self.model_id = model
+        self.keeps_reference = keep_reference
         self.device = torch.device(device)
         if model.startswith(("/", ".", "~")) and not Path(model).expanduser().is_dir():
             raise ModelUnavailableError(f"model directory '{model}' does not exist; {HOW_TO_PROVIDE_WEIGHTS}")
@@ -186,8 +226,20 @@ class ClipSegBackend:
         if self.precision == "bf16":  # the decoder's MLPs, run once per anchor, cost as much as the ViT
             decoder, self._decoder_dtype = copy.deepcopy(decoder).to(torch.bfloat16), torch.bfloat16
         self._decoder = FastDecoder(decoder, self._decoder_dtype)
+        if not keep_reference:
+            self._release_unused_vision_layers()
         self._prepared: OrderedDict[tuple[str, ...], torch.Tensor] = OrderedDict()
         self._prepared_cache_size = prepared_cache_size
+
+    def _release_unused_vision_layers(self) -> None:
+        encoder = self.model.clip.vision_model.encoder
+        kept = [layer for layer in encoder.layers if any(layer is used for used in self._trunk.layers)]
+        released = [layer for layer in encoder.layers if not any(layer is used for used in kept)]
+        for layer in released:
+            for tensor in [*layer.parameters(), *layer.buffers()]:
+                release_pages(tensor)
+        encoder.layers = torch.nn.ModuleList(kept)  # fp32 shares layers 0..last with the trunk
+        gc.collect()
 
     # ---- per anchor set ------------------------------------------------------------------------------
     @torch.inference_mode()
@@ -237,6 +289,8 @@ class ClipSegBackend:
     @torch.inference_mode()
     def naive_logits(self, image_rgb: NDArray[np.uint8], concepts: Sequence[str]) -> NDArray[np.float32]:
         """transformers' own forward, the image repeated once per concept: the reference and baseline."""
+        if not self.keeps_reference:
+            raise RuntimeError("transformers' forward needs the whole model: ClipSegBackend(keep_reference=True)")
         pixels = self.preprocess(image_rgb).to(self.device).repeat(len(concepts), 1, 1, 1)
         tokens = self.tokenizer(list(concepts), padding=True, return_tensors="pt").to(self.device)
         out = self.model(pixel_values=pixels, input_ids=tokens["input_ids"], attention_mask=tokens["attention_mask"])
