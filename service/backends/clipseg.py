@@ -5,7 +5,9 @@ transformers' ``CLIPSegForImageSegmentation.forward`` takes one (image, prompt) 
 anchor set of n concepts runs the ViT n times on the same image and all 12 of its layers. Here:
   * the vision encoder runs once per image and stops after the last layer the decoder reads
     (``config.extract_layers``, layers 3, 6 and 9 of 12 in rd64-refined, so 10 layers run);
-  * the decoder runs batched over the n concepts; layers before the FiLM conditioning run once;
+  * the decoder runs batched over the n concepts (``decoder.py``), its reductions on the one image's
+    tokens, broadcast at the FiLM conditioning;
+  * activations are fused into the linear layers where oneDNN can (``onednn.py``);
   * the text-conditional embeddings are computed once per anchor set and cached.
 The results match transformers' own forward (see tests/test_backend_clipseg.py).
 """
