@@ -26,8 +26,8 @@ import numpy as np
 import zenoh
 from gcdtrav.client import TraversabilityClient, zenoh_config
 from gcdtrav.schemas.images import encode_jpeg
-from gcdtrav.service.bench import bench_image
-from gcdtrav.service.loopback import SimulatedRobots, free_port, rss_mb, service_processes, wait_for_statuses
+from gcdtrav.service.bench import bench_image, rss_mb
+from gcdtrav.service.loopback import SimulatedRobots, free_port, service_processes, wait_for_statuses
 
 
 def main() -> int:

@@ -37,29 +37,35 @@ PARITY_P99_DT_LIMIT = 0.02
 # ---- measurement helpers ---------------------------------------------------------------------------
 
 
-def current_rss_mb() -> float:
+def rss_mb(pid: int | None = None) -> float:
+    """Resident memory of this process (``pid`` None) or another one, from /proc; NaN where unavailable."""
     try:
-        with open("/proc/self/statm") as handle:
+        with open(f"/proc/{'self' if pid is None else pid}/statm") as handle:
             return int(handle.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-    except OSError:  # not Linux: fall back to the process peak
-        import resource
+    except OSError:
+        if pid is not None:
+            return float("nan")
+        import resource  # not Linux: this process's peak instead
 
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 class RssSampler:
-    """Peak resident memory while a row runs, sampled every 5 ms."""
+    """Peak resident memory of this process or another one while a block runs, sampled every ``interval`` s."""
+
+    def __init__(self, pid: int | None = None, interval: float = 0.005) -> None:
+        self.pid, self.interval = pid, interval
 
     def __enter__(self) -> RssSampler:
-        self.peak = current_rss_mb()
+        self.peak = rss_mb(self.pid)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
         return self
 
     def _run(self) -> None:
-        while not self._stop.wait(0.005):
-            self.peak = max(self.peak, current_rss_mb())
+        while not self._stop.wait(self.interval):
+            self.peak = max(self.peak, rss_mb(self.pid))
 
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
@@ -340,13 +346,7 @@ class Bench:
         """
         from gcdtrav.client import TraversabilityClient, zenoh_config
         from gcdtrav.schemas.images import encode_jpeg
-        from gcdtrav.service.loopback import (
-            ProcessRssPeak,
-            free_port,
-            robots_throughput,
-            service_processes,
-            wait_for_statuses,
-        )
+        from gcdtrav.service.loopback import free_port, robots_throughput, service_processes, wait_for_statuses
 
         jpeg = encode_jpeg(bench_image(), 90)
         port = free_port()
@@ -362,7 +362,7 @@ class Bench:
                     wait_for_statuses(client, 1)
                     for count in counts:
                         self.log(f"  {count} simulated robots x {fps:g} fps for {seconds:g} s ...")
-                        with ProcessRssPeak(process.pid) as rss:
+                        with RssSampler(process.pid, interval=0.05) as rss:
                             result = robots_throughput(client, jpeg, count, fps, seconds, warmup_s=min(2.0, seconds))
                         self.add(robots_row(count, fps, precision, result, rss.peak))
                 finally:

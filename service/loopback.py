@@ -28,39 +28,6 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
-def rss_mb(pid: int) -> float:
-    """Resident memory of a process (Linux /proc), NaN where unavailable."""
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    return float("nan")
-
-
-class ProcessRssPeak:
-    """Peak resident memory of another process while a block runs, sampled every 50 ms."""
-
-    def __init__(self, pid: int) -> None:
-        self.pid, self.peak = pid, float("nan")
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def __enter__(self) -> ProcessRssPeak:
-        self.peak = rss_mb(self.pid)
-        self._thread.start()
-        return self
-
-    def _run(self) -> None:
-        while not self._stop.wait(0.05):
-            self.peak = max(self.peak, rss_mb(self.pid))
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join()
-
-
 @contextmanager
 def service_processes(arguments: Sequence[Sequence[str]]) -> Iterator[list[subprocess.Popen[str]]]:
     """``gcdtrav serve ARGS`` once per argument list, as child processes; stopped (SIGTERM, then kill) at exit."""
