@@ -15,22 +15,16 @@ import argparse
 import statistics
 import sys
 import tempfile
-import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
+from gcdtrav.service.bench import time_call
 
 
 def median_ms(fn: Callable[[], object], runs: int) -> float:
-    fn()
-    times = []
-    for _ in range(runs):
-        began = time.perf_counter()
-        fn()
-        times.append((time.perf_counter() - began) * 1e3)
-    return statistics.median(times)
+    return statistics.median(time_call(fn, runs)[0])  # the benchmark's own timing: one warm-up, then runs
 
 
 class TrunkForExport(torch.nn.Module):
