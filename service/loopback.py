@@ -16,10 +16,16 @@ from collections import defaultdict
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from gcdtrav.client import Maps, TraversabilityClient, zenoh_config
+from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
+from gcdtrav.schemas.settings import ServiceSettings
+
+if TYPE_CHECKING:
+    from gcdtrav.service.backends.base import SegmentationBackend
+    from gcdtrav.service.bus.node import TraversabilityService
 
 
 def free_port() -> int:
@@ -28,12 +34,17 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
+def serve_command(*arguments: str) -> list[str]:
+    """The command line of ``gcdtrav serve ARGUMENTS`` with this Python."""
+    return [sys.executable, "-m", "gcdtrav.service.cli", "serve", *arguments]
+
+
 @contextmanager
 def service_processes(arguments: Sequence[Sequence[str]]) -> Iterator[list[subprocess.Popen[str]]]:
     """``gcdtrav serve ARGS`` once per argument list, as child processes; stopped (SIGTERM, then kill) at exit."""
     processes = [
         subprocess.Popen(
-            [sys.executable, "-m", "gcdtrav.service.cli", "serve", *args],
+            serve_command(*args),
             stdout=subprocess.DEVNULL,
             stderr=subprocess.PIPE,
             text=True,
@@ -66,34 +77,43 @@ def wait_for_statuses(client: TraversabilityClient, instances: int, timeout_s: f
 
 
 @contextmanager
-def loopback_service(model_dir: Path, precision: str, instance: str = "bench") -> Iterator[TraversabilityClient]:
-    """A service (default anchors, no preview) in this process and a client connected to it."""
+def in_process_service(
+    backend: SegmentationBackend, settings: ServiceSettings, anchors: AnchorSet | None = None
+) -> Iterator[tuple[TraversabilityService, int]]:
+    """A started service in this process on its own session, listening on a free loopback port.
+
+    Yields the service and the port; ``anchors`` defaults to the paper's set. Stopped and closed at exit.
+    """
     import zenoh
-    from gcdtrav.schemas.anchors import default_anchor_set
-    from gcdtrav.schemas.config import EngineSettings
-    from gcdtrav.schemas.settings import ServiceSettings
-    from gcdtrav.service.backends.clipseg import ClipSegBackend
     from gcdtrav.service.bus.node import TraversabilityService
     from gcdtrav.service.pipeline import Pipeline
 
     port = free_port()
-    server = zenoh.open(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
+    session = zenoh.open(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
     try:
-        with tempfile.TemporaryDirectory() as state:
-            settings = ServiceSettings(state_dir=Path(state), instance=instance, preview=False)
-            backend = ClipSegBackend(str(model_dir), precision=precision)
-            service = TraversabilityService(server, Pipeline(backend, default_anchor_set(), EngineSettings()), settings)
-            service.start()
-            client = TraversabilityClient(
-                config=zenoh_config(mode="peer", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
-            )
-            try:
-                yield client
-            finally:
-                client.close()
-                service.stop()
+        pipeline = Pipeline(backend, anchors if anchors is not None else default_anchor_set(), settings.engine)
+        service = TraversabilityService(session, pipeline, settings)
+        service.start()
+        try:
+            yield service, port
+        finally:
+            service.stop()
     finally:
-        server.close()
+        session.close()
+
+
+@contextmanager
+def loopback_service(model_dir: Path, precision: str, instance: str = "bench") -> Iterator[TraversabilityClient]:
+    """A service (default anchors, no preview) in this process and a client connected to it."""
+    from gcdtrav.service.backends.clipseg import ClipSegBackend
+
+    backend = ClipSegBackend(str(model_dir), precision=precision)
+    with tempfile.TemporaryDirectory() as state:
+        settings = ServiceSettings(state_dir=Path(state), instance=instance, preview=False)
+        with in_process_service(backend, settings) as (_, port):
+            config = zenoh_config(mode="peer", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+            with TraversabilityClient(config=config) as client:
+                yield client
 
 
 class SimulatedRobots:

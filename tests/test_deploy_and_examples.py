@@ -11,7 +11,6 @@ import cv2
 import pytest
 import zenoh
 from conftest import textured_image
-from zenoh_helpers import free_port, listening_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -42,26 +41,16 @@ def test_example_anchor_set_is_valid() -> None:
 
 def test_robot_planner_and_operator_examples(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     pytest.importorskip("torch")
-    from gcdtrav.schemas.anchors import default_anchor_set
-    from gcdtrav.schemas.config import EngineSettings
     from gcdtrav.schemas.settings import ServiceSettings
-    from gcdtrav.service.bus.node import TraversabilityService
-    from gcdtrav.service.pipeline import Pipeline
+    from gcdtrav.service.loopback import in_process_service
 
-    port = free_port()
-    session = zenoh.open(listening_config(port))
-    service = TraversabilityService(
-        session,
-        Pipeline(tiny_backend, default_anchor_set(), EngineSettings()),
-        ServiceSettings(state_dir=tmp_path / "state", instance="examples"),
-    )
-    service.start()
-    flags = ["-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
     folder = tmp_path / "images"
     folder.mkdir()
     for index in range(3):
         cv2.imwrite(str(folder / f"{index:03d}.jpg"), textured_image(60, 80, seed=index))
-    try:
+    settings = ServiceSettings(state_dir=tmp_path / "state", instance="examples")
+    with in_process_service(tiny_backend, settings) as (service, port):
+        flags = ["-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
         time.sleep(0.3)
         robot = run_example("robot_stream_folder.py", str(folder), "--source", "r9/cam", "--fps", "4", *flags)
         assert robot.returncode == 0, robot.stderr
@@ -74,9 +63,6 @@ def test_robot_planner_and_operator_examples(tiny_backend, tmp_path: Path) -> No
         operator = run_example("set_anchors.py", str(ROOT / "examples" / "anchors" / "puddles.yaml"), *flags)
         assert operator.returncode == 0, operator.stderr
         assert len(service.pipeline.anchors) == 8
-    finally:
-        service.stop()
-        session.close()
 
 
 @pytest.mark.parametrize("name", ["rmw_zenoh.yaml", "zenoh_bridge.yaml"])
@@ -107,33 +93,19 @@ def test_readme_python_example_runs(tiny_backend, tmp_path: Path) -> None:  # ty
     pytest.importorskip("torch")
     import re
 
-    from gcdtrav.schemas.anchors import default_anchor_set
-    from gcdtrav.schemas.config import EngineSettings
     from gcdtrav.schemas.settings import ServiceSettings
-    from gcdtrav.service.bus.node import TraversabilityService
-    from gcdtrav.service.pipeline import Pipeline
+    from gcdtrav.service.loopback import in_process_service
 
     readme = (ROOT / "README.md").read_text()
     snippet = re.search(r"```python\n(.*?)```", readme, re.S)
     assert snippet is not None
-    port = free_port()
-    code = snippet.group(1).replace(
-        'zenoh_config(mode="peer")',
-        f'zenoh_config(mode="peer", connect=["tcp/127.0.0.1:{port}"], multicast_scouting=False)',
-    )
-    assert code != snippet.group(1)
-    session = zenoh.open(listening_config(port))
-    service = TraversabilityService(
-        session,
-        Pipeline(tiny_backend, default_anchor_set(), EngineSettings()),
-        ServiceSettings(state_dir=tmp_path, instance="readme"),
-    )
-    service.start()
-    try:
+    with in_process_service(tiny_backend, ServiceSettings(state_dir=tmp_path, instance="readme")) as (service, port):
+        code = snippet.group(1).replace(
+            'zenoh_config(mode="peer")',
+            f'zenoh_config(mode="peer", connect=["tcp/127.0.0.1:{port}"], multicast_scouting=False)',
+        )
+        assert code != snippet.group(1)
         result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
         assert result.returncode == 0, result.stderr
         assert "'r1/front': SourceStatus(received=1, processed=1" in result.stdout
         assert len(service.pipeline.anchors) == 2
-    finally:
-        service.stop()
-        session.close()

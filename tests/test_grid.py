@@ -8,7 +8,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
 from conftest import textured_image
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points
@@ -109,14 +108,11 @@ def test_path_cells_in_order() -> None:
 def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     pytest.importorskip("rosbags")
     from gcdtrav.client import Grid, TraversabilityClient
-    from gcdtrav.schemas.anchors import default_anchor_set
-    from gcdtrav.schemas.config import EngineSettings
     from gcdtrav.schemas.messages import Pose2D
     from gcdtrav.schemas.settings import ServiceSettings
     from gcdtrav.service.bus import ros
-    from gcdtrav.service.bus.node import TraversabilityService
-    from gcdtrav.service.pipeline import Pipeline
-    from zenoh_helpers import connecting_config, free_port, listening_config, wait_until
+    from gcdtrav.service.loopback import in_process_service
+    from zenoh_helpers import connecting_config, wait_until
 
     settings = ServiceSettings.model_validate(
         {
@@ -138,67 +134,64 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
             ],
         }
     )
-    port = free_port()
-    server = zenoh.open(listening_config(port))
-    service = TraversabilityService(server, Pipeline(tiny_backend, default_anchor_set(), EngineSettings()), settings)
-    service.start()
-    client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
-    grids: list[Grid] = []
-    occupancy: list[bytes] = []
-    subscriptions = [
-        client.subscribe_grid("cam", grids.append),
-        client.session.declare_subscriber(
-            "gcdtrav/out/cam/grid/occupancy", lambda s: occupancy.append(s.payload.to_bytes())
-        ),
-    ]
-    try:
-        time.sleep(0.5)
-        for step in range(3):  # drive 0.5 m along x per frame
-            client.session.put("robot/pose", Pose2D(stamp=100.0 + step, x=0.5 * step, y=0.0, yaw=0.0).pack())
-            time.sleep(0.2)
-            client.publish_image("cam", textured_image(60, 80, seed=step), stamp=100.0 + step)
-            assert wait_until(lambda n=step + 1: len(grids) >= n and len(occupancy) >= n, 15)
-        grid = grids[-1]
-        header = grid.header
-        assert header.frame_id == "odom" and header.robot == (1.0, 0.0, 0.0) and header.seq == 2
-        assert header.cells == 32 and header.resolution == 0.25
-        assert header.origin == pytest.approx((1.0 - 4.0, -4.0))  # the robot at the centre
-        assert header.known_cells > 0 and (grid.count > 0).sum() == header.known_cells
-        assert np.isnan(grid.traversability[grid.count == 0]).all()
-        # The camera looks forward: cells behind the robot are unknown, cells ahead known.
-        assert grid.count[grid.cell_index(0.0, 0.0)] == 0 and grid.count[grid.cell_index(2.7, 0.0)] > 0
-        cell = client.cell("cam", 2.7, 0.0)
-        i, j = grid.cell_index(2.7, 0.0)
-        assert cell.patch == (i, j) and cell.observations == grid.count[i, j]
-        assert cell.mean == pytest.approx(grid.traversability[i, j], abs=2 / 65535)
-        path = client.path("cam", [(0.0, 0.0), (4.5, 0.0)])
-        assert path.unknown_cells > 0 and path.cells and path.lowest_t is not None
-        assert path.cells[path.lowest_t].mean == min(c.mean for c in path.cells)
-        with pytest.raises(Exception, match="unknown: never observed"):
-            client.cell("cam", -2.0, 0.0)
-        with pytest.raises(Exception, match="outside the grid"):
-            client.cell("cam", 50.0, 0.0)
-        # The OccupancyGrid CDR decodes with the CDR library and matches the msgpack grid.
-        message = ros.typestore().deserialize_cdr(occupancy[-1], "nav_msgs/msg/OccupancyGrid")
-        data = np.asarray(message.data, np.int8).reshape(message.info.height, message.info.width)
-        assert message.header.frame_id == "odom" and message.info.resolution == pytest.approx(0.25)
-        assert message.info.origin.position.x == pytest.approx(header.origin[0])
-        assert ((data == -1) == (grid.count == 0)).all()
-        known = grid.count > 0
-        expected = np.round((1 - grid.traversability[known]) * 100)
-        assert np.abs(data[known] - expected).max() <= 1
-        # A new anchor set resets the grid, and the grid says so.
-        client.set_anchors({"anchors": [{"concept": "lake", "position": 0.0}, {"concept": "road", "position": 1.0}]})
-        client.publish_image("cam", textured_image(60, 80, seed=9), stamp=104.0)
-        assert wait_until(lambda: grids[-1].header.resets == 1, 15)
-        assert "anchor set changed" in grids[-1].header.last_reset
-        assert len(client.cell("cam", 2.7, 0.0).weights) == 2
-    finally:
-        for subscription in subscriptions:
-            subscription.undeclare()
-        client.close()
-        service.stop()
-        server.close()
+    with in_process_service(tiny_backend, settings) as (_, port):
+        client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
+        grids: list[Grid] = []
+        occupancy: list[bytes] = []
+        subscriptions = [
+            client.subscribe_grid("cam", grids.append),
+            client.session.declare_subscriber(
+                "gcdtrav/out/cam/grid/occupancy", lambda s: occupancy.append(s.payload.to_bytes())
+            ),
+        ]
+        try:
+            time.sleep(0.5)
+            for step in range(3):  # drive 0.5 m along x per frame
+                client.session.put("robot/pose", Pose2D(stamp=100.0 + step, x=0.5 * step, y=0.0, yaw=0.0).pack())
+                time.sleep(0.2)
+                client.publish_image("cam", textured_image(60, 80, seed=step), stamp=100.0 + step)
+                assert wait_until(lambda n=step + 1: len(grids) >= n and len(occupancy) >= n, 15)
+            grid = grids[-1]
+            header = grid.header
+            assert header.frame_id == "odom" and header.robot == (1.0, 0.0, 0.0) and header.seq == 2
+            assert header.cells == 32 and header.resolution == 0.25
+            assert header.origin == pytest.approx((1.0 - 4.0, -4.0))  # the robot at the centre
+            assert header.known_cells > 0 and (grid.count > 0).sum() == header.known_cells
+            assert np.isnan(grid.traversability[grid.count == 0]).all()
+            # The camera looks forward: cells behind the robot are unknown, cells ahead known.
+            assert grid.count[grid.cell_index(0.0, 0.0)] == 0 and grid.count[grid.cell_index(2.7, 0.0)] > 0
+            cell = client.cell("cam", 2.7, 0.0)
+            i, j = grid.cell_index(2.7, 0.0)
+            assert cell.patch == (i, j) and cell.observations == grid.count[i, j]
+            assert cell.mean == pytest.approx(grid.traversability[i, j], abs=2 / 65535)
+            path = client.path("cam", [(0.0, 0.0), (4.5, 0.0)])
+            assert path.unknown_cells > 0 and path.cells and path.lowest_t is not None
+            assert path.cells[path.lowest_t].mean == min(c.mean for c in path.cells)
+            with pytest.raises(Exception, match="unknown: never observed"):
+                client.cell("cam", -2.0, 0.0)
+            with pytest.raises(Exception, match="outside the grid"):
+                client.cell("cam", 50.0, 0.0)
+            # The OccupancyGrid CDR decodes with the CDR library and matches the msgpack grid.
+            message = ros.typestore().deserialize_cdr(occupancy[-1], "nav_msgs/msg/OccupancyGrid")
+            data = np.asarray(message.data, np.int8).reshape(message.info.height, message.info.width)
+            assert message.header.frame_id == "odom" and message.info.resolution == pytest.approx(0.25)
+            assert message.info.origin.position.x == pytest.approx(header.origin[0])
+            assert ((data == -1) == (grid.count == 0)).all()
+            known = grid.count > 0
+            expected = np.round((1 - grid.traversability[known]) * 100)
+            assert np.abs(data[known] - expected).max() <= 1
+            # A new anchor set resets the grid, and the grid says so.
+            client.set_anchors(
+                {"anchors": [{"concept": "lake", "position": 0.0}, {"concept": "road", "position": 1.0}]}
+            )
+            client.publish_image("cam", textured_image(60, 80, seed=9), stamp=104.0)
+            assert wait_until(lambda: grids[-1].header.resets == 1, 15)
+            assert "anchor set changed" in grids[-1].header.last_reset
+            assert len(client.cell("cam", 2.7, 0.0).weights) == 2
+        finally:
+            for subscription in subscriptions:
+                subscription.undeclare()
+            client.close()
 
 
 def test_pose_camera_info_and_depth_messages() -> None:

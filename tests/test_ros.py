@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import textured_image
-from zenoh_helpers import connecting_config, free_port, listening_config, wait_until
+from zenoh_helpers import connecting_config, wait_until
 
 pytest.importorskip("rosbags")
 
@@ -160,11 +160,8 @@ def decode_float_image(payload: bytes) -> tuple[np.ndarray, Any]:
 
 def test_ros_in_maps_out_both_layouts(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     from gcdtrav.client import Maps, TraversabilityClient
-    from gcdtrav.schemas.anchors import default_anchor_set
-    from gcdtrav.schemas.config import EngineSettings
     from gcdtrav.schemas.settings import ServiceSettings
-    from gcdtrav.service.bus.node import TraversabilityService
-    from gcdtrav.service.pipeline import Pipeline
+    from gcdtrav.service.loopback import in_process_service
 
     settings = ServiceSettings.model_validate(
         {
@@ -179,68 +176,65 @@ def test_ros_in_maps_out_both_layouts(tiny_backend, tmp_path: Path) -> None:  # 
             "ros_output": {"enabled": True, "preview": "compressed"},
         }
     )
-    port = free_port()
-    server = zenoh.open(listening_config(port))
-    service = TraversabilityService(server, Pipeline(tiny_backend, default_anchor_set(), EngineSettings()), settings)
-    service.start()
-    client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
-    maps: dict[str, Maps] = {}
-    ros_out: dict[str, tuple[bytes, bytes | None]] = {}
-    subscriptions = [
-        client.subscribe_maps("**", lambda m: maps.__setitem__(m.header.source, m)),
-        client.session.declare_subscriber(
-            "**/gcdtrav/**",
-            lambda s: ros_out.__setitem__(
-                str(s.key_expr), (s.payload.to_bytes(), s.attachment.to_bytes() if s.attachment else None)
+    with in_process_service(tiny_backend, settings) as (service, port):
+        client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
+        maps: dict[str, Maps] = {}
+        ros_out: dict[str, tuple[bytes, bytes | None]] = {}
+        subscriptions = [
+            client.subscribe_maps("**", lambda m: maps.__setitem__(m.header.source, m)),
+            client.session.declare_subscriber(
+                "**/gcdtrav/**",
+                lambda s: ros_out.__setitem__(
+                    str(s.key_expr), (s.payload.to_bytes(), s.attachment.to_bytes() if s.attachment else None)
+                ),
             ),
-        ),
-    ]
-    try:
-        time.sleep(0.5)
-        image_hash = ros.type_hash(ros.IMAGE)
-        rmw_key = f"0/robot/front/image_raw/sensor_msgs::msg::dds_::Image_/{image_hash}"
-        client.session.put(
-            rmw_key, image_cdr(RGB, "rgb8", frame_id="front_optical"), encoding=zenoh.Encoding.APPLICATION_CDR
-        )
-        _, jpeg = cv2.imencode(".jpg", RGB[:, :, ::-1])
-        client.session.put("cam/left", compressed_cdr(jpeg.tobytes(), "jpeg", stamp=STAMP + 1, frame_id="left"))
-        assert wait_until(lambda: {"robot/front/image_raw", "cam/left"} <= set(maps), 15)
-        client.session.put(rmw_key, image_cdr(RGB, "rgb8")[:50])  # truncated: counted, nothing else happens
-        front = maps["robot/front/image_raw"]
-        assert front.header.stamp == pytest.approx(STAMP, abs=1e-6) and front.header.frame_id == "front_optical"
-        assert front.header.key == rmw_key and front.header.image_size == (32, 24)
-        left = maps["cam/left"]
-        assert left.header.stamp == pytest.approx(STAMP + 1, abs=1e-6) and left.header.frame_id == "left"
+        ]
+        try:
+            time.sleep(0.5)
+            image_hash = ros.type_hash(ros.IMAGE)
+            rmw_key = f"0/robot/front/image_raw/sensor_msgs::msg::dds_::Image_/{image_hash}"
+            client.session.put(
+                rmw_key, image_cdr(RGB, "rgb8", frame_id="front_optical"), encoding=zenoh.Encoding.APPLICATION_CDR
+            )
+            _, jpeg = cv2.imencode(".jpg", RGB[:, :, ::-1])
+            client.session.put("cam/left", compressed_cdr(jpeg.tobytes(), "jpeg", stamp=STAMP + 1, frame_id="left"))
+            assert wait_until(lambda: {"robot/front/image_raw", "cam/left"} <= set(maps), 15)
+            client.session.put(rmw_key, image_cdr(RGB, "rgb8")[:50])  # truncated: counted, nothing else happens
+            front = maps["robot/front/image_raw"]
+            assert front.header.stamp == pytest.approx(STAMP, abs=1e-6) and front.header.frame_id == "front_optical"
+            assert front.header.key == rmw_key and front.header.image_size == (32, 24)
+            left = maps["cam/left"]
+            assert left.header.stamp == pytest.approx(STAMP + 1, abs=1e-6) and left.header.frame_id == "left"
 
-        t_key = f"0/robot/front/image_raw/gcdtrav/traversability/sensor_msgs::msg::dds_::Image_/{image_hash}"
-        assert wait_until(lambda: t_key in ros_out, 10), sorted(ros_out)
-        values, header = decode_float_image(ros_out[t_key][0])
-        assert header.frame_id == "front_optical" and header.stamp.sec == int(STAMP)
-        assert header.stamp.nanosec == 250_000_000
-        assert front.traversability_full is not None
-        np.testing.assert_allclose(values, front.traversability_full, atol=0.51 / 65535)
-        assert ros_out[t_key][1] is not None  # rmw_zenoh subscribers expect the attachment
-        u_key = t_key.replace("/traversability/", "/uncertainty/")
-        assert wait_until(lambda: u_key in ros_out, 10)
-        np.testing.assert_allclose(decode_float_image(ros_out[u_key][0])[0], front.uncertainty_full, atol=0.51 / 65535)
-        preview_key = "cam/left/gcdtrav/preview"
-        assert wait_until(lambda: preview_key in ros_out, 10)
-        preview = ros.typestore().deserialize_cdr(ros_out[preview_key][0], ros.COMPRESSED_IMAGE)
-        assert preview.format == "jpeg" and cv2.imdecode(np.asarray(preview.data), cv2.IMREAD_COLOR) is not None
-        assert "cam/left/gcdtrav/traversability" in ros_out
+            t_key = f"0/robot/front/image_raw/gcdtrav/traversability/sensor_msgs::msg::dds_::Image_/{image_hash}"
+            assert wait_until(lambda: t_key in ros_out, 10), sorted(ros_out)
+            values, header = decode_float_image(ros_out[t_key][0])
+            assert header.frame_id == "front_optical" and header.stamp.sec == int(STAMP)
+            assert header.stamp.nanosec == 250_000_000
+            assert front.traversability_full is not None
+            np.testing.assert_allclose(values, front.traversability_full, atol=0.51 / 65535)
+            assert ros_out[t_key][1] is not None  # rmw_zenoh subscribers expect the attachment
+            u_key = t_key.replace("/traversability/", "/uncertainty/")
+            assert wait_until(lambda: u_key in ros_out, 10)
+            np.testing.assert_allclose(
+                decode_float_image(ros_out[u_key][0])[0], front.uncertainty_full, atol=0.51 / 65535
+            )
+            preview_key = "cam/left/gcdtrav/preview"
+            assert wait_until(lambda: preview_key in ros_out, 10)
+            preview = ros.typestore().deserialize_cdr(ros_out[preview_key][0], ros.COMPRESSED_IMAGE)
+            assert preview.format == "jpeg" and cv2.imdecode(np.asarray(preview.data), cv2.IMREAD_COLOR) is not None
+            assert "cam/left/gcdtrav/traversability" in ros_out
 
-        by_stamp = client.patch("robot/front/image_raw", 3, 3, stamp=STAMP)
-        assert by_stamp.seq == 0 and by_stamp.frame_id == "front_optical"
-        assert wait_until(lambda: service.status().rejected_by_reason.get("bad_cdr") == 1, 10)
-        ros_keys = [key for key in ros_out if not key.startswith("gcdtrav/")]
-        assert len(ros_keys) == 6  # 3 per input; nothing fed back although outputs match the wide rmw input
-        assert service.status().sources["robot/front/image_raw"].processed == 1
-    finally:
-        for subscription in subscriptions:
-            subscription.undeclare()
-        client.close()
-        service.stop()
-        server.close()
+            by_stamp = client.patch("robot/front/image_raw", 3, 3, stamp=STAMP)
+            assert by_stamp.seq == 0 and by_stamp.frame_id == "front_optical"
+            assert wait_until(lambda: service.status().rejected_by_reason.get("bad_cdr") == 1, 10)
+            ros_keys = [key for key in ros_out if not key.startswith("gcdtrav/")]
+            assert len(ros_keys) == 6  # 3 per input; nothing fed back although outputs match the wide rmw input
+            assert service.status().sources["robot/front/image_raw"].processed == 1
+        finally:
+            for subscription in subscriptions:
+                subscription.undeclare()
+            client.close()
 
 
 def test_topic_key_round_trips_through_parse_key() -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -11,18 +12,18 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import TINY_INPUT_SIZE, textured_image
-from zenoh_helpers import connecting_config, free_port, listening_config, service_reachable, wait_until
+from zenoh_helpers import connecting_config, service_reachable, wait_until
 
 pytest.importorskip("torch")
 
 from gcdtrav.client import AnchorSetRejected, Maps, ServiceError, TraversabilityClient
 from gcdtrav.schemas.anchors import default_anchor_set
-from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.bus.node import TraversabilityService, usable_cpus
+from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.bus.run import starting_anchor_set
+from gcdtrav.service.cpus import usable_cpus
 from gcdtrav.service.engine import gcd
-from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.loopback import in_process_service
 
 TWO_ANCHORS = {
     "name": "puddles",
@@ -52,15 +53,11 @@ class Running:
     received: list[Maps]
 
 
-def start_service(backend, state_dir: Path, **settings_kw: object) -> tuple[TraversabilityService, zenoh.Session, int]:  # type: ignore[no-untyped-def]
-    port = free_port()
-    session = zenoh.open(listening_config(port))
+@contextmanager
+def started_service(backend, state_dir: Path, **settings_kw: object) -> Iterator[tuple[TraversabilityService, int]]:  # type: ignore[no-untyped-def]
     settings = ServiceSettings(state_dir=state_dir, instance="test-1", **settings_kw)  # type: ignore[arg-type]
-    service = TraversabilityService(
-        session, Pipeline(backend, starting_anchor_set(settings), EngineSettings()), settings
-    )
-    service.start()
-    return service, session, port
+    with in_process_service(backend, settings, starting_anchor_set(settings)) as (service, port):
+        yield service, port
 
 
 # threads=None: torch has every CPU, one thread does all per-frame work. threads=1 on a box with more CPUs:
@@ -73,20 +70,18 @@ PIPELINES = [
 
 @pytest.fixture(params=PIPELINES)
 def running(tiny_backend, tmp_path: Path, request: pytest.FixtureRequest) -> Iterator[Running]:  # type: ignore[no-untyped-def]
-    service, session, port = start_service(
+    with started_service(
         tiny_backend, tmp_path, history=3, max_payload_bytes=300_000, full_resolution=True, threads=request.param
-    )
-    assert service.overlap_outputs == (request.param is not None)
-    client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
-    received: list[Maps] = []
-    subscriber = client.subscribe_maps("**", received.append)
-    assert wait_until(lambda: service_reachable(client), 10)
-    time.sleep(0.3)  # let the maps subscription reach the service
-    yield Running(service, client, service.settings, received)
-    subscriber.undeclare()
-    client.close()
-    service.stop()
-    session.close()
+    ) as (service, port):
+        assert service.overlap_outputs == (request.param is not None)
+        client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
+        received: list[Maps] = []
+        subscriber = client.subscribe_maps("**", received.append)
+        assert wait_until(lambda: service_reachable(client), 10)
+        time.sleep(0.3)  # let the maps subscription reach the service
+        yield Running(service, client, service.settings, received)
+        subscriber.undeclare()
+        client.close()
 
 
 def publish_and_wait(run: Running, source: str, image: np.ndarray, **kw: object) -> Maps:
@@ -235,32 +230,30 @@ def test_bad_payloads_are_counted_and_the_next_frame_processed(running: Running)
 
 @pytest.mark.parametrize("threads", PIPELINES)
 def test_latest_only_under_load(tiny_backend, tmp_path: Path, threads: int | None) -> None:  # type: ignore[no-untyped-def]
-    service, session, port = start_service(SlowBackend(tiny_backend, 0.08), tmp_path, threads=threads)
-    client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
-    try:
-        assert wait_until(lambda: service_reachable(client), 10)
-        image = textured_image(64, 64)
-        queued = []
-        for index in range(50):
-            client.publish_image("burst", image)
-            if index % 10 == 0:
-                client.publish_image("steady", image)
-            queued.append(len(service.queue))
-            time.sleep(0.005)
-        assert max(queued) <= 2  # one slot per source, whatever the rate
-        assert wait_until(lambda: len(service.queue) == 0 and not _busy(service), 10)
-        time.sleep(0.3)
-        status = service.status()
-        burst = status.sources["burst"]
-        assert burst.received == 50
-        assert burst.processed + burst.dropped + burst.rejected == burst.received
-        assert burst.dropped > 0 and burst.processed >= 2
-        assert status.sources["steady"].processed >= 1  # not starved by the burst
-        assert status.sources["burst"].last_seq == burst.processed - 1  # every processed frame published, in order
-    finally:
-        client.close()
-        service.stop()
-        session.close()
+    with started_service(SlowBackend(tiny_backend, 0.08), tmp_path, threads=threads) as (service, port):
+        client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
+        try:
+            assert wait_until(lambda: service_reachable(client), 10)
+            image = textured_image(64, 64)
+            queued = []
+            for index in range(50):
+                client.publish_image("burst", image)
+                if index % 10 == 0:
+                    client.publish_image("steady", image)
+                queued.append(len(service.queue))
+                time.sleep(0.005)
+            assert max(queued) <= 2  # one slot per source, whatever the rate
+            assert wait_until(lambda: len(service.queue) == 0 and not _busy(service), 10)
+            time.sleep(0.3)
+            status = service.status()
+            burst = status.sources["burst"]
+            assert burst.received == 50
+            assert burst.processed + burst.dropped + burst.rejected == burst.received
+            assert burst.dropped > 0 and burst.processed >= 2
+            assert status.sources["steady"].processed >= 1  # not starved by the burst
+            assert status.sources["burst"].last_seq == burst.processed - 1  # every processed frame published, in order
+        finally:
+            client.close()
 
 
 def _busy(service: TraversabilityService) -> bool:

@@ -2,22 +2,13 @@
 
 from __future__ import annotations
 
-import socket
 import time
 from collections.abc import Callable
 
 import zenoh
 from gcdtrav.client.zenoh_args import zenoh_config
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
-
-
-def listening_config(port: int, mode: str = "peer") -> zenoh.Config:
-    return zenoh_config(mode=mode, listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+from gcdtrav.service.loopback import free_port as free_port  # re-exported: tests take it from here
+from gcdtrav.service.loopback import serve_command
 
 
 def connecting_config(port: int, mode: str = "peer") -> zenoh.Config:
@@ -57,18 +48,7 @@ def client_config(port: int) -> zenoh.Config:
 
 def serve_args(model: object, *extra: str) -> list[str]:
     """The command line of `gcdtrav serve` with this Python, multicast scouting off."""
-    import sys
-
-    return [
-        sys.executable,
-        "-m",
-        "gcdtrav.service.cli",
-        "serve",
-        "--model",
-        str(model),
-        "--no-multicast-scouting",
-        *extra,
-    ]
+    return serve_command("--model", str(model), "--no-multicast-scouting", *extra)
 
 
 def service_reachable(client: object, timeout: float = 1.0) -> bool:
