@@ -85,7 +85,7 @@ def main() -> int:
             for process, k in zip(services, range(args.instances), strict=True):
                 rss_series[f"soak-{k}"].append((round(time.monotonic() - started, 1), round(rss_mb(process.pid), 1)))
             sent = sum(robots.sent.values())
-            delivered = sum(robots.maps.values())
+            delivered = len(robots.received())
             print(
                 f"  t={time.monotonic() - started:6.0f} s  sent {sent}  maps {delivered}  rss "
                 + " ".join(f"{name} {series[-1][1]:.0f} MB" for name, series in rss_series.items()),
@@ -103,14 +103,15 @@ def main() -> int:
                 if source is not None:
                     for key in ("received", "processed", "dropped", "rejected"):
                         counts[key] += getattr(source, key)
-            latencies = robots.latency_ms[name]
-            counts["maps_delivered"] = robots.maps[name]
-            counts["instances"] = sorted(robots.instances[name])
+            arrivals = robots.received(name)
+            latencies = [a.latency_ms for a in arrivals]
+            counts["maps_delivered"] = len(arrivals)
+            counts["instances"] = sorted({a.instance for a in arrivals})
             counts["latency_ms"] = (
                 {f"p{q}": round(float(np.percentile(latencies, q)), 1) for q in (50, 90, 99)} if latencies else {}
             )
             per_robot[name] = counts
-        all_latency = [v for values in robots.latency_ms.values() for v in values]
+        all_latency = [a.latency_ms for a in robots.received()]
         report = {
             "settings": vars(args) | {"out": str(args.out)},
             "per_robot": per_robot,

@@ -5,6 +5,7 @@ Everything here stays on loopback, with multicast scouting off, and stops when i
 
 from __future__ import annotations
 
+import math
 import socket
 import statistics
 import subprocess
@@ -15,6 +16,7 @@ import time
 from collections import defaultdict
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -116,30 +118,37 @@ def loopback_service(model_dir: Path, precision: str, instance: str = "bench") -
                 yield client
 
 
+@dataclass(frozen=True)
+class Arrival:
+    at: float  # time.monotonic() when the maps arrived
+    source: str
+    latency_ms: float  # from the robot's stamp to arrival
+    instance: str  # the service instance that made the maps
+
+
 class SimulatedRobots:
     """Robot threads publishing one JPEG at a fixed rate; counts frames sent and maps received per robot."""
 
     def __init__(self, client: TraversabilityClient, names: list[str], fps: float, jpeg: bytes) -> None:
         self.client, self.fps, self.jpeg, self.names = client, fps, jpeg, names
         self.sent: dict[str, int] = defaultdict(int)
-        self.maps: dict[str, int] = defaultdict(int)
-        self.latency_ms: dict[str, list[float]] = defaultdict(list)
-        self.arrivals: list[tuple[float, str, float]] = []  # (time.monotonic(), source, latency ms) per maps
-        self.instances: dict[str, set[str]] = defaultdict(set)
+        self.arrivals: list[Arrival] = []  # one per maps message of these robots, in arrival order
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self._threads: list[threading.Thread] = []
 
     def on_maps(self, maps: Maps) -> None:
+        header = maps.header
+        if header.source in self.names:
+            arrival = Arrival(time.monotonic(), header.source, (time.time() - header.stamp) * 1e3, header.instance)
+            with self._lock:
+                self.arrivals.append(arrival)
+
+    def received(self, source: str | None = None, since: float = -math.inf, until: float = math.inf) -> list[Arrival]:
+        """Maps received (of one robot, or all), optionally within [since, until) on time.monotonic()."""
         with self._lock:
-            source = maps.header.source
-            if source not in self.names:
-                return
-            latency_ms = (time.time() - maps.header.stamp) * 1e3
-            self.maps[source] += 1
-            self.latency_ms[source].append(latency_ms)
-            self.arrivals.append((time.monotonic(), source, latency_ms))
-            self.instances[source].add(maps.header.instance)
+            arrivals = list(self.arrivals)
+        return [a for a in arrivals if (source is None or a.source == source) and since <= a.at < until]
 
     def _run(self, name: str) -> None:
         period = 1.0 / self.fps
@@ -179,10 +188,9 @@ def robots_throughput(
         fleet.stop()
         time.sleep(0.5)
         subscriber.undeclare()
-    with fleet._lock:
-        window = [(source, latency) for at, source, latency in fleet.arrivals if began <= at < ended]
-    per_robot = [sum(1 for source, _ in window if source == name) for name in names]
-    latency = [value for _, value in window]
+    window = fleet.received(since=began, until=ended)
+    per_robot = [sum(1 for a in window if a.source == name) for name in names]
+    latency = [a.latency_ms for a in window]
     return {
         "robots": robots,
         "fps_per_robot": fps,
