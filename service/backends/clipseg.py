@@ -235,12 +235,12 @@ class ClipSegBackend:
 
     def _release_unused_vision_layers(self) -> None:
         encoder = self.model.clip.vision_model.encoder
-        kept = [layer for layer in encoder.layers if any(layer is used for used in self._trunk.layers)]
-        released = [layer for layer in encoder.layers if not any(layer is used for used in kept)]
-        for layer in released:
-            for tensor in [*layer.parameters(), *layer.buffers()]:
-                release_pages(tensor)
-        encoder.layers = torch.nn.ModuleList(kept)  # fp32 shares layers 0..last with the trunk
+        run = {id(layer) for layer in self._trunk.layers}  # fp32 shares layers 0..last with the trunk
+        for layer in encoder.layers:
+            if id(layer) not in run:
+                for tensor in [*layer.parameters(), *layer.buffers()]:
+                    release_pages(tensor)
+        encoder.layers = torch.nn.ModuleList(layer for layer in encoder.layers if id(layer) in run)
         gc.collect()
 
     # ---- per anchor set ------------------------------------------------------------------------------
