@@ -230,3 +230,7 @@ class ServiceStatus(Message):
     sources: dict[str, SourceStatus]
     rejected_by_reason: dict[str, int]
     last_errors: list[str]
+    history_bytes: int = Field(default=0, description="Bytes of weights kept for patch queries, all sources.")
+    history_budget_bytes: int = Field(default=0, description="The history's limit (history_budget_mb).")
+    tracked_sources: int = Field(default=0, description="Sources the service keeps state for now.")
+    max_sources: int = Field(default=0, description="The limit of tracked sources (max_sources).")

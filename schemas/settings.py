@@ -139,6 +139,17 @@ class ServiceSettings(BaseModel):
     )
     engine: EngineSettings = Field(default_factory=EngineSettings)
     history: int = Field(default=8, ge=1, le=256, description="Frames per source kept for patch queries.")
+    history_budget_mb: float = Field(
+        default=512,
+        gt=0,
+        description="Bytes of query history for all sources together, in MB; the oldest frames go first.",
+    )
+    max_sources: int = Field(
+        default=256, ge=1, description="Sources tracked at once; frames from further new sources are rejected."
+    )
+    source_idle_s: float = Field(
+        default=300, gt=0, description="A source without a frame for this long is forgotten (history, counters)."
+    )
     max_payload_bytes: int = Field(default=20_000_000, ge=1024, description="Larger payloads are rejected unread.")
     max_pixels: int = Field(default=40_000_000, ge=1, description="Larger images are rejected before decoding.")
     full_resolution: bool = Field(default=False, description="Also publish T and U at the input image's size.")

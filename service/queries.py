@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import threading
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Mapping
 from dataclasses import dataclass
 
@@ -48,28 +48,70 @@ class FrameRecord:
 
 
 class FrameHistory:
-    """The last ``depth`` frames of every source, for queries. Thread-safe."""
+    """The last frames of every source, for queries, within a total byte budget. Thread-safe.
 
-    def __init__(self, depth: int) -> None:
+    Each source keeps at most ``depth`` frames; all sources together keep at most ``budget_bytes`` of
+    weights, the oldest frame (of whichever source) evicted first. Memory is bounded by the budget, not by
+    the number of sources a peer invents.
+    """
+
+    def __init__(self, depth: int, budget_bytes: int | None = None) -> None:
         self.depth = depth
+        self.budget_bytes = budget_bytes
         self._frames: dict[str, deque[FrameRecord]] = {}
+        self._arrivals: OrderedDict[tuple[str, int], int] = OrderedDict()  # (source, seq) -> bytes, oldest first
+        self._bytes = 0
         self._lock = threading.Lock()
 
     def add(self, source: str, record: FrameRecord) -> None:
+        size = record.weights.nbytes
         with self._lock:
-            self._frames.setdefault(source, deque(maxlen=self.depth)).append(record)
+            frames = self._frames.setdefault(source, deque())
+            if len(frames) == self.depth:
+                self._drop_oldest_of(source)
+            frames.append(record)
+            self._arrivals[(source, record.seq)] = size
+            self._bytes += size
+            while self.budget_bytes is not None and self._bytes > self.budget_bytes and self._arrivals:
+                oldest_source, _ = next(iter(self._arrivals))
+                self._drop_oldest_of(oldest_source)
+
+    def _drop_oldest_of(self, source: str) -> None:
+        frames = self._frames[source]
+        record = frames.popleft()
+        self._bytes -= self._arrivals.pop((source, record.seq))
+        if not frames:
+            del self._frames[source]
+
+    def forget(self, source: str) -> None:
+        """Drop every frame of ``source`` (an idle source whose state the service lets go)."""
+        with self._lock:
+            while source in self._frames:
+                self._drop_oldest_of(source)
+
+    @property
+    def nbytes(self) -> int:
+        with self._lock:
+            return self._bytes
+
+    def _limits(self) -> str:
+        budget = f" and a budget of {self.budget_bytes / 1e6:.0f} MB for all sources" if self.budget_bytes else ""
+        return f"the last {self.depth} frames per source{budget}"
 
     def get(self, source: str, seq: int | None, stamp: float | None = None) -> FrameRecord:
         with self._lock:
             frames = list(self._frames.get(source, ()))
         if not frames:
-            raise QueryError(f"unknown source '{source}': no frame processed yet")
+            raise QueryError(
+                f"unknown source '{source}': no frame of it is kept (none processed yet, or evicted: the "
+                f"history keeps {self._limits()}, and idle sources are forgotten)"
+            )
         if stamp is not None:
             nearest = min(frames, key=lambda record: abs(record.stamp - stamp))
             if abs(nearest.stamp - stamp) > STAMP_TOLERANCE_S:
                 raise QueryError(
                     f"no kept frame of '{source}' has stamp {stamp:.6f} (kept: {frames[0].stamp:.6f} "
-                    f"to {frames[-1].stamp:.6f}, the last {self.depth} frames)"
+                    f"to {frames[-1].stamp:.6f}; the history keeps {self._limits()})"
                 )
             return nearest
         if seq is None:
@@ -78,7 +120,7 @@ class FrameHistory:
             if record.seq == seq:
                 return record
         kept = f"{frames[0].seq}..{frames[-1].seq}"
-        raise QueryError(f"seq {seq} of '{source}' is not kept (kept: {kept}, the last {self.depth} frames)")
+        raise QueryError(f"seq {seq} of '{source}' is not kept (kept: {kept}; the history keeps {self._limits()})")
 
 
 def parse_number(text: str, name: str, kind: type = float) -> float:

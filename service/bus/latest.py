@@ -55,6 +55,12 @@ class LatestFrameQueue(Generic[T]):
                 return None
             return self._pending.popitem(last=False)
 
+    def forget(self, source: str) -> None:
+        """Drop the source's pending frame and counters (a source the service no longer tracks)."""
+        with self._cond:
+            self._pending.pop(source, None)
+            self._counters.pop(source, None)
+
     def close(self) -> None:
         with self._cond:
             self._closed = True

@@ -43,6 +43,7 @@ from gcdtrav.service.bus.stats import ServiceStats, percentiles
 from gcdtrav.service.cpus import usable_cpus
 from gcdtrav.service.pipeline import Inference, Pipeline
 from gcdtrav.service.queries import FrameHistory, FrameRecord, QueryError, answer_patch_query
+from gcdtrav.service.sources import SourceTracker
 from gcdtrav.service.state import save_anchor_state
 
 log = logging.getLogger("gcdtrav.service")
@@ -98,7 +99,7 @@ class TraversabilityService:
         self.settings = settings
         self.prefix = settings.prefix
         self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue()
-        self.history = FrameHistory(settings.history)
+        self.history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
         self.stats = ServiceStats(log)
         self._seq: dict[str, int] = {}
         self._declared: list[Any] = []
@@ -118,6 +119,8 @@ class TraversabilityService:
         self.membership: Membership | None = None
         self.grids = GridOutputs(settings.grids, len(pipeline.anchors), settings.instance) if settings.grids else None
         self.outputs = FrameOutputs(session, settings, pipeline.backend.model_id, self.grids)
+        forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget, self._forget_seq)
+        self.sources = SourceTracker(settings.max_sources, settings.source_idle_s, forget)
         self._check_inputs()
 
     def _check_inputs(self) -> None:
@@ -204,7 +207,7 @@ class TraversabilityService:
         try:
             topic = ros_io.parse_key(key, ros_input.layout)
         except ros_io.RosDecodeError as err:
-            self.stats.rejected(key, err.reason, err.detail)
+            self.stats.rejected(None, err.reason, f"{key}: {err.detail}")  # not a source: keys are unbounded
             return
         if ros_io.OUTPUT_NAMESPACE in topic.topic.split("/"):
             return  # our own ROS outputs, matched by a wide input expression
@@ -219,6 +222,11 @@ class TraversabilityService:
     def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None) -> None:
         if not self.owns(source):
             return  # another live instance serves this source
+        if not self.sources.admit(source):
+            self.stats.rejected(
+                None, "too_many_sources", f"'{source[:200]}': already tracking {self.sources.max_sources} sources"
+            )
+            return
         size = len(sample.payload)
         if size > self.settings.max_payload_bytes:  # refused unread: never copied out of zenoh's buffer
             self.queue.count_unqueued(source)
@@ -256,6 +264,7 @@ class TraversabilityService:
     # ---- the frame pipeline: decode and infer -> engine, history and outputs --------------------------
     def _infer_loop(self) -> None:
         while True:
+            self.sources.sweep()
             item = self.queue.take(timeout=0.25)
             if item is None:
                 if self._stopping.is_set():
@@ -331,6 +340,9 @@ class TraversabilityService:
         self.outputs.publish(done, self.pipeline.settings.method)
         latency_ms = (time.time() - pending.received_at) * 1e3
         self.stats.processed(source, record.seq, latency_ms, result.inference_ms)
+
+    def _forget_seq(self, source: str) -> None:
+        self._seq.pop(source, None)
 
     def _on_cell_query(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
@@ -426,6 +438,10 @@ class TraversabilityService:
             sources=sources,
             rejected_by_reason=rejected,
             last_errors=errors,
+            history_bytes=self.history.nbytes,
+            history_budget_bytes=self.history.budget_bytes or 0,
+            tracked_sources=len(self.sources),
+            max_sources=self.sources.max_sources,
         )
 
     def _on_status_query(self, query: zenoh.Query) -> None:

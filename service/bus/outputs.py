@@ -7,6 +7,7 @@ instead of blocking inference.
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -63,6 +64,8 @@ class FrameOutputs:
         self.model_id = model_id
         self.grids = grids
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self._keys_of_source: dict[str, set[str]] = {}
+        self._declare_lock = threading.Lock()
         self._rmw_attachments: dict[str, ros_io.RmwAttachment] = {}
 
     def publish(self, done: ProcessedFrame, method: Any) -> None:
@@ -72,11 +75,11 @@ class FrameOutputs:
         full = None
         if self.settings.full_resolution or self.settings.preview or ros_out:
             full = resize_map(t, width, height), resize_map(u, width, height)
-        self._put(f"{self.prefix}/out/{done.source}/maps", self._maps(done, method, full).pack(), MSGPACK)
+        self._put(done.source, f"{self.prefix}/out/{done.source}/maps", self._maps(done, method, full).pack(), MSGPACK)
         preview = None
         if self.settings.preview and full is not None:
             preview = preview_jpeg(done.frame.image, *full, self.settings.preview_max_width)
-            self._put(f"{self.prefix}/out/{done.source}/preview", preview, zenoh.Encoding.IMAGE_JPEG)
+            self._put(done.source, f"{self.prefix}/out/{done.source}/preview", preview, zenoh.Encoding.IMAGE_JPEG)
         if ros_out and done.ros_topic is not None and full is not None:
             self._publish_ros(done, *full, preview)
         if self.grids is not None:
@@ -136,7 +139,7 @@ class FrameOutputs:
             attachment = None
             if topic.layout == "rmw_zenoh":  # rmw_zenoh subscribers expect its attachment
                 attachment = self._rmw_attachments.setdefault(key, ros_io.RmwAttachment()).next()
-            self._put(key, payload, CDR, attachment)
+            self._put(done.source, key, payload, CDR, attachment)
 
     def _publish_grid(self, done: ProcessedFrame) -> None:
         assert self.grids is not None
@@ -144,27 +147,46 @@ class FrameOutputs:
         if update is None:
             return
         base = f"{self.prefix}/out/{done.source}/grid"
-        self._put(base, update.message.pack(), MSGPACK)
+        self._put(done.source, base, update.message.pack(), MSGPACK)
         if update.occupancy is not None and update.uncertainty is not None:
-            self._put(f"{base}/occupancy", update.occupancy, CDR)
-            self._put(f"{base}/uncertainty", update.uncertainty, CDR)
+            self._put(done.source, f"{base}/occupancy", update.occupancy, CDR)
+            self._put(done.source, f"{base}/uncertainty", update.uncertainty, CDR)
 
-    def _put(self, key: str, payload: bytes, encoding: zenoh.Encoding, attachment: bytes | None = None) -> None:
+    def _put(
+        self, source: str, key: str, payload: bytes, encoding: zenoh.Encoding, attachment: bytes | None = None
+    ) -> None:
         publisher = self._publishers.get(key)
         if publisher is None:
             publisher = self.session.declare_publisher(
                 key, encoding=encoding, congestion_control=zenoh.CongestionControl.DROP
             )
-            self._publishers[key] = publisher
+            with self._declare_lock:
+                self._publishers[key] = publisher
+                self._keys_of_source.setdefault(source, set()).add(key)
         if attachment is None:
             publisher.put(payload)
         else:
             publisher.put(payload, attachment=attachment)
 
+    def forget(self, source: str) -> None:
+        """Undeclare the publishers of a source the service no longer tracks."""
+        with self._declare_lock:  # the sweep runs on the worker, publishing maybe on the output thread
+            keys = self._keys_of_source.pop(source, set())
+            publishers = [self._publishers.pop(key) for key in keys]
+        for key in keys:
+            self._rmw_attachments.pop(key, None)
+        for publisher in publishers:
+            self._undeclare(publisher)
+
     def close(self) -> None:
         for publisher in self._publishers.values():
-            try:
-                publisher.undeclare()
-            except zenoh.ZError as err:  # the session may already be closing
-                log.debug("undeclare failed: %s", err)
+            self._undeclare(publisher)
         self._publishers.clear()
+        self._keys_of_source.clear()
+
+    @staticmethod
+    def _undeclare(publisher: zenoh.Publisher) -> None:
+        try:
+            publisher.undeclare()
+        except zenoh.ZError as err:  # the session may already be closing
+            log.debug("undeclare failed: %s", err)

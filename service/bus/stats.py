@@ -52,6 +52,10 @@ class ServiceStats:
             stats.latency_ms.append(latency_ms)
             stats.inference_ms.append(inference_ms)
 
+    def forget(self, name: str) -> None:
+        with self._lock:
+            self.sources.pop(name, None)
+
     def rejected(self, name: str | None, reason: str, detail: str) -> None:
         """Count a bad input and log it, at most once per reason every few seconds."""
         message = f"{name or '-'}: {reason}: {detail}"

@@ -1,0 +1,114 @@
+"""Memory follows from the settings, whatever sources the robots (or a hostile peer) invent."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import textured_image
+from gcdtrav.schemas.anchors import default_anchor_set
+from gcdtrav.service.queries import FrameHistory, FrameRecord, QueryError
+from gcdtrav.service.sources import SWEEP_INTERVAL_S, SourceTracker
+from zenoh_helpers import connecting_config, service_reachable, wait_until
+
+
+def record(seq: int, n: int = 4, side: int = 8) -> FrameRecord:
+    weights = np.full((n, side, side), 1 / n, np.float16)
+    return FrameRecord(seq, float(seq), "cam", weights, default_anchor_set(), (side, side))
+
+
+FRAME_BYTES = record(0).weights.nbytes
+
+
+def test_history_stays_within_its_budget_evicting_the_oldest_frame_of_any_source() -> None:
+    history = FrameHistory(depth=4, budget_bytes=int(2.5 * FRAME_BYTES))
+    history.add("a", record(0))
+    history.add("b", record(0))
+    history.add("a", record(1))  # over budget: a/0, the oldest of all, goes
+    assert history.nbytes == 2 * FRAME_BYTES
+    with pytest.raises(QueryError, match=r"seq 0 of 'a' is not kept .*budget of 0 MB"):
+        history.get("a", 0)
+    assert history.get("b", 0).seq == 0 and history.get("a", None).seq == 1
+    for k in range(100):
+        history.add(f"churn{k}", record(0))
+        assert history.nbytes <= history.budget_bytes  # type: ignore[operator]
+    with pytest.raises(QueryError, match=r"unknown source 'a'.*evicted"):
+        history.get("a", None)
+
+
+def test_history_depth_stays_a_cap_per_source() -> None:
+    history = FrameHistory(depth=2, budget_bytes=None)
+    for seq in range(5):
+        history.add("a", record(seq))
+    assert history.nbytes == 2 * FRAME_BYTES
+    assert history.get("a", 3).seq == 3
+    with pytest.raises(QueryError, match="seq 2 of 'a' is not kept"):
+        history.get("a", 2)
+    history.forget("a")
+    assert history.nbytes == 0
+    with pytest.raises(QueryError, match="unknown source 'a'"):
+        history.get("a", None)
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_tracker_caps_new_sources_forgets_idle_ones_and_never_evicts_active_ones() -> None:
+    clock, forgotten = FakeClock(), []
+    tracker = SourceTracker(max_sources=2, idle_s=10.0, on_forget=[forgotten.append], clock=clock)
+    assert tracker.admit("a") and tracker.admit("b")
+    assert not tracker.admit("c")  # over the cap: refused, "a" and "b" untouched
+    assert "a" in tracker and "c" not in tracker and len(tracker) == 2
+    clock.now += 6.0
+    assert tracker.admit("a")  # "a" stays active
+    clock.now += 6.0  # "b" idle for 12 s, "a" for 6 s
+    assert tracker.sweep() == ["b"] and forgotten == ["b"]
+    assert tracker.admit("c") and len(tracker) == 2
+    assert tracker.sweep() == []  # at most once a second
+    clock.now += SWEEP_INTERVAL_S + 10.5
+    assert sorted(tracker.sweep()) == ["a", "c"] and len(tracker) == 0
+
+
+pytest.importorskip("torch")
+
+from gcdtrav.client import ServiceError, TraversabilityClient  # noqa: E402
+from gcdtrav.schemas.settings import ServiceSettings  # noqa: E402
+from gcdtrav.service.bus.run import starting_anchor_set  # noqa: E402
+from gcdtrav.service.loopback import in_process_service  # noqa: E402
+
+
+def test_service_caps_sources_reports_them_and_forgets_idle_ones(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    settings = ServiceSettings(state_dir=tmp_path, instance="bounded", max_sources=3, source_idle_s=1.5, preview=False)
+    with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (service, port):
+        client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
+        try:
+            assert wait_until(lambda: service_reachable(client), 10)
+            image = textured_image(48, 64)
+            for k in range(5):  # a robot that names every frame anew
+                client.publish_image(f"r1/frame_{k:06d}", image)
+                time.sleep(0.05)
+            assert wait_until(lambda: sum(s.processed for s in client.status().sources.values()) == 3, 15)
+            status = client.status()
+            assert status.tracked_sources == 3 and status.max_sources == 3
+            assert status.rejected_by_reason.get("too_many_sources") == 2
+            assert sorted(status.sources) == [f"r1/frame_{k:06d}" for k in range(3)]  # refused ones leave no state
+            assert 0 < status.history_bytes <= status.history_budget_bytes == 512_000_000
+            assert client.patch("r1/frame_000000", 1, 1).seq == 0
+            # Idle for longer than source_idle_s: forgotten, with history, counters and publishers.
+            assert wait_until(lambda: client.status().tracked_sources == 0, 10)
+            status = client.status()
+            assert status.sources == {} and status.history_bytes == 0
+            assert not service.outputs._publishers
+            with pytest.raises(ServiceError, match=r"unknown source 'r1/frame_000000'.*evicted"):
+                client.patch("r1/frame_000000", 1, 1)
+            client.publish_image("r1/frame_000004", image)  # room again: a new source is served
+            assert wait_until(lambda: "r1/frame_000004" in client.status().sources, 15)
+        finally:
+            client.close()
