@@ -109,3 +109,27 @@ def test_readme_python_example_runs(tiny_backend, tmp_path: Path) -> None:  # ty
         assert result.returncode == 0, result.stderr
         assert "'r1/front': SourceStatus(received=1, processed=1" in result.stdout
         assert len(service.pipeline.anchors) == 2
+
+
+def test_container_health_check_finds_its_instance(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    pytest.importorskip("torch")
+    from gcdtrav.schemas.settings import ServiceSettings
+    from gcdtrav.service.loopback import in_process_service
+
+    def health(*args: str) -> subprocess.CompletedProcess[str]:
+        command = [sys.executable, "-m", "gcdtrav.client.health", "--timeout", "2", *args]
+        return subprocess.run(command, capture_output=True, text=True, timeout=60)
+
+    settings = ServiceSettings(state_dir=tmp_path / "state")  # the default name: {hostname}-{pid}
+    with in_process_service(tiny_backend, settings) as (_, port):
+        flags = ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
+        healthy = health(*flags)
+        assert healthy.returncode == 0 and healthy.stdout.strip() == "healthy", healthy.stderr
+        other = health(*flags, "--instance", "another-box")
+        assert other.returncode == 1
+        assert (
+            other.stderr.strip()
+            == f"unhealthy: instance another-box did not answer (answered: ['{settings.instance}'])"
+        )
+    gone = health("-m", "peer", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting")
+    assert gone.returncode == 1 and gone.stderr.startswith("unhealthy:")

@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import importlib.metadata
+import re
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
+
+import pytest
 
 
 def test_schemas_client_and_engine_import_without_torch() -> None:
@@ -43,3 +48,32 @@ def test_cli_without_torch_says_what_to_install(tmp_path) -> None:  # type: igno
     assert result.returncode == 2
     assert "needs torch" in result.stderr and "pip install torch==2.13.0" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+ROOT = Path(__file__).resolve().parent.parent
+PACKAGE_ROOTS = ("schemas", "client", "service")
+
+
+def test_installed_wheel_has_every_module_data_file_and_the_license() -> None:
+    """CI installs the built wheel: every file under schemas/, client/ and service/ must be in it."""
+    files = {str(path) for path in importlib.metadata.distribution("gcdtrav").files or ()}
+    if not any(name.startswith("gcdtrav/") for name in files):
+        pytest.skip("editable install: the package files are the checkout's (CI tests the built wheel)")
+    expected = {
+        f"gcdtrav/{path.relative_to(ROOT).as_posix()}"
+        for root in PACKAGE_ROOTS
+        for path in (ROOT / root).rglob("*")
+        if path.is_file() and "__pycache__" not in path.parts
+    }
+    assert not expected - files, f"missing from the wheel: {sorted(expected - files)}"
+    assert any(name.endswith("licenses/LICENSE") for name in files)
+
+
+def test_docker_image_and_ci_install_the_wheel_with_the_same_command() -> None:
+    def install_steps(text: str) -> list[str]:
+        return [" ".join(m.split()) for m in re.findall(r"(sh deploy/install-wheel\.sh [^&\n]+)", text)]
+
+    ci = install_steps((ROOT / ".ci" / "run").read_text())
+    docker = install_steps((ROOT / "deploy" / "Dockerfile").read_text())
+    assert len(ci) == len(docker) == 1 and ci == docker, (ci, docker)
+    assert "--from=wheel" in (ROOT / "deploy" / "Dockerfile").read_text()  # the wheel built in the first stage
