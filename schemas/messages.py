@@ -227,6 +227,7 @@ class ServiceStatus(Message):
     anchor_set_version: str
     method: Method
     queued: int = Field(description="Frames waiting for inference (at most one per source).")
+    queued_bytes: int = Field(default=0, description="Their payload bytes (at most pending_budget_mb).")
     sources: dict[str, SourceStatus]
     rejected_by_reason: dict[str, int]
     last_errors: list[str]

@@ -144,6 +144,11 @@ class ServiceSettings(BaseModel):
         gt=0,
         description="Bytes of query history for all sources together, in MB; the oldest frames go first.",
     )
+    pending_budget_mb: float = Field(
+        default=256,
+        gt=0,
+        description="Bytes of frames waiting for inference (one per source), in MB; further frames are rejected.",
+    )
     max_sources: int = Field(
         default=256, ge=1, description="Sources tracked at once; frames from further new sources are rejected."
     )

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from conftest import textured_image
 from gcdtrav.schemas.anchors import default_anchor_set
+from gcdtrav.service.bus.latest import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.queries import FrameHistory, FrameRecord, QueryError
 from gcdtrav.service.sources import SWEEP_INTERVAL_S, SourceTracker
 from zenoh_helpers import connecting_config, service_reachable, wait_until
@@ -50,6 +51,19 @@ def test_history_depth_stays_a_cap_per_source() -> None:
     assert history.nbytes == 0
     with pytest.raises(QueryError, match="unknown source 'a'"):
         history.get("a", None)
+
+
+def test_pending_frames_stay_within_their_byte_budget_and_a_refusal_keeps_the_queue() -> None:
+    queue: LatestFrameQueue[str] = LatestFrameQueue(max_bytes=100)
+    assert queue.put("a", "a0", 60)
+    assert not queue.put("a", "a1", 90)  # replaces a0: 90 bytes pending, within the budget
+    with pytest.raises(PendingBudgetExceeded, match="over 100 bytes"):
+        queue.put("b", "b0", 20)
+    assert queue.nbytes == 90 and len(queue) == 1
+    assert queue.take(0) == ("a", "a1") and queue.nbytes == 0
+    assert queue.put("b", "b0", 20) and queue.nbytes == 20
+    queue.forget("b")
+    assert queue.nbytes == 0 and len(queue) == 0 and queue.counters() == {"a": queue.counters()["a"]}
 
 
 class FakeClock:

@@ -21,25 +21,38 @@ class QueueCounters:
     dropped: int = 0  # replaced by a newer frame before it was taken
 
 
+class PendingBudgetExceeded(Exception):
+    """The frame would take the pending frames of all sources over the queue's byte budget."""
+
+
 @dataclass
 class LatestFrameQueue(Generic[T]):
-    _pending: OrderedDict[str, T] = field(default_factory=OrderedDict)
+    max_bytes: int | None = None  # all pending frames together; None: one frame per source is the only bound
+    _pending: OrderedDict[str, tuple[T, int]] = field(default_factory=OrderedDict)
     _counters: dict[str, QueueCounters] = field(default_factory=dict)
     _cond: threading.Condition = field(default_factory=threading.Condition)
     _closed: bool = False
+    _bytes: int = 0
 
-    def put(self, source: str, item: T) -> bool:
-        """Store ``item`` as the source's newest frame. Returns False if it replaced (dropped) an older one."""
+    def put(self, source: str, item: T, nbytes: int = 0) -> bool:
+        """Store ``item`` as the source's newest frame. Returns False if it replaced (dropped) an older one.
+
+        Raises PendingBudgetExceeded, keeping what is queued, if ``nbytes`` more would exceed ``max_bytes``.
+        """
         with self._cond:
             counters = self._counters.setdefault(source, QueueCounters())
             counters.received += 1
-            replaced = source in self._pending
-            if replaced:
+            older = self._pending.get(source)
+            freed = older[1] if older is not None else 0
+            if self.max_bytes is not None and self._bytes - freed + nbytes > self.max_bytes:
+                raise PendingBudgetExceeded(f"{nbytes} bytes would take the pending frames over {self.max_bytes} bytes")
+            if older is not None:
                 counters.dropped += 1
             # A replaced item keeps the source's place in the rotation; a new one joins at the back.
-            self._pending[source] = item
+            self._pending[source] = (item, nbytes)
+            self._bytes += nbytes - freed
             self._cond.notify()
-            return not replaced
+            return older is None
 
     def count_unqueued(self, source: str) -> None:
         """Count a frame that was received but refused before queueing (e.g. over the byte limit)."""
@@ -53,18 +66,26 @@ class LatestFrameQueue(Generic[T]):
                 return None
             if not self._pending:
                 return None
-            return self._pending.popitem(last=False)
+            source, (item, nbytes) = self._pending.popitem(last=False)
+            self._bytes -= nbytes
+            return source, item
 
     def forget(self, source: str) -> None:
         """Drop the source's pending frame and counters (a source the service no longer tracks)."""
         with self._cond:
-            self._pending.pop(source, None)
+            _, nbytes = self._pending.pop(source, (None, 0))
+            self._bytes -= nbytes
             self._counters.pop(source, None)
 
     def close(self) -> None:
         with self._cond:
             self._closed = True
             self._cond.notify_all()
+
+    @property
+    def nbytes(self) -> int:
+        with self._cond:
+            return self._bytes
 
     def __len__(self) -> int:
         with self._cond:

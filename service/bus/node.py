@@ -36,7 +36,7 @@ from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
 from gcdtrav.service.bus import ros as ros_io
 from gcdtrav.service.bus.grids import GridOutputs
 from gcdtrav.service.bus.ingest import DecodedFrame, RejectedInput, decode_payload
-from gcdtrav.service.bus.latest import LatestFrameQueue
+from gcdtrav.service.bus.latest import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs, ProcessedFrame
 from gcdtrav.service.bus.stats import ServiceStats, percentiles
@@ -98,7 +98,7 @@ class TraversabilityService:
         self.pipeline = pipeline
         self.settings = settings
         self.prefix = settings.prefix
-        self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue()
+        self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(round(settings.pending_budget_mb * 1e6))
         self.history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
         self.stats = ServiceStats(log)
         self._seq: dict[str, int] = {}
@@ -235,7 +235,10 @@ class TraversabilityService:
             )
             return
         pending = PendingFrame(str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), time.time(), ros)
-        self.queue.put(source, pending)
+        try:
+            self.queue.put(source, pending, size)
+        except PendingBudgetExceeded as err:
+            self.stats.rejected(source, "pending_budget", str(err))
 
     def _declare_grid_inputs(self, grids: GridOutputs) -> None:
         self._declared.append(self.session.declare_queryable(f"{self.prefix}/out/**/cell", self._on_cell_query))
@@ -435,6 +438,7 @@ class TraversabilityService:
             anchor_set_version=self.pipeline.anchors.version,
             method=self.pipeline.settings.method,
             queued=len(self.queue),
+            queued_bytes=self.queue.nbytes,
             sources=sources,
             rejected_by_reason=rejected,
             last_errors=errors,
