@@ -2,11 +2,17 @@
 
     python benchmarks/soak.py                          # 8 robots x 15 fps, 640x480, 10 min, 2 instances
     python benchmarks/soak.py --minutes 2 --robots 4   # shorter
+    python benchmarks/soak.py --churn 2 --sample-seconds 30   # + 2 frames/s, each under a new source name
 
 Everything runs on this machine (127.0.0.1), is bounded in time and stops by itself. Without --model it
 uses random weights of the real CLIPSeg architecture. Reports, per instance, resident memory over time
 and, per robot, frames sent / received / processed / dropped / rejected, maps delivered, latency
 percentiles (robot stamp to maps received) and the services' errors; writes the same as JSON.
+
+With --churn, sources come and go as well: every churn frame carries a new source name (a robot that
+puts a frame counter in its key, or a hostile peer). Resident memory must level off within the bound that
+the settings give (docs/architecture.md, Memory), and the steady robots must still be served evenly; the
+report adds each instance's tracked sources, history and pending bytes at every sample, and the verdict.
 """
 
 from __future__ import annotations
@@ -17,6 +23,7 @@ import json
 import statistics
 import sys
 import tempfile
+import threading
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -24,10 +31,90 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from gcdtrav.client import TraversabilityClient, zenoh_config
+from gcdtrav.client import ServiceError, TraversabilityClient, zenoh_config
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.service.bench import bench_image, rss_mb
 from gcdtrav.service.loopback import SimulatedRobots, free_port, service_processes, wait_for_statuses
+
+
+class ChurningSources:
+    """One thread publishing ``fps`` frames/s, each under a source name never used before."""
+
+    def __init__(self, client: TraversabilityClient, fps: float, jpeg: bytes) -> None:
+        self.client, self.fps, self.jpeg, self.sent = client, fps, jpeg, 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        next_at = time.monotonic()
+        while not self._stop.is_set():
+            # A plain put of the JPEG: a declared publisher per name would grow this process instead.
+            key = f"{self.client.input_prefix}/churn/frame_{self.sent:06d}"
+            self.client.session.put(key, self.jpeg, encoding=zenoh.Encoding.IMAGE_JPEG)
+            self.sent += 1
+            next_at += 1.0 / self.fps
+            self._stop.wait(max(0.0, next_at - time.monotonic()))
+
+    def start(self) -> None:
+        if self.fps > 0:
+            self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(5)
+
+
+def sample_bounds(client: TraversabilityClient, at: float, series: dict[str, list[dict[str, float]]]) -> None:
+    """Each instance's tracked sources, history and pending bytes, as its status reports them."""
+    try:
+        statuses = client.statuses(timeout=5.0)
+    except ServiceError as err:
+        print(f"  status query failed: {err}", file=sys.stderr)
+        return
+    for status in statuses:
+        series[status.instance].append(
+            {
+                "t": at,
+                "tracked_sources": status.tracked_sources,
+                "history_mb": round(status.history_bytes / 1e6, 1),
+                "queued_mb": round(status.queued_bytes / 1e6, 1),
+                "too_many_sources": status.rejected_by_reason.get("too_many_sources", 0),
+            }
+        )
+
+
+def churn_verdict(
+    args: argparse.Namespace,
+    churn_sent: int,
+    per_robot: dict[str, dict[str, Any]],
+    rss: dict[str, list[tuple[float, float]]],
+    bounds: dict[str, list[dict[str, float]]],
+) -> dict[str, Any]:
+    """Did memory level off within the settings' bound, and were the steady robots served evenly?"""
+    levelled = {}
+    for name, series in rss.items():
+        values = [v for _, v in series]
+        half = len(values) // 2
+        # Levelled: the second half's peak is no more than 5 % above the first half's (the bound is reached
+        # in the first half once the source cap and history budget fill).
+        levelled[name] = {
+            "first_half_peak_mb": max(values[: max(half, 1)]),
+            "second_half_peak_mb": max(values[half:]),
+            "levelled": max(values[half:]) <= 1.05 * max(values[: max(half, 1)]),
+        }
+    maps = [c["maps_delivered"] for c in per_robot.values()]
+    refused = sum(series[-1]["too_many_sources"] for series in bounds.values() if series)
+    return {
+        "churn_frames_sent": churn_sent,
+        "churn_frames_refused_too_many_sources": refused,
+        "budget_mb": args.history_budget_mb + args.pending_budget_mb,
+        "rss": levelled,
+        "bounds": bounds,
+        "max_tracked_sources": max((b["tracked_sources"] for s in bounds.values() for b in s), default=0),
+        "max_history_mb": max((b["history_mb"] for s in bounds.values() for b in s), default=0),
+        "steady_maps_min_max": [min(maps, default=0), max(maps, default=0)],
+    }
 
 
 def main() -> int:
@@ -40,6 +127,11 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=1, help="torch threads per instance [1]")
     parser.add_argument("--sample-seconds", type=float, default=10.0)
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/soak.json"))
+    parser.add_argument("--churn", type=float, default=0.0, help="frames/s, each under a new source name [0]")
+    parser.add_argument("--max-sources", type=int, default=256, help="the services' max_sources [256]")
+    parser.add_argument("--source-idle-s", type=float, default=300.0, help="the services' source_idle_s [300]")
+    parser.add_argument("--history-budget-mb", type=float, default=512.0, help="history_budget_mb [512]")
+    parser.add_argument("--pending-budget-mb", type=float, default=256.0, help="pending_budget_mb [256]")
     args = parser.parse_args()
     deadline_s = args.minutes * 60
 
@@ -55,6 +147,12 @@ def main() -> int:
     common = ["--model", model, "-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
     common += ["--threads", str(args.threads), "--no-preview"]
     state = Path(scratch.name)
+    settings = state / "bounds.yaml"
+    settings.write_text(
+        f"max_sources: {args.max_sources}\nsource_idle_s: {args.source_idle_s}\n"
+        f"history_budget_mb: {args.history_budget_mb}\npending_budget_mb: {args.pending_budget_mb}\n"
+    )
+    common += ["--settings", str(settings)]
     arguments = [
         [*common, "--instance", f"soak-{k}", "--state-dir", str(state / f"state{k}")] for k in range(args.instances)
     ]
@@ -66,7 +164,9 @@ def main() -> int:
         config=zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False), timeout=5.0
     )
     rss_series: dict[str, list[tuple[float, float]]] = defaultdict(list)
+    bounds_series: dict[str, list[dict[str, float]]] = defaultdict(list)
     report: dict[str, Any] = {}
+    churn = ChurningSources(client, args.churn, encode_jpeg(bench_image(480, 640, seed=1), 85))
     try:
         wait_for_statuses(client, args.instances)
         names = [f"robot{i}/front" for i in range(args.robots)]
@@ -79,19 +179,23 @@ def main() -> int:
             file=sys.stderr,
         )
         robots.start()
+        churn.start()
         started = time.monotonic()
         while (elapsed := time.monotonic() - started) < deadline_s:
             time.sleep(min(args.sample_seconds, deadline_s - elapsed))
             for process, k in zip(services, range(args.instances), strict=True):
                 rss_series[f"soak-{k}"].append((round(time.monotonic() - started, 1), round(rss_mb(process.pid), 1)))
+            if args.churn:
+                sample_bounds(client, round(time.monotonic() - started, 1), bounds_series)
             sent = sum(robots.sent.values())
             delivered = len(robots.received())
             print(
-                f"  t={time.monotonic() - started:6.0f} s  sent {sent}  maps {delivered}  rss "
+                f"  t={time.monotonic() - started:6.0f} s  sent {sent}  churn {churn.sent}  maps {delivered}  rss "
                 + " ".join(f"{name} {series[-1][1]:.0f} MB" for name, series in rss_series.items()),
                 file=sys.stderr,
             )
         robots.stop()
+        churn.stop()
         time.sleep(3.0)
         statuses = client.statuses(timeout=5.0)
         subscriber.undeclare()
@@ -124,6 +228,8 @@ def main() -> int:
             "last_errors": {status.instance: status.last_errors for status in statuses},
             "lost": sum(c["sent"] - c["received"] for c in per_robot.values()),
         }
+        if args.churn:
+            report["churn"] = churn_verdict(args, churn.sent, per_robot, dict(rss_series), dict(bounds_series))
     finally:
         client.close()
         stack.close()
@@ -145,6 +251,8 @@ def main() -> int:
             f"growth first->last {report['rss_growth_mb'][name]:+.1f} MB over {len(values)} samples"
         )
     print(f"errors: {report['errors']}; sent but never received by a service: {report['lost']}")
+    if "churn" in report:
+        print(f"churn: {json.dumps(report['churn'])}")
     print(f"written: {args.out}")
     return 0
 

@@ -5,6 +5,7 @@ Everything here stays on loopback, with multicast scouting off, and stops when i
 
 from __future__ import annotations
 
+import contextlib
 import math
 import socket
 import statistics
@@ -44,25 +45,27 @@ def serve_command(*arguments: str) -> list[str]:
 @contextmanager
 def service_processes(arguments: Sequence[Sequence[str]]) -> Iterator[list[subprocess.Popen[str]]]:
     """``gcdtrav serve ARGS`` once per argument list, as child processes; stopped (SIGTERM, then kill) at exit."""
-    processes = [
-        subprocess.Popen(
-            serve_command(*args),
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
-        for args in arguments
-    ]
-    try:
-        yield processes
-    finally:
-        for process in processes:
-            process.terminate()
-        for process in processes:
-            try:
-                process.communicate(timeout=20)
-            except subprocess.TimeoutExpired:
-                process.kill()
+    # Logs go to files, not pipes: nobody reads a pipe during a long soak, and a full one blocks the service.
+    with contextlib.ExitStack() as logs:
+        processes = [
+            subprocess.Popen(
+                serve_command(*args),
+                stdout=subprocess.DEVNULL,
+                stderr=logs.enter_context(tempfile.TemporaryFile("w+")),
+                text=True,
+            )
+            for args in arguments
+        ]
+        try:
+            yield processes
+        finally:
+            for process in processes:
+                process.terminate()
+            for process in processes:
+                try:
+                    process.wait(timeout=20)
+                except subprocess.TimeoutExpired:
+                    process.kill()
 
 
 def wait_for_statuses(client: TraversabilityClient, instances: int, timeout_s: float = 120.0) -> None:

@@ -1,0 +1,43 @@
+"""The churn soak, short: every churn frame under a new source name, beside steady robots, on loopback.
+
+benchmarks/soak.py --churn runs for 10 minutes on the real architecture (benchmarks/README.md); this is
+its 45-second version on the tiny model, with a small source cap and idle time so that both bounds act.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("torch")
+
+ROOT = Path(__file__).resolve().parents[1]
+MAX_SOURCES = 8
+
+
+def test_churning_sources_stay_capped_are_forgotten_and_steady_robots_are_served_evenly(
+    tiny_model_dir: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "churn.json"
+    command = [sys.executable, str(ROOT / "benchmarks" / "soak.py"), "--model", str(tiny_model_dir)]
+    command += ["--minutes", "0.75", "--robots", "2", "--fps", "5", "--instances", "1", "--churn", "5"]
+    command += ["--max-sources", str(MAX_SOURCES), "--source-idle-s", "3", "--sample-seconds", "5"]
+    command += ["--history-budget-mb", "4", "--out", str(out)]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=240)
+    assert result.returncode == 0, result.stderr[-2000:]
+    report = json.loads(out.read_text())
+    churn = report["churn"]
+    samples = churn["bounds"]["soak-0"]
+    assert len(samples) >= 6
+    assert all(0 < s["tracked_sources"] <= MAX_SOURCES for s in samples)
+    assert all(s["history_mb"] <= 4 for s in samples)
+    refused = churn["churn_frames_refused_too_many_sources"]
+    assert refused > 0  # the cap acted ...
+    assert churn["churn_frames_sent"] - refused > 2 * MAX_SOURCES  # ... and forgotten sources made room again
+    low, high = churn["steady_maps_min_max"]
+    assert low > 0 and low >= 0.8 * high
+    assert report["lost"] == 0 and set(report["errors"]["soak-0"]) == {"too_many_sources"}
