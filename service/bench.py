@@ -312,7 +312,7 @@ class Bench:
                 seq=0,
                 stamp=float(next(clock)),
                 frame_id="",
-                weights=weights[:, :1, :1],
+                weights=weights[:, :1, :1].astype(np.float16),
                 anchors=self.anchors,
                 image_size=(640, 480),
             )

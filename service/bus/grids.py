@@ -122,7 +122,7 @@ class SourceGrid:
         camera = self.camera_for(image_size)
         u, v = map_cell_pixels(map_shape, image_size)
         if self.depth is not None:
-            depth = cv2.resize(self.depth, image_size, interpolation=cv2.INTER_NEAREST)
+            depth = np.asarray(cv2.resize(self.depth, image_size, interpolation=cv2.INTER_NEAREST), np.float32)
             return depth_points(camera, self.mount, u, v, depth, self.config.max_range_m)
         key = (map_shape, image_size, camera)
         if key not in self._ground_cache:  # a fixed camera: the same rays every frame

@@ -17,9 +17,11 @@ from dataclasses import dataclass
 from itertools import combinations
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 FloatArray = NDArray[np.floating]
+# Anchor positions and widths arrive as the AnchorSet's lists or as arrays; each function converts them.
+Values = ArrayLike
 
 # Below this spread a distribution is a point mass: skewness and kurtosis are reported as 0.
 DEGENERATE_STD = 1e-6
@@ -69,7 +71,7 @@ def softmax_weights(logits: FloatArray, temperature: float = 1.0) -> NDArray[np.
     return weights.reshape(scores.shape)
 
 
-def _moment_rows(positions: FloatArray, widths: FloatArray) -> NDArray[np.float64]:
+def _moment_rows(positions: Values, widths: Values) -> NDArray[np.float64]:
     """(2, n): each anchor's first and second raw moment, p and p^2 + sigma^2."""
     p = np.asarray(positions, dtype=np.float64)
     s = np.asarray(widths, dtype=np.float64)
@@ -87,7 +89,7 @@ def _mean_std_block(
 
 
 def mixture_mean_std(
-    weights: FloatArray, positions: FloatArray, widths: FloatArray
+    weights: FloatArray, positions: Values, widths: Values
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """T and U as the paper defines them: the mixture's mean and standard deviation."""
     w = np.asarray(weights, dtype=np.float32)
@@ -101,7 +103,7 @@ def mixture_mean_std(
 
 
 def softmax_mean_std(
-    logits: FloatArray, positions: FloatArray, widths: FloatArray, temperature: float = 1.0
+    logits: FloatArray, positions: Values, widths: Values, temperature: float = 1.0
 ) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray[np.float32]]:
     """Weights, T and U in one pass over cache-sized blocks of patches.
 
@@ -122,12 +124,12 @@ def softmax_mean_std(
     return weights.reshape(scores.shape), mean.reshape(shape), std.reshape(shape)
 
 
-def _column(values: FloatArray, ndim: int) -> NDArray[np.float32]:
+def _column(values: Values, ndim: int) -> NDArray[np.float32]:
     """Shape an (n,) anchor vector to broadcast against an (n, ...) weight array."""
     return np.asarray(values, dtype=np.float32).reshape((-1,) + (1,) * (ndim - 1))
 
 
-def max_mixture_std(positions: FloatArray, widths: FloatArray) -> float:
+def max_mixture_std(positions: Values, widths: Values) -> float:
     """The largest standard deviation any weighting of these anchors can produce.
 
     The variance sum w_k a_k - (sum w_k p_k)^2 (a_k = p_k^2 + sigma_k^2) is concave in w; for a fixed mean
@@ -163,8 +165,8 @@ class MixtureStatistics:
 
 def mixture_statistics(
     weights: FloatArray,
-    positions: FloatArray,
-    widths: FloatArray,
+    positions: Values,
+    widths: Values,
     top_k: int = 3,
     bandwidth: float = DEFAULT_DENSITY_BANDWIDTH,
 ) -> MixtureStatistics:
@@ -198,9 +200,7 @@ def density_grid(size: int = DEFAULT_DENSITY_GRID) -> NDArray[np.float32]:
     return np.linspace(0.0, 1.0, size, dtype=np.float32)
 
 
-def _component_kernels(
-    positions: FloatArray, widths: FloatArray, grid: FloatArray, bandwidth: float
-) -> NDArray[np.float32]:
+def _component_kernels(positions: Values, widths: Values, grid: FloatArray, bandwidth: float) -> NDArray[np.float32]:
     """(n, G): each anchor's normal density on the grid, widths floored at ``bandwidth``."""
     p = np.asarray(positions, dtype=np.float32)[:, None]
     s = np.maximum(np.asarray(widths, dtype=np.float32), np.float32(bandwidth))[:, None]
@@ -210,8 +210,8 @@ def _component_kernels(
 
 def mixture_density(
     weights: FloatArray,
-    positions: FloatArray,
-    widths: FloatArray,
+    positions: Values,
+    widths: Values,
     grid: FloatArray | None = None,
     bandwidth: float = DEFAULT_DENSITY_BANDWIDTH,
 ) -> NDArray[np.float32]:
@@ -224,8 +224,8 @@ def mixture_density(
 
 def count_modes(
     weights: FloatArray,
-    positions: FloatArray,
-    widths: FloatArray,
+    positions: Values,
+    widths: Values,
     bandwidth: float = DEFAULT_DENSITY_BANDWIDTH,
     grid_size: int = DEFAULT_DENSITY_GRID,
     chunk: int = 16384,
@@ -249,7 +249,7 @@ def count_modes(
 # ---- the paper's baselines -------------------------------------------------------------------------
 
 
-def argmax_baseline(weights: FloatArray, positions: FloatArray) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+def argmax_baseline(weights: FloatArray, positions: Values) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """'CLIP' baseline: T = position of the top anchor, uncertainty = 1 - its weight."""
     w = np.asarray(weights, dtype=np.float32)
     top = np.argmax(w, axis=0)
@@ -259,7 +259,7 @@ def argmax_baseline(weights: FloatArray, positions: FloatArray) -> tuple[NDArray
 
 
 def gaussian_fit_baseline(
-    weights: FloatArray, positions: FloatArray, iterations: int = 25
+    weights: FloatArray, positions: Values, iterations: int = 25
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Unimodal ablation: one Gaussian A exp(-(p - m)^2 / 2 s^2) fitted by least squares to (p_k, w_k).
 
