@@ -65,7 +65,9 @@ class ChurningSources:
             self._thread.join(5)
 
 
-def sample_bounds(client: TraversabilityClient, at: float, series: dict[str, list[dict[str, float]]]) -> None:
+def sample_bounds(
+    client: TraversabilityClient, at: float, churn_sent: int, series: dict[str, list[dict[str, float]]]
+) -> None:
     """Each instance's tracked sources, history and pending bytes, as its status reports them."""
     try:
         statuses = client.statuses(timeout=5.0)
@@ -76,6 +78,7 @@ def sample_bounds(client: TraversabilityClient, at: float, series: dict[str, lis
         series[status.instance].append(
             {
                 "t": at,
+                "churn_sent": churn_sent,
                 "tracked_sources": status.tracked_sources,
                 "history_mb": round(status.history_bytes / 1e6, 1),
                 "queued_mb": round(status.queued_bytes / 1e6, 1),
@@ -186,7 +189,7 @@ def main() -> int:
             for process, k in zip(services, range(args.instances), strict=True):
                 rss_series[f"soak-{k}"].append((round(time.monotonic() - started, 1), round(rss_mb(process.pid), 1)))
             if args.churn:
-                sample_bounds(client, round(time.monotonic() - started, 1), bounds_series)
+                sample_bounds(client, round(time.monotonic() - started, 1), churn.sent, bounds_series)
             sent = sum(robots.sent.values())
             delivered = len(robots.received())
             print(
