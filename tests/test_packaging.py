@@ -56,9 +56,14 @@ PACKAGE_ROOTS = ("schemas", "client", "service")
 
 def test_installed_wheel_has_every_module_data_file_and_the_license() -> None:
     """CI installs the built wheel: every file under schemas/, client/ and service/ must be in it."""
-    files = {str(path) for path in importlib.metadata.distribution("gcdtrav").files or ()}
-    if not any(name.startswith("gcdtrav/") for name in files):
+    import gcdtrav.schemas
+
+    module = Path(gcdtrav.schemas.__file__).resolve()
+    if module == ROOT / "schemas" / "__init__.py":
         pytest.skip("editable install: the package files are the checkout's (CI tests the built wheel)")
+    site = [str(module.parents[2])]  # site-packages/gcdtrav/schemas/__init__.py
+    (distribution,) = [d for d in importlib.metadata.distributions(path=site) if d.name == "gcdtrav"]
+    files = {str(path) for path in distribution.files or ()}
     expected = {
         f"gcdtrav/{path.relative_to(ROOT).as_posix()}"
         for root in PACKAGE_ROOTS
