@@ -45,6 +45,11 @@ class RosInput(BaseModel):
     message_type: Literal["auto", "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"] = Field(
         default="auto", description="auto: read from the rmw_zenoh key; bridge keys carry no type, so set it."
     )
+    zenoh_namespace: str = Field(
+        default="",
+        description="The robot's zenoh session 'namespace': its keys (and graph tokens) start with it, e.g. "
+        "'robot1' for robot1/0/camera/...; key must start with it too. Outputs are published under it.",
+    )
 
     @model_validator(mode="after")
     def _bridge_needs_a_type(self) -> RosInput:
@@ -53,18 +58,82 @@ class RosInput(BaseModel):
                 f"ros input '{self.key}': bridge keys carry no type; set message_type to one of "
                 f"{', '.join(IMAGE_TYPES)}"
             )
+        namespace = self.zenoh_namespace
+        if namespace and not all(_KEY_CHUNK.match(chunk) for chunk in namespace.split("/")):
+            raise ValueError(f"ros input '{self.key}': zenoh_namespace '{namespace}' must be a literal key")
+        if namespace and not self.key.startswith(namespace + "/"):
+            raise ValueError(f"ros input '{self.key}': the key must start with its zenoh_namespace '{namespace}/'")
         return self
 
 
+_ROS_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+
+
+class RosNode(BaseModel):
+    """The service's node in the ROS 2 graph of rmw_zenoh robots (``ros2 node list`` shows /<namespace>/<name>)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: str = Field(default="gcdtrav", description="ROS node name.")
+    namespace: str = Field(default="/", description="ROS namespace of the node, e.g. / or /robot1.")
+
+    @field_validator("name")
+    @classmethod
+    def _node_name(cls, value: str) -> str:
+        if not _ROS_NAME.match(value):
+            raise ValueError(f"'{value}' is not a ROS node name (letters, digits and _, not starting with a digit)")
+        return value
+
+    @field_validator("namespace")
+    @classmethod
+    def _node_namespace(cls, value: str) -> str:
+        chunks = value.strip("/").split("/") if value != "/" else []
+        if not value.startswith("/") or not all(_ROS_NAME.match(chunk) for chunk in chunks):
+            raise ValueError(f"'{value}' is not a ROS namespace: '/' or '/name[/name...]'")
+        return value.rstrip("/") or "/"
+
+
+def _topic_template(value: str) -> str:
+    name = value.replace("{topic}", "t").strip("/")
+    if not name or not all(_ROS_NAME.match(chunk) or chunk == "t" for chunk in name.split("/")):
+        raise ValueError(f"'{value}' is not a ROS topic name ({{topic}} stands for the camera's topic)")
+    return value
+
+
 class RosOutput(BaseModel):
-    """Maps as ROS 2 topics next to each ROS input topic: <topic>/gcdtrav/{traversability,uncertainty,preview}."""
+    """Maps as ROS 2 topics; ``{topic}`` in a topic stands for the camera's topic (without the leading slash)."""
 
     model_config = ConfigDict(extra="forbid")
 
     enabled: bool = False
     preview: Literal["compressed", "image", "none"] = Field(
-        default="compressed", description="preview as CompressedImage (jpeg), Image (rgb8), or not at all"
+        default="compressed",
+        description="preview as CompressedImage (jpeg) on <preview_topic>/compressed, as image_transport "
+        "names it, as Image (rgb8) on <preview_topic>, or not at all",
     )
+    traversability_topic: str = "{topic}/gcdtrav/traversability"
+    uncertainty_topic: str = "{topic}/gcdtrav/uncertainty"
+    preview_topic: str = "{topic}/gcdtrav/preview"
+    occupancy_topic: str = Field(
+        default="{topic}/gcdtrav/grid/occupancy",
+        description="nav_msgs/OccupancyGrid of the camera's grid, cost 100 (1 - T) (grids with occupancy_grid).",
+    )
+    grid_uncertainty_topic: str = "{topic}/gcdtrav/grid/uncertainty"
+
+    _templates = field_validator(
+        "traversability_topic", "uncertainty_topic", "preview_topic", "occupancy_topic", "grid_uncertainty_topic"
+    )(_topic_template)
+
+    def topic_templates(self) -> list[str]:
+        """Every output topic; the compressed preview is a subtopic of the preview's."""
+        return [
+            self.traversability_topic,
+            self.uncertainty_topic,
+            self.preview_topic,
+            self.preview_topic + "/compressed",
+            self.occupancy_topic,
+            self.grid_uncertainty_topic,
+        ]
 
 
 class CameraIntrinsics(BaseModel):
@@ -164,6 +233,7 @@ class ServiceSettings(BaseModel):
     grids: list[GridSettings] = Field(default_factory=list, description="Ground grids, one per source.")
     ros_inputs: list[RosInput] = Field(default_factory=list, description="ROS 2 image topics (CDR).")
     ros_output: RosOutput = Field(default_factory=RosOutput)
+    ros_node: RosNode = Field(default_factory=RosNode)
     precision: Literal["auto", "fp32", "bf16", "bf16-vit", "int8"] = Field(
         default="auto",
         description="Vision encoder arithmetic: auto = bf16 on CPUs with AVX512-BF16/AMX, else fp32.",

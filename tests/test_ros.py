@@ -132,18 +132,20 @@ def test_keys_of_both_layouts() -> None:
     assert image_hash.startswith("RIHS01_") and len(image_hash) == 7 + 64
     key = f"0/robot/front/image_raw/sensor_msgs::msg::dds_::Image_/{image_hash}"
     topic = ros.parse_key(key, "rmw_zenoh")
-    assert (topic.topic, topic.msgtype, topic.source, topic.domain) == (
+    assert (topic.topic, topic.msgtype, topic.source, topic.domain, topic.type_hash) == (
         "/robot/front/image_raw",
         ros.IMAGE,
         "robot/front/image_raw",
         0,
+        image_hash,
     )
-    assert ros.output_key(topic, "gcdtrav/traversability", ros.IMAGE) == (
+    assert ros.topic_key(topic.derived("/robot/front/image_raw/gcdtrav/traversability", ros.IMAGE)) == (
         f"0/robot/front/image_raw/gcdtrav/traversability/sensor_msgs::msg::dds_::Image_/{image_hash}"
     )
     bridge = ros.parse_key("cam/left", "bridge")
     assert bridge.topic == "/cam/left" and bridge.msgtype is None
-    assert ros.output_key(bridge, "gcdtrav/preview", ros.COMPRESSED_IMAGE) == "cam/left/gcdtrav/preview"
+    preview = bridge.derived("/cam/left/gcdtrav/preview/compressed", ros.COMPRESSED_IMAGE)
+    assert ros.topic_key(preview) == "cam/left/gcdtrav/preview/compressed"
     with pytest.raises(ros.RosDecodeError, match="bad_ros_key"):
         ros.parse_key("0/robot/front", "rmw_zenoh")
 
@@ -219,10 +221,11 @@ def test_ros_in_maps_out_both_layouts(tiny_backend, tmp_path: Path) -> None:  # 
             np.testing.assert_allclose(
                 decode_float_image(ros_out[u_key][0])[0], front.uncertainty_full, atol=0.51 / 65535
             )
-            preview_key = "cam/left/gcdtrav/preview"
+            preview_key = "cam/left/gcdtrav/preview/compressed"  # image_transport's compressed subtopic
             assert wait_until(lambda: preview_key in ros_out, 10)
             preview = ros.typestore().deserialize_cdr(ros_out[preview_key][0], ros.COMPRESSED_IMAGE)
-            assert preview.format == "jpeg" and cv2.imdecode(np.asarray(preview.data), cv2.IMREAD_COLOR) is not None
+            assert preview.format == "rgb8; jpeg compressed bgr8"
+            assert cv2.imdecode(np.asarray(preview.data), cv2.IMREAD_COLOR) is not None
             assert "cam/left/gcdtrav/traversability" in ros_out
 
             by_stamp = client.patch("robot/front/image_raw", 3, 3, stamp=STAMP)
@@ -238,7 +241,9 @@ def test_ros_in_maps_out_both_layouts(tiny_backend, tmp_path: Path) -> None:  # 
 
 
 def test_topic_key_round_trips_through_parse_key() -> None:
-    topic = ros.RosTopic("/camera/front/image_raw", ros.COMPRESSED_IMAGE, "rmw_zenoh", domain=3)
-    assert ros.parse_key(ros.topic_key(topic), "rmw_zenoh") == topic
+    topic = ros.RosTopic(
+        "/camera/front/image_raw", ros.COMPRESSED_IMAGE, "rmw_zenoh", 3, "robot1", ros.type_hash(ros.COMPRESSED_IMAGE)
+    )
+    assert ros.parse_key(ros.topic_key(topic), "rmw_zenoh", "robot1") == topic
     bridge = ros.RosTopic("/camera/front/image_raw", None, "bridge")
     assert ros.parse_key(ros.topic_key(bridge), "bridge") == bridge

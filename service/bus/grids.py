@@ -78,16 +78,17 @@ def decode_depth(payload: bytes) -> NDArray[np.float32]:
         image = ros.typestore().deserialize_cdr(payload, ros.IMAGE)
     except Exception as err:  # rosbags raises assorted errors on bad CDR
         raise MessageError(f"not a sensor_msgs/msg/Image: {type(err).__name__}: {err}") from None
-    kinds = {"32fc1": ("<f4", 1.0), "16uc1": ("<u2", 1e-3), "mono16": ("<u2", 1e-3)}
+    kinds = {"32fc1": ("f4", 1.0), "16uc1": ("u2", 1e-3), "mono16": ("u2", 1e-3)}
     kind = kinds.get(str(image.encoding).lower())
     if (
         kind is None
         or image.step * image.height != len(image.data)
-        or image.step < image.width * (4 if kind[0] == "<f4" else 2)
+        or image.step < image.width * (4 if kind[0] == "f4" else 2)
     ):
         raise MessageError(f"depth must be 32FC1 or 16UC1 with matching size, got {image.encoding}")
+    dtype = np.dtype((">" if image.is_bigendian else "<") + kind[0])
     rows = np.asarray(image.data, np.uint8).reshape(image.height, image.step)
-    values = rows[:, : image.width * np.dtype(kind[0]).itemsize].copy().view(kind[0])
+    values = rows[:, : image.width * dtype.itemsize].copy().view(dtype)
     return (values.astype(np.float32) * np.float32(kind[1])).reshape(image.height, image.width)
 
 

@@ -39,6 +39,7 @@ from gcdtrav.service.bus.ingest import DecodedFrame, RejectedInput, decode_paylo
 from gcdtrav.service.bus.latest import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs, ProcessedFrame
+from gcdtrav.service.bus.ros_graph import RosGraph
 from gcdtrav.service.bus.stats import ServiceStats, percentiles
 from gcdtrav.service.cpus import usable_cpus
 from gcdtrav.service.pipeline import Inference, Pipeline
@@ -118,7 +119,8 @@ class TraversabilityService:
         self._started_at = time.time()
         self.membership: Membership | None = None
         self.grids = GridOutputs(settings.grids, len(pipeline.anchors), settings.instance) if settings.grids else None
-        self.outputs = FrameOutputs(session, settings, pipeline.backend.model_id, self.grids)
+        self.ros_graph = RosGraph(session, settings) if settings.ros_inputs else None
+        self.outputs = FrameOutputs(session, settings, pipeline.backend.model_id, self.grids, self.ros_graph)
         forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget, self._forget_seq)
         self.sources = SourceTracker(settings.max_sources, settings.source_idle_s, forget)
         self._check_inputs()
@@ -145,6 +147,8 @@ class TraversabilityService:
             self._declared.append(self.session.declare_subscriber(expression, self._image_handler(head)))
         for ros_input in self.settings.ros_inputs:
             self._declared.append(self.session.declare_subscriber(ros_input.key, self._ros_handler(ros_input)))
+        if self.ros_graph is not None:
+            self.ros_graph.start()
         if self.grids is not None:
             self._declare_grid_inputs(self.grids)
         self._declared += [
@@ -185,6 +189,8 @@ class TraversabilityService:
                 log.debug("undeclare failed: %s", err)
         self._declared.clear()
         self.outputs.close()
+        if self.ros_graph is not None:
+            self.ros_graph.close()
 
     # ---- input ---------------------------------------------------------------------------------------
     def _image_handler(self, head: str) -> Callable[[zenoh.Sample], None]:
@@ -205,12 +211,12 @@ class TraversabilityService:
             return
         key = str(sample.key_expr)
         try:
-            topic = ros_io.parse_key(key, ros_input.layout)
+            topic = ros_io.parse_key(key, ros_input.layout, ros_input.zenoh_namespace)
         except ros_io.RosDecodeError as err:
             self.stats.rejected(None, err.reason, f"{key}: {err.detail}")  # not a source: keys are unbounded
             return
-        if ros_io.OUTPUT_NAMESPACE in topic.topic.split("/"):
-            return  # our own ROS outputs, matched by a wide input expression
+        if ros_io.is_output_topic(topic.topic, self.settings.ros_output.topic_templates()):
+            return  # ROS outputs of a gcdtrav service, matched by a wide input expression
         if ros_input.message_type != "auto":
             topic = replace(topic, msgtype=ros_input.message_type)
         self._enqueue(topic.source, sample, topic)

@@ -22,6 +22,7 @@ from gcdtrav.service import viz
 from gcdtrav.service.bus import ros as ros_io
 from gcdtrav.service.bus.grids import GridOutputs
 from gcdtrav.service.bus.ingest import DecodedFrame
+from gcdtrav.service.bus.ros_graph import GRID_QOS, IMAGE_QOS, Qos, RosGraph
 from gcdtrav.service.pipeline import FrameResult
 from gcdtrav.service.queries import FrameRecord
 
@@ -56,17 +57,23 @@ def preview_jpeg(image: np.ndarray, t: np.ndarray, u: np.ndarray, max_width: int
 
 class FrameOutputs:
     def __init__(
-        self, session: zenoh.Session, settings: ServiceSettings, model_id: str, grids: GridOutputs | None
+        self,
+        session: zenoh.Session,
+        settings: ServiceSettings,
+        model_id: str,
+        grids: GridOutputs | None,
+        ros_graph: RosGraph | None = None,
     ) -> None:
         self.session = session
         self.settings = settings
         self.prefix = settings.prefix
         self.model_id = model_id
         self.grids = grids
+        self.ros_graph = ros_graph
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._keys_of_source: dict[str, set[str]] = {}
+        self._ros_keys_of_source: dict[str, set[str]] = {}  # publishers (and their tokens) of the ROS graph
         self._declare_lock = threading.Lock()
-        self._rmw_attachments: dict[str, ros_io.RmwAttachment] = {}
 
     def publish(self, done: ProcessedFrame, method: Any) -> None:
         t, u = done.result.maps.traversability, done.result.maps.uncertainty
@@ -117,29 +124,27 @@ class FrameOutputs:
 
     def _publish_ros(self, done: ProcessedFrame, t: np.ndarray, u: np.ndarray, preview: bytes | None) -> None:
         """T and U as 32FC1 images (and the preview) at the input's size, with the input's header."""
-        topic, header = done.ros_topic, done.ros_header
+        topic, header, names = done.ros_topic, done.ros_header, self.settings.ros_output
         assert topic is not None
         outputs = [
-            ("traversability", ros_io.IMAGE, ros_io.float_image_cdr(header, t)),
-            ("uncertainty", ros_io.IMAGE, ros_io.float_image_cdr(header, u)),
+            (names.traversability_topic, ros_io.IMAGE, ros_io.float_image_cdr(header, t)),
+            (names.uncertainty_topic, ros_io.IMAGE, ros_io.float_image_cdr(header, u)),
         ]
-        kind = self.settings.ros_output.preview
+        kind = names.preview
         if kind != "none":
             jpeg = (
                 preview
                 if preview is not None
                 else preview_jpeg(done.frame.image, t, u, self.settings.preview_max_width)
             )
-            if kind == "compressed":
-                outputs.append(("preview", ros_io.COMPRESSED_IMAGE, ros_io.compressed_jpeg_cdr(header, jpeg)))
+            if kind == "compressed":  # image_transport: <base topic>/compressed
+                compressed = ros_io.compressed_jpeg_cdr(header, jpeg)
+                outputs.append((names.preview_topic + "/compressed", ros_io.COMPRESSED_IMAGE, compressed))
             else:
-                outputs.append(("preview", ros_io.IMAGE, ros_io.rgb_image_cdr(header, decode_image(jpeg))))
-        for name, msgtype, payload in outputs:
-            key = ros_io.output_key(topic, f"{ros_io.OUTPUT_NAMESPACE}/{name}", msgtype)
-            attachment = None
-            if topic.layout == "rmw_zenoh":  # rmw_zenoh subscribers expect its attachment
-                attachment = self._rmw_attachments.setdefault(key, ros_io.RmwAttachment()).next()
-            self._put(done.source, key, payload, CDR, attachment)
+                outputs.append((names.preview_topic, ros_io.IMAGE, ros_io.rgb_image_cdr(header, decode_image(jpeg))))
+        for template, msgtype, payload in outputs:
+            output = topic.derived(ros_io.output_topic(template, topic.topic), msgtype)
+            self._put_ros(done.source, output, payload, IMAGE_QOS)
 
     def _publish_grid(self, done: ProcessedFrame) -> None:
         assert self.grids is not None
@@ -151,6 +156,25 @@ class FrameOutputs:
         if update.occupancy is not None and update.uncertainty is not None:
             self._put(done.source, f"{base}/occupancy", update.occupancy, CDR)
             self._put(done.source, f"{base}/uncertainty", update.uncertainty, CDR)
+            camera = done.ros_topic
+            if camera is not None and self.settings.ros_output.enabled:
+                names = self.settings.ros_output
+                for template, payload in (
+                    (names.occupancy_topic, update.occupancy),
+                    (names.grid_uncertainty_topic, update.uncertainty),
+                ):
+                    grid_topic = camera.derived(ros_io.output_topic(template, camera.topic), ros_io.OCCUPANCY_GRID)
+                    self._put_ros(done.source, grid_topic, payload, GRID_QOS)
+
+    def _put_ros(self, source: str, topic: ros_io.RosTopic, payload: bytes, qos: Qos) -> None:
+        """On an rmw_zenoh robot through the graph (MP token, attachment); on a bridge robot, plainly."""
+        if topic.layout != "rmw_zenoh" or self.ros_graph is None:
+            self._put(source, ros_io.topic_key(topic), payload, CDR)
+            return
+        publisher = self.ros_graph.publisher(topic, qos, CDR)
+        with self._declare_lock:
+            self._ros_keys_of_source.setdefault(source, set()).add(publisher.key)
+        publisher.put(payload)
 
     def _put(
         self, source: str, key: str, payload: bytes, encoding: zenoh.Encoding, attachment: bytes | None = None
@@ -173,8 +197,9 @@ class FrameOutputs:
         with self._declare_lock:  # the sweep runs on the worker, publishing maybe on the output thread
             keys = self._keys_of_source.pop(source, set())
             publishers = [self._publishers.pop(key) for key in keys]
-        for key in keys:
-            self._rmw_attachments.pop(key, None)
+            ros_keys = self._ros_keys_of_source.pop(source, set())
+        if self.ros_graph is not None:
+            self.ros_graph.forget(ros_keys)
         for publisher in publishers:
             self._undeclare(publisher)
 
@@ -183,6 +208,7 @@ class FrameOutputs:
             self._undeclare(publisher)
         self._publishers.clear()
         self._keys_of_source.clear()
+        self._ros_keys_of_source.clear()
 
     @staticmethod
     def _undeclare(publisher: zenoh.Publisher) -> None:

@@ -1,15 +1,16 @@
 """ROS 2 images over Zenoh, without a ROS installation: CDR via rosbags, pixels via rosbags-image.
 
 Two key layouts reach Zenoh:
-  rmw_zenoh                 <domain>/<topic>/<type>/<type hash>, e.g.
+  rmw_zenoh                 [<zenoh namespace>/]<domain>/<topic>/<type>/<type hash>, e.g.
                             0/camera/front/image_raw/sensor_msgs::msg::dds_::Image_/RIHS01_d31d...
+                            (Humble robots write TypeHashNotSupported for the hash)
   zenoh-bridge-ros2dds      the topic name: camera/front/image_raw
 The payload is the CDR-serialised message (with its 4-byte encapsulation header) in both.
 """
 
 from __future__ import annotations
 
-import time
+import re
 from dataclasses import dataclass
 from functools import cache
 from typing import Any
@@ -17,9 +18,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-OUTPUT_NAMESPACE = "gcdtrav"  # outputs go to <input topic>/gcdtrav/{traversability,uncertainty,preview}
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
+HUMBLE_HASH = "TypeHashNotSupported"  # rmw_zenoh on Humble: the type-hash chunk of every key and token
+# image_transport's "compressed" format string: the original encoding; the codec and what it holds
+PREVIEW_FORMAT = "rgb8; jpeg compressed bgr8"
 SUPPORTED_TYPES = (IMAGE, COMPRESSED_IMAGE)
 # bytes per pixel of each raw encoding we accept; Bayer patterns are one 8-bit channel
 RAW_ENCODINGS = {
@@ -69,6 +73,11 @@ def type_hash(msgtype: str) -> str:
     return str(typestore().hash_rihs01(msgtype))
 
 
+def output_type_hash(msgtype: str, input_hash: str | None) -> str:
+    """The hash chunk a derived topic carries: Humble's placeholder for Humble inputs, else the Jazzy hash."""
+    return HUMBLE_HASH if input_hash == HUMBLE_HASH else type_hash(msgtype)
+
+
 @dataclass(frozen=True)
 class RosTopic:
     """Where a ROS message came from: its topic, message type and the key layout it used."""
@@ -77,39 +86,69 @@ class RosTopic:
     msgtype: str | None
     layout: str  # "rmw_zenoh" or "bridge"
     domain: int = 0
+    namespace: str = ""  # the robot's zenoh namespace, prefixed to all its keys
+    type_hash: str | None = None  # the key's hash chunk (rmw_zenoh); None: the Jazzy hash of msgtype
 
     @property
     def source(self) -> str:
-        return self.topic.lstrip("/")
+        name = self.topic.lstrip("/")
+        return f"{self.namespace}/{name}" if self.namespace else name
+
+    def derived(self, topic: str, msgtype: str) -> RosTopic:
+        """Another topic of the same robot, in the same layout, domain, namespace and ROS distribution."""
+        return RosTopic(
+            topic, msgtype, self.layout, self.domain, self.namespace, output_type_hash(msgtype, self.type_hash)
+        )
 
 
-def parse_key(key: str, layout: str) -> RosTopic:
-    """Topic and (for rmw_zenoh) message type from a key."""
+def strip_namespace(key: str, namespace: str) -> str:
+    if not namespace:
+        return key
+    if not key.startswith(namespace + "/"):
+        raise RosDecodeError("bad_ros_key", f"'{key}' does not start with the zenoh namespace '{namespace}/'")
+    return key[len(namespace) + 1 :]
+
+
+def parse_key(key: str, layout: str, namespace: str = "") -> RosTopic:
+    """Topic and (for rmw_zenoh) message type and hash from a key, after the robot's zenoh namespace."""
+    local = strip_namespace(key, namespace)
     if layout == "bridge":
-        return RosTopic("/" + key, None, "bridge")
-    chunks = key.split("/")
+        return RosTopic("/" + local, None, "bridge", namespace=namespace)
+    chunks = local.split("/")
     for index, chunk in enumerate(chunks):
         msgtype = ros_type_name(chunk)
         if msgtype is not None and index >= 2:
             domain = int(chunks[0]) if chunks[0].isdigit() else 0
-            return RosTopic("/" + "/".join(chunks[1:index]), msgtype, "rmw_zenoh", domain)
+            hash_chunk = chunks[index + 1] if index + 1 < len(chunks) else None
+            return RosTopic("/" + "/".join(chunks[1:index]), msgtype, "rmw_zenoh", domain, namespace, hash_chunk)
     raise RosDecodeError("bad_ros_key", f"'{key}' is not <domain>/<topic>/<pkg::msg::dds_::Type_>/<hash>")
 
 
 def topic_key(topic: RosTopic) -> str:
-    """The zenoh key a ROS publisher of ``topic`` uses in its layout."""
+    """The zenoh key a ROS publisher of ``topic`` uses in its layout, with the robot's zenoh namespace."""
     name = topic.topic.strip("/")
     if topic.layout == "bridge":
-        return name
-    if topic.msgtype is None:
+        key = name
+    elif topic.msgtype is None:
         raise ValueError(f"an rmw_zenoh key needs the message type of {topic.topic}")
-    return f"{topic.domain}/{name}/{dds_type_name(topic.msgtype)}/{type_hash(topic.msgtype)}"
+    else:
+        key = f"{topic.domain}/{name}/{dds_type_name(topic.msgtype)}/{topic.type_hash or type_hash(topic.msgtype)}"
+    return f"{topic.namespace}/{key}" if topic.namespace else key
 
 
-def output_key(topic: RosTopic, suffix: str, msgtype: str) -> str:
-    """The key of a derived topic (``<input topic>/<suffix>``) in the input's layout."""
-    derived = RosTopic(f"{topic.topic.rstrip('/')}/{suffix}", msgtype, topic.layout, topic.domain)
-    return topic_key(derived)
+def output_topic(template: str, camera_topic: str) -> str:
+    """An output topic from its template: '{topic}/gcdtrav/traversability' -> '/cam/gcdtrav/traversability'."""
+    return "/" + template.replace("{topic}", camera_topic.strip("/")).strip("/")
+
+
+def is_output_topic(topic: str, templates: list[str]) -> bool:
+    """Whether ``topic`` is one a service with these templates publishes (never taken as an input)."""
+    for template in templates:
+        head, _, tail = template.strip("/").partition("{topic}")
+        pattern = re.escape(head) + (".+" if "{topic}" in template else "") + re.escape(tail)
+        if re.fullmatch(pattern, topic.strip("/")):
+            return True
+    return False
 
 
 @dataclass(frozen=True)
@@ -216,7 +255,7 @@ def rgb_image_cdr(header: Any, rgb: NDArray[np.uint8]) -> bytes:
 
 def compressed_jpeg_cdr(header: Any, jpeg: bytes) -> bytes:
     message = typestore().types[COMPRESSED_IMAGE](
-        header=header, format="jpeg", data=np.frombuffer(jpeg, dtype=np.uint8)
+        header=header, format=PREVIEW_FORMAT, data=np.frombuffer(jpeg, dtype=np.uint8)
     )
     return bytes(typestore().serialize_cdr(message, COMPRESSED_IMAGE))
 
@@ -230,16 +269,9 @@ def make_header(stamp: float, frame_id: str) -> Any:
     )
 
 
-class RmwAttachment:
-    """rmw_zenoh's attachment: sequence number, source timestamp (ns) and a 16-byte publisher gid."""
+def rmw_attachment(sequence: int, timestamp_ns: int, gid: bytes) -> bytes:
+    """rmw_zenoh's attachment (since Jazzy 0.2.4, Humble 0.1.2, Rolling 0.6.0): sequence number, source
+    timestamp in ns, the publisher's 16-byte gid, serialised as zenoh-ext does (int64, int64, sequence)."""
+    from zenoh.ext import Int64, UInt8, z_serialize
 
-    def __init__(self) -> None:
-        self.gid = np.random.default_rng().integers(0, 256, 16, dtype=np.uint8).tobytes()
-        self.sequence = 0
-
-    def next(self) -> bytes:
-        from zenoh.ext import Int64, UInt8, z_serialize
-
-        self.sequence += 1
-        payload = (Int64(self.sequence), Int64(time.time_ns()), [UInt8(b) for b in self.gid])
-        return z_serialize(payload).to_bytes()
+    return z_serialize((Int64(sequence), Int64(timestamp_ns), [UInt8(b) for b in gid])).to_bytes()

@@ -1,0 +1,338 @@
+"""The service as a node of rmw_zenoh's ROS 2 graph: liveliness tokens, publisher gids, discovery.
+
+rmw_zenoh builds the graph (``ros2 node list``, ``ros2 topic list``, matched publisher and subscription
+counts) from liveliness tokens only, laid out as in rmw_zenoh_cpp/src/detail/liveliness_utils.cpp:
+
+  @ros2_lv/<domain>/<zid>/<nid>/<id>/<NN|MP|MS>/<enclave>/<namespace>/<node>[/<topic>/<type>/<hash>/<qos>]
+
+with each '/' inside a name written as '%'. An entity's gid is the XXH3-128 of its token string (low 64
+bits first, both little-endian); publishers send it in every sample's attachment.
+
+The service declares one node per (zenoh namespace, domain) it meets, a publisher token (MP) for each ROS
+output, and a best-effort subscription token (MS) for every camera publisher whose topic matches a
+``ros_inputs`` key: image_transport publishers send only while they count a subscriber.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import zenoh
+from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.service.bus import ros as ros_io
+
+log = logging.getLogger("gcdtrav.service")
+
+ADMIN_SPACE = "@ros2_lv"
+DEFAULT_DEPTH = 42  # rmw_zenoh's depth for KEEP_LAST with depth 0 (rmw_zenoh_cpp/src/detail/qos.cpp)
+EntityKind = Literal["NN", "MP", "MS"]
+KINDS = ("NN", "MP", "MS", "SS", "SC")
+
+
+def mangle(name: str) -> str:
+    return name.replace("/", "%")
+
+
+@dataclass(frozen=True)
+class Qos:
+    """The QoS fields the service uses; history is always KEEP_LAST, deadline/lifespan/liveliness default."""
+
+    reliable: bool = True
+    transient_local: bool = False
+    depth: int = 10
+
+    def keyexpr(self) -> str:
+        """rmw_zenoh's qos_to_keyexpr: only what differs from its defaults (reliable, volatile, keep-last 42).
+
+        <reliability>:<durability>:<history>,<depth>:<deadline s>,<ns>:<lifespan s>,<ns>:<liveliness>,<s>,<ns>
+        with RELIABLE=1, BEST_EFFORT=2, TRANSIENT_LOCAL=1, VOLATILE=2 (rmw/types.h).
+        """
+        reliability = "" if self.reliable else "2"
+        durability = "1" if self.transient_local else ""
+        depth = "" if self.depth == DEFAULT_DEPTH else str(self.depth)
+        return f"{reliability}:{durability}:,{depth}:,:,:,,"
+
+
+IMAGE_QOS = Qos()  # rclcpp's default publisher profile: reliable, volatile, keep-last 10
+GRID_QOS = Qos(transient_local=True, depth=1)  # a map: late joiners get the last one
+CAMERA_SUBSCRIPTION_QOS = Qos(reliable=False, depth=1)  # matches best-effort and reliable cameras alike
+
+
+@dataclass(frozen=True)
+class NodeName:
+    domain: int
+    namespace: str  # ROS namespace, "/" for none
+    name: str
+    enclave: str = "/"
+
+
+@dataclass(frozen=True)
+class TopicInfo:
+    name: str  # /camera/front/image_raw
+    dds_type: str  # sensor_msgs::msg::dds_::Image_
+    type_hash: str  # RIHS01_... or TypeHashNotSupported
+    qos: Qos
+
+    @staticmethod
+    def of(topic: ros_io.RosTopic, qos: Qos) -> TopicInfo:
+        assert topic.msgtype is not None
+        hash_chunk = topic.type_hash or ros_io.type_hash(topic.msgtype)
+        return TopicInfo(topic.topic, ros_io.dds_type_name(topic.msgtype), hash_chunk, qos)
+
+
+@dataclass(frozen=True)
+class Entity:
+    zid: str
+    nid: int
+    id: int
+    kind: EntityKind
+    node: NodeName
+    topic: TopicInfo | None = None
+
+    @property
+    def token(self) -> str:
+        """The liveliness key, as rmw_zenoh's Entity constructor writes it (before any zenoh namespace)."""
+        node = self.node
+        parts = [ADMIN_SPACE, str(node.domain), self.zid, str(self.nid), str(self.id), self.kind]
+        parts += [mangle(node.enclave), mangle(node.namespace), mangle(node.name)]
+        if self.topic is not None:
+            topic = self.topic
+            parts += [mangle(topic.name), mangle(topic.dds_type), mangle(topic.type_hash), topic.qos.keyexpr()]
+        return "/".join(parts)
+
+    @property
+    def gid(self) -> bytes:
+        return entity_gid(self.token)
+
+
+def entity_gid(token: str) -> bytes:
+    """XXH3-128 of the token: the low 64 bits then the high 64 bits, each little-endian (a memcpy on x86)."""
+    import xxhash
+
+    return int(xxhash.xxh3_128_intdigest(token.encode())).to_bytes(16, "little")
+
+
+@dataclass(frozen=True)
+class PeerPublisher:
+    """A publisher token seen on the graph."""
+
+    domain: int
+    zid: str
+    topic: str
+    dds_type: str
+    type_hash: str
+
+
+def parse_publisher_token(key: str) -> PeerPublisher | None:
+    """A publisher's token (MP), or None for any other or a malformed token."""
+    parts = key.split("/")
+    if len(parts) != 13 or parts[0] != ADMIN_SPACE or parts[5] != "MP" or not all(parts):
+        return None
+    if not parts[1].isdigit():
+        return None
+    return PeerPublisher(int(parts[1]), parts[2], parts[9].replace("%", "/"), parts[10], parts[11].replace("%", "/"))
+
+
+def with_namespace(namespace: str, key: str) -> str:
+    return f"{namespace}/{key}" if namespace else key
+
+
+class RosPublisher:
+    """One ROS output: a zenoh publisher on the topic's key, its MP token, and rmw_zenoh's attachment."""
+
+    def __init__(self, key: str, publisher: Any, entity: Entity, token: zenoh.LivelinessToken) -> None:
+        self.key, self.publisher, self.entity, self.token = key, publisher, entity, token
+        self.gid = entity.gid
+        self.sequence = 0
+
+    def put(self, payload: bytes) -> None:
+        self.sequence += 1  # rmw_zenoh's first sample is 1
+        self.publisher.put(payload, attachment=ros_io.rmw_attachment(self.sequence, time.time_ns(), self.gid))
+
+    def close(self) -> None:
+        for declared in (self.token, self.publisher):
+            try:
+                declared.undeclare()
+            except zenoh.ZError as err:  # the session may already be closing
+                log.debug("undeclare failed: %s", err)
+
+
+class RosGraph:
+    """The service's nodes, publishers and camera subscriptions in the ROS graph; thread-safe."""
+
+    def __init__(self, session: zenoh.Session, settings: ServiceSettings) -> None:
+        self.session = session
+        self.settings = settings
+        self.zid = str(session.info.zid())
+        self._lock = threading.Lock()
+        self._ids = itertools.count()  # one counter for nodes and entities, as rmw_zenoh's context
+        self._nodes: dict[tuple[str, int], Entity] = {}
+        self._tokens: dict[str, zenoh.LivelinessToken] = {}  # declared key -> token
+        self._publishers: dict[str, RosPublisher] = {}  # data key -> publisher
+        self._subscriptions: dict[tuple[str, TopicInfo, int], tuple[Entity, set[str]]] = {}
+        self._watchers: list[Any] = []
+        self._closed = False
+        self.inputs = [i for i in settings.ros_inputs if i.layout == "rmw_zenoh"]
+        self._input_keys = [(i, zenoh.KeyExpr(i.key)) for i in self.inputs]
+
+    # ---- lifecycle -----------------------------------------------------------------------------------
+    def start(self) -> None:
+        """Node tokens for the inputs' literal domains, and discovery of camera publishers."""
+        watched: set[str] = set()
+        for ros_input in self.inputs:
+            domain = ros_io.strip_namespace(ros_input.key, ros_input.zenoh_namespace).split("/")[0]
+            if domain.isdigit():
+                self.node(ros_input.zenoh_namespace, int(domain))
+            expression = with_namespace(
+                ros_input.zenoh_namespace, f"{ADMIN_SPACE}/{domain if domain.isdigit() else '*'}/**"
+            )
+            if expression not in watched:
+                watched.add(expression)
+                handler = self._token_handler(ros_input.zenoh_namespace)
+                self._watchers.append(self.session.liveliness().declare_subscriber(expression, handler, history=True))
+
+    def close(self) -> None:
+        with self._lock:
+            self._closed = True
+            watchers, self._watchers = self._watchers, []
+            publishers, self._publishers = list(self._publishers.values()), {}
+            tokens, self._tokens = list(self._tokens.values()), {}
+            self._subscriptions.clear()
+            self._nodes.clear()
+        for entity in [*watchers, *tokens]:
+            try:
+                entity.undeclare()
+            except zenoh.ZError as err:  # the session may already be closing
+                log.debug("undeclare failed: %s", err)
+        for publisher in publishers:
+            publisher.close()
+
+    def forget(self, keys: set[str]) -> None:
+        """Undeclare the publishers (and their tokens) of a source the service no longer tracks."""
+        with self._lock:
+            publishers = [self._publishers.pop(key) for key in keys if key in self._publishers]
+        for publisher in publishers:
+            publisher.close()
+
+    # ---- entities ------------------------------------------------------------------------------------
+    def node(self, zenoh_namespace: str, domain: int) -> Entity:
+        with self._lock:
+            return self._node(zenoh_namespace, domain)
+
+    def _node(self, zenoh_namespace: str, domain: int) -> Entity:
+        node = self._nodes.get((zenoh_namespace, domain))
+        if node is None:
+            settings = self.settings.ros_node
+            name = NodeName(domain, settings.namespace, settings.name)
+            node_id = next(self._ids)
+            node = Entity(self.zid, node_id, node_id, "NN", name)
+            self._nodes[(zenoh_namespace, domain)] = node
+            self._declare(zenoh_namespace, node)
+        return node
+
+    def _declare(self, zenoh_namespace: str, entity: Entity) -> str:
+        key = with_namespace(zenoh_namespace, entity.token)
+        self._tokens[key] = self.session.liveliness().declare_token(key)
+        return key
+
+    def _undeclare(self, zenoh_namespace: str, entity: Entity) -> None:
+        token = self._tokens.pop(with_namespace(zenoh_namespace, entity.token), None)
+        if token is not None:
+            token.undeclare()
+
+    def publisher(self, topic: ros_io.RosTopic, qos: Qos, encoding: zenoh.Encoding) -> RosPublisher:
+        """The publisher of an rmw_zenoh output topic, declared (with its MP token) on first use."""
+        key = ros_io.topic_key(topic)
+        with self._lock:
+            existing = self._publishers.get(key)
+            if existing is not None:
+                return existing
+            if self._closed:
+                raise RuntimeError("the ROS graph is closed")
+            node = self._node(topic.namespace, topic.domain)
+            entity = Entity(self.zid, node.nid, next(self._ids), "MP", node.node, TopicInfo.of(topic, qos))
+            declared = self._declare_publisher(key, qos, encoding)
+            token_key = self._declare(topic.namespace, entity)
+            publisher = RosPublisher(key, declared, entity, self._tokens.pop(token_key))
+            self._publishers[key] = publisher
+            return publisher
+
+    def _declare_publisher(self, key: str, qos: Qos, encoding: zenoh.Encoding) -> Any:
+        if not qos.transient_local:
+            return self.session.declare_publisher(
+                key, encoding=encoding, congestion_control=zenoh.CongestionControl.DROP
+            )
+        # What rmw_zenoh declares for a transient-local publisher (rmw_publisher_data.cpp): an advanced
+        # publisher that caches the last `depth` samples, is detectable through liveliness (so subscribers
+        # joining later query its cache) and, being reliable, sends sporadic heartbeats every 0.5 s.
+        from zenoh import ext
+
+        return ext.declare_advanced_publisher(
+            self.session,
+            key,
+            encoding=encoding,
+            congestion_control=zenoh.CongestionControl.DROP,
+            cache=ext.CacheConfig(qos.depth),
+            sample_miss_detection=ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=0.5),
+            publisher_detection=True,
+        )
+
+    # ---- discovery -----------------------------------------------------------------------------------
+    def _token_handler(self, zenoh_namespace: str) -> Any:
+        return lambda sample: self._on_token(sample, zenoh_namespace)
+
+    def _on_token(self, sample: zenoh.Sample, zenoh_namespace: str) -> None:
+        """A camera's publisher token came or went: subscribe while one matching an input lives."""
+        key = str(sample.key_expr)
+        try:
+            local = ros_io.strip_namespace(key, zenoh_namespace)
+        except ros_io.RosDecodeError:
+            return
+        peer = parse_publisher_token(local)
+        if peer is None or peer.zid == self.zid or ros_io.ros_type_name(peer.dds_type) is None:
+            return
+        data_key = with_namespace(
+            zenoh_namespace, f"{peer.domain}/{peer.topic.strip('/')}/{peer.dds_type}/{peer.type_hash}"
+        )
+        if not any(i.zenoh_namespace == zenoh_namespace and k.intersects(data_key) for i, k in self._input_keys):
+            return
+        if ros_io.is_output_topic(peer.topic, self.settings.ros_output.topic_templates()):
+            return
+        topic = TopicInfo(peer.topic, peer.dds_type, peer.type_hash, CAMERA_SUBSCRIPTION_QOS)
+        try:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._camera_appeared(zenoh_namespace, peer.domain, topic, key)
+            else:
+                self._camera_left(zenoh_namespace, peer.domain, topic, key)
+        except zenoh.ZError as err:
+            log.warning("ROS graph: subscription token for %s not changed: %s", peer.topic, err)
+
+    def _camera_appeared(self, zenoh_namespace: str, domain: int, topic: TopicInfo, camera_token: str) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            entry = self._subscriptions.get((zenoh_namespace, topic, domain))
+            if entry is None:
+                node = self._node(zenoh_namespace, domain)
+                entity = Entity(self.zid, node.nid, next(self._ids), "MS", node.node, topic)
+                self._declare(zenoh_namespace, entity)
+                entry = (entity, set())
+                self._subscriptions[(zenoh_namespace, topic, domain)] = entry
+                log.info("ROS graph: subscribed to %s (%s, %s)", topic.name, topic.dds_type, topic.type_hash)
+            entry[1].add(camera_token)
+
+    def _camera_left(self, zenoh_namespace: str, domain: int, topic: TopicInfo, camera_token: str) -> None:
+        with self._lock:
+            entry = self._subscriptions.get((zenoh_namespace, topic, domain))
+            if entry is None:
+                return
+            entry[1].discard(camera_token)
+            if not entry[1]:
+                del self._subscriptions[(zenoh_namespace, topic, domain)]
+                self._undeclare(zenoh_namespace, entry[0])
+                log.info("ROS graph: %s has no publisher left, unsubscribed", topic.name)
