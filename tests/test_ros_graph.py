@@ -334,3 +334,30 @@ def test_camera_is_subscribed_and_outputs_join_the_graph(
             assert wait_until(lambda: camera.live(ours) == [], 10), camera.live(ours)
         finally:
             camera.close()
+
+
+def test_forgotten_outputs_take_their_publisher_tokens_along(tmp_path: Path) -> None:
+    """A source the service stops tracking (issue 12's bounds) leaves no publisher token behind."""
+    from gcdtrav.schemas.settings import ServiceSettings
+    from gcdtrav.service.bus.ros_graph import RosGraph
+
+    settings = ServiceSettings.model_validate({"state_dir": str(tmp_path), "ros_inputs": [{"key": "0/**"}]})
+    session = zenoh.open(connecting_config(1))  # no peer needed: its own tokens are visible to the session
+    try:
+        graph = RosGraph(session, settings)
+        camera = ros.parse_key(f"0/cam/sensor_msgs::msg::dds_::Image_/{IMAGE_HASH}", "rmw_zenoh")
+        publisher = graph.publisher(
+            camera.derived("/cam/gcdtrav/traversability", ros.IMAGE), IMAGE_QOS, zenoh.Encoding.APPLICATION_CDR
+        )
+        publisher.put(b"\x00\x01\x00\x00")
+
+        def live_publishers() -> list[str]:
+            replies = session.liveliness().get("@ros2_lv/0/**", timeout=2.0)
+            return [str(r.ok.key_expr) for r in replies if r.ok is not None and "/MP/" in str(r.ok.key_expr)]
+
+        assert live_publishers() == [publisher.entity.token]
+        graph.forget({publisher.key})
+        assert wait_until(lambda: live_publishers() == [], 5)
+        graph.close()
+    finally:
+        session.close()
