@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import textured_image
+from gcdtrav.schemas.anchors import Anchor, AnchorSet
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points
 
@@ -55,17 +56,25 @@ def test_depth_places_pixels_in_3d() -> None:
     assert points[0] == pytest.approx([2.0 * math.cos(PITCH), 0.0], abs=1e-9)
 
 
+def anchor_set(*concepts: str) -> AnchorSet:
+    return AnchorSet(anchors=[Anchor(concept=c, position=k / (len(concepts) - 1)) for k, c in enumerate(concepts)])
+
+
+TWO = anchor_set("water", "road")
+OLD, NEW = TWO, anchor_set("mud", "grass", "road")
+
+
 def grid_2x2() -> GroundGrid:
-    return GroundGrid(GridSpec(size_m=1.0, resolution_m=0.5, half_life_s=1.0), anchors=2, origin=(0.0, 0.0))
+    return GroundGrid(GridSpec(size_m=1.0, resolution_m=0.5, half_life_s=1.0), anchor_count=2, origin=(0.0, 0.0))
 
 
 def test_fusion_over_two_frames_with_a_known_half_life() -> None:
     grid = grid_2x2()
     # frame 1 at t=0: two pixels in cell (0, 0), one all on anchor 0, one all on anchor 1
-    grid.add(np.array([[0.1, 0.1], [0.2, 0.3]]), np.array([[1.0, 0.0], [0.0, 1.0]]), stamp=0.0, anchor_version="v")
+    grid.add(np.array([[0.1, 0.1], [0.2, 0.3]]), np.array([[1.0, 0.0], [0.0, 1.0]]), stamp=0.0, anchors=TWO)
     np.testing.assert_allclose(grid.cell_weights(0, 0), [0.5, 0.5])
     # frame 2 one half-life later: one pixel on anchor 0. (0.5 * (1, 1) + (1, 0)) / (0.5 * 2 + 1) = (0.75, 0.25)
-    grid.add(np.array([[0.4, 0.4]]), np.array([[1.0], [0.0]]), stamp=1.0, anchor_version="v")
+    grid.add(np.array([[0.4, 0.4]]), np.array([[1.0], [0.0]]), stamp=1.0, anchors=TWO)
     np.testing.assert_allclose(grid.cell_weights(0, 0), [0.75, 0.25], atol=1e-6)
     assert grid.count[0, 0] == 3
     t, u, count = grid.layers(np.array([0.0, 1.0]), np.array([0.0, 0.0]))
@@ -74,12 +83,12 @@ def test_fusion_over_two_frames_with_a_known_half_life() -> None:
     assert grid.cell_weights(1, 1) is None and np.isnan(t[1, 1]) and np.isnan(u[0, 1]) and count[1, 0] == 0
     assert np.isnan(grid.distributions()[:, 1, 1]).all()
     # points outside the grid are ignored
-    assert grid.add(np.array([[5.0, 5.0]]), np.array([[1.0], [0.0]]), stamp=1.0, anchor_version="v") == 0
+    assert grid.add(np.array([[5.0, 5.0]]), np.array([[1.0], [0.0]]), stamp=1.0, anchors=TWO) == 0
 
 
 def test_scrolling_by_whole_cells_keeps_content() -> None:
-    grid = GroundGrid(GridSpec(size_m=2.0, resolution_m=0.5, half_life_s=10.0), anchors=2, origin=(0.0, 0.0))
-    grid.add(np.array([[1.2, 0.7]]), np.array([[0.2], [0.8]]), stamp=0.0, anchor_version="v")  # cell (1, 2)
+    grid = GroundGrid(GridSpec(size_m=2.0, resolution_m=0.5, half_life_s=10.0), anchor_count=2, origin=(0.0, 0.0))
+    grid.add(np.array([[1.2, 0.7]]), np.array([[0.2], [0.8]]), stamp=0.0, anchors=TWO)  # cell (1, 2)
     grid.scroll_to((0.5, 0.0))  # the robot moved one cell along +x
     assert grid.origin == (0.5, 0.0)
     np.testing.assert_allclose(grid.cell_weights(1, 1), [0.2, 0.8])  # same place in the world, new index
@@ -90,14 +99,14 @@ def test_scrolling_by_whole_cells_keeps_content() -> None:
 
 def test_a_new_anchor_set_resets_the_grid() -> None:
     grid = grid_2x2()
-    grid.add(np.array([[0.1, 0.1]]), np.array([[1.0], [0.0]]), stamp=0.0, anchor_version="old")
-    grid.add(np.array([[0.6, 0.6]]), np.array([[0.0], [1.0], [0.0]]), stamp=0.1, anchor_version="new")
-    assert grid.resets == 1 and "from old to new" in grid.last_reset
+    grid.add(np.array([[0.1, 0.1]]), np.array([[1.0], [0.0]]), stamp=0.0, anchors=OLD)
+    grid.add(np.array([[0.6, 0.6]]), np.array([[0.0], [1.0], [0.0]]), stamp=0.1, anchors=NEW)
+    assert grid.resets == 1 and f"from {OLD.version} to {NEW.version}" in grid.last_reset
     assert grid.cell_weights(0, 0) is None and grid.cell_weights(1, 1).tolist() == [0.0, 1.0, 0.0]
 
 
 def test_path_cells_in_order() -> None:
-    grid = GroundGrid(GridSpec(size_m=2.0, resolution_m=0.5), anchors=2, origin=(0.0, 0.0))
+    grid = GroundGrid(GridSpec(size_m=2.0, resolution_m=0.5), anchor_count=2, origin=(0.0, 0.0))
     assert grid.path_cells([(0.1, 0.1), (1.9, 0.1)]) == [(0, 0), (0, 1), (0, 2), (0, 3)]
     assert grid.path_cells([(0.1, 0.1), (0.1, 1.1), (-3.0, 1.1)]) == [(0, 0), (1, 0), (2, 0)]
 
@@ -108,6 +117,7 @@ def test_path_cells_in_order() -> None:
 def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     pytest.importorskip("rosbags")
     from gcdtrav.client import Grid, TraversabilityClient
+    from gcdtrav.schemas.anchors import default_anchor_set
     from gcdtrav.schemas.messages import Pose2D
     from gcdtrav.schemas.settings import ServiceSettings
     from gcdtrav.service.bus import ros
@@ -184,6 +194,10 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
             client.set_anchors(
                 {"anchors": [{"concept": "lake", "position": 0.0}, {"concept": "road", "position": 1.0}]}
             )
+            # Swapped to 2 anchors with no frame fused since: a cell answers over the set it was fused with.
+            unswapped = client.cell("cam", 2.7, 0.0)
+            assert len(unswapped.weights) == 13 and unswapped.anchor_set_version == header.anchor_set_version
+            assert [a.concept for a in unswapped.anchors] == default_anchor_set().concepts
             client.publish_image("cam", textured_image(60, 80, seed=9), stamp=104.0)
             assert wait_until(lambda: grids[-1].header.resets == 1, 15)
             assert "anchor set changed" in grids[-1].header.last_reset

@@ -139,7 +139,7 @@ class SourceGrid:
             ground = ground @ np.array([[c, s], [-s, c]]) + np.array([self.pose.x, self.pose.y])
             half = self.grid.spec.cells * self.grid.spec.resolution_m / 2
             self.grid.scroll_to((self.pose.x - half, self.pose.y - half))
-        landed = self.grid.add(ground, flat, stamp, anchors.version)
+        landed = self.grid.add(ground, flat, stamp, anchors)
         self.seq += 1
         return landed
 
@@ -178,10 +178,10 @@ class GridUpdate:
 class GridOutputs:
     """All configured grids of a service; thread-safe (frames from the worker, queries from zenoh)."""
 
-    def __init__(self, configs: list[GridSettings], anchors: int, instance: str) -> None:
+    def __init__(self, configs: list[GridSettings], anchor_count: int, instance: str) -> None:
         self.instance = instance
         self.sources = {
-            c.source: SourceGrid(c, GroundGrid(GridSpec(c.size_m, c.resolution_m, c.half_life_s), anchors))
+            c.source: SourceGrid(c, GroundGrid(GridSpec(c.size_m, c.resolution_m, c.half_life_s), anchor_count))
             for c in configs
         }
 
@@ -246,13 +246,15 @@ class GridOutputs:
         )
 
     # ---- queries -------------------------------------------------------------------------------------
-    def answer(self, source: str, raw_parameters: str, anchors: AnchorSet) -> ContextDistribution | PathReply:
+    def answer(self, source: str, raw_parameters: str) -> ContextDistribution | PathReply:
+        """A cell's or a path's distributions, over the anchor set the grid's weights were fused with."""
         grid = self.sources.get(source)
         if grid is None:
             raise QueryError(f"no grid for source '{source}' (grids: {sorted(self.sources)})")
         params = raw_parameters.strip()
         with grid.lock:
-            if grid.grid.anchor_version is None:
+            anchors = grid.grid.anchors
+            if anchors is None:
                 raise QueryError(f"the grid of '{source}' has no frame yet")
             if params.startswith("path="):
                 return self._path(grid, _points(params[len("path=") :]), anchors)

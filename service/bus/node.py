@@ -362,7 +362,7 @@ class TraversabilityService:
             if not self.owns(source):
                 return
             assert self.grids is not None
-            reply = self.grids.answer(source, str(query.parameters), self.pipeline.anchors)
+            reply = self.grids.answer(source, str(query.parameters))
         except QueryError as err:
             self.stats.rejected(None, "bad_query", f"{query.selector}: {err}")
             query.reply_err(ErrorReply(error=str(err)).pack(), encoding=MSGPACK)

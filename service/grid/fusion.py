@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import numpy as np
+from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.service.engine import gcd
 from numpy.typing import NDArray
 
@@ -35,22 +36,28 @@ class GridSpec:
 
 
 class GroundGrid:
-    def __init__(self, spec: GridSpec, anchors: int, origin: tuple[float, float] | None = None) -> None:
+    def __init__(self, spec: GridSpec, anchor_count: int, origin: tuple[float, float] | None = None) -> None:
         self.spec = spec
         n = spec.cells
         self.origin = origin if origin is not None else (-n * spec.resolution_m / 2, -n * spec.resolution_m / 2)
-        self.weight_sums = np.zeros((anchors, n, n), np.float32)
+        self.weight_sums = np.zeros((anchor_count, n, n), np.float32)
         self.mass = np.zeros((n, n), np.float64)
         self.count = np.zeros((n, n), np.int64)
         self.stamp: float | None = None
-        self.anchor_version: str | None = None
+        # The set the weights were fused with: answers use it, not the service's active set, which may have
+        # been swapped since (another count, or other concepts in the same places) until the next frame.
+        self.anchors: AnchorSet | None = None
         self.resets = 0
         self.last_reset = ""
 
     # ---- bookkeeping ---------------------------------------------------------------------------------
-    def reset(self, anchors: int, reason: str) -> None:
+    @property
+    def anchor_version(self) -> str | None:
+        return self.anchors.version if self.anchors is not None else None
+
+    def reset(self, anchor_count: int, reason: str) -> None:
         n = self.spec.cells
-        self.weight_sums = np.zeros((anchors, n, n), np.float32)
+        self.weight_sums = np.zeros((anchor_count, n, n), np.float32)
         self.mass[:] = 0
         self.count[:] = 0
         self.resets += 1
@@ -75,15 +82,15 @@ class GroundGrid:
         return round(self.origin[0] + (j + 0.5) * r, 9), round(self.origin[1] + (i + 0.5) * r, 9)
 
     # ---- fusion --------------------------------------------------------------------------------------
-    def add(
-        self, points: NDArray[np.floating], weights: NDArray[np.floating], stamp: float, anchor_version: str
-    ) -> int:
-        """Fuse pixel weights (n, P) at ground points (P, 2) of the grid's frame; returns pixels that landed."""
-        if self.anchor_version is not None and anchor_version != self.anchor_version:
-            self.reset(weights.shape[0], f"anchor set changed from {self.anchor_version} to {anchor_version}")
+    def add(self, points: NDArray[np.floating], weights: NDArray[np.floating], stamp: float, anchors: AnchorSet) -> int:
+        """Fuse pixel weights (n, P) over ``anchors`` at ground points (P, 2); returns pixels that landed."""
+        if weights.shape[0] != len(anchors):
+            raise ValueError(f"{weights.shape[0]} weight rows for an anchor set of {len(anchors)}")
+        if self.anchors is not None and anchors.version != self.anchors.version:
+            self.reset(weights.shape[0], f"anchor set changed from {self.anchors.version} to {anchors.version}")
         elif self.weight_sums.shape[0] != weights.shape[0]:
             self.reset(weights.shape[0], "number of anchors changed")
-        self.anchor_version = anchor_version
+        self.anchors = anchors
         self.decay_to(stamp)
         i, j = self.index_of(points[:, 0], points[:, 1])
         n = self.spec.cells
