@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import time
 from pathlib import Path
 
@@ -64,6 +65,26 @@ def test_pending_frames_stay_within_their_byte_budget_and_a_refusal_keeps_the_qu
     assert queue.put("b", "b0", 20) and queue.nbytes == 20
     queue.forget("b")
     assert queue.nbytes == 0 and len(queue) == 0 and queue.counters() == {"a": queue.counters()["a"]}
+
+
+def test_a_flood_of_new_sources_gets_at_most_every_other_turn() -> None:
+    queue: LatestFrameQueue[int] = LatestFrameQueue()
+    for name in ("robot1", "robot2"):
+        queue.put(name, 0)
+        queue.put(name, 1)  # streaming: a second frame already replaced the first
+    for k in range(20):
+        queue.put(f"churn/{k}", 0)  # one frame each, arriving before the robots' next ones
+    served = []
+    for _ in range(12):
+        source, _ = queue.take(0)  # type: ignore[misc]
+        served.append(source)
+        if source.startswith("robot"):
+            queue.put(source, 2)  # the robot's next frame
+    robots = [s for s in served if s.startswith("robot")]
+    # robot1, robot2 (waiting longest), then the flood alternates with the robots, who share their half evenly.
+    assert served[:3] == ["robot1", "robot2", "churn/0"]
+    assert all(a.startswith("robot") != b.startswith("robot") for a, b in itertools.pairwise(served[1:]))
+    assert len(robots) == 7 and abs(robots.count("robot1") - robots.count("robot2")) <= 1
 
 
 class FakeClock:

@@ -3,6 +3,10 @@
 A robot publishes faster than a CPU infers. Keeping only the newest unprocessed frame per source bounds
 memory (sources x one payload) whatever the input rate, and serving sources in turn keeps one fast
 robot from starving the others.
+
+Sources whose first frame is waiting take at most every other turn while a returning source waits: a
+flood of new names (a frame counter in the key, a hostile peer) then gets at most half of the inference,
+and the robots that keep streaming the other half, instead of one turn in (flood + robots).
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ class LatestFrameQueue(Generic[T]):
     _cond: threading.Condition = field(default_factory=threading.Condition)
     _closed: bool = False
     _bytes: int = 0
+    _last_took_new: bool = False
 
     def put(self, source: str, item: T, nbytes: int = 0) -> bool:
         """Store ``item`` as the source's newest frame. Returns False if it replaced (dropped) an older one.
@@ -66,9 +71,17 @@ class LatestFrameQueue(Generic[T]):
                 return None
             if not self._pending:
                 return None
-            source, (item, nbytes) = self._pending.popitem(last=False)
+            source = next(iter(self._pending))  # the oldest waiting
+            if self._last_took_new and self._is_new(source):
+                source = next((s for s in self._pending if not self._is_new(s)), source)
+            self._last_took_new = self._is_new(source)
+            item, nbytes = self._pending.pop(source)
             self._bytes -= nbytes
             return source, item
+
+    def _is_new(self, source: str) -> bool:
+        """Its first frame: nothing received from it before (forgotten sources start again)."""
+        return self._counters[source].received == 1
 
     def forget(self, source: str) -> None:
         """Drop the source's pending frame and counters (a source the service no longer tracks)."""
