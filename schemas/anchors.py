@@ -10,6 +10,7 @@ from typing import Any
 
 import yaml
 from gcdtrav.schemas.clip_tokens import MAX_CONCEPT_TOKENS, count_clip_tokens
+from gcdtrav.schemas.limits import MAX_CONCEPT_CHARS, MAX_DOCUMENT_DEPTH, MAX_NAME_CHARS, nesting_depth
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 MIN_ANCHORS = 2
@@ -31,7 +32,9 @@ class Anchor(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    concept: str = Field(description="Text prompt given to the segmentation model, e.g. 'gravel'.")
+    concept: str = Field(
+        max_length=MAX_CONCEPT_CHARS, description="Text prompt given to the segmentation model, e.g. 'gravel'."
+    )
     position: float = Field(description="Traversability of the concept: 0 = untraversable, 1 = ideal ground.")
     width: float | None = Field(
         default=None,
@@ -72,7 +75,9 @@ class AnchorSet(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    name: str = Field(default="custom", description="A label for people; not part of the version.")
+    name: str = Field(
+        default="custom", max_length=MAX_NAME_CHARS, description="A label for people; not part of the version."
+    )
     default_width: float = Field(default=0.0, description="sigma_k of anchors that do not set their own.")
     anchors: list[Anchor]
 
@@ -148,11 +153,21 @@ class AnchorSet(BaseModel):
 
     @classmethod
     def from_text(cls, text: str | bytes, source: str | None = None) -> AnchorSet:
-        """Parse JSON or YAML text (JSON is valid YAML)."""
+        """Parse JSON or YAML text (JSON is valid YAML), refusing documents nested deeper than a real one."""
+        if isinstance(text, bytes):
+            try:
+                text = text.decode("utf-8")
+            except UnicodeDecodeError as err:
+                raise AnchorSetError([f"not UTF-8 text: {err}"], source) from None
+        too_deep = f"nested more than {MAX_DOCUMENT_DEPTH} levels deep; an anchor set is 3 levels deep"
+        if nesting_depth(text) > MAX_DOCUMENT_DEPTH:
+            raise AnchorSetError([too_deep], source)
         try:
             data = yaml.safe_load(text)
         except yaml.YAMLError as err:
             raise AnchorSetError([f"not valid JSON or YAML: {err}"], source) from None
+        except RecursionError:  # block-style YAML nests by indentation, which the scan above does not count
+            raise AnchorSetError([too_deep], source) from None
         if not isinstance(data, dict):
             raise AnchorSetError(
                 ['expected a mapping with an \'anchors\' list, e.g. {"anchors": [{"concept": ..., "position": ...}]}'],

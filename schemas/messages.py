@@ -12,6 +12,7 @@ import msgpack
 import numpy as np
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
 from gcdtrav.schemas.config import Method
+from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -67,7 +68,11 @@ class ImageEnvelope(Message):
     """An image with its capture time and camera frame, as the client library publishes it."""
 
     stamp: float = Field(description="Capture time, seconds since the Unix epoch.")
-    frame_id: str = Field(default="", description="The camera's coordinate frame, passed through to the maps.")
+    frame_id: str = Field(
+        default="",
+        max_length=MAX_FRAME_ID_CHARS,
+        description="The camera's coordinate frame, passed through to the maps.",
+    )
     encoding: PixelEncoding
     width: int = Field(ge=1)
     height: int = Field(ge=1)

@@ -15,6 +15,7 @@ from typing import Any, Literal
 
 import yaml
 from gcdtrav.schemas.config import EngineSettings
+from gcdtrav.schemas.limits import DEFAULT_MAX_ANCHOR_SET_BYTES
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 ENV_PREFIX = "GCDTRAV_"
@@ -225,6 +226,11 @@ class ServiceSettings(BaseModel):
         default=300, gt=0, description="A source without a frame for this long is forgotten (history, counters)."
     )
     max_payload_bytes: int = Field(default=20_000_000, ge=1024, description="Larger payloads are rejected unread.")
+    max_anchor_set_bytes: int = Field(
+        default=DEFAULT_MAX_ANCHOR_SET_BYTES,
+        ge=1024,
+        description="Larger anchor-set bodies sent to {prefix}/config/anchors are rejected before parsing.",
+    )
     max_pixels: int = Field(default=40_000_000, ge=1, description="Larger images are rejected before decoding.")
     full_resolution: bool = Field(default=False, description="Also publish T and U at the input image's size.")
     preview: bool = Field(default=True, description="Publish a colourised JPEG on {prefix}/out/{source}/preview.")

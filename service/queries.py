@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import OrderedDict, deque
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -163,6 +163,25 @@ def _region_cells(record: FrameRecord, text: str) -> tuple[int, int, int, int]:
 
 
 KNOWN_PARAMETERS = {"x", "y", "i", "j", "seq", "stamp", "region"}
+PATCH_FORMS = "x=..;y=.. (image pixels), i=..;j=.. (map cell) or region=x0,y0,x1,y1, and optionally seq=.. or stamp=.."
+
+
+def parameter_pairs(text: str) -> list[tuple[str, str]]:
+    """'a=1;b=2' -> [('a', '1'), ('b', '2')], as zenoh splits a selector's parameters; 'c' -> ('c', '')."""
+    pairs = [part.split("=", 1) for part in text.split(";") if part]
+    return [(pair[0], pair[1] if len(pair) == 2 else "") for pair in pairs]
+
+
+def strict_parameters(pairs: Iterable[tuple[str, str]], forms: str) -> dict[str, str]:
+    """Selector parameters as a mapping; a repeated or empty parameter is an error that names it."""
+    params: dict[str, str] = {}
+    for name, value in pairs:
+        if name in params:
+            raise QueryError(f"parameter '{name}' is given more than once; give each once: {forms}")
+        if not value:
+            raise QueryError(f"parameter '{name}' has no value; give {forms}")
+        params[name] = value
+    return params
 
 
 def answer_patch_query(history: FrameHistory, source: str, params: Mapping[str, str]) -> ContextDistribution:

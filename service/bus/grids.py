@@ -25,10 +25,18 @@ from gcdtrav.schemas.messages import ContextDistribution, GridHeader, GridMessag
 from gcdtrav.schemas.settings import GridSettings
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points, map_cell_pixels
-from gcdtrav.service.queries import FrameRecord, QueryError, distribution_of, parse_number
+from gcdtrav.service.queries import (
+    FrameRecord,
+    QueryError,
+    distribution_of,
+    parameter_pairs,
+    parse_number,
+    strict_parameters,
+)
 from numpy.typing import NDArray
 
 log = logging.getLogger("gcdtrav.service")
+CELL_FORMS = "x=..;y=.. (metres, grid frame), or path=x0,y0;x1,y1;..."
 MAX_PATH_POINTS = 256
 
 
@@ -258,9 +266,9 @@ class GridOutputs:
                 raise QueryError(f"the grid of '{source}' has no frame yet")
             if params.startswith("path="):
                 return self._path(grid, _points(params[len("path=") :]), anchors)
-            values = dict(part.split("=", 1) for part in params.split(";") if "=" in part)
+            values = strict_parameters(parameter_pairs(params), CELL_FORMS)
             if set(values) != {"x", "y"}:
-                raise QueryError("give x and y (metres, grid frame), or path=x0,y0;x1,y1;...")
+                raise QueryError(f"give {CELL_FORMS}")
             x, y = parse_number(values["x"], "x"), parse_number(values["y"], "y")
             i, j = (int(v) for v in grid.grid.index_of(np.array(x), np.array(y)))
             n = grid.grid.spec.cells

@@ -23,6 +23,7 @@ from typing import Any, TypeVar
 import numpy as np
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
+from gcdtrav.schemas.limits import MAX_SOURCE_CHARS
 from gcdtrav.schemas.messages import (
     MSGPACK_ENCODING,
     AnchorSetRejection,
@@ -35,6 +36,7 @@ from gcdtrav.schemas.messages import (
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
 from gcdtrav.service.bus import ros as ros_io
 from gcdtrav.service.bus.grids import GridOutputs
+from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.ingest import DecodedFrame, RejectedInput, decode_payload
 from gcdtrav.service.bus.latest import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.bus.membership import Membership
@@ -43,7 +45,14 @@ from gcdtrav.service.bus.ros_graph import RosGraph
 from gcdtrav.service.bus.stats import ServiceStats, percentiles
 from gcdtrav.service.cpus import usable_cpus
 from gcdtrav.service.pipeline import Inference, Pipeline
-from gcdtrav.service.queries import FrameHistory, FrameRecord, QueryError, answer_patch_query
+from gcdtrav.service.queries import (
+    PATCH_FORMS,
+    FrameHistory,
+    FrameRecord,
+    QueryError,
+    answer_patch_query,
+    strict_parameters,
+)
 from gcdtrav.service.sources import SourceTracker
 from gcdtrav.service.state import save_anchor_state
 
@@ -152,9 +161,13 @@ class TraversabilityService:
         if self.grids is not None:
             self._declare_grid_inputs(self.grids)
         self._declared += [
-            self.session.declare_queryable(f"{self.prefix}/out/**/patch", self._on_patch_query),
-            self.session.declare_queryable(f"{self.prefix}/config/anchors", self._on_anchors_query, complete=True),
-            self.session.declare_queryable(f"{self.prefix}/status", self._on_status_query, complete=True),
+            self.session.declare_queryable(f"{self.prefix}/out/**/patch", self._answering(self._on_patch_query)),
+            self.session.declare_queryable(
+                f"{self.prefix}/config/anchors", self._answering(self._on_anchors_query), complete=True
+            ),
+            self.session.declare_queryable(
+                f"{self.prefix}/status", self._answering(self._on_status_query), complete=True
+            ),
         ]
         for worker in self._workers:
             worker.start()
@@ -228,6 +241,11 @@ class TraversabilityService:
     def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None) -> None:
         if not self.owns(source):
             return  # another live instance serves this source
+        if len(source) > MAX_SOURCE_CHARS:
+            self.stats.rejected(
+                None, "source_name_too_long", f"'{source[:60]}...' is over {MAX_SOURCE_CHARS} characters"
+            )
+            return
         if not self.sources.admit(source):
             self.stats.rejected(
                 None, "too_many_sources", f"'{source[:200]}': already tracking {self.sources.max_sources} sources"
@@ -247,7 +265,8 @@ class TraversabilityService:
             self.stats.rejected(source, "pending_budget", str(err))
 
     def _declare_grid_inputs(self, grids: GridOutputs) -> None:
-        self._declared.append(self.session.declare_queryable(f"{self.prefix}/out/**/cell", self._on_cell_query))
+        cells = self.session.declare_queryable(f"{self.prefix}/out/**/cell", self._answering(self._on_cell_query))
+        self._declared.append(cells)
         for config in self.settings.grids:
             for key, setter, reason in (
                 (config.pose_key, grids.set_pose, "bad_pose"),
@@ -350,6 +369,9 @@ class TraversabilityService:
         latency_ms = (time.time() - pending.received_at) * 1e3
         self.stats.processed(source, record.seq, latency_ms, result.inference_ms)
 
+    def _answering(self, handler: Callable[[zenoh.Query], None]) -> Callable[[zenoh.Query], None]:
+        return answering(handler, self.stats)
+
     def _forget_seq(self, source: str) -> None:
         self._seq.pop(source, None)
 
@@ -378,7 +400,7 @@ class TraversabilityService:
                 raise QueryError(f"query one source's patch key, e.g. {self.prefix}/out/r1/front/patch, not '{key}'")
             if not self.owns(middle):
                 return  # the owner answers; replying too would race it
-            params = {name: value for name, value in query.parameters}  # type: ignore[attr-defined]
+            params = strict_parameters(query.parameters, PATCH_FORMS)
             reply = answer_patch_query(self.history, middle, params)
         except QueryError as err:
             self.stats.rejected(None, "bad_query", f"{query.selector}: {err}")
@@ -395,8 +417,13 @@ class TraversabilityService:
             return
         with self._swap_lock:  # one swap at a time; frames keep flowing meanwhile
             try:
-                if len(payload) > 1_000_000:
-                    raise AnchorSetError([f"payload of {len(payload)} bytes is too large for an anchor set"])
+                if len(payload) > self.settings.max_anchor_set_bytes:
+                    raise AnchorSetError(
+                        [
+                            f"body of {len(payload)} bytes is over the limit of {self.settings.max_anchor_set_bytes} "
+                            "bytes (max_anchor_set_bytes); an anchor set of 64 anchors takes about 4 kB"
+                        ]
+                    )
                 anchors = AnchorSet.from_text(payload.to_bytes(), source="anchor set")
             except AnchorSetError as err:
                 self.stats.rejected(None, "invalid_anchor_set", "; ".join(err.messages)[:300])

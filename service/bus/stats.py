@@ -56,8 +56,8 @@ class ServiceStats:
         with self._lock:
             self.sources.pop(name, None)
 
-    def rejected(self, name: str | None, reason: str, detail: str) -> None:
-        """Count a bad input and log it, at most once per reason every few seconds."""
+    def rejected(self, name: str | None, reason: str, detail: str, error: BaseException | None = None) -> None:
+        """Count a bad input and log it (with ``error``'s traceback), at most once per reason every few seconds."""
         message = f"{name or '-'}: {reason}: {detail}"
         with self._lock:
             if name is not None:
@@ -71,4 +71,4 @@ class ServiceStats:
             self._last_logged[reason] = now
             suppressed = self._suppressed.pop(reason, 0)
         extra = f" (+{suppressed} similar since last report)" if suppressed else ""
-        self._log.warning("rejected %s%s", message, extra)
+        self._log.warning("rejected %s%s", message, extra, exc_info=error)
