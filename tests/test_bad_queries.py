@@ -157,3 +157,44 @@ def test_a_handler_that_raises_still_answers_and_the_service_goes_on(  # type: i
     assert status.rejected_by_reason["query_failed"] == 1, queryable
     assert any("query_failed" in line and "injected fault" in line for line in status.last_errors)
     assert client.patch("cam", 10, 10).seq == 0
+
+
+def json_get(client: TraversabilityClient, selector: str, payload: bytes | None = None) -> tuple[bool, dict, str]:
+    """One reply to ``selector`` as zenoh's own tools see it: (ok, the parsed JSON, its encoding)."""
+    import json
+
+    (reply,) = list(client.session.get(selector, payload=payload, timeout=5.0))
+    sample = reply.ok if reply.ok is not None else reply.err
+    return reply.ok is not None, json.loads(sample.payload.to_bytes()), str(sample.encoding)
+
+
+def test_every_queryable_answers_json_when_asked(served) -> None:  # type: ignore[no-untyped-def]
+    service, client = served
+    ok, status, encoding = json_get(client, "gcdtrav/status?format=json")
+    assert ok and encoding == "application/json"
+    assert status["instance"] == "strict" and status["sources"]["cam"]["processed"] == 1
+    assert status["anchor_set_version"] == service.pipeline.anchors.version and status["method"] == "gcd"
+    assert status["max_sources"] == 256 and status["history_bytes"] > 0
+    ok, anchors, _ = json_get(client, "gcdtrav/config/anchors?format=json")
+    assert ok and anchors["version"] == service.pipeline.anchors.version
+    assert [a["concept"] for a in anchors["anchor_set"]["anchors"]] == service.pipeline.anchors.concepts
+    ok, patch, _ = json_get(client, "gcdtrav/out/cam/patch?x=10;y=10;format=json")
+    expected = client.patch("cam", 10, 10)  # the same answer in msgpack, through the client
+    assert ok and patch["seq"] == 0 and patch["source"] == "cam" and patch["patch"] == list(expected.patch)
+    assert patch["mean"] == pytest.approx(expected.mean) and patch["std"] == pytest.approx(expected.std)
+    assert sum(patch["weights"]) == pytest.approx(1.0, abs=1e-5) and len(patch["density"]) == len(patch["density_x"])
+    cell = client.path("cam", [(0.0, 0.0), (6.0, 0.0)]).cells[0].cell_xy
+    ok, cell_json, _ = json_get(client, f"gcdtrav/out/cam/cell?x={cell[0]};y={cell[1]};format=json")
+    assert ok and cell_json["cell_xy"] == list(cell) and cell_json["observations"] > 0
+    ok, path, _ = json_get(client, "gcdtrav/out/cam/cell?path=0,0;6,0;format=json")
+    assert ok and path["points"] == [[0.0, 0.0], [6.0, 0.0]] and path["cells"] and path["lowest_t"] is not None
+    # Errors and rejections are JSON too.
+    ok, error, encoding = json_get(client, "gcdtrav/out/cam/patch?x=1;x=2;y=1;format=json")
+    assert not ok and encoding == "application/json" and error["error"].startswith("parameter 'x' is given more")
+    ok, rejection, _ = json_get(client, "gcdtrav/config/anchors?format=json", b'{"anchors": []}')
+    assert not ok and rejection["active_version"] == service.pipeline.anchors.version and rejection["errors"]
+    # An unknown format: the reply is msgpack (the default) and says which formats there are.
+    assert raw_get(client, "gcdtrav/out/cam/patch?x=1;y=1;format=xml") == (
+        False,
+        "format=xml: give format=json or format=msgpack once [msgpack]",
+    )

@@ -12,11 +12,11 @@ import logging
 from collections.abc import Callable
 
 import zenoh
-from gcdtrav.schemas.messages import MSGPACK_ENCODING, ErrorReply
+from gcdtrav.schemas.messages import ErrorReply
+from gcdtrav.service.bus.replies import reply_error
 from gcdtrav.service.bus.stats import ServiceStats
 
 log = logging.getLogger("gcdtrav.service")
-MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
 
 QueryHandler = Callable[[zenoh.Query], None]
 
@@ -29,8 +29,8 @@ def answering(handler: QueryHandler, stats: ServiceStats) -> QueryHandler:
             stats.rejected(None, "query_failed", f"{query.selector}: {type(err).__name__}: {err}"[:300], err)
             reply = ErrorReply(error=f"internal error: {type(err).__name__}; see the service log")
             try:
-                query.reply_err(reply.pack(), encoding=MSGPACK)
-            except zenoh.ZError as reply_error:  # the query may have been dropped meanwhile
-                log.debug("error reply to %s failed: %s", query.selector, reply_error)
+                reply_error(query, reply)
+            except zenoh.ZError as failure:  # the query may have been dropped meanwhile
+                log.debug("error reply to %s failed: %s", query.selector, failure)
 
     return answer

@@ -25,7 +25,6 @@ import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.limits import MAX_SOURCE_CHARS
 from gcdtrav.schemas.messages import (
-    MSGPACK_ENCODING,
     AnchorSetRejection,
     AnchorSetReply,
     ErrorReply,
@@ -34,6 +33,7 @@ from gcdtrav.schemas.messages import (
     SourceStatus,
 )
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
+from gcdtrav.service.bus import replies
 from gcdtrav.service.bus import ros as ros_io
 from gcdtrav.service.bus.grids import GridOutputs
 from gcdtrav.service.bus.guard import answering
@@ -58,7 +58,6 @@ from gcdtrav.service.state import save_anchor_state
 
 log = logging.getLogger("gcdtrav.service")
 
-MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
 _R = TypeVar("_R")
 
 
@@ -384,12 +383,13 @@ class TraversabilityService:
             if not self.owns(source):
                 return
             assert self.grids is not None
-            reply = self.grids.answer(source, str(query.parameters))
+            replies.check_format(query)
+            answer = self.grids.answer(source, replies.text_without_format(str(query.parameters)))
         except QueryError as err:
             self.stats.rejected(None, "bad_query", f"{query.selector}: {err}")
-            query.reply_err(ErrorReply(error=str(err)).pack(), encoding=MSGPACK)
+            replies.reply_error(query, ErrorReply(error=str(err)))
             return
-        query.reply(key, reply.pack(), encoding=MSGPACK)
+        replies.reply(query, key, answer)
 
     # ---- queries -------------------------------------------------------------------------------------
     def _on_patch_query(self, query: zenoh.Query) -> None:
@@ -400,20 +400,21 @@ class TraversabilityService:
                 raise QueryError(f"query one source's patch key, e.g. {self.prefix}/out/r1/front/patch, not '{key}'")
             if not self.owns(middle):
                 return  # the owner answers; replying too would race it
-            params = strict_parameters(query.parameters, PATCH_FORMS)
-            reply = answer_patch_query(self.history, middle, params)
+            replies.check_format(query)
+            params = strict_parameters(replies.without_format(query), PATCH_FORMS)
+            answer = answer_patch_query(self.history, middle, params)
         except QueryError as err:
             self.stats.rejected(None, "bad_query", f"{query.selector}: {err}")
-            query.reply_err(ErrorReply(error=str(err)).pack(), encoding=MSGPACK)
+            replies.reply_error(query, ErrorReply(error=str(err)))
             return
-        query.reply(key, reply.pack(), encoding=MSGPACK)
+        replies.reply(query, key, answer)
 
     def _on_anchors_query(self, query: zenoh.Query) -> None:
         key = f"{self.prefix}/config/anchors"
         payload = query.payload
         if payload is None or len(payload) == 0:
             active = self.pipeline.anchors
-            query.reply(key, AnchorSetReply(anchor_set=active, version=active.version).pack(), encoding=MSGPACK)
+            replies.reply(query, key, AnchorSetReply(anchor_set=active, version=active.version))
             return
         with self._swap_lock:  # one swap at a time; frames keep flowing meanwhile
             try:
@@ -428,7 +429,7 @@ class TraversabilityService:
             except AnchorSetError as err:
                 self.stats.rejected(None, "invalid_anchor_set", "; ".join(err.messages)[:300])
                 rejection = AnchorSetRejection(errors=err.messages, active_version=self.pipeline.anchors.version)
-                query.reply_err(rejection.pack(), encoding=MSGPACK)
+                replies.reply_error(query, rejection)
                 return
             try:
                 prepared = self.pipeline.prepare(anchors)
@@ -438,11 +439,11 @@ class TraversabilityService:
                 rejection = AnchorSetRejection(
                     errors=[f"swap failed: {err}"], active_version=self.pipeline.anchors.version
                 )
-                query.reply_err(rejection.pack(), encoding=MSGPACK)
+                replies.reply_error(query, rejection)
                 return
             self.pipeline.activate(prepared)
         log.info("anchor set swapped to %s (%d anchors)", anchors.version, len(anchors))
-        query.reply(key, AnchorSetReply(anchor_set=anchors, version=anchors.version).pack(), encoding=MSGPACK)
+        replies.reply(query, key, AnchorSetReply(anchor_set=anchors, version=anchors.version))
 
     def status(self) -> ServiceStatus:
         counters = self.queue.counters()
@@ -482,4 +483,4 @@ class TraversabilityService:
         )
 
     def _on_status_query(self, query: zenoh.Query) -> None:
-        query.reply(f"{self.prefix}/status", self.status().pack(), encoding=MSGPACK)
+        replies.reply(query, f"{self.prefix}/status", self.status())

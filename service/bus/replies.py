@@ -1,0 +1,58 @@
+"""Replies in msgpack by default, in JSON when the selector says ``format=json``.
+
+zenoh's own tools print what they get: ``z_get -s 'gcdtrav/status?format=json'`` from zenoh-python's
+examples and the router's REST plugin (``curl 'http://router:8000/gcdtrav/status?format=json'``) show JSON
+that people can read, where msgpack is binary. Every queryable answers through these helpers, errors too.
+"""
+
+from __future__ import annotations
+
+import zenoh
+from gcdtrav.schemas.messages import MSGPACK_ENCODING, Message
+from gcdtrav.service.queries import QueryError
+
+MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
+JSON = zenoh.Encoding.APPLICATION_JSON
+FORMATS = ("msgpack", "json")
+
+
+def parameters(query: zenoh.Query) -> list[tuple[str, str]]:
+    """The selector's (name, value) pairs, repeats included."""
+    return [(name, value) for name, value in query.parameters]  # type: ignore[attr-defined]
+
+
+def wants_json(query: zenoh.Query) -> bool:
+    """Whether the selector asks for JSON; an unknown format falls back to msgpack (and is reported)."""
+    return ("format", "json") in parameters(query)
+
+
+def check_format(query: zenoh.Query) -> None:
+    formats = [value for name, value in parameters(query) if name == "format"]
+    if len(formats) > 1 or (formats and formats[0] not in FORMATS):
+        raise QueryError(f"format={';format='.join(formats)}: give format=json or format=msgpack once [msgpack]")
+
+
+def without_format(query: zenoh.Query) -> list[tuple[str, str]]:
+    """The selector's parameters less ``format``, for the handlers that parse the rest strictly."""
+    return [(name, value) for name, value in parameters(query) if name != "format"]
+
+
+def text_without_format(text: str) -> str:
+    """'x=1;format=json;y=2' -> 'x=1;y=2', keeping a path's own ';' separators."""
+    return ";".join(part for part in text.split(";") if not part.startswith("format="))
+
+
+def encoded(query: zenoh.Query, message: Message) -> tuple[bytes, zenoh.Encoding]:
+    if wants_json(query):
+        return message.model_dump_json().encode("utf-8"), JSON
+    return message.pack(), MSGPACK
+
+
+def reply(query: zenoh.Query, key: str, message: Message) -> None:
+    payload, encoding = encoded(query, message)
+    query.reply(key, payload, encoding=encoding)
+
+
+def reply_error(query: zenoh.Query, message: Message) -> None:
+    payload, encoding = encoded(query, message)
+    query.reply_err(payload, encoding=encoding)
