@@ -1,4 +1,5 @@
-"""The `gcdtrav` command: `infer` (offline), `serve` (Zenoh service), `bench` (benchmarks)."""
+"""The `gcdtrav` command: `infer` (offline), `serve` (Zenoh service), `bench` (benchmarks), and the
+torch-free operator commands `status` and `anchors` (gcdtrav.client.operator)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from gcdtrav.client import operator
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings, Method
 from gcdtrav.schemas.settings import SettingsError
@@ -164,6 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     bench.build_parser(
         commands.add_parser("bench", help="benchmark every backend mode on this machine", description=bench.__doc__)
     )
+    operator.add_operator_commands(commands)
     return parser
 
 
@@ -284,6 +287,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    if args.command in operator.COMMANDS:  # torch-free: they work from the base install
+        return operator.run(args)
     handlers = {"infer": cmd_infer, "serve": cmd_serve, "bench": cmd_bench, "eval": cmd_eval}
     from gcdtrav.service.backends.base import ModelUnavailableError
 

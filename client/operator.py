@@ -1,0 +1,180 @@
+"""Operator commands of `gcdtrav`, torch-free: `gcdtrav status` and `gcdtrav anchors get|set`.
+
+They run from the base install (`pip install gcdtrav`), with the zenoh flags of `gcdtrav serve`.
+Exit codes: 0 ok, 1 rejected or failed (one line on stderr), 2 usage error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from gcdtrav.client.client import AnchorSetRejected, ServiceError, TraversabilityClient
+from gcdtrav.client.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
+from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
+from gcdtrav.schemas.messages import ServiceStatus
+
+COMMANDS = ("status", "anchors")
+EXIT_OK, EXIT_FAILED = 0, 1
+
+
+def add_operator_commands(commands: argparse._SubParsersAction) -> None:
+    status = commands.add_parser("status", help="instances and sources of the running service (no torch)")
+    status.add_argument("--watch", type=float, metavar="SECONDS", help="refresh every SECONDS, with frames/s")
+    anchors = commands.add_parser("anchors", help="read or hot-swap the service's anchor set (no torch)")
+    actions = anchors.add_subparsers(dest="action", required=True)
+    get = actions.add_parser("get", help="print the active anchor set (YAML) or write it to a file")
+    get.add_argument("-o", "--output", type=Path, help="write it here (.yaml/.yml or .json)")
+    put = actions.add_parser("set", help="validate FILE, show the change, and swap it in on every instance")
+    put.add_argument("file", type=Path, help="anchor set, JSON or YAML")
+    put.add_argument("--dry-run", action="store_true", help="validate and show the change; swap nothing")
+    for parser in (status, get, put):
+        parser.add_argument("--prefix", default="gcdtrav", help="the service's key prefix [gcdtrav]")
+        parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for replies [5]")
+        add_zenoh_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run an operator command; every failure is one line on stderr."""
+    try:
+        config = zenoh_config_from_args(args)
+        with TraversabilityClient(config=config, prefix=args.prefix, timeout=args.timeout) as client:
+            if args.command == "status":
+                return watch_status(client, args.watch) if args.watch else print_status(client)
+            return get_anchors(client, args.output) if args.action == "get" else set_anchors(client, args)
+    except (AnchorSetError, AnchorSetRejected, ServiceError, OSError, ValueError) as err:
+        print(f"gcdtrav {args.command}: {one_line(err)}", file=sys.stderr)
+        return EXIT_FAILED
+    except Exception as err:  # zenoh.ZError: e.g. an endpoint that cannot be reached in client mode
+        print(f"gcdtrav {args.command}: {type(err).__name__}: {one_line(err)}", file=sys.stderr)
+        return EXIT_FAILED
+
+
+def one_line(err: BaseException) -> str:
+    return " ".join(str(err).split())
+
+
+# ---- status ------------------------------------------------------------------------------------------
+
+
+def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] = lambda i, s: "-") -> str:
+    lines = ["instance       uptime  model / anchors / method                      queued  history MB  sources"]
+    for s in statuses:
+        what = f"{s.model[-24:]} / {s.anchor_set_version} / {s.method.value}"
+        lines.append(
+            f"{s.instance:<14} {s.uptime_s:6.0f}s  {what:<44}  {s.queued:>6}  {s.history_bytes / 1e6:10.1f}  "
+            f"{s.tracked_sources}/{s.max_sources}"
+        )
+    lines += [
+        "",
+        "source                    instance       frames/s  received  processed  dropped  rejected  p50 ms  p99 ms",
+    ]
+    for s in statuses:
+        for name, src in sorted(s.sources.items()):
+            p50, p99 = src.latency_ms.get("p50", "-"), src.latency_ms.get("p99", "-")
+            lines.append(
+                f"{name[:25]:<25} {s.instance[:14]:<14} {fps(s.instance, name):>8}  {src.received:>8}  "
+                f"{src.processed:>9}  {src.dropped:>7}  {src.rejected:>8}  {p50:>6}  {p99:>6}"
+            )
+    rejected = {reason: n for s in statuses for reason, n in s.rejected_by_reason.items()}
+    if rejected:
+        lines += ["", "rejected: " + ", ".join(f"{reason} {n}" for reason, n in sorted(rejected.items()))]
+    return "\n".join(lines)
+
+
+def live_statuses(client: TraversabilityClient) -> list[ServiceStatus]:
+    statuses = client.statuses()
+    if not statuses:
+        raise ServiceError(f"no gcdtrav instance answered on '{client.prefix}/status': is the service running?")
+    return statuses
+
+
+def print_status(client: TraversabilityClient) -> int:
+    print(status_table(live_statuses(client)))
+    return EXIT_OK
+
+
+Counts = dict[tuple[str, str], tuple[float, int]]
+
+
+def frames_per_s(before: Counts, now: Counts) -> Callable[[str, str], str]:
+    """Frames/s of each (instance, source) between two refreshes' processed counts."""
+
+    def fps(instance: str, source: str) -> str:
+        old, new = before.get((instance, source)), now[(instance, source)]
+        return f"{(new[1] - old[1]) / (new[0] - old[0]):.2f}" if old and new[0] > old[0] else "-"
+
+    return fps
+
+
+def watch_status(client: TraversabilityClient, every_s: float) -> int:
+    """Refresh until Ctrl-C; frames/s from the processed counts between two refreshes."""
+    before: Counts = {}
+    try:
+        while True:
+            now, statuses = time.monotonic(), live_statuses(client)
+            counts = {(s.instance, n): (now, src.processed) for s in statuses for n, src in s.sources.items()}
+            print(f"\x1b[2J\x1b[H{time.strftime('%H:%M:%S')}  gcdtrav status (Ctrl-C stops)\n")
+            print(status_table(statuses, frames_per_s(before, counts)), flush=True)
+            before = counts
+            time.sleep(every_s)
+    except KeyboardInterrupt:
+        return EXIT_OK
+
+
+# ---- anchors -----------------------------------------------------------------------------------------
+
+
+def get_anchors(client: TraversabilityClient, output: Path | None) -> int:
+    active = client.anchors().anchor_set
+    if output is None:
+        print(f"# active anchor set {active.version}\n{active_yaml(active)}", end="")
+    else:
+        active.save(output)
+        print(f"anchor set {active.version} ({len(active)} anchors) written to {output}")
+    return EXIT_OK
+
+
+def active_yaml(anchors: AnchorSet) -> str:
+    import yaml
+
+    return yaml.safe_dump(anchors.model_dump(exclude_none=True), sort_keys=False)
+
+
+def anchor_diff(active: AnchorSet, new: AnchorSet) -> list[str]:
+    """What swapping ``active`` for ``new`` changes, one line per concept: + added, - removed, ~ moved."""
+    old = {a.concept: a for a in active.anchors}
+    lines = [f"- {c} @ {a.position:.2f}" for c, a in old.items() if c not in set(new.concepts)]
+    for anchor in new.anchors:
+        before = old.get(anchor.concept)
+        width = new.widths[new.concepts.index(anchor.concept)]
+        if before is None:
+            lines.append(f"+ {anchor.concept} @ {anchor.position:.2f}")
+        else:
+            old_width = active.widths[active.concepts.index(anchor.concept)]
+            if (before.position, old_width) != (anchor.position, width):
+                lines.append(
+                    f"~ {anchor.concept} @ {before.position:.2f} -> {anchor.position:.2f}"
+                    + (f", width {old_width:g} -> {width:g}" if old_width != width else "")
+                )
+    if active.name != new.name:
+        lines.append(f"~ name {active.name!r} -> {new.name!r}")
+    return lines
+
+
+def set_anchors(client: TraversabilityClient, args: argparse.Namespace) -> int:
+    new = AnchorSet.load(args.file)  # the same pydantic model the service validates with
+    active = client.anchors().anchor_set
+    changes = anchor_diff(active, new)
+    print(f"{active.version} ({len(active)} anchors) -> {new.version} ({len(new)} anchors)")
+    print("\n".join(changes) if changes else "no change")
+    if args.dry_run:
+        print("dry run: nothing swapped")
+        return EXIT_OK
+    instances = [s.instance for s in client.statuses()]
+    version = client.set_anchors(new)
+    print(f"swapped: anchor set {version} active on {len(instances)} instance(s): {', '.join(instances)}")
+    return EXIT_OK

@@ -1,0 +1,115 @@
+"""The torch-free operator commands against a real service on loopback: status, anchors get/set."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from conftest import textured_image
+from zenoh_helpers import connecting_config, service_reachable, wait_until
+
+pytest.importorskip("torch")
+
+from gcdtrav.client import TraversabilityClient
+from gcdtrav.client.operator import anchor_diff
+from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
+from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.service.bus.node import TraversabilityService
+from gcdtrav.service.loopback import in_process_service
+
+ROOT = Path(__file__).resolve().parents[1]
+PUDDLES = ROOT / "examples" / "anchors" / "puddles.yaml"
+
+
+def gcdtrav(*args: str) -> subprocess.CompletedProcess[str]:
+    """`gcdtrav ARGS` in a fresh interpreter where torch and transformers cannot be imported."""
+    code = textwrap.dedent(
+        f"""
+        import sys
+        sys.modules["torch"] = None
+        sys.modules["transformers"] = None
+        from gcdtrav.service.cli import main
+        sys.exit(main({list(args)!r}))
+        """
+    )
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+
+
+@pytest.fixture()
+def service(tiny_backend, tmp_path: Path) -> Iterator[tuple[TraversabilityService, list[str]]]:  # type: ignore[no-untyped-def]
+    settings = ServiceSettings(state_dir=tmp_path / "state", instance="ops-1", preview=False)
+    with in_process_service(tiny_backend, settings) as (running, port):
+        with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
+            assert wait_until(lambda: service_reachable(client), 10)
+            received = []
+            subscriber = client.subscribe_maps("r1/front", received.append)
+            time.sleep(0.3)
+            client.publish_image("r1/front", textured_image(48, 64))
+            assert wait_until(lambda: bool(received), 15)
+            subscriber.undeclare()
+        yield running, ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
+
+
+def test_status_anchors_get_and_a_swap_with_its_diff(service, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    running, flags = service
+    status = gcdtrav("status", *flags)
+    assert status.returncode == 0, status.stderr
+    assert "ops-1" in status.stdout and "r1/front" in status.stdout and "tiny" not in status.stderr
+    row = next(line for line in status.stdout.splitlines() if line.startswith("r1/front"))
+    assert row.split()[1:6] == ["ops-1", "-", "1", "1", "0"]  # instance, frames/s, received, processed, dropped
+
+    shown = gcdtrav("anchors", "get", *flags)
+    assert shown.returncode == 0 and f"# active anchor set {default_anchor_set().version}" in shown.stdout
+    saved = tmp_path / "active.yaml"
+    assert gcdtrav("anchors", "get", "-o", str(saved), *flags).returncode == 0
+    assert AnchorSet.load(saved) == running.pipeline.anchors
+
+    dry = gcdtrav("anchors", "set", str(PUDDLES), "--dry-run", *flags)
+    new = AnchorSet.load(PUDDLES)
+    assert dry.returncode == 0, dry.stderr
+    assert dry.stdout.splitlines()[0] == f"{default_anchor_set().version} (13 anchors) -> {new.version} (8 anchors)"
+    assert "\n".join(anchor_diff(default_anchor_set(), new)) in dry.stdout and "dry run: nothing swapped" in dry.stdout
+    assert running.pipeline.anchors.version == default_anchor_set().version  # nothing swapped
+
+    swap = gcdtrav("anchors", "set", str(PUDDLES), *flags)
+    assert swap.returncode == 0, swap.stderr
+    assert f"swapped: anchor set {new.version} active on 1 instance(s): ops-1" in swap.stdout
+    assert running.pipeline.anchors.version == new.version
+
+
+def test_failures_are_one_line_with_the_right_exit_code(service, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    running, flags = service
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("anchors:\n  - {concept: mud, position: 1.5}\n")
+    rejected = gcdtrav("anchors", "set", str(bad), *flags)
+    assert rejected.returncode == 1 and len(rejected.stderr.strip().splitlines()) == 1
+    assert "position 1.5 is outside [0, 1]" in rejected.stderr
+    assert running.pipeline.anchors.version == default_anchor_set().version
+    missing = gcdtrav("anchors", "set", str(tmp_path / "nope.yaml"), *flags)
+    assert missing.returncode == 1 and "cannot read the file" in missing.stderr
+    unreachable = gcdtrav("status", "-m", "client", "-e", "tcp/127.0.0.1:9", "--no-multicast-scouting")
+    assert unreachable.returncode == 1 and len(unreachable.stderr.strip().splitlines()) == 1
+    assert unreachable.stderr.startswith("gcdtrav status: ")
+    usage = gcdtrav("anchors", "swap", "x.yaml")
+    assert usage.returncode == 2
+
+
+def test_diff_names_added_removed_and_moved_concepts() -> None:
+    active = AnchorSet.parse({"anchors": [{"concept": "mud", "position": 0.1}, {"concept": "road", "position": 1.0}]})
+    new = AnchorSet.parse(
+        {
+            "name": "x",
+            "anchors": [{"concept": "mud", "position": 0.2, "width": 0.05}, {"concept": "grass", "position": 0.7}],
+        }
+    )
+    assert anchor_diff(active, new) == [
+        "- road @ 1.00",
+        "~ mud @ 0.10 -> 0.20, width 0 -> 0.05",
+        "+ grass @ 0.70",
+        "~ name 'custom' -> 'x'",
+    ]
