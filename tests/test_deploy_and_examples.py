@@ -60,7 +60,9 @@ def test_robot_planner_and_operator_examples(tiny_backend, tmp_path: Path) -> No
         assert "T (mean) =" in planner.stdout and "concrete @ 1.00" in planner.stdout
         missing = run_example("planner_probe.py", "--source", "nobody", "--x", "1", "--y", "1", *flags)
         assert missing.returncode == 1 and "unknown source 'nobody'" in missing.stderr
-        operator = run_example("set_anchors.py", str(ROOT / "examples" / "anchors" / "puddles.yaml"), *flags)
+        puddles = str(ROOT / "examples" / "anchors" / "puddles.yaml")  # the operator's command replaced the script
+        command = [sys.executable, "-m", "gcdtrav.service.cli", "anchors", "set", puddles, *flags]
+        operator = subprocess.run(command, capture_output=True, text=True, timeout=60)
         assert operator.returncode == 0, operator.stderr
         assert len(service.pipeline.anchors) == 8
 
