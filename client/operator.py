@@ -1,4 +1,4 @@
-"""Operator commands of `gcdtrav`, torch-free: `gcdtrav status` and `gcdtrav anchors get|set`.
+"""Operator commands of `gcdtrav`, torch-free: `gcdtrav status`, `gcdtrav anchors get|set`, `gcdtrav probe`.
 
 They run from the base install (`pip install gcdtrav`), with the zenoh flags of `gcdtrav serve`.
 Exit codes: 0 ok, 1 rejected or failed (one line on stderr), 2 usage error.
@@ -15,9 +15,9 @@ from pathlib import Path
 from gcdtrav.client.client import AnchorSetRejected, ServiceError, TraversabilityClient
 from gcdtrav.client.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
-from gcdtrav.schemas.messages import ServiceStatus
+from gcdtrav.schemas.messages import ContextDistribution, ServiceStatus
 
-COMMANDS = ("status", "anchors")
+COMMANDS = ("status", "anchors", "probe")
 EXIT_OK, EXIT_FAILED = 0, 1
 
 
@@ -31,7 +31,13 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
     put = actions.add_parser("set", help="validate FILE, show the change, and swap it in on every instance")
     put.add_argument("file", type=Path, help="anchor set, JSON or YAML")
     put.add_argument("--dry-run", action="store_true", help="validate and show the change; swap nothing")
-    for parser in (status, get, put):
+    probe = commands.add_parser("probe", help="a pixel's context distribution, printed or drawn (no torch)")
+    probe.add_argument("source", help="the source, e.g. r1/front")
+    probe.add_argument("x", type=float, help="image pixel column")
+    probe.add_argument("y", type=float, help="image pixel row")
+    probe.add_argument("--seq", type=int, help="a kept frame [default: the latest]")
+    probe.add_argument("--png", type=Path, help="also draw the density like the paper's Fig. 2 (needs matplotlib)")
+    for parser in (status, get, put, probe):
         parser.add_argument("--prefix", default="gcdtrav", help="the service's key prefix [gcdtrav]")
         parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for replies [5]")
         add_zenoh_arguments(parser)
@@ -44,6 +50,8 @@ def run(args: argparse.Namespace) -> int:
         with TraversabilityClient(config=config, prefix=args.prefix, timeout=args.timeout) as client:
             if args.command == "status":
                 return watch_status(client, args.watch) if args.watch else print_status(client)
+            if args.command == "probe":
+                return probe(client, args)
             return get_anchors(client, args.output) if args.action == "get" else set_anchors(client, args)
     except (AnchorSetError, AnchorSetRejected, ServiceError, OSError, ValueError) as err:
         print(f"gcdtrav {args.command}: {one_line(err)}", file=sys.stderr)
@@ -178,3 +186,61 @@ def set_anchors(client: TraversabilityClient, args: argparse.Namespace) -> int:
     version = client.set_anchors(new)
     print(f"swapped: anchor set {version} active on {len(instances)} instance(s): {', '.join(instances)}")
     return EXIT_OK
+
+
+# ---- probe -------------------------------------------------------------------------------------------
+
+
+def describe(d: ContextDistribution) -> str:
+    """A distribution as text: T, U, shape, and a bar per anchor weight."""
+    where = f"cell {d.patch}" if d.patch is not None else f"region {d.region}"
+    lines = [
+        f"{d.source} seq={d.seq} {where} anchors={d.anchor_set_version}",
+        f"T (mean) = {d.mean:.3f}   U (std) = {d.std:.3f}   modes = {d.modes}   entropy = {d.entropy:.2f} nats",
+        f"skewness = {d.skewness:.2f}   excess kurtosis = {d.excess_kurtosis:.2f}",
+    ]
+    for anchor, weight in zip(d.anchors, d.weights, strict=True):
+        lines.append(f"  {anchor.concept:>14} @ {anchor.position:4.2f}  {weight:6.3f} {'#' * round(weight * 40)}")
+    return "\n".join(lines)
+
+
+def probe(client: TraversabilityClient, args: argparse.Namespace) -> int:
+    distribution = client.patch(args.source, args.x, args.y, seq=args.seq)
+    print(describe(distribution))
+    if args.png is not None:
+        draw_density(distribution, args.png)
+        print(f"density drawn to {args.png}")
+    return EXIT_OK
+
+
+def draw_density(d: ContextDistribution, path: Path) -> None:
+    """The Gaussian context distribution as in the paper's Fig. 2: density, anchor weights, T and T ± U."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        raise ValueError("--png needs matplotlib: pip install matplotlib") from None
+    figure, axis = plt.subplots(figsize=(6.4, 3.2), dpi=120)
+    axis.axvspan(
+        d.mean - d.std, d.mean + d.std, color="tab:orange", alpha=0.15, label=f"T ± U = {d.mean:.2f} ± {d.std:.2f}"
+    )
+    axis.plot(d.density_x, d.density, color="tab:blue", label="context distribution")
+    axis.axvline(d.mean, color="tab:orange", linestyle="--", label="T (mean)")
+    weights = axis.twinx()
+    weights.bar([a.position for a in d.anchors], d.weights, width=0.012, color="tab:gray", alpha=0.8)
+    for anchor, weight in zip(d.anchors, d.weights, strict=True):
+        if weight >= 0.05:
+            weights.annotate(anchor.concept, (anchor.position, weight), fontsize=7, rotation=90, va="bottom")
+    weights.set_ylabel("anchor weight")
+    weights.set_ylim(0, max(1.0, max(d.weights) * 1.3))
+    axis.set_xlim(0, 1)
+    axis.set_xlabel("traversability (0 = untraversable, 1 = ideal ground)")
+    axis.set_ylabel("density")
+    where = f"cell {d.patch}" if d.patch is not None else f"region {d.region}"
+    axis.set_title(f"{d.source} seq {d.seq}, {where}", fontsize=9)
+    axis.legend(loc="upper right", fontsize=7)
+    figure.tight_layout()
+    figure.savefig(path)
+    plt.close(figure)

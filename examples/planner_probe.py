@@ -9,23 +9,7 @@ import argparse
 import sys
 
 from gcdtrav.client import ServiceError, TraversabilityClient, add_zenoh_arguments, zenoh_config_from_args
-from gcdtrav.schemas.messages import ContextDistribution
-
-
-def bar(weight: float, width: int = 40) -> str:
-    return "#" * round(weight * width)
-
-
-def describe(d: ContextDistribution) -> str:
-    where = f"cell {d.patch}" if d.patch is not None else f"region {d.region}"
-    lines = [
-        f"{d.source} seq={d.seq} {where} anchors={d.anchor_set_version}",
-        f"T (mean) = {d.mean:.3f}   U (std) = {d.std:.3f}   modes = {d.modes}   entropy = {d.entropy:.2f} nats",
-        f"skewness = {d.skewness:.2f}   excess kurtosis = {d.excess_kurtosis:.2f}",
-    ]
-    for anchor, weight in zip(d.anchors, d.weights, strict=True):
-        lines.append(f"  {anchor.concept:>14} @ {anchor.position:4.2f}  {weight:6.3f} {bar(weight)}")
-    return "\n".join(lines)
+from gcdtrav.client.operator import describe  # `gcdtrav probe SOURCE X Y` prints the same
 
 
 def main() -> int:

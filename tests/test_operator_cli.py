@@ -82,6 +82,19 @@ def test_status_anchors_get_and_a_swap_with_its_diff(service, tmp_path: Path) ->
     assert running.pipeline.anchors.version == new.version
 
 
+def test_probe_prints_a_pixels_distribution_and_draws_it(service, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    running, flags = service
+    png = tmp_path / "probe.png"
+    probe = gcdtrav("probe", "r1/front", "20", "10", "--png", str(png), *flags)
+    assert probe.returncode == 0, probe.stderr
+    expected = running.history.get("r1/front", None)
+    assert probe.stdout.startswith(f"r1/front seq={expected.seq} cell ")
+    assert "T (mean) =" in probe.stdout and "concrete @ 1.00" in probe.stdout
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
+    outside = gcdtrav("probe", "r1/front", "5000", "10", *flags)
+    assert outside.returncode == 1 and "outside the 64x48 image" in outside.stderr
+
+
 def test_failures_are_one_line_with_the_right_exit_code(service, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     running, flags = service
     bad = tmp_path / "bad.yaml"
