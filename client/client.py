@@ -19,6 +19,7 @@ from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.images import decode_map_png16, encode_jpeg, encode_png, peek_image_size
 from gcdtrav.schemas.messages import (
     MSGPACK_ENCODING,
+    AnchorHistoryReply,
     AnchorSetRejection,
     AnchorSetReply,
     ContextDistribution,
@@ -378,6 +379,28 @@ class TraversabilityClient:
             f"{self.prefix}/config/anchors",
             AnchorSetReply,
             payload=text.encode("utf-8"),
+            timeout=timeout,
+            every_instance=True,
+        )
+        if errors:
+            raise errors[0]
+        return answers[0].version
+
+    def anchor_history(self, timeout: float | None = None) -> list[AnchorHistoryReply]:
+        """Every instance's last accepted anchor sets, newest (the active one) first."""
+        answers, errors = self._replies(
+            f"{self.prefix}/config/anchors/history", AnchorHistoryReply, timeout=timeout, every_instance=True
+        )
+        if not answers and errors:
+            raise errors[0]
+        return sorted(answers, key=lambda history: history.instance)
+
+    def rollback_anchors(self, steps: int = 1, timeout: float | None = None) -> str:
+        """Swap every instance back to the set ``steps`` before its active one; returns the version."""
+        answers, errors = self._replies(
+            f"{self.prefix}/config/anchors/rollback",
+            AnchorSetReply,
+            params={"steps": steps},
             timeout=timeout,
             every_instance=True,
         )

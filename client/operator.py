@@ -31,13 +31,16 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
     put = actions.add_parser("set", help="validate FILE, show the change, and swap it in on every instance")
     put.add_argument("file", type=Path, help="anchor set, JSON or YAML")
     put.add_argument("--dry-run", action="store_true", help="validate and show the change; swap nothing")
+    history = actions.add_parser("history", help="the last accepted anchor sets, newest (active) first")
+    rollback = actions.add_parser("rollback", help="swap back to an earlier set of the history, on every instance")
+    rollback.add_argument("steps", nargs="?", type=int, default=1, help="how far back [1: the set before]")
     probe = commands.add_parser("probe", help="a pixel's context distribution, printed or drawn (no torch)")
     probe.add_argument("source", help="the source, e.g. r1/front")
     probe.add_argument("x", type=float, help="image pixel column")
     probe.add_argument("y", type=float, help="image pixel row")
     probe.add_argument("--seq", type=int, help="a kept frame [default: the latest]")
     probe.add_argument("--png", type=Path, help="also draw the density like the paper's Fig. 2 (needs matplotlib)")
-    for parser in (status, get, put, probe):
+    for parser in (status, get, put, history, rollback, probe):
         parser.add_argument("--prefix", default="gcdtrav", help="the service's key prefix [gcdtrav]")
         parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for replies [5]")
         add_zenoh_arguments(parser)
@@ -52,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
                 return watch_status(client, args.watch) if args.watch else print_status(client)
             if args.command == "probe":
                 return probe(client, args)
-            return get_anchors(client, args.output) if args.action == "get" else set_anchors(client, args)
+            actions = {"get": get_anchors, "set": set_anchors, "history": show_history, "rollback": roll_back}
+            return actions[args.action](client, args)
     except (AnchorSetError, AnchorSetRejected, ServiceError, OSError, ValueError) as err:
         print(f"gcdtrav {args.command}: {one_line(err)}", file=sys.stderr)
         return EXIT_FAILED
@@ -136,8 +140,8 @@ def watch_status(client: TraversabilityClient, every_s: float) -> int:
 # ---- anchors -----------------------------------------------------------------------------------------
 
 
-def get_anchors(client: TraversabilityClient, output: Path | None) -> int:
-    active = client.anchors().anchor_set
+def get_anchors(client: TraversabilityClient, args: argparse.Namespace) -> int:
+    active, output = client.anchors().anchor_set, args.output
     if output is None:
         print(f"# active anchor set {active.version}\n{active_yaml(active)}", end="")
     else:
@@ -185,6 +189,29 @@ def set_anchors(client: TraversabilityClient, args: argparse.Namespace) -> int:
     instances = [s.instance for s in client.statuses()]
     version = client.set_anchors(new)
     print(f"swapped: anchor set {version} active on {len(instances)} instance(s): {', '.join(instances)}")
+    return EXIT_OK
+
+
+def show_history(client: TraversabilityClient, args: argparse.Namespace) -> int:
+    for history in client.anchor_history():
+        print(f"instance {history.instance}:")
+        for steps, entry in enumerate(history.entries):
+            when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(entry.accepted_at))
+            label = "active" if steps == 0 else f"rollback {steps}"
+            anchors = entry.anchor_set
+            print(f"  {label:>11}  {when}  {entry.version}  {anchors.name[:30]:<30} {len(anchors):>2} anchors")
+    return EXIT_OK
+
+
+def roll_back(client: TraversabilityClient, args: argparse.Namespace) -> int:
+    histories = client.anchor_history()
+    if not histories or len(histories[0].entries) <= args.steps:
+        raise ValueError(f"no set {args.steps} step(s) back in the history; see gcdtrav anchors history")
+    active, target = histories[0].entries[0].anchor_set, histories[0].entries[args.steps].anchor_set
+    print(f"{active.version} ({len(active)} anchors) -> {target.version} ({len(target)} anchors)")
+    print("\n".join(anchor_diff(active, target)) or "no change")
+    version = client.rollback_anchors(args.steps)
+    print(f"rolled back: anchor set {version} active on {len(histories)} instance(s)")
     return EXIT_OK
 
 

@@ -201,6 +201,21 @@ class AnchorSetReply(Message):
     version: str
 
 
+class AnchorHistoryEntry(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    accepted_at: float = Field(description="When the set became active, seconds since the Unix epoch.")
+    version: str
+    anchor_set: AnchorSet
+
+
+class AnchorHistoryReply(Message):
+    """The last accepted anchor sets of an instance, newest (the active one) first."""
+
+    instance: str
+    entries: list[AnchorHistoryEntry]
+
+
 class AnchorSetRejection(Message):
     """Error reply to a rejected anchor set; the active set is unchanged."""
 

@@ -60,9 +60,6 @@ class Pipeline:
         with self._lock:
             self._active = active
 
-    def swap_anchors(self, anchors: AnchorSet) -> None:
-        self.activate(self.prepare(anchors))
-
     def infer(self, image_rgb: NDArray[np.uint8]) -> Inference:
         """The backend's forward with the active anchor set (read once: the whole frame uses one set)."""
         active = self._active

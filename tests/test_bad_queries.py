@@ -139,8 +139,10 @@ def boom(*args: object, **kwargs: object) -> None:
     [
         ("patch", (node_module, "answer_patch_query"), "gcdtrav/out/cam/patch?x=1;y=1", None),
         ("cell", ("grids", "answer"), "gcdtrav/out/cam/cell?x=2;y=0", None),
-        ("anchors", (node_module.AnchorSet, "from_text"), "gcdtrav/config/anchors", b'{"anchors": []}'),
+        ("anchors", ("switch", "submit"), "gcdtrav/config/anchors", b'{"anchors": []}'),
         ("status", ("service", "status"), "gcdtrav/status", None),
+        ("history", ("switch", "history"), "gcdtrav/config/anchors/history", None),
+        ("rollback", ("switch", "submit_rollback"), "gcdtrav/config/anchors/rollback?steps=1", None),
     ],
 )
 def test_a_handler_that_raises_still_answers_and_the_service_goes_on(  # type: ignore[no-untyped-def]
@@ -148,7 +150,7 @@ def test_a_handler_that_raises_still_answers_and_the_service_goes_on(  # type: i
 ) -> None:
     service, client = served
     owner, name = target
-    owner = {"grids": service.grids, "service": service}.get(owner, owner)  # type: ignore[call-overload]
+    owner = {"grids": service.grids, "service": service, "switch": service.anchor_switch}.get(owner, owner)  # type: ignore[call-overload]
     with monkeypatch.context() as patch:
         patch.setattr(owner, name, boom)
         assert raw_get(client, selector, payload) == (False, "internal error: RuntimeError; see the service log")
@@ -198,3 +200,13 @@ def test_every_queryable_answers_json_when_asked(served) -> None:  # type: ignor
         False,
         "format=xml: give format=json or format=msgpack once [msgpack]",
     )
+
+
+def test_a_swap_that_fails_on_the_worker_is_rejected_and_the_active_set_stays(served, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    service, client = served
+    active = service.pipeline.anchors.version
+    monkeypatch.setattr(service.pipeline, "prepare", boom)
+    with pytest.raises(AnchorSetRejected, match="swap failed: RuntimeError: injected fault"):
+        client.set_anchors({"anchors": TWO})
+    assert service.pipeline.anchors.version == active and client.status().rejected_by_reason["swap_failed"] == 1
+    assert [e.version for e in client.anchor_history()[0].entries] == [active]  # nothing half-applied

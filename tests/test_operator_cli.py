@@ -95,6 +95,42 @@ def test_probe_prints_a_pixels_distribution_and_draws_it(service, tmp_path: Path
     assert outside.returncode == 1 and "outside the 64x48 image" in outside.stderr
 
 
+def test_history_and_rollback_survive_a_restart(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    settings = ServiceSettings(state_dir=tmp_path / "state", instance="ops-2", preview=False)
+    puddles = AnchorSet.load(PUDDLES)
+    two = {"name": "two", "anchors": [{"concept": "lake", "position": 0.0}, {"concept": "road", "position": 1.0}]}
+    with in_process_service(tiny_backend, settings) as (running, port):
+        flags = ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
+        with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
+            assert wait_until(lambda: service_reachable(client), 10)
+            client.set_anchors(puddles)
+            client.set_anchors(two)
+        history = gcdtrav("anchors", "history", *flags)
+        assert history.returncode == 0, history.stderr
+        lines = history.stdout.splitlines()
+        assert lines[0] == "instance ops-2:" and len(lines) == 4
+        assert "active" in lines[1] and "two" in lines[1] and "rollback 1" in lines[2] and puddles.version in lines[2]
+        assert default_anchor_set().version in lines[3]  # the set it started with
+        rolled = gcdtrav("anchors", "rollback", *flags)
+        assert rolled.returncode == 0, rolled.stderr
+        assert f"rolled back: anchor set {puddles.version} active on 1 instance(s)" in rolled.stdout
+        assert "- lake @ 0.00" in rolled.stdout and running.pipeline.anchors.version == puddles.version
+        too_far = gcdtrav("anchors", "rollback", "9", *flags)
+        assert too_far.returncode == 1 and "no set 9 step(s) back" in too_far.stderr
+    # A restarted service keeps its history (written atomically in the state directory).
+    from gcdtrav.service.bus.run import starting_anchor_set
+
+    with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (running, port):
+        assert running.pipeline.anchors.version == puddles.version
+        versions = [e.version for e in running.anchor_switch.history().entries]
+        assert versions == [
+            puddles.version,
+            AnchorSet.parse(two).version,
+            puddles.version,
+            default_anchor_set().version,
+        ]
+
+
 def test_failures_are_one_line_with_the_right_exit_code(service, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     running, flags = service
     bad = tmp_path / "bad.yaml"

@@ -33,6 +33,7 @@ from gcdtrav.schemas.messages import (
     SourceStatus,
 )
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
+from gcdtrav.service.anchor_switch import AnchorSwitch, SwapDone
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus import ros as ros_io
 from gcdtrav.service.bus.grids import GridOutputs
@@ -51,10 +52,10 @@ from gcdtrav.service.queries import (
     FrameRecord,
     QueryError,
     answer_patch_query,
+    parse_number,
     strict_parameters,
 )
 from gcdtrav.service.sources import SourceTracker
-from gcdtrav.service.state import save_anchor_state
 
 log = logging.getLogger("gcdtrav.service")
 
@@ -112,7 +113,6 @@ class TraversabilityService:
         self.stats = ServiceStats(log)
         self._seq: dict[str, int] = {}
         self._declared: list[Any] = []
-        self._swap_lock = threading.Lock()
         self._stopping = threading.Event()
         # With a CPU left over by torch (threads below the CPUs this process may use), a second thread
         # runs the last frame's engine work, encoding and publishing while the next frame is decoded and
@@ -129,6 +129,9 @@ class TraversabilityService:
         self.grids = GridOutputs(settings.grids, len(pipeline.anchors), settings.instance) if settings.grids else None
         self.ros_graph = RosGraph(session, settings) if settings.ros_inputs else None
         self.outputs = FrameOutputs(session, settings, pipeline.backend.model_id, self.grids, self.ros_graph)
+        self.anchor_switch = AnchorSwitch(
+            pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes
+        )
         forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget, self._forget_seq)
         self.sources = SourceTracker(settings.max_sources, settings.source_idle_s, forget)
         self._check_inputs()
@@ -167,6 +170,12 @@ class TraversabilityService:
             self.session.declare_queryable(
                 f"{self.prefix}/status", self._answering(self._on_status_query), complete=True
             ),
+            self.session.declare_queryable(
+                f"{self.prefix}/config/anchors/history", self._answering(self._on_history_query), complete=True
+            ),
+            self.session.declare_queryable(
+                f"{self.prefix}/config/anchors/rollback", self._answering(self._on_rollback_query), complete=True
+            ),
         ]
         for worker in self._workers:
             worker.start()
@@ -201,6 +210,7 @@ class TraversabilityService:
                 log.debug("undeclare failed: %s", err)
         self._declared.clear()
         self.outputs.close()
+        self.anchor_switch.close()
         if self.ros_graph is not None:
             self.ros_graph.close()
 
@@ -410,40 +420,48 @@ class TraversabilityService:
         replies.reply(query, key, answer)
 
     def _on_anchors_query(self, query: zenoh.Query) -> None:
+        """Get the active set (no payload) or swap it; the swap runs on the switch's worker, not here."""
         key = f"{self.prefix}/config/anchors"
         payload = query.payload
         if payload is None or len(payload) == 0:
             active = self.pipeline.anchors
             replies.reply(query, key, AnchorSetReply(anchor_set=active, version=active.version))
             return
-        with self._swap_lock:  # one swap at a time; frames keep flowing meanwhile
-            try:
-                if len(payload) > self.settings.max_anchor_set_bytes:
-                    raise AnchorSetError(
-                        [
-                            f"body of {len(payload)} bytes is over the limit of {self.settings.max_anchor_set_bytes} "
-                            "bytes (max_anchor_set_bytes); an anchor set of 64 anchors takes about 4 kB"
-                        ]
-                    )
-                anchors = AnchorSet.from_text(payload.to_bytes(), source="anchor set")
-            except AnchorSetError as err:
-                self.stats.rejected(None, "invalid_anchor_set", "; ".join(err.messages)[:300])
-                rejection = AnchorSetRejection(errors=err.messages, active_version=self.pipeline.anchors.version)
-                replies.reply_error(query, rejection)
+        self.anchor_switch.submit(payload.to_bytes(), self._swap_answer(query, key))
+
+    def _on_rollback_query(self, query: zenoh.Query) -> None:
+        key = f"{self.prefix}/config/anchors/rollback"
+        try:
+            replies.check_format(query)
+            params = strict_parameters(replies.without_format(query), "steps=N (1 = the set before the active one)")
+            if set(params) - {"steps"}:
+                raise QueryError(f"unknown parameter(s) {sorted(set(params) - {'steps'})}; give steps=N [1]")
+            steps = int(parse_number(params.get("steps", "1"), "steps", int))
+        except QueryError as err:
+            self.stats.rejected(None, "bad_query", f"{query.selector}: {err}")
+            replies.reply_error(query, ErrorReply(error=str(err)))
+            return
+        self.anchor_switch.submit_rollback(steps, self._swap_answer(query, key))
+
+    def _on_history_query(self, query: zenoh.Query) -> None:
+        replies.reply(query, f"{self.prefix}/config/anchors/history", self.anchor_switch.history())
+
+    def _swap_answer(self, query: zenoh.Query, key: str) -> SwapDone:
+        """Reply to a swap or rollback query once the switch's worker is done with it."""
+
+        def answer(anchors: AnchorSet | None, error: BaseException | None) -> None:
+            if anchors is not None:
+                replies.reply(query, key, AnchorSetReply(anchor_set=anchors, version=anchors.version))
                 return
-            try:
-                prepared = self.pipeline.prepare(anchors)
-                save_anchor_state(self.settings.state_file, anchors)
-            except Exception as err:
-                log.exception("anchor swap failed")
-                rejection = AnchorSetRejection(
-                    errors=[f"swap failed: {err}"], active_version=self.pipeline.anchors.version
-                )
-                replies.reply_error(query, rejection)
-                return
-            self.pipeline.activate(prepared)
-        log.info("anchor set swapped to %s (%d anchors)", anchors.version, len(anchors))
-        replies.reply(query, key, AnchorSetReply(anchor_set=anchors, version=anchors.version))
+            if isinstance(error, AnchorSetError):
+                messages, reason = error.messages, "invalid_anchor_set"
+            else:
+                messages, reason = [f"swap failed: {type(error).__name__}: {error}"], "swap_failed"
+            self.stats.rejected(None, reason, "; ".join(messages)[:300], None if reason != "swap_failed" else error)
+            rejection = AnchorSetRejection(errors=messages, active_version=self.pipeline.anchors.version)
+            replies.reply_error(query, rejection)
+
+        return answer
 
     def status(self) -> ServiceStatus:
         counters = self.queue.counters()

@@ -1,0 +1,113 @@
+"""Hot-swapping the anchor set: validate, prepare, persist, activate, one swap at a time. No middleware here.
+
+A swap recomputes the text embeddings and fsyncs two files, which takes longer than a zenoh callback
+should wait, so swaps run on this module's own worker thread and report to a callback; frames keep flowing
+meanwhile and each frame uses exactly one set (``Pipeline.activate`` replaces one reference). The state file
+holds the active set (read at start); the history file the last ``HISTORY_LENGTH`` accepted sets with the
+time each became active, newest first, for ``gcdtrav anchors history`` and ``rollback``. Both are written
+atomically.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from pathlib import Path
+
+from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
+from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply, MessageError
+from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.state import save_anchor_state, write_atomically
+
+log = logging.getLogger("gcdtrav.service")
+
+HISTORY_LENGTH = 20
+SwapDone = Callable[[AnchorSet | None, BaseException | None], None]
+
+
+def history_file_of(state_file: Path) -> Path:
+    return state_file.with_name(state_file.name.removesuffix(".json") + "-history.json")
+
+
+class AnchorSwitch:
+    def __init__(self, pipeline: Pipeline, state_file: Path, instance: str, max_body_bytes: int) -> None:
+        self.pipeline = pipeline
+        self.state_file = state_file
+        self.history_file = history_file_of(state_file)
+        self.instance = instance
+        self.max_body_bytes = max_body_bytes
+        self._lock = threading.Lock()
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gcdtrav-anchors")
+        self._history = self._load_history()
+        if not self._history or self._history[0].version != pipeline.anchors.version:
+            self._remember(pipeline.anchors)  # the set it started with: rollback can return to it
+
+    # ---- swaps, on the worker ------------------------------------------------------------------------
+    def submit(self, body: bytes, done: SwapDone) -> None:
+        """Swap to the anchor set in ``body`` (JSON or YAML) on the worker; ``done(set, error)`` reports."""
+        self._run(lambda: self.swap(self.parse(body)), done)
+
+    def submit_rollback(self, steps: int, done: SwapDone) -> None:
+        """Swap back to the set ``steps`` entries before the active one, on the worker."""
+        self._run(lambda: self.swap(self.rollback_target(steps)), done)
+
+    def _run(self, job: Callable[[], AnchorSet], done: SwapDone) -> None:
+        def report(future: Future[AnchorSet]) -> None:
+            error = future.exception()
+            done(None if error is not None else future.result(), error)
+
+        self._worker.submit(job).add_done_callback(report)
+
+    def parse(self, body: bytes) -> AnchorSet:
+        if len(body) > self.max_body_bytes:
+            raise AnchorSetError(
+                [
+                    f"body of {len(body)} bytes is over the limit of {self.max_body_bytes} bytes "
+                    "(max_anchor_set_bytes); an anchor set of 64 anchors takes about 4 kB"
+                ]
+            )
+        return AnchorSet.from_text(body, source="anchor set")
+
+    def swap(self, anchors: AnchorSet) -> AnchorSet:
+        """prepare -> persist -> activate under one lock; the active set stays if any step fails."""
+        with self._lock:
+            prepared = self.pipeline.prepare(anchors)
+            save_anchor_state(self.state_file, anchors)
+            self._remember(anchors)
+            self.pipeline.activate(prepared)
+        log.info("anchor set swapped to %s (%d anchors)", anchors.version, len(anchors))
+        return anchors
+
+    # ---- history -------------------------------------------------------------------------------------
+    def history(self) -> AnchorHistoryReply:
+        with self._lock:
+            return AnchorHistoryReply(instance=self.instance, entries=list(self._history))
+
+    def rollback_target(self, steps: int) -> AnchorSet:
+        with self._lock:
+            if not 1 <= steps < len(self._history):
+                raise AnchorSetError(
+                    [f"no set {steps} step(s) back: the history holds {len(self._history)} set(s), the active first"]
+                )
+            return self._history[steps].anchor_set
+
+    def _remember(self, anchors: AnchorSet) -> None:
+        entry = AnchorHistoryEntry(accepted_at=time.time(), version=anchors.version, anchor_set=anchors)
+        self._history = [entry, *self._history][:HISTORY_LENGTH]
+        reply = AnchorHistoryReply(instance=self.instance, entries=self._history)
+        write_atomically(self.history_file, reply.model_dump_json(indent=1) + "\n")
+
+    def _load_history(self) -> list[AnchorHistoryEntry]:
+        if not self.history_file.is_file():
+            return []
+        try:
+            return AnchorHistoryReply.model_validate_json(self.history_file.read_text("utf-8")).entries
+        except (OSError, ValueError, MessageError) as err:
+            log.error("ignoring the anchor history file %s: %s", self.history_file, err)
+            return []
+
+    def close(self) -> None:
+        self._worker.shutdown(wait=True)
