@@ -180,10 +180,17 @@ def expected_errors() -> tuple[type[BaseException], ...]:
 
 
 def reason_of(err: BaseException) -> str:
-    """A rejection's reason: its code where it has one, else its message with numbers and quotes blanked."""
+    """A rejection's reason: its code where it has one, else the kind of its message."""
     code = getattr(err, "reason", None)
-    text = code if isinstance(code, str) else str(err)
-    return re.sub(r"'[^']*'|\d+(\.\d+)?", "#", text)[:100]
+    return code if isinstance(code, str) else message_kind(str(err))
+
+
+def message_kind(text: str) -> str:
+    """A message with what the input put in it blanked (quoted and bracketed parts, numbers, values after
+    '=' or after a second ':'), cut to its first words: messages that differ only in the input count once."""
+    text = re.sub(r"'[^']*'|\"[^\"]*\"|\[[^\]]*\]|\([^)]*\)|=\S*|\d+(\.\d+)?", "#", text)
+    head = ":".join(text.split(":")[:3])  # 'invalid anchor set: not valid JSON or YAML: <the parser's text>'
+    return " ".join(head.split()[:10])
 
 
 # ---- one target, in a child process under atheris ------------------------------------------------------
