@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import re
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -13,7 +12,7 @@ from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.limits import nesting_depth
 from gcdtrav.schemas.messages import AnchorSetRejection, ErrorReply, MessageError
 from gcdtrav.service.queries import PATCH_FORMS, QueryError, parameter_pairs, strict_parameters
-from zenoh_helpers import connecting_config, service_reachable, wait_until
+from zenoh_helpers import connecting_config, first_frame_through
 
 TWO = [{"concept": "puddle", "position": 0.0}, {"concept": "road", "position": 1.0}]
 
@@ -78,13 +77,7 @@ def served(tiny_backend, tmp_path: Path) -> Iterator[tuple[TraversabilityService
     with in_process_service(tiny_backend, settings) as (service, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         try:
-            assert wait_until(lambda: service_reachable(client), 10)
-            received = []
-            subscriber = client.subscribe_maps("cam", received.append)
-            time.sleep(0.3)
-            client.publish_image("cam", textured_image(60, 80))
-            assert wait_until(lambda: bool(received), 15)
-            subscriber.undeclare()
+            first_frame_through(client, "cam", textured_image(60, 80))
             yield service, client
         finally:
             client.close()

@@ -5,13 +5,12 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
-import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 from conftest import textured_image
-from zenoh_helpers import connecting_config, service_reachable, wait_until
+from zenoh_helpers import connecting_config, first_frame_through, service_reachable, wait_until
 
 pytest.importorskip("torch")
 
@@ -45,13 +44,7 @@ def service(tiny_backend, tmp_path: Path) -> Iterator[tuple[TraversabilityServic
     settings = ServiceSettings(state_dir=tmp_path / "state", instance="ops-1", preview=False)
     with in_process_service(tiny_backend, settings) as (running, port):
         with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
-            assert wait_until(lambda: service_reachable(client), 10)
-            received = []
-            subscriber = client.subscribe_maps("r1/front", received.append)
-            time.sleep(0.3)
-            client.publish_image("r1/front", textured_image(48, 64))
-            assert wait_until(lambda: bool(received), 15)
-            subscriber.undeclare()
+            first_frame_through(client, "r1/front", textured_image(48, 64))
         yield running, ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
 
 
