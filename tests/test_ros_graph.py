@@ -93,6 +93,35 @@ def test_tokens_of_named_examples() -> None:
     )
 
 
+def test_tokens_of_rmw_zenohs_design_document() -> None:
+    """The demo_nodes_cpp examples written out in rmw_zenoh's docs/design.md (graph cache section)."""
+    string_hash = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+    chatter = "std_msgs::msg::dds_::String_"
+    listener = NodeName(2, "/", "listener")
+    zid = "aac3178e146ba6f1fc6e6a4085e77f21"
+    assert Entity(zid, 0, 0, "NN", listener).token == "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
+    subscription = Entity(zid, 0, 10, "MS", listener, TopicInfo("/chatter", chatter, string_hash, Qos(depth=10)))
+    assert subscription.token == (
+        "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/10/MS/%/%/listener/%chatter/std_msgs::msg::dds_::String_/"
+        "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,10:,:,:,,"
+    )
+    talker = NodeName(2, "/", "talker")
+    publisher = Entity(
+        "8b20917502ee955ac4476e0266340d5c",
+        0,
+        10,
+        "MP",
+        talker,
+        TopicInfo("/chatter", chatter, string_hash, Qos(depth=7)),
+    )
+    assert publisher.token == (
+        "@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/std_msgs::msg::dds_::String_/"
+        "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18/::,7:,:,:,,"
+    )
+    robot1 = ros.RosTopic("/robot1/chatter", "std_msgs/msg/String", "rmw_zenoh", 0)
+    assert ros.topic_key(robot1) == f"0/robot1/chatter/{chatter}/{string_hash}"  # rosbags' hash of String
+
+
 def test_publisher_tokens_are_parsed_others_ignored() -> None:
     token = (
         "@ros2_lv/0/abc123/5/6/MP/%/%robot/camera_driver/%camera%front%image_raw/"
