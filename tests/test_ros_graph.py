@@ -138,7 +138,14 @@ def test_publisher_tokens_are_parsed_others_ignored() -> None:
     )
     assert parse_publisher_token(token.replace("/MP/", "/MS/")) is None
     assert parse_publisher_token("@ros2_lv/0/abc123/5/5/NN/%/%/camera_driver") is None
-    assert parse_publisher_token(token.replace("/0/abc123", "/x/abc123")) is None
+    for malformed in (
+        token.replace("/0/abc123", "/x/abc123"),  # domain
+        token.replace("/MP/", "/XX/"),  # entity kind
+        token.rsplit("/", 1)[0],  # no QoS
+        "@ros2_lv/0/abc123/5",
+    ):
+        with pytest.raises(ros.RosDecodeError, match="bad_graph_token"):
+            parse_publisher_token(malformed)
 
 
 def test_humble_and_namespaced_keys() -> None:
@@ -306,6 +313,11 @@ def test_camera_is_subscribed_and_outputs_join_the_graph(
             assert wait_until(lambda: subscription in camera.live(ours), 10), camera.live(ours)
             assert camera.live(ours) == [node, subscription]
 
+            # a malformed token in the graph is counted and changes nothing
+            garbage = camera.session.liveliness().declare_token("@ros2_lv/0/not/a/token")
+            assert wait_until(lambda: service.status().rejected_by_reason.get("bad_graph_token") == 1, 10)
+            assert camera.live(ours) == [node, subscription]
+
             camera.send_frame()
             base = "0/camera/front/image_raw/gcdtrav"
             keys = {
@@ -352,6 +364,7 @@ def test_camera_is_subscribed_and_outputs_join_the_graph(
             assert wait_until(lambda: late, 10)
             assert late[0] == camera.samples[grid_key][0]
             late_subscriber.undeclare()
+            garbage.undeclare()
             assert service.status().sources[source].processed == 1
 
             # the camera goes: its subscription token goes too; the service's node and publishers stay
@@ -373,7 +386,8 @@ def test_forgotten_outputs_take_their_publisher_tokens_along(tmp_path: Path) -> 
     settings = ServiceSettings.model_validate({"state_dir": str(tmp_path), "ros_inputs": [{"key": "0/**"}]})
     session = zenoh.open(connecting_config(1))  # no peer needed: its own tokens are visible to the session
     try:
-        graph = RosGraph(session, settings)
+        rejected: list[str] = []
+        graph = RosGraph(session, settings, lambda _name, reason, _detail: rejected.append(reason))
         camera = ros.parse_key(f"0/cam/sensor_msgs::msg::dds_::Image_/{IMAGE_HASH}", "rmw_zenoh")
         publisher = graph.publisher(
             camera.derived("/cam/gcdtrav/traversability", ros.IMAGE), IMAGE_QOS, zenoh.Encoding.APPLICATION_CDR
@@ -388,5 +402,6 @@ def test_forgotten_outputs_take_their_publisher_tokens_along(tmp_path: Path) -> 
         graph.forget({publisher.key})
         assert wait_until(lambda: live_publishers() == [], 5)
         graph.close()
+        assert rejected == []
     finally:
         session.close()

@@ -127,7 +127,7 @@ class TraversabilityService:
         self._started_at = time.time()
         self.membership: Membership | None = None
         self.grids = GridOutputs(settings.grids, len(pipeline.anchors), settings.instance) if settings.grids else None
-        self.ros_graph = RosGraph(session, settings) if settings.ros_inputs else None
+        self.ros_graph = RosGraph(session, settings, self.stats.rejected) if settings.ros_inputs else None
         self.outputs = FrameOutputs(session, settings, pipeline.backend.model_id, self.grids, self.ros_graph)
         self.anchor_switch = AnchorSwitch(
             pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes

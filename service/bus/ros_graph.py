@@ -19,6 +19,7 @@ import itertools
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -129,12 +130,14 @@ class PeerPublisher:
 
 
 def parse_publisher_token(key: str) -> PeerPublisher | None:
-    """A publisher's token (MP), or None for any other or a malformed token."""
+    """A publisher's token (MP); None for another entity's. Raises RosDecodeError for a malformed token."""
     parts = key.split("/")
-    if len(parts) != 13 or parts[0] != ADMIN_SPACE or parts[5] != "MP" or not all(parts):
+    if len(parts) < 9 or parts[0] != ADMIN_SPACE or parts[5] not in KINDS or not all(parts) or not parts[1].isdigit():
+        raise ros_io.RosDecodeError("bad_graph_token", f"'{key[:200]}' is not an rmw_zenoh liveliness token")
+    if parts[5] != "MP":
         return None
-    if not parts[1].isdigit():
-        return None
+    if len(parts) != 13:
+        raise ros_io.RosDecodeError("bad_graph_token", f"publisher token '{key[:200]}' has {len(parts)} of 13 parts")
     return PeerPublisher(int(parts[1]), parts[2], parts[9].replace("%", "/"), parts[10], parts[11].replace("%", "/"))
 
 
@@ -165,9 +168,12 @@ class RosPublisher:
 class RosGraph:
     """The service's nodes, publishers and camera subscriptions in the ROS graph; thread-safe."""
 
-    def __init__(self, session: zenoh.Session, settings: ServiceSettings) -> None:
+    def __init__(
+        self, session: zenoh.Session, settings: ServiceSettings, rejected: Callable[[str | None, str, str], None]
+    ) -> None:
         self.session = session
         self.settings = settings
+        self.rejected = rejected  # counts a malformed graph token like any bad input
         self.zid = str(session.info.zid())
         self._lock = threading.Lock()
         self._ids = itertools.count()  # one counter for nodes and entities, as rmw_zenoh's context
@@ -232,13 +238,15 @@ class RosGraph:
             node_id = next(self._ids)
             node = Entity(self.zid, node_id, node_id, "NN", name)
             self._nodes[(zenoh_namespace, domain)] = node
-            self._declare(zenoh_namespace, node)
+            self._declare_kept(zenoh_namespace, node)
         return node
 
-    def _declare(self, zenoh_namespace: str, entity: Entity) -> str:
-        key = with_namespace(zenoh_namespace, entity.token)
-        self._tokens[key] = self.session.liveliness().declare_token(key)
-        return key
+    def _declare(self, zenoh_namespace: str, entity: Entity) -> zenoh.LivelinessToken:
+        return self.session.liveliness().declare_token(with_namespace(zenoh_namespace, entity.token))
+
+    def _declare_kept(self, zenoh_namespace: str, entity: Entity) -> None:
+        """A node's or subscription's token, kept here until undeclared or closed."""
+        self._tokens[with_namespace(zenoh_namespace, entity.token)] = self._declare(zenoh_namespace, entity)
 
     def _undeclare(self, zenoh_namespace: str, entity: Entity) -> None:
         token = self._tokens.pop(with_namespace(zenoh_namespace, entity.token), None)
@@ -257,8 +265,7 @@ class RosGraph:
             node = self._node(topic.namespace, topic.domain)
             entity = Entity(self.zid, node.nid, next(self._ids), "MP", node.node, TopicInfo.of(topic, qos))
             declared = self._declare_publisher(key, qos, encoding)
-            token_key = self._declare(topic.namespace, entity)
-            publisher = RosPublisher(key, declared, entity, self._tokens.pop(token_key))
+            publisher = RosPublisher(key, declared, entity, self._declare(topic.namespace, entity))
             self._publishers[key] = publisher
             return publisher
 
@@ -290,10 +297,10 @@ class RosGraph:
         """A camera's publisher token came or went: subscribe while one matching an input lives."""
         key = str(sample.key_expr)
         try:
-            local = ros_io.strip_namespace(key, zenoh_namespace)
-        except ros_io.RosDecodeError:
+            peer = parse_publisher_token(ros_io.strip_namespace(key, zenoh_namespace))
+        except ros_io.RosDecodeError as err:
+            self.rejected(None, err.reason, err.detail)
             return
-        peer = parse_publisher_token(local)
         if peer is None or peer.zid == self.zid or ros_io.ros_type_name(peer.dds_type) is None:
             return
         data_key = with_namespace(
@@ -320,7 +327,7 @@ class RosGraph:
             if entry is None:
                 node = self._node(zenoh_namespace, domain)
                 entity = Entity(self.zid, node.nid, next(self._ids), "MS", node.node, topic)
-                self._declare(zenoh_namespace, entity)
+                self._declare_kept(zenoh_namespace, entity)
                 entry = (entity, set())
                 self._subscriptions[(zenoh_namespace, topic, domain)] = entry
                 log.info("ROS graph: subscribed to %s (%s, %s)", topic.name, topic.dds_type, topic.type_hash)
