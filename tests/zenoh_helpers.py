@@ -71,3 +71,12 @@ def first_frame_through(client: object, source: str, image: object, timeout: flo
     client.publish_image(source, image)  # type: ignore[attr-defined]
     assert wait_until(lambda: bool(received), timeout), "no maps received"
     subscriber.undeclare()
+    # The maps go out just before the frame is counted: wait for the count too, so that
+    # a status query right after this sees the frame even on a loaded machine.
+    assert wait_until(lambda: frame_counted(client, source), timeout), "the frame was not counted"
+
+
+def frame_counted(client: object, source: str) -> bool:
+    """True once some instance's status counts a processed frame of ``source``."""
+    statuses = client.statuses(timeout=1.0)  # type: ignore[attr-defined]
+    return any(source in s.sources and s.sources[source].processed > 0 for s in statuses)
