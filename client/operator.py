@@ -73,11 +73,11 @@ def one_line(err: BaseException) -> str:
 
 
 def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] = lambda i, s: "-") -> str:
-    lines = ["instance       uptime  model / anchors / method                      queued  history MB  sources"]
+    lines = ["instance       uptime  model / anchors / method / precision                  queued  history MB  sources"]
     for s in statuses:
-        what = f"{s.model[-24:]} / {s.anchor_set_version} / {s.method.value}"
+        what = f"{s.model[-24:]} / {s.anchor_set_version} / {s.method.value} / {s.precision or '-'}"
         lines.append(
-            f"{s.instance:<14} {s.uptime_s:6.0f}s  {what:<44}  {s.queued:>6}  {s.history_bytes / 1e6:10.1f}  "
+            f"{s.instance:<14} {s.uptime_s:6.0f}s  {what:<52}  {s.queued:>6}  {s.history_bytes / 1e6:10.1f}  "
             f"{s.tracked_sources}/{s.max_sources}"
         )
     lines += [

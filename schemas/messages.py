@@ -246,6 +246,7 @@ class ServiceStatus(Message):
     model: str
     anchor_set_version: str
     method: Method
+    precision: str = Field(default="", description="The backend's numeric precision: fp32, bf16, bf16-vit or int8.")
     queued: int = Field(description="Frames waiting for inference (at most one per source).")
     queued_bytes: int = Field(default=0, description="Their payload bytes (at most pending_budget_mb).")
     sources: dict[str, SourceStatus]

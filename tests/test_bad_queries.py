@@ -169,6 +169,7 @@ def test_every_queryable_answers_json_when_asked(served) -> None:  # type: ignor
     assert ok and encoding == "application/json"
     assert status["instance"] == "strict" and status["sources"]["cam"]["processed"] == 1
     assert status["anchor_set_version"] == service.pipeline.anchors.version and status["method"] == "gcd"
+    assert status["precision"] == service.pipeline.backend.precision
     assert status["max_sources"] == 256 and status["history_bytes"] > 0
     ok, anchors, _ = json_get(client, "gcdtrav/config/anchors?format=json")
     assert ok and anchors["version"] == service.pipeline.anchors.version

@@ -55,6 +55,8 @@ def test_status_anchors_get_and_a_swap_with_its_diff(service, tmp_path: Path) ->
     assert "ops-1" in status.stdout and "r1/front" in status.stdout and "tiny" not in status.stderr
     row = next(line for line in status.stdout.splitlines() if line.startswith("r1/front"))
     assert row.split()[1:6] == ["ops-1", "-", "1", "1", "0"]  # instance, frames/s, received, processed, dropped
+    instance_row = next(line for line in status.stdout.splitlines() if line.startswith("ops-1"))
+    assert f"/ {running.pipeline.anchors.version} / gcd / fp32 " in instance_row  # anchors, method, precision
 
     shown = gcdtrav("anchors", "get", *flags)
     assert shown.returncode == 0 and f"# active anchor set {default_anchor_set().version}" in shown.stdout

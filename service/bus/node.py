@@ -186,7 +186,7 @@ class TraversabilityService:
             [r.key for r in self.settings.ros_inputs],
             self.prefix,
             self.pipeline.backend.model_id,
-            getattr(self.pipeline.backend, "precision", "-"),
+            self._precision(),
             self.pipeline.anchors.version,
             len(self.pipeline.anchors),
             self.pipeline.settings.method.value,
@@ -489,6 +489,7 @@ class TraversabilityService:
             model=self.pipeline.backend.model_id,
             anchor_set_version=self.pipeline.anchors.version,
             method=self.pipeline.settings.method,
+            precision=self._precision(),
             queued=len(self.queue),
             queued_bytes=self.queue.nbytes,
             sources=sources,
@@ -499,6 +500,9 @@ class TraversabilityService:
             tracked_sources=len(self.sources),
             max_sources=self.sources.max_sources,
         )
+
+    def _precision(self) -> str:
+        return str(getattr(self.pipeline.backend, "precision", "-"))  # backends without modes say "-"
 
     def _on_status_query(self, query: zenoh.Query) -> None:
         replies.reply(query, f"{self.prefix}/status", self.status())
