@@ -7,11 +7,13 @@ Exit codes: 0 ok, 1 rejected or failed (one line on stderr), 2 usage error.
 from __future__ import annotations
 
 import argparse
+import re
 import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 
+import zenoh
 from gcdtrav.client.client import AnchorSetRejected, ServiceError, TraversabilityClient
 from gcdtrav.client.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
@@ -19,6 +21,7 @@ from gcdtrav.schemas.messages import ContextDistribution, ServiceStatus
 
 COMMANDS = ("status", "anchors", "probe")
 EXIT_OK, EXIT_FAILED = 0, 1
+RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?$")  # zenoh's errors end with the Rust file that raised them
 
 
 def add_operator_commands(commands: argparse._SubParsersAction) -> None:
@@ -60,7 +63,10 @@ def run(args: argparse.Namespace) -> int:
     except (AnchorSetError, AnchorSetRejected, ServiceError, OSError, ValueError) as err:
         print(f"gcdtrav {args.command}: {one_line(err)}", file=sys.stderr)
         return EXIT_FAILED
-    except Exception as err:  # zenoh.ZError: e.g. an endpoint that cannot be reached in client mode
+    except zenoh.ZError as err:  # e.g. an endpoint that cannot be reached in client mode
+        print(f"gcdtrav {args.command}: zenoh: {RUST_SOURCE.sub('', one_line(err))}", file=sys.stderr)
+        return EXIT_FAILED
+    except Exception as err:
         print(f"gcdtrav {args.command}: {type(err).__name__}: {one_line(err)}", file=sys.stderr)
         return EXIT_FAILED
 

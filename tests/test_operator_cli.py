@@ -138,7 +138,8 @@ def test_failures_are_one_line_with_the_right_exit_code(service, tmp_path: Path)
     assert missing.returncode == 1 and "cannot read the file" in missing.stderr
     unreachable = gcdtrav("status", "-m", "client", "-e", "tcp/127.0.0.1:9", "--no-multicast-scouting")
     assert unreachable.returncode == 1 and len(unreachable.stderr.strip().splitlines()) == 1
-    assert unreachable.stderr.startswith("gcdtrav status: ")
+    assert unreachable.stderr.startswith("gcdtrav status: zenoh: Unable to connect to any of [")
+    assert "tcp/127.0.0.1:9" in unreachable.stderr and ".rs:" not in unreachable.stderr
     usage = gcdtrav("anchors", "swap", "x.yaml")
     assert usage.returncode == 2
 
