@@ -20,7 +20,7 @@ from pathlib import Path
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply, MessageError
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.state import save_anchor_state, write_atomically
+from gcdtrav.service.state import remove_stale_temporaries, save_anchor_state, write_atomically
 
 log = logging.getLogger("gcdtrav.service")
 
@@ -96,11 +96,14 @@ class AnchorSwitch:
 
     def _remember(self, anchors: AnchorSet) -> None:
         entry = AnchorHistoryEntry(accepted_at=time.time(), version=anchors.version, anchor_set=anchors)
-        self._history = [entry, *self._history][:HISTORY_LENGTH]
-        reply = AnchorHistoryReply(instance=self.instance, entries=self._history)
+        entries = [entry, *self._history][:HISTORY_LENGTH]
+        reply = AnchorHistoryReply(instance=self.instance, entries=entries)
         write_atomically(self.history_file, reply.model_dump_json(indent=1) + "\n")
+        self._history = entries  # only once written: a failed write leaves the history as it was
 
     def _load_history(self) -> list[AnchorHistoryEntry]:
+        if self.history_file.parent.is_dir():
+            remove_stale_temporaries(self.history_file)  # writes a crash interrupted
         if not self.history_file.is_file():
             return []
         try:

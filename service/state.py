@@ -37,7 +37,7 @@ def save_anchor_state(path: Path, anchors: AnchorSet) -> None:
 
 
 def remove_stale_temporaries(path: Path) -> None:
-    """Temporary files of writes a crash interrupted (the state file itself is intact)."""
+    """Temporary files of writes a crash interrupted (``path`` itself is intact)."""
     for stale in path.parent.glob(f".{path.name}.*.tmp"):
         stale.unlink(missing_ok=True)
 

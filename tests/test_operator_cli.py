@@ -112,11 +112,16 @@ def test_history_and_rollback_survive_a_restart(tiny_backend, tmp_path: Path) ->
         assert "- lake @ 0.00" in rolled.stdout and running.pipeline.anchors.version == puddles.version
         too_far = gcdtrav("anchors", "rollback", "9", *flags)
         assert too_far.returncode == 1 and "no set 9 step(s) back" in too_far.stderr
-    # A restarted service keeps its history (written atomically in the state directory).
+    # A restarted service keeps its history (written atomically in the state directory) and clears
+    # the temporaries of history writes a crash interrupted.
     from gcdtrav.service.bus.run import starting_anchor_set
+
+    interrupted = settings.state_dir / f".{running.anchor_switch.history_file.name}.x1y2z3.tmp"
+    interrupted.write_text('{"instance": "ops-2", "entries": [')
 
     with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (running, port):
         assert running.pipeline.anchors.version == puddles.version
+        assert not interrupted.exists()
         versions = [e.version for e in running.anchor_switch.history().entries]
         assert versions == [
             puddles.version,
