@@ -10,7 +10,7 @@ from typing import Any
 
 import yaml
 from gcdtrav.schemas.clip_tokens import MAX_CONCEPT_TOKENS, count_clip_tokens
-from gcdtrav.schemas.limits import MAX_CONCEPT_CHARS, MAX_DOCUMENT_DEPTH, MAX_NAME_CHARS, nesting_depth
+from gcdtrav.schemas.limits import MAX_CONCEPT_CHARS, MAX_DOCUMENT_DEPTH, MAX_NAME_CHARS
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 MIN_ANCHORS = 2
@@ -159,15 +159,15 @@ class AnchorSet(BaseModel):
                 text = text.decode("utf-8")
             except UnicodeDecodeError as err:
                 raise AnchorSetError([f"not UTF-8 text: {err}"], source) from None
-        too_deep = f"nested more than {MAX_DOCUMENT_DEPTH} levels deep; an anchor set is 3 levels deep"
-        if nesting_depth(text) > MAX_DOCUMENT_DEPTH:
-            raise AnchorSetError([too_deep], source)
         try:
+            _refuse_deep_nesting(text)
             data = yaml.safe_load(text)
         except yaml.YAMLError as err:
             raise AnchorSetError([f"not valid JSON or YAML: {err}"], source) from None
-        except RecursionError:  # block-style YAML nests by indentation, which the scan above does not count
-            raise AnchorSetError([too_deep], source) from None
+        except DocumentTooDeep as err:
+            raise AnchorSetError([str(err)], source) from None
+        except ValueError as err:  # e.g. an integer of more than 4300 digits (Python's int_max_str_digits)
+            raise AnchorSetError([f"not a usable JSON or YAML value: {err}"], source) from None
         if not isinstance(data, dict):
             raise AnchorSetError(
                 ['expected a mapping with an \'anchors\' list, e.g. {"anchors": [{"concept": ..., "position": ...}]}'],
@@ -193,6 +193,26 @@ class AnchorSet(BaseModel):
             path.write_text(yaml.safe_dump(self.model_dump(exclude_none=True), sort_keys=False), "utf-8")
         else:
             path.write_text(self.to_json() + "\n", "utf-8")
+
+
+class DocumentTooDeep(ValueError):
+    pass
+
+
+def _refuse_deep_nesting(text: str) -> None:
+    """Walk the document's parse events, which PyYAML produces without recursion, and stop at the first
+    collection nested deeper than a real anchor set could be, before the recursive composer builds anything.
+    Counts flow ([ {) and block (indentation) nesting alike, and sees through quotes and comments."""
+    depth = 0
+    for event in yaml.parse(text, Loader=yaml.SafeLoader):
+        if isinstance(event, yaml.CollectionStartEvent):
+            depth += 1
+            if depth > MAX_DOCUMENT_DEPTH:
+                raise DocumentTooDeep(
+                    f"nested more than {MAX_DOCUMENT_DEPTH} levels deep; an anchor set is 3 levels deep"
+                )
+        elif isinstance(event, yaml.CollectionEndEvent):
+            depth -= 1
 
 
 def _readable_errors(err: ValidationError) -> list[str]:

@@ -5,16 +5,17 @@ Service and client both import this module, so a field changes in exactly one pl
 
 from __future__ import annotations
 
+import math
 from enum import Enum
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import msgpack
 import numpy as np
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
 from gcdtrav.schemas.config import Method
-from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
+from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS, MAX_POSITION_M
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 MSGPACK_ENCODING = "application/msgpack"
 SCHEMA_VERSION = 1
@@ -40,6 +41,11 @@ class Message(BaseModel):
             raise MessageError(f"not a msgpack {cls.__name__}: {err}") from None
         if not isinstance(data, dict):
             raise MessageError(f"a {cls.__name__} must be a msgpack map, got {type(data).__name__}")
+        return cls.validated(data)
+
+    @classmethod
+    def validated(cls: type[M], data: dict[str, Any]) -> M:
+        """The message from decoded fields (msgpack, or a ROS message's), or a MessageError naming the fields."""
         try:
             return cls.model_validate(data)
         except ValidationError as err:
@@ -151,10 +157,24 @@ class Pose2D(Message):
     """The robot's pose in its odometry frame, as a grid's pose stream (or nav_msgs/Odometry CDR)."""
 
     stamp: float
-    frame_id: str = "odom"
-    x: float
+    frame_id: str = Field(default="odom", max_length=MAX_FRAME_ID_CHARS)
+    x: float = Field(description="Metres in the odometry frame.")
     y: float
     yaw: float = Field(description="Heading, radians, counter-clockwise from x.")
+
+    @field_validator("stamp", "x", "y", "yaw")
+    @classmethod
+    def _finite(cls, value: float) -> float:
+        if not math.isfinite(value):
+            raise ValueError(f"{value} is not a finite number")
+        return value
+
+    @field_validator("x", "y")
+    @classmethod
+    def _within_reach(cls, value: float) -> float:
+        if abs(value) > MAX_POSITION_M:
+            raise ValueError(f"{value:g} m is beyond the limit of {MAX_POSITION_M:g} m")
+        return value
 
 
 class GridHeader(BaseModel):

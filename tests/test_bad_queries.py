@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Iterator
 from pathlib import Path
@@ -9,19 +10,43 @@ from pathlib import Path
 import pytest
 from conftest import textured_image
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
-from gcdtrav.schemas.limits import nesting_depth
 from gcdtrav.schemas.messages import AnchorSetRejection, ErrorReply, MessageError
 from gcdtrav.service.queries import PATCH_FORMS, QueryError, parameter_pairs, strict_parameters
-from zenoh_helpers import connecting_config, first_frame_through
+from zenoh_helpers import connecting_config, first_frame_through, wait_until
 
 TWO = [{"concept": "puddle", "position": 0.0}, {"concept": "road", "position": 1.0}]
 
 
-def test_nesting_depth_counts_brackets_outside_strings() -> None:
-    assert nesting_depth('{"anchors": [{"concept": "a", "position": 0}]}') == 3
-    assert nesting_depth('{"name": "[[[{{{", "x": \'[[\'}') == 1
-    assert nesting_depth('{"a": "\\"[[["}') == 1
-    assert nesting_depth("[" * 10_000 + "]" * 10_000) == 10_000
+@pytest.mark.parametrize(
+    "document",
+    [
+        '{"anchors": ' + "[" * 10_000 + "]" * 10_000 + "}",  # the reported input
+        "name: don't\nanchors: " + "[" * 10_000 + "]" * 10_000,  # an apostrophe once hid this from a bracket scan
+        "anchors:\n" + "".join("  " * i + "-\n" for i in range(2_000)),  # block style nests by indentation
+        "".join("  " * i + "a:\n" for i in range(2_000)),
+    ],
+    ids=["flow", "after-apostrophe", "block-sequences", "block-mappings"],
+)
+def test_any_deep_nesting_is_refused_before_the_document_is_built(document: str) -> None:
+    with pytest.raises(AnchorSetError, match="nested more than 32 levels deep; an anchor set is 3 levels deep"):
+        AnchorSet.from_text(document)
+
+
+def test_brackets_in_strings_and_comments_are_not_nesting() -> None:
+    quoted = '{"name": "[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[[", "anchors": ' + json.dumps(TWO) + "}"
+    assert AnchorSet.from_text(quoted).name.startswith("[[[")
+    commented = (
+        "# "
+        + "[" * 100
+        + "\nname: don't\nanchors:\n"
+        + "".join(f"  - {{concept: {a['concept']}, position: {a['position']}}}\n" for a in TWO)
+    )
+    assert AnchorSet.from_text(commented).name == "don't"
+
+
+def test_an_integer_beyond_pythons_digit_limit_is_an_invalid_document() -> None:
+    with pytest.raises(AnchorSetError, match="not a usable JSON or YAML value: Exceeds the limit"):
+        AnchorSet.from_text('{"anchors": [{"concept": "a", "position": ' + "9" * 5000 + "}]}")
 
 
 def test_deep_documents_are_refused_before_parsing_and_normal_yaml_still_parses() -> None:
@@ -52,6 +77,34 @@ def test_selectors_are_strict() -> None:
         strict_parameters(parameter_pairs("x=1;y=2;seq"), PATCH_FORMS)
 
 
+def test_ros_frame_ids_are_bounded() -> None:
+    pytest.importorskip("rosbags")
+    import numpy as np
+    from gcdtrav.service.bus import ros
+    from gcdtrav.service.bus.grids import decode_pose
+
+    types = ros.typestore().types
+    header = ros.make_header(1.0, "f" * 5_000_000)  # fits in a 20 MB payload; was passed on to every output
+    image = types[ros.IMAGE](header=header, height=2, width=2, encoding="rgb8", is_bigendian=0, step=6,
+                             data=np.zeros(12, np.uint8))  # fmt: skip
+    with pytest.raises(ros.RosDecodeError, match="frame_id of 5000000 characters is over the limit of 256") as err:
+        ros.decode_ros_image(bytes(ros.typestore().serialize_cdr(image, ros.IMAGE)), ros.IMAGE, 100)
+    assert err.value.reason == "frame_id_too_long"
+    point, quaternion = types["geometry_msgs/msg/Point"], types["geometry_msgs/msg/Quaternion"]
+    vector = types["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    message = types["nav_msgs/msg/Odometry"](
+        header=header, child_frame_id="base_link",
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=types["geometry_msgs/msg/Pose"](position=point(x=1.0, y=2.0, z=0.0),
+                                                 orientation=quaternion(x=0.0, y=0.0, z=0.0, w=1.0)),
+            covariance=np.zeros(36)),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](
+            twist=types["geometry_msgs/msg/Twist"](linear=vector, angular=vector), covariance=np.zeros(36)),
+    )  # fmt: skip
+    with pytest.raises(MessageError, match="frame_id: String should have at most 256 characters"):
+        decode_pose(bytes(ros.typestore().serialize_cdr(message, "nav_msgs/msg/Odometry")), "odometry")
+
+
 pytest.importorskip("torch")
 
 from gcdtrav.client import AnchorSetRejected, TraversabilityClient  # noqa: E402
@@ -66,6 +119,8 @@ GRID = {
     "mount": {"z": 1.0, "pitch": 0.6},
     "size_m": 8.0,
     "resolution_m": 0.25,
+    "pose_key": "robot/pose",
+    "camera_info_key": "robot/camera_info",
 }
 
 
@@ -78,6 +133,8 @@ def served(tiny_backend, tmp_path: Path) -> Iterator[tuple[TraversabilityService
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         try:
             first_frame_through(client, "cam", textured_image(60, 80))
+            # The maps go out before the frame is counted (and before its grid): wait for the count too.
+            assert wait_until(lambda: "cam" in client.status().sources and client.status().sources["cam"].processed, 10)
             yield service, client
         finally:
             client.close()
@@ -121,6 +178,55 @@ def test_the_three_reported_inputs_get_clear_replies(served) -> None:  # type: i
     assert status.anchor_set_version == active  # the last good state stays
     assert status.rejected_by_reason["invalid_anchor_set"] == 4 and status.rejected_by_reason["bad_query"] == 4
     assert client.patch("cam", 10, 10).seq == 0  # and the service still serves
+
+
+def test_keys_without_parameters_refuse_them_and_unknown_formats(served) -> None:  # type: ignore[no-untyped-def]
+    _, client = served
+    only_format = "this key takes only format=json or format=msgpack"
+    bad_format = "format=jsn: give format=json or format=msgpack once [msgpack]"
+    for key in ("gcdtrav/status", "gcdtrav/config/anchors", "gcdtrav/config/anchors/history"):
+        assert raw_get(client, f"{key}?x=1") == (False, f"unknown parameter(s) ['x']; {only_format}")
+        assert raw_get(client, f"{key}?format=jsn") == (False, bad_format)
+        assert raw_get(client, f"{key}?format=json")[0]
+    assert raw_get(client, "gcdtrav/config/anchors?seq=1", b'{"anchors": []}')[1].startswith("unknown parameter(s)")
+    assert client.status().rejected_by_reason["bad_query"] == 7
+
+
+def test_bad_poses_and_intrinsics_are_rejected_and_the_grid_keeps_the_last_good_ones(served) -> None:  # type: ignore[no-untyped-def]
+    import math
+
+    import msgpack
+    import numpy as np
+    from gcdtrav.client import Grid
+    from gcdtrav.service.bus import ros
+
+    service, client = served
+    grids: list[Grid] = []
+    subscriber = client.subscribe_grid("cam", grids.append)
+    good = {"stamp": 1.0, "frame_id": "odom", "x": 2.0, "y": 0.0, "yaw": 0.0}
+    client.session.put("robot/pose", msgpack.packb(good))
+    bad_poses = [good | {"x": math.nan}, good | {"y": math.inf}, good | {"x": 1e300}, good | {"frame_id": "f" * 300}]
+    for pose in bad_poses:
+        client.session.put("robot/pose", msgpack.packb(pose))
+    types = ros.typestore().types
+    roi = types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    info = types["sensor_msgs/msg/CameraInfo"](
+        header=ros.make_header(1.0, "cam"), height=60, width=80, distortion_model="plumb_bob", d=np.zeros(5),
+        k=np.array([math.nan, 0, 40, 0, 60.0, 30, 0, 0, 1]), r=np.eye(3).ravel(), p=np.zeros(12),
+        binning_x=0, binning_y=0, roi=roi,
+    )  # fmt: skip
+    client.session.put("robot/camera_info", bytes(ros.typestore().serialize_cdr(info, "sensor_msgs/msg/CameraInfo")))
+    rejected = lambda: client.status().rejected_by_reason  # noqa: E731
+    assert wait_until(lambda: rejected().get("bad_pose") == 4 and rejected().get("bad_camera_info") == 1, 10)
+    errors = " ".join(client.status().last_errors)
+    assert "x: Value error, nan is not a finite number" in errors and "1e+300 m is beyond the limit" in errors
+    assert "frame_id: String should have at most 256 characters" in errors and "finite intrinsics" in errors
+    client.publish_image("cam", textured_image(60, 80, seed=3))
+    assert wait_until(lambda: bool(grids), 15), "no grid after the bad inputs"
+    subscriber.undeclare()
+    assert grids[-1].header.robot == (2.0, 0.0, 0.0) and grids[-1].header.known_cells > 0  # the last good pose
+    assert "processing_failed" not in rejected()
+    assert service.grids is not None and service.grids.sources["cam"].camera.fx == 60  # the configured intrinsics
 
 
 def boom(*args: object, **kwargs: object) -> None:

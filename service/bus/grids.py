@@ -56,12 +56,10 @@ def decode_pose(payload: bytes, fmt: str) -> Pose2D:
     pose = odometry.pose.pose
     q = pose.orientation
     stamp = odometry.header.stamp.sec + odometry.header.stamp.nanosec * 1e-9
-    return Pose2D(
-        stamp=stamp,
-        frame_id=str(odometry.header.frame_id) or "odom",
-        x=float(pose.position.x),
-        y=float(pose.position.y),
-        yaw=yaw_of_quaternion(q.x, q.y, q.z, q.w),
+    yaw = yaw_of_quaternion(q.x, q.y, q.z, q.w)
+    frame_id = str(odometry.header.frame_id) or "odom"
+    return Pose2D.validated(
+        {"stamp": stamp, "frame_id": frame_id, "x": float(pose.position.x), "y": float(pose.position.y), "yaw": yaw}
     )
 
 
@@ -73,8 +71,8 @@ def decode_camera_info(payload: bytes) -> PinholeCamera:
     except Exception as err:  # rosbags raises assorted errors on bad CDR
         raise MessageError(f"not a sensor_msgs/msg/CameraInfo: {type(err).__name__}: {err}") from None
     k = np.asarray(info.k, dtype=np.float64)
-    if k[0] <= 0 or k[4] <= 0 or info.width <= 0 or info.height <= 0:
-        raise MessageError("CameraInfo without focal lengths or size")
+    if not (np.isfinite(k).all() and k[0] > 0 and k[4] > 0 and info.width > 0 and info.height > 0):
+        raise MessageError(f"CameraInfo needs finite intrinsics, positive focal lengths and a size; k={k.tolist()}")
     return PinholeCamera(fx=k[0], fy=k[4], cx=k[2], cy=k[5], width=int(info.width), height=int(info.height))
 
 

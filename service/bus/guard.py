@@ -3,7 +3,8 @@
 zenoh runs query handlers on its own threads and only logs what escapes them, so a caller would wait for its
 timeout and learn nothing. ``answering`` wraps a handler: an unexpected exception becomes the error reply
 "internal error: <type>; see the service log", is counted as ``query_failed`` and is logged with its
-traceback at the status counters' rate limit.
+traceback at the status counters' rate limit. A ``QueryError`` a handler lets out is the caller's mistake:
+its sentence is the error reply, counted as ``bad_query``.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import zenoh
 from gcdtrav.schemas.messages import ErrorReply
 from gcdtrav.service.bus.replies import reply_error
 from gcdtrav.service.bus.stats import ServiceStats
+from gcdtrav.service.queries import QueryError
 
 log = logging.getLogger("gcdtrav.service")
 
@@ -25,12 +27,18 @@ def answering(handler: QueryHandler, stats: ServiceStats) -> QueryHandler:
     def answer(query: zenoh.Query) -> None:
         try:
             handler(query)
+        except QueryError as err:
+            stats.rejected(None, "bad_query", f"{query.selector}: {err}"[:300])
+            _reply(query, ErrorReply(error=str(err)))
         except Exception as err:
             stats.rejected(None, "query_failed", f"{query.selector}: {type(err).__name__}: {err}"[:300], err)
-            reply = ErrorReply(error=f"internal error: {type(err).__name__}; see the service log")
-            try:
-                reply_error(query, reply)
-            except zenoh.ZError as failure:  # the query may have been dropped meanwhile
-                log.debug("error reply to %s failed: %s", query.selector, failure)
+            _reply(query, ErrorReply(error=f"internal error: {type(err).__name__}; see the service log"))
 
     return answer
+
+
+def _reply(query: zenoh.Query, error: ErrorReply) -> None:
+    try:
+        reply_error(query, error)
+    except zenoh.ZError as failure:  # the query may have been dropped meanwhile
+        log.debug("error reply to %s failed: %s", query.selector, failure)

@@ -422,6 +422,7 @@ class TraversabilityService:
     def _on_anchors_query(self, query: zenoh.Query) -> None:
         """Get the active set (no payload) or swap it; the swap runs on the switch's worker, not here."""
         key = f"{self.prefix}/config/anchors"
+        replies.check_no_parameters(query)
         payload = query.payload
         if payload is None or len(payload) == 0:
             active = self.pipeline.anchors
@@ -444,6 +445,7 @@ class TraversabilityService:
         self.anchor_switch.submit_rollback(steps, self._swap_answer(query, key))
 
     def _on_history_query(self, query: zenoh.Query) -> None:
+        replies.check_no_parameters(query)
         replies.reply(query, f"{self.prefix}/config/anchors/history", self.anchor_switch.history())
 
     def _swap_answer(self, query: zenoh.Query, key: str) -> SwapDone:
@@ -505,4 +507,5 @@ class TraversabilityService:
         return str(getattr(self.pipeline.backend, "precision", "-"))  # backends without modes say "-"
 
     def _on_status_query(self, query: zenoh.Query) -> None:
+        replies.check_no_parameters(query)
         replies.reply(query, f"{self.prefix}/status", self.status())

@@ -32,6 +32,14 @@ def check_format(query: zenoh.Query) -> None:
         raise QueryError(f"format={';format='.join(formats)}: give format=json or format=msgpack once [msgpack]")
 
 
+def check_no_parameters(query: zenoh.Query) -> None:
+    """Keys that take nothing but ``format`` (status, the anchor set, its history) say so, not ignore the rest."""
+    check_format(query)
+    others = sorted({name for name, _ in without_format(query)})
+    if others:
+        raise QueryError(f"unknown parameter(s) {others}; this key takes only format=json or format=msgpack")
+
+
 def without_format(query: zenoh.Query) -> list[tuple[str, str]]:
     """The selector's parameters less ``format``, for the handlers that parse the rest strictly."""
     return [(name, value) for name, value in parameters(query) if name != "format"]

@@ -16,6 +16,7 @@ from functools import cache
 from typing import Any
 
 import numpy as np
+from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
 from numpy.typing import NDArray
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -171,8 +172,13 @@ def decode_ros_image(payload: bytes, msgtype: str, max_pixels: int) -> RosFrame:
         message = typestore().deserialize_cdr(payload, msgtype)
     except Exception as err:  # rosbags raises assorted errors on truncated or garbled CDR
         raise RosDecodeError("bad_cdr", f"{msgtype} does not deserialise: {type(err).__name__}: {err}") from None
+    frame_id = str(message.header.frame_id)
+    if len(frame_id) > MAX_FRAME_ID_CHARS:
+        raise RosDecodeError(
+            "frame_id_too_long", f"frame_id of {len(frame_id)} characters is over the limit of {MAX_FRAME_ID_CHARS}"
+        )
     image = _decode_compressed(message, max_pixels) if msgtype == COMPRESSED_IMAGE else _decode_raw(message, max_pixels)
-    return RosFrame(image, _stamp_seconds(message.header), str(message.header.frame_id), message.header)
+    return RosFrame(image, _stamp_seconds(message.header), frame_id, message.header)
 
 
 def _decode_compressed(message: Any, max_pixels: int) -> NDArray[np.uint8]:
