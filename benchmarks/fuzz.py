@@ -2,21 +2,27 @@
 
     pip install atheris
     python benchmarks/fuzz.py                          # 100,000 inputs per target
+    python benchmarks/fuzz.py --engine hypothesis --runs 300 --out /tmp/fuzz.json   # the suite's smoke run
     python benchmarks/fuzz.py --runs 2000 --targets anchor_documents selectors
 
-Each target runs in its own process under atheris (libFuzzer, coverage-guided, seeded with valid inputs
-of its kind), for ``--runs`` inputs or ``--max-seconds``, whichever comes first, and stops by itself. An
-input is *rejected* when the decoder raises its own error type (the reason is counted), a *crash* when it
-raises anything else, a *hang* when one call takes over 1 s. Reports per target: inputs tried, distinct
-rejection reasons, crashes, hangs, peak RSS; writes the same as JSON (crashing inputs are kept beside it).
-Everything runs on this machine; nothing is sent anywhere.
+Each target runs in its own process, for ``--runs`` inputs or ``--max-seconds``, whichever comes first, and
+stops by itself: under atheris (libFuzzer, coverage-guided, seeded with valid inputs of its kind) where it is
+installed, else under hypothesis (random bytes and random edits of the same seeds, not coverage-guided);
+``--engine`` picks one. An input is *rejected* when the decoder raises its own error type (the reason is
+counted), a *crash* when it raises anything else or when what it accepted breaks a bound (a frame id over
+its limit, a pose or intrinsics that are not finite), a *hang* when one call takes over 1 s. Reports per
+target: inputs tried, distinct rejection reasons, crashes, hangs, peak RSS of the target's process; writes
+the same as JSON (crashing inputs are kept beside it). Everything runs on this machine; nothing is sent
+anywhere. The test suite runs a few hundred inputs per target under hypothesis (tests/test_fuzz_campaign.py).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
+import resource
 import subprocess
 import sys
 import tempfile
@@ -45,11 +51,14 @@ def _image_seeds() -> list[bytes]:
 
 
 def _decode_image(data: bytes) -> None:
+    from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
     from gcdtrav.service.bus.ingest import decode_payload
 
     # The first byte picks how the payload is labelled, as a peer's encoding would.
     encoding = ["", "image/jpeg", "image/png", "application/msgpack"][data[0] % 4] if data else ""
-    decode_payload(data[1:], encoding, 0.0, 2_000_000, 4_000_000)
+    frame = decode_payload(data[1:], encoding, 0.0, 2_000_000, 4_000_000)
+    _holds(len(frame.frame_id) <= MAX_FRAME_ID_CHARS, "frame_id over its bound")
+    _holds(frame.image.ndim == 3 and frame.image.shape[2] == 3, f"image of shape {frame.image.shape}")
 
 
 def _ros_seeds() -> list[bytes]:
@@ -103,20 +112,33 @@ def _odometry(types: Any, header: Any) -> Any:
 
 
 def _decode_ros(data: bytes) -> None:
+    from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS, MAX_POSITION_M
     from gcdtrav.service.bus import ros
     from gcdtrav.service.bus.grids import decode_camera_info, decode_depth, decode_pose
 
     kind, payload = (data[0] % 5, data[1:]) if data else (0, b"")
-    if kind == 0:
-        ros.decode_ros_image(payload, ros.IMAGE, 4_000_000)
-    elif kind == 1:
-        ros.decode_ros_image(payload, ros.COMPRESSED_IMAGE, 4_000_000)
+    if kind in (0, 1):
+        frame = ros.decode_ros_image(payload, ros.IMAGE if kind == 0 else ros.COMPRESSED_IMAGE, 4_000_000)
+        _holds(len(frame.frame_id) <= MAX_FRAME_ID_CHARS, "frame_id over its bound")
     elif kind == 2:
         decode_depth(payload)
     elif kind == 3:
-        decode_camera_info(payload)
+        camera = decode_camera_info(payload)
+        _holds(min(camera.fx, camera.fy) > 0 and math.isfinite(camera.fx + camera.fy + camera.cx + camera.cy),
+               "intrinsics not finite and positive")  # fmt: skip
     else:
-        decode_pose(payload, "odometry")
+        pose = decode_pose(payload, "odometry")
+        _holds(max(abs(pose.x), abs(pose.y)) <= MAX_POSITION_M and math.isfinite(pose.yaw), "pose out of bounds")
+        _holds(len(pose.frame_id) <= MAX_FRAME_ID_CHARS, "frame_id over its bound")
+
+
+class BrokenBound(Exception):
+    """A decoder accepted what it should have refused: counted as a crash."""
+
+
+def _holds(condition: bool, what: str) -> None:
+    if not condition:
+        raise BrokenBound(f"accepted: {what}")
 
 
 def _anchor_seeds() -> list[bytes]:
@@ -196,14 +218,13 @@ def message_kind(text: str) -> str:
 # ---- one target, in a child process under atheris ------------------------------------------------------
 
 
-def run_target(name: str, runs: int, out: Path, crash_dir: Path) -> None:
-    import atheris
-
+def run_target(name: str, engine: str, runs: int, out: Path, crash_dir: Path) -> None:
     seeds, call, _ = TARGETS[name]
     expected = expected_errors()
     stats: dict[str, Any] = {"inputs": 0, "reasons": Counter(), "crashes": Counter(), "hangs": 0, "slowest_s": 0.0}
 
     def flush() -> None:
+        stats["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024  # kB on Linux
         out.write_text(json.dumps(stats | {"reasons": dict(stats["reasons"]), "crashes": dict(stats["crashes"])}))
 
     def one_input(data: bytes) -> None:
@@ -224,10 +245,20 @@ def run_target(name: str, runs: int, out: Path, crash_dir: Path) -> None:
         if stats["inputs"] % FLUSH_EVERY == 0 or stats["inputs"] >= runs - FLUSH_EVERY:
             flush()
 
-    corpus = Path(tempfile.mkdtemp(prefix=f"fuzz-{name}-"))
-    for index, seed in enumerate(seeds()):
-        (corpus / f"seed{index}").write_bytes(seed)
     flush()
+    if engine == "atheris":
+        _fuzz_with_atheris(name, seeds(), runs, one_input)
+    else:
+        _fuzz_with_hypothesis(seeds(), runs, one_input)
+    flush()
+
+
+def _fuzz_with_atheris(name: str, seeds: list[bytes], runs: int, one_input: Callable[[bytes], None]) -> None:
+    import atheris
+
+    corpus = Path(tempfile.mkdtemp(prefix=f"fuzz-{name}-"))
+    for index, seed in enumerate(seeds):
+        (corpus / f"seed{index}").write_bytes(seed)
     # libFuzzer ends the process itself after -runs inputs (seeds included), without Python's exit handlers:
     # hence the periodic flush and the final one from the last input.
     atheris.Setup([sys.argv[0], f"-runs={runs}", "-max_len=65536", "-timeout=60", str(corpus)], one_input)
@@ -235,16 +266,42 @@ def run_target(name: str, runs: int, out: Path, crash_dir: Path) -> None:
     atheris.Fuzz()
 
 
+def _fuzz_with_hypothesis(seeds: list[bytes], runs: int, one_input: Callable[[bytes], None]) -> None:
+    """Random bytes, and valid seeds with random cuts and insertions: what libFuzzer does, without coverage."""
+    from hypothesis import HealthCheck, Phase, given, settings
+    from hypothesis import strategies as st
+
+    edits = st.lists(st.tuples(st.integers(0, 1 << 16), st.integers(0, 32), st.binary(max_size=32)), max_size=8)
+    mutated = st.tuples(st.sampled_from(seeds), edits).map(lambda pair: _edited(*pair))
+
+    @settings(max_examples=runs, database=None, deadline=None, phases=[Phase.generate],
+              suppress_health_check=list(HealthCheck))  # fmt: skip
+    @given(st.one_of(mutated, st.binary(max_size=4096)))
+    def fuzz(data: bytes) -> None:
+        one_input(data)
+
+    fuzz()
+
+
+def _edited(seed: bytes, edits: list[tuple[int, int, bytes]]) -> bytes:
+    data = bytearray(seed)
+    for at, cut, insert in edits:
+        at %= len(data) + 1
+        data[at : at + cut] = insert
+    return bytes(data)
+
+
 # ---- the campaign ---------------------------------------------------------------------------------
 
 
-def campaign(targets: list[str], runs: int, max_seconds: float, out: Path) -> dict[str, Any]:
+def campaign(targets: list[str], engine: str, runs: int, max_seconds: float, out: Path) -> dict[str, Any]:
     crash_dir = out.parent / "fuzz-crashes"
     crash_dir.mkdir(parents=True, exist_ok=True)
     results: dict[str, Any] = {}
     for name in targets:
         part = Path(tempfile.mkstemp(suffix=f"-{name}.json")[1])
-        command = [sys.executable, __file__, "--child", name, "--runs", str(runs), "--part", str(part)]
+        command = [sys.executable, __file__, "--child", name, "--engine", engine, "--runs", str(runs)]
+        command += ["--part", str(part)]
         command += ["--crash-dir", str(crash_dir)]
         began = time.monotonic()
         child = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -257,7 +314,6 @@ def campaign(targets: list[str], runs: int, max_seconds: float, out: Path) -> di
             status, timed_out = child.returncode, True
         stats = json.loads(part.read_text()) if part.stat().st_size else {"inputs": 0}
         part.unlink()
-        peak = re.findall(r"rss: (\d+)Mb", stderr or "")
         results[name] = {
             "what": TARGETS[name][2],
             "inputs": stats.get("inputs", 0),
@@ -267,12 +323,26 @@ def campaign(targets: list[str], runs: int, max_seconds: float, out: Path) -> di
             "crash_kinds": stats.get("crashes", {}),
             "hangs_over_1s": stats.get("hangs", 0),
             "slowest_s": round(stats.get("slowest_s", 0.0), 3),
-            "peak_rss_mb": int(peak[-1]) if peak else None,
+            "peak_rss_mb": stats.get("peak_rss_mb"),
             "seconds": round(time.monotonic() - began, 1),
             "stopped_by": "time limit" if timed_out else f"input count (exit {status})",
         }
+        if status not in (0, None) and not timed_out:  # a crash of the interpreter itself, not of a decoder
+            results[name]["stderr_tail"] = (stderr or "")[-2000:]
         print(f"  {name}: {results[name]['inputs']} inputs, {results[name]['crashes']} crashes", file=sys.stderr)
     return results
+
+
+ENGINES = {
+    "atheris": "atheris (libFuzzer), coverage-guided",
+    "hypothesis": "hypothesis: random bytes and random edits of valid seeds, not coverage-guided",
+}
+
+
+def _installed(module: str) -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec(module) is not None
 
 
 def main() -> int:
@@ -281,21 +351,23 @@ def main() -> int:
     parser.add_argument("--max-seconds", type=float, default=900.0, help="time limit per target [900]")
     parser.add_argument("--targets", nargs="+", choices=sorted(TARGETS), default=list(TARGETS))
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/fuzz.json"))
+    parser.add_argument("--engine", choices=("auto", "atheris", "hypothesis"), default="auto",
+                        help="auto: atheris where it is installed, else hypothesis [auto]")  # fmt: skip
     parser.add_argument("--child", choices=sorted(TARGETS), help=argparse.SUPPRESS)
     parser.add_argument("--part", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--crash-dir", type=Path, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    engine = args.engine if args.engine != "auto" else ("atheris" if _installed("atheris") else "hypothesis")
     if args.child:
-        run_target(args.child, args.runs, args.part, args.crash_dir)
+        run_target(args.child, engine, args.runs, args.part, args.crash_dir)
         return 0
-    try:
-        import atheris  # noqa: F401
-    except ImportError:
-        print("benchmarks/fuzz.py needs atheris: pip install atheris", file=sys.stderr)
+    if engine == "atheris" and not _installed("atheris"):
+        print("benchmarks/fuzz.py --engine atheris needs atheris: pip install atheris", file=sys.stderr)
         return 2
-    print(f"fuzzing {len(args.targets)} targets, {args.runs} inputs each (atheris, coverage-guided)", file=sys.stderr)
-    results = campaign(args.targets, args.runs, args.max_seconds, args.out)
-    report = {"engine": "atheris (libFuzzer), coverage-guided", "runs_per_target": args.runs, "targets": results}
+    label = ENGINES[engine]
+    print(f"fuzzing {len(args.targets)} targets, {args.runs} inputs each ({label})", file=sys.stderr)
+    results = campaign(args.targets, engine, args.runs, args.max_seconds, args.out)
+    report = {"engine": label, "runs_per_target": args.runs, "targets": results}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2) + "\n")
     print("| target | inputs | distinct reasons | crashes | hangs > 1 s | slowest s | peak RSS MB |")
