@@ -1,4 +1,5 @@
-"""Image and map byte formats shared by the service, the offline CLI and the client."""
+"""Image and map byte formats, and the colour maps of T and U, shared by the service, the offline CLI and the
+client."""
 
 from __future__ import annotations
 
@@ -118,3 +119,28 @@ def decode_map_png16(data: bytes) -> NDArray[np.float32]:
     if image is None or image.dtype != np.uint16 or image.ndim != 2:
         raise ImageDecodeError("not a single-channel 16-bit PNG map")
     return image.astype(np.float32) / np.float32(MAP_QUANTUM)
+
+
+# ---- colour maps: the service's preview and the viewer (gcdtrav view) look alike ---------------------
+
+UNCERTAINTY_VMAX = 0.5  # U's colour scale ends here: sigma of two equal peaks at 0 and 1
+
+# Red (untraversable) -> yellow -> green (ideal ground), as a 256-entry RGB lookup table.
+_STOPS = np.array(
+    [[0.0, 165, 0, 38], [0.25, 244, 109, 67], [0.5, 254, 224, 139], [0.75, 102, 189, 99], [1.0, 0, 104, 55]],
+    dtype=np.float32,
+)
+_TRAV_LUT = np.stack([np.interp(np.linspace(0, 1, 256), _STOPS[:, 0], _STOPS[:, c]) for c in (1, 2, 3)], axis=1).astype(
+    np.uint8
+)
+
+
+def colorize_traversability(t: NDArray[np.floating]) -> NDArray[np.uint8]:
+    index = np.round(np.clip(t, 0, 1) * 255).astype(np.uint8)
+    return _TRAV_LUT[index]
+
+
+def colorize_uncertainty(u: NDArray[np.floating], vmax: float = UNCERTAINTY_VMAX) -> NDArray[np.uint8]:
+    """Dark = certain, bright = ambiguous (inferno); vmax 0.5 is sigma of two peaks at 0 and 1."""
+    index = np.round(np.clip(u / max(vmax, 1e-9), 0, 1) * 255).astype(np.uint8)
+    return cv2.cvtColor(cv2.applyColorMap(index, cv2.COLORMAP_INFERNO), cv2.COLOR_BGR2RGB)

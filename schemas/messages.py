@@ -276,3 +276,13 @@ class ServiceStatus(Message):
     history_budget_bytes: int = Field(default=0, description="The history's limit (history_budget_mb).")
     tracked_sources: int = Field(default=0, description="Sources the service keeps state for now.")
     max_sources: int = Field(default=0, description="The limit of tracked sources (max_sources).")
+
+
+class SourceView(Message):
+    """What `gcdtrav view` shows of one source on its status channel (JSON): the latest maps' header and the
+    source's counters on every instance that tracks it."""
+
+    source: str
+    maps: MapsHeader | None = Field(default=None, description="Header of the latest maps received.")
+    latency_ms: float | None = Field(default=None, description="Input stamp to the viewer's receipt of the maps.")
+    instances: dict[str, SourceStatus] = Field(default_factory=dict, description="Counters per instance.")

@@ -1,5 +1,6 @@
 """The `gcdtrav` command: `infer` (offline), `serve` (Zenoh service), `bench` (benchmarks), and the
-torch-free operator commands `status` and `anchors` (gcdtrav.client.operator)."""
+torch-free operator commands `status` and `anchors` (gcdtrav.client.operator) and `view` (Foxglove,
+gcdtrav.client.view)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from gcdtrav.client import operator
+from gcdtrav.client.view import command as view_command
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings, Method
 from gcdtrav.schemas.settings import SettingsError
@@ -167,6 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
         commands.add_parser("bench", help="benchmark every backend mode on this machine", description=bench.__doc__)
     )
     operator.add_operator_commands(commands)
+    view_command.add_view_command(commands)
     return parser
 
 
@@ -289,6 +292,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     if args.command in operator.COMMANDS:  # torch-free: they work from the base install
         return operator.run(args)
+    if args.command == "view":  # torch-free too, with the view extra
+        return view_command.run(args)
     handlers = {"infer": cmd_infer, "serve": cmd_serve, "bench": cmd_bench, "eval": cmd_eval}
     from gcdtrav.service.backends.base import ModelUnavailableError
 

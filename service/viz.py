@@ -1,4 +1,7 @@
-"""Pictures of T, U and context distributions for people: colour maps, overlays, the paper's Fig. 2."""
+"""Pictures of T, U and context distributions for people: overlays, the paper's Fig. 2.
+
+The colour maps live in gcdtrav.schemas.images, shared with the torch-free viewer (gcdtrav view).
+"""
 
 from __future__ import annotations
 
@@ -8,28 +11,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.images import colorize_traversability, colorize_uncertainty
 from gcdtrav.service.engine import gcd
 from numpy.typing import NDArray
 
-# Red (untraversable) -> yellow -> green (ideal ground), as a 256-entry RGB lookup table.
-_STOPS = np.array(
-    [[0.0, 165, 0, 38], [0.25, 244, 109, 67], [0.5, 254, 224, 139], [0.75, 102, 189, 99], [1.0, 0, 104, 55]],
-    dtype=np.float32,
-)
-_TRAV_LUT = np.stack([np.interp(np.linspace(0, 1, 256), _STOPS[:, 0], _STOPS[:, c]) for c in (1, 2, 3)], axis=1).astype(
-    np.uint8
-)
-
-
-def colorize_traversability(t: NDArray[np.floating]) -> NDArray[np.uint8]:
-    index = np.round(np.clip(t, 0, 1) * 255).astype(np.uint8)
-    return _TRAV_LUT[index]
-
-
-def colorize_uncertainty(u: NDArray[np.floating], vmax: float = 0.5) -> NDArray[np.uint8]:
-    """Dark = certain, bright = ambiguous (inferno); vmax 0.5 is sigma of two peaks at 0 and 1."""
-    index = np.round(np.clip(u / max(vmax, 1e-9), 0, 1) * 255).astype(np.uint8)
-    return cv2.cvtColor(cv2.applyColorMap(index, cv2.COLORMAP_INFERNO), cv2.COLOR_BGR2RGB)
+__all__ = ["colorize_traversability", "colorize_uncertainty", "overlay", "save_context_figure"]
 
 
 def overlay(image_rgb: NDArray[np.uint8], colours: NDArray[np.uint8], alpha: float = 0.55) -> NDArray[np.uint8]:

@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import os
+import sys
+import textwrap
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -46,3 +49,30 @@ def textured_image(height: int, width: int, seed: int = 0) -> np.ndarray:
     base = np.stack([x * 255 // max(width - 1, 1), y * 255 // max(height - 1, 1), (x + y) % 256], axis=2)
     noise = generator.integers(0, 40, size=(height, width, 3))
     return np.clip(base + noise, 0, 255).astype(np.uint8)
+
+
+def camera_grid(**overrides: Any) -> dict[str, Any]:
+    """Grid settings of source 'cam': an 80x60 camera 1 m up, pitched down, 8 m of 0.25 m cells, with a pose."""
+    grid = {
+        "source": "cam",
+        "intrinsics": {"fx": 60, "fy": 60, "cx": 40, "cy": 30, "width": 80, "height": 60},
+        "mount": {"z": 1.0, "pitch": 0.6},
+        "size_m": 8.0,
+        "resolution_m": 0.25,
+        "pose_key": "robot/pose",
+    }
+    return grid | overrides
+
+
+def torch_free_gcdtrav(*args: str) -> list[str]:
+    """The command line of `gcdtrav ARGS` in a fresh interpreter where torch and transformers cannot be imported."""
+    code = textwrap.dedent(
+        f"""
+        import sys
+        sys.modules["torch"] = None
+        sys.modules["transformers"] = None
+        from gcdtrav.service.cli import main
+        sys.exit(main({list(args)!r}))
+        """
+    )
+    return [sys.executable, "-c", code]

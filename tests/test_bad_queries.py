@@ -8,7 +8,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import textured_image
+from conftest import camera_grid, textured_image
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.messages import AnchorSetRejection, ErrorReply, MessageError
 from gcdtrav.service.queries import PATCH_FORMS, QueryError, parameter_pairs, strict_parameters
@@ -113,21 +113,16 @@ from gcdtrav.service.bus import node as node_module  # noqa: E402
 from gcdtrav.service.bus.node import TraversabilityService  # noqa: E402
 from gcdtrav.service.loopback import in_process_service  # noqa: E402
 
-GRID = {
-    "source": "cam",
-    "intrinsics": {"fx": 60, "fy": 60, "cx": 40, "cy": 30, "width": 80, "height": 60},
-    "mount": {"z": 1.0, "pitch": 0.6},
-    "size_m": 8.0,
-    "resolution_m": 0.25,
-    "pose_key": "robot/pose",
-    "camera_info_key": "robot/camera_info",
-}
-
 
 @pytest.fixture()
 def served(tiny_backend, tmp_path: Path) -> Iterator[tuple[TraversabilityService, TraversabilityClient]]:  # type: ignore[no-untyped-def]
     settings = ServiceSettings.model_validate(
-        {"state_dir": str(tmp_path), "instance": "strict", "preview": False, "grids": [GRID]}
+        {
+            "state_dir": str(tmp_path),
+            "instance": "strict",
+            "preview": False,
+            "grids": [camera_grid(camera_info_key="robot/camera_info")],
+        }
     )
     with in_process_service(tiny_backend, settings) as (service, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)

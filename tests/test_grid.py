@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import textured_image
+from conftest import camera_grid, textured_image
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points
@@ -129,19 +129,7 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
             "state_dir": str(tmp_path),
             "instance": "grid-test",
             "preview": False,
-            "grids": [
-                {
-                    "source": "cam",
-                    "intrinsics": {"fx": 60, "fy": 60, "cx": 40, "cy": 30, "width": 80, "height": 60},
-                    "mount": {"z": 1.0, "pitch": 0.6},
-                    "size_m": 8.0,
-                    "resolution_m": 0.25,
-                    "max_range_m": 6.0,
-                    "half_life_s": 5.0,
-                    "pose_key": "robot/pose",
-                    "occupancy_grid": True,
-                }
-            ],
+            "grids": [camera_grid(max_range_m=6.0, half_life_s=5.0, occupancy_grid=True)],
         }
     )
     with in_process_service(tiny_backend, settings) as (_, port):

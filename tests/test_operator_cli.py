@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import subprocess
-import sys
-import textwrap
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
-from conftest import textured_image
+from conftest import textured_image, torch_free_gcdtrav
 from zenoh_helpers import connecting_config, first_frame_through, service_reachable, wait_until
 
 pytest.importorskip("torch")
@@ -27,16 +25,7 @@ PUDDLES = ROOT / "examples" / "anchors" / "puddles.yaml"
 
 def gcdtrav(*args: str) -> subprocess.CompletedProcess[str]:
     """`gcdtrav ARGS` in a fresh interpreter where torch and transformers cannot be imported."""
-    code = textwrap.dedent(
-        f"""
-        import sys
-        sys.modules["torch"] = None
-        sys.modules["transformers"] = None
-        from gcdtrav.service.cli import main
-        sys.exit(main({list(args)!r}))
-        """
-    )
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    return subprocess.run(torch_free_gcdtrav(*args), capture_output=True, text=True, timeout=60)
 
 
 @pytest.fixture()

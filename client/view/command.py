@@ -1,0 +1,121 @@
+"""`gcdtrav view`: the command line of the live Foxglove view (torch-free; needs the ``view`` extra).
+
+Exit codes: 0 stopped by Ctrl-C or SIGTERM (every MCAP file closed), 1 failed (one line on stderr), 2 usage
+or a missing extra.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import signal
+import sys
+import threading
+from pathlib import Path
+from types import FrameType
+
+from gcdtrav.client.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+INSTALL = "pip install 'gcdtrav[view]'"
+
+
+def add_view_command(commands: argparse._SubParsersAction) -> None:
+    view = commands.add_parser(
+        "view",
+        help="live view in Foxglove: images, T, U, grid, status; anchor set as parameters; MCAP recording",
+        description="Serve the service's outputs to Foxglove (WebSocket, default ws://localhost:8765) and, with "
+        "--record, into MCAP files. Open Foxglove, 'Open connection', 'Foxglove WebSocket', that URL; the layout "
+        "in examples/foxglove/gcdtrav-layout.json shows every channel. Torch-free; needs " + INSTALL + ".",
+    )
+    view.add_argument("--port", type=int, default=8765, help="WebSocket port [8765; 0 = any free port]")
+    view.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to bind [127.0.0.1: this machine only]. Another address (e.g. 0.0.0.0) lets anyone who "
+        "reaches it watch and change the anchor set",
+    )
+    view.add_argument("--sources", default="**", help="which sources, as a key expression of names ['**' = all]")
+    view.add_argument("--prefix", default="gcdtrav", help="the service's key prefix [gcdtrav]")
+    view.add_argument(
+        "--input-prefix",
+        default="gcdtrav/in",
+        help="where robots publish images, for the camera channel [gcdtrav/in]; '' to not subscribe to inputs",
+    )
+    view.add_argument("--record", type=Path, metavar="DIR", help="also record every channel to MCAP files in DIR")
+    view.add_argument("--record-max-mb", type=float, default=256, help="start a new MCAP file beyond this [256]")
+    view.add_argument("--max-sources", type=int, default=32, help="sources shown at most [32]")
+    view.add_argument("--status-period", type=float, default=1.0, help="seconds between status queries [1]")
+    view.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the service's answers [5]")
+    add_zenoh_arguments(view)
+
+
+def run(args: argparse.Namespace) -> int:
+    missing = [package for module, package in (("foxglove", "foxglove-sdk"), ("mcap", "mcap")) if not _has(module)]
+    if missing:
+        print(f"gcdtrav view: needs {' and '.join(missing)}; install the view extra: {INSTALL}", file=sys.stderr)
+        return EXIT_USAGE
+    if args.record_max_mb <= 0 or args.max_sources < 1 or args.status_period <= 0 or not 0 <= args.port < 65536:
+        print("gcdtrav view: --record-max-mb, --max-sources and --status-period must be positive, and --port "
+              "0..65535", file=sys.stderr)  # fmt: skip
+        return EXIT_USAGE
+    from gcdtrav.client.client import TraversabilityClient
+    from gcdtrav.client.view.viewer import Viewer, ViewOptions
+
+    options = ViewOptions(
+        host=args.host,
+        port=args.port,
+        prefix=args.prefix,
+        sources=args.sources,
+        input_prefix=args.input_prefix,
+        max_sources=args.max_sources,
+        status_period_s=args.status_period,
+        timeout_s=args.timeout,
+        record=args.record,
+        record_max_bytes=int(args.record_max_mb * 1024 * 1024),
+    )
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda number, frame: _stop(stop, number, frame))
+    try:
+        config = zenoh_config_from_args(args)
+        with TraversabilityClient(config=config, prefix=args.prefix, timeout=args.timeout) as client:
+            with Viewer(client, options) as viewer:
+                print(f"gcdtrav view: Foxglove WebSocket at {viewer.url} (Ctrl-C stops)", flush=True)
+                if viewer.recorder is not None:
+                    print(f"gcdtrav view: recording to {viewer.recorder.directory}", flush=True)
+                while not stop.wait(0.5):
+                    pass
+            if viewer.recorder is not None:
+                print(recording_summary(viewer.recorder.files), flush=True)
+    except Exception as err:  # zenoh errors, a port in use, an unwritable directory: one line
+        print(f"gcdtrav view: {type(err).__name__}: {' '.join(str(err).split())}", file=sys.stderr)
+        return EXIT_FAILED
+    return EXIT_OK
+
+
+def _has(module: str) -> bool:
+    try:
+        return importlib.util.find_spec(module) is not None
+    except ValueError:  # in sys.modules as None: blocked
+        return False
+
+
+def _stop(stop: threading.Event, number: int, frame: FrameType | None) -> None:
+    stop.set()
+
+
+def recording_summary(files: list[Path]) -> str:
+    """One line per MCAP file, read back with the mcap library: its messages and channels."""
+    from mcap.reader import make_reader
+
+    lines = []
+    for path in files:
+        with path.open("rb") as stream:
+            summary = make_reader(stream).get_summary()
+        if summary is None or summary.statistics is None:
+            lines.append(f"{path}: no summary (not closed cleanly)")
+        else:
+            stats = summary.statistics
+            lines.append(f"{path}: {stats.message_count} messages on {stats.channel_count} channels")
+    return "\n".join(lines)
