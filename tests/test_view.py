@@ -5,6 +5,7 @@ read back with the mcap library hold exactly the messages the viewer sent."""
 from __future__ import annotations
 
 import asyncio
+import json
 import signal
 import subprocess
 import sys
@@ -35,6 +36,7 @@ from gcdtrav.service.bus.node import TraversabilityService  # noqa: E402
 from gcdtrav.service.loopback import in_process_service  # noqa: E402
 
 GRID_CELLS = 32
+LAYOUT = Path(__file__).resolve().parents[1] / "examples" / "foxglove" / "gcdtrav-layout.json"
 
 
 def grid_settings(state_dir: Path) -> ServiceSettings:
@@ -52,6 +54,23 @@ def drive(client: TraversabilityClient, step: int) -> None:
     client.session.put("robot/pose", Pose2D(stamp=100.0 + step, x=0.25 * step, y=0.0, yaw=0.0).pack())
     time.sleep(0.1)
     client.publish_image("cam", textured_image(60, 80, seed=step), stamp=100.0 + step, frame_id="front")
+
+
+def layout_topics(path: Path) -> set[str]:
+    """Every topic the saved Foxglove layout's panels show."""
+    topics: set[str] = set()
+    for config in json.loads(path.read_text())["configById"].values():
+        topics.update(config.get("topics", {}))
+        topics.update(
+            value
+            for value in (
+                config.get("imageMode", {}).get("imageTopic"),
+                config.get("topicPath"),
+                config.get("topicToRender"),
+            )
+            if value
+        )
+    return topics
 
 
 def read_mcap(files: list[Path]) -> tuple[Counter[str], dict[str, tuple[str, str]]]:
@@ -131,6 +150,7 @@ def test_foxglove_client_sees_maps_grid_and_steers_the_anchor_set(service, tmp_p
     assert channels["/gcdtrav/anchors"] == ("json", "gcdtrav.AnchorSetReply", "jsonschema")
     assert channels["/gcdtrav/status"] == ("json", "gcdtrav.ServiceStatuses", "jsonschema")
     assert channels["/gcdtrav/cam/status"] == ("json", "gcdtrav.SourceView", "jsonschema")
+    assert layout_topics(LAYOUT) <= set(channels), "the shipped layout shows topics the viewer does not publish"
 
     # T: a PNG (CompressedImage fields 2 data, 3 format, 4 frame_id), the map enlarged beside its legend.
     t_image = seen["t_image"]

@@ -82,6 +82,7 @@ def run(args: argparse.Namespace) -> int:
         with TraversabilityClient(config=config, prefix=args.prefix, timeout=args.timeout) as client:
             with Viewer(client, options) as viewer:
                 print(f"gcdtrav view: Foxglove WebSocket at {viewer.url} (Ctrl-C stops)", flush=True)
+                print(f"gcdtrav view: or open {viewer.server.app_url()}", flush=True)
                 if viewer.recorder is not None:
                     print(f"gcdtrav view: recording to {viewer.recorder.directory}", flush=True)
                 while not stop.wait(0.5):
