@@ -11,7 +11,7 @@ import re
 import socket
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import yaml
 from gcdtrav.schemas.config import EngineSettings
@@ -19,6 +19,13 @@ from gcdtrav.schemas.limits import DEFAULT_MAX_ANCHOR_SET_BYTES
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 ENV_PREFIX = "GCDTRAV_"
+
+# How the model's arithmetic runs. fp32: torch, the reference. bf16: ViT and decoder in bfloat16 (native on
+# AVX512-BF16/AMX only). bf16-vit: the ViT only. int8: torch's dynamic int8 ViT. ort-fp32: ONNX Runtime in
+# fp32. ort-int8-vit: ONNX Runtime, dynamic int8 ViT, fp32 decoder. ort-int8: also the decoder's MLPs in int8.
+# auto: the fastest mode that passes the parity gate, by measurement on this machine at start (cached).
+Precision = Literal["auto", "fp32", "bf16", "bf16-vit", "int8", "ort-fp32", "ort-int8-vit", "ort-int8"]
+PRECISIONS: tuple[str, ...] = get_args(Precision)
 _KEY_CHUNK = re.compile(r"^[^*$#?\s/]+$")
 
 
@@ -240,9 +247,9 @@ class ServiceSettings(BaseModel):
     ros_inputs: list[RosInput] = Field(default_factory=list, description="ROS 2 image topics (CDR).")
     ros_output: RosOutput = Field(default_factory=RosOutput)
     ros_node: RosNode = Field(default_factory=RosNode)
-    precision: Literal["auto", "fp32", "bf16", "bf16-vit", "int8"] = Field(
+    precision: Precision = Field(
         default="auto",
-        description="Vision encoder arithmetic: auto = bf16 on CPUs with AVX512-BF16/AMX, else fp32.",
+        description="Model arithmetic: auto = the fastest mode passing the parity gate, measured at start.",
     )
     threads: int | None = Field(
         default=None,

@@ -28,11 +28,8 @@ from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.images import encode_maps_png16
 from gcdtrav.service.engine import gcd
 from gcdtrav.service.engine.maps import compute_maps
+from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, parity, synthetic_image
 from numpy.typing import NDArray
-
-TRAINED_LOGIT_STD = 3.0  # a trained CLIPSeg's logits are a few units and differ across prompts by a few units
-PARITY_P99_DT_LIMIT = 0.02
-
 
 # ---- measurement helpers ---------------------------------------------------------------------------
 
@@ -108,40 +105,6 @@ def make_row(name: str, group: str, times: list[float], peak: float, note: str =
 # ---- parity ----------------------------------------------------------------------------------------
 
 
-def parity(reference: NDArray[np.float32], candidate: NDArray[np.float32], anchors: AnchorSet) -> dict[str, float]:
-    """T/U differences of a fast mode against fp32 on the same inputs, at a trained model's logit scale.
-
-    Random weights give logits whose standard deviation is in the hundreds, almost all of it shared by every
-    anchor (a per-patch offset the softmax ignores), while the anchors differ by about one unit. Compared
-    as they are, the softmax is nearly one-hot and any rounding flips it; rescaled as a whole to a standard
-    deviation of 3, the anchors become indistinguishable and no error shows. Neither is a trained model,
-    whose logits are a few units and differ across anchors by a few units. So:
-      1. the fast mode's error is kept at its relative size: (candidate - reference) * 3 / std(reference),
-         which is rescaling the decoder's last (linear) layer so the logits' standard deviation is 3;
-      2. it is added to the reference's anchor-dependent part (per-patch mean removed), scaled so that the
-         per-patch spread across anchors is 3 (median over patches).
-    T and U from both are compared: max and p99 of |dT| and |dU|, and the fraction of patches whose top
-    anchor changes.
-    """
-    error = (candidate - reference) * (TRAINED_LOGIT_STD / float(reference.std()))
-    centred = reference - reference.mean(axis=0, keepdims=True)
-    trained_like = centred * (TRAINED_LOGIT_STD / float(np.median(centred.std(axis=0))))
-    settings = EngineSettings()
-    ref = compute_maps(trained_like, anchors, settings)
-    cand = compute_maps(trained_like + error, anchors, settings)
-    d_t = np.abs(ref.traversability - cand.traversability)
-    d_u = np.abs(ref.uncertainty - cand.uncertainty)
-    top_changed = np.argmax(ref.weights, axis=0) != np.argmax(cand.weights, axis=0)
-    return {
-        "max_dT": float(d_t.max()),
-        "p99_dT": float(np.percentile(d_t, 99)),
-        "max_dU": float(d_u.max()),
-        "p99_dU": float(np.percentile(d_u, 99)),
-        "top_anchor_changed": float(top_changed.mean()),
-        "relative_logit_error": float((candidate - reference).std() / reference.std()),
-    }
-
-
 def activation_cosine(reference: list[Any], candidate: list[Any]) -> float:
     """Smallest, over the extracted layers, of the mean per-token cosine similarity of backbone activations."""
     import torch
@@ -155,12 +118,7 @@ def activation_cosine(reference: list[Any], candidate: list[Any]) -> float:
 # ---- the benchmark ---------------------------------------------------------------------------------
 
 
-def bench_image(height: int = 480, width: int = 640, seed: int = 0) -> NDArray[np.uint8]:
-    """A structured test image (gradients, blocks, noise): random weights make the content irrelevant."""
-    rng = np.random.default_rng(seed)
-    y, x = np.mgrid[0:height, 0:width]
-    image = np.stack([x * 255 // width, y * 255 // height, ((x // 40 + y // 40) % 2) * 200], axis=2)
-    return np.clip(image + rng.integers(0, 30, size=image.shape), 0, 255).astype(np.uint8)
+bench_image = synthetic_image
 
 
 def anchor_set_of(count: int) -> AnchorSet:

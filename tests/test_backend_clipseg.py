@@ -91,7 +91,8 @@ def test_unreachable_hub_id_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) ->
 @pytest.mark.parametrize("precision", ["bf16", "bf16-vit", "int8"])
 def test_fast_modes_keep_parity_with_fp32(tiny_model_dir: Path, tiny_backend: ClipSegBackend, precision: str) -> None:
     from gcdtrav.schemas.anchors import default_anchor_set
-    from gcdtrav.service.bench import PARITY_P99_DT_LIMIT, activation_cosine, parity
+    from gcdtrav.service.bench import activation_cosine
+    from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, parity
 
     fast = ClipSegBackend(str(tiny_model_dir), precision=precision)
     assert fast.precision == precision
@@ -110,7 +111,7 @@ def test_fast_modes_keep_parity_with_fp32(tiny_model_dir: Path, tiny_backend: Cl
 
 def test_parity_measure_sees_errors_and_nothing_else(tiny_backend: ClipSegBackend) -> None:
     from gcdtrav.schemas.anchors import default_anchor_set
-    from gcdtrav.service.bench import PARITY_P99_DT_LIMIT, parity
+    from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, parity
 
     cas = default_anchor_set()
     reference = tiny_backend.logits(textured_image(100, 120, seed=7), tiny_backend.prepare(cas.concepts))
@@ -123,12 +124,14 @@ def test_parity_measure_sees_errors_and_nothing_else(tiny_backend: ClipSegBacken
     assert noisy["p99_dT"] > PARITY_P99_DT_LIMIT and noisy["top_anchor_changed"] > 0.05
 
 
-def test_precision_is_validated() -> None:
-    from gcdtrav.service.backends.clipseg import resolve_precision
+def test_precision_is_validated(tiny_model_dir: Path) -> None:
+    from gcdtrav.service.backends.clipseg import check_precision
 
-    assert resolve_precision("auto") in ("bf16", "fp32")
+    assert check_precision("ort-int8") == "ort-int8"
+    with pytest.raises(ValueError, match="precision must be one of auto, fp32, bf16"):
+        check_precision("fp8")
     with pytest.raises(ValueError, match="precision must be one of"):
-        resolve_precision("fp8")
+        ClipSegBackend(str(tiny_model_dir), precision="fp8")
 
 
 @pytest.mark.parametrize(("precision", "layers_left"), [("fp32", 4), ("bf16", 0)])

@@ -12,7 +12,7 @@ torch = pytest.importorskip("torch")
 
 from gcdtrav.service.backends import decoder as fast  # noqa: E402
 from gcdtrav.service.backends import onednn  # noqa: E402
-from gcdtrav.service.backends.clipseg import ClipSegBackend  # noqa: E402
+from gcdtrav.service.backends.clipseg import ClipSegBackend, TorchCompute  # noqa: E402
 
 nn = torch.nn
 
@@ -112,8 +112,10 @@ def test_backend_without_onednn_still_matches_transformers(
 ) -> None:
     monkeypatch.setattr(onednn, "onednn_has", lambda attr, dtype: False)
     backend = ClipSegBackend(str(tiny_model_dir), keep_reference=True)
-    assert all(mlp is None for mlp in backend._trunk.fused_mlps)
-    assert backend._decoder.linear_relu is onednn.linear_then_relu
+    compute = backend.compute
+    assert isinstance(compute, TorchCompute)
+    assert all(mlp is None for mlp in compute.trunk.fused_mlps)
+    assert compute.decoder.linear_relu is onednn.linear_then_relu
     concepts = ["water", "grass", "asphalt road"]
     image = textured_image(90, 70, seed=3)
     np.testing.assert_allclose(

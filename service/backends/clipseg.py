@@ -31,9 +31,17 @@ from typing import Any
 import cv2
 import numpy as np
 import torch
+from gcdtrav.schemas.settings import PRECISIONS
 from gcdtrav.service.backends.base import ModelUnavailableError
 from gcdtrav.service.backends.decoder import FastDecoder
 from gcdtrav.service.backends.onednn import QuickGeluMLP, clip_encoder_layer
+from gcdtrav.service.backends.onnx_runtime import (
+    ExportError,
+    OrtCompute,
+    default_cache_dir,
+    exported_model,
+    onnx_runtime_available,
+)
 from numpy.typing import NDArray
 
 log = logging.getLogger(__name__)
@@ -82,23 +90,29 @@ class Preprocessing:
         return torch.from_numpy(np.ascontiguousarray(scaled.transpose(2, 0, 1)))[None]
 
 
-# fp32: the reference. bf16: ViT and decoder in bfloat16. bf16-vit: ViT only (decoder fp32).
-# int8: dynamic int8 quantisation of the ViT's linear layers. auto: bf16 where the CPU runs it natively.
-PRECISIONS = ("auto", "fp32", "bf16", "bf16-vit", "int8")
-
-
 def cpu_has_fast_bf16() -> bool:
     """AVX512-BF16 or AMX: bf16 matrix products run natively (x86). Elsewhere bf16 is emulated and slow."""
     checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
     return any(bool(getattr(torch.cpu, name, lambda: False)()) for name in checks)
 
 
-def resolve_precision(requested: str) -> str:
-    """'auto' picks the fastest mode that passes the parity bound on this CPU (see benchmarks/README.md)."""
+def available_precisions() -> list[str]:
+    """The concrete modes worth running on this machine: bf16 only where native, ONNX Runtime if installed."""
+    modes = ["fp32", "int8"]
+    if cpu_has_fast_bf16():
+        modes += ["bf16", "bf16-vit"]
+    if onnx_runtime_available():
+        modes += ["ort-fp32", "ort-int8-vit", "ort-int8"]
+    return modes
+
+
+def check_precision(requested: str) -> str:
     if requested not in PRECISIONS:
         raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, not '{requested}'")
-    if requested == "auto":
-        return "bf16" if cpu_has_fast_bf16() else "fp32"
+    if requested.startswith("ort-") and not onnx_runtime_available():
+        raise ModelUnavailableError(
+            f"precision '{requested}' needs ONNX Runtime: pip install onnxruntime onnx (in gcdtrav[service])"
+        )
     return requested
 
 
@@ -153,6 +167,35 @@ class VisionTrunk(torch.nn.Module):
 DECODER_CHUNK = 8  # concepts per decoder batch (measured best of 1, 2, 4, 8, all on 2 cores; benchmarks/)
 
 
+class TorchCompute:
+    """Trunk and decoder in torch, in the given precision (fp32, bf16, bf16-vit, int8)."""
+
+    def __init__(self, model: Any, extract_layers: list[int], precision: str) -> None:
+        self.extract_layers = extract_layers
+        self.trunk = VisionTrunk.build(model.clip.vision_model, max(extract_layers), precision)
+        decoder, self.decoder_dtype = model.decoder, torch.float32
+        if precision == "bf16":  # the decoder's MLPs, run once per anchor, cost as much as the ViT
+            decoder, self.decoder_dtype = copy.deepcopy(decoder).to(torch.bfloat16), torch.bfloat16
+        self.decoder = FastDecoder(decoder, self.decoder_dtype)
+
+    def activations(self, pixel_values: torch.Tensor) -> list[torch.Tensor]:
+        kept = self.trunk.run(pixel_values, set(self.extract_layers))
+        return [hidden.to(self.decoder_dtype) for hidden in kept]
+
+    def decode(self, activations: Sequence[torch.Tensor], conditional: torch.Tensor) -> torch.Tensor:
+        """Chunks keep the MLP's (concepts x tokens x 2048) intermediate small enough to stay in cache."""
+        conditional = conditional.to(self.decoder_dtype)
+        activations = [a.to(self.decoder_dtype) for a in activations]
+        chunks = [
+            self.decoder(activations, conditional[k : k + DECODER_CHUNK])
+            for k in range(0, conditional.shape[0], DECODER_CHUNK)
+        ]
+        return torch.cat(chunks).float()
+
+
+Compute = TorchCompute | OrtCompute
+
+
 def _triple(values: Any) -> tuple[float, float, float]:
     first, second, third = (float(v) for v in values)
     return first, second, third
@@ -197,18 +240,22 @@ class ClipSegBackend:
         precision: str = "fp32",
         prepared_cache_size: int = 4,
         keep_reference: bool = False,
+        cache_dir: Path | None = None,
     ) -> None:
         """``keep_reference``: keep transformers' complete fp32 model for ``naive_logits`` (benchmark, tests).
 
-        Without it, the vision layers the fast path does not use are released: the fp32 ViT when the
-        trunk is a bf16 or int8 copy (about 340 MB for rd64-refined), the layers after the last one the
-        decoder reads otherwise.
+        Without it, the vision layers the chosen mode does not use are released: the fp32 ViT when the
+        trunk is a bf16, int8 or ONNX Runtime copy (about 340 MB for rd64-refined), the layers after the
+        last one the decoder reads otherwise. ``cache_dir`` keeps the ONNX exports and the measurements of
+        ``precision='auto'`` [$XDG_CACHE_HOME/gcdtrav].
         """
         from transformers import CLIPSegForImageSegmentation, CLIPTokenizer
 
         self.model_id = model
         self.keeps_reference = keep_reference
         self.device = torch.device(device)
+        self.cache_dir = cache_dir or default_cache_dir()
+        check_precision(precision)
         if model.startswith(("/", ".", "~")) and not Path(model).expanduser().is_dir():
             raise ModelUnavailableError(f"model directory '{model}' does not exist; {HOW_TO_PROVIDE_WEIGHTS}")
         model = str(Path(model).expanduser()) if model.startswith("~") else model
@@ -220,22 +267,53 @@ class ClipSegBackend:
             raise ModelUnavailableError(
                 f"cannot load the CLIPSeg model '{model}' ({reason[:200]}); {HOW_TO_PROVIDE_WEIGHTS}"
             ) from None
+        config_file = _locate(model, "config.json")
+        self.checkpoint_dir = config_file.parent if config_file is not None else None
         self.preprocess = Preprocessing.from_config_file(_locate(model, "preprocessor_config.json"))
         self.extract_layers = list(self.model.config.extract_layers)
-        self.precision = resolve_precision(precision)
-        self._trunk = VisionTrunk.build(self.model.clip.vision_model, max(self.extract_layers), self.precision)
-        decoder, self._decoder_dtype = self.model.decoder, torch.float32
-        if self.precision == "bf16":  # the decoder's MLPs, run once per anchor, cost as much as the ViT
-            decoder, self._decoder_dtype = copy.deepcopy(decoder).to(torch.bfloat16), torch.bfloat16
-        self._decoder = FastDecoder(decoder, self._decoder_dtype)
-        if not keep_reference:
-            self._release_unused_vision_layers()
         self._prepared: OrderedDict[tuple[str, ...], torch.Tensor] = OrderedDict()
         self._prepared_cache_size = prepared_cache_size
+        self.precision_reason = f"asked for {precision}"
+        if precision == "auto":
+            from gcdtrav.service.precision_choice import choose_precision
+
+            choice = choose_precision(self)
+            precision, self.precision_reason = choice.mode, choice.reason
+        self.precision = precision
+        self._compute: Compute = self.compute_for(precision)
+        if not keep_reference:
+            self._release_unused_vision_layers()
+
+    def compute_for(self, precision: str) -> Compute:
+        """The trunk and decoder of a concrete mode; ONNX Runtime's are exported on first use and cached."""
+        check_precision(precision)
+        if not precision.startswith("ort-"):
+            return TorchCompute(self.model, self.extract_layers, precision)
+        if self.checkpoint_dir is None:
+            raise ExportError(f"cannot find the files of checkpoint '{self.model_id}' to key the ONNX export")
+        exported = exported_model(
+            self.model.clip.vision_model,
+            self.model.decoder,
+            self.extract_layers,
+            self.checkpoint_dir,
+            self.preprocess.size,
+            self.cache_dir,
+        )
+        int8_trunk, int8_decoder = precision in ("ort-int8", "ort-int8-vit"), precision == "ort-int8"
+        return OrtCompute(exported, int8_trunk, int8_decoder, threads=torch.get_num_threads())
+
+    @property
+    def compute(self) -> Compute:
+        return self._compute
+
+    def use_compute(self, compute: Compute, precision: str) -> None:
+        """Run with another mode's compute from now on (used while measuring modes; not thread-safe)."""
+        self._compute, self.precision = compute, precision
 
     def _release_unused_vision_layers(self) -> None:
         encoder = self.model.clip.vision_model.encoder
-        run = {id(layer) for layer in self._trunk.layers}  # fp32 shares layers 0..last with the trunk
+        trunk = self._compute.trunk if isinstance(self._compute, TorchCompute) else None
+        run = {id(layer) for layer in trunk.layers} if trunk is not None else set()  # fp32 shares the layers
         for layer in encoder.layers:
             if id(layer) not in run:
                 for tensor in [*layer.parameters(), *layer.buffers()]:
@@ -264,21 +342,12 @@ class ClipSegBackend:
     @torch.inference_mode()
     def vision_activations(self, pixel_values: torch.Tensor) -> list[torch.Tensor]:
         """Hidden states after each layer in ``extract_layers``; later layers are never run."""
-        return [hidden.to(self._decoder_dtype) for hidden in self._trunk.run(pixel_values, set(self.extract_layers))]
+        return self._compute.activations(pixel_values)
 
     @torch.inference_mode()
     def decode(self, activations: list[torch.Tensor], conditional: torch.Tensor) -> torch.Tensor:
-        """(n, h, w) logits from a single image's activations, the decoder batched over chunks of concepts.
-
-        Chunks keep the MLP's (concepts x tokens x 2048) intermediate small enough to stay in cache; one
-        batch of all n concepts spends most of its time allocating and touching that memory.
-        """
-        conditional = conditional.to(self._decoder_dtype)
-        chunks = [
-            self._decoder(activations, conditional[k : k + DECODER_CHUNK])
-            for k in range(0, conditional.shape[0], DECODER_CHUNK)
-        ]
-        return torch.cat(chunks).float()
+        """(n, h, w) fp32 logits from a single image's activations, the decoder batched over concepts."""
+        return self._compute.decode(activations, conditional).float()
 
     @torch.inference_mode()
     def logits(self, image_rgb: NDArray[np.uint8], prepared: object) -> NDArray[np.float32]:

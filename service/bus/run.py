@@ -42,7 +42,7 @@ def build_service_pipeline(settings: ServiceSettings) -> Pipeline:
         torch.set_num_threads(settings.threads)
     anchors = starting_anchor_set(settings)
     model = settings.model or default_model()
-    backend = ClipSegBackend(model, precision=settings.precision)
+    backend = ClipSegBackend(model, precision=settings.precision, cache_dir=settings.state_dir / "models")
     return Pipeline(backend, anchors, settings.engine)
 
 

@@ -1,0 +1,207 @@
+"""``precision: auto``: the fastest mode that passes the parity gate, chosen by measuring them on this machine.
+
+CPU flags do not say which mode is fastest: on an AVX2-only EPYC ONNX Runtime's int8 trunk wins, on an AMX
+Xeon torch's bf16 does, and a container's CPU quota changes the picture again. So at start every mode
+this machine can run (``available_precisions``) is timed on a fixed internal input (a synthetic image,
+the paper's 13 anchors), its T compared with fp32's (``parity``), and the fastest that passes the gate
+(p99 |dT| <= 0.02) is used. The figures are logged, reported in the status reply, and cached in the cache
+directory under the same kind of key as the ONNX export (checkpoint, versions, CPU, threads), so a restart
+on the same machine skips the measurement.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import statistics
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
+from gcdtrav.schemas.config import EngineSettings
+from gcdtrav.service.engine.maps import compute_maps
+from numpy.typing import NDArray
+
+log = logging.getLogger(__name__)
+
+TRAINED_LOGIT_STD = 3.0  # a trained CLIPSeg's logits are a few units and differ across prompts by a few units
+PARITY_P99_DT_LIMIT = 0.02
+MEASURED_RUNS = 3
+PARITY_IMAGES = 2
+CHOICE_FORMAT = 1
+
+
+def synthetic_image(height: int = 480, width: int = 640, seed: int = 0) -> NDArray[np.uint8]:
+    """A structured test image (gradients, blocks, noise): the fixed input of measurements and benchmarks."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:height, 0:width]
+    image = np.stack([x * 255 // width, y * 255 // height, ((x // 40 + y // 40) % 2) * 200], axis=2)
+    return np.clip(image + rng.integers(0, 30, size=image.shape), 0, 255).astype(np.uint8)
+
+
+def parity(reference: NDArray[np.float32], candidate: NDArray[np.float32], anchors: AnchorSet) -> dict[str, float]:
+    """T/U differences of a fast mode against fp32 on the same inputs, at a trained model's logit scale.
+
+    Random weights give logits whose standard deviation is in the hundreds, almost all of it shared by every
+    anchor (a per-patch offset the softmax ignores), while the anchors differ by about one unit. Compared
+    as they are, the softmax is nearly one-hot and any rounding flips it; rescaled as a whole to a standard
+    deviation of 3, the anchors become indistinguishable and no error shows. Neither is a trained model,
+    whose logits are a few units and differ across anchors by a few units. So:
+      1. the fast mode's error is kept at its relative size: (candidate - reference) * 3 / std(reference),
+         which is rescaling the decoder's last (linear) layer so the logits' standard deviation is 3;
+      2. it is added to the reference's anchor-dependent part (per-patch mean removed), scaled so that the
+         per-patch spread across anchors is 3 (median over patches).
+    T and U from both are compared: max and p99 of |dT| and |dU|, and the fraction of patches whose top
+    anchor changes.
+    """
+    error = (candidate - reference) * (TRAINED_LOGIT_STD / float(reference.std()))
+    centred = reference - reference.mean(axis=0, keepdims=True)
+    trained_like = centred * (TRAINED_LOGIT_STD / float(np.median(centred.std(axis=0))))
+    settings = EngineSettings()
+    ref = compute_maps(trained_like, anchors, settings)
+    cand = compute_maps(trained_like + error, anchors, settings)
+    d_t = np.abs(ref.traversability - cand.traversability)
+    d_u = np.abs(ref.uncertainty - cand.uncertainty)
+    top_changed = np.argmax(ref.weights, axis=0) != np.argmax(cand.weights, axis=0)
+    return {
+        "max_dT": float(d_t.max()),
+        "p99_dT": float(np.percentile(d_t, 99)),
+        "max_dU": float(d_u.max()),
+        "p99_dU": float(np.percentile(d_u, 99)),
+        "top_anchor_changed": float(top_changed.mean()),
+        "relative_logit_error": float((candidate - reference).std() / reference.std()),
+    }
+
+
+@dataclass(frozen=True)
+class ModeMeasurement:
+    mode: str
+    ms_per_frame: float | None  # None: the mode could not be built here
+    p99_dT: float | None
+    error: str = ""
+
+    @property
+    def passes(self) -> bool:
+        return self.ms_per_frame is not None and self.p99_dT is not None and self.p99_dT <= PARITY_P99_DT_LIMIT
+
+
+@dataclass(frozen=True)
+class PrecisionChoice:
+    mode: str
+    reason: str
+    measurements: list[ModeMeasurement]
+
+
+def measure_modes(backend: Any, modes: list[str], runs: int = MEASURED_RUNS) -> list[ModeMeasurement]:
+    """Median ms per frame and p99 |dT| against fp32 of each mode, on the backend's loaded weights."""
+    anchors = default_anchor_set()
+    images = [synthetic_image(seed=seed) for seed in range(PARITY_IMAGES)]
+    reference_compute = backend.compute_for("fp32")
+    backend.use_compute(reference_compute, "fp32")
+    prepared = backend.prepare(anchors.concepts)
+    references = [backend.logits(image, prepared) for image in images]
+    results = []
+    for mode in modes:
+        try:
+            backend.use_compute(reference_compute if mode == "fp32" else backend.compute_for(mode), mode)
+        except Exception as err:  # an export or a runtime that fails here must not stop the service
+            log.warning("precision %s is unavailable here: %s", mode, err)
+            results.append(ModeMeasurement(mode, None, None, f"{type(err).__name__}: {err}"[:300]))
+            continue
+        outputs = [backend.logits(images[0], prepared)]  # warm-up (first-call allocations), and parity
+        times = []
+        for _ in range(runs):
+            began = time.perf_counter()
+            backend.logits(images[0], prepared)
+            times.append((time.perf_counter() - began) * 1e3)
+        outputs += [backend.logits(image, prepared) for image in images[1:]]
+        worst = max(parity(r, o, anchors)["p99_dT"] for r, o in zip(references, outputs, strict=True))
+        results.append(ModeMeasurement(mode, round(statistics.median(times), 1), round(worst, 5)))
+        log.info("precision %-12s %8.1f ms/frame, p99 |dT| %.4f", mode, results[-1].ms_per_frame, worst)
+    return results
+
+
+def pick(measurements: list[ModeMeasurement]) -> PrecisionChoice:
+    """The fastest mode within the parity gate; fp32 (the reference) when nothing else passes."""
+    passing = [m for m in measurements if m.passes]
+    best = min(passing, key=lambda m: m.ms_per_frame or float("inf"), default=None)
+    figures = ", ".join(
+        f"{m.mode} {m.ms_per_frame:.0f} ms" + ("" if m.passes else f" (fails parity, p99 |dT| {m.p99_dT:.3f})")
+        for m in measurements
+        if m.ms_per_frame is not None and m.p99_dT is not None
+    )
+    if best is None:
+        return PrecisionChoice("fp32", f"auto: no mode could be measured ({figures or 'none ran'}); fp32", measurements)
+    reason = (
+        f"auto: fastest within the parity gate (p99 |dT| {best.p99_dT:.4f} <= {PARITY_P99_DT_LIMIT}) "
+        f"on this machine: {figures}"
+    )
+    return PrecisionChoice(best.mode, reason, measurements)
+
+
+def choice_key(backend: Any, modes: list[str]) -> dict[str, Any]:
+    import torch
+    from gcdtrav.service.backends.onnx_runtime import checkpoint_files, cpu_features, file_sha256
+
+    checkpoint = backend.checkpoint_dir
+    files = {p.name: file_sha256(p) for p in checkpoint_files(checkpoint)} if checkpoint is not None else {}
+    return {
+        "format": CHOICE_FORMAT,
+        "checkpoint": files or backend.model_id,
+        "modes": modes,
+        "input_size": backend.preprocess.size,
+        "threads": torch.get_num_threads(),
+        "torch": torch.__version__,
+        "cpu": cpu_features(),
+    }
+
+
+def _cached(path: Path, key: dict[str, Any]) -> PrecisionChoice | None:
+    try:
+        stored = json.loads(path.read_text("utf-8"))
+        if stored["key"] != key:
+            return None
+        measurements = [ModeMeasurement(**m) for m in stored["measurements"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    choice = pick(measurements)
+    measured = stored.get("measured", "earlier")
+    return PrecisionChoice(choice.mode, f"{choice.reason} (measured {measured}, cached)", measurements)
+
+
+def _store(path: Path, key: dict[str, Any], measurements: list[ModeMeasurement]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    record = {
+        "key": key,
+        "measured": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "measurements": [asdict(m) for m in measurements],
+    }
+    temporary.write_text(json.dumps(record, indent=1), "utf-8")
+    os.replace(temporary, path)
+
+
+def choose_precision(backend: Any, use_cache: bool = True) -> PrecisionChoice:
+    """Measure (or recall) every available mode and pick the fastest that passes the gate (the caller
+    builds the chosen mode's compute)."""
+    from gcdtrav.service.backends.clipseg import available_precisions
+    from gcdtrav.service.backends.onnx_runtime import key_digest
+
+    modes = available_precisions()
+    key = choice_key(backend, modes)
+    path = backend.cache_dir / "precision" / f"{key_digest(key)}.json"
+    choice = _cached(path, key) if use_cache else None
+    if choice is None:
+        log.info("precision auto: timing %s on this machine (once; cached in %s) ...", ", ".join(modes), path.parent)
+        measurements = measure_modes(backend, modes)
+        try:
+            _store(path, key, measurements)
+        except OSError as err:
+            log.warning("cannot cache the precision measurements in %s: %s", path, err)
+        choice = pick(measurements)
+    log.info("precision %s: %s", choice.mode, choice.reason)
+    return choice
