@@ -266,7 +266,12 @@ class ServiceStatus(Message):
     model: str
     anchor_set_version: str
     method: Method
-    precision: str = Field(default="", description="The backend's numeric precision: fp32, bf16, bf16-vit or int8.")
+    precision: str = Field(
+        default="", description="The backend's mode: fp32, bf16, bf16-vit, int8, ort-fp32, ort-int8-vit or ort-int8."
+    )
+    precision_reason: str = Field(
+        default="", description="Why this mode runs: asked for, or auto's measurements on this machine (ms per frame)."
+    )
     queued: int = Field(description="Frames waiting for inference (at most one per source).")
     queued_bytes: int = Field(default=0, description="Their payload bytes (at most pending_budget_mb).")
     sources: dict[str, SourceStatus]

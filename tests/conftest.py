@@ -14,6 +14,11 @@ import pytest
 # Nothing in the test suite may reach a model hub.
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+# ONNX exports and precision measurements go to a cache of this run, never the user's ~/.cache.
+if "GCDTRAV_TEST_CACHE" not in os.environ:
+    import tempfile
+
+    os.environ["GCDTRAV_TEST_CACHE"] = os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="gcdtrav-test-cache-")
 
 TINY_INPUT_SIZE = 96  # != the vision config's 64, so position-embedding interpolation is exercised
 

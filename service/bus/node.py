@@ -492,6 +492,7 @@ class TraversabilityService:
             anchor_set_version=self.pipeline.anchors.version,
             method=self.pipeline.settings.method,
             precision=self._precision(),
+            precision_reason=str(getattr(self.pipeline.backend, "precision_reason", "")),
             queued=len(self.queue),
             queued_bytes=self.queue.nbytes,
             sources=sources,

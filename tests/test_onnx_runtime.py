@@ -1,0 +1,134 @@
+"""ONNX Runtime modes, their export cache, and precision auto chosen by measurement (tiny random-weight CLIPSeg)."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import textured_image
+
+pytest.importorskip("torch")
+pytest.importorskip("onnxruntime", reason="the ort-* modes need onnxruntime (in gcdtrav[service])")
+
+from gcdtrav.schemas.anchors import default_anchor_set  # noqa: E402
+from gcdtrav.service import precision_choice  # noqa: E402
+from gcdtrav.service.backends import onnx_runtime  # noqa: E402
+from gcdtrav.service.backends.clipseg import ClipSegBackend, available_precisions  # noqa: E402
+from gcdtrav.service.backends.onnx_runtime import TRUNK_INT8, OrtCompute  # noqa: E402
+from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, ModeMeasurement, parity, pick  # noqa: E402
+
+ANCHORS = default_anchor_set()
+IMAGE = textured_image(100, 120, seed=7)
+
+
+def logits_of(backend: ClipSegBackend) -> np.ndarray:
+    return backend.logits(IMAGE, backend.prepare(ANCHORS.concepts))
+
+
+def export_dirs(cache: Path) -> list[Path]:
+    return sorted(p for p in (cache / "onnx").iterdir() if not p.name.startswith("."))
+
+
+@pytest.mark.parametrize("mode", ["ort-fp32", "ort-int8-vit", "ort-int8"])
+def test_onnx_runtime_modes_match_torch_fp32(tiny_model_dir: Path, tiny_backend, tmp_path: Path, mode: str) -> None:  # type: ignore[no-untyped-def]
+    backend = ClipSegBackend(str(tiny_model_dir), precision=mode, cache_dir=tmp_path)
+    assert isinstance(backend.compute, OrtCompute) and backend.precision == mode
+    reference, candidate = logits_of(tiny_backend), logits_of(backend)
+    assert candidate.shape == reference.shape == (len(ANCHORS), 96, 96)
+    if mode == "ort-fp32":  # the same arithmetic, reordered
+        np.testing.assert_allclose(candidate, reference, atol=1e-4 * float(np.abs(reference).max()), rtol=0)
+    else:
+        assert 0 < float(np.abs(candidate - reference).max())  # int8 really ran
+    assert parity(reference, candidate, ANCHORS)["p99_dT"] <= PARITY_P99_DT_LIMIT
+    assert not [layer for layer in backend.model.clip.vision_model.encoder.layers]  # the torch ViT was released
+
+
+def test_the_export_is_cached_and_a_corrupt_one_rebuilt(
+    tiny_model_dir: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    first = logits_of(ClipSegBackend(str(tiny_model_dir), precision="ort-int8", cache_dir=tmp_path))
+    [exported] = export_dirs(tmp_path)
+    stamp = (exported / TRUNK_INT8).stat().st_mtime_ns
+    ClipSegBackend(str(tiny_model_dir), precision="ort-int8", cache_dir=tmp_path)
+    assert (exported / TRUNK_INT8).stat().st_mtime_ns == stamp  # reused, not rebuilt
+
+    blob = bytearray((exported / TRUNK_INT8).read_bytes())
+    blob[len(blob) // 2] ^= 0xFF  # one flipped byte inside the weights
+    (exported / TRUNK_INT8).write_bytes(bytes(blob))
+    with caplog.at_level(logging.WARNING):
+        rebuilt = ClipSegBackend(str(tiny_model_dir), precision="ort-int8", cache_dir=tmp_path)
+    assert "unusable (trunk-int8.onnx does not match its recorded hash); rebuilding it" in caplog.text
+    np.testing.assert_array_equal(logits_of(rebuilt), first)
+    assert export_dirs(tmp_path) == [exported]
+
+
+def test_an_export_for_another_checkpoint_is_never_reused(tiny_model_dir: Path, tmp_path: Path) -> None:
+    from conftest import build_tiny_clipseg
+
+    other = build_tiny_clipseg(tmp_path / "other", seed=1)
+    ClipSegBackend(str(tiny_model_dir), precision="ort-fp32", cache_dir=tmp_path / "cache")
+    ClipSegBackend(str(other), precision="ort-fp32", cache_dir=tmp_path / "cache")
+    assert len(export_dirs(tmp_path / "cache")) == 2
+    keys = [json.loads((d / "manifest.json").read_text())["key"] for d in export_dirs(tmp_path / "cache")]
+    assert keys[0]["checkpoint"] != keys[1]["checkpoint"] and keys[0]["cpu"] == keys[1]["cpu"]
+
+
+def test_a_failed_export_is_a_clear_error_and_leaves_nothing_behind(
+    tiny_model_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def broken(*args: object) -> None:
+        raise RuntimeError("exporter exploded")
+
+    monkeypatch.setattr(onnx_runtime, "_export", broken)
+    with pytest.raises(onnx_runtime.ExportError, match="cannot export the model for ONNX Runtime: RuntimeError"):
+        ClipSegBackend(str(tiny_model_dir), precision="ort-fp32", cache_dir=tmp_path)
+    assert list((tmp_path / "onnx").iterdir()) == []  # no half-written directory
+
+
+def test_pick_takes_the_fastest_mode_within_the_parity_gate() -> None:
+    measured = [
+        ModeMeasurement("fp32", 800.0, 0.0),
+        ModeMeasurement("ort-int8", 300.0, 0.05),  # fastest, but fails the gate
+        ModeMeasurement("ort-int8-vit", 450.0, 0.001),
+        ModeMeasurement("bf16", None, None, "RuntimeError: no"),
+    ]
+    choice = pick(measured)
+    assert choice.mode == "ort-int8-vit"
+    assert "ort-int8 300 ms (fails parity, p99 |dT| 0.050)" in choice.reason and "fp32 800 ms" in choice.reason
+    assert pick([ModeMeasurement("fp32", None, None, "x")]).mode == "fp32"
+
+
+def test_auto_measures_once_then_reuses_the_figures(
+    tiny_model_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    auto = ClipSegBackend(str(tiny_model_dir), precision="auto", cache_dir=tmp_path)
+    modes = available_precisions()
+    assert "ort-int8" in modes and auto.precision in modes
+    assert auto.precision_reason.startswith("auto: fastest within the parity gate")
+    for mode in modes:
+        assert f"{mode} " in auto.precision_reason
+
+    def no_measuring(*args: object, **kwargs: object) -> None:
+        raise AssertionError("measured again")
+
+    monkeypatch.setattr(precision_choice, "measure_modes", no_measuring)
+    again = ClipSegBackend(str(tiny_model_dir), precision="auto", cache_dir=tmp_path)
+    assert again.precision == auto.precision and again.precision_reason.endswith(", cached)")
+
+
+def test_auto_survives_a_mode_that_cannot_be_built(
+    tiny_model_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def broken(*args: object) -> None:
+        raise RuntimeError("exporter exploded")
+
+    monkeypatch.setattr(onnx_runtime, "_export", broken)
+    auto = ClipSegBackend(str(tiny_model_dir), precision="auto", cache_dir=tmp_path)
+    assert not auto.precision.startswith("ort-")
+    [stored] = (tmp_path / "precision").glob("*.json")
+    measured = {m["mode"]: ModeMeasurement(**m) for m in json.loads(stored.read_text())["measurements"]}
+    assert measured["ort-int8"].ms_per_frame is None and "exporter exploded" in measured["ort-int8"].error
+    assert measured["fp32"].passes and not measured["ort-fp32"].passes
