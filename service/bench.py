@@ -132,8 +132,11 @@ def anchor_set_of(count: int) -> AnchorSet:
 
 
 class Bench:
-    def __init__(self, model_dir: Path, runs: int, naive_runs: int, log: Callable[[str], None]) -> None:
+    def __init__(
+        self, model_dir: Path, runs: int, naive_runs: int, log: Callable[[str], None], cache_dir: Path | None = None
+    ) -> None:
         self.model_dir, self.runs, self.naive_runs, self.log = model_dir, runs, naive_runs, log
+        self.cache_dir = cache_dir
         self.rows: list[Row] = []
         self.parity: dict[str, dict[str, float]] = {}
         self.image = bench_image()
@@ -153,7 +156,9 @@ class Bench:
         from gcdtrav.service.backends.clipseg import ClipSegBackend
 
         # fp32 keeps transformers' whole model: it is also the naive reference
-        backend = ClipSegBackend(str(self.model_dir), precision=precision, keep_reference=precision == "fp32")
+        backend = ClipSegBackend(
+            str(self.model_dir), precision=precision, keep_reference=precision == "fp32", cache_dir=self.cache_dir
+        )
         if attention is not None:
             backend.model.set_attn_implementation(attention)
         return backend
@@ -201,6 +206,12 @@ class Bench:
                 self.add(make_row("fast path fp32, 1 thread", "threads", times, peak, f"default {threads}"))
             finally:
                 torch.set_num_threads(threads)
+
+    def fastest_within_parity(self) -> str:
+        """What precision auto picks, from this run's rows: the fastest mode within the parity gate."""
+        timed = {r.name[len("fast path ") :]: r.median_ms for r in self.rows if r.name.startswith("fast path ")}
+        passing = {mode: ms for mode, ms in timed.items() if mode == "fp32" or self.parity.get(mode, {}).get("passes")}
+        return min(passing, key=lambda mode: passing[mode])
 
     def run_sweeps(self, precision: str) -> None:
         from gcdtrav.service.backends.clipseg import Preprocessing
@@ -391,16 +402,30 @@ def format_table(rows: list[Row]) -> str:
 def machine_info() -> dict[str, Any]:
     import torch
     from gcdtrav.service.backends.clipseg import cpu_has_fast_bf16
+    from gcdtrav.service.backends.onnx_runtime import cpu_features
+    from gcdtrav.service.cpus import usable_cpus
+    from gcdtrav.service.doctor import cpu_name, version_of
 
     return {
         "python": platform.python_version(),
         "torch": torch.__version__,
-        "cpu": platform.processor() or platform.machine(),
+        "onnxruntime": version_of("onnxruntime"),
+        "cpu": cpu_name(),
+        "cpu_features": cpu_features(),
         "cores": os.cpu_count(),
+        "usable_cores": usable_cpus(),
         "torch_threads": torch.get_num_threads(),
         "fast_bf16": cpu_has_fast_bf16(),
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
     }
+
+
+def machine_header(info: dict[str, Any]) -> str:
+    return (
+        f"CPU: {info['cpu']}, {info['usable_cores']} usable cores, features {' '.join(info['cpu_features']) or '-'}"
+        f"{' (native bf16)' if info['fast_bf16'] else ' (no native bf16)'}; torch {info['torch']} "
+        f"({info['torch_threads']} threads), onnxruntime {info['onnxruntime']}"
+    )
 
 
 def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
@@ -413,7 +438,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     )
     parser.add_argument("--runs", type=int, default=7, help="timed runs per row (after one warm-up) [7]")
     parser.add_argument("--naive-runs", type=int, default=5, help="timed runs of the slow naive forward [5]")
-    parser.add_argument("--modes", default="bf16,bf16-vit,int8", help="fast modes compared with fp32")
+    parser.add_argument("--modes", default="", help="fast modes compared with fp32 [every mode this machine can run]")
     parser.add_argument("--zenoh-frames", type=int, default=100, help="frames for the end-to-end row (0: skip)")
     parser.add_argument("--robots", default="1,4,8", help="simulated robot counts for the throughput rows [1,4,8]")
     parser.add_argument("--robot-fps", type=float, default=10.0, help="frames/s each simulated robot sends [10]")
@@ -424,7 +449,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
 
 
 def run(args: argparse.Namespace) -> int:
-    from gcdtrav.service.backends.clipseg import resolve_precision
+    from gcdtrav.service.backends.clipseg import available_precisions
     from gcdtrav.service.backends.random_clipseg import save_random_clipseg
 
     def log(text: str) -> None:
@@ -436,11 +461,18 @@ def run(args: argparse.Namespace) -> int:
         if not args.model:
             log("building random weights of the real architecture (CLIPSeg rd64-refined) ...")
             save_random_clipseg(model_dir, preset="rd64-refined", input_size=352)
-        bench = Bench(model_dir, args.runs, args.naive_runs, log)
-        default_precision = resolve_precision("auto")
+        # Exports of random weights are of no use after this run: keep them in the scratch directory.
+        cache_dir = None if args.model else Path(scratch) / "cache"
+        bench = Bench(model_dir, args.runs, args.naive_runs, log, cache_dir)
+        info = machine_info()
+        log(machine_header(info))
+        modes = [m for m in args.modes.split(",") if m] or [m for m in available_precisions() if m != "fp32"]
+        default_precision = "fp32"
         if "modes" not in skip:
             log("backend modes (13 anchors, 640x480 image resized to 352x352):")
-            bench.run_modes([m for m in args.modes.split(",") if m])
+            bench.run_modes(modes)
+            default_precision = bench.fastest_within_parity()
+            log(f"precision auto would pick {default_precision} (fastest row within the parity gate)")
         if "sweeps" not in skip:
             log(f"cost against anchors and input size ({default_precision}):")
             bench.run_sweeps(default_precision)
@@ -454,7 +486,7 @@ def run(args: argparse.Namespace) -> int:
             counts = [int(n) for n in args.robots.split(",") if n.strip()]
             bench.run_robots(default_precision, counts, args.robot_fps, args.robot_seconds)
     summary = {
-        "machine": machine_info(),
+        "machine": info,
         "default_precision": default_precision,
         "parity_method": parity.__doc__,
         "parity_limit_p99_dT": PARITY_P99_DT_LIMIT,
@@ -467,11 +499,21 @@ def run(args: argparse.Namespace) -> int:
         summary["speedup_default_vs_naive"] = round(naive.median_ms / fast.median_ms, 1)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(summary, indent=2) + "\n", "utf-8")
+    print(machine_header(info))
     print(format_table(bench.rows))
     if bench.parity:
         print("\nparity against fp32 at a trained model's logit scale (worst of 3 images; see parity()):")
         for mode, report in bench.parity.items():
             print(f"  {mode}: " + ", ".join(f"{k} {v:.4g}" for k, v in report.items()))
+    fp32 = next((r for r in bench.rows if r.name == "fast path fp32"), None)
+    if fp32 and naive:
+        print("\nframes/s against this project's fp32 fast path and transformers' naive forward (same run):")
+        for row in bench.rows:
+            if row.group == "mode" and row.name.startswith("fast path"):
+                print(
+                    f"  {row.name[len('fast path ') :]:<14} {fp32.median_ms / row.median_ms:5.2f}x fp32, "
+                    f"{naive.median_ms / row.median_ms:6.1f}x naive"
+                )
     if "speedup_default_vs_naive" in summary:
         print(
             f"\ndefault ({default_precision}) vs transformers' naive forward: "

@@ -1,6 +1,6 @@
-"""The `gcdtrav` command: `infer` (offline), `serve` (Zenoh service), `bench` (benchmarks), and the
-torch-free operator commands `status` and `anchors` (gcdtrav.client.operator) and `view` (Foxglove,
-gcdtrav.client.view)."""
+"""The `gcdtrav` command: `infer` (offline), `serve` (Zenoh service), `bench` (benchmarks), `doctor` (this
+machine's modes: the first thing to run on a new box), and the torch-free operator commands `status` and
+`anchors` (gcdtrav.client.operator) and `view` (Foxglove, gcdtrav.client.view)."""
 
 from __future__ import annotations
 
@@ -15,12 +15,16 @@ from gcdtrav.client import operator
 from gcdtrav.client.view import command as view_command
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings, Method
-from gcdtrav.schemas.settings import SettingsError
+from gcdtrav.schemas.settings import PRECISIONS, SettingsError
 from gcdtrav.service.backends import default_model
 
 SERVICE_MODULES = ("torch", "transformers", "matplotlib", "tqdm")
 EXIT_FAILURES = 1  # some inputs could not be processed
 EXIT_USAGE = 2  # bad configuration: anchor file, model weights, arguments
+PRECISION_HELP = (
+    "model arithmetic: auto = the fastest mode within the parity gate, measured on this machine at the first "
+    "start and cached (gcdtrav doctor shows the figures)"
+)
 
 
 def parse_probe(text: str) -> tuple[int, int]:
@@ -57,9 +61,9 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--precision",
-        choices=["auto", "fp32", "bf16", "bf16-vit", "int8"],
+        choices=PRECISIONS,
         default="auto",
-        help="vision encoder arithmetic; auto = bf16 where the CPU has AVX512-BF16/AMX, else fp32 [auto]",
+        help=PRECISION_HELP + " [auto]",
     )
 
 
@@ -86,7 +90,13 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="also write logits.npy, T.npy, U.npy (backend resolution) and anchors.json",
     )
-    infer.add_argument("--no-figure", action="store_true", help="skip the matplotlib figure (faster)")
+    infer.add_argument(
+        "--figure",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="also draw figure.png (maps and the probes' context distributions, like the paper's Fig. 2); "
+        "about 0.8 s per image, more than the inference itself [off]",
+    )
 
     serve = commands.add_parser(
         "serve",
@@ -135,9 +145,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     group.add_argument(
         "--precision",
-        choices=["auto", "fp32", "bf16", "bf16-vit", "int8"],
+        choices=PRECISIONS,
         default=None,
-        help="vision encoder arithmetic [auto: bf16 on CPUs with AVX512-BF16/AMX, else fp32]",
+        help=PRECISION_HELP + " [auto]",
     )
 
     evaluate = commands.add_parser(
@@ -156,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     evaluate.add_argument("--model", default=None, help="CLIPSeg directory or hub id [env GCDTRAV_MODEL]")
     evaluate.add_argument("--anchors", default=None, help="anchor-set file [the paper's set]")
-    evaluate.add_argument("--precision", choices=["auto", "fp32", "bf16", "bf16-vit", "int8"], default="auto")
+    evaluate.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP + " [auto]")
     evaluate.add_argument("--temperature", type=float, default=1.0)
     evaluate.add_argument("--grid", type=int, default=8, help="sample every GRID-th pixel in x and y [8]")
     evaluate.add_argument("--out", type=Path, default=Path("eval_out"), help="output folder [eval_out]")
@@ -167,6 +177,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench.build_parser(
         commands.add_parser("bench", help="benchmark every backend mode on this machine", description=bench.__doc__)
+    )
+    from gcdtrav.service import doctor
+
+    doctor.build_parser(
+        commands.add_parser(
+            "doctor",
+            help="this machine: CPU features, versions, weights, every precision mode's time and parity",
+            description=doctor.__doc__,
+        )
     )
     operator.add_operator_commands(commands)
     view_command.add_view_command(commands)
@@ -190,7 +209,7 @@ def cmd_infer(args: argparse.Namespace) -> int:
     from gcdtrav.service.offline import InferOptions, run_infer
 
     pipeline = build_pipeline(args)
-    options = InferOptions(out_dir=args.out, probes=args.probe, save_raw=args.save_raw, figure=not args.no_figure)
+    options = InferOptions(out_dir=args.out, probes=args.probe, save_raw=args.save_raw, figure=args.figure)
     failures = run_infer(pipeline, args.images, options)
     done = len(args.images) - failures
     print(f"{done} of {len(args.images)} images written to {args.out}", file=sys.stderr)
@@ -284,6 +303,12 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return bench.run(args)
 
 
+def cmd_doctor(args: argparse.Namespace) -> int:
+    from gcdtrav.service import doctor
+
+    return doctor.run(args)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(
@@ -294,7 +319,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return operator.run(args)
     if args.command == "view":  # torch-free too, with the view extra
         return view_command.run(args)
-    handlers = {"infer": cmd_infer, "serve": cmd_serve, "bench": cmd_bench, "eval": cmd_eval}
+    handlers = {"infer": cmd_infer, "serve": cmd_serve, "bench": cmd_bench, "eval": cmd_eval, "doctor": cmd_doctor}
     from gcdtrav.service.backends.base import ModelUnavailableError
 
     missing = [name for name in SERVICE_MODULES if importlib.util.find_spec(name) is None]

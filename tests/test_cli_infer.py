@@ -47,6 +47,7 @@ def test_infer_writes_maps_overlays_figure_and_raw(
             "10,20",
             "--probe",
             "130,80",
+            "--figure",
         ]
     )
     assert code == 0
@@ -75,8 +76,9 @@ def test_bad_images_are_reported_and_the_rest_processed(
 ) -> None:
     out = tmp_path / "out"
     args = [str(images[k]) for k in ("garbage", "good", "empty", "missing", "png")]
-    code = main(["infer", *args, "--out", str(out), "--model", str(tiny_model_dir), "--no-figure"])
+    code = main(["infer", *args, "--out", str(out), "--model", str(tiny_model_dir)])
     assert code == 1
+    assert not (out / "scene" / "figure.png").exists()  # the figure is opt-in
     err = capsys.readouterr().err
     assert f"{images['garbage']}: not a decodable image" in err
     assert f"{images['empty']}: empty payload" in err

@@ -13,12 +13,12 @@ from conftest import textured_image
 pytest.importorskip("torch")
 pytest.importorskip("onnxruntime", reason="the ort-* modes need onnxruntime (in gcdtrav[service])")
 
-from gcdtrav.schemas.anchors import default_anchor_set  # noqa: E402
-from gcdtrav.service import precision_choice  # noqa: E402
-from gcdtrav.service.backends import onnx_runtime  # noqa: E402
-from gcdtrav.service.backends.clipseg import ClipSegBackend, available_precisions  # noqa: E402
-from gcdtrav.service.backends.onnx_runtime import TRUNK_INT8, OrtCompute  # noqa: E402
-from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, ModeMeasurement, parity, pick  # noqa: E402
+from gcdtrav.schemas.anchors import default_anchor_set
+from gcdtrav.service import precision_choice
+from gcdtrav.service.backends import onnx_runtime
+from gcdtrav.service.backends.clipseg import ClipSegBackend, available_precisions
+from gcdtrav.service.backends.onnx_runtime import TRUNK_INT8, OrtCompute
+from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, ModeMeasurement, parity, pick
 
 ANCHORS = default_anchor_set()
 IMAGE = textured_image(100, 120, seed=7)
@@ -41,7 +41,7 @@ def test_onnx_runtime_modes_match_torch_fp32(tiny_model_dir: Path, tiny_backend,
     if mode == "ort-fp32":  # the same arithmetic, reordered
         np.testing.assert_allclose(candidate, reference, atol=1e-4 * float(np.abs(reference).max()), rtol=0)
     else:
-        assert 0 < float(np.abs(candidate - reference).max())  # int8 really ran
+        assert float(np.abs(candidate - reference).max()) > 0  # int8 really ran
     assert parity(reference, candidate, ANCHORS)["p99_dT"] <= PARITY_P99_DT_LIMIT
     assert not [layer for layer in backend.model.clip.vision_model.encoder.layers]  # the torch ViT was released
 

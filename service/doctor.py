@@ -1,0 +1,96 @@
+"""`gcdtrav doctor`: what to run first on a new box. The CPU and its features, the versions that matter,
+whether the weights are found, every precision mode's time and parity here, the mode auto picks, and
+the frames/s to expect."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import platform
+import sys
+from pathlib import Path
+
+from gcdtrav.service.backends import ModelUnavailableError, default_model
+from gcdtrav.service.cpus import usable_cpus
+
+EXIT_OK, EXIT_NO_WEIGHTS = 0, 1
+PACKAGES = ("torch", "transformers", "onnxruntime", "onnx", "eclipse-zenoh", "numpy", "opencv-python-headless")
+
+
+def build_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    parser.add_argument(
+        "--model", default=None, help="CLIPSeg checkpoint directory or hub id [env GCDTRAV_MODEL, else the hub id]"
+    )
+    parser.add_argument("--runs", type=int, default=3, help="timed frames per mode [3]")
+    parser.add_argument(
+        "--cache-dir", type=Path, default=None, help="where ONNX exports are kept [$XDG_CACHE_HOME/gcdtrav]"
+    )
+    return parser
+
+
+def cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text("utf-8", errors="replace").splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def version_of(package: str) -> str:
+    try:
+        return importlib.metadata.version(package)
+    except importlib.metadata.PackageNotFoundError:
+        return "not installed"
+
+
+def machine_lines() -> list[str]:
+    import torch
+    from gcdtrav.service.backends.clipseg import cpu_has_fast_bf16
+    from gcdtrav.service.backends.onnx_runtime import cpu_features
+
+    features = cpu_features()
+    return [
+        f"CPU          {cpu_name()} ({platform.machine()})",
+        f"cores        {usable_cpus()} usable by this process; torch threads {torch.get_num_threads()}",
+        f"features     {' '.join(features) or 'none of the ones that matter'}",
+        f"native bf16  {'yes (AVX512-BF16 or AMX)' if cpu_has_fast_bf16() else 'no: bf16 modes would be emulated'}",
+        "versions     " + ", ".join(f"{p} {version_of(p)}" for p in PACKAGES) + f", python {platform.python_version()}",
+    ]
+
+
+def run(args: argparse.Namespace) -> int:
+    from gcdtrav.service.backends.clipseg import ClipSegBackend, available_precisions
+    from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, measure_modes, pick
+
+    for line in machine_lines():
+        print(line)
+    model = args.model or default_model()
+    try:
+        backend = ClipSegBackend(model, precision="fp32", keep_reference=True, cache_dir=args.cache_dir)
+    except ModelUnavailableError as err:
+        print(f"weights      NOT FOUND: {err}")
+        return EXIT_NO_WEIGHTS
+    print(f"weights      found: {backend.checkpoint_dir or model}")
+    modes = available_precisions()
+    print(f"\ntiming {', '.join(modes)} ({args.runs} frames each, 13 anchors, {backend.preprocess.size} px) ...")
+    sys.stdout.flush()
+    measured = measure_modes(backend, modes, runs=args.runs)
+    print(f"\n| mode | ms per frame | frames/s | p99 abs dT vs fp32 | parity (<= {PARITY_P99_DT_LIMIT}) |")
+    print("|---|---:|---:|---:|---|")
+    for m in measured:
+        if m.ms_per_frame is None or m.p99_dT is None:
+            print(f"| {m.mode} | - | - | - | cannot run here: {m.error} |")
+            continue
+        verdict = "passes" if m.passes else "FAILS"
+        print(f"| {m.mode} | {m.ms_per_frame:.0f} | {1000 / m.ms_per_frame:.2f} | {m.p99_dT:.4f} | {verdict} |")
+    choice = pick(measured)
+    best = next(m for m in measured if m.mode == choice.mode)
+    print(f"\nprecision auto picks {choice.mode} here.")
+    if best.ms_per_frame:
+        print(
+            f"Expect about {1000 / best.ms_per_frame:.1f} frames/s of model time for all sources together "
+            "(the GCD engine, decoding and encoding add a few ms per frame; gcdtrav bench measures them)."
+        )
+    return EXIT_OK
