@@ -222,6 +222,9 @@ class Bench:
             prepared = backend.prepare(anchors.concepts)
             times, peak = time_call(self.frame(backend, prepared), self.runs)
             self.add(make_row(f"{count} anchors ({precision})", "anchors", times, peak))
+        if precision.startswith("ort-"):  # an ONNX export is made for the checkpoint's input size
+            precision = "fp32"
+            backend = self.backend(precision)
         prepared = backend.prepare(self.anchors.concepts)
         default = backend.preprocess
         for size in (224, 352, 448):

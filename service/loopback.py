@@ -47,17 +47,18 @@ def service_processes(arguments: Sequence[Sequence[str]]) -> Iterator[list[subpr
     """``gcdtrav serve ARGS`` once per argument list, as child processes; stopped (SIGTERM, then kill) at exit."""
     # Logs go to files, not pipes: nobody reads a pipe during a long soak, and a full one blocks the service.
     with contextlib.ExitStack() as logs:
+        files = [logs.enter_context(tempfile.TemporaryFile("w+")) for _ in arguments]
         processes = [
-            subprocess.Popen(
-                serve_command(*args),
-                stdout=subprocess.DEVNULL,
-                stderr=logs.enter_context(tempfile.TemporaryFile("w+")),
-                text=True,
-            )
-            for args in arguments
+            subprocess.Popen(serve_command(*args), stdout=subprocess.DEVNULL, stderr=log_file, text=True)
+            for args, log_file in zip(arguments, files, strict=True)
         ]
         try:
             yield processes
+        except BaseException:
+            for log_file in files:  # why a service did not come up or failed: the end of its log
+                log_file.seek(0)
+                print("".join(log_file.readlines()[-20:]), file=sys.stderr)
+            raise
         finally:
             for process in processes:
                 process.terminate()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import sys
+import tempfile
 import textwrap
 from pathlib import Path
 from typing import Any
@@ -15,10 +16,7 @@ import pytest
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 # ONNX exports and precision measurements go to a cache of this run, never the user's ~/.cache.
-if "GCDTRAV_TEST_CACHE" not in os.environ:
-    import tempfile
-
-    os.environ["GCDTRAV_TEST_CACHE"] = os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="gcdtrav-test-cache-")
+os.environ["XDG_CACHE_HOME"] = tempfile.mkdtemp(prefix="gcdtrav-test-cache-")
 
 TINY_INPUT_SIZE = 96  # != the vision config's 64, so position-embedding interpolation is exercised
 

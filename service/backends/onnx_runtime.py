@@ -238,6 +238,9 @@ class OrtCompute:
         self.trunk_input = self.trunk.get_inputs()[0].name
 
     def activations(self, pixel_values: torch.Tensor) -> list[torch.Tensor]:
+        expected = self.trunk.get_inputs()[0].shape
+        if list(pixel_values.shape) != expected:
+            raise ValueError(f"this ONNX export takes pixels of shape {expected}, not {list(pixel_values.shape)}")
         outputs = self.trunk.run(None, {self.trunk_input: pixel_values.float().numpy()})
         return [torch.from_numpy(np.asarray(output)) for output in outputs]
 
