@@ -26,7 +26,7 @@ from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeAlias
 
 import cv2
 import numpy as np
@@ -193,7 +193,7 @@ class TorchCompute:
         return torch.cat(chunks).float()
 
 
-Compute = TorchCompute | OrtCompute
+Compute: TypeAlias = TorchCompute | OrtCompute
 
 
 def _triple(values: Any) -> tuple[float, float, float]:
