@@ -17,6 +17,7 @@ import numpy as np
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.images import decode_map_png16, encode_jpeg, encode_png, peek_image_size
+from gcdtrav.schemas.keys import Keys, input_key
 from gcdtrav.schemas.messages import (
     MSGPACK_ENCODING,
     AnchorHistoryReply,
@@ -129,6 +130,7 @@ class TraversabilityClient:
         self._owns_session = session is None
         self.session = session if session is not None else zenoh.open(config or zenoh.Config())
         self.prefix = prefix
+        self.keys = Keys(prefix)
         self.input_prefix = input_prefix
         self.timeout = timeout
         self._publishers: dict[str, zenoh.Publisher] = {}
@@ -163,7 +165,7 @@ class TraversabilityClient:
         """
         stamp = time.time() if stamp is None else stamp
         envelope = self._envelope(image, stamp, frame_id, compression, jpeg_quality)
-        key = f"{self.input_prefix}/{source}"
+        key = input_key(self.input_prefix, source)
         publisher = self._publishers.get(key)
         if publisher is None:
             publisher = self.session.declare_publisher(key, encoding=MSGPACK)
@@ -201,7 +203,7 @@ class TraversabilityClient:
 
     # ---- maps out ------------------------------------------------------------------------------------
     def maps_key(self, selector: str = "**") -> str:
-        return f"{self.prefix}/out/{selector}/maps"
+        return self.keys.maps(selector)
 
     def subscribe_maps(
         self, selector: str, callback: Callable[[Maps], None], on_error: Callable[[Exception], None] | None = None
@@ -341,17 +343,17 @@ class TraversabilityClient:
 
     def cell(self, source: str, x: float, y: float, timeout: float | None = None) -> ContextDistribution:
         """The fused distribution of the ground-grid cell at (x, y), metres in the grid's frame."""
-        return self._query(f"{self.prefix}/out/{source}/cell", ContextDistribution, {"x": x, "y": y}, timeout=timeout)
+        return self._query(self.keys.cell(source), ContextDistribution, {"x": x, "y": y}, timeout=timeout)
 
     def path(self, source: str, points: list[tuple[float, float]], timeout: float | None = None) -> PathReply:
         """The known cells along a polyline (metres), with the indices of the lowest T and highest U."""
         text = ";".join(f"{x!r},{y!r}" for x, y in points)
-        return self._query(f"{self.prefix}/out/{source}/cell", PathReply, {"path": text}, timeout=timeout)
+        return self._query(self.keys.cell(source), PathReply, {"path": text}, timeout=timeout)
 
     def subscribe_grid(self, selector: str, callback: Callable[[Grid], None]) -> zenoh.Subscriber[None]:
         """Call ``callback`` with every decoded ground grid of the matching sources."""
         return self.session.declare_subscriber(
-            f"{self.prefix}/out/{selector}/grid", lambda sample: callback(Grid.from_payload(sample.payload.to_bytes()))
+            self.keys.grid(selector), lambda sample: callback(Grid.from_payload(sample.payload.to_bytes()))
         )
 
     def _patch_query(
@@ -359,10 +361,10 @@ class TraversabilityClient:
     ) -> ContextDistribution:
         if seq is not None:
             params["seq"] = seq
-        return self._query(f"{self.prefix}/out/{source}/patch", ContextDistribution, params, timeout=timeout)
+        return self._query(self.keys.patch(source), ContextDistribution, params, timeout=timeout)
 
     def anchors(self, timeout: float | None = None) -> AnchorSetReply:
-        return self._query(f"{self.prefix}/config/anchors", AnchorSetReply, timeout=timeout)
+        return self._query(self.keys.anchors, AnchorSetReply, timeout=timeout)
 
     def set_anchors(self, anchor_set: AnchorSet | Mapping[str, Any] | str, timeout: float | None = None) -> str:
         """Swap the service's anchor set; returns the new version or raises AnchorSetRejected."""
@@ -376,7 +378,7 @@ class TraversabilityClient:
             text = json.dumps(dict(anchor_set))
         # Every instance of the prefix swaps, so that all sources use the same set.
         answers, errors = self._replies(
-            f"{self.prefix}/config/anchors",
+            self.keys.anchors,
             AnchorSetReply,
             payload=text.encode("utf-8"),
             timeout=timeout,
@@ -389,7 +391,7 @@ class TraversabilityClient:
     def anchor_history(self, timeout: float | None = None) -> list[AnchorHistoryReply]:
         """Every instance's last accepted anchor sets, newest (the active one) first."""
         answers, errors = self._replies(
-            f"{self.prefix}/config/anchors/history", AnchorHistoryReply, timeout=timeout, every_instance=True
+            self.keys.anchor_history, AnchorHistoryReply, timeout=timeout, every_instance=True
         )
         if not answers and errors:
             raise errors[0]
@@ -398,7 +400,7 @@ class TraversabilityClient:
     def rollback_anchors(self, steps: int = 1, timeout: float | None = None) -> str:
         """Swap every instance back to the set ``steps`` before its active one; returns the version."""
         answers, errors = self._replies(
-            f"{self.prefix}/config/anchors/rollback",
+            self.keys.anchor_rollback,
             AnchorSetReply,
             params={"steps": steps},
             timeout=timeout,
@@ -410,11 +412,11 @@ class TraversabilityClient:
 
     def status(self, timeout: float | None = None) -> ServiceStatus:
         """The nearest instance's status; ``statuses()`` gives every instance's."""
-        return self._query(f"{self.prefix}/status", ServiceStatus, timeout=timeout)
+        return self._query(self.keys.status, ServiceStatus, timeout=timeout)
 
     def statuses(self, timeout: float | None = None) -> list[ServiceStatus]:
         """The status of every live instance that answers within ``timeout``."""
-        answers, errors = self._replies(f"{self.prefix}/status", ServiceStatus, timeout=timeout, every_instance=True)
+        answers, errors = self._replies(self.keys.status, ServiceStatus, timeout=timeout, every_instance=True)
         if not answers and errors:
             raise errors[0]
         return sorted(answers, key=lambda status: status.instance)

@@ -106,7 +106,7 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
 def live_statuses(client: TraversabilityClient) -> list[ServiceStatus]:
     statuses = client.statuses()
     if not statuses:
-        raise ServiceError(f"no gcdtrav instance answered on '{client.prefix}/status': is the service running?")
+        raise ServiceError(f"no gcdtrav instance answered on '{client.keys.status}': is the service running?")
     return statuses
 
 

@@ -42,6 +42,7 @@ from gcdtrav.client.view.anchor_parameters import anchor_parameters, apply_param
 from gcdtrav.client.view.latest import LatestSlots
 from gcdtrav.client.view.recorder import McapRecorder
 from gcdtrav.schemas.anchors import AnchorSetError
+from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import AnchorSetReply, ServiceStatus, SourceView
 
 log = logging.getLogger(__name__)
@@ -140,7 +141,7 @@ class Viewer:
     # ---- life cycle ------------------------------------------------------------------------------------
     def start(self) -> Viewer:
         prefix, sources = self.options.prefix, self.options.sources
-        keys = {kind: f"{prefix}/out/{sources}/{kind}" for kind in ("maps", "grid", "preview")}
+        keys = {kind: Keys(prefix).output(sources, kind) for kind in ("maps", "grid", "preview")}
         if self.options.input_prefix:
             keys["camera"] = f"{self.options.input_prefix}/{sources}"
         for kind, key in keys.items():
@@ -180,11 +181,12 @@ class Viewer:
                 self._slots.put((key.removeprefix(head), kind), sample.payload.to_bytes())
 
             return keep_camera
-        head, tail = f"{self.options.prefix}/out/", f"/{kind}"
+        keys = Keys(self.options.prefix)
 
         def keep(sample: zenoh.Sample) -> None:
-            source = str(sample.key_expr).removeprefix(head).removesuffix(tail)
-            self._slots.put((source, kind), sample.payload.to_bytes())
+            source = keys.source_of(str(sample.key_expr), kind)
+            if source is not None:
+                self._slots.put((source, kind), sample.payload.to_bytes())
 
         return keep
 

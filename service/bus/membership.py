@@ -14,6 +14,7 @@ import threading
 from collections.abc import Callable, Iterable
 
 import zenoh
+from gcdtrav.schemas.keys import Keys
 
 log = logging.getLogger("gcdtrav.service")
 
@@ -34,15 +35,17 @@ class Membership:
         self, session: zenoh.Session, prefix: str, instance: str, on_change: Callable[[set[str]], None] | None = None
     ) -> None:
         self.instance = instance
-        self._prefix = f"{prefix}/alive/"
+        self._keys = Keys(prefix)
         self._live: set[str] = {instance}
         self._lock = threading.Lock()
         self._on_change = on_change
-        self._token = session.liveliness().declare_token(f"{self._prefix}{instance}")
-        self._subscriber = session.liveliness().declare_subscriber(f"{self._prefix}*", self._on_sample, history=True)
+        self._token = session.liveliness().declare_token(self._keys.alive(instance))
+        self._subscriber = session.liveliness().declare_subscriber(self._keys.alive("*"), self._on_sample, history=True)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
-        name = str(sample.key_expr)[len(self._prefix) :]
+        name = self._keys.instance_of(str(sample.key_expr))
+        if name is None:
+            return
         with self._lock:
             before = set(self._live)
             if sample.kind == zenoh.SampleKind.DELETE and name != self.instance:

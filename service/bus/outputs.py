@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import zenoh
 from gcdtrav.schemas.images import decode_image, encode_jpeg, encode_maps_png16, resize_map
+from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import MSGPACK_ENCODING, MapsHeader, MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service import viz
@@ -66,7 +67,7 @@ class FrameOutputs:
     ) -> None:
         self.session = session
         self.settings = settings
-        self.prefix = settings.prefix
+        self.keys = Keys(settings.prefix)
         self.model_id = model_id
         self.grids = grids
         self.ros_graph = ros_graph
@@ -82,11 +83,11 @@ class FrameOutputs:
         full = None
         if self.settings.full_resolution or self.settings.preview or ros_out:
             full = resize_map(t, width, height), resize_map(u, width, height)
-        self._put(done.source, f"{self.prefix}/out/{done.source}/maps", self._maps(done, method, full).pack(), MSGPACK)
+        self._put(done.source, self.keys.maps(done.source), self._maps(done, method, full).pack(), MSGPACK)
         preview = None
         if self.settings.preview and full is not None:
             preview = preview_jpeg(done.frame.image, *full, self.settings.preview_max_width)
-            self._put(done.source, f"{self.prefix}/out/{done.source}/preview", preview, zenoh.Encoding.IMAGE_JPEG)
+            self._put(done.source, self.keys.preview(done.source), preview, zenoh.Encoding.IMAGE_JPEG)
         if ros_out and done.ros_topic is not None and full is not None:
             self._publish_ros(done, *full, preview)
         if self.grids is not None:
@@ -151,11 +152,10 @@ class FrameOutputs:
         update = self.grids.on_frame(done.source, done.record, done.result.maps.weights)
         if update is None:
             return
-        base = f"{self.prefix}/out/{done.source}/grid"
-        self._put(done.source, base, update.message.pack(), MSGPACK)
+        self._put(done.source, self.keys.grid(done.source), update.message.pack(), MSGPACK)
         if update.occupancy is not None and update.uncertainty is not None:
-            self._put(done.source, f"{base}/occupancy", update.occupancy, CDR)
-            self._put(done.source, f"{base}/uncertainty", update.uncertainty, CDR)
+            self._put(done.source, self.keys.grid(done.source, "occupancy"), update.occupancy, CDR)
+            self._put(done.source, self.keys.grid(done.source, "uncertainty"), update.uncertainty, CDR)
             camera = done.ros_topic
             if camera is not None and self.settings.ros_output.enabled:
                 names = self.settings.ros_output

@@ -1,0 +1,92 @@
+"""Every key of the protocol, built and parsed in one place (docs/messages.md lists the same keys).
+
+A service with prefix ``gcdtrav`` (the default) answers and publishes on:
+
+  {prefix}/out/{source}/maps                 MapsMessage per processed frame
+  {prefix}/out/{source}/preview              colourised JPEG (T overlay | U)
+  {prefix}/out/{source}/patch                queryable: a map patch's or region's ContextDistribution
+  {prefix}/out/{source}/grid                 GridMessage (ground grid); .../grid/occupancy, .../grid/uncertainty
+  {prefix}/out/{source}/cell                 queryable: a ground cell's ContextDistribution, or a path
+  {prefix}/config/anchors                    queryable: the active anchor set, or a swap (payload = new set)
+  {prefix}/config/anchors/history            queryable: the last accepted sets
+  {prefix}/config/anchors/rollback           queryable: go back N sets
+  {prefix}/status                            queryable: ServiceStatus
+  {prefix}/alive/{instance}                  liveliness token
+
+A source name may hold slashes (``robot1/front``); ``source_of`` recovers it from an output key.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+OUTPUT_KINDS = ("maps", "preview", "patch", "grid", "cell")
+
+
+@dataclass(frozen=True)
+class Keys:
+    """The keys under one service prefix. ``source`` may be a key expression (``*``, ``**``) where subscribing."""
+
+    prefix: str = "gcdtrav"
+
+    @property
+    def outputs(self) -> str:
+        """Everything the service publishes or answers per source: ``{prefix}/out/**``."""
+        return f"{self.prefix}/out/**"
+
+    def output(self, source: str, kind: str) -> str:
+        if kind not in OUTPUT_KINDS:
+            raise ValueError(f"unknown output kind '{kind}'; one of {', '.join(OUTPUT_KINDS)}")
+        return f"{self.prefix}/out/{source}/{kind}"
+
+    def maps(self, source: str) -> str:
+        return self.output(source, "maps")
+
+    def preview(self, source: str) -> str:
+        return self.output(source, "preview")
+
+    def patch(self, source: str) -> str:
+        return self.output(source, "patch")
+
+    def grid(self, source: str, layer: str = "") -> str:
+        """The ground grid, or one of its ROS layers (``occupancy``, ``uncertainty``)."""
+        return self.output(source, "grid") + (f"/{layer}" if layer else "")
+
+    def cell(self, source: str) -> str:
+        return self.output(source, "cell")
+
+    @property
+    def anchors(self) -> str:
+        return f"{self.prefix}/config/anchors"
+
+    @property
+    def anchor_history(self) -> str:
+        return f"{self.anchors}/history"
+
+    @property
+    def anchor_rollback(self) -> str:
+        return f"{self.anchors}/rollback"
+
+    @property
+    def status(self) -> str:
+        return f"{self.prefix}/status"
+
+    def alive(self, instance: str = "*") -> str:
+        return f"{self.prefix}/alive/{instance}"
+
+    def source_of(self, key: str, kind: str) -> str | None:
+        """The source in ``{prefix}/out/{source}/{kind}``; None when the key is not of that form."""
+        head, tail = f"{self.prefix}/out/", f"/{kind}"
+        if not (key.startswith(head) and key.endswith(tail)) or len(key) <= len(head) + len(tail):
+            return None
+        source = key[len(head) : -len(tail)]
+        return source if "*" not in source and "$" not in source else None
+
+    def instance_of(self, alive_key: str) -> str | None:
+        head = f"{self.prefix}/alive/"
+        return alive_key[len(head) :] if alive_key.startswith(head) and len(alive_key) > len(head) else None
+
+
+def input_key(input_prefix: str, source: str) -> str:
+    """Where a robot publishes the images of ``source`` (the service subscribes to ``{input_prefix}/**``)."""
+    return f"{input_prefix}/{source}"

@@ -1,0 +1,56 @@
+"""The protocol's keys: built and parsed in one place, the same as docs/messages.md lists them."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+from gcdtrav.schemas.keys import OUTPUT_KINDS, Keys, input_key
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "messages.md"
+
+
+def test_every_key_under_a_prefix() -> None:
+    keys = Keys("fleet/a")
+    assert keys.maps("r1/front") == "fleet/a/out/r1/front/maps"
+    assert keys.preview("cam") == "fleet/a/out/cam/preview"
+    assert keys.patch("**") == "fleet/a/out/**/patch"
+    assert keys.grid("cam") == "fleet/a/out/cam/grid"
+    assert keys.grid("cam", "occupancy") == "fleet/a/out/cam/grid/occupancy"
+    assert keys.cell("cam") == "fleet/a/out/cam/cell"
+    assert keys.anchors == "fleet/a/config/anchors"
+    assert keys.anchor_history == "fleet/a/config/anchors/history"
+    assert keys.anchor_rollback == "fleet/a/config/anchors/rollback"
+    assert keys.status == "fleet/a/status"
+    assert keys.alive("box-1") == "fleet/a/alive/box-1" and keys.alive() == "fleet/a/alive/*"
+    assert keys.outputs == "fleet/a/out/**"
+    assert input_key("gcdtrav/in", "r1/front") == "gcdtrav/in/r1/front"
+    with pytest.raises(ValueError, match="unknown output kind 'map'"):
+        keys.output("cam", "map")
+
+
+@pytest.mark.parametrize("source", ["cam", "r1/front", "a/b/c"])
+@pytest.mark.parametrize("kind", OUTPUT_KINDS)
+def test_source_of_inverts_every_output_key(source: str, kind: str) -> None:
+    keys = Keys()
+    assert keys.source_of(keys.output(source, kind), kind) == source
+
+
+def test_source_of_refuses_what_is_not_one_source() -> None:
+    keys = Keys()
+    assert keys.source_of("gcdtrav/out/**/patch", "patch") is None  # an expression, not a source
+    assert keys.source_of("gcdtrav/out//patch", "patch") is None
+    assert keys.source_of("gcdtrav/out/cam/maps", "patch") is None
+    assert keys.source_of("other/out/cam/patch", "patch") is None
+    assert keys.source_of("gcdtrav/out/$*/patch", "patch") is None
+    assert keys.instance_of("gcdtrav/alive/box-1") == "box-1" and keys.instance_of("gcdtrav/status") is None
+
+
+def test_docs_list_the_same_keys() -> None:
+    documented = set(re.findall(r"`(\{prefix\}/[a-z/{}]+)", DOCS.read_text("utf-8")))
+    keys = Keys("{prefix}")
+    built = {keys.output("{source}", kind) for kind in OUTPUT_KINDS}
+    built |= {keys.grid("{source}", "occupancy"), keys.grid("{source}", "uncertainty")}
+    built |= {keys.anchors, keys.anchor_history, keys.anchor_rollback, keys.status, keys.alive("{instance}")}
+    assert built <= documented, f"missing from docs/messages.md: {sorted(built - documented)}"
