@@ -11,7 +11,8 @@ from typing import Any
 import yaml
 from gcdtrav.schemas.clip_tokens import MAX_CONCEPT_TOKENS, count_clip_tokens
 from gcdtrav.schemas.limits import MAX_CONCEPT_CHARS, MAX_DOCUMENT_DEPTH, MAX_NAME_CHARS
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from gcdtrav.schemas.strict import FrozenStrictModel
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 MIN_ANCHORS = 2
 MAX_ANCHORS = 64
@@ -27,10 +28,8 @@ class AnchorSetError(ValueError):
         super().__init__(where + "invalid anchor set: " + "; ".join(self.messages))
 
 
-class Anchor(BaseModel):
+class Anchor(FrozenStrictModel):
     """One concept of the set: its text prompt, its place on the scale and its Gaussian width."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     concept: str = Field(
         max_length=MAX_CONCEPT_CHARS, description="Text prompt given to the segmentation model, e.g. 'gravel'."
@@ -70,10 +69,8 @@ class Anchor(BaseModel):
         return value
 
 
-class AnchorSet(BaseModel):
+class AnchorSet(FrozenStrictModel):
     """An ordered Conceptual Anchor Set (CAS) as defined by Häuselmann et al., IFAC 2026."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     name: str = Field(
         default="custom", max_length=MAX_NAME_CHARS, description="A label for people; not part of the version."

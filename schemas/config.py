@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from enum import Enum
 
-from pydantic import BaseModel, ConfigDict, Field
+from gcdtrav.schemas.strict import FrozenStrictModel
+from pydantic import Field
 
 
 class Method(str, Enum):
@@ -15,10 +16,8 @@ class Method(str, Enum):
     GAUSSIAN = "gaussian"  # baseline: one Gaussian fitted by least squares (unimodal ablation)
 
 
-class EngineSettings(BaseModel):
+class EngineSettings(FrozenStrictModel):
     """How the GCD engine turns logits into maps."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
 
     method: Method = Method.GCD
     temperature: float = Field(default=1.0, gt=0, description="Softmax temperature over the anchors' logits.")

@@ -14,8 +14,9 @@ import numpy as np
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
 from gcdtrav.schemas.config import Method
 from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS, MAX_POSITION_M
+from gcdtrav.schemas.strict import StrictModel
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import Field, ValidationError, field_validator
 
 MSGPACK_ENCODING = "application/msgpack"
 SCHEMA_VERSION = 1
@@ -25,9 +26,7 @@ class MessageError(ValueError):
     """A payload that is not a valid message of the expected type."""
 
 
-class Message(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class Message(StrictModel):
     def pack(self) -> bytes:
         return msgpack.packb(self.model_dump(mode="python"), use_bin_type=True)
 
@@ -88,9 +87,7 @@ class ImageEnvelope(Message):
 # ---- maps out --------------------------------------------------------------------------------------
 
 
-class MapsHeader(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class MapsHeader(StrictModel):
     schema_version: int = SCHEMA_VERSION
     source: str = Field(description="The source: the input key after the matched prefix, e.g. 'r1/front'.")
     key: str = Field(description="The full key the image arrived on.")
@@ -177,9 +174,7 @@ class Pose2D(Message):
         return value
 
 
-class GridHeader(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class GridHeader(StrictModel):
     source: str
     seq: int = Field(description="Grid updates so far.")
     stamp: float = Field(description="Stamp of the last fused frame.")
@@ -221,9 +216,7 @@ class AnchorSetReply(Message):
     version: str
 
 
-class AnchorHistoryEntry(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class AnchorHistoryEntry(StrictModel):
     accepted_at: float = Field(description="When the set became active, seconds since the Unix epoch.")
     version: str
     anchor_set: AnchorSet
@@ -247,9 +240,7 @@ class ErrorReply(Message):
     error: str
 
 
-class SourceStatus(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class SourceStatus(StrictModel):
     received: int = 0
     processed: int = 0
     dropped: int = Field(default=0, description="Replaced by a newer frame before inference (latest-only).")

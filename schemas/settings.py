@@ -16,7 +16,8 @@ from typing import Any, Literal, get_args
 import yaml
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.limits import DEFAULT_MAX_ANCHOR_SET_BYTES
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from gcdtrav.schemas.strict import StrictModel
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 ENV_PREFIX = "GCDTRAV_"
 
@@ -40,10 +41,8 @@ def default_instance_name() -> str:
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 
 
-class RosInput(BaseModel):
+class RosInput(StrictModel):
     """ROS 2 camera topics reaching Zenoh through rmw_zenoh or zenoh-bridge-ros2dds (CDR payloads)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     key: str = Field(
         description="Key expression, e.g. '0/**/sensor_msgs::msg::dds_::Image_/*' (rmw_zenoh) "
@@ -77,10 +76,8 @@ class RosInput(BaseModel):
 _ROS_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
 
 
-class RosNode(BaseModel):
+class RosNode(StrictModel):
     """The service's node in the ROS 2 graph of rmw_zenoh robots (``ros2 node list`` shows /<namespace>/<name>)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     name: str = Field(default="gcdtrav", description="ROS node name.")
     namespace: str = Field(default="/", description="ROS namespace of the node, e.g. / or /robot1.")
@@ -108,10 +105,8 @@ def _topic_template(value: str) -> str:
     return value
 
 
-class RosOutput(BaseModel):
+class RosOutput(StrictModel):
     """Maps as ROS 2 topics; ``{topic}`` in a topic stands for the camera's topic (without the leading slash)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     enabled: bool = False
     preview: Literal["compressed", "image", "none"] = Field(
@@ -144,10 +139,8 @@ class RosOutput(BaseModel):
         ]
 
 
-class CameraIntrinsics(BaseModel):
+class CameraIntrinsics(StrictModel):
     """Pinhole intrinsics (pixels) for images of width x height; other image sizes are scaled."""
-
-    model_config = ConfigDict(extra="forbid")
 
     fx: float = Field(gt=0)
     fy: float = Field(gt=0)
@@ -157,10 +150,8 @@ class CameraIntrinsics(BaseModel):
     height: int = Field(gt=0)
 
 
-class CameraMountSettings(BaseModel):
+class CameraMountSettings(StrictModel):
     """The camera body frame (x forward, y left, z up) in the robot's base frame: metres and radians."""
-
-    model_config = ConfigDict(extra="forbid")
 
     x: float = 0.0
     y: float = 0.0
@@ -170,10 +161,8 @@ class CameraMountSettings(BaseModel):
     yaw: float = 0.0
 
 
-class GridSettings(BaseModel):
+class GridSettings(StrictModel):
     """A ground grid around the robot for one source (see docs/grid.md)."""
-
-    model_config = ConfigDict(extra="forbid")
 
     source: str = Field(description="The source whose maps feed the grid, e.g. 'r1/front'.")
     intrinsics: CameraIntrinsics | None = None
@@ -199,9 +188,7 @@ class GridSettings(BaseModel):
         return self
 
 
-class ServiceSettings(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
+class ServiceSettings(StrictModel):
     prefix: str = Field(default="gcdtrav", description="Key prefix of every key the service declares.")
     inputs: list[str] = Field(
         default_factory=lambda: ["gcdtrav/in/**"],
