@@ -195,10 +195,9 @@ def expected_errors() -> tuple[type[BaseException], ...]:
     from gcdtrav.schemas.anchors import AnchorSetError
     from gcdtrav.schemas.messages import MessageError
     from gcdtrav.service.bus.ingest import RejectedInput
-    from gcdtrav.service.bus.ros import RosDecodeError
     from gcdtrav.service.queries import QueryError
 
-    return (AnchorSetError, MessageError, RejectedInput, RosDecodeError, QueryError)
+    return (AnchorSetError, MessageError, RejectedInput, QueryError)
 
 
 def reason_of(err: BaseException) -> str:

@@ -14,7 +14,11 @@ MAP_QUANTUM = 65535  # maps travel as 16-bit PNGs: value = round(x * 65535), x c
 
 
 class ImageDecodeError(ValueError):
-    """Bytes that are not a usable image; the message says why."""
+    """Bytes that are not a usable image; the message says why, ``reason`` is its code for counting."""
+
+    def __init__(self, message: str, reason: str = "undecodable") -> None:
+        super().__init__(message)
+        self.reason = reason
 
 
 def peek_image_size(data: bytes) -> tuple[int, int] | None:
@@ -46,10 +50,12 @@ def peek_image_size(data: bytes) -> tuple[int, int] | None:
 def decode_image(data: bytes, max_pixels: int | None = None) -> NDArray[np.uint8]:
     """JPEG/PNG/any OpenCV-readable bytes to an (H, W, 3) uint8 RGB array."""
     if not data:
-        raise ImageDecodeError("empty payload (0 bytes)")
+        raise ImageDecodeError("empty payload (0 bytes)", "empty")
     size = peek_image_size(data)
     if size is not None and max_pixels is not None and size[0] * size[1] > max_pixels:
-        raise ImageDecodeError(f"image of {size[0]}x{size[1]} pixels exceeds the limit of {max_pixels} pixels")
+        raise ImageDecodeError(
+            f"image of {size[0]}x{size[1]} pixels exceeds the limit of {max_pixels} pixels", "too_many_pixels"
+        )
     buffer = np.frombuffer(data, dtype=np.uint8)
     try:
         image = cv2.imdecode(buffer, cv2.IMREAD_COLOR)

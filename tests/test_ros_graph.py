@@ -144,7 +144,7 @@ def test_publisher_tokens_are_parsed_others_ignored() -> None:
         token.rsplit("/", 1)[0],  # no QoS
         "@ros2_lv/0/abc123/5",
     ):
-        with pytest.raises(ros.RosDecodeError, match="bad_graph_token"):
+        with pytest.raises(ros.RejectedInput, match="bad_graph_token"):
             parse_publisher_token(malformed)
 
 
@@ -167,7 +167,7 @@ def test_humble_and_namespaced_keys() -> None:
     assert (
         ros.topic_key(grid) == f"0/cam/gcdtrav/grid/occupancy/nav_msgs::msg::dds_::OccupancyGrid_/{OCCUPANCY_GRID_HASH}"
     )
-    with pytest.raises(ros.RosDecodeError, match="zenoh namespace"):
+    with pytest.raises(ros.RejectedInput, match="zenoh namespace"):
         ros.parse_key("robot2/0/cam/sensor_msgs::msg::dds_::Image_/x", "rmw_zenoh", "robot1")
 
 

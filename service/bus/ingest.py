@@ -12,7 +12,8 @@ from numpy.typing import NDArray
 
 
 class RejectedInput(ValueError):
-    """A payload the service will not process; ``reason`` is a short label for counting."""
+    """An input the service will not process (image payload, ROS message or key, graph token); ``reason`` is
+    its code for counting (``rejected_by_reason`` in the status), ``detail`` the human half."""
 
     def __init__(self, reason: str, detail: str) -> None:
         super().__init__(f"{reason}: {detail}")
@@ -45,8 +46,7 @@ def decode_payload(payload: bytes, encoding: str, received_at: float, max_bytes:
     try:
         return DecodedFrame(decode_image(payload, max_pixels), stamp=received_at, frame_id="")
     except ImageDecodeError as err:
-        reason = "too_many_pixels" if "exceeds the limit" in str(err) else "undecodable"
-        raise RejectedInput(reason, str(err)) from None
+        raise RejectedInput(err.reason, str(err)) from None
 
 
 def _decode_envelope(payload: bytes, max_bytes: int, max_pixels: int) -> DecodedFrame:

@@ -1,13 +1,7 @@
 """The Zenoh node: a thin layer that wires the pipeline to keys on the bus.
 
-Keys (``{prefix}`` defaults to ``gcdtrav``; see docs/messages.md):
-  inputs (default gcdtrav/in/**)   images in: JPEG/PNG bytes or an ImageEnvelope
-  {prefix}/out/{source}/maps       MapsMessage per processed frame
-  {prefix}/out/{source}/preview    colourised JPEG (T overlay | U), optional
-  {prefix}/out/{source}/patch      queryable: a patch's or region's ContextDistribution
-  {prefix}/config/anchors          queryable: get the active anchor set, or swap it (payload = new set)
-  {prefix}/status                  queryable: ServiceStatus
-  {prefix}/alive/{instance}        liveliness token
+Inputs (default gcdtrav/in/**): images as JPEG/PNG bytes or an ImageEnvelope, and ROS 2 topics. Every
+output and queryable key is built by ``gcdtrav.schemas.keys.Keys`` (listed there and in docs/messages.md).
 """
 
 from __future__ import annotations
@@ -23,6 +17,7 @@ from typing import Any, TypeVar
 import numpy as np
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
+from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.limits import MAX_SOURCE_CHARS
 from gcdtrav.schemas.messages import (
     AnchorSetRejection,
@@ -108,6 +103,7 @@ class TraversabilityService:
         self.pipeline = pipeline
         self.settings = settings
         self.prefix = settings.prefix
+        self.keys = Keys(settings.prefix)
         self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(round(settings.pending_budget_mb * 1e6))
         self.history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
         self.stats = ServiceStats(log)
@@ -137,7 +133,7 @@ class TraversabilityService:
         self._check_inputs()
 
     def _check_inputs(self) -> None:
-        own = zenoh.KeyExpr(f"{self.prefix}/out/**")
+        own = zenoh.KeyExpr(self.keys.outputs)
         for expression in self.settings.inputs:
             try:
                 key = zenoh.KeyExpr(expression)
@@ -145,7 +141,7 @@ class TraversabilityService:
                 raise SettingsError(f"input '{expression}' is not a valid key expression: {err}") from None
             if key.intersects(own):
                 raise SettingsError(
-                    f"input '{expression}' overlaps the service's outputs '{self.prefix}/out/**' (maps would "
+                    f"input '{expression}' overlaps the service's outputs '{self.keys.outputs}' (maps would "
                     f"feed back as inputs); subscribe to narrower keys, e.g. '{self.prefix}/in/**'"
                 )
 
@@ -163,18 +159,14 @@ class TraversabilityService:
         if self.grids is not None:
             self._declare_grid_inputs(self.grids)
         self._declared += [
-            self.session.declare_queryable(f"{self.prefix}/out/**/patch", self._answering(self._on_patch_query)),
+            self.session.declare_queryable(self.keys.patch("**"), self._answering(self._on_patch_query)),
+            self.session.declare_queryable(self.keys.anchors, self._answering(self._on_anchors_query), complete=True),
+            self.session.declare_queryable(self.keys.status, self._answering(self._on_status_query), complete=True),
             self.session.declare_queryable(
-                f"{self.prefix}/config/anchors", self._answering(self._on_anchors_query), complete=True
+                self.keys.anchor_history, self._answering(self._on_history_query), complete=True
             ),
             self.session.declare_queryable(
-                f"{self.prefix}/status", self._answering(self._on_status_query), complete=True
-            ),
-            self.session.declare_queryable(
-                f"{self.prefix}/config/anchors/history", self._answering(self._on_history_query), complete=True
-            ),
-            self.session.declare_queryable(
-                f"{self.prefix}/config/anchors/rollback", self._answering(self._on_rollback_query), complete=True
+                self.keys.anchor_rollback, self._answering(self._on_rollback_query), complete=True
             ),
         ]
         for worker in self._workers:
@@ -234,7 +226,7 @@ class TraversabilityService:
         key = str(sample.key_expr)
         try:
             topic = ros_io.parse_key(key, ros_input.layout, ros_input.zenoh_namespace)
-        except ros_io.RosDecodeError as err:
+        except RejectedInput as err:
             self.stats.rejected(None, err.reason, f"{key}: {err.detail}")  # not a source: keys are unbounded
             return
         if ros_io.is_output_topic(topic.topic, self.settings.ros_output.topic_templates()):
@@ -274,7 +266,7 @@ class TraversabilityService:
             self.stats.rejected(source, "pending_budget", str(err))
 
     def _declare_grid_inputs(self, grids: GridOutputs) -> None:
-        cells = self.session.declare_queryable(f"{self.prefix}/out/**/cell", self._answering(self._on_cell_query))
+        cells = self.session.declare_queryable(self.keys.cell("**"), self._answering(self._on_cell_query))
         self._declared.append(cells)
         for config in self.settings.grids:
             for key, setter, reason in (
@@ -351,7 +343,7 @@ class TraversabilityService:
             raise RejectedInput("unsupported_ros_type", f"no message type for '{pending.key}'")
         try:
             ros_frame = ros_io.decode_ros_image(pending.payload, pending.ros.msgtype, self.settings.max_pixels)
-        except ros_io.RosDecodeError as err:
+        except RejectedInput as err:
             raise RejectedInput(err.reason, err.detail) from None
         return DecodedFrame(ros_frame.image, ros_frame.stamp, ros_frame.frame_id), ros_frame.header
 
@@ -387,9 +379,9 @@ class TraversabilityService:
     def _on_cell_query(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
         try:
-            source = key[len(f"{self.prefix}/out/") : -len("/cell")]
-            if not source or "*" in source or "$" in source:
-                raise QueryError(f"query one source's cell key, e.g. {self.prefix}/out/r1/front/cell, not '{key}'")
+            source = self.keys.source_of(key, "cell")
+            if source is None:
+                raise QueryError(f"query one source's cell key, e.g. {self.keys.cell('r1/front')}, not '{key}'")
             if not self.owns(source):
                 return
             assert self.grids is not None
@@ -405,9 +397,9 @@ class TraversabilityService:
     def _on_patch_query(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
         try:
-            middle = key[len(f"{self.prefix}/out/") : -len("/patch")]
-            if not middle or "*" in middle or "$" in middle:
-                raise QueryError(f"query one source's patch key, e.g. {self.prefix}/out/r1/front/patch, not '{key}'")
+            middle = self.keys.source_of(key, "patch")
+            if middle is None:
+                raise QueryError(f"query one source's patch key, e.g. {self.keys.patch('r1/front')}, not '{key}'")
             if not self.owns(middle):
                 return  # the owner answers; replying too would race it
             replies.check_format(query)
@@ -421,7 +413,7 @@ class TraversabilityService:
 
     def _on_anchors_query(self, query: zenoh.Query) -> None:
         """Get the active set (no payload) or swap it; the swap runs on the switch's worker, not here."""
-        key = f"{self.prefix}/config/anchors"
+        key = self.keys.anchors
         replies.check_no_parameters(query)
         payload = query.payload
         if payload is None or len(payload) == 0:
@@ -431,7 +423,7 @@ class TraversabilityService:
         self.anchor_switch.submit(payload.to_bytes(), self._swap_answer(query, key))
 
     def _on_rollback_query(self, query: zenoh.Query) -> None:
-        key = f"{self.prefix}/config/anchors/rollback"
+        key = self.keys.anchor_rollback
         try:
             replies.check_format(query)
             params = strict_parameters(replies.without_format(query), "steps=N (1 = the set before the active one)")
@@ -446,7 +438,7 @@ class TraversabilityService:
 
     def _on_history_query(self, query: zenoh.Query) -> None:
         replies.check_no_parameters(query)
-        replies.reply(query, f"{self.prefix}/config/anchors/history", self.anchor_switch.history())
+        replies.reply(query, self.keys.anchor_history, self.anchor_switch.history())
 
     def _swap_answer(self, query: zenoh.Query, key: str) -> SwapDone:
         """Reply to a swap or rollback query once the switch's worker is done with it."""
@@ -509,4 +501,4 @@ class TraversabilityService:
 
     def _on_status_query(self, query: zenoh.Query) -> None:
         replies.check_no_parameters(query)
-        replies.reply(query, f"{self.prefix}/status", self.status())
+        replies.reply(query, self.keys.status, self.status())

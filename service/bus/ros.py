@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
+from gcdtrav.service.bus.ingest import RejectedInput
 from numpy.typing import NDArray
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -39,14 +40,6 @@ RAW_ENCODINGS = {
     "bayer_gbrg8": 1,
     "bayer_grbg8": 1,
 }
-
-
-class RosDecodeError(ValueError):
-    """A ROS payload that is not a usable image; ``reason`` is a short label for counting."""
-
-    def __init__(self, reason: str, detail: str) -> None:
-        super().__init__(f"{reason}: {detail}")
-        self.reason, self.detail = reason, detail
 
 
 @cache
@@ -106,7 +99,7 @@ def strip_namespace(key: str, namespace: str) -> str:
     if not namespace:
         return key
     if not key.startswith(namespace + "/"):
-        raise RosDecodeError("bad_ros_key", f"'{key}' does not start with the zenoh namespace '{namespace}/'")
+        raise RejectedInput("bad_ros_key", f"'{key}' does not start with the zenoh namespace '{namespace}/'")
     return key[len(namespace) + 1 :]
 
 
@@ -122,7 +115,7 @@ def parse_key(key: str, layout: str, namespace: str = "") -> RosTopic:
             domain = int(chunks[0]) if chunks[0].isdigit() else 0
             hash_chunk = chunks[index + 1] if index + 1 < len(chunks) else None
             return RosTopic("/" + "/".join(chunks[1:index]), msgtype, "rmw_zenoh", domain, namespace, hash_chunk)
-    raise RosDecodeError("bad_ros_key", f"'{key}' is not <domain>/<topic>/<pkg::msg::dds_::Type_>/<hash>")
+    raise RejectedInput("bad_ros_key", f"'{key}' is not <domain>/<topic>/<pkg::msg::dds_::Type_>/<hash>")
 
 
 def topic_key(topic: RosTopic) -> str:
@@ -167,14 +160,14 @@ def _stamp_seconds(header: Any) -> float:
 def decode_ros_image(payload: bytes, msgtype: str, max_pixels: int) -> RosFrame:
     """CDR Image/CompressedImage -> RGB, validating sizes before touching pixels."""
     if msgtype not in SUPPORTED_TYPES:
-        raise RosDecodeError("unsupported_ros_type", f"{msgtype} (supported: {', '.join(SUPPORTED_TYPES)})")
+        raise RejectedInput("unsupported_ros_type", f"{msgtype} (supported: {', '.join(SUPPORTED_TYPES)})")
     try:
         message = typestore().deserialize_cdr(payload, msgtype)
     except Exception as err:  # rosbags raises assorted errors on truncated or garbled CDR
-        raise RosDecodeError("bad_cdr", f"{msgtype} does not deserialise: {type(err).__name__}: {err}") from None
+        raise RejectedInput("bad_cdr", f"{msgtype} does not deserialise: {type(err).__name__}: {err}") from None
     frame_id = str(message.header.frame_id)
     if len(frame_id) > MAX_FRAME_ID_CHARS:
-        raise RosDecodeError(
+        raise RejectedInput(
             "frame_id_too_long", f"frame_id of {len(frame_id)} characters is over the limit of {MAX_FRAME_ID_CHARS}"
         )
     image = _decode_compressed(message, max_pixels) if msgtype == COMPRESSED_IMAGE else _decode_raw(message, max_pixels)
@@ -187,7 +180,7 @@ def _decode_compressed(message: Any, max_pixels: int) -> NDArray[np.uint8]:
     try:
         return decode_image(bytes(message.data), max_pixels)
     except ImageDecodeError as err:
-        raise RosDecodeError("undecodable", f"CompressedImage ({message.format}): {err}") from None
+        raise RejectedInput("undecodable", f"CompressedImage ({message.format}): {err}") from None
 
 
 def _decode_raw(message: Any, max_pixels: int) -> NDArray[np.uint8]:
@@ -195,16 +188,16 @@ def _decode_raw(message: Any, max_pixels: int) -> NDArray[np.uint8]:
 
     encoding = str(message.encoding).lower()
     if encoding not in RAW_ENCODINGS:
-        raise RosDecodeError("unknown_encoding", f"'{message.encoding}' (supported: {', '.join(RAW_ENCODINGS)})")
+        raise RejectedInput("unknown_encoding", f"'{message.encoding}' (supported: {', '.join(RAW_ENCODINGS)})")
     width, height, step = int(message.width), int(message.height), int(message.step)
     if width <= 0 or height <= 0:
-        raise RosDecodeError("size_mismatch", f"image of {width}x{height} pixels")
+        raise RejectedInput("size_mismatch", f"image of {width}x{height} pixels")
     if width * height > max_pixels:
-        raise RosDecodeError("too_many_pixels", f"{width}x{height} exceeds the limit of {max_pixels} pixels")
+        raise RejectedInput("too_many_pixels", f"{width}x{height} exceeds the limit of {max_pixels} pixels")
     row = width * RAW_ENCODINGS[encoding]
     data = np.asarray(message.data, dtype=np.uint8)
     if step < row or len(data) != step * height:
-        raise RosDecodeError(
+        raise RejectedInput(
             "size_mismatch",
             f"{encoding} {width}x{height}, step {step}: needs step >= {row} and "
             f"{step}x{height} = {step * height} bytes, got {len(data)}",
@@ -227,7 +220,7 @@ def _decode_raw(message: Any, max_pixels: int) -> NDArray[np.uint8]:
             return np.repeat(gray[:, :, None], 3, axis=2)
         rgb = message_to_cvimage(message, "rgb8")
     except Exception as err:  # rosbags-image raises its own and OpenCV errors
-        raise RosDecodeError("undecodable", f"{encoding}: {type(err).__name__}: {err}") from None
+        raise RejectedInput("undecodable", f"{encoding}: {type(err).__name__}: {err}") from None
     return np.ascontiguousarray(rgb, dtype=np.uint8)
 
 

@@ -26,6 +26,7 @@ from typing import Any, Literal
 import zenoh
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus import ros as ros_io
+from gcdtrav.service.bus.ingest import RejectedInput
 
 log = logging.getLogger("gcdtrav.service")
 
@@ -130,14 +131,14 @@ class PeerPublisher:
 
 
 def parse_publisher_token(key: str) -> PeerPublisher | None:
-    """A publisher's token (MP); None for another entity's. Raises RosDecodeError for a malformed token."""
+    """A publisher's token (MP); None for another entity's. Raises RejectedInput for a malformed token."""
     parts = key.split("/")
     if len(parts) < 9 or parts[0] != ADMIN_SPACE or parts[5] not in KINDS or not all(parts) or not parts[1].isdigit():
-        raise ros_io.RosDecodeError("bad_graph_token", f"'{key[:200]}' is not an rmw_zenoh liveliness token")
+        raise RejectedInput("bad_graph_token", f"'{key[:200]}' is not an rmw_zenoh liveliness token")
     if parts[5] != "MP":
         return None
     if len(parts) != 13:
-        raise ros_io.RosDecodeError("bad_graph_token", f"publisher token '{key[:200]}' has {len(parts)} of 13 parts")
+        raise RejectedInput("bad_graph_token", f"publisher token '{key[:200]}' has {len(parts)} of 13 parts")
     return PeerPublisher(int(parts[1]), parts[2], parts[9].replace("%", "/"), parts[10], parts[11].replace("%", "/"))
 
 
@@ -298,7 +299,7 @@ class RosGraph:
         key = str(sample.key_expr)
         try:
             peer = parse_publisher_token(ros_io.strip_namespace(key, zenoh_namespace))
-        except ros_io.RosDecodeError as err:
+        except RejectedInput as err:
             self.rejected(None, err.reason, err.detail)
             return
         if peer is None or peer.zid == self.zid or ros_io.ros_type_name(peer.dds_type) is None:
