@@ -97,6 +97,9 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
                 f"{name[:25]:<25} {s.instance[:14]:<14} {fps(s.instance, name):>8}  {src.received:>8}  "
                 f"{src.processed:>9}  {src.dropped:>7}  {src.rejected:>8}  {p50:>6}  {p99:>6}"
             )
+    reasons = [f"{s.instance}: {s.precision} ({s.precision_reason})" for s in statuses if s.precision_reason]
+    if reasons:
+        lines += ["", *(f"precision {line}" for line in reasons)]
     rejected = {reason: n for s in statuses for reason, n in s.rejected_by_reason.items()}
     if rejected:
         lines += ["", "rejected: " + ", ".join(f"{reason} {n}" for reason, n in sorted(rejected.items()))]

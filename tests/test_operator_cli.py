@@ -46,6 +46,7 @@ def test_status_anchors_get_and_a_swap_with_its_diff(service, tmp_path: Path) ->
     assert row.split()[1:6] == ["ops-1", "-", "1", "1", "0"]  # instance, frames/s, received, processed, dropped
     instance_row = next(line for line in status.stdout.splitlines() if line.startswith("ops-1"))
     assert f"/ {running.pipeline.anchors.version} / gcd / fp32 " in instance_row  # anchors, method, precision
+    assert "precision ops-1: fp32 (asked for fp32)" in status.stdout  # and why that mode runs
 
     shown = gcdtrav("anchors", "get", *flags)
     assert shown.returncode == 0 and f"# active anchor set {default_anchor_set().version}" in shown.stdout

@@ -1,0 +1,59 @@
+"""Modes compared frame by frame, interleaved in one process: steadier ratios on a noisy machine.
+
+    python benchmarks/interleaved.py --model DIR --modes fp32,ort-int8,ort-int8-vit --rounds 15
+
+Without ``--model``: random weights of the real rd64-refined architecture. Each round runs one frame of
+every mode in turn (13 anchors, 640x480 image), so drift of the machine hits all modes alike; the first
+round is a warm-up. Prints the median and minimum per mode and its ratio to the first mode.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from gcdtrav.schemas.anchors import default_anchor_set
+from gcdtrav.service.backends.clipseg import ClipSegBackend
+from gcdtrav.service.bench import machine_header, machine_info
+from gcdtrav.service.precision_choice import synthetic_image
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", type=Path, default=None)
+    parser.add_argument("--modes", default="fp32,ort-int8,ort-int8-vit")
+    parser.add_argument("--rounds", type=int, default=15)
+    args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory() as scratch:
+        model = args.model
+        if model is None:
+            from gcdtrav.service.backends.random_clipseg import save_random_clipseg
+
+            model = save_random_clipseg(Path(scratch) / "model", preset="rd64-refined")
+        backend = ClipSegBackend(str(model), precision="fp32", keep_reference=True, cache_dir=Path(scratch) / "cache")
+        modes = [m for m in args.modes.split(",") if m]
+        computes = {mode: backend.compute_for(mode) for mode in modes}
+        image, prepared = synthetic_image(), backend.prepare(default_anchor_set().concepts)
+        times: dict[str, list[float]] = {mode: [] for mode in modes}
+        for _ in range(args.rounds + 1):
+            for mode in modes:
+                backend.use_compute(computes[mode], mode)
+                began = time.perf_counter()
+                backend.logits(image, prepared)
+                times[mode].append((time.perf_counter() - began) * 1e3)
+    print(machine_header(machine_info()))
+    first = statistics.median(times[modes[0]][1:])
+    for mode in modes:
+        median = statistics.median(times[mode][1:])
+        print(
+            f"{mode:14s} median {median:7.1f} ms  min {min(times[mode][1:]):7.1f} ms  {first / median:5.2f}x {modes[0]}"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
