@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import foxglove
+import numpy as np
 import zenoh
 from foxglove.channels import CompressedImageChannel, GridChannel, LogChannel
 from foxglove.messages import (
@@ -44,6 +45,7 @@ from gcdtrav.client.view.recorder import McapRecorder
 from gcdtrav.schemas.anchors import AnchorSetError
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import AnchorSetReply, ServiceStatus, SourceView
+from numpy.typing import NDArray
 
 log = logging.getLogger(__name__)
 
@@ -234,10 +236,11 @@ class Viewer:
         maps = Maps.from_payload(payload)
         header = maps.header
         when = stamp(header.stamp)
-        for channel, values, kind in (
+        layers: tuple[tuple[str, NDArray[np.float32], pictures.MapKind], ...] = (
             (channels.traversability, maps.traversability, "T"),
             (channels.uncertainty, maps.uncertainty, "U"),
-        ):
+        )
+        for channel, values, kind in layers:
             picture = pictures.png(pictures.map_with_legend(values, kind))
             self.emit(channel, CompressedImage(timestamp=when, frame_id=header.frame_id, data=picture, format="png"))
         previous = channels.view or SourceView(source=header.source)
