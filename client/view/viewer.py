@@ -236,7 +236,7 @@ class Viewer:
         maps = Maps.from_payload(payload)
         header = maps.header
         when = stamp(header.stamp)
-        layers: tuple[tuple[str, NDArray[np.float32], pictures.MapKind], ...] = (
+        layers: tuple[tuple[CompressedImageChannel, NDArray[np.float32], pictures.MapKind], ...] = (
             (channels.traversability, maps.traversability, "T"),
             (channels.uncertainty, maps.uncertainty, "U"),
         )
