@@ -21,7 +21,9 @@ import numpy as np
 import zenoh
 from gcdtrav.client import Grid, Maps, ServiceError, TraversabilityClient, zenoh_config
 from gcdtrav.schemas.messages import Pose2D
-from gcdtrav.service.backends.random_clipseg import save_random_clipseg
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository's tools/, not in the wheel
+from tools.random_clipseg import save_random_clipseg
 
 DEADLINE_S = 180.0
 

@@ -1,9 +1,9 @@
 """Fuzz campaign beyond CI: every decoder and parser the service exposes, coverage-guided, at scale.
 
     pip install atheris
-    python benchmarks/fuzz.py                          # 100,000 inputs per target
-    python benchmarks/fuzz.py --engine hypothesis --runs 300 --out /tmp/fuzz.json   # the suite's smoke run
-    python benchmarks/fuzz.py --runs 2000 --targets anchor_documents selectors
+    python -m benchmarks.fuzz                          # 100,000 inputs per target
+    python -m benchmarks.fuzz --engine hypothesis --runs 300 --out /tmp/fuzz.json   # the suite's smoke run
+    python -m benchmarks.fuzz --runs 2000 --targets anchor_documents selectors
 
 Each target runs in its own process, for ``--runs`` inputs or ``--max-seconds``, whichever comes first, and
 stops by itself: under atheris (libFuzzer, coverage-guided, seeded with valid inputs of its kind) where it is
@@ -51,8 +51,8 @@ def _image_seeds() -> list[bytes]:
 
 
 def _decode_image(data: bytes) -> None:
+    from gcdtrav.schemas.inputs import decode_payload
     from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
-    from gcdtrav.service.bus.ingest import decode_payload
 
     # The first byte picks how the payload is labelled, as a peer's encoding would.
     encoding = ["", "image/jpeg", "image/png", "application/msgpack"][data[0] % 4] if data else ""
@@ -114,7 +114,7 @@ def _odometry(types: Any, header: Any) -> Any:
 def _decode_ros(data: bytes) -> None:
     from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS, MAX_POSITION_M
     from gcdtrav.service.bus import ros
-    from gcdtrav.service.bus.grids import decode_camera_info, decode_depth, decode_pose
+    from gcdtrav.service.bus.ros import decode_camera_info, decode_depth, decode_pose
 
     kind, payload = (data[0] % 5, data[1:]) if data else (0, b"")
     if kind in (0, 1):
@@ -193,8 +193,8 @@ TARGETS: dict[str, tuple[Callable[[], list[bytes]], Callable[[bytes], None], str
 def expected_errors() -> tuple[type[BaseException], ...]:
     """The decoders' own error types: a clear rejection, never a crash."""
     from gcdtrav.schemas.anchors import AnchorSetError
+    from gcdtrav.schemas.inputs import RejectedInput
     from gcdtrav.schemas.messages import MessageError
-    from gcdtrav.service.bus.ingest import RejectedInput
     from gcdtrav.service.queries import QueryError
 
     return (AnchorSetError, MessageError, RejectedInput, QueryError)

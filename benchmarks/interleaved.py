@@ -1,6 +1,6 @@
 """Modes compared frame by frame, interleaved in one process: steadier ratios on a noisy machine.
 
-    python benchmarks/interleaved.py --model DIR --modes fp32,ort-int8,ort-int8-vit --rounds 15
+    python -m benchmarks.interleaved --model DIR --modes fp32,ort-int8,ort-int8-vit --rounds 15
 
 Without ``--model``: random weights of the real rd64-refined architecture. Each round runs one frame of
 every mode in turn (13 anchors, 640x480 image), so drift of the machine hits all modes alike; the first
@@ -31,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as scratch:
         model = args.model
         if model is None:
-            from gcdtrav.service.backends.random_clipseg import save_random_clipseg
+            from tools.random_clipseg import save_random_clipseg
 
             model = save_random_clipseg(Path(scratch) / "model", preset="rd64-refined")
         backend = ClipSegBackend(str(model), precision="fp32", keep_reference=True, cache_dir=Path(scratch) / "cache")

@@ -1,7 +1,7 @@
 """Would an ONNX Runtime backend win? The ViT trunk (the part that costs the most) in ORT against torch.
 
     pip install onnxruntime onnx onnxscript      # not dependencies of gcdtrav: only for this trial
-    python benchmarks/onnxruntime_trial.py [--model DIR] [--runs 9]
+    python -m benchmarks.onnxruntime_trial [--model DIR] [--runs 9]
 
 Exports the trunk the decoder reads (embeddings, pre-norm, layers 0..9, outputs after layers 3, 6, 9) with
 torch's TorchScript exporter, runs it in ONNX Runtime's CPU provider in fp32 and with ORT's dynamic int8
@@ -46,9 +46,10 @@ class TrunkForExport(torch.nn.Module):
 def main() -> int:
     import onnxruntime as ort
     from gcdtrav.service.backends.clipseg import ClipSegBackend
-    from gcdtrav.service.backends.random_clipseg import save_random_clipseg
     from gcdtrav.service.bench import bench_image
     from onnxruntime.quantization import QuantType, quantize_dynamic
+
+    from tools.random_clipseg import save_random_clipseg
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--model", default=None, help="checkpoint directory [random weights, real architecture]")

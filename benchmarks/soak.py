@@ -1,8 +1,8 @@
 """Soak test: simulated robots stream JPEGs to several service instances through a router, on loopback.
 
-    python benchmarks/soak.py                          # 8 robots x 15 fps, 640x480, 10 min, 2 instances
-    python benchmarks/soak.py --minutes 2 --robots 4   # shorter
-    python benchmarks/soak.py --churn 2 --sample-seconds 30   # + 2 frames/s, each under a new source name
+    python -m benchmarks.soak                          # 8 robots x 15 fps, 640x480, 10 min, 2 instances
+    python -m benchmarks.soak --minutes 2 --robots 4   # shorter
+    python -m benchmarks.soak --churn 2 --sample-seconds 30   # + 2 frames/s, each under a new source name
 
 Everything runs on this machine (127.0.0.1), is bounded in time and stops by itself. Without --model it
 uses random weights of the real CLIPSeg architecture. Reports, per instance, resident memory over time
@@ -34,7 +34,8 @@ import zenoh
 from gcdtrav.client import ServiceError, TraversabilityClient, zenoh_config
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.service.bench import bench_image, rss_mb
-from gcdtrav.service.loopback import SimulatedRobots, free_port, service_processes, wait_for_statuses
+
+from tools.loopback import SimulatedRobots, free_port, service_processes, wait_for_statuses
 
 
 class ChurningSources:
@@ -148,7 +149,7 @@ def main() -> int:
     args = parser.parse_args()
     deadline_s = args.minutes * 60
 
-    from gcdtrav.service.backends.random_clipseg import save_random_clipseg
+    from tools.random_clipseg import save_random_clipseg
 
     scratch = tempfile.TemporaryDirectory()
     model = args.model

@@ -12,11 +12,10 @@ from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
-import cv2
 import numpy as np
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.images import decode_map_png16, encode_jpeg, encode_png, peek_image_size
+from gcdtrav.schemas.images import decode_count_png, decode_map_png16, encode_jpeg, encode_png, peek_image_size
 from gcdtrav.schemas.keys import Keys, input_key
 from gcdtrav.schemas.messages import (
     MSGPACK_ENCODING,
@@ -93,10 +92,7 @@ class Grid:
     @classmethod
     def from_payload(cls, payload: bytes) -> Grid:
         message = GridMessage.unpack(payload)
-        decoded = cv2.imdecode(np.frombuffer(message.count_png, np.uint8), cv2.IMREAD_UNCHANGED)
-        if decoded is None:
-            raise MessageError("grid count layer is not a PNG")
-        count = decoded.astype(np.int64)
+        count = decode_count_png(message.count_png)
         unknown = count == 0
         t, u = decode_map_png16(message.traversability_png), decode_map_png16(message.uncertainty_png)
         t[unknown], u[unknown] = np.nan, np.nan

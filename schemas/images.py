@@ -8,6 +8,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
+from gcdtrav.schemas.messages import MessageError
 from numpy.typing import NDArray
 
 MAP_QUANTUM = 65535  # maps travel as 16-bit PNGs: value = round(x * 65535), x clipped to [0, 1]
@@ -150,3 +151,19 @@ def colorize_uncertainty(u: NDArray[np.floating], vmax: float = UNCERTAINTY_VMAX
     """Dark = certain, bright = ambiguous (inferno); vmax 0.5 is sigma of two peaks at 0 and 1."""
     index = np.round(np.clip(u / max(vmax, 1e-9), 0, 1) * 255).astype(np.uint8)
     return cv2.cvtColor(cv2.applyColorMap(index, cv2.COLORMAP_INFERNO), cv2.COLOR_BGR2RGB)
+
+
+def encode_count_png(count: NDArray[np.integer]) -> bytes:
+    """A grid's observation counts as a 16-bit PNG (saturating at 65535)."""
+    ok, buffer = cv2.imencode(".png", np.clip(count, 0, 65535).astype(np.uint16))
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buffer.tobytes()
+
+
+def decode_count_png(data: bytes) -> NDArray[np.int64]:
+    """The inverse of ``encode_count_png``; MessageError if ``data`` is not a PNG."""
+    decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if decoded is None:
+        raise MessageError("grid count layer is not a PNG")
+    return decoded.astype(np.int64)

@@ -1,10 +1,10 @@
-"""`gcdtrav bench`: per-frame cost of every backend mode, in one process, on random weights of the real
-architecture (CLIPSeg rd64-refined: ViT-B/16 at 352x352 plus the text encoder), so the compute is real.
+"""`gcdtrav bench`: per-frame cost of every backend mode of your checkpoint on this machine, in one process.
 
-Rows: transformers' naive forward; the fast path in fp32, bf16 and int8; attention and thread variants;
-cost against the number of anchors and the input size; the GCD engine and map encoding alone; end to
-end through zenoh on loopback; service throughput with 1, 4 and 8 simulated robots. Parity of each fast
-mode against fp32 is measured on logits brought to a trained model's scale (see ``parity``)."""
+Rows: transformers' naive forward; the fast path in every precision this machine runs; attention and
+thread variants; cost against the number of anchors and the input size; the GCD engine and map encoding
+alone. Parity of each fast mode against fp32 is measured on logits brought to a trained model's scale
+(see ``parity``). The repository's ``benchmarks/bench.py`` runs the same on random weights of the real
+architecture and adds the service rows (zenoh on loopback, simulated robots)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ import os
 import platform
 import statistics
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -293,100 +292,6 @@ class Bench:
         times, peak = time_call(frame, self.runs * 2)
         self.add(make_row("ground grid: project, fuse, encode", "grid", times, peak, "20 m at 0.1 m, 352x352 cells in"))
 
-    def run_zenoh(self, precision: str, frames: int) -> None:
-        """Image put to maps received over loopback, minus inference: the service's own overhead."""
-        self.log(f"  end to end through zenoh: {frames} frames of 640x480 JPEG ...")
-        result = zenoh_end_to_end(self.model_dir, precision, frames)
-        self.add(
-            make_row(
-                f"zenoh loopback e2e ({precision})",
-                "zenoh",
-                result["latency_ms"],
-                result["peak_rss_mb"],
-                f"overhead median {result['overhead_median_ms']:.1f} ms",
-                overhead_median_ms=result["overhead_median_ms"],
-                overhead_p95_ms=result["overhead_p95_ms"],
-                frames=len(result["latency_ms"]),
-            )
-        )
-
-    def run_robots(self, precision: str, counts: list[int], fps: float, seconds: float) -> None:
-        """Service throughput with several robots streaming at once (latest-only keeps one frame per robot).
-
-        The service runs as its own ``gcdtrav serve`` process, as deployed: the robots and their client do
-        not share its interpreter, and the memory column is the service's alone.
-        """
-        from gcdtrav.client import TraversabilityClient, zenoh_config
-        from gcdtrav.schemas.images import encode_jpeg
-        from gcdtrav.service.loopback import free_port, robots_throughput, service_processes, wait_for_statuses
-
-        jpeg = encode_jpeg(bench_image(), 90)
-        port = free_port()
-        with tempfile.TemporaryDirectory() as state:
-            serve = ["--model", str(self.model_dir), "--precision", precision, "-l", f"tcp/127.0.0.1:{port}"]
-            serve += ["--no-multicast-scouting", "--instance", "bench-robots", "--state-dir", state, "--no-preview"]
-            with service_processes([serve]) as (process,):
-                endpoint = [f"tcp/127.0.0.1:{port}"]
-                client = TraversabilityClient(
-                    config=zenoh_config(mode="peer", connect=endpoint, multicast_scouting=False)
-                )
-                try:
-                    wait_for_statuses(client, 1)
-                    for count in counts:
-                        self.log(f"  {count} simulated robots x {fps:g} fps for {seconds:g} s ...")
-                        with RssSampler(process.pid, interval=0.05) as rss:
-                            result = robots_throughput(client, jpeg, count, fps, seconds, warmup_s=min(2.0, seconds))
-                        self.add(robots_row(count, fps, precision, result, rss.peak))
-                finally:
-                    client.close()
-
-
-def robots_row(count: int, fps: float, precision: str, result: dict[str, Any], service_rss_mb: float) -> Row:
-    latency = result.pop("latency_ms")
-    note = (
-        f"{result['maps_per_s']:.2f} maps/s in all; per robot {result['maps_per_robot_min']}"
-        f"-{result['maps_per_robot_max']} in {result['seconds']:g} s; latency = stamp to maps; RSS = service's"
-    )
-    row = make_row(f"{count} robots x {fps:g} fps ({precision})", "robots", latency, service_rss_mb, note, **result)
-    row.fps = round(result["maps_per_s"], 2)  # throughput, not 1 / latency
-    return row
-
-
-def zenoh_end_to_end(model_dir: Path, precision: str, frames: int) -> dict[str, Any]:
-    from gcdtrav.schemas.images import encode_jpeg
-    from gcdtrav.service.loopback import loopback_service
-
-    with loopback_service(model_dir, precision) as client:
-        arrived: dict[int, tuple[float, float]] = {}
-        done = threading.Event()
-
-        def on_maps(maps: Any) -> None:
-            arrived[maps.header.seq] = (time.perf_counter(), maps.header.inference_ms)
-            done.set()
-
-        subscriber = client.subscribe_maps("bench", on_maps)
-        time.sleep(0.5)
-        jpeg = encode_jpeg(bench_image(), 90)
-        latencies, overheads = [], []
-        with RssSampler() as rss:
-            for index in range(frames + 3):  # 3 warm-up frames
-                done.clear()
-                sent = time.perf_counter()
-                client.publish_image("bench", jpeg)
-                if not done.wait(30):
-                    raise RuntimeError("no maps within 30 s")
-                received, inference = arrived[index]
-                if index >= 3:
-                    latencies.append((received - sent) * 1e3)
-                    overheads.append((received - sent) * 1e3 - inference)
-        subscriber.undeclare()
-    return {
-        "latency_ms": latencies,
-        "overhead_median_ms": statistics.median(overheads),
-        "overhead_p95_ms": float(np.percentile(overheads, 95)),
-        "peak_rss_mb": rss.peak,
-    }
-
 
 def format_table(rows: list[Row]) -> str:
     header = (
@@ -436,58 +341,47 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     parser.add_argument(
         "--model",
         default=None,
-        help="a checkpoint directory [default: random weights of the "
-        "real rd64-refined architecture, built in a temporary directory]",
+        help="a checkpoint directory or hub id [$GCDTRAV_MODEL, else CIDAS/clipseg-rd64-refined]",
     )
     parser.add_argument("--runs", type=int, default=7, help="timed runs per row (after one warm-up) [7]")
     parser.add_argument("--naive-runs", type=int, default=5, help="timed runs of the slow naive forward [5]")
     parser.add_argument("--modes", default="", help="fast modes compared with fp32 [every mode this machine can run]")
-    parser.add_argument("--zenoh-frames", type=int, default=100, help="frames for the end-to-end row (0: skip)")
-    parser.add_argument("--robots", default="1,4,8", help="simulated robot counts for the throughput rows [1,4,8]")
-    parser.add_argument("--robot-fps", type=float, default=10.0, help="frames/s each simulated robot sends [10]")
-    parser.add_argument("--robot-seconds", type=float, default=10.0, help="measured seconds per robot count [10]")
-    parser.add_argument("--skip", default="", help="comma list of parts to skip: modes,sweeps,engine,zenoh,robots")
-    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/bench.json"), help="JSON output")
+    parser.add_argument("--skip", default="", help="comma list of parts to skip: modes,sweeps,engine")
+    parser.add_argument("--out", type=Path, default=Path("gcdtrav-bench.json"), help="JSON output [gcdtrav-bench.json]")
     return parser
 
 
-def run(args: argparse.Namespace) -> int:
-    from gcdtrav.service.backends.clipseg import available_precisions
-    from gcdtrav.service.backends.random_clipseg import save_random_clipseg
+# More rows after the model's: (bench, precision picked, parts to skip) -> None. benchmarks/bench.py adds zenoh's.
+MoreRows = Callable[[Bench, str, set[str]], None]
 
-    def log(text: str) -> None:
-        print(text, file=sys.stderr, flush=True)
+
+def log_line(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def run(args: argparse.Namespace, cache_dir: Path | None = None, more_rows: MoreRows | None = None) -> int:
+    from gcdtrav.service.backends import default_model
+    from gcdtrav.service.backends.clipseg import available_precisions
 
     skip = {part.strip() for part in args.skip.split(",") if part.strip()}
-    with tempfile.TemporaryDirectory() as scratch:
-        model_dir = Path(args.model) if args.model else Path(scratch) / "clipseg-rd64-refined-random"
-        if not args.model:
-            log("building random weights of the real architecture (CLIPSeg rd64-refined) ...")
-            save_random_clipseg(model_dir, preset="rd64-refined", input_size=352)
-        # Exports of random weights are of no use after this run: keep them in the scratch directory.
-        cache_dir = None if args.model else Path(scratch) / "cache"
-        bench = Bench(model_dir, args.runs, args.naive_runs, log, cache_dir)
-        info = machine_info()
-        log(machine_header(info))
-        modes = [m for m in args.modes.split(",") if m] or [m for m in available_precisions() if m != "fp32"]
-        default_precision = "fp32"
-        if "modes" not in skip:
-            log("backend modes (13 anchors, 640x480 image resized to 352x352):")
-            bench.run_modes(modes)
-            default_precision = bench.fastest_within_parity()
-            log(f"precision auto would pick {default_precision} (fastest row within the parity gate)")
-        if "sweeps" not in skip:
-            log(f"cost against anchors and input size ({default_precision}):")
-            bench.run_sweeps(default_precision)
-        if "engine" not in skip:
-            log("engine and encoding alone:")
-            bench.run_engine()
-        if "zenoh" not in skip and args.zenoh_frames > 0:
-            bench.run_zenoh(default_precision, args.zenoh_frames)
-        if "robots" not in skip:
-            log("service throughput with simulated robots (one instance, loopback):")
-            counts = [int(n) for n in args.robots.split(",") if n.strip()]
-            bench.run_robots(default_precision, counts, args.robot_fps, args.robot_seconds)
+    bench = Bench(Path(args.model or default_model()), args.runs, args.naive_runs, log_line, cache_dir)
+    info = machine_info()
+    log_line(machine_header(info))
+    modes = [m for m in args.modes.split(",") if m] or [m for m in available_precisions() if m != "fp32"]
+    default_precision = "fp32"
+    if "modes" not in skip:
+        log_line("backend modes (13 anchors, 640x480 image resized to 352x352):")
+        bench.run_modes(modes)
+        default_precision = bench.fastest_within_parity()
+        log_line(f"precision auto would pick {default_precision} (fastest row within the parity gate)")
+    if "sweeps" not in skip:
+        log_line(f"cost against anchors and input size ({default_precision}):")
+        bench.run_sweeps(default_precision)
+    if "engine" not in skip:
+        log_line("engine and encoding alone:")
+        bench.run_engine()
+    if more_rows is not None:
+        more_rows(bench, default_precision, skip)
     summary = {
         "machine": info,
         "default_precision": default_precision,

@@ -194,15 +194,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def build_pipeline(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     """Anchors first (cheap to validate), then the model (slow to load)."""
-    from gcdtrav.service.backends.clipseg import ClipSegBackend
-    from gcdtrav.service.pipeline import Pipeline
+    from gcdtrav.service.pipeline import clipseg_pipeline
 
     anchors = load_anchors(args.anchors)
     settings = EngineSettings(
         method=Method(args.method), temperature=args.temperature, normalize_uncertainty=args.normalize_u
     )
-    backend = ClipSegBackend(args.model or default_model(), precision=args.precision)
-    return Pipeline(backend, anchors, settings)
+    return clipseg_pipeline(args.model, args.precision, anchors, settings)
 
 
 def cmd_infer(args: argparse.Namespace) -> int:

@@ -5,10 +5,11 @@ from __future__ import annotations
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.config import EngineSettings
+from gcdtrav.schemas.config import EngineSettings, Method
 from gcdtrav.service.backends.base import SegmentationBackend
 from gcdtrav.service.engine.maps import TraversabilityMaps, compute_maps
 from numpy.typing import NDArray
@@ -36,6 +37,7 @@ class FrameResult:
     maps: TraversabilityMaps
     logits: NDArray[np.float32]
     anchors: AnchorSet  # the exact set these maps were computed with
+    method: Method  # how T and U were computed from the weights
     inference_ms: float  # backend forward only
     engine_ms: float  # softmax and statistics
 
@@ -75,9 +77,23 @@ class Pipeline:
             maps=maps,
             logits=inference.logits,
             anchors=inference.anchors,
+            method=self.settings.method,
             inference_ms=inference.inference_ms,
             engine_ms=(time.perf_counter() - start) * 1e3,
         )
 
     def process(self, image_rgb: NDArray[np.uint8]) -> FrameResult:
         return self.finish(self.infer(image_rgb))
+
+
+def clipseg_pipeline(
+    model: str | None, precision: str, anchors: AnchorSet, engine: EngineSettings, cache_dir: Path | None = None
+) -> Pipeline:
+    """The one assembly of CLIPSeg and the engine, for `gcdtrav infer` and `gcdtrav serve`: ``model`` a
+    directory or hub id (None: $GCDTRAV_MODEL, else CIDAS/clipseg-rd64-refined); ``cache_dir`` where the
+    ONNX exports and auto's measurement live (None: the user's cache)."""
+    from gcdtrav.service.backends import default_model
+    from gcdtrav.service.backends.clipseg import ClipSegBackend
+
+    backend = ClipSegBackend(model or default_model(), precision=precision, cache_dir=cache_dir)
+    return Pipeline(backend, anchors, engine)

@@ -22,7 +22,7 @@ TINY_INPUT_SIZE = 96  # != the vision config's 64, so position-embedding interpo
 
 
 def build_tiny_clipseg(directory: Path, seed: int = 0) -> Path:
-    from gcdtrav.service.backends.random_clipseg import save_random_clipseg
+    from tools.random_clipseg import save_random_clipseg
 
     return save_random_clipseg(directory, preset="tiny", input_size=TINY_INPUT_SIZE, seed=seed)
 

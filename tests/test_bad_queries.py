@@ -81,7 +81,7 @@ def test_ros_frame_ids_are_bounded() -> None:
     pytest.importorskip("rosbags")
     import numpy as np
     from gcdtrav.service.bus import ros
-    from gcdtrav.service.bus.grids import decode_pose
+    from gcdtrav.service.bus.ros import decode_pose
 
     types = ros.typestore().types
     header = ros.make_header(1.0, "f" * 5_000_000)  # fits in a 20 MB payload; was passed on to every output
@@ -111,7 +111,8 @@ from gcdtrav.client import AnchorSetRejected, TraversabilityClient  # noqa: E402
 from gcdtrav.schemas.settings import ServiceSettings  # noqa: E402
 from gcdtrav.service.bus import node as node_module  # noqa: E402
 from gcdtrav.service.bus.node import TraversabilityService  # noqa: E402
-from gcdtrav.service.loopback import in_process_service  # noqa: E402
+
+from tools.loopback import in_process_service  # noqa: E402
 
 
 @pytest.fixture()

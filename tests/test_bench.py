@@ -1,4 +1,5 @@
-"""`gcdtrav bench` end to end on a tiny model: every group produces rows and the JSON says what it measured.
+"""`gcdtrav bench` and the project's benchmark (benchmarks/bench.py: the same plus the service rows) end to end
+on a tiny model: every group produces rows and the JSON says what it measured.
 
 Timings themselves are not asserted (they belong to the benchmark's output, not to tests).
 """
@@ -15,7 +16,7 @@ pytest.importorskip("torch")
 
 
 def test_bench_runs_every_group_and_writes_json(tiny_model_dir: Path, tmp_path: Path) -> None:
-    from gcdtrav.service import bench
+    from benchmarks import bench
 
     out = tmp_path / "bench.json"
     argv = ["--model", str(tiny_model_dir), "--runs", "1", "--naive-runs", "1", "--zenoh-frames", "2"]
@@ -47,3 +48,16 @@ def test_bench_runs_every_group_and_writes_json(tiny_model_dir: Path, tmp_path: 
         )
     zenoh_row = next(row for row in rows if row["group"] == "zenoh")
     assert zenoh_row["runs"] == 2 and "overhead_median_ms" in zenoh_row["extra"]
+
+
+def test_shipped_bench_times_the_given_checkpoint_without_service_rows(tiny_model_dir: Path, tmp_path: Path) -> None:
+    from gcdtrav.service import bench
+
+    out = tmp_path / "bench.json"
+    argv = ["--model", str(tiny_model_dir), "--runs", "1", "--naive-runs", "1", "--modes", "int8"]
+    assert bench.main([*argv, "--skip", "sweeps,engine", "--out", str(out)]) == 0
+    rows = json.loads(out.read_text("utf-8"))["rows"]
+    assert {row["name"] for row in rows if row["group"] == "mode"} >= {"fast path fp32", "fast path int8"}
+    assert not {"zenoh", "robots"} & {row["group"] for row in rows}  # those need the repository's tools/
+    with pytest.raises(SystemExit):  # the service options belong to benchmarks/bench.py
+        bench.main([*argv, "--robots", "1"])

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from conftest import textured_image
 from gcdtrav.schemas.anchors import default_anchor_set
-from gcdtrav.service.bus.latest import LatestFrameQueue, PendingBudgetExceeded
+from gcdtrav.service.latest_queue import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.queries import FrameHistory, FrameRecord, QueryError
 from gcdtrav.service.sources import SWEEP_INTERVAL_S, SourceTracker
 from zenoh_helpers import connecting_config, service_reachable, wait_until
@@ -116,7 +116,8 @@ pytest.importorskip("torch")
 from gcdtrav.client import ServiceError, TraversabilityClient  # noqa: E402
 from gcdtrav.schemas.settings import ServiceSettings  # noqa: E402
 from gcdtrav.service.bus.run import starting_anchor_set  # noqa: E402
-from gcdtrav.service.loopback import in_process_service  # noqa: E402
+
+from tools.loopback import in_process_service  # noqa: E402
 
 
 def test_service_caps_sources_reports_them_and_forgets_idle_ones(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]

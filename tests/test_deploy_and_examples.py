@@ -42,7 +42,8 @@ def test_example_anchor_set_is_valid() -> None:
 def test_robot_planner_and_operator_examples(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     pytest.importorskip("torch")
     from gcdtrav.schemas.settings import ServiceSettings
-    from gcdtrav.service.loopback import in_process_service
+
+    from tools.loopback import in_process_service
 
     folder = tmp_path / "images"
     folder.mkdir()
@@ -96,7 +97,8 @@ def test_readme_python_example_runs(tiny_backend, tmp_path: Path) -> None:  # ty
     import re
 
     from gcdtrav.schemas.settings import ServiceSettings
-    from gcdtrav.service.loopback import in_process_service
+
+    from tools.loopback import in_process_service
 
     readme = (ROOT / "README.md").read_text()
     snippet = re.search(r"```python\n(.*?)```", readme, re.S)
@@ -116,7 +118,8 @@ def test_readme_python_example_runs(tiny_backend, tmp_path: Path) -> None:  # ty
 def test_container_health_check_finds_its_instance(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     pytest.importorskip("torch")
     from gcdtrav.schemas.settings import ServiceSettings
-    from gcdtrav.service.loopback import in_process_service
+
+    from tools.loopback import in_process_service
 
     def health(*args: str) -> subprocess.CompletedProcess[str]:
         command = [sys.executable, "-m", "gcdtrav.client.health", "--timeout", "2", *args]

@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.schemas.images import encode_jpeg, encode_png
+from gcdtrav.schemas.inputs import RejectedInput, decode_payload
 from gcdtrav.schemas.messages import ImageEnvelope, MessageError, PixelEncoding
-from gcdtrav.service.bus.ingest import RejectedInput, decode_payload
 from gcdtrav.service.queries import FrameHistory, FrameRecord, QueryError, answer_patch_query
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st

@@ -121,8 +121,9 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
     from gcdtrav.schemas.messages import Pose2D
     from gcdtrav.schemas.settings import ServiceSettings
     from gcdtrav.service.bus import ros
-    from gcdtrav.service.loopback import in_process_service
     from zenoh_helpers import connecting_config, wait_until
+
+    from tools.loopback import in_process_service
 
     settings = ServiceSettings.model_validate(
         {
@@ -200,7 +201,7 @@ def test_pose_camera_info_and_depth_messages() -> None:
     pytest.importorskip("rosbags")
     from gcdtrav.schemas.messages import MessageError, Pose2D
     from gcdtrav.service.bus import ros
-    from gcdtrav.service.bus.grids import decode_camera_info, decode_depth, decode_pose
+    from gcdtrav.service.bus.ros import decode_camera_info, decode_depth, decode_pose
 
     types = ros.typestore().types
     header = ros.make_header(12.5, "odom")

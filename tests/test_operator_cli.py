@@ -17,7 +17,8 @@ from gcdtrav.client.operator import anchor_diff
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
-from gcdtrav.service.loopback import in_process_service
+
+from tools.loopback import in_process_service
 
 ROOT = Path(__file__).resolve().parents[1]
 PUDDLES = ROOT / "examples" / "anchors" / "puddles.yaml"

@@ -163,7 +163,8 @@ def decode_float_image(payload: bytes) -> tuple[np.ndarray, Any]:
 def test_ros_in_maps_out_both_layouts(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     from gcdtrav.client import Maps, TraversabilityClient
     from gcdtrav.schemas.settings import ServiceSettings
-    from gcdtrav.service.loopback import in_process_service
+
+    from tools.loopback import in_process_service
 
     settings = ServiceSettings.model_validate(
         {

@@ -182,7 +182,7 @@ def test_output_topics_from_templates() -> None:
 
 
 def test_depth_honours_is_bigendian() -> None:
-    from gcdtrav.service.bus.grids import decode_depth
+    from gcdtrav.service.bus.ros import decode_depth
 
     metres = np.array([[0.5, 1.25], [2.0, 7.75]], np.float32)
     millimetres = np.array([[500, 1250], [2000, 7750]], np.uint16)
@@ -270,7 +270,8 @@ def test_camera_is_subscribed_and_outputs_join_the_graph(
     tiny_backend: Any, tmp_path: Path, distro: str, zenoh_namespace: str
 ) -> None:
     from gcdtrav.schemas.settings import ServiceSettings
-    from gcdtrav.service.loopback import in_process_service
+
+    from tools.loopback import in_process_service
 
     hashes = {"image": IMAGE_HASH, "compressed": COMPRESSED_IMAGE_HASH, "grid": OCCUPANCY_GRID_HASH}
     if distro == "humble":

@@ -23,7 +23,8 @@ from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.bus.run import starting_anchor_set
 from gcdtrav.service.cpus import usable_cpus
 from gcdtrav.service.engine import gcd
-from gcdtrav.service.loopback import in_process_service
+
+from tools.loopback import in_process_service
 
 TWO_ANCHORS = {
     "name": "puddles",

@@ -11,11 +11,11 @@ import pytest
 from conftest import textured_image
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.images import encode_jpeg, encode_png
+from gcdtrav.schemas.inputs import RejectedInput, decode_payload
 from gcdtrav.schemas.messages import ImageEnvelope, MapsMessage, MessageError, PixelEncoding
 from gcdtrav.schemas.settings import SettingsError, load_settings
-from gcdtrav.service.bus.ingest import RejectedInput, decode_payload
-from gcdtrav.service.bus.latest import LatestFrameQueue
 from gcdtrav.service.bus.node import literal_head, source_of
+from gcdtrav.service.latest_queue import LatestFrameQueue
 from gcdtrav.service.state import load_anchor_state, save_anchor_state, write_atomically
 
 LIMITS = {"received_at": 1.0, "max_bytes": 10_000_000, "max_pixels": 10_000_000}

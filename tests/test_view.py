@@ -33,7 +33,8 @@ from gcdtrav.schemas.anchors import default_anchor_set  # noqa: E402
 from gcdtrav.schemas.messages import Pose2D  # noqa: E402
 from gcdtrav.schemas.settings import ServiceSettings  # noqa: E402
 from gcdtrav.service.bus.node import TraversabilityService  # noqa: E402
-from gcdtrav.service.loopback import in_process_service  # noqa: E402
+
+from tools.loopback import in_process_service  # noqa: E402
 
 GRID_CELLS = 32
 LAYOUT = Path(__file__).resolve().parents[1] / "examples" / "foxglove" / "gcdtrav-layout.json"

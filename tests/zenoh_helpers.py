@@ -7,8 +7,9 @@ from collections.abc import Callable
 
 import zenoh
 from gcdtrav.client.zenoh_args import zenoh_config
-from gcdtrav.service.loopback import free_port as free_port  # re-exported: tests take it from here
-from gcdtrav.service.loopback import serve_command
+
+from tools.loopback import free_port as free_port  # re-exported: tests take it from here
+from tools.loopback import serve_command
 
 
 def connecting_config(port: int, mode: str = "peer") -> zenoh.Config:

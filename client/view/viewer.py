@@ -43,6 +43,7 @@ from gcdtrav.client.view.anchor_parameters import anchor_parameters, apply_param
 from gcdtrav.client.view.latest import LatestSlots
 from gcdtrav.client.view.recorder import McapRecorder
 from gcdtrav.schemas.anchors import AnchorSetError
+from gcdtrav.schemas.inputs import decode_payload
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import AnchorSetReply, ServiceStatus, SourceView
 from numpy.typing import NDArray
@@ -385,8 +386,6 @@ def camera_image(payload: bytes) -> tuple[bytes, str, float, str]:
         if peek_image_size(envelope.data) is None:
             raise ValueError(f"envelope data is not a {envelope.encoding.value} file")
         return envelope.data, envelope.encoding.value, envelope.stamp, envelope.frame_id
-    from gcdtrav.service.bus.ingest import decode_payload  # the service's decoder of raw pixels, numpy only
-
     frame = decode_payload(payload, "application/msgpack", time.time(), len(payload), envelope.width * envelope.height)
     return pictures.jpeg(frame.image), "jpeg", envelope.stamp, envelope.frame_id
 

@@ -20,9 +20,10 @@ from typing import Any
 import cv2
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.images import encode_map_png16
-from gcdtrav.schemas.messages import ContextDistribution, GridHeader, GridMessage, MessageError, PathReply, Pose2D
+from gcdtrav.schemas.images import encode_count_png, encode_map_png16
+from gcdtrav.schemas.messages import ContextDistribution, GridHeader, GridMessage, PathReply, Pose2D
 from gcdtrav.schemas.settings import GridSettings
+from gcdtrav.service.bus.ros import decode_camera_info, decode_depth, decode_pose, occupancy_cdr
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points, map_cell_pixels
 from gcdtrav.service.queries import (
@@ -38,64 +39,6 @@ from numpy.typing import NDArray
 log = logging.getLogger("gcdtrav.service")
 CELL_FORMS = "x=..;y=.. (metres, grid frame), or path=x0,y0;x1,y1;..."
 MAX_PATH_POINTS = 256
-
-
-def yaw_of_quaternion(x: float, y: float, z: float, w: float) -> float:
-    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-
-
-def decode_pose(payload: bytes, fmt: str) -> Pose2D:
-    if fmt == "gcdtrav":
-        return Pose2D.unpack(payload)
-    from gcdtrav.service.bus import ros
-
-    try:
-        odometry = ros.typestore().deserialize_cdr(payload, "nav_msgs/msg/Odometry")
-    except Exception as err:  # rosbags raises assorted errors on bad CDR
-        raise MessageError(f"not a nav_msgs/msg/Odometry: {type(err).__name__}: {err}") from None
-    pose = odometry.pose.pose
-    q = pose.orientation
-    stamp = odometry.header.stamp.sec + odometry.header.stamp.nanosec * 1e-9
-    yaw = yaw_of_quaternion(q.x, q.y, q.z, q.w)
-    frame_id = str(odometry.header.frame_id) or "odom"
-    return Pose2D.validated(
-        {"stamp": stamp, "frame_id": frame_id, "x": float(pose.position.x), "y": float(pose.position.y), "yaw": yaw}
-    )
-
-
-def decode_camera_info(payload: bytes) -> PinholeCamera:
-    from gcdtrav.service.bus import ros
-
-    try:
-        info = ros.typestore().deserialize_cdr(payload, "sensor_msgs/msg/CameraInfo")
-    except Exception as err:  # rosbags raises assorted errors on bad CDR
-        raise MessageError(f"not a sensor_msgs/msg/CameraInfo: {type(err).__name__}: {err}") from None
-    k = np.asarray(info.k, dtype=np.float64)
-    if not (np.isfinite(k).all() and k[0] > 0 and k[4] > 0 and info.width > 0 and info.height > 0):
-        raise MessageError(f"CameraInfo needs finite intrinsics, positive focal lengths and a size; k={k.tolist()}")
-    return PinholeCamera(fx=k[0], fy=k[4], cx=k[2], cy=k[5], width=int(info.width), height=int(info.height))
-
-
-def decode_depth(payload: bytes) -> NDArray[np.float32]:
-    """sensor_msgs/Image 32FC1 (metres) or 16UC1 (millimetres) to metres."""
-    from gcdtrav.service.bus import ros
-
-    try:
-        image = ros.typestore().deserialize_cdr(payload, ros.IMAGE)
-    except Exception as err:  # rosbags raises assorted errors on bad CDR
-        raise MessageError(f"not a sensor_msgs/msg/Image: {type(err).__name__}: {err}") from None
-    kinds = {"32fc1": ("f4", 1.0), "16uc1": ("u2", 1e-3), "mono16": ("u2", 1e-3)}
-    kind = kinds.get(str(image.encoding).lower())
-    if (
-        kind is None
-        or image.step * image.height != len(image.data)
-        or image.step < image.width * (4 if kind[0] == "f4" else 2)
-    ):
-        raise MessageError(f"depth must be 32FC1 or 16UC1 with matching size, got {image.encoding}")
-    dtype = np.dtype((">" if image.is_bigendian else "<") + kind[0])
-    rows = np.asarray(image.data, np.uint8).reshape(image.height, image.step)
-    values = rows[:, : image.width * dtype.itemsize].copy().view(dtype)
-    return (values.astype(np.float32) * np.float32(kind[1])).reshape(image.height, image.width)
 
 
 @dataclass
@@ -148,28 +91,6 @@ class SourceGrid:
         landed = self.grid.add(ground, flat, stamp, anchors)
         self.seq += 1
         return landed
-
-
-def occupancy_cdr(header: GridHeader, values: NDArray[np.floating], known: NDArray[np.bool_]) -> bytes:
-    """nav_msgs/OccupancyGrid with cells 0..100 where known, -1 elsewhere."""
-    from gcdtrav.service.bus import ros
-
-    types = ros.typestore().types
-    data = np.where(known, np.clip(np.round(np.nan_to_num(values) * 100), 0, 100), -1).astype(np.int8)
-    ros_header = ros.make_header(header.stamp, header.frame_id)
-    pose = types["geometry_msgs/msg/Pose"](
-        position=types["geometry_msgs/msg/Point"](x=header.origin[0], y=header.origin[1], z=0.0),
-        orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
-    )
-    info = types["nav_msgs/msg/MapMetaData"](
-        map_load_time=ros_header.stamp,
-        resolution=header.resolution,
-        width=header.cells,
-        height=header.cells,
-        origin=pose,
-    )
-    message = types["nav_msgs/msg/OccupancyGrid"](header=ros_header, info=info, data=data.ravel())
-    return bytes(ros.typestore().serialize_cdr(message, "nav_msgs/msg/OccupancyGrid"))
 
 
 @dataclass(frozen=True)
@@ -226,7 +147,7 @@ class GridOutputs:
             header=header,
             traversability_png=encode_map_png16(np.nan_to_num(t)),
             uncertainty_png=encode_map_png16(np.nan_to_num(u)),
-            count_png=_count_png(count),
+            count_png=encode_count_png(count),
         )
         if not grid.config.occupancy_grid:
             return GridUpdate(message)
@@ -333,10 +254,3 @@ def _points(text: str) -> list[tuple[float, float]]:
     if not 2 <= len(points) <= MAX_PATH_POINTS:
         raise QueryError(f"a path needs 2 to {MAX_PATH_POINTS} points x,y separated by ';', got {len(points)}")
     return points
-
-
-def _count_png(count: NDArray[Any]) -> bytes:
-    ok, buffer = cv2.imencode(".png", np.clip(count, 0, 65535).astype(np.uint16))
-    if not ok:
-        raise ValueError("PNG encoding failed")
-    return buffer.tobytes()

@@ -11,12 +11,13 @@ import queue
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from typing import Any, TypeVar
 
 import numpy as np
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
+from gcdtrav.schemas.inputs import DecodedFrame, RejectedInput, decode_payload
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.limits import MAX_SOURCE_CHARS
 from gcdtrav.schemas.messages import (
@@ -25,22 +26,20 @@ from gcdtrav.schemas.messages import (
     ErrorReply,
     MessageError,
     ServiceStatus,
-    SourceStatus,
 )
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
 from gcdtrav.service.anchor_switch import AnchorSwitch, SwapDone
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus import ros as ros_io
+from gcdtrav.service.bus.frames import InferredFrame, PendingFrame, ProcessedFrame
 from gcdtrav.service.bus.grids import GridOutputs
 from gcdtrav.service.bus.guard import answering
-from gcdtrav.service.bus.ingest import DecodedFrame, RejectedInput, decode_payload
-from gcdtrav.service.bus.latest import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.bus.membership import Membership
-from gcdtrav.service.bus.outputs import FrameOutputs, ProcessedFrame
+from gcdtrav.service.bus.outputs import FrameOutputs
 from gcdtrav.service.bus.ros_graph import RosGraph
-from gcdtrav.service.bus.stats import ServiceStats, percentiles
 from gcdtrav.service.cpus import usable_cpus
-from gcdtrav.service.pipeline import Inference, Pipeline
+from gcdtrav.service.latest_queue import LatestFrameQueue, PendingBudgetExceeded
+from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.queries import (
     PATCH_FORMS,
     FrameHistory,
@@ -51,33 +50,11 @@ from gcdtrav.service.queries import (
     strict_parameters,
 )
 from gcdtrav.service.sources import SourceTracker
+from gcdtrav.service.stats import ServiceStats
 
 log = logging.getLogger("gcdtrav.service")
 
 _R = TypeVar("_R")
-
-
-@dataclass(frozen=True)
-class PendingFrame:
-    key: str
-    payload: bytes
-    encoding: str
-    received_at: float
-    ros: ros_io.RosTopic | None = None  # set for CDR payloads from ROS 2 inputs
-
-
-@dataclass(frozen=True)
-class DecodedItem:
-    source: str
-    pending: PendingFrame
-    frame: DecodedFrame
-    ros_header: Any  # the ROS message header to reuse on ROS outputs, or None
-
-
-@dataclass(frozen=True)
-class InferredItem:
-    decoded: DecodedItem
-    inference: Inference
 
 
 def literal_head(key_expr: str) -> str:
@@ -116,7 +93,7 @@ class TraversabilityService:
         # CPU, overlapping only makes both compete (-3 % frames/s, +25 ms latency measured), so one thread
         # does it all. The frame to infer is always taken from the latest-only queue just in time.
         self.overlap_outputs = settings.threads is not None and settings.threads < usable_cpus()
-        self._inferred: queue.Queue[InferredItem | None] = queue.Queue(maxsize=1)
+        self._inferred: queue.Queue[InferredFrame | None] = queue.Queue(maxsize=1)
         self._workers = [threading.Thread(target=self._infer_loop, name="gcdtrav-infer", daemon=True)]
         if self.overlap_outputs:
             self._workers.append(threading.Thread(target=self._output_loop, name="gcdtrav-output", daemon=True))
@@ -259,7 +236,8 @@ class TraversabilityService:
                 source, "oversized", f"{size} bytes exceeds the limit of {self.settings.max_payload_bytes}"
             )
             return
-        pending = PendingFrame(str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding), time.time(), ros)
+        key, payload, encoding = str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding)
+        pending = PendingFrame(source, key, payload, encoding, time.time(), ros)
         try:
             self.queue.put(source, pending, size)
         except PendingBudgetExceeded as err:
@@ -300,33 +278,33 @@ class TraversabilityService:
                     self._inferred.put(None)  # after the frames already handed on
                     return
                 continue
-            source, pending = item
-            inferred = self._guarded(source, pending, self._infer, source, pending)
+            _, pending = item
+            inferred = self._guarded(pending, self._infer, pending)
             if inferred is None:
                 continue
             if self.overlap_outputs:
                 self._inferred.put(inferred)
             else:
-                self._guarded(source, pending, self._publish, inferred)
+                self._guarded(pending, self._publish, inferred)
 
     def _output_loop(self) -> None:
         while (item := self._inferred.get()) is not None:
-            self._guarded(item.decoded.source, item.decoded.pending, self._publish, item)
+            self._guarded(item.pending, self._publish, item)
 
-    def _guarded(self, source: str, pending: PendingFrame, step: Callable[..., _R], *args: Any) -> _R | None:
+    def _guarded(self, pending: PendingFrame, step: Callable[..., _R], *args: Any) -> _R | None:
         """One step of one frame; whatever it raises is counted against the frame, never kills the thread."""
         try:
             return step(*args)
         except RejectedInput as err:
-            self.stats.rejected(source, err.reason, err.detail)
+            self.stats.rejected(pending.source, err.reason, err.detail)
         except Exception as err:
             log.exception("frame from %s failed", pending.key)
-            self.stats.rejected(source, "processing_failed", repr(err)[:200])
+            self.stats.rejected(pending.source, "processing_failed", repr(err)[:200])
         return None
 
-    def _infer(self, source: str, pending: PendingFrame) -> InferredItem:
-        frame, ros_header = self._decode(pending)
-        return InferredItem(DecodedItem(source, pending, frame, ros_header), self.pipeline.infer(frame.image))
+    def _infer(self, pending: PendingFrame) -> InferredFrame:
+        image, ros_header = self._decode(pending)
+        return InferredFrame(pending, image, ros_header, self.pipeline.infer(image.image))
 
     def _decode(self, pending: PendingFrame) -> tuple[DecodedFrame, Any]:
         """The image and, for ROS inputs, the message header to reuse on the ROS outputs."""
@@ -347,27 +325,23 @@ class TraversabilityService:
             raise RejectedInput(err.reason, err.detail) from None
         return DecodedFrame(ros_frame.image, ros_frame.stamp, ros_frame.frame_id), ros_frame.header
 
-    def _publish(self, item: InferredItem) -> None:
-        decoded = item.decoded
-        source, pending, frame = decoded.source, decoded.pending, decoded.frame
-        result = self.pipeline.finish(item.inference)
+    def _publish(self, inferred: InferredFrame) -> None:
+        source, image = inferred.pending.source, inferred.image.image
+        result = self.pipeline.finish(inferred.inference)
         seq = self._seq.get(source, -1) + 1
         self._seq[source] = seq
-        height, width = frame.image.shape[:2]
+        height, width = image.shape[:2]
         record = FrameRecord(
             seq=seq,
-            stamp=frame.stamp,
-            frame_id=frame.frame_id,
+            stamp=inferred.image.stamp,
+            frame_id=inferred.image.frame_id,
             weights=result.maps.weights.astype(np.float16),
             anchors=result.anchors,
             image_size=(width, height),
         )
         self.history.add(source, record)
-        done = ProcessedFrame(
-            source, pending.key, pending.received_at, frame, result, record, pending.ros, decoded.ros_header
-        )
-        self.outputs.publish(done, self.pipeline.settings.method)
-        latency_ms = (time.time() - pending.received_at) * 1e3
+        self.outputs.publish(ProcessedFrame(inferred, result, record))
+        latency_ms = (time.time() - inferred.pending.received_at) * 1e3
         self.stats.processed(source, record.seq, latency_ms, result.inference_ms)
 
     def _answering(self, handler: Callable[[zenoh.Query], None]) -> Callable[[zenoh.Query], None]:
@@ -458,24 +432,7 @@ class TraversabilityService:
         return answer
 
     def status(self) -> ServiceStatus:
-        counters = self.queue.counters()
-        sources: dict[str, SourceStatus] = {}
-        with self.stats._lock:
-            names = set(counters) | set(self.stats.sources)
-            for name in sorted(names):
-                queued = counters.get(name)
-                stats = self.stats.sources.get(name)
-                sources[name] = SourceStatus(
-                    received=queued.received if queued else 0,
-                    dropped=queued.dropped if queued else 0,
-                    processed=stats.processed if stats else 0,
-                    rejected=stats.rejected if stats else 0,
-                    last_seq=stats.last_seq if stats else None,
-                    latency_ms=percentiles(stats.latency_ms) if stats else {},
-                    inference_ms=percentiles(stats.inference_ms) if stats else {},
-                )
-            rejected = dict(self.stats.rejected_by_reason)
-            errors = list(self.stats.last_errors)
+        counts = self.stats.snapshot(self.queue.counters())
         return ServiceStatus(
             instance=self.settings.instance,
             instances=sorted(self.membership.live()) if self.membership else [self.settings.instance],
@@ -487,9 +444,9 @@ class TraversabilityService:
             precision_reason=str(getattr(self.pipeline.backend, "precision_reason", "")),
             queued=len(self.queue),
             queued_bytes=self.queue.nbytes,
-            sources=sources,
-            rejected_by_reason=rejected,
-            last_errors=errors,
+            sources=counts.sources,
+            rejected_by_reason=counts.rejected_by_reason,
+            last_errors=counts.last_errors,
             history_bytes=self.history.nbytes,
             history_budget_bytes=self.history.budget_bytes or 0,
             tracked_sources=len(self.sources),

@@ -9,8 +9,6 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
@@ -21,29 +19,13 @@ from gcdtrav.schemas.messages import MSGPACK_ENCODING, MapsHeader, MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service import viz
 from gcdtrav.service.bus import ros as ros_io
+from gcdtrav.service.bus.frames import ProcessedFrame
 from gcdtrav.service.bus.grids import GridOutputs
-from gcdtrav.service.bus.ingest import DecodedFrame
 from gcdtrav.service.bus.ros_graph import GRID_QOS, IMAGE_QOS, Qos, RosGraph
-from gcdtrav.service.pipeline import FrameResult
-from gcdtrav.service.queries import FrameRecord
 
 log = logging.getLogger("gcdtrav.service")
 MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
 CDR = zenoh.Encoding.APPLICATION_CDR
-
-
-@dataclass(frozen=True)
-class ProcessedFrame:
-    """One frame after inference, with what its outputs need to know about where it came from."""
-
-    source: str
-    key: str
-    received_at: float
-    frame: DecodedFrame
-    result: FrameResult
-    record: FrameRecord
-    ros_topic: ros_io.RosTopic | None = None
-    ros_header: Any = None
 
 
 def preview_jpeg(image: np.ndarray, t: np.ndarray, u: np.ndarray, max_width: int) -> bytes:
@@ -76,38 +58,38 @@ class FrameOutputs:
         self._ros_keys_of_source: dict[str, set[str]] = {}  # publishers (and their tokens) of the ROS graph
         self._declare_lock = threading.Lock()
 
-    def publish(self, done: ProcessedFrame, method: Any) -> None:
+    def publish(self, done: ProcessedFrame) -> None:
         t, u = done.result.maps.traversability, done.result.maps.uncertainty
         width, height = done.record.image_size
-        ros_out = self.settings.ros_output.enabled and done.ros_topic is not None
+        ros_out = self.settings.ros_output.enabled and done.pending.ros is not None
         full = None
         if self.settings.full_resolution or self.settings.preview or ros_out:
             full = resize_map(t, width, height), resize_map(u, width, height)
-        self._put(done.source, self.keys.maps(done.source), self._maps(done, method, full).pack(), MSGPACK)
+        self._put(done.source, self.keys.maps(done.source), self._maps(done, full).pack(), MSGPACK)
         preview = None
         if self.settings.preview and full is not None:
-            preview = preview_jpeg(done.frame.image, *full, self.settings.preview_max_width)
+            preview = preview_jpeg(done.image.image, *full, self.settings.preview_max_width)
             self._put(done.source, self.keys.preview(done.source), preview, zenoh.Encoding.IMAGE_JPEG)
-        if ros_out and done.ros_topic is not None and full is not None:
+        if ros_out and done.pending.ros is not None and full is not None:
             self._publish_ros(done, *full, preview)
         if self.grids is not None:
             self._publish_grid(done)
 
-    def _maps(self, done: ProcessedFrame, method: Any, full: tuple[np.ndarray, np.ndarray] | None) -> MapsMessage:
+    def _maps(self, done: ProcessedFrame, full: tuple[np.ndarray, np.ndarray] | None) -> MapsMessage:
         record, result = done.record, done.result
         header = MapsHeader(
             source=done.source,
-            key=done.key,
+            key=done.pending.key,
             seq=record.seq,
-            stamp=done.frame.stamp,
-            frame_id=done.frame.frame_id,
-            received_at=done.received_at,
+            stamp=done.image.stamp,
+            frame_id=done.image.frame_id,
+            received_at=done.pending.received_at,
             published_at=time.time(),
             inference_ms=result.inference_ms,
             model=self.model_id,
             instance=self.settings.instance,
             anchor_set_version=result.anchors.version,
-            method=method,
+            method=result.method,
             map_shape=record.map_shape,
             image_size=record.image_size,
             scale=record.scale,
@@ -125,7 +107,7 @@ class FrameOutputs:
 
     def _publish_ros(self, done: ProcessedFrame, t: np.ndarray, u: np.ndarray, preview: bytes | None) -> None:
         """T and U as 32FC1 images (and the preview) at the input's size, with the input's header."""
-        topic, header, names = done.ros_topic, done.ros_header, self.settings.ros_output
+        topic, header, names = done.pending.ros, done.inferred.ros_header, self.settings.ros_output
         assert topic is not None
         outputs = [
             (names.traversability_topic, ros_io.IMAGE, ros_io.float_image_cdr(header, t)),
@@ -136,7 +118,7 @@ class FrameOutputs:
             jpeg = (
                 preview
                 if preview is not None
-                else preview_jpeg(done.frame.image, t, u, self.settings.preview_max_width)
+                else preview_jpeg(done.image.image, t, u, self.settings.preview_max_width)
             )
             if kind == "compressed":  # image_transport: <base topic>/compressed
                 compressed = ros_io.compressed_jpeg_cdr(header, jpeg)
@@ -156,7 +138,7 @@ class FrameOutputs:
         if update.occupancy is not None and update.uncertainty is not None:
             self._put(done.source, self.keys.grid(done.source, "occupancy"), update.occupancy, CDR)
             self._put(done.source, self.keys.grid(done.source, "uncertainty"), update.uncertainty, CDR)
-            camera = done.ros_topic
+            camera = done.pending.ros
             if camera is not None and self.settings.ros_output.enabled:
                 names = self.settings.ros_output
                 for template, payload in (

@@ -24,9 +24,9 @@ from dataclasses import dataclass
 from typing import Any, Literal
 
 import zenoh
+from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus import ros as ros_io
-from gcdtrav.service.bus.ingest import RejectedInput
 
 log = logging.getLogger("gcdtrav.service")
 

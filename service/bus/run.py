@@ -35,15 +35,12 @@ def starting_anchor_set(settings: ServiceSettings) -> AnchorSet:
 def build_service_pipeline(settings: ServiceSettings) -> Pipeline:
 
     import torch
-    from gcdtrav.service.backends import default_model
-    from gcdtrav.service.backends.clipseg import ClipSegBackend
+    from gcdtrav.service.pipeline import clipseg_pipeline
 
     if settings.threads is not None:
         torch.set_num_threads(settings.threads)
     anchors = starting_anchor_set(settings)
-    model = settings.model or default_model()
-    backend = ClipSegBackend(model, precision=settings.precision, cache_dir=settings.state_dir / "models")
-    return Pipeline(backend, anchors, settings.engine)
+    return clipseg_pipeline(settings.model, settings.precision, anchors, settings.engine, settings.state_dir / "models")
 
 
 def with_torch_threads(settings: ServiceSettings) -> ServiceSettings:

@@ -1,4 +1,4 @@
-"""Counters, latency percentiles and rate-limited error logging for the status queryable."""
+"""Counters, latency percentiles and rate-limited error logging; their snapshot for the status queryable."""
 
 from __future__ import annotations
 
@@ -6,9 +6,12 @@ import logging
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
+from gcdtrav.schemas.messages import SourceStatus
+from gcdtrav.service.latest_queue import QueueCounters
 
 LATENCY_WINDOW = 1000
 ERROR_LOG_INTERVAL_S = 5.0
@@ -30,6 +33,15 @@ class SourceStats:
     last_seq: int | None = None
     latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
     inference_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
+
+
+@dataclass(frozen=True)
+class StatsSnapshot:
+    """The status's counting part, read under one lock so its numbers agree with each other."""
+
+    sources: dict[str, SourceStatus]
+    rejected_by_reason: dict[str, int]
+    last_errors: list[str]
 
 
 class ServiceStats:
@@ -72,3 +84,23 @@ class ServiceStats:
             suppressed = self._suppressed.pop(reason, 0)
         extra = f" (+{suppressed} similar since last report)" if suppressed else ""
         self._log.warning("rejected %s%s", message, extra, exc_info=error)
+
+    def snapshot(self, queued: Mapping[str, QueueCounters]) -> StatsSnapshot:
+        """Per source: the queue's counts (received, dropped) with this object's (processed, rejected, latency)."""
+        with self._lock:
+            sources = {
+                name: self._source_status(queued.get(name), name) for name in sorted(set(queued) | set(self.sources))
+            }
+            return StatsSnapshot(sources, dict(self.rejected_by_reason), list(self.last_errors))
+
+    def _source_status(self, queued: QueueCounters | None, name: str) -> SourceStatus:
+        stats = self.sources.get(name, SourceStats())
+        return SourceStatus(
+            received=queued.received if queued else 0,
+            dropped=queued.dropped if queued else 0,
+            processed=stats.processed,
+            rejected=stats.rejected,
+            last_seq=stats.last_seq,
+            latency_ms=percentiles(stats.latency_ms),
+            inference_ms=percentiles(stats.inference_ms),
+        )

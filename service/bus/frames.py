@@ -1,0 +1,55 @@
+"""A frame's record on its way through the service: it arrives (callback), is inferred (first worker) and
+processed (second worker). Each stage keeps the one before it, so nothing is copied or re-wrapped."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from gcdtrav.schemas.inputs import DecodedFrame
+from gcdtrav.service.bus.ros import RosTopic
+from gcdtrav.service.pipeline import FrameResult, Inference
+from gcdtrav.service.queries import FrameRecord
+
+
+@dataclass(frozen=True)
+class PendingFrame:
+    """As it arrived: queued by the subscriber callback, latest-only per source."""
+
+    source: str
+    key: str
+    payload: bytes
+    encoding: str
+    received_at: float
+    ros: RosTopic | None = None  # set for CDR payloads from ROS 2 inputs
+
+
+@dataclass(frozen=True)
+class InferredFrame:
+    """Decoded and through the backend; the engine's part runs next, possibly on the output thread."""
+
+    pending: PendingFrame
+    image: DecodedFrame
+    ros_header: Any  # the ROS message header to reuse on ROS outputs, or None
+    inference: Inference
+
+
+@dataclass(frozen=True)
+class ProcessedFrame:
+    """T and U computed, numbered and kept in the history: what every output is built from."""
+
+    inferred: InferredFrame
+    result: FrameResult
+    record: FrameRecord
+
+    @property
+    def pending(self) -> PendingFrame:
+        return self.inferred.pending
+
+    @property
+    def source(self) -> str:
+        return self.inferred.pending.source
+
+    @property
+    def image(self) -> DecodedFrame:
+        return self.inferred.image
