@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import queue
 import time
+import warnings
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -318,11 +319,18 @@ class TraversabilityClient:
             params["stamp"] = repr(float(stamp))
         return self._patch_query(source, params, seq, timeout)
 
+    def patch_by_index(
+        self, source: str, i: int, j: int, seq: int | None = None, timeout: float | None = None
+    ) -> ContextDistribution:
+        """The same by the patch's place in the maps: row i, column j (a "cell" is always a ground-grid cell)."""
+        return self._patch_query(source, {"i": i, "j": j}, seq, timeout)
+
     def patch_cell(
         self, source: str, i: int, j: int, seq: int | None = None, timeout: float | None = None
     ) -> ContextDistribution:
-        """The same by map cell: row i, column j."""
-        return self._patch_query(source, {"i": i, "j": j}, seq, timeout)
+        """Deprecated name of ``patch_by_index``."""
+        warnings.warn("patch_cell is now patch_by_index", DeprecationWarning, stacklevel=2)
+        return self.patch_by_index(source, i, j, seq, timeout)
 
     def region(
         self,

@@ -131,8 +131,10 @@ def test_patch_and_region_queries_match_the_engine(running: Running) -> None:
     assert [a.concept for a in reply.anchors] == cas.concepts
     assert len(reply.density) == len(reply.density_x) == gcd.DEFAULT_DENSITY_GRID
 
-    by_cell = running.client.patch_cell("r2", i=30, j=33)
-    assert by_cell.weights == reply.weights
+    by_index = running.client.patch_by_index("r2", i=30, j=33)
+    assert by_index.weights == reply.weights
+    with pytest.deprecated_call():  # the old name still answers, with a warning
+        assert running.client.patch_cell("r2", 30, 33).weights == reply.weights
 
     region = running.client.region("r2", 30, 20, 60, 40)  # cells i 10..19, j 10..19
     assert region.region == (10, 10, 20, 20)
@@ -146,7 +148,7 @@ def test_query_errors_are_clear(running: Running) -> None:
         (lambda: client.patch("nobody", 1, 1), "unknown source 'nobody'"),
         (lambda: client.patch("r3", 50, 10), "outside the 50x50 image"),
         (lambda: client.patch("r3", 1, 1, seq=7), "seq 7 of 'r3' is not kept"),
-        (lambda: client.patch_cell("r3", -1, 0), "outside the"),
+        (lambda: client.patch_by_index("r3", -1, 0), "outside the"),
         (lambda: client.region("r3", 10, 10, 5, 20), "region"),
         (
             lambda: client._query("gcdtrav/out/r3/patch", type(client.patch("r3", 1, 1)), {"x": "abc", "y": 1}),
