@@ -212,7 +212,8 @@ def main() -> int:
             )
         robots.stop()
         churn.stop()
-        time.sleep(3.0)
+        # Let the last frames finish, but read the counts before the services forget the stopped robots as idle.
+        time.sleep(min(3.0, args.source_idle_s / 3))
         statuses = client.statuses(timeout=5.0)
         subscriber.undeclare()
         per_robot = {}

@@ -61,7 +61,25 @@ class FrameHistory:
         self._frames: dict[str, deque[FrameRecord]] = {}
         self._arrivals: OrderedDict[tuple[str, int], int] = OrderedDict()  # (source, seq) -> bytes, oldest first
         self._bytes = 0
+        self._next_seq: dict[str, int] = {}  # outlives evicted frames; a forgotten source starts at 0 again
         self._lock = threading.Lock()
+
+    def record(
+        self,
+        source: str,
+        weights: NDArray[np.floating],
+        anchors: AnchorSet,
+        stamp: float,
+        frame_id: str,
+        image_size: tuple[int, int],
+    ) -> FrameRecord:
+        """Number a processed frame (0, 1, ... per source) and keep it; returns its record."""
+        with self._lock:
+            seq = self._next_seq.get(source, 0)
+            self._next_seq[source] = seq + 1
+        record = FrameRecord(seq, stamp, frame_id, weights.astype(np.float16), anchors, image_size)
+        self.add(source, record)
+        return record
 
     def add(self, source: str, record: FrameRecord) -> None:
         size = record.weights.nbytes
@@ -84,10 +102,11 @@ class FrameHistory:
             del self._frames[source]
 
     def forget(self, source: str) -> None:
-        """Drop every frame of ``source`` (an idle source whose state the service lets go)."""
+        """Drop every frame of ``source`` and its numbering (an idle source whose state the service lets go)."""
         with self._lock:
             while source in self._frames:
                 self._drop_oldest_of(source)
+            self._next_seq.pop(source, None)
 
     @property
     def nbytes(self) -> int:

@@ -74,7 +74,7 @@ def running(tiny_backend, tmp_path: Path, request: pytest.FixtureRequest) -> Ite
     with started_service(
         tiny_backend, tmp_path, history=3, max_payload_bytes=300_000, full_resolution=True, threads=request.param
     ) as (service, port):
-        assert service.overlap_outputs == (request.param is not None)
+        assert service.worker.overlap_outputs == (request.param is not None)
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         received: list[Maps] = []
         subscriber = client.subscribe_maps("**", received.append)

@@ -193,3 +193,17 @@ def test_unusable_state_file_is_ignored(tmp_path: Path) -> None:
     path = tmp_path / "s.json"
     path.write_text('{"anchors": []}')
     assert load_anchor_state(path) is None
+
+
+def test_history_numbers_frames_per_source_and_restarts_a_forgotten_one() -> None:
+    from gcdtrav.service.queries import FrameHistory
+
+    anchors = default_anchor_set()
+    weights = np.full((len(anchors), 2, 2), 1 / len(anchors), np.float32)
+    history = FrameHistory(depth=1)  # keeps one frame per source: numbering must outlive evicted frames
+    seqs = [history.record(s, weights, anchors, 1.0, "cam", (4, 4)).seq for s in ("a", "a", "b", "a")]
+    assert seqs == [0, 1, 0, 2]
+    assert history.get("a", None).seq == 2 and history.get("a", None).weights.dtype == np.float16
+    history.forget("a")
+    assert history.record("a", weights, anchors, 2.0, "cam", (4, 4)).seq == 0
+    assert history.record("b", weights, anchors, 2.0, "cam", (4, 4)).seq == 1

@@ -23,11 +23,11 @@ def test_churning_sources_stay_capped_are_forgotten_and_steady_robots_are_served
     tiny_model_dir: Path, tmp_path: Path
 ) -> None:
     out = tmp_path / "churn.json"
-    command = [sys.executable, str(ROOT / "benchmarks" / "soak.py"), "--model", str(tiny_model_dir)]
+    command = [sys.executable, "-m", "benchmarks.soak", "--model", str(tiny_model_dir)]  # from the checkout
     command += ["--minutes", "0.75", "--robots", "2", "--fps", "5", "--instances", "1", "--churn", "5"]
     command += ["--max-sources", str(MAX_SOURCES), "--source-idle-s", "3", "--sample-seconds", "5"]
     command += ["--history-budget-mb", "4", "--out", str(out)]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=240)
+    result = subprocess.run(command, capture_output=True, text=True, timeout=240, cwd=ROOT)
     assert result.returncode == 0, result.stderr[-2000:]
     report = json.loads(out.read_text())
     churn = report["churn"]

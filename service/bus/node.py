@@ -7,17 +7,15 @@ output and queryable key is built by ``gcdtrav.schemas.keys.Keys`` (listed there
 from __future__ import annotations
 
 import logging
-import queue
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Any, TypeVar
+from typing import Any
 
-import numpy as np
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
-from gcdtrav.schemas.inputs import DecodedFrame, RejectedInput, decode_payload
+from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.limits import MAX_SOURCE_CHARS
 from gcdtrav.schemas.messages import (
@@ -31,19 +29,18 @@ from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
 from gcdtrav.service.anchor_switch import AnchorSwitch, SwapDone
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus import ros as ros_io
-from gcdtrav.service.bus.frames import InferredFrame, PendingFrame, ProcessedFrame
+from gcdtrav.service.bus.frames import PendingFrame
 from gcdtrav.service.bus.grids import GridOutputs
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
 from gcdtrav.service.bus.ros_graph import RosGraph
-from gcdtrav.service.cpus import usable_cpus
+from gcdtrav.service.bus.worker import FrameWorker
 from gcdtrav.service.latest_queue import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.queries import (
     PATCH_FORMS,
     FrameHistory,
-    FrameRecord,
     QueryError,
     answer_patch_query,
     parse_number,
@@ -53,8 +50,6 @@ from gcdtrav.service.sources import SourceTracker
 from gcdtrav.service.stats import ServiceStats
 
 log = logging.getLogger("gcdtrav.service")
-
-_R = TypeVar("_R")
 
 
 def literal_head(key_expr: str) -> str:
@@ -84,19 +79,8 @@ class TraversabilityService:
         self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(round(settings.pending_budget_mb * 1e6))
         self.history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
         self.stats = ServiceStats(log)
-        self._seq: dict[str, int] = {}
         self._declared: list[Any] = []
         self._stopping = threading.Event()
-        # With a CPU left over by torch (threads below the CPUs this process may use), a second thread
-        # runs the last frame's engine work, encoding and publishing while the next frame is decoded and
-        # inferred: +9 % frames/s with 1 torch thread on 2 cores (benchmarks/README.md). When torch has every
-        # CPU, overlapping only makes both compete (-3 % frames/s, +25 ms latency measured), so one thread
-        # does it all. The frame to infer is always taken from the latest-only queue just in time.
-        self.overlap_outputs = settings.threads is not None and settings.threads < usable_cpus()
-        self._inferred: queue.Queue[InferredFrame | None] = queue.Queue(maxsize=1)
-        self._workers = [threading.Thread(target=self._infer_loop, name="gcdtrav-infer", daemon=True)]
-        if self.overlap_outputs:
-            self._workers.append(threading.Thread(target=self._output_loop, name="gcdtrav-output", daemon=True))
         self._started_at = time.time()
         self.membership: Membership | None = None
         self.grids = GridOutputs(settings.grids, len(pipeline.anchors), settings.instance) if settings.grids else None
@@ -105,8 +89,11 @@ class TraversabilityService:
         self.anchor_switch = AnchorSwitch(
             pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes
         )
-        forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget, self._forget_seq)
+        forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget)
         self.sources = SourceTracker(settings.max_sources, settings.source_idle_s, forget)
+        self.worker = FrameWorker(
+            self.queue, pipeline, self.history, self.stats, self.sources, settings, self.outputs.publish
+        )
         self._check_inputs()
 
     def _check_inputs(self) -> None:
@@ -146,8 +133,7 @@ class TraversabilityService:
                 self.keys.anchor_rollback, self._answering(self._on_rollback_query), complete=True
             ),
         ]
-        for worker in self._workers:
-            worker.start()
+        self.worker.start()
         log.info(
             "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, model %s (%s), anchor set %s "
             "(%d anchors), method %s, outputs %s",
@@ -159,7 +145,7 @@ class TraversabilityService:
             self.pipeline.anchors.version,
             len(self.pipeline.anchors),
             self.pipeline.settings.method.value,
-            "overlapping inference" if self.overlap_outputs else "after inference, same thread",
+            "overlapping inference" if self.worker.overlap_outputs else "after inference, same thread",
         )
 
     def stop(self, timeout: float = 10.0) -> None:
@@ -168,10 +154,7 @@ class TraversabilityService:
         self.queue.close()
         if self.membership is not None:
             self.membership.close()
-        deadline = time.monotonic() + timeout
-        for worker in self._workers:
-            if worker.is_alive():
-                worker.join(max(0.0, deadline - time.monotonic()))
+        self.worker.stop(time.monotonic() + timeout)
         for entity in self._declared:
             try:
                 entity.undeclare()
@@ -267,88 +250,8 @@ class TraversabilityService:
 
         return handle
 
-    # ---- worker --------------------------------------------------------------------------------------
-    # ---- the frame pipeline: decode and infer -> engine, history and outputs --------------------------
-    def _infer_loop(self) -> None:
-        while True:
-            self.sources.sweep()
-            item = self.queue.take(timeout=0.25)
-            if item is None:
-                if self._stopping.is_set():
-                    self._inferred.put(None)  # after the frames already handed on
-                    return
-                continue
-            _, pending = item
-            inferred = self._guarded(pending, self._infer, pending)
-            if inferred is None:
-                continue
-            if self.overlap_outputs:
-                self._inferred.put(inferred)
-            else:
-                self._guarded(pending, self._publish, inferred)
-
-    def _output_loop(self) -> None:
-        while (item := self._inferred.get()) is not None:
-            self._guarded(item.pending, self._publish, item)
-
-    def _guarded(self, pending: PendingFrame, step: Callable[..., _R], *args: Any) -> _R | None:
-        """One step of one frame; whatever it raises is counted against the frame, never kills the thread."""
-        try:
-            return step(*args)
-        except RejectedInput as err:
-            self.stats.rejected(pending.source, err.reason, err.detail)
-        except Exception as err:
-            log.exception("frame from %s failed", pending.key)
-            self.stats.rejected(pending.source, "processing_failed", repr(err)[:200])
-        return None
-
-    def _infer(self, pending: PendingFrame) -> InferredFrame:
-        image, ros_header = self._decode(pending)
-        return InferredFrame(pending, image, ros_header, self.pipeline.infer(image.image))
-
-    def _decode(self, pending: PendingFrame) -> tuple[DecodedFrame, Any]:
-        """The image and, for ROS inputs, the message header to reuse on the ROS outputs."""
-        if pending.ros is None:
-            frame = decode_payload(
-                pending.payload,
-                pending.encoding,
-                pending.received_at,
-                self.settings.max_payload_bytes,
-                self.settings.max_pixels,
-            )
-            return frame, None
-        if pending.ros.msgtype is None:
-            raise RejectedInput("unsupported_ros_type", f"no message type for '{pending.key}'")
-        try:
-            ros_frame = ros_io.decode_ros_image(pending.payload, pending.ros.msgtype, self.settings.max_pixels)
-        except RejectedInput as err:
-            raise RejectedInput(err.reason, err.detail) from None
-        return DecodedFrame(ros_frame.image, ros_frame.stamp, ros_frame.frame_id), ros_frame.header
-
-    def _publish(self, inferred: InferredFrame) -> None:
-        source, image = inferred.pending.source, inferred.image.image
-        result = self.pipeline.finish(inferred.inference)
-        seq = self._seq.get(source, -1) + 1
-        self._seq[source] = seq
-        height, width = image.shape[:2]
-        record = FrameRecord(
-            seq=seq,
-            stamp=inferred.image.stamp,
-            frame_id=inferred.image.frame_id,
-            weights=result.maps.weights.astype(np.float16),
-            anchors=result.anchors,
-            image_size=(width, height),
-        )
-        self.history.add(source, record)
-        self.outputs.publish(ProcessedFrame(inferred, result, record))
-        latency_ms = (time.time() - inferred.pending.received_at) * 1e3
-        self.stats.processed(source, record.seq, latency_ms, result.inference_ms)
-
     def _answering(self, handler: Callable[[zenoh.Query], None]) -> Callable[[zenoh.Query], None]:
         return answering(handler, self.stats)
-
-    def _forget_seq(self, source: str) -> None:
-        self._seq.pop(source, None)
 
     def _on_cell_query(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)

@@ -1,0 +1,122 @@
+"""The worker threads: the newest frame of the next source is decoded and inferred, then the engine, the
+history and the outputs follow. No zenoh here: frames come from the latest-only queue, results leave
+through ``publish``. Whatever a frame raises is counted against that frame and never stops a thread."""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, TypeVar
+
+from gcdtrav.schemas.inputs import DecodedFrame, RejectedInput, decode_payload
+from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.service.bus import ros as ros_io
+from gcdtrav.service.bus.frames import InferredFrame, PendingFrame, ProcessedFrame
+from gcdtrav.service.cpus import usable_cpus
+from gcdtrav.service.latest_queue import LatestFrameQueue
+from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.queries import FrameHistory
+from gcdtrav.service.sources import SourceTracker
+from gcdtrav.service.stats import ServiceStats
+
+log = logging.getLogger("gcdtrav.service")
+_R = TypeVar("_R")
+
+
+class FrameWorker:
+    def __init__(
+        self,
+        frames: LatestFrameQueue[PendingFrame],
+        pipeline: Pipeline,
+        history: FrameHistory,
+        stats: ServiceStats,
+        sources: SourceTracker,
+        settings: ServiceSettings,
+        publish: Callable[[ProcessedFrame], None],
+    ) -> None:
+        self.frames, self.pipeline, self.history, self.stats = frames, pipeline, history, stats
+        self.sources, self.settings, self.publish = sources, settings, publish
+        # With a CPU left over by torch (threads below the CPUs this process may use), a second thread
+        # runs the last frame's engine work, encoding and publishing while the next frame is decoded and
+        # inferred: +9 % frames/s with 1 torch thread on 2 cores (benchmarks/README.md). When torch has every
+        # CPU, overlapping only makes both compete (-3 % frames/s, +25 ms latency measured), so one thread
+        # does it all. The frame to infer is always taken from the latest-only queue just in time.
+        self.overlap_outputs = settings.threads is not None and settings.threads < usable_cpus()
+        self._inferred: queue.Queue[InferredFrame | None] = queue.Queue(maxsize=1)
+        self._stopping = threading.Event()
+        self._threads = [threading.Thread(target=self._infer_loop, name="gcdtrav-infer", daemon=True)]
+        if self.overlap_outputs:
+            self._threads.append(threading.Thread(target=self._output_loop, name="gcdtrav-output", daemon=True))
+
+    def start(self) -> None:
+        for thread in self._threads:
+            thread.start()
+
+    def stop(self, deadline: float) -> None:
+        """Finish the frames in flight (the queue is closed by its owner), by ``deadline`` (monotonic)."""
+        self._stopping.set()
+        for thread in self._threads:
+            if thread.is_alive():
+                thread.join(max(0.0, deadline - time.monotonic()))
+
+    def _infer_loop(self) -> None:
+        while True:
+            self.sources.sweep()
+            item = self.frames.take(timeout=0.25)
+            if item is None:
+                if self._stopping.is_set():
+                    self._inferred.put(None)  # after the frames already handed on
+                    return
+                continue
+            _, pending = item
+            inferred = self._guarded(pending, self._infer, pending)
+            if inferred is None:
+                continue
+            if self.overlap_outputs:
+                self._inferred.put(inferred)
+            else:
+                self._guarded(pending, self._finish, inferred)
+
+    def _output_loop(self) -> None:
+        while (item := self._inferred.get()) is not None:
+            self._guarded(item.pending, self._finish, item)
+
+    def _guarded(self, pending: PendingFrame, step: Callable[..., _R], *args: Any) -> _R | None:
+        """One step of one frame; whatever it raises is counted against the frame, never kills the thread."""
+        try:
+            return step(*args)
+        except RejectedInput as err:
+            self.stats.rejected(pending.source, err.reason, err.detail)
+        except Exception as err:
+            log.exception("frame from %s failed", pending.key)
+            self.stats.rejected(pending.source, "processing_failed", repr(err)[:200])
+        return None
+
+    def _infer(self, pending: PendingFrame) -> InferredFrame:
+        image, ros_header = self._decode(pending)
+        return InferredFrame(pending, image, ros_header, self.pipeline.infer(image.image))
+
+    def _decode(self, pending: PendingFrame) -> tuple[DecodedFrame, Any]:
+        """The image and, for ROS inputs, the message header to reuse on the ROS outputs."""
+        limits = self.settings.max_payload_bytes, self.settings.max_pixels
+        if pending.ros is None:
+            return decode_payload(pending.payload, pending.encoding, pending.received_at, *limits), None
+        if pending.ros.msgtype is None:
+            raise RejectedInput("unsupported_ros_type", f"no message type for '{pending.key}'")
+        ros_frame = ros_io.decode_ros_image(pending.payload, pending.ros.msgtype, self.settings.max_pixels)
+        return DecodedFrame(ros_frame.image, ros_frame.stamp, ros_frame.frame_id), ros_frame.header
+
+    def _finish(self, inferred: InferredFrame) -> None:
+        """Engine, numbering and history, outputs, counters."""
+        source, image = inferred.pending.source, inferred.image
+        result = self.pipeline.finish(inferred.inference)
+        height, width = image.image.shape[:2]
+        record = self.history.record(
+            source, result.maps.weights, result.anchors, image.stamp, image.frame_id, (width, height)
+        )
+        self.publish(ProcessedFrame(inferred, result, record))
+        latency_ms = (time.time() - inferred.pending.received_at) * 1e3
+        self.stats.processed(source, record.seq, latency_ms, result.inference_ms)
