@@ -109,7 +109,7 @@ pytest.importorskip("torch")
 
 from gcdtrav.client import AnchorSetRejected, TraversabilityClient  # noqa: E402
 from gcdtrav.schemas.settings import ServiceSettings  # noqa: E402
-from gcdtrav.service.bus import node as node_module  # noqa: E402
+from gcdtrav.service.bus import queryables  # noqa: E402
 from gcdtrav.service.bus.node import TraversabilityService  # noqa: E402
 
 from tools.loopback import in_process_service  # noqa: E402
@@ -232,7 +232,7 @@ def boom(*args: object, **kwargs: object) -> None:
 @pytest.mark.parametrize(
     ("queryable", "target", "selector", "payload"),
     [
-        ("patch", (node_module, "answer_patch_query"), "gcdtrav/out/cam/patch?x=1;y=1", None),
+        ("patch", (queryables, "answer_patch_query"), "gcdtrav/out/cam/patch?x=1;y=1", None),
         ("cell", ("grids", "answer"), "gcdtrav/out/cam/cell?x=2;y=0", None),
         ("anchors", ("switch", "submit"), "gcdtrav/config/anchors", b'{"anchors": []}'),
         ("status", ("service", "status"), "gcdtrav/status", None),

@@ -14,19 +14,15 @@ from dataclasses import replace
 from typing import Any
 
 import zenoh
-from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.limits import MAX_SOURCE_CHARS
 from gcdtrav.schemas.messages import (
-    AnchorSetRejection,
-    AnchorSetReply,
-    ErrorReply,
     MessageError,
     ServiceStatus,
 )
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
-from gcdtrav.service.anchor_switch import AnchorSwitch, SwapDone
+from gcdtrav.service.anchor_switch import AnchorSwitch
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus import ros as ros_io
 from gcdtrav.service.bus.frames import PendingFrame
@@ -34,17 +30,13 @@ from gcdtrav.service.bus.grids import GridOutputs
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
+from gcdtrav.service.bus.queryables import AnchorQueries, SourceQueries
 from gcdtrav.service.bus.ros_graph import RosGraph
 from gcdtrav.service.bus.worker import FrameWorker
 from gcdtrav.service.latest_queue import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.queries import (
-    PATCH_FORMS,
     FrameHistory,
-    QueryError,
-    answer_patch_query,
-    parse_number,
-    strict_parameters,
 )
 from gcdtrav.service.sources import SourceTracker
 from gcdtrav.service.stats import ServiceStats
@@ -122,17 +114,7 @@ class TraversabilityService:
             self.ros_graph.start()
         if self.grids is not None:
             self._declare_grid_inputs(self.grids)
-        self._declared += [
-            self.session.declare_queryable(self.keys.patch("**"), self._answering(self._on_patch_query)),
-            self.session.declare_queryable(self.keys.anchors, self._answering(self._on_anchors_query), complete=True),
-            self.session.declare_queryable(self.keys.status, self._answering(self._on_status_query), complete=True),
-            self.session.declare_queryable(
-                self.keys.anchor_history, self._answering(self._on_history_query), complete=True
-            ),
-            self.session.declare_queryable(
-                self.keys.anchor_rollback, self._answering(self._on_rollback_query), complete=True
-            ),
-        ]
+        self._declare_queryables()
         self.worker.start()
         log.info(
             "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, model %s (%s), anchor set %s "
@@ -226,9 +208,24 @@ class TraversabilityService:
         except PendingBudgetExceeded as err:
             self.stats.rejected(source, "pending_budget", str(err))
 
+    def _declare_queryables(self) -> None:
+        per_source = SourceQueries(self.keys, self.history, self.grids, self.owns)
+        anchors = AnchorQueries(self.keys, self.pipeline, self.anchor_switch, self.stats)
+        handlers = [(self.keys.patch("**"), per_source.on_patch, False)]
+        if self.grids is not None:
+            handlers.append((self.keys.cell("**"), per_source.on_cell, False))
+        handlers += [
+            (self.keys.anchors, anchors.on_anchors, True),
+            (self.keys.anchor_history, anchors.on_history, True),
+            (self.keys.anchor_rollback, anchors.on_rollback, True),
+            (self.keys.status, self._on_status_query, True),
+        ]
+        for key, handler, complete in handlers:
+            self._declared.append(
+                self.session.declare_queryable(key, answering(handler, self.stats), complete=complete)
+            )
+
     def _declare_grid_inputs(self, grids: GridOutputs) -> None:
-        cells = self.session.declare_queryable(self.keys.cell("**"), self._answering(self._on_cell_query))
-        self._declared.append(cells)
         for config in self.settings.grids:
             for key, setter, reason in (
                 (config.pose_key, grids.set_pose, "bad_pose"),
@@ -249,90 +246,6 @@ class TraversabilityService:
                 self.stats.rejected(source, reason, str(err)[:200])
 
         return handle
-
-    def _answering(self, handler: Callable[[zenoh.Query], None]) -> Callable[[zenoh.Query], None]:
-        return answering(handler, self.stats)
-
-    def _on_cell_query(self, query: zenoh.Query) -> None:
-        key = str(query.key_expr)
-        try:
-            source = self.keys.source_of(key, "cell")
-            if source is None:
-                raise QueryError(f"query one source's cell key, e.g. {self.keys.cell('r1/front')}, not '{key}'")
-            if not self.owns(source):
-                return
-            assert self.grids is not None
-            replies.check_format(query)
-            answer = self.grids.answer(source, replies.text_without_format(str(query.parameters)))
-        except QueryError as err:
-            self.stats.rejected(None, "bad_query", f"{query.selector}: {err}")
-            replies.reply_error(query, ErrorReply(error=str(err)))
-            return
-        replies.reply(query, key, answer)
-
-    # ---- queries -------------------------------------------------------------------------------------
-    def _on_patch_query(self, query: zenoh.Query) -> None:
-        key = str(query.key_expr)
-        try:
-            middle = self.keys.source_of(key, "patch")
-            if middle is None:
-                raise QueryError(f"query one source's patch key, e.g. {self.keys.patch('r1/front')}, not '{key}'")
-            if not self.owns(middle):
-                return  # the owner answers; replying too would race it
-            replies.check_format(query)
-            params = strict_parameters(replies.without_format(query), PATCH_FORMS)
-            answer = answer_patch_query(self.history, middle, params)
-        except QueryError as err:
-            self.stats.rejected(None, "bad_query", f"{query.selector}: {err}")
-            replies.reply_error(query, ErrorReply(error=str(err)))
-            return
-        replies.reply(query, key, answer)
-
-    def _on_anchors_query(self, query: zenoh.Query) -> None:
-        """Get the active set (no payload) or swap it; the swap runs on the switch's worker, not here."""
-        key = self.keys.anchors
-        replies.check_no_parameters(query)
-        payload = query.payload
-        if payload is None or len(payload) == 0:
-            active = self.pipeline.anchors
-            replies.reply(query, key, AnchorSetReply(anchor_set=active, version=active.version))
-            return
-        self.anchor_switch.submit(payload.to_bytes(), self._swap_answer(query, key))
-
-    def _on_rollback_query(self, query: zenoh.Query) -> None:
-        key = self.keys.anchor_rollback
-        try:
-            replies.check_format(query)
-            params = strict_parameters(replies.without_format(query), "steps=N (1 = the set before the active one)")
-            if set(params) - {"steps"}:
-                raise QueryError(f"unknown parameter(s) {sorted(set(params) - {'steps'})}; give steps=N [1]")
-            steps = int(parse_number(params.get("steps", "1"), "steps", int))
-        except QueryError as err:
-            self.stats.rejected(None, "bad_query", f"{query.selector}: {err}")
-            replies.reply_error(query, ErrorReply(error=str(err)))
-            return
-        self.anchor_switch.submit_rollback(steps, self._swap_answer(query, key))
-
-    def _on_history_query(self, query: zenoh.Query) -> None:
-        replies.check_no_parameters(query)
-        replies.reply(query, self.keys.anchor_history, self.anchor_switch.history())
-
-    def _swap_answer(self, query: zenoh.Query, key: str) -> SwapDone:
-        """Reply to a swap or rollback query once the switch's worker is done with it."""
-
-        def answer(anchors: AnchorSet | None, error: BaseException | None) -> None:
-            if anchors is not None:
-                replies.reply(query, key, AnchorSetReply(anchor_set=anchors, version=anchors.version))
-                return
-            if isinstance(error, AnchorSetError):
-                messages, reason = error.messages, "invalid_anchor_set"
-            else:
-                messages, reason = [f"swap failed: {type(error).__name__}: {error}"], "swap_failed"
-            self.stats.rejected(None, reason, "; ".join(messages)[:300], None if reason != "swap_failed" else error)
-            rejection = AnchorSetRejection(errors=messages, active_version=self.pipeline.anchors.version)
-            replies.reply_error(query, rejection)
-
-        return answer
 
     def status(self) -> ServiceStatus:
         counts = self.stats.snapshot(self.queue.counters())

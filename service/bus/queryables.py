@@ -1,0 +1,107 @@
+"""What the queryables answer, besides the status: a source's patch and ground-grid cell, the anchor set, its
+history and rollback. Handlers answer from memory, or hand a swap to the AnchorSwitch's worker and reply
+from there. A ``QueryError`` they let out becomes the caller's error reply in ``guard.answering``."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import zenoh
+from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
+from gcdtrav.schemas.keys import Keys
+from gcdtrav.schemas.messages import AnchorSetRejection, AnchorSetReply
+from gcdtrav.service.anchor_switch import AnchorSwitch, SwapDone
+from gcdtrav.service.bus import replies
+from gcdtrav.service.bus.grids import GridOutputs
+from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.queries import (
+    PATCH_FORMS,
+    FrameHistory,
+    QueryError,
+    answer_patch_query,
+    parse_number,
+    strict_parameters,
+)
+from gcdtrav.service.stats import ServiceStats
+
+ROLLBACK_FORM = "steps=N (1 = the set before the active one)"
+
+
+class SourceQueries:
+    """``{prefix}/out/{source}/patch`` from the frame history, ``.../cell`` from the ground grids."""
+
+    def __init__(
+        self, keys: Keys, history: FrameHistory, grids: GridOutputs | None, owns: Callable[[str], bool]
+    ) -> None:
+        self.keys, self.history, self.grids, self.owns = keys, history, grids, owns
+
+    def on_patch(self, query: zenoh.Query) -> None:
+        source = self._owned_source(query, "patch")
+        if source is not None:
+            params = strict_parameters(replies.without_format(query), PATCH_FORMS)
+            replies.reply(query, str(query.key_expr), answer_patch_query(self.history, source, params))
+
+    def on_cell(self, query: zenoh.Query) -> None:
+        source = self._owned_source(query, "cell")
+        if source is not None and self.grids is not None:
+            answer = self.grids.answer(source, replies.text_without_format(str(query.parameters)))
+            replies.reply(query, str(query.key_expr), answer)
+
+    def _owned_source(self, query: zenoh.Query, kind: str) -> str | None:
+        """The source a query names; None if another instance owns it (the owner answers: replying too
+        would race it)."""
+        key = str(query.key_expr)
+        source = self.keys.source_of(key, kind)
+        if source is None:
+            example = self.keys.patch("r1/front") if kind == "patch" else self.keys.cell("r1/front")
+            raise QueryError(f"query one source's {kind} key, e.g. {example}, not '{key}'")
+        if not self.owns(source):
+            return None
+        replies.check_format(query)
+        return source
+
+
+class AnchorQueries:
+    """``{prefix}/config/anchors`` (get, or swap with a body), its ``history`` and ``rollback``."""
+
+    def __init__(self, keys: Keys, pipeline: Pipeline, switch: AnchorSwitch, stats: ServiceStats) -> None:
+        self.keys, self.pipeline, self.switch, self.stats = keys, pipeline, switch, stats
+
+    def on_anchors(self, query: zenoh.Query) -> None:
+        """Get the active set (no payload) or swap it; the swap runs on the switch's worker, not here."""
+        replies.check_no_parameters(query)
+        payload = query.payload
+        if payload is None or len(payload) == 0:
+            active = self.pipeline.anchors
+            replies.reply(query, self.keys.anchors, AnchorSetReply(anchor_set=active, version=active.version))
+            return
+        self.switch.submit(payload.to_bytes(), self._swap_answer(query, self.keys.anchors))
+
+    def on_rollback(self, query: zenoh.Query) -> None:
+        replies.check_format(query)
+        params = strict_parameters(replies.without_format(query), ROLLBACK_FORM)
+        if set(params) - {"steps"}:
+            raise QueryError(f"unknown parameter(s) {sorted(set(params) - {'steps'})}; give steps=N [1]")
+        steps = int(parse_number(params.get("steps", "1"), "steps", int))
+        self.switch.submit_rollback(steps, self._swap_answer(query, self.keys.anchor_rollback))
+
+    def on_history(self, query: zenoh.Query) -> None:
+        replies.check_no_parameters(query)
+        replies.reply(query, self.keys.anchor_history, self.switch.history())
+
+    def _swap_answer(self, query: zenoh.Query, key: str) -> SwapDone:
+        """Reply to a swap or rollback query once the switch's worker is done with it."""
+
+        def answer(anchors: AnchorSet | None, error: BaseException | None) -> None:
+            if anchors is not None:
+                replies.reply(query, key, AnchorSetReply(anchor_set=anchors, version=anchors.version))
+                return
+            if isinstance(error, AnchorSetError):
+                messages, reason = error.messages, "invalid_anchor_set"
+            else:
+                messages, reason = [f"swap failed: {type(error).__name__}: {error}"], "swap_failed"
+            self.stats.rejected(None, reason, "; ".join(messages)[:300], None if reason != "swap_failed" else error)
+            rejection = AnchorSetRejection(errors=messages, active_version=self.pipeline.anchors.version)
+            replies.reply_error(query, rejection)
+
+        return answer
