@@ -13,7 +13,8 @@ A service with prefix ``gcdtrav`` (the default) answers and publishes on:
   {prefix}/status                            queryable: ServiceStatus
   {prefix}/alive/{instance}                  liveliness token
 
-A source name may hold slashes (``robot1/front``); ``source_of`` recovers it from an output key.
+Robots publish images on ``input_key(input_prefix, source)``. A source name may hold slashes
+(``robot1/front``); ``source_of`` recovers it from an output key, ``input_source_of`` from an input key.
 """
 
 from __future__ import annotations
@@ -90,3 +91,21 @@ class Keys:
 def input_key(input_prefix: str, source: str) -> str:
     """Where a robot publishes the images of ``source`` (the service subscribes to ``{input_prefix}/**``)."""
     return f"{input_prefix}/{source}"
+
+
+def literal_head(key_expr: str) -> str:
+    """The chunks of a key expression before its first wildcard: 'robot/*/cam' -> 'robot'."""
+    head = []
+    for chunk in key_expr.split("/"):
+        if "*" in chunk or "$" in chunk:
+            break
+        head.append(chunk)
+    return "/".join(head)
+
+
+def input_source_of(key: str, head: str) -> str:
+    """The source an input key names: the part after ``head`` (an input's literal head); the whole key if
+    nothing is left."""
+    if head and key.startswith(head + "/"):
+        return key[len(head) + 1 :]
+    return key

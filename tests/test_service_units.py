@@ -12,9 +12,9 @@ from conftest import textured_image
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.images import encode_jpeg, encode_png
 from gcdtrav.schemas.inputs import RejectedInput, decode_payload
+from gcdtrav.schemas.keys import input_source_of, literal_head
 from gcdtrav.schemas.messages import ImageEnvelope, MapsMessage, MessageError, PixelEncoding
 from gcdtrav.schemas.settings import SettingsError, load_settings
-from gcdtrav.service.bus.node import literal_head, source_of
 from gcdtrav.service.latest_queue import LatestFrameQueue
 from gcdtrav.service.state import load_anchor_state, save_anchor_state, write_atomically
 
@@ -56,9 +56,9 @@ def test_take_returns_none_after_close() -> None:
 def test_key_mapping() -> None:
     assert literal_head("gcdtrav/in/**") == "gcdtrav/in"
     assert literal_head("robot/*/camera/*/image") == "robot"
-    assert source_of("gcdtrav/in/r1/front", "gcdtrav/in") == "r1/front"
-    assert source_of("robot/r2/camera/left/image", "robot") == "r2/camera/left/image"
-    assert source_of("cam/front", literal_head("cam/front")) == "cam/front"
+    assert input_source_of("gcdtrav/in/r1/front", "gcdtrav/in") == "r1/front"
+    assert input_source_of("robot/r2/camera/left/image", "robot") == "r2/camera/left/image"
+    assert input_source_of("cam/front", literal_head("cam/front")) == "cam/front"
 
 
 @pytest.mark.parametrize("encoding", ["jpeg", "png", "rgb8", "bgr8", "mono8"])

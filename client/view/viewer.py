@@ -44,7 +44,7 @@ from gcdtrav.client.view.latest import LatestSlots
 from gcdtrav.client.view.recorder import McapRecorder
 from gcdtrav.schemas.anchors import AnchorSetError
 from gcdtrav.schemas.inputs import decode_payload
-from gcdtrav.schemas.keys import Keys
+from gcdtrav.schemas.keys import Keys, input_key, input_source_of
 from gcdtrav.schemas.messages import AnchorSetReply, ServiceStatus, SourceView
 from numpy.typing import NDArray
 
@@ -146,7 +146,7 @@ class Viewer:
         prefix, sources = self.options.prefix, self.options.sources
         keys = {kind: Keys(prefix).output(sources, kind) for kind in ("maps", "grid", "preview")}
         if self.options.input_prefix:
-            keys["camera"] = f"{self.options.input_prefix}/{sources}"
+            keys["camera"] = input_key(self.options.input_prefix, sources)
         for kind, key in keys.items():
             self._subscribers.append(self.client.session.declare_subscriber(key, self._keeper(kind)))
         for target in (self._work, self._poll):
@@ -177,11 +177,11 @@ class Viewer:
     # ---- zenoh in: latest-only -------------------------------------------------------------------------
     def _keeper(self, kind: str) -> Callable[[zenoh.Sample], None]:
         if kind == "camera":
-            head = self.options.input_prefix.rstrip("/") + "/"
+            head = self.options.input_prefix.rstrip("/")
 
             def keep_camera(sample: zenoh.Sample) -> None:
-                key = str(sample.key_expr)
-                self._slots.put((key.removeprefix(head), kind), sample.payload.to_bytes())
+                source = input_source_of(str(sample.key_expr), head)
+                self._slots.put((source, kind), sample.payload.to_bytes())
 
             return keep_camera
         keys = Keys(self.options.prefix)

@@ -15,7 +15,7 @@ from typing import Any
 
 import zenoh
 from gcdtrav.schemas.inputs import RejectedInput
-from gcdtrav.schemas.keys import Keys
+from gcdtrav.schemas.keys import Keys, input_source_of, literal_head
 from gcdtrav.schemas.limits import MAX_SOURCE_CHARS
 from gcdtrav.schemas.messages import (
     MessageError,
@@ -42,23 +42,6 @@ from gcdtrav.service.sources import SourceTracker
 from gcdtrav.service.stats import ServiceStats
 
 log = logging.getLogger("gcdtrav.service")
-
-
-def literal_head(key_expr: str) -> str:
-    """The chunks of a key expression before its first wildcard: 'robot/*/cam' -> 'robot'."""
-    head = []
-    for chunk in key_expr.split("/"):
-        if "*" in chunk or "$" in chunk:
-            break
-        head.append(chunk)
-    return "/".join(head)
-
-
-def source_of(key: str, head: str) -> str:
-    """The part of ``key`` after the input's literal head; the whole key if nothing is left."""
-    if head and key.startswith(head + "/"):
-        return key[len(head) + 1 :]
-    return key
 
 
 class TraversabilityService:
@@ -157,7 +140,7 @@ class TraversabilityService:
         if self._stopping.is_set():
             return
         key = str(sample.key_expr)
-        self._enqueue(source_of(key, head), sample, None)
+        self._enqueue(input_source_of(key, head), sample, None)
 
     def _ros_handler(self, ros_input: RosInput) -> Callable[[zenoh.Sample], None]:
         return lambda sample: self._on_ros_image(sample, ros_input)
