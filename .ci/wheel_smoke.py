@@ -10,7 +10,6 @@ ground grid; then stops the service with SIGTERM and expects exit status 0. Boun
 from __future__ import annotations
 
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -23,15 +22,10 @@ from gcdtrav.client import Grid, Maps, ServiceError, TraversabilityClient, zenoh
 from gcdtrav.schemas.messages import Pose2D
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository's tools/, not in the wheel
+from tools.loopback import free_port
 from tools.random_clipseg import save_random_clipseg
 
 DEADLINE_S = 180.0
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 def wait_for(what: str, condition, deadline: float) -> None:  # type: ignore[no-untyped-def]

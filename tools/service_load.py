@@ -43,8 +43,6 @@ def run_robots(bench: Bench, precision: str, counts: list[int], fps: float, seco
     The service runs as its own ``gcdtrav serve`` process, as deployed: the robots and their client do
     not share its interpreter, and the memory column is the service's alone.
     """
-    from gcdtrav.schemas.images import encode_jpeg
-
     jpeg = encode_jpeg(bench_image(), 90)
     port = free_port()
     with tempfile.TemporaryDirectory() as state:
