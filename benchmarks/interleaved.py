@@ -18,7 +18,8 @@ from pathlib import Path
 
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.service.backends.clipseg import ClipSegBackend
-from gcdtrav.service.bench import machine_header, machine_info
+from gcdtrav.service.bench import machine_header
+from gcdtrav.service.doctor import machine_info
 from gcdtrav.service.precision_choice import synthetic_image
 
 

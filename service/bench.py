@@ -11,7 +11,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import sys
 import threading
@@ -25,6 +24,7 @@ import numpy as np
 from gcdtrav.schemas.anchors import Anchor, AnchorSet, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.images import encode_maps_png16
+from gcdtrav.service.doctor import machine_info
 from gcdtrav.service.engine import gcd
 from gcdtrav.service.engine.maps import compute_maps
 from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, parity, synthetic_image
@@ -305,27 +305,6 @@ def format_table(rows: list[Row]) -> str:
             f"{r.peak_rss_mb:>11.0f} | {r.note}"
         )
     return "\n".join(lines)
-
-
-def machine_info() -> dict[str, Any]:
-    import torch
-    from gcdtrav.service.backends.clipseg import cpu_has_fast_bf16
-    from gcdtrav.service.backends.onnx_runtime import cpu_features
-    from gcdtrav.service.cpus import usable_cpus
-    from gcdtrav.service.doctor import cpu_name, version_of
-
-    return {
-        "python": platform.python_version(),
-        "torch": torch.__version__,
-        "onnxruntime": version_of("onnxruntime"),
-        "cpu": cpu_name(),
-        "cpu_features": cpu_features(),
-        "cores": os.cpu_count(),
-        "usable_cores": usable_cpus(),
-        "torch_threads": torch.get_num_threads(),
-        "fast_bf16": cpu_has_fast_bf16(),
-        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
-    }
 
 
 def machine_header(info: dict[str, Any]) -> str:

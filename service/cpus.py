@@ -1,4 +1,5 @@
-"""How many CPUs this process may really use: its affinity mask, capped by a container's CPU quota.
+"""This machine's CPUs: their name and the flags that pick kernels, and how many this process may really use
+(its affinity mask, capped by a container's CPU quota).
 
 Inside ``docker run --cpus=2`` on a 32-core host, ``os.cpu_count()`` and torch's default both say 32; torch
 would start 32 threads that the kernel then throttles to the quota, stalling every frame.
@@ -8,9 +9,31 @@ from __future__ import annotations
 
 import math
 import os
+import platform
 from pathlib import Path
 
 CGROUP_ROOT = Path("/sys/fs/cgroup")
+# The CPU flags that change which kernels torch and ONNX Runtime pick.
+KERNEL_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "avx_vnni", "amx_tile", "amx_int8", "amx_bf16")
+
+
+def _cpuinfo_field(name: str) -> str | None:
+    """The first ``name : value`` of /proc/cpuinfo (x86 Linux); None elsewhere."""
+    try:
+        text = Path("/proc/cpuinfo").read_text("utf-8", errors="replace")
+    except OSError:
+        return None
+    return next((line.split(":", 1)[1].strip() for line in text.splitlines() if line.startswith(name)), None)
+
+
+def cpu_name() -> str:
+    return _cpuinfo_field("model name") or platform.processor() or platform.machine()
+
+
+def cpu_features() -> list[str]:
+    """The ``KERNEL_FLAGS`` this CPU has (empty where /proc/cpuinfo does not list flags)."""
+    flags = (_cpuinfo_field("flags") or "").split()
+    return sorted(flag for flag in flags if flag in KERNEL_FLAGS)
 
 
 def _read(path: Path) -> str | None:

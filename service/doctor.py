@@ -6,12 +6,15 @@ from __future__ import annotations
 
 import argparse
 import importlib.metadata
+import os
 import platform
 import sys
+import time
 from pathlib import Path
+from typing import Any
 
 from gcdtrav.service.backends import ModelUnavailableError, default_model
-from gcdtrav.service.cpus import usable_cpus
+from gcdtrav.service.cpus import cpu_features, cpu_name, usable_cpus
 
 EXIT_OK, EXIT_NO_WEIGHTS = 0, 1
 PACKAGES = ("torch", "transformers", "onnxruntime", "onnx", "eclipse-zenoh", "numpy", "opencv-python-headless")
@@ -28,16 +31,6 @@ def build_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     return parser
 
 
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text("utf-8", errors="replace").splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def version_of(package: str) -> str:
     try:
         return importlib.metadata.version(package)
@@ -45,17 +38,33 @@ def version_of(package: str) -> str:
         return "not installed"
 
 
-def machine_lines() -> list[str]:
+def machine_info() -> dict[str, Any]:
+    """This machine as benchmarks and the doctor report it (the bench JSON's ``machine``)."""
     import torch
     from gcdtrav.service.backends.clipseg import cpu_has_fast_bf16
-    from gcdtrav.service.backends.onnx_runtime import cpu_features
 
-    features = cpu_features()
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "onnxruntime": version_of("onnxruntime"),
+        "cpu": cpu_name(),
+        "cpu_features": cpu_features(),
+        "cores": os.cpu_count(),
+        "usable_cores": usable_cpus(),
+        "torch_threads": torch.get_num_threads(),
+        "fast_bf16": cpu_has_fast_bf16(),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }
+
+
+def machine_lines() -> list[str]:
+    info = machine_info()
+    bf16 = "yes (AVX512-BF16 or AMX)" if info["fast_bf16"] else "no: bf16 modes would be emulated"
     return [
-        f"CPU          {cpu_name()} ({platform.machine()})",
-        f"cores        {usable_cpus()} usable by this process; torch threads {torch.get_num_threads()}",
-        f"features     {' '.join(features) or 'none of the ones that matter'}",
-        f"native bf16  {'yes (AVX512-BF16 or AMX)' if cpu_has_fast_bf16() else 'no: bf16 modes would be emulated'}",
+        f"CPU          {info['cpu']} ({platform.machine()})",
+        f"cores        {info['usable_cores']} usable by this process; torch threads {info['torch_threads']}",
+        f"features     {' '.join(info['cpu_features']) or 'none of the ones that matter'}",
+        f"native bf16  {bf16}",
         "versions     " + ", ".join(f"{p} {version_of(p)}" for p in PACKAGES) + f", python {platform.python_version()}",
     ]
 

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from gcdtrav.service.cpus import cpu_features
 
 log = logging.getLogger(__name__)
 
@@ -50,17 +51,6 @@ def onnx_runtime_available() -> bool:
     except ImportError:
         return False
     return True
-
-
-def cpu_features() -> list[str]:
-    """The CPU flags that change which kernels the runtimes pick (x86 /proc/cpuinfo; empty elsewhere)."""
-    wanted = ("avx2", "fma", "avx512f", "avx512_vnni", "avx512_bf16", "avx_vnni", "amx_tile", "amx_int8", "amx_bf16")
-    try:
-        text = Path("/proc/cpuinfo").read_text("utf-8", errors="replace")
-    except OSError:
-        return []
-    flags = next((line.split(":", 1)[1].split() for line in text.splitlines() if line.startswith("flags")), [])
-    return sorted(flag for flag in flags if flag in wanted)
 
 
 def file_sha256(path: Path) -> str:
