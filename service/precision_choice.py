@@ -145,11 +145,11 @@ def pick(measurements: list[ModeMeasurement]) -> PrecisionChoice:
 
 def choice_key(backend: Any, modes: list[str]) -> dict[str, Any]:
     import torch
-    from gcdtrav.service.backends.onnx_runtime import checkpoint_files, file_sha256
+    from gcdtrav.service.backends.onnx_runtime import checkpoint_digests
     from gcdtrav.service.cpus import cpu_features
 
     checkpoint = backend.checkpoint_dir
-    files = {p.name: file_sha256(p) for p in checkpoint_files(checkpoint)} if checkpoint is not None else {}
+    files = checkpoint_digests(checkpoint) if checkpoint is not None else {}
     return {
         "format": CHOICE_FORMAT,
         "checkpoint": files or backend.model_id,
