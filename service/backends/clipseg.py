@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from gcdtrav.schemas.settings import PRECISIONS
 from gcdtrav.service.backends.base import ModelUnavailableError
-from gcdtrav.service.backends.decoder import FastDecoder
+from gcdtrav.service.backends.decoder import DECODER_CHUNK, FastDecoder
 from gcdtrav.service.backends.onednn import QuickGeluMLP, clip_encoder_layer
 from gcdtrav.service.backends.onnx_runtime import (
     ExportError,
@@ -162,9 +162,6 @@ class VisionTrunk(torch.nn.Module):
             if index in wanted:
                 kept.append(hidden)
         return kept
-
-
-DECODER_CHUNK = 8  # concepts per decoder batch (measured best of 1, 2, 4, 8, all on 2 cores; benchmarks/)
 
 
 class TorchCompute:

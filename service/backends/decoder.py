@@ -20,6 +20,10 @@ from typing import Any, TypeGuard
 import torch
 from gcdtrav.service.backends.onednn import LinearReLU, fused_linear_relu, linear_then_relu
 
+# Concepts per decoder run, in torch and in ONNX Runtime: the MLP's (concepts x tokens x 2048) intermediate
+# stays small enough for the cache (measured best of 1, 2, 4, 8, all on 2 cores; benchmarks/README.md).
+DECODER_CHUNK = 8
+
 
 def decoder_layer(layer: Any, hidden: torch.Tensor, linear_relu: LinearReLU = linear_then_relu) -> torch.Tensor:
     """CLIPSegDecoderLayer.forward (post-norm attention, then MLP) with the MLP's ReLU fused."""

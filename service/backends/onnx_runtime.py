@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from gcdtrav.service.backends.decoder import DECODER_CHUNK
 from gcdtrav.service.cpus import cpu_features
 
 log = logging.getLogger(__name__)
@@ -37,7 +38,6 @@ EXPORT_FORMAT = 2  # bump when the exported graphs change
 TRUNK, TRUNK_INT8, DECODER, DECODER_INT8 = "trunk.onnx", "trunk-int8.onnx", "decoder.onnx", "decoder-int8.onnx"
 EXPORTED_FILES = (TRUNK, TRUNK_INT8, DECODER, DECODER_INT8)
 DECODER_INPUTS = ["first", "second", "third", "conditional"]
-DECODER_CHUNK = 8  # concepts per decoder run
 WEIGHT_FILES = ("*.safetensors", "*.bin", "config.json")
 
 
