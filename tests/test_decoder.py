@@ -121,3 +121,42 @@ def test_backend_without_onednn_still_matches_transformers(
     np.testing.assert_allclose(
         backend.logits(image, backend.prepare(concepts)), backend.naive_logits(image, concepts), atol=1e-4, rtol=0
     )  # no rescaled quick-GELU here: the same operations as transformers, to the last bits
+
+
+def test_runs_faster_picks_the_quicker_call() -> None:
+    import time
+
+    def slow() -> None:
+        time.sleep(0.02)
+
+    def quick() -> None:
+        pass
+
+    assert onednn.runs_faster(quick, slow) and not onednn.runs_faster(slow, quick)
+
+
+@pytest.mark.parametrize("fused_wins", [True, False])
+def test_fused_ops_are_used_only_where_measured_faster(
+    tiny_model_dir: Path, monkeypatch: pytest.MonkeyPatch, fused_wins: bool
+) -> None:
+    """On an AVX2-only EPYC oneDNN's fused fp32 linears are slower than torch's own: the backend times both
+    at build and keeps the faster; either way the logits are transformers'."""
+    if not (onednn.onednn_has("swish", torch.float32) and onednn.onednn_has("relu", torch.float32)):
+        pytest.skip("this torch build has no oneDNN fp32 swish/relu post-ops: nothing to choose between")
+    timed: list[int] = []
+
+    def decided(first: object, second: object, rounds: int = 3) -> bool:
+        timed.append(rounds)
+        return fused_wins
+
+    monkeypatch.setattr(onednn, "runs_faster", decided)
+    backend = ClipSegBackend(str(tiny_model_dir), keep_reference=True)
+    compute = backend.compute
+    assert isinstance(compute, TorchCompute) and len(timed) == 2  # the trunk's MLP and the decoder's fc1
+    assert all((mlp is not None) is fused_wins for mlp in compute.trunk.fused_mlps)
+    assert (compute.decoder.linear_relu is onednn.linear_then_relu) is not fused_wins
+    concepts = ["water", "grass", "asphalt road"]
+    image = textured_image(90, 70, seed=3)
+    np.testing.assert_allclose(
+        backend.logits(image, backend.prepare(concepts)), backend.naive_logits(image, concepts), atol=1e-3, rtol=0
+    )

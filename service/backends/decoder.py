@@ -18,7 +18,7 @@ from dataclasses import dataclass
 from typing import Any, TypeGuard
 
 import torch
-from gcdtrav.service.backends.onednn import LinearReLU, fused_linear_relu, linear_then_relu
+from gcdtrav.service.backends.onednn import LinearReLU, linear_then_relu, measured_linear_relu
 
 # Concepts per decoder run, in torch and in ONNX Runtime: the MLP's (concepts x tokens x 2048) intermediate
 # stays small enough for the cache (measured best of 1, 2, 4, 8, all on 2 cores; benchmarks/README.md).
@@ -124,9 +124,10 @@ class PatchwiseUpsampler:
 class FastDecoder:
     """CLIPSegDecoder.forward for one image's activations and many conditional embeddings."""
 
-    def __init__(self, decoder: Any, dtype: torch.dtype) -> None:
+    def __init__(self, decoder: Any, tokens: int) -> None:
+        """``tokens``: the ViT's token count at this input size, for timing the fused ReLU on a real shape."""
         self.decoder = decoder
-        self.linear_relu = fused_linear_relu(dtype)
+        self.linear_relu = measured_linear_relu(decoder.layers[0].mlp.fc1, DECODER_CHUNK * tokens)
         self.upsample = PatchwiseUpsampler(decoder.transposed_convolution)
 
     def __call__(self, activations: Sequence[torch.Tensor], conditional: torch.Tensor) -> torch.Tensor:
