@@ -13,7 +13,7 @@ import argparse
 import statistics
 import sys
 import tempfile
-import time
+from functools import partial
 from pathlib import Path
 
 from gcdtrav.schemas.anchors import default_anchor_set
@@ -21,6 +21,9 @@ from gcdtrav.service.backends.clipseg import ClipSegBackend
 from gcdtrav.service.bench import machine_header
 from gcdtrav.service.doctor import machine_info
 from gcdtrav.service.precision_choice import synthetic_image
+from gcdtrav.service.timing import interleaved_ms
+
+from tools.random_clipseg import checkpoint_or_random
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -30,29 +33,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=15)
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as scratch:
-        model = args.model
-        if model is None:
-            from tools.random_clipseg import save_random_clipseg
-
-            model = save_random_clipseg(Path(scratch) / "model", preset="rd64-refined")
+        model = checkpoint_or_random(args.model, Path(scratch))
         backend = ClipSegBackend(str(model), precision="fp32", keep_reference=True, cache_dir=Path(scratch) / "cache")
         modes = [m for m in args.modes.split(",") if m]
         computes = {mode: backend.compute_for(mode) for mode in modes}
         image, prepared = synthetic_image(), backend.prepare(default_anchor_set().concepts)
-        times: dict[str, list[float]] = {mode: [] for mode in modes}
-        for _ in range(args.rounds + 1):
-            for mode in modes:
-                backend.use_compute(computes[mode], mode)
-                began = time.perf_counter()
-                backend.logits(image, prepared)
-                times[mode].append((time.perf_counter() - began) * 1e3)
+
+        def frame(mode: str) -> None:
+            backend.use_compute(computes[mode], mode)  # an attribute swap: nothing to time
+            backend.logits(image, prepared)
+
+        times = interleaved_ms({mode: partial(frame, mode) for mode in modes}, args.rounds)
     print(machine_header(machine_info()))
-    first = statistics.median(times[modes[0]][1:])
+    first = statistics.median(times[modes[0]])
     for mode in modes:
-        median = statistics.median(times[mode][1:])
-        print(
-            f"{mode:14s} median {median:7.1f} ms  min {min(times[mode][1:]):7.1f} ms  {first / median:5.2f}x {modes[0]}"
-        )
+        median = statistics.median(times[mode])
+        print(f"{mode:14s} median {median:7.1f} ms  min {min(times[mode]):7.1f} ms  {first / median:5.2f}x {modes[0]}")
     return 0
 
 

@@ -18,8 +18,8 @@ import argparse
 import statistics
 import sys
 import tempfile
-import time
 from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -27,6 +27,9 @@ from gcdtrav.service.backends.clipseg import ClipSegBackend
 from gcdtrav.service.bench import machine_header
 from gcdtrav.service.doctor import machine_info
 from gcdtrav.service.precision_choice import synthetic_image
+from gcdtrav.service.timing import interleaved_ms
+
+from tools.random_clipseg import checkpoint_or_random
 
 Trunk = Callable[[torch.Tensor], Sequence[torch.Tensor]]
 REFERENCE = "torch fp32 (fp32)"
@@ -80,11 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=9)
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as scratch, torch.inference_mode(False), torch.no_grad():
-        model = args.model
-        if model is None:
-            from tools.random_clipseg import save_random_clipseg
-
-            model = save_random_clipseg(Path(scratch) / "model", preset="rd64-refined")
+        model = checkpoint_or_random(args.model, Path(scratch))
         backend = ClipSegBackend(str(model), precision="fp32", keep_reference=True, cache_dir=Path(scratch) / "cache")
         pixels = backend.preprocess(synthetic_image())
         trunks: dict[str, Trunk] = {
@@ -93,12 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         trunks.update(torchao_trunks(backend, pixels))
         reference = trunks[REFERENCE](pixels)
         cosines = {name: min_cosine(reference, trunk(pixels)) for name, trunk in trunks.items()}
-        times: dict[str, list[float]] = {name: [] for name in trunks}
-        for _ in range(args.rounds + 1):
-            for name, trunk in trunks.items():
-                began = time.perf_counter()
-                trunk(pixels)
-                times[name].append((time.perf_counter() - began) * 1e3)
+        times = interleaved_ms({name: partial(trunk, pixels) for name, trunk in trunks.items()}, args.rounds)
     print(machine_header(machine_info()))
     print(
         f"ViT trunk ({max(backend.extract_layers) + 1} layers, {pixels.shape[-1]}x{pixels.shape[-1]}), "
@@ -106,9 +100,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     print("| trunk | median ms | × fp32 | min activation cosine vs fp32 |")
     print("|---|---:|---:|---:|")
-    first = statistics.median(times[REFERENCE][1:])
+    first = statistics.median(times[REFERENCE])
     for name, values in times.items():
-        median = statistics.median(values[1:])
+        median = statistics.median(values)
         print(f"| {name} | {median:.1f} | {first / median:.2f} | {cosines[name]:.5f} |")
     return 0
 

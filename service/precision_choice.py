@@ -17,6 +17,7 @@ import os
 import statistics
 import time
 from dataclasses import asdict, dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -24,6 +25,7 @@ import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.service.engine.maps import compute_maps
+from gcdtrav.service.timing import interleaved_ms
 from numpy.typing import NDArray
 
 log = logging.getLogger(__name__)
@@ -113,11 +115,7 @@ def measure_modes(backend: Any, modes: list[str], runs: int = MEASURED_RUNS) -> 
             results.append(ModeMeasurement(mode, None, None, f"{type(err).__name__}: {err}"[:300]))
             continue
         outputs = [backend.logits(images[0], prepared)]  # warm-up (first-call allocations), and parity
-        times = []
-        for _ in range(runs):
-            began = time.perf_counter()
-            backend.logits(images[0], prepared)
-            times.append((time.perf_counter() - began) * 1e3)
+        times = interleaved_ms({mode: partial(backend.logits, images[0], prepared)}, runs, warmup=0)[mode]
         outputs += [backend.logits(image, prepared) for image in images[1:]]
         worst = max(parity(r, o, anchors)["p99_dT"] for r, o in zip(references, outputs, strict=True))
         results.append(ModeMeasurement(mode, round(statistics.median(times), 1), round(worst, 5)))

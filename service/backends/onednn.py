@@ -7,13 +7,12 @@ back to the plain modules where this torch build lacks it (non-x86 CPUs, builds 
 
 from __future__ import annotations
 
-import math
-import time
 from collections.abc import Callable
 from typing import Any
 
 import torch
 import torch.nn.functional as F
+from gcdtrav.service.timing import interleaved_ms
 
 LinearReLU = Callable[[torch.Tensor, torch.nn.Linear], torch.Tensor]
 
@@ -92,16 +91,9 @@ class QuickGeluMLP:
 def runs_faster(first: Callable[[], object], second: Callable[[], object], rounds: int = FUSION_TIMING_ROUNDS) -> bool:
     """Whether ``first`` is faster than ``second`` on this CPU: best of ``rounds`` interleaved calls after a
     warm-up round (best, not median: a busy machine only ever adds time)."""
-    calls = (first, second)
-    best = [math.inf, math.inf]
     with torch.inference_mode():
-        for round_ in range(rounds + 1):
-            for index, call in enumerate(calls):
-                began = time.perf_counter()
-                call()
-                if round_:
-                    best[index] = min(best[index], time.perf_counter() - began)
-    return best[0] < best[1]
+        times = interleaved_ms({"first": first, "second": second}, rounds)
+    return min(times["first"]) < min(times["second"])
 
 
 def _sample(rows: int, width: int, dtype: torch.dtype) -> torch.Tensor:
