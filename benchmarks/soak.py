@@ -149,13 +149,10 @@ def main() -> int:
     args = parser.parse_args()
     deadline_s = args.minutes * 60
 
-    from tools.random_clipseg import save_random_clipseg
+    from tools.random_clipseg import checkpoint_or_random
 
     scratch = tempfile.TemporaryDirectory()
-    model = args.model
-    if model is None:
-        print("building random weights of the real architecture ...", file=sys.stderr)
-        model = str(save_random_clipseg(Path(scratch.name) / "model", preset="rd64-refined"))
+    model = str(checkpoint_or_random(args.model, Path(scratch.name)))
     port = free_port()
     router = zenoh.open(zenoh_config(mode="router", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
     common = ["--model", model, "-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import sys
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -71,6 +72,15 @@ def write_clip_tokenizer(directory: Path) -> None:
     (directory / "tokenizer_config.json").write_text(
         json.dumps({"tokenizer_class": "CLIPTokenizer", "model_max_length": 77}), "utf-8"
     )
+
+
+def checkpoint_or_random(model: str | Path | None, scratch: Path) -> Path:
+    """``model`` if given, else random weights of the real rd64-refined architecture written under ``scratch``:
+    what the benchmarks time when no checkpoint is at hand (the compute is the real one)."""
+    if model is not None:
+        return Path(model)
+    print("building random weights of the real architecture (CLIPSeg rd64-refined) ...", file=sys.stderr)
+    return save_random_clipseg(scratch / "model", preset="rd64-refined")
 
 
 def save_random_clipseg(directory: Path, preset: str = "tiny", input_size: int = 352, seed: int = 0) -> Path:
