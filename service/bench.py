@@ -14,7 +14,6 @@ import os
 import statistics
 import sys
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -28,6 +27,7 @@ from gcdtrav.service.doctor import machine_info
 from gcdtrav.service.engine import gcd
 from gcdtrav.service.engine.maps import compute_maps
 from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, parity, synthetic_image
+from gcdtrav.service.timing import interleaved_ms
 from numpy.typing import NDArray
 
 # ---- measurement helpers ---------------------------------------------------------------------------
@@ -83,13 +83,7 @@ class Row:
 
 def time_call(fn: Callable[[], object], runs: int, warmup: int = 1) -> tuple[list[float], float]:
     with RssSampler() as rss:
-        for _ in range(warmup):
-            fn()
-        times = []
-        for _ in range(runs):
-            began = time.perf_counter()
-            fn()
-            times.append((time.perf_counter() - began) * 1e3)
+        times = interleaved_ms({"call": fn}, runs, warmup)["call"]
     return times, rss.peak
 
 

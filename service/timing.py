@@ -1,6 +1,6 @@
 """How long calls take, timed in rounds of one call each: a busy machine's drift hits every call alike.
 
-Stdlib only, so the backends (choosing fused ops), ``precision: auto`` and the benchmarks share it.
+Stdlib only, so the backends (choosing fused ops), ``precision: auto``, ``gcdtrav bench`` and the benchmarks share it.
 """
 
 from __future__ import annotations
