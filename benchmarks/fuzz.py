@@ -64,7 +64,7 @@ def _decode_image(data: bytes) -> None:
 def _ros_seeds() -> list[bytes]:
     import numpy as np
     from gcdtrav.schemas.images import encode_jpeg
-    from gcdtrav.service.bus import ros
+    from gcdtrav.service.ros import cdr as ros
 
     types = ros.typestore().types
     header = ros.make_header(12.5, "camera")
@@ -113,8 +113,8 @@ def _odometry(types: Any, header: Any) -> Any:
 
 def _decode_ros(data: bytes) -> None:
     from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS, MAX_POSITION_M
-    from gcdtrav.service.bus import ros
-    from gcdtrav.service.bus.ros import decode_camera_info, decode_depth, decode_pose
+    from gcdtrav.service.ros import cdr as ros
+    from gcdtrav.service.ros.cdr import decode_camera_info, decode_depth, decode_pose
 
     kind, payload = (data[0] % 5, data[1:]) if data else (0, b"")
     if kind in (0, 1):
@@ -164,14 +164,8 @@ def _selector_seeds() -> list[bytes]:
 def _answer_selector(data: bytes) -> None:
     import numpy as np
     from gcdtrav.schemas.anchors import default_anchor_set
-    from gcdtrav.service.queries import (
-        PATCH_FORMS,
-        FrameHistory,
-        FrameRecord,
-        answer_patch_query,
-        parameter_pairs,
-        strict_parameters,
-    )
+    from gcdtrav.service.runtime.history import FrameHistory, FrameRecord
+    from gcdtrav.service.runtime.queries import PATCH_FORMS, answer_patch_query, parameter_pairs, strict_parameters
 
     global _HISTORY
     if _HISTORY is None:
@@ -195,7 +189,7 @@ def expected_errors() -> tuple[type[BaseException], ...]:
     from gcdtrav.schemas.anchors import AnchorSetError
     from gcdtrav.schemas.inputs import RejectedInput
     from gcdtrav.schemas.messages import MessageError
-    from gcdtrav.service.queries import QueryError
+    from gcdtrav.service.runtime.errors import QueryError
 
     return (AnchorSetError, MessageError, RejectedInput, QueryError)
 

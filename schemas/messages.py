@@ -6,27 +6,58 @@ Service and client both import this module, so a field changes in exactly one pl
 from __future__ import annotations
 
 import math
+import re
 from enum import Enum
 from typing import Any, TypeVar
 
 import msgpack
 import numpy as np
-from gcdtrav.schemas.anchors import Anchor, AnchorSet
+from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.config import Method
 from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS, MAX_POSITION_M
-from gcdtrav.schemas.strict import StrictModel
+from gcdtrav.schemas.strict import WireModel
 from numpy.typing import NDArray
 from pydantic import Field, ValidationError, field_validator
 
 MSGPACK_ENCODING = "application/msgpack"
-SCHEMA_VERSION = 1
+# major.minor of every message below. A minor step adds fields (older readers ignore them); a major step
+# changes or removes one, and a reader refuses a message of another major with both versions named.
+# 1.0 was the integer 1 in MapsHeader only; 1.1 puts the version in every message and adds risk fields.
+SCHEMA_VERSION = "1.1"
+_VERSION = re.compile(r"^(\d+)(?:\.\d+)?$")
 
 
 class MessageError(ValueError):
     """A payload that is not a valid message of the expected type."""
 
 
-class Message(StrictModel):
+class SchemaVersionError(MessageError):
+    """A message of another major schema version: its fields may mean something else here."""
+
+
+def schema_major(version: object) -> int:
+    """The major of '1.2', '1' or 1 (a 1.0 writer's integer); a MessageError for anything else."""
+    match = _VERSION.match(str(version)) if isinstance(version, (int, str)) and not isinstance(version, bool) else None
+    if match is None:
+        raise MessageError(f"schema_version {version!r} is not 'major.minor'")
+    return int(match.group(1))
+
+
+def check_schema_version(name: str, version: object) -> None:
+    """Accept this major with any minor (newer minors only add fields); refuse another major."""
+    if schema_major(version) != schema_major(SCHEMA_VERSION):
+        raise SchemaVersionError(
+            f"{name} has schema version {version}, this reader reads {schema_major(SCHEMA_VERSION)}.x "
+            f"(it has {SCHEMA_VERSION}): upgrade or downgrade gcdtrav on one side"
+        )
+
+
+class Message(WireModel):
+    """A whole payload on the bus. Packed with the writer's ``schema_version``; read under the wire rule:
+    unknown fields ignored, another major refused (schemas/strict.py)."""
+
+    schema_version: str = Field(default=SCHEMA_VERSION, description="major.minor of the writer's schemas.")
+
     def pack(self) -> bytes:
         return msgpack.packb(self.model_dump(mode="python"), use_bin_type=True)
 
@@ -45,6 +76,9 @@ class Message(StrictModel):
     @classmethod
     def validated(cls: type[M], data: dict[str, Any]) -> M:
         """The message from decoded fields (msgpack, or a ROS message's), or a MessageError naming the fields."""
+        if "schema_version" in data:  # a 1.0 writer sent none: same major
+            check_schema_version(cls.__name__, data["schema_version"])
+            data = {**data, "schema_version": str(data["schema_version"])}
         try:
             return cls.model_validate(data)
         except ValidationError as err:
@@ -87,8 +121,7 @@ class ImageEnvelope(Message):
 # ---- maps out --------------------------------------------------------------------------------------
 
 
-class MapsHeader(StrictModel):
-    schema_version: int = SCHEMA_VERSION
+class MapsHeader(WireModel):
     source: str = Field(description="The source: the input key after the matched prefix, e.g. 'r1/front'.")
     key: str = Field(description="The full key the image arrived on.")
     seq: int = Field(description="Per-source sequence number of processed frames, from 0.")
@@ -119,6 +152,14 @@ class MapsMessage(Message):
 # ---- queries ---------------------------------------------------------------------------------------
 
 
+class AnchorPoint(WireModel):
+    """An anchor as a distribution reports it: the wire's copy of the configuration's ``Anchor``."""
+
+    concept: str
+    position: float
+    width: float = Field(description="The effective width (the set's default where the anchor gives none).")
+
+
 class ContextDistribution(Message):
     """The Gaussian Context Distribution of one patch (or the mean of a region's patch weights)."""
 
@@ -127,7 +168,7 @@ class ContextDistribution(Message):
     stamp: float
     frame_id: str = ""
     anchor_set_version: str
-    anchors: list[Anchor] = Field(description="Concept, position and effective width of every anchor.")
+    anchors: list[AnchorPoint] = Field(description="Concept, position and effective width of every anchor.")
     weights: list[float] = Field(description="Softmax weight of each anchor, same order as anchors.")
     patch: tuple[int, int] | None = Field(default=None, description="(i, j) = (row, column) in the map.")
     region: tuple[int, int, int, int] | None = Field(
@@ -174,7 +215,7 @@ class Pose2D(Message):
         return value
 
 
-class GridHeader(StrictModel):
+class GridHeader(WireModel):
     source: str
     seq: int = Field(description="Grid updates so far.")
     stamp: float = Field(description="Stamp of the last fused frame.")
@@ -216,7 +257,7 @@ class AnchorSetReply(Message):
     version: str
 
 
-class AnchorHistoryEntry(StrictModel):
+class AnchorHistoryEntry(WireModel):
     accepted_at: float = Field(description="When the set became active, seconds since the Unix epoch.")
     version: str
     anchor_set: AnchorSet
@@ -240,7 +281,7 @@ class ErrorReply(Message):
     error: str
 
 
-class SourceStatus(StrictModel):
+class SourceStatus(WireModel):
     received: int = 0
     processed: int = 0
     dropped: int = Field(default=0, description="Replaced by a newer frame before inference (latest-only).")

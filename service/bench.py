@@ -256,8 +256,8 @@ class Bench:
     def run_grid(self, weights: NDArray[np.float32]) -> None:
         """What a ground grid adds per frame: projection, fusion into 200 x 200 cells, layers and encoding."""
         from gcdtrav.schemas.settings import GridSettings
-        from gcdtrav.service.bus.grids import GridOutputs
-        from gcdtrav.service.queries import FrameRecord
+        from gcdtrav.service.runtime.grids import GridOutputs
+        from gcdtrav.service.runtime.history import FrameRecord
 
         config = GridSettings.model_validate(
             {

@@ -22,8 +22,8 @@ import numpy as np
 import zenoh
 from gcdtrav.client import Maps, TraversabilityClient, add_zenoh_arguments, zenoh_config_from_args
 from gcdtrav.schemas.images import decode_image
-from gcdtrav.service.bus import ros
-from gcdtrav.service.bus.ros_graph import entity_gid
+from gcdtrav.service.bus.ros_graph import entity_gid, rmw_attachment
+from gcdtrav.service.ros import cdr as ros
 
 
 def image_payload(rgb: np.ndarray, stamp: float, frame_id: str) -> bytes:
@@ -114,7 +114,7 @@ def main() -> None:
             subscribed = f"/MS/%/%/gcdtrav/{mangled}/"  # any gcdtrav node subscribed to our topic
             if not graph.wait_for(lambda: any(subscribed in k for k in graph.live("MS")), args.timeout):
                 raise SystemExit("no subscription token for the topic: is `gcdtrav serve` running with ROS inputs?")
-            attachment = ros.rmw_attachment(1, time.time_ns(), entity_gid(publisher_token))
+            attachment = rmw_attachment(1, time.time_ns(), entity_gid(publisher_token))
         time.sleep(0.5)
         session.put(key, payload, attachment=attachment)
         print(

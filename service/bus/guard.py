@@ -15,8 +15,8 @@ from collections.abc import Callable
 import zenoh
 from gcdtrav.schemas.messages import ErrorReply
 from gcdtrav.service.bus.replies import reply_error
-from gcdtrav.service.queries import QueryError
-from gcdtrav.service.stats import ServiceStats
+from gcdtrav.service.runtime.errors import QueryError
+from gcdtrav.service.runtime.stats import ServiceStats
 
 log = logging.getLogger("gcdtrav.service")
 

@@ -22,24 +22,22 @@ from gcdtrav.schemas.messages import (
     ServiceStatus,
 )
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
-from gcdtrav.service.anchor_switch import AnchorSwitch
 from gcdtrav.service.bus import replies
-from gcdtrav.service.bus import ros as ros_io
-from gcdtrav.service.bus.frames import PendingFrame
-from gcdtrav.service.bus.grids import GridOutputs
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
 from gcdtrav.service.bus.queryables import AnchorQueries, SourceQueries
 from gcdtrav.service.bus.ros_graph import RosGraph
-from gcdtrav.service.bus.worker import FrameWorker
-from gcdtrav.service.latest_queue import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.queries import (
-    FrameHistory,
-)
-from gcdtrav.service.sources import SourceTracker
-from gcdtrav.service.stats import ServiceStats
+from gcdtrav.service.ros import cdr as ros_io
+from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
+from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.service.runtime.grids import GridOutputs
+from gcdtrav.service.runtime.history import FrameHistory
+from gcdtrav.service.runtime.latest_queue import LatestFrameQueue, PendingBudgetExceeded
+from gcdtrav.service.runtime.sources import SourceTracker
+from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.runtime.worker import FrameWorker
 
 log = logging.getLogger("gcdtrav.service")
 

@@ -18,10 +18,10 @@ from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import MSGPACK_ENCODING, MapsHeader, MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service import viz
-from gcdtrav.service.bus import ros as ros_io
-from gcdtrav.service.bus.frames import ProcessedFrame
-from gcdtrav.service.bus.grids import GridOutputs
 from gcdtrav.service.bus.ros_graph import GRID_QOS, IMAGE_QOS, Qos, RosGraph
+from gcdtrav.service.ros import cdr as ros_io
+from gcdtrav.service.runtime.frames import ProcessedFrame
+from gcdtrav.service.runtime.grids import GridOutputs
 
 log = logging.getLogger("gcdtrav.service")
 MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)

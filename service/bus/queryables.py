@@ -10,19 +10,14 @@ import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import AnchorSetRejection, AnchorSetReply
-from gcdtrav.service.anchor_switch import AnchorSwitch, SwapDone
 from gcdtrav.service.bus import replies
-from gcdtrav.service.bus.grids import GridOutputs
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.queries import (
-    PATCH_FORMS,
-    FrameHistory,
-    QueryError,
-    answer_patch_query,
-    parse_number,
-    strict_parameters,
-)
-from gcdtrav.service.stats import ServiceStats
+from gcdtrav.service.runtime.anchor_switch import AnchorSwitch, SwapDone
+from gcdtrav.service.runtime.errors import QueryError
+from gcdtrav.service.runtime.grids import GridOutputs
+from gcdtrav.service.runtime.history import FrameHistory
+from gcdtrav.service.runtime.queries import PATCH_FORMS, answer_patch_query, parse_number, strict_parameters
+from gcdtrav.service.runtime.stats import ServiceStats
 
 ROLLBACK_FORM = "steps=N (1 = the set before the active one)"
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import zenoh
 from gcdtrav.schemas.messages import MSGPACK_ENCODING, Message
-from gcdtrav.service.queries import QueryError
+from gcdtrav.service.runtime.errors import QueryError
 
 MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
 JSON = zenoh.Encoding.APPLICATION_JSON

@@ -26,7 +26,8 @@ from typing import Any, Literal
 import zenoh
 from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.bus import ros as ros_io
+from gcdtrav.service.ros import cdr as ros_io
+from zenoh.ext import Int64, UInt8, z_serialize
 
 log = logging.getLogger("gcdtrav.service")
 
@@ -38,6 +39,12 @@ KINDS = ("NN", "MP", "MS", "SS", "SC")
 
 def mangle(name: str) -> str:
     return name.replace("/", "%")
+
+
+def rmw_attachment(sequence: int, timestamp_ns: int, gid: bytes) -> bytes:
+    """rmw_zenoh's attachment (since Jazzy 0.2.4, Humble 0.1.2, Rolling 0.6.0): sequence number, source
+    timestamp in ns, the publisher's 16-byte gid, serialised as zenoh-ext does (int64, int64, sequence)."""
+    return z_serialize((Int64(sequence), Int64(timestamp_ns), [UInt8(b) for b in gid])).to_bytes()
 
 
 @dataclass(frozen=True)
@@ -156,7 +163,7 @@ class RosPublisher:
 
     def put(self, payload: bytes) -> None:
         self.sequence += 1  # rmw_zenoh's first sample is 1
-        self.publisher.put(payload, attachment=ros_io.rmw_attachment(self.sequence, time.time_ns(), self.gid))
+        self.publisher.put(payload, attachment=rmw_attachment(self.sequence, time.time_ns(), self.gid))
 
     def close(self) -> None:
         for declared in (self.token, self.publisher):

@@ -12,7 +12,7 @@ from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings, SettingsError
 from gcdtrav.service.cpus import usable_cpus
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.state import load_anchor_state
+from gcdtrav.service.runtime.state import load_anchor_state
 
 log = logging.getLogger("gcdtrav.service")
 

@@ -11,7 +11,8 @@ import pytest
 from conftest import camera_grid, textured_image
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.messages import AnchorSetRejection, ErrorReply, MessageError
-from gcdtrav.service.queries import PATCH_FORMS, QueryError, parameter_pairs, strict_parameters
+from gcdtrav.service.runtime.errors import QueryError
+from gcdtrav.service.runtime.queries import PATCH_FORMS, parameter_pairs, strict_parameters
 from zenoh_helpers import connecting_config, first_frame_through, wait_until
 
 TWO = [{"concept": "puddle", "position": 0.0}, {"concept": "road", "position": 1.0}]
@@ -80,8 +81,8 @@ def test_selectors_are_strict() -> None:
 def test_ros_frame_ids_are_bounded() -> None:
     pytest.importorskip("rosbags")
     import numpy as np
-    from gcdtrav.service.bus import ros
-    from gcdtrav.service.bus.ros import decode_pose
+    from gcdtrav.service.ros import cdr as ros
+    from gcdtrav.service.ros.cdr import decode_pose
 
     types = ros.typestore().types
     header = ros.make_header(1.0, "f" * 5_000_000)  # fits in a 20 MB payload; was passed on to every output
@@ -194,7 +195,7 @@ def test_bad_poses_and_intrinsics_are_rejected_and_the_grid_keeps_the_last_good_
     import msgpack
     import numpy as np
     from gcdtrav.client import Grid
-    from gcdtrav.service.bus import ros
+    from gcdtrav.service.ros import cdr as ros
 
     service, client = served
     grids: list[Grid] = []

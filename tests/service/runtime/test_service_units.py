@@ -15,8 +15,8 @@ from gcdtrav.schemas.inputs import RejectedInput, decode_payload
 from gcdtrav.schemas.keys import input_source_of, literal_head
 from gcdtrav.schemas.messages import ImageEnvelope, MapsMessage, MessageError, PixelEncoding
 from gcdtrav.schemas.settings import SettingsError, load_settings
-from gcdtrav.service.latest_queue import LatestFrameQueue
-from gcdtrav.service.state import load_anchor_state, save_anchor_state, write_atomically
+from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.state import load_anchor_state, save_anchor_state, write_atomically
 
 LIMITS = {"received_at": 1.0, "max_bytes": 10_000_000, "max_pixels": 10_000_000}
 
@@ -196,7 +196,7 @@ def test_unusable_state_file_is_ignored(tmp_path: Path) -> None:
 
 
 def test_history_numbers_frames_per_source_and_restarts_a_forgotten_one() -> None:
-    from gcdtrav.service.queries import FrameHistory
+    from gcdtrav.service.runtime.history import FrameHistory
 
     anchors = default_anchor_set()
     weights = np.full((len(anchors), 2, 2), 1 / len(anchors), np.float32)

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from gcdtrav.schemas.keys import OUTPUT_KINDS, Keys, input_key
 
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "messages.md"
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "messages.md"
 
 
 def test_every_key_under_a_prefix() -> None:

@@ -15,7 +15,9 @@ from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_se
 from gcdtrav.schemas.images import encode_jpeg, encode_png
 from gcdtrav.schemas.inputs import RejectedInput, decode_payload
 from gcdtrav.schemas.messages import ImageEnvelope, MessageError, PixelEncoding
-from gcdtrav.service.queries import FrameHistory, FrameRecord, QueryError, answer_patch_query
+from gcdtrav.service.runtime.errors import QueryError
+from gcdtrav.service.runtime.history import FrameHistory, FrameRecord
+from gcdtrav.service.runtime.queries import answer_patch_query
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -174,7 +176,7 @@ def test_message_unpack_random_bytes(payload: bytes) -> None:
 @FUZZ
 @given(data=st.data(), msgtype=st.sampled_from(["sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"]))
 def test_ros_cdr_payloads_mutated(data: st.DataObject, msgtype: str) -> None:
-    ros = pytest.importorskip("gcdtrav.service.bus.ros")
+    ros = pytest.importorskip("gcdtrav.service.ros.cdr")
     if msgtype == ros.IMAGE:
         message = ros.typestore().types[ros.IMAGE](
             header=ros.make_header(1.5, "cam"),

@@ -20,7 +20,7 @@ from gcdtrav.service.bus.node import TraversabilityService
 
 from tools.loopback import in_process_service
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PUDDLES = ROOT / "examples" / "anchors" / "puddles.yaml"
 
 

@@ -37,7 +37,7 @@ from gcdtrav.service.bus.node import TraversabilityService  # noqa: E402
 from tools.loopback import in_process_service  # noqa: E402
 
 GRID_CELLS = 32
-LAYOUT = Path(__file__).resolve().parents[1] / "examples" / "foxglove" / "gcdtrav-layout.json"
+LAYOUT = Path(__file__).resolve().parents[3] / "examples" / "foxglove" / "gcdtrav-layout.json"
 
 
 def grid_settings(state_dir: Path) -> ServiceSettings:

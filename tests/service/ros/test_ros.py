@@ -15,7 +15,7 @@ from zenoh_helpers import connecting_config, wait_until
 
 pytest.importorskip("rosbags")
 
-from gcdtrav.service.bus import ros
+from gcdtrav.service.ros import cdr as ros
 
 STAMP = 1_700_000_000.25
 BAYER_TO_OPENCV = {  # as cv_bridge: ROS names the top-left 2x2 pattern, OpenCV the second row's

@@ -21,7 +21,6 @@ from zenoh_helpers import connecting_config, wait_until
 pytest.importorskip("rosbags")
 pytest.importorskip("xxhash")
 
-from gcdtrav.service.bus import ros
 from gcdtrav.service.bus.ros_graph import (
     CAMERA_SUBSCRIPTION_QOS,
     GRID_QOS,
@@ -32,7 +31,9 @@ from gcdtrav.service.bus.ros_graph import (
     TopicInfo,
     entity_gid,
     parse_publisher_token,
+    rmw_attachment,
 )
+from gcdtrav.service.ros import cdr as ros
 
 # Jazzy's RIHS01 type hashes (rosidl's type_description hash of each definition)
 IMAGE_HASH = "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47"
@@ -56,7 +57,7 @@ def test_attachment_bytes() -> None:
         "10"  # 16 bytes follow
         "000102030405060708090a0b0c0d0e0f"
     )
-    attachment = ros.rmw_attachment(1, 1_700_000_000_123_456_789, gid)
+    attachment = rmw_attachment(1, 1_700_000_000_123_456_789, gid)
     assert attachment == expected and len(attachment) == 33
     assert attachment == struct.pack("<qqB", 1, 1_700_000_000_123_456_789, 16) + gid
 
@@ -182,7 +183,7 @@ def test_output_topics_from_templates() -> None:
 
 
 def test_depth_honours_is_bigendian() -> None:
-    from gcdtrav.service.bus.ros import decode_depth
+    from gcdtrav.service.ros.cdr import decode_depth
 
     metres = np.array([[0.5, 1.25], [2.0, 7.75]], np.float32)
     millimetres = np.array([[500, 1250], [2000, 7750]], np.uint16)
@@ -250,7 +251,7 @@ class Camera:
 
         gid = entity_gid(self.publisher_token)
         self.session.put(
-            self.key, image_cdr(RGB, "rgb8", frame_id="front_optical"), attachment=ros.rmw_attachment(1, 0, gid)
+            self.key, image_cdr(RGB, "rgb8", frame_id="front_optical"), attachment=rmw_attachment(1, 0, gid)
         )
 
     def close(self) -> None:

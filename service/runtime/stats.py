@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from gcdtrav.schemas.messages import SourceStatus
-from gcdtrav.service.latest_queue import QueueCounters
+from gcdtrav.service.runtime.latest_queue import QueueCounters
 
 LATENCY_WINDOW = 1000
 ERROR_LOG_INTERVAL_S = 5.0

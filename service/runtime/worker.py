@@ -13,14 +13,14 @@ from typing import Any, TypeVar
 
 from gcdtrav.schemas.inputs import DecodedFrame, RejectedInput, decode_payload
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.bus import ros as ros_io
-from gcdtrav.service.bus.frames import InferredFrame, PendingFrame, ProcessedFrame
 from gcdtrav.service.cpus import usable_cpus
-from gcdtrav.service.latest_queue import LatestFrameQueue
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.queries import FrameHistory
-from gcdtrav.service.sources import SourceTracker
-from gcdtrav.service.stats import ServiceStats
+from gcdtrav.service.ros import cdr as ros_io
+from gcdtrav.service.runtime.frames import InferredFrame, PendingFrame, ProcessedFrame
+from gcdtrav.service.runtime.history import FrameHistory
+from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.sources import SourceTracker
+from gcdtrav.service.runtime.stats import ServiceStats
 
 log = logging.getLogger("gcdtrav.service")
 _R = TypeVar("_R")

@@ -120,7 +120,7 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
     from gcdtrav.schemas.anchors import default_anchor_set
     from gcdtrav.schemas.messages import Pose2D
     from gcdtrav.schemas.settings import ServiceSettings
-    from gcdtrav.service.bus import ros
+    from gcdtrav.service.ros import cdr as ros
     from zenoh_helpers import connecting_config, wait_until
 
     from tools.loopback import in_process_service
@@ -200,8 +200,8 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
 def test_pose_camera_info_and_depth_messages() -> None:
     pytest.importorskip("rosbags")
     from gcdtrav.schemas.messages import MessageError, Pose2D
-    from gcdtrav.service.bus import ros
-    from gcdtrav.service.bus.ros import decode_camera_info, decode_depth, decode_pose
+    from gcdtrav.service.ros import cdr as ros
+    from gcdtrav.service.ros.cdr import decode_camera_info, decode_depth, decode_pose
 
     types = ros.typestore().types
     header = ros.make_header(12.5, "odom")

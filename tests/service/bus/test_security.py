@@ -22,7 +22,7 @@ from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.pipeline import Pipeline
 
-DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
+DEPLOY = Path(__file__).resolve().parents[3] / "deploy"
 NEW_SET = {"anchors": [{"concept": "puddle", "position": 0.0}, {"concept": "road", "position": 1.0}]}
 
 

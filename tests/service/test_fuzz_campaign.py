@@ -11,7 +11,7 @@ import pytest
 
 pytest.importorskip("rosbags")
 
-FUZZ = Path(__file__).resolve().parents[1] / "benchmarks" / "fuzz.py"
+FUZZ = Path(__file__).resolve().parents[2] / "benchmarks" / "fuzz.py"
 
 
 def test_a_short_campaign_tries_every_target_and_reports_it(tmp_path: Path) -> None:
@@ -37,7 +37,7 @@ def test_what_the_campaign_found_is_refused() -> None:
     import math
 
     from gcdtrav.schemas.messages import MessageError
-    from gcdtrav.service.bus import ros
+    from gcdtrav.service.ros import cdr as ros
 
     sys.path.insert(0, str(FUZZ.parent))
     try:

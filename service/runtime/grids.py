@@ -23,17 +23,12 @@ from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.images import encode_count_png, encode_map_png16
 from gcdtrav.schemas.messages import ContextDistribution, GridHeader, GridMessage, PathReply, Pose2D
 from gcdtrav.schemas.settings import GridSettings
-from gcdtrav.service.bus.ros import decode_camera_info, decode_depth, decode_pose, occupancy_cdr
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points, map_cell_pixels
-from gcdtrav.service.queries import (
-    FrameRecord,
-    QueryError,
-    distribution_of,
-    parameter_pairs,
-    parse_number,
-    strict_parameters,
-)
+from gcdtrav.service.ros.cdr import decode_camera_info, decode_depth, decode_pose, occupancy_cdr
+from gcdtrav.service.runtime.errors import QueryError
+from gcdtrav.service.runtime.history import FrameRecord
+from gcdtrav.service.runtime.queries import distribution_of, parameter_pairs, parse_number, strict_parameters
 from numpy.typing import NDArray
 
 log = logging.getLogger("gcdtrav.service")

@@ -7,9 +7,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from gcdtrav.schemas.inputs import DecodedFrame
-from gcdtrav.service.bus.ros import RosTopic
 from gcdtrav.service.pipeline import FrameResult, Inference
-from gcdtrav.service.queries import FrameRecord
+from gcdtrav.service.ros.cdr import RosTopic
+from gcdtrav.service.runtime.history import FrameRecord
 
 
 @dataclass(frozen=True)

@@ -271,14 +271,6 @@ def make_header(stamp: float, frame_id: str) -> Any:
     )
 
 
-def rmw_attachment(sequence: int, timestamp_ns: int, gid: bytes) -> bytes:
-    """rmw_zenoh's attachment (since Jazzy 0.2.4, Humble 0.1.2, Rolling 0.6.0): sequence number, source
-    timestamp in ns, the publisher's 16-byte gid, serialised as zenoh-ext does (int64, int64, sequence)."""
-    from zenoh.ext import Int64, UInt8, z_serialize
-
-    return z_serialize((Int64(sequence), Int64(timestamp_ns), [UInt8(b) for b in gid])).to_bytes()
-
-
 # ---- the ground grid's inputs and output -------------------------------------------------------------------
 
 

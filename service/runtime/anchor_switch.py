@@ -20,7 +20,7 @@ from pathlib import Path
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply, MessageError
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.state import remove_stale_temporaries, save_anchor_state, write_atomically
+from gcdtrav.service.runtime.state import remove_stale_temporaries, save_anchor_state, write_atomically
 
 log = logging.getLogger("gcdtrav.service")
 

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
-from gcdtrav.service.anchor_switch import AnchorSwitch
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.state import load_anchor_state
+from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
+from gcdtrav.service.runtime.state import load_anchor_state
 from numpy.typing import NDArray
 
 TWO = AnchorSet.model_validate(

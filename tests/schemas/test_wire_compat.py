@@ -1,0 +1,146 @@
+"""The wire rule (docs/messages.md, "Compatibility"): every message decodes with a field it does not know and
+with a newer minor version, refuses another major, and configuration stays strict."""
+
+from __future__ import annotations
+
+from enum import Enum
+from typing import Any
+
+import msgpack
+import pytest
+from gcdtrav.schemas import messages as m
+from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
+from gcdtrav.schemas.settings import ServiceSettings
+from pydantic import BaseModel, ValidationError
+
+ANCHORS = default_anchor_set()
+MAPS_HEADER = m.MapsHeader(
+    source="r1/front", key="gcdtrav/in/r1/front", seq=3, stamp=1.5, received_at=1.6, published_at=2.0,
+    inference_ms=400.0, model="tiny", instance="box-1", anchor_set_version=ANCHORS.version, method="gcd",
+    map_shape=(2, 2), image_size=(4, 4), scale=(2.0, 2.0),
+)  # fmt: skip
+DISTRIBUTION = m.ContextDistribution(
+    source="r1/front", seq=3, stamp=1.5, anchor_set_version=ANCHORS.version,
+    anchors=[m.AnchorPoint(concept=a.concept, position=a.position, width=0.0) for a in ANCHORS.anchors],
+    weights=[1 / len(ANCHORS)] * len(ANCHORS), patch=(0, 1), mean=0.5, std=0.2, skewness=0.0,
+    excess_kurtosis=0.0, entropy=1.0, modes=2, top_anchors=[0, 1], density_x=[0.0, 1.0], density=[1.0, 1.0],
+    density_bandwidth=0.025,
+)  # fmt: skip
+GRID_HEADER = m.GridHeader(
+    source="cam", seq=1, stamp=1.0, frame_id="odom", origin=(0.0, 0.0), resolution=0.1, cells=4,
+    anchor_set_version=ANCHORS.version, resets=0, known_cells=3, instance="box-1",
+)  # fmt: skip
+SAMPLES: dict[type[m.Message], m.Message] = {
+    m.ImageEnvelope: m.ImageEnvelope(stamp=1.0, encoding="rgb8", width=1, height=1, data=b"\0\0\0"),
+    m.MapsMessage: m.MapsMessage(header=MAPS_HEADER, traversability_png=b"t", uncertainty_png=b"u"),
+    m.ContextDistribution: DISTRIBUTION,
+    m.Pose2D: m.Pose2D(stamp=1.0, x=1.0, y=2.0, yaw=0.5),
+    m.GridMessage: m.GridMessage(header=GRID_HEADER, traversability_png=b"t", uncertainty_png=b"u", count_png=b"c"),
+    m.PathReply: m.PathReply(
+        source="cam",
+        stamp=1.0,
+        anchor_set_version=ANCHORS.version,
+        points=[(0, 0), (1, 1)],
+        cells=[DISTRIBUTION],
+        unknown_cells=0,
+    ),
+    m.AnchorSetReply: m.AnchorSetReply(anchor_set=ANCHORS, version=ANCHORS.version),
+    m.AnchorHistoryReply: m.AnchorHistoryReply(
+        instance="box-1", entries=[m.AnchorHistoryEntry(accepted_at=1.0, version=ANCHORS.version, anchor_set=ANCHORS)]
+    ),
+    m.AnchorSetRejection: m.AnchorSetRejection(errors=["bad"], active_version=ANCHORS.version),
+    m.ErrorReply: m.ErrorReply(error="x"),
+    m.ServiceStatus: m.ServiceStatus(
+        instance="box-1",
+        uptime_s=1.0,
+        model="tiny",
+        anchor_set_version=ANCHORS.version,
+        method="gcd",
+        queued=0,
+        sources={"r1/front": m.SourceStatus(received=2)},
+        rejected_by_reason={},
+        last_errors=[],
+    ),
+    m.SourceView: m.SourceView(source="r1/front", maps=MAPS_HEADER, instances={"box-1": m.SourceStatus()}),
+}
+
+
+def every_message_type() -> set[type[m.Message]]:
+    found, todo = set(), [m.Message]
+    while todo:
+        for sub in todo.pop().__subclasses__():
+            found.add(sub)
+            todo.append(sub)
+    return found
+
+
+def fields_of(message: m.Message) -> dict[str, Any]:
+    return msgpack.unpackb(message.pack(), raw=False)
+
+
+def with_unknown_fields(model: BaseModel) -> dict[str, Any]:
+    """The message's fields, every model in it (nested ones too) with a field no reader knows; anchor sets
+    excepted: configuration, strict."""
+    if isinstance(model, AnchorSet):
+        return model.model_dump(mode="python")
+    fields = {name: _with_unknown_fields(getattr(model, name)) for name in type(model).model_fields}
+    return {**fields, "added_in_1_9": [1, "x"]}
+
+
+def _with_unknown_fields(value: Any) -> Any:
+    if isinstance(value, BaseModel):
+        return with_unknown_fields(value)
+    if isinstance(value, (list, tuple)):
+        return [_with_unknown_fields(item) for item in value]
+    if isinstance(value, dict):
+        return {key: _with_unknown_fields(item) for key, item in value.items()}
+    return value.value if isinstance(value, Enum) else value
+
+
+def test_every_message_type_has_a_sample() -> None:
+    assert every_message_type() == set(SAMPLES), "add a sample of the new message type above"
+
+
+@pytest.mark.parametrize("kind", list(SAMPLES), ids=lambda kind: kind.__name__)
+def test_a_message_with_fields_it_does_not_know_decodes_without_them(kind: type[m.Message]) -> None:
+    sample = SAMPLES[kind]
+    data = with_unknown_fields(sample)
+    decoded = kind.unpack(msgpack.packb(data, use_bin_type=True))
+    assert decoded == sample  # the unknown fields are dropped, not kept
+    assert "added_in_1_9" not in decoded.model_dump()
+
+
+@pytest.mark.parametrize("kind", list(SAMPLES), ids=lambda kind: kind.__name__)
+def test_a_newer_minor_is_read_and_another_major_refused(kind: type[m.Message]) -> None:
+    data = fields_of(SAMPLES[kind])
+    assert data["schema_version"] == m.SCHEMA_VERSION
+    major = m.schema_major(m.SCHEMA_VERSION)
+    newer_minor = kind.unpack(msgpack.packb({**data, "schema_version": f"{major}.99"}))
+    assert newer_minor.schema_version == f"{major}.99"
+    with pytest.raises(m.SchemaVersionError, match=rf"schema version {major + 1}\.0, this reader reads {major}\.x"):
+        kind.unpack(msgpack.packb({**data, "schema_version": f"{major + 1}.0"}))
+
+
+def test_a_1_0_writer_without_a_version_or_with_an_integer_is_read() -> None:
+    data = fields_of(SAMPLES[m.ErrorReply])
+    del data["schema_version"]
+    assert m.ErrorReply.unpack(msgpack.packb(data)).error == "x"
+    assert m.ErrorReply.unpack(msgpack.packb({**data, "schema_version": 1})).schema_version == "1"
+
+
+@pytest.mark.parametrize("version", ["", "one", "1.2.3", None, True, 1.5])
+def test_a_malformed_version_is_a_clear_error(version: object) -> None:
+    data = {**fields_of(SAMPLES[m.ErrorReply]), "schema_version": version}
+    with pytest.raises(m.MessageError, match=r"is not 'major\.minor'"):
+        m.ErrorReply.unpack(msgpack.packb(data))
+
+
+def test_configuration_stays_strict() -> None:
+    with pytest.raises(ValidationError, match="Extra inputs are not permitted"):
+        ServiceSettings.model_validate({"histroy": 8})
+    with pytest.raises(AnchorSetError, match="colour: unknown field"):
+        AnchorSet.from_text(b'{"name": "x", "colour": "red", "anchors": [{"concept": "grass", "position": 0.5}]}')
+
+
+def test_the_status_reports_the_service_schema_version() -> None:
+    assert fields_of(SAMPLES[m.ServiceStatus])["schema_version"] == m.SCHEMA_VERSION
