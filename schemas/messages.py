@@ -284,7 +284,9 @@ class ErrorReply(Message):
 class SourceStatus(WireModel):
     received: int = 0
     processed: int = 0
-    dropped: int = Field(default=0, description="Replaced by a newer frame before inference (latest-only).")
+    dropped: int = Field(
+        default=0, description="Good frames never published: replaced by a newer one before inference, or at shutdown."
+    )
     rejected: int = Field(default=0, description="Undecodable, oversized or malformed payloads.")
     last_seq: int | None = None
     latency_ms: dict[str, float] = Field(default_factory=dict, description="Receive-to-publish p50/p90/p99.")
@@ -308,6 +310,9 @@ class ServiceStatus(Message):
     queued_bytes: int = Field(default=0, description="Their payload bytes (at most pending_budget_mb).")
     sources: dict[str, SourceStatus]
     rejected_by_reason: dict[str, int]
+    dropped_by_reason: dict[str, int] = Field(
+        default_factory=dict, description="Dropped frames by reason: replaced (latest-only), shutdown. Since 1.1."
+    )
     last_errors: list[str]
     history_bytes: int = Field(default=0, description="Bytes of weights kept for patch queries, all sources.")
     history_budget_bytes: int = Field(default=0, description="The history's limit (history_budget_mb).")

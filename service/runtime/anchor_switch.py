@@ -2,10 +2,14 @@
 
 A swap recomputes the text embeddings and fsyncs two files, which takes longer than a zenoh callback
 should wait, so swaps run on this module's own worker thread and report to a callback; frames keep flowing
-meanwhile and each frame uses exactly one set (``Pipeline.activate`` replaces one reference). The state file
-holds the active set (read at start); the history file the last ``HISTORY_LENGTH`` accepted sets with the
-time each became active, newest first, for ``gcdtrav anchors history`` and ``rollback``. Both are written
-atomically.
+meanwhile and each frame uses exactly one set (``Pipeline.activate`` replaces one reference).
+
+The history file (the last ``HISTORY_LENGTH`` accepted sets with the time each became active, newest first,
+for ``gcdtrav anchors history`` and ``rollback``) is the one commit point: written atomically before the set
+is activated or the swap acknowledged, and its head is the set a restart serves. The state file, the active
+set alone as versions before 1.1 read it, is a mirror written after it; a crash or a failed write between
+the two leaves the mirror behind, and the next start repairs it. A swap whose history write fails is
+refused and changes nothing (the atomic write leaves the old file whole).
 """
 
 from __future__ import annotations
@@ -20,7 +24,12 @@ from pathlib import Path
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply, MessageError
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.runtime.state import remove_stale_temporaries, save_anchor_state, write_atomically
+from gcdtrav.service.runtime.state import (
+    load_anchor_state,
+    remove_stale_temporaries,
+    save_anchor_state,
+    write_atomically,
+)
 
 log = logging.getLogger("gcdtrav.service")
 
@@ -41,9 +50,10 @@ class AnchorSwitch:
         self.max_body_bytes = max_body_bytes
         self._lock = threading.Lock()
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gcdtrav-anchors")
-        self._history = self._load_history()
+        self._history = load_history(self.history_file)
         if not self._history or self._history[0].version != pipeline.anchors.version:
             self._remember(pipeline.anchors)  # the set it started with: rollback can return to it
+        self._mirror(pipeline.anchors)  # repairs a mirror a crash left behind the history
 
     # ---- swaps, on the worker ------------------------------------------------------------------------
     def submit(self, body: bytes, done: SwapDone) -> None:
@@ -75,8 +85,8 @@ class AnchorSwitch:
         """prepare -> persist -> activate under one lock; the active set stays if any step fails."""
         with self._lock:
             prepared = self.pipeline.prepare(anchors)
-            save_anchor_state(self.state_file, anchors)
-            self._remember(anchors)
+            self._remember(anchors)  # the commit point
+            self._mirror(anchors)
             self.pipeline.activate(prepared)
         log.info("anchor set swapped to %s (%d anchors)", anchors.version, len(anchors))
         return anchors
@@ -101,16 +111,34 @@ class AnchorSwitch:
         write_atomically(self.history_file, reply.model_dump_json(indent=1) + "\n")
         self._history = entries  # only once written: a failed write leaves the history as it was
 
-    def _load_history(self) -> list[AnchorHistoryEntry]:
-        if self.history_file.parent.is_dir():
-            remove_stale_temporaries(self.history_file)  # writes a crash interrupted
-        if not self.history_file.is_file():
-            return []
+    def _mirror(self, anchors: AnchorSet) -> None:
+        """The state file for readers before 1.1; behind the history after a crash, repaired at the next start."""
+        if load_anchor_state(self.state_file) == anchors:
+            return
         try:
-            return AnchorHistoryReply.model_validate_json(self.history_file.read_text("utf-8")).entries
-        except (OSError, ValueError, MessageError) as err:
-            log.error("ignoring the anchor history file %s: %s", self.history_file, err)
-            return []
+            save_anchor_state(self.state_file, anchors)
+        except OSError as err:
+            log.warning("could not mirror the active anchor set to %s: %s", self.state_file, err)
 
     def close(self) -> None:
         self._worker.shutdown(wait=True)
+
+
+def load_history(history_file: Path) -> list[AnchorHistoryEntry]:
+    """The accepted sets, newest (the active one) first; empty if there is no usable history file."""
+    if history_file.parent.is_dir():
+        remove_stale_temporaries(history_file)  # writes a crash interrupted
+    if not history_file.is_file():
+        return []
+    try:
+        return AnchorHistoryReply.model_validate_json(history_file.read_text("utf-8")).entries
+    except (OSError, ValueError, MessageError) as err:
+        log.error("ignoring the anchor history file %s: %s", history_file, err)
+        return []
+
+
+def persisted_anchor_set(state_file: Path) -> AnchorSet | None:
+    """The set a restart serves: the history's head (the commit point), else the state file (written by
+    versions before 1.1, which kept no history or wrote the state first)."""
+    history = load_history(history_file_of(state_file))
+    return history[0].anchor_set if history else load_anchor_state(state_file)
