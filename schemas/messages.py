@@ -164,13 +164,13 @@ class ContextDistribution(Message):
     """The Gaussian Context Distribution of one patch (or the mean of a region's patch weights)."""
 
     source: str
-    seq: int
+    seq: int | None = Field(default=None, description="Patch queries: the frame's sequence number. Cells: none.")
     stamp: float
     frame_id: str = ""
     anchor_set_version: str
     anchors: list[AnchorPoint] = Field(description="Concept, position and effective width of every anchor.")
     weights: list[float] = Field(description="Softmax weight of each anchor, same order as anchors.")
-    patch: tuple[int, int] | None = Field(default=None, description="(i, j) = (row, column) in the map.")
+    patch: tuple[int, int] | None = Field(default=None, description="Patch queries: (i, j) = (row, column) in the map.")
     region: tuple[int, int, int, int] | None = Field(
         default=None, description="Map cells pooled: (i0, j0, i1, j1), end exclusive."
     )
@@ -184,8 +184,10 @@ class ContextDistribution(Message):
     density_x: list[float] = Field(description="Grid on [0, 1] where the density is sampled.")
     density: list[float] = Field(description="Mixture density at density_x (zero widths drawn at the bandwidth).")
     density_bandwidth: float
+    cell: tuple[int, int] | None = Field(default=None, description="Grid queries: (i, j) = (row, column) in the grid.")
     cell_xy: tuple[float, float] | None = Field(default=None, description="Grid queries: the cell's centre, m.")
     observations: int | None = Field(default=None, description="Grid queries: pixels fused into the cell.")
+    grid_updates: int | None = Field(default=None, description="Grid queries: the grid's updates so far (its seq).")
 
     def weights_array(self) -> NDArray[np.float32]:
         return np.asarray(self.weights, dtype=np.float32)

@@ -12,19 +12,19 @@ from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings, SettingsError
 from gcdtrav.service.cpus import usable_cpus
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.runtime.anchor_switch import persisted_anchor_set
+from gcdtrav.service.runtime.state import load_anchor_state
 
 log = logging.getLogger("gcdtrav.service")
 
 
 def starting_anchor_set(settings: ServiceSettings) -> AnchorSet:
     """The last set accepted at runtime wins over the configured file, which wins over the paper's set."""
-    persisted = persisted_anchor_set(settings.state_file)
+    persisted = load_anchor_state(settings.state_file)
     if persisted is not None:
         log.info(
-            "anchor set %s accepted at runtime, from %s (delete the folder's anchor files to use the configured set)",
+            "anchor set %s from the state file %s (delete it to use the configured set)",
             persisted.version,
-            settings.state_file.parent,
+            settings.state_file,
         )
         return persisted
     if settings.anchors_file is not None:

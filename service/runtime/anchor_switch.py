@@ -4,12 +4,12 @@ A swap recomputes the text embeddings and fsyncs two files, which takes longer t
 should wait, so swaps run on this module's own worker thread and report to a callback; frames keep flowing
 meanwhile and each frame uses exactly one set (``Pipeline.activate`` replaces one reference).
 
-The history file (the last ``HISTORY_LENGTH`` accepted sets with the time each became active, newest first,
-for ``gcdtrav anchors history`` and ``rollback``) is the one commit point: written atomically before the set
-is activated or the swap acknowledged, and its head is the set a restart serves. The state file, the active
-set alone as versions before 1.1 read it, is a mirror written after it; a crash or a failed write between
-the two leaves the mirror behind, and the next start repairs it. A swap whose history write fails is
-refused and changes nothing (the atomic write leaves the old file whole).
+Two files, each written atomically (a failed write leaves the old file whole): the history (the last
+``HISTORY_LENGTH`` accepted sets with the time each became active, newest first, for ``gcdtrav anchors
+history`` and ``rollback``), then the state file, the commit point: the set a restart serves, written before
+the set is activated or the swap acknowledged. A crash between the two leaves a history whose head was never
+active; the next start puts the active set back at its head, so the two agree. A failed state write refuses
+the swap and takes the new entry back out of the history: a refused set never becomes active.
 """
 
 from __future__ import annotations
@@ -25,7 +25,6 @@ from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply, MessageError
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.state import (
-    load_anchor_state,
     remove_stale_temporaries,
     save_anchor_state,
     write_atomically,
@@ -53,7 +52,6 @@ class AnchorSwitch:
         self._history = load_history(self.history_file)
         if not self._history or self._history[0].version != pipeline.anchors.version:
             self._remember(pipeline.anchors)  # the set it started with: rollback can return to it
-        self._mirror(pipeline.anchors)  # repairs a mirror a crash left behind the history
 
     # ---- swaps, on the worker ------------------------------------------------------------------------
     def submit(self, body: bytes, done: SwapDone) -> None:
@@ -85,8 +83,13 @@ class AnchorSwitch:
         """prepare -> persist -> activate under one lock; the active set stays if any step fails."""
         with self._lock:
             prepared = self.pipeline.prepare(anchors)
-            self._remember(anchors)  # the commit point
-            self._mirror(anchors)
+            before = self._history
+            self._remember(anchors)
+            try:
+                save_anchor_state(self.state_file, anchors)  # the commit point
+            except Exception:
+                self._restore(before)
+                raise
             self.pipeline.activate(prepared)
         log.info("anchor set swapped to %s (%d anchors)", anchors.version, len(anchors))
         return anchors
@@ -106,19 +109,20 @@ class AnchorSwitch:
 
     def _remember(self, anchors: AnchorSet) -> None:
         entry = AnchorHistoryEntry(accepted_at=time.time(), version=anchors.version, anchor_set=anchors)
-        entries = [entry, *self._history][:HISTORY_LENGTH]
+        self._write_history([entry, *self._history][:HISTORY_LENGTH])
+
+    def _restore(self, entries: list[AnchorHistoryEntry]) -> None:
+        """Take a refused swap's entry back out (best effort: the next start puts the active set at the head)."""
+        try:
+            self._write_history(entries)
+        except OSError as err:
+            self._history = entries
+            log.warning("could not take the refused set out of %s: %s", self.history_file, err)
+
+    def _write_history(self, entries: list[AnchorHistoryEntry]) -> None:
         reply = AnchorHistoryReply(instance=self.instance, entries=entries)
         write_atomically(self.history_file, reply.model_dump_json(indent=1) + "\n")
         self._history = entries  # only once written: a failed write leaves the history as it was
-
-    def _mirror(self, anchors: AnchorSet) -> None:
-        """The state file for readers before 1.1; behind the history after a crash, repaired at the next start."""
-        if load_anchor_state(self.state_file) == anchors:
-            return
-        try:
-            save_anchor_state(self.state_file, anchors)
-        except OSError as err:
-            log.warning("could not mirror the active anchor set to %s: %s", self.state_file, err)
 
     def close(self) -> None:
         self._worker.shutdown(wait=True)
@@ -135,10 +139,3 @@ def load_history(history_file: Path) -> list[AnchorHistoryEntry]:
     except (OSError, ValueError, MessageError) as err:
         log.error("ignoring the anchor history file %s: %s", history_file, err)
         return []
-
-
-def persisted_anchor_set(state_file: Path) -> AnchorSet | None:
-    """The set a restart serves: the history's head (the commit point), else the state file (written by
-    versions before 1.1, which kept no history or wrote the state first)."""
-    history = load_history(history_file_of(state_file))
-    return history[0].anchor_set if history else load_anchor_state(state_file)

@@ -208,13 +208,17 @@ class GridOutputs:
             weights / weights.sum(),
             anchors,
             grid.config.source,
-            grid.seq,
+            None,  # a cell fuses many frames: no one frame's seq
             grid.grid.stamp or 0.0,
             self.header(grid, anchors.version).frame_id,
-            patch=(i, j),
         )
         return reply.model_copy(
-            update={"cell_xy": grid.grid.centre_of(i, j), "observations": int(grid.grid.count[i, j])}
+            update={
+                "cell": (i, j),
+                "cell_xy": grid.grid.centre_of(i, j),
+                "observations": int(grid.grid.count[i, j]),
+                "grid_updates": grid.seq,
+            }
         )
 
     def _path(self, grid: SourceGrid, points: list[tuple[float, float]], anchors: AnchorSet) -> PathReply:

@@ -119,7 +119,7 @@ def distribution_of(
     weights: NDArray[np.float32],
     anchors: AnchorSet,
     source: str,
-    seq: int,
+    seq: int | None,
     stamp: float,
     frame_id: str = "",
     patch: tuple[int, int] | None = None,

@@ -84,8 +84,7 @@ def test_a_failed_swap_changes_nothing(switch) -> None:  # type: ignore[no-untyp
     backend.fail_on = "asphalt"
     anchors, error, _ = swap_and_wait(switch.submit, TWO.model_dump_json().encode())
     assert anchors is None and isinstance(error, RuntimeError)
-    state = load_anchor_state(switch.state_file)
-    assert pipeline.anchors.version == before and state is not None and state.version == before
+    assert pipeline.anchors.version == before and not switch.state_file.exists()
     assert [entry.version for entry in switch.history().entries] == [before]
 
     anchors, error, _ = swap_and_wait(switch.submit, b"anchors: [{concept: mud, position: 1.5}]")
@@ -104,20 +103,20 @@ def test_rollback_returns_to_the_set_before(switch) -> None:  # type: ignore[no-
 
 
 def restart(state_file: Path) -> tuple[AnchorSet, AnchorSwitch]:
-    """What a restarted service serves, and its switch (which repairs the mirror)."""
-    from gcdtrav.service.runtime.anchor_switch import persisted_anchor_set
-
-    anchors = persisted_anchor_set(state_file) or default_anchor_set()
+    """What a restarted service serves (the state file, else the default), and its switch."""
+    anchors = load_anchor_state(state_file) or default_anchor_set()
     return anchors, AnchorSwitch(Pipeline(ThreadRecordingBackend(), anchors, EngineSettings()), state_file, "b", 65536)
 
 
-def test_a_crash_between_the_history_and_the_state_file_restarts_consistent(switch, monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    """Killed after the commit point (the history) and before the mirror (the state file): the restart serves
-    the swapped set, and history and state agree on it."""
-    switch, _, _ = switch
+class Killed(BaseException):
+    """The process dies here: nothing after it runs, nothing catches it."""
 
-    class Killed(BaseException):
-        pass
+
+def test_a_crash_between_the_history_and_the_state_file_restarts_consistent(switch, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Killed after the history and before the commit point (the state file): the swap was never acknowledged;
+    the restart serves the old set and the history names it first again."""
+    switch, pipeline, _ = switch
+    before = pipeline.anchors
 
     def killed(*_: object) -> None:
         raise Killed
@@ -126,34 +125,32 @@ def test_a_crash_between_the_history_and_the_state_file_restarts_consistent(swit
     with pytest.raises(Killed):
         switch.swap(TWO)
     monkeypatch.undo()
-    assert load_anchor_state(switch.state_file) == default_anchor_set()  # the mirror is behind
     anchors, restarted = restart(switch.state_file)
-    assert anchors.version == TWO.version
-    assert restarted.history().entries[0].version == TWO.version
-    assert load_anchor_state(switch.state_file) == TWO  # repaired
+    assert anchors == before
+    assert restarted.history().entries[0].version == before.version
     restarted.close()
 
 
-def test_a_refused_history_write_refuses_the_swap_and_survives_a_restart(switch, monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    """A full disk: the history cannot be written, so the swap is refused, nothing changes, and a restart
-    serves the set that was active, never the refused one."""
+@pytest.mark.parametrize("failing", ["history", "state"])
+def test_a_refused_write_refuses_the_swap_and_survives_a_restart(switch, monkeypatch, failing: str) -> None:  # type: ignore[no-untyped-def]
+    """A full disk at either write: the swap is refused, nothing changes, the history does not name the refused
+    set, and a restart serves the set that was active, never the refused one."""
     switch, pipeline, _ = switch
     before = pipeline.anchors
+    real_write = __import__("gcdtrav.service.runtime.state", fromlist=["x"]).write_atomically
 
-    def full_disk(*_: object) -> None:
-        raise OSError(28, "No space left on device")
+    def full_disk(path: Path, text: str) -> None:
+        if (failing == "history") == (path == switch.history_file):
+            raise OSError(28, "No space left on device")
+        real_write(path, text)
 
     monkeypatch.setattr("gcdtrav.service.runtime.anchor_switch.write_atomically", full_disk)
+    monkeypatch.setattr("gcdtrav.service.runtime.state.write_atomically", full_disk)
     anchors, error, _ = swap_and_wait(switch.submit, TWO.model_dump_json().encode())
     monkeypatch.undo()
     assert anchors is None and isinstance(error, OSError)
-    assert pipeline.anchors == before and load_anchor_state(switch.state_file) == before
-    assert restart(switch.state_file)[0] == before
-
-
-def test_a_state_file_of_a_version_before_1_1_is_still_read(tmp_path: Path) -> None:
-    from gcdtrav.service.runtime.anchor_switch import persisted_anchor_set
-    from gcdtrav.service.runtime.state import save_anchor_state
-
-    save_anchor_state(tmp_path / "anchors.json", TWO)  # no history file beside it
-    assert persisted_anchor_set(tmp_path / "anchors.json") == TWO
+    assert pipeline.anchors == before and load_anchor_state(switch.state_file) in (None, before)
+    assert [entry.version for entry in switch.history().entries] == [before.version]
+    anchors, restarted = restart(switch.state_file)
+    assert anchors == before and restarted.history().entries[0].version == before.version
+    restarted.close()
