@@ -91,11 +91,9 @@ class LatestFrameQueue(Generic[T]):
             self._counters.pop(source, None)
 
     def discard_pending(self) -> dict[str, int]:
-        """Drop every pending frame (shutdown), counted as dropped; returns how many per source."""
+        """Drop every pending frame (shutdown); returns how many per source, for the caller to count by reason."""
         with self._cond:
             discarded = {source: 1 for source in self._pending}
-            for source in discarded:
-                self._counters[source].dropped += 1
             self._pending.clear()
             self._bytes = 0
             return discarded
