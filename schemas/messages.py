@@ -136,7 +136,7 @@ class MapsHeader(WireModel):
     method: Method
     map_shape: tuple[int, int] = Field(description="(height, width) of T and U in this message.")
     image_size: tuple[int, int] = Field(description="(width, height) of the input image, pixels.")
-    scale: tuple[float, float] = Field(description="(sx, sy): image pixels per map cell along x and y.")
+    scale: tuple[float, float] = Field(description="(sx, sy): image pixels per patch along x and y.")
 
 
 class MapsMessage(Message):
@@ -172,7 +172,7 @@ class ContextDistribution(Message):
     weights: list[float] = Field(description="Softmax weight of each anchor, same order as anchors.")
     patch: tuple[int, int] | None = Field(default=None, description="Patch queries: (i, j) = (row, column) in the map.")
     region: tuple[int, int, int, int] | None = Field(
-        default=None, description="Map cells pooled: (i0, j0, i1, j1), end exclusive."
+        default=None, description="Patches pooled: (i0, j0, i1, j1), end exclusive."
     )
     mean: float = Field(description="mu: the traversability T of this distribution.")
     std: float = Field(description="sigma: the uncertainty U (not normalised).")

@@ -63,7 +63,7 @@ class SourceGrid:
         return PinholeCamera(camera.fx * sx, camera.fy * sy, camera.cx * sx, camera.cy * sy, *image_size)
 
     def base_points(self, map_shape: tuple[int, int], image_size: tuple[int, int]):  # type: ignore[no-untyped-def]
-        """Ground (or depth) points in the base frame of every map cell, and which cells have one."""
+        """Ground (or depth) points in the base frame of every map patch, and which patches have one."""
         camera = self.camera_for(image_size)
         u, v = map_cell_pixels(map_shape, image_size)
         if self.depth is not None:
