@@ -42,6 +42,8 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
     probe.add_argument("x", type=float, help="image pixel column")
     probe.add_argument("y", type=float, help="image pixel row")
     probe.add_argument("--seq", type=int, help="a kept frame [default: the latest]")
+    probe.add_argument("--alpha", type=float, help="CVaR and quantile level, 0 < alpha <= 1 [the service's risk.alpha]")
+    probe.add_argument("--tau", type=float, help="P(T < tau) threshold, 0 <= tau <= 1 [the service's risk.tau]")
     probe.add_argument("--png", type=Path, help="also draw the density like the paper's Fig. 2 (needs matplotlib)")
     for parser in (status, get, put, history, rollback, probe):
         parser.add_argument("--prefix", default="gcdtrav", help="the service's key prefix [gcdtrav]")
@@ -243,13 +245,18 @@ def describe(d: ContextDistribution) -> str:
         f"T (mean) = {d.mean:.3f}   U (std) = {d.std:.3f}   modes = {d.modes}   entropy = {d.entropy:.2f} nats",
         f"skewness = {d.skewness:.2f}   excess kurtosis = {d.excess_kurtosis:.2f}",
     ]
+    if d.cvar is not None and d.quantile is not None and d.p_below is not None:
+        lines.append(
+            f"CVaR(alpha={d.alpha:g}) = {d.cvar:.3f}   quantile(alpha) = {d.quantile:.3f}   "
+            f"P(T < {d.tau:g}) = {d.p_below:.3f}" + (f"   match = {d.match:.2f}" if d.match is not None else "")
+        )
     for anchor, weight in zip(d.anchors, d.weights, strict=True):
         lines.append(f"  {anchor.concept:>14} @ {anchor.position:4.2f}  {weight:6.3f} {'#' * round(weight * 40)}")
     return "\n".join(lines)
 
 
 def probe(client: TraversabilityClient, args: argparse.Namespace) -> int:
-    distribution = client.patch(args.source, args.x, args.y, seq=args.seq)
+    distribution = client.patch(args.source, args.x, args.y, seq=args.seq, alpha=args.alpha, tau=args.tau)
     print(describe(distribution))
     if args.png is not None:
         draw_density(distribution, args.png)
