@@ -40,6 +40,7 @@ from gcdtrav.client.client import AnchorSetRejected, Maps, ServiceError, Travers
 from gcdtrav.client.client import Grid as GridMaps
 from gcdtrav.client.view import pictures
 from gcdtrav.client.view.anchor_parameters import anchor_parameters, apply_parameters, parameter_message
+from gcdtrav.client.view.json_schema import model_schema
 from gcdtrav.client.view.latest import LatestSlots
 from gcdtrav.client.view.recorder import McapRecorder
 from gcdtrav.schemas.anchors import AnchorSetError
@@ -47,6 +48,7 @@ from gcdtrav.schemas.inputs import decode_payload
 from gcdtrav.schemas.keys import Keys, input_key, input_source_of
 from gcdtrav.schemas.messages import AnchorSetReply, ServiceStatus, SourceView
 from numpy.typing import NDArray
+from pydantic import BaseModel
 
 log = logging.getLogger(__name__)
 
@@ -81,10 +83,10 @@ def stamp(seconds: float) -> Timestamp:
     return Timestamp.from_epoch_secs(max(seconds, 0.0))
 
 
-def json_schema(model: type[Any], title: str) -> dict[str, Any]:
-    schema = dict(model.model_json_schema())
-    schema["title"] = title
-    return schema
+class ServiceStatuses(BaseModel):
+    """The status channel's message: every instance's status."""
+
+    instances: list[ServiceStatus]
 
 
 class SourceChannels:
@@ -97,7 +99,7 @@ class SourceChannels:
         self.uncertainty = CompressedImageChannel(f"{topic}/uncertainty", context=context)
         self.grid = GridChannel(f"{topic}/grid", context=context)
         self.status = foxglove.Channel(
-            f"{topic}/status", schema=json_schema(SourceView, "gcdtrav.SourceView"), context=context
+            f"{topic}/status", schema=model_schema(SourceView, "gcdtrav.SourceView"), context=context
         )
         self.view: SourceView | None = None
 
@@ -121,9 +123,11 @@ class Viewer:
         self._subscribers: list[zenoh.Subscriber[None]] = []
         topic = f"/{options.prefix}"
         self.anchors_channel = foxglove.Channel(
-            f"{topic}/anchors", schema=json_schema(AnchorSetReply, "gcdtrav.AnchorSetReply"), context=self.context
+            f"{topic}/anchors", schema=model_schema(AnchorSetReply, "gcdtrav.AnchorSetReply"), context=self.context
         )
-        self.status_channel = foxglove.Channel(f"{topic}/status", schema=statuses_schema(), context=self.context)
+        self.status_channel = foxglove.Channel(
+            f"{topic}/status", schema=model_schema(ServiceStatuses, "gcdtrav.ServiceStatuses"), context=self.context
+        )
         self.log_channel = LogChannel(f"{topic}/log", context=self.context)
         self.recorder = McapRecorder(options.record, self.context, options.record_max_bytes) if options.record else None
         self.server = foxglove.start_server(
@@ -353,18 +357,6 @@ class Viewer:
     def log_message(self, level: LogLevel, text: str) -> None:
         log.log(logging.ERROR if level == LogLevel.Error else logging.INFO, "%s", text)
         self.emit(self.log_channel, Log(timestamp=stamp(time.time()), level=level, message=text, name="gcdtrav view"))
-
-
-def statuses_schema() -> dict[str, Any]:
-    """JSON schema of the status channel: every instance's ServiceStatus (definitions at the root)."""
-    status = dict(ServiceStatus.model_json_schema())
-    definitions = status.pop("$defs", {})
-    return {
-        "title": "gcdtrav.ServiceStatuses",
-        "type": "object",
-        "properties": {"instances": {"type": "array", "items": status}},
-        "$defs": definitions,
-    }
 
 
 def to_parameter(name: str, value: str | float) -> foxglove.Parameter:
