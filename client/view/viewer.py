@@ -2,9 +2,11 @@
 with the active anchor set as Foxglove parameters.
 
 Threads: zenoh's callbacks only keep each payload as the newest of its (source, kind) slot; one worker turns
-slots into Foxglove messages; one poller asks for status (and the anchor set when its version changes);
-parameter edits arrive on the server's thread and swap the set on the service. Nothing here can block the
-service: its publishers drop rather than wait, and the viewer holds at most one payload per slot.
+slots into Foxglove messages; one poller asks for status (and the anchor set when its version changes) and
+sends the anchor set again every ANCHORS_REPEAT_S; parameter edits and subscriptions arrive on the server's
+thread (a new subscriber to the anchor channel gets the set at once; edits swap it on the service).
+Nothing here can block the service: its publishers drop rather than wait, and the viewer holds at most one
+payload per slot.
 """
 
 from __future__ import annotations
@@ -53,6 +55,7 @@ from pydantic import BaseModel
 log = logging.getLogger(__name__)
 
 KINDS = ("maps", "grid", "preview", "camera")  # what arrives per source, each in its own latest-only slot
+ANCHORS_REPEAT_S = 2.0  # the anchor set is sent again this often, so each MCAP file and a seek find it
 NUMERIC_TYPES = {
     "float32": PackedElementFieldNumericType.Float32,
     "uint32": PackedElementFieldNumericType.Uint32,
@@ -122,6 +125,7 @@ class Viewer:
         self._threads: list[threading.Thread] = []
         self._subscribers: list[zenoh.Subscriber[None]] = []
         topic = f"/{options.prefix}"
+        self._anchors_sent = 0.0  # time.monotonic() of the last anchor-set message
         self.anchors_channel = foxglove.Channel(
             f"{topic}/anchors", schema=model_schema(AnchorSetReply, "gcdtrav.AnchorSetReply"), context=self.context
         )
@@ -135,7 +139,7 @@ class Viewer:
             host=options.host,
             port=options.port,
             capabilities=[Capability.Parameters],
-            server_listener=ParameterListener(self),
+            server_listener=ViewerListener(self),
             context=self.context,
             message_backlog_size=options.message_backlog,
         )
@@ -303,6 +307,8 @@ class Viewer:
         if self._active is None or self._active.version not in versions or len(versions) > 1:
             with self._swap_lock:  # not in the middle of a swap from the Parameters panel
                 self.refresh_anchors()
+        if time.monotonic() - self._anchors_sent >= ANCHORS_REPEAT_S:
+            self.send_anchors()
         for source, channels in list(self._sources.items()):
             counters = {s.instance: s.sources[source] for s in statuses if source in s.sources}
             channels.view = (channels.view or SourceView(source=source)).model_copy(update={"instances": counters})
@@ -314,9 +320,17 @@ class Viewer:
         changed = self._active is None or self._active.version != active.version or self._active != active
         self._active = active
         if changed:
-            self.emit(self.anchors_channel, active.model_dump(mode="json"))
+            self.send_anchors()
             self.server.publish_parameter_values(self.parameters())
         return active
+
+    def send_anchors(self) -> None:
+        """The active set on /{prefix}/anchors (once it is known): when it changes, every ANCHORS_REPEAT_S and
+        when a client subscribes, since a channel keeps no last message for late subscribers."""
+        active = self._active
+        if active is not None:
+            self.emit(self.anchors_channel, active.model_dump(mode="json"))
+            self._anchors_sent = time.monotonic()
 
     # ---- parameters ------------------------------------------------------------------------------------
     def parameters(self, names: list[str] | None = None) -> list[foxglove.Parameter]:
@@ -382,8 +396,9 @@ def camera_image(payload: bytes) -> tuple[bytes, str, float, str]:
     return pictures.jpeg(frame.image), "jpeg", envelope.stamp, envelope.frame_id
 
 
-class ParameterListener(ServerListener):
-    """Foxglove's Parameters panel: reads the active set, and edits swap it on the service."""
+class ViewerListener(ServerListener):
+    """Foxglove's Parameters panel reads the active set, and edits swap it on the service; a subscriber to the
+    anchor channel gets the active set at once."""
 
     def __init__(self, viewer: Viewer) -> None:
         self.viewer = viewer
@@ -408,3 +423,5 @@ class ParameterListener(ServerListener):
 
     def on_subscribe(self, client: Client, channel: ChannelView) -> None:
         log.debug("client %s subscribed to %s", client.id, channel.topic)
+        if channel.topic == self.viewer.anchors_channel.topic():
+            self.viewer.send_anchors()  # to every sink: foxglove-sdk's Python Client has no sink id to aim at
