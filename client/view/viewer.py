@@ -93,18 +93,29 @@ class ServiceStatuses(BaseModel):
 
 
 class SourceChannels:
-    """The Foxglove channels of one source, created when its first message arrives."""
+    """The Foxglove channels of one source: status with its first message, each other channel with the first
+    message of its kind, so a source without a grid (or previews, or camera) advertises no empty channel."""
 
     def __init__(self, topic: str, context: foxglove.Context) -> None:
-        self.camera = CompressedImageChannel(f"{topic}/camera", context=context)
-        self.preview = CompressedImageChannel(f"{topic}/preview", context=context)
-        self.traversability = CompressedImageChannel(f"{topic}/traversability", context=context)
-        self.uncertainty = CompressedImageChannel(f"{topic}/uncertainty", context=context)
-        self.grid = GridChannel(f"{topic}/grid", context=context)
+        self.topic, self.context = topic, context
         self.status = foxglove.Channel(
             f"{topic}/status", schema=model_schema(SourceView, "gcdtrav.SourceView"), context=context
         )
         self.view: SourceView | None = None
+        self._images: dict[str, CompressedImageChannel] = {}
+        self._grid: GridChannel | None = None
+
+    def image(self, name: str) -> CompressedImageChannel:
+        """The image channel ``{topic}/{name}``: camera, preview, traversability or uncertainty."""
+        if name not in self._images:
+            self._images[name] = CompressedImageChannel(f"{self.topic}/{name}", context=self.context)
+        return self._images[name]
+
+    @property
+    def grid(self) -> GridChannel:
+        if self._grid is None:
+            self._grid = GridChannel(f"{self.topic}/grid", context=self.context)
+        return self._grid
 
 
 class Viewer:
@@ -245,13 +256,14 @@ class Viewer:
         maps = Maps.from_payload(payload)
         header = maps.header
         when = stamp(header.stamp)
-        layers: tuple[tuple[CompressedImageChannel, NDArray[np.float32], pictures.MapKind], ...] = (
-            (channels.traversability, maps.traversability, "T"),
-            (channels.uncertainty, maps.uncertainty, "U"),
+        layers: tuple[tuple[str, NDArray[np.float32], pictures.MapKind], ...] = (
+            ("traversability", maps.traversability, "T"),
+            ("uncertainty", maps.uncertainty, "U"),
         )
-        for channel, values, kind in layers:
-            picture = pictures.png(pictures.map_with_legend(values, kind))
-            self.emit(channel, CompressedImage(timestamp=when, frame_id=header.frame_id, data=picture, format="png"))
+        for name, values, kind in layers:
+            picture = pictures.png(pictures.map_with_legend(values, kind, header.image_size))
+            message = CompressedImage(timestamp=when, frame_id=header.frame_id, data=picture, format="png")
+            self.emit(channels.image(name), message)
         previous = channels.view or SourceView(source=header.source)
         latency = (time.time() - header.stamp) * 1e3
         channels.view = previous.model_copy(update={"maps": header, "latency_ms": round(latency, 2)})
@@ -279,11 +291,12 @@ class Viewer:
         self.emit(channels.grid, message)
 
     def _show_preview(self, channels: SourceChannels, payload: bytes) -> None:
-        self.emit(channels.preview, CompressedImage(timestamp=stamp(time.time()), data=payload, format="jpeg"))
+        self.emit(channels.image("preview"), CompressedImage(timestamp=stamp(time.time()), data=payload, format="jpeg"))
 
     def _show_camera(self, channels: SourceChannels, payload: bytes) -> None:
         data, kind, when, frame_id = camera_image(payload)
-        self.emit(channels.camera, CompressedImage(timestamp=stamp(when), frame_id=frame_id, data=data, format=kind))
+        message = CompressedImage(timestamp=stamp(when), frame_id=frame_id, data=data, format=kind)
+        self.emit(channels.image("camera"), message)
 
     # ---- poller: status and the anchor set -------------------------------------------------------------
     def _poll(self) -> None:
