@@ -74,7 +74,8 @@ class ViewOptions:
     status_period_s: float = 1.0
     timeout_s: float = 5.0
     record: Path | None = None
-    record_max_bytes: int = 256 * 1024 * 1024
+    record_file_bytes: int = 256 * 1024 * 1024  # a new MCAP file beyond this
+    record_max_bytes: int | None = None  # the whole recording: the oldest files are deleted beyond this
     message_backlog: int = 64  # per browser: the oldest message is dropped beyond this
 
 
@@ -144,7 +145,11 @@ class Viewer:
             f"{topic}/status", schema=model_schema(ServiceStatuses, "gcdtrav.ServiceStatuses"), context=self.context
         )
         self.log_channel = LogChannel(f"{topic}/log", context=self.context)
-        self.recorder = McapRecorder(options.record, self.context, options.record_max_bytes) if options.record else None
+        self.recorder = (
+            McapRecorder(options.record, self.context, options.record_file_bytes, options.record_max_bytes)
+            if options.record
+            else None
+        )
         self.server = foxglove.start_server(
             name=f"gcdtrav view ({options.prefix})",
             host=options.host,
