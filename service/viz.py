@@ -13,7 +13,7 @@ import numpy as np
 from gcdtrav.client.density_plot import draw_distribution, pyplot
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.images import colorize_traversability, colorize_uncertainty
-from gcdtrav.service.queries import distribution_of
+from gcdtrav.service.runtime.queries import distribution_of
 from numpy.typing import NDArray
 
 __all__ = ["colorize_traversability", "colorize_uncertainty", "overlay", "save_context_figure"]

@@ -13,7 +13,7 @@ pytest.importorskip("matplotlib")
 from gcdtrav.client import density_plot
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.service import viz
-from gcdtrav.service.queries import distribution_of
+from gcdtrav.service.runtime.queries import distribution_of
 
 PAPER = default_anchor_set()
 LEGEND = ["context distribution", "T (mean)", "anchor weights"]

@@ -12,7 +12,7 @@ import zenoh
 from gcdtrav.client.zenoh_args import zenoh_config
 from gcdtrav.schemas.messages import ErrorReply
 from gcdtrav.service.bus import replies
-from gcdtrav.service.queries import QueryError
+from gcdtrav.service.runtime.errors import QueryError
 
 KEY = "test/replies/status"
 
