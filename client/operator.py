@@ -227,11 +227,19 @@ def roll_back(client: TraversabilityClient, args: argparse.Namespace) -> int:
 # ---- probe -------------------------------------------------------------------------------------------
 
 
+def where_of(d: ContextDistribution) -> str:
+    """Which patch, region or cell a distribution is of, in words."""
+    if d.cell is not None:
+        return f"cell {d.cell} at {d.cell_xy} m, {d.observations} pixels"
+    frame = f"seq={d.seq} "
+    return frame + (f"patch {d.patch}" if d.patch is not None else f"region {d.region}")
+
+
 def describe(d: ContextDistribution) -> str:
     """A distribution as text: T, U, shape, and a bar per anchor weight."""
-    where = f"cell {d.patch}" if d.patch is not None else f"region {d.region}"
+    where = where_of(d)
     lines = [
-        f"{d.source} seq={d.seq} {where} anchors={d.anchor_set_version}",
+        f"{d.source} {where} anchors={d.anchor_set_version}",
         f"T (mean) = {d.mean:.3f}   U (std) = {d.std:.3f}   modes = {d.modes}   entropy = {d.entropy:.2f} nats",
         f"skewness = {d.skewness:.2f}   excess kurtosis = {d.excess_kurtosis:.2f}",
     ]
@@ -274,8 +282,7 @@ def draw_density(d: ContextDistribution, path: Path) -> None:
     axis.set_xlim(0, 1)
     axis.set_xlabel("traversability (0 = untraversable, 1 = ideal ground)")
     axis.set_ylabel("density")
-    where = f"cell {d.patch}" if d.patch is not None else f"region {d.region}"
-    axis.set_title(f"{d.source} seq {d.seq}, {where}", fontsize=9)
+    axis.set_title(f"{d.source} {where_of(d)}", fontsize=9)
     axis.legend(loc="upper right", fontsize=7)
     figure.tight_layout()
     figure.savefig(path)

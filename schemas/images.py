@@ -67,9 +67,10 @@ def decode_image(data: bytes, max_pixels: int | None = None) -> NDArray[np.uint8
         raise ImageDecodeError(f"not a decodable image ({len(data)} bytes, starts with {data[:8]!r})")
     if image.size == 0:
         raise ImageDecodeError("image has zero size")
-    if max_pixels is not None and image.shape[0] * image.shape[1] > max_pixels:
+    if max_pixels is not None and image.shape[0] * image.shape[1] > max_pixels:  # a header peek could not tell
         raise ImageDecodeError(
-            f"image of {image.shape[1]}x{image.shape[0]} pixels exceeds the limit of {max_pixels} pixels"
+            f"image of {image.shape[1]}x{image.shape[0]} pixels exceeds the limit of {max_pixels} pixels",
+            "too_many_pixels",
         )
     return np.asarray(cv2.cvtColor(image, cv2.COLOR_BGR2RGB), dtype=np.uint8)
 

@@ -64,7 +64,7 @@ def _decode_envelope(payload: bytes, max_bytes: int, max_pixels: int) -> Decoded
         try:
             image = decode_image(envelope.data, max_pixels)
         except ImageDecodeError as err:
-            raise RejectedInput("undecodable", f"envelope {envelope.encoding.value}: {err}") from None
+            raise RejectedInput(err.reason, f"envelope {envelope.encoding.value}: {err}") from None
     return DecodedFrame(image, stamp=envelope.stamp, frame_id=envelope.frame_id)
 
 

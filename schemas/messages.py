@@ -162,7 +162,7 @@ class MapsHeader(WireModel):
     method: Method
     map_shape: tuple[int, int] = Field(description="(height, width) of T and U in this message.")
     image_size: tuple[int, int] = Field(description="(width, height) of the input image, pixels.")
-    scale: tuple[float, float] = Field(description="(sx, sy): image pixels per map cell along x and y.")
+    scale: tuple[float, float] = Field(description="(sx, sy): image pixels per patch along x and y.")
 
 
 class MapsMessage(Message):
@@ -249,15 +249,15 @@ class ContextDistribution(Message):
     """The Gaussian Context Distribution of one patch (or the mean of a region's patch weights)."""
 
     source: str
-    seq: int
+    seq: int | None = Field(default=None, description="Patch queries: the frame's sequence number. Cells: none.")
     stamp: float
     frame_id: str = ""
     anchor_set_version: str
     anchors: list[AnchorPoint] = Field(description="Concept, position and effective width of every anchor.")
     weights: list[float] = Field(description="Softmax weight of each anchor, same order as anchors.")
-    patch: tuple[int, int] | None = Field(default=None, description="(i, j) = (row, column) in the map.")
+    patch: tuple[int, int] | None = Field(default=None, description="Patch queries: (i, j) = (row, column) in the map.")
     region: tuple[int, int, int, int] | None = Field(
-        default=None, description="Map cells pooled: (i0, j0, i1, j1), end exclusive."
+        default=None, description="Patches pooled: (i0, j0, i1, j1), end exclusive."
     )
     mean: float = Field(description="mu: the traversability T of this distribution.")
     std: float = Field(description="sigma: the uncertainty U (not normalised).")
@@ -269,8 +269,10 @@ class ContextDistribution(Message):
     density_x: list[float] = Field(description="Grid on [0, 1] where the density is sampled.")
     density: list[float] = Field(description="Mixture density at density_x (zero widths drawn at the bandwidth).")
     density_bandwidth: float
+    cell: tuple[int, int] | None = Field(default=None, description="Grid queries: (i, j) = (row, column) in the grid.")
     cell_xy: tuple[float, float] | None = Field(default=None, description="Grid queries: the cell's centre, m.")
     observations: int | None = Field(default=None, description="Grid queries: pixels fused into the cell.")
+    grid_updates: int | None = Field(default=None, description="Grid queries: the grid's updates so far (its seq).")
 
     def weights_array(self) -> NDArray[np.float32]:
         return np.asarray(self.weights, dtype=np.float32)
@@ -369,7 +371,9 @@ class ErrorReply(Message):
 class SourceStatus(WireModel):
     received: int = 0
     processed: int = 0
-    dropped: int = Field(default=0, description="Replaced by a newer frame before inference (latest-only).")
+    dropped: int = Field(
+        default=0, description="Good frames never published: replaced by a newer one before inference, or at shutdown."
+    )
     rejected: int = Field(default=0, description="Undecodable, oversized or malformed payloads.")
     last_seq: int | None = None
     latency_ms: dict[str, float] = Field(default_factory=dict, description="Receive-to-publish p50/p90/p99.")
@@ -399,6 +403,9 @@ class ServiceStatus(Message):
     queued_bytes: int = Field(default=0, description="Their payload bytes (at most pending_budget_mb).")
     sources: dict[str, SourceStatus]
     rejected_by_reason: dict[str, int]
+    dropped_by_reason: dict[str, int] = Field(
+        default_factory=dict, description="Dropped frames by reason: replaced (latest-only), shutdown. Since 1.1."
+    )
     last_errors: list[str]
     history_bytes: int = Field(default=0, description="Bytes of weights kept for patch queries, all sources.")
     history_budget_bytes: int = Field(default=0, description="The history's limit (history_budget_mb).")

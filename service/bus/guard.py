@@ -25,20 +25,26 @@ QueryHandler = Callable[[zenoh.Query], None]
 
 def answering(handler: QueryHandler, stats: ServiceStats) -> QueryHandler:
     def answer(query: zenoh.Query) -> None:
-        try:
-            handler(query)
-        except QueryError as err:
-            stats.rejected(None, "bad_query", f"{query.selector}: {err}"[:300])
-            _reply(query, ErrorReply(error=str(err)))
-        except Exception as err:
-            stats.rejected(None, "query_failed", f"{query.selector}: {type(err).__name__}: {err}"[:300], err)
-            _reply(query, ErrorReply(error=f"internal error: {type(err).__name__}; see the service log"))
+        guarded(query, stats, handler)
 
     return answer
+
+
+def guarded(query: zenoh.Query, stats: ServiceStats, respond: QueryHandler) -> None:
+    """Run ``respond(query)``; whatever it raises becomes the query's error reply. Also for answers sent later
+    from another thread (a swap's, from the anchor switch's worker), where nothing else would catch it."""
+    try:
+        respond(query)
+    except QueryError as err:
+        stats.rejected(None, "bad_query", f"{query.selector}: {err}"[:300])
+        _reply(query, ErrorReply(error=str(err)))
+    except Exception as err:
+        stats.rejected(None, "query_failed", f"{query.selector}: {type(err).__name__}: {err}"[:300], err)
+        _reply(query, ErrorReply(error=f"internal error: {type(err).__name__}; see the service log"))
 
 
 def _reply(query: zenoh.Query, error: ErrorReply) -> None:
     try:
         reply_error(query, error)
-    except zenoh.ZError as failure:  # the query may have been dropped meanwhile
+    except Exception as failure:  # the query may have been dropped meanwhile, or the reply itself is broken
         log.debug("error reply to %s failed: %s", query.selector, failure)

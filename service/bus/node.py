@@ -16,7 +16,6 @@ from typing import Any
 import zenoh
 from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.keys import Keys, input_source_of, literal_head
-from gcdtrav.schemas.limits import MAX_SOURCE_CHARS
 from gcdtrav.schemas.messages import (
     MessageError,
     ServiceStatus,
@@ -30,11 +29,12 @@ from gcdtrav.service.bus.queryables import AnchorQueries, SourceQueries
 from gcdtrav.service.bus.ros_graph import RosGraph
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
+from gcdtrav.service.runtime.admission import Admission
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue, PendingBudgetExceeded
+from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.worker import FrameWorker
@@ -64,6 +64,7 @@ class TraversabilityService:
         )
         forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget)
         self.sources = SourceTracker(settings.max_sources, settings.source_idle_s, forget)
+        self.admission = Admission(settings, self.sources, self.queue, self.stats)
         self.worker = FrameWorker(
             self.queue, pipeline, self.history, self.stats, self.sources, settings, self.outputs.publish
         )
@@ -117,14 +118,15 @@ class TraversabilityService:
         self.queue.close()
         if self.membership is not None:
             self.membership.close()
-        self.worker.stop(time.monotonic() + timeout)
+        if not self.worker.stop(time.monotonic() + timeout):
+            log.warning("the frame in flight did not finish within %.0f s; its outputs are dropped", timeout)
+        self.outputs.close()  # before the session's entities: a late frame is refused, not put on a dead key
         for entity in self._declared:
             try:
                 entity.undeclare()
             except zenoh.ZError as err:  # the session may already be closing
                 log.debug("undeclare failed: %s", err)
         self._declared.clear()
-        self.outputs.close()
         self.anchor_switch.close()
         if self.ros_graph is not None:
             self.ros_graph.close()
@@ -163,31 +165,9 @@ class TraversabilityService:
         return self.membership is None or self.membership.owns(source)
 
     def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None) -> None:
-        if not self.owns(source):
-            return  # another live instance serves this source
-        if len(source) > MAX_SOURCE_CHARS:
-            self.stats.rejected(
-                None, "source_name_too_long", f"'{source[:60]}...' is over {MAX_SOURCE_CHARS} characters"
-            )
-            return
-        if not self.sources.admit(source):
-            self.stats.rejected(
-                None, "too_many_sources", f"'{source[:200]}': already tracking {self.sources.max_sources} sources"
-            )
-            return
-        size = len(sample.payload)
-        if size > self.settings.max_payload_bytes:  # refused unread: never copied out of zenoh's buffer
-            self.queue.count_unqueued(source)
-            self.stats.rejected(
-                source, "oversized", f"{size} bytes exceeds the limit of {self.settings.max_payload_bytes}"
-            )
-            return
-        key, payload, encoding = str(sample.key_expr), sample.payload.to_bytes(), str(sample.encoding)
-        pending = PendingFrame(source, key, payload, encoding, time.time(), ros)
-        try:
-            self.queue.put(source, pending, size)
-        except PendingBudgetExceeded as err:
-            self.stats.rejected(source, "pending_budget", str(err))
+        if self.owns(source):  # else another live instance serves this source
+            key, size = str(sample.key_expr), len(sample.payload)
+            self.admission.offer(source, key, size, sample.payload.to_bytes, str(sample.encoding), ros)
 
     def _declare_queryables(self) -> None:
         per_source = SourceQueries(self.keys, self.history, self.grids, self.owns)
@@ -243,6 +223,7 @@ class TraversabilityService:
             queued_bytes=self.queue.nbytes,
             sources=counts.sources,
             rejected_by_reason=counts.rejected_by_reason,
+            dropped_by_reason=counts.dropped_by_reason,
             last_errors=counts.last_errors,
             history_bytes=self.history.nbytes,
             history_budget_bytes=self.history.budget_bytes or 0,

@@ -11,6 +11,7 @@ from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import AnchorSetRejection, AnchorSetReply
 from gcdtrav.service.bus import replies
+from gcdtrav.service.bus.guard import guarded
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch, SwapDone
 from gcdtrav.service.runtime.errors import QueryError
@@ -88,6 +89,9 @@ class AnchorQueries:
         """Reply to a swap or rollback query once the switch's worker is done with it."""
 
         def answer(anchors: AnchorSet | None, error: BaseException | None) -> None:
+            guarded(query, self.stats, lambda query: respond(query, anchors, error))
+
+        def respond(query: zenoh.Query, anchors: AnchorSet | None, error: BaseException | None) -> None:
             if anchors is not None:
                 replies.reply(query, key, AnchorSetReply(anchor_set=anchors, version=anchors.version))
                 return

@@ -8,16 +8,19 @@ import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.config import EngineSettings, Method
 from gcdtrav.service.engine import gcd
+from gcdtrav.service.engine.novelty import match_score
 from numpy.typing import NDArray
 
 
 @dataclass(frozen=True)
 class TraversabilityMaps:
-    """T and U at the backend's resolution, with the weights they came from (anchors on axis 0)."""
+    """T and U at the backend's resolution, with the weights they came from (anchors on axis 0) and each
+    patch's match score (the best concept's own probability, before the softmax: low where no anchor fits)."""
 
     traversability: NDArray[np.float32]
     uncertainty: NDArray[np.float32]
     weights: NDArray[np.float32]
+    match: NDArray[np.float32]
 
 
 def compute_maps(logits: NDArray[np.floating], anchors: AnchorSet, settings: EngineSettings) -> TraversabilityMaps:
@@ -36,4 +39,4 @@ def compute_maps(logits: NDArray[np.floating], anchors: AnchorSet, settings: Eng
         # A NaN or +inf logit (or a patch of only -inf) turns its patch's softmax, hence T or U, into NaN;
         # checking the maps instead of the logits saves a pass over the largest array. A lone -inf is weight 0.
         raise ValueError("logits contain NaN or infinity")
-    return TraversabilityMaps(traversability=t, uncertainty=u, weights=weights)
+    return TraversabilityMaps(traversability=t, uncertainty=u, weights=weights, match=match_score(logits))

@@ -100,7 +100,7 @@ def depth_points(
 
 
 def map_cell_pixels(map_shape: tuple[int, int], image_size: tuple[int, int]) -> tuple[NDArray[np.float64], ...]:
-    """Image-pixel centres (u, v) of every map cell, row-major, for a map stretched over the whole image."""
+    """Image-pixel centres (u, v) of every map patch, row-major, for a map stretched over the whole image."""
     h, w = map_shape
     width, height = image_size
     v, u = np.meshgrid((np.arange(h) + 0.5) * height / h, (np.arange(w) + 0.5) * width / w, indexing="ij")

@@ -2,10 +2,14 @@
 
 A swap recomputes the text embeddings and fsyncs two files, which takes longer than a zenoh callback
 should wait, so swaps run on this module's own worker thread and report to a callback; frames keep flowing
-meanwhile and each frame uses exactly one set (``Pipeline.activate`` replaces one reference). The state file
-holds the active set (read at start); the history file the last ``HISTORY_LENGTH`` accepted sets with the
-time each became active, newest first, for ``gcdtrav anchors history`` and ``rollback``. Both are written
-atomically.
+meanwhile and each frame uses exactly one set (``Pipeline.activate`` replaces one reference).
+
+Two files, each written atomically (a failed write leaves the old file whole): the history (the last
+``HISTORY_LENGTH`` accepted sets with the time each became active, newest first, for ``gcdtrav anchors
+history`` and ``rollback``), then the state file, the commit point: the set a restart serves, written before
+the set is activated or the swap acknowledged. A crash between the two leaves a history whose head was never
+active; the next start puts the active set back at its head, so the two agree. A failed state write refuses
+the swap and takes the new entry back out of the history: a refused set never becomes active.
 """
 
 from __future__ import annotations
@@ -20,7 +24,11 @@ from pathlib import Path
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply, MessageError
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.runtime.state import remove_stale_temporaries, save_anchor_state, write_atomically
+from gcdtrav.service.runtime.state import (
+    remove_stale_temporaries,
+    save_anchor_state,
+    write_atomically,
+)
 
 log = logging.getLogger("gcdtrav.service")
 
@@ -41,7 +49,7 @@ class AnchorSwitch:
         self.max_body_bytes = max_body_bytes
         self._lock = threading.Lock()
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gcdtrav-anchors")
-        self._history = self._load_history()
+        self._history = load_history(self.history_file)
         if not self._history or self._history[0].version != pipeline.anchors.version:
             self._remember(pipeline.anchors)  # the set it started with: rollback can return to it
 
@@ -75,8 +83,13 @@ class AnchorSwitch:
         """prepare -> persist -> activate under one lock; the active set stays if any step fails."""
         with self._lock:
             prepared = self.pipeline.prepare(anchors)
-            save_anchor_state(self.state_file, anchors)
+            before = self._history
             self._remember(anchors)
+            try:
+                save_anchor_state(self.state_file, anchors)  # the commit point
+            except Exception:
+                self._restore(before)
+                raise
             self.pipeline.activate(prepared)
         log.info("anchor set swapped to %s (%d anchors)", anchors.version, len(anchors))
         return anchors
@@ -96,21 +109,33 @@ class AnchorSwitch:
 
     def _remember(self, anchors: AnchorSet) -> None:
         entry = AnchorHistoryEntry(accepted_at=time.time(), version=anchors.version, anchor_set=anchors)
-        entries = [entry, *self._history][:HISTORY_LENGTH]
+        self._write_history([entry, *self._history][:HISTORY_LENGTH])
+
+    def _restore(self, entries: list[AnchorHistoryEntry]) -> None:
+        """Take a refused swap's entry back out (best effort: the next start puts the active set at the head)."""
+        try:
+            self._write_history(entries)
+        except OSError as err:
+            self._history = entries
+            log.warning("could not take the refused set out of %s: %s", self.history_file, err)
+
+    def _write_history(self, entries: list[AnchorHistoryEntry]) -> None:
         reply = AnchorHistoryReply(instance=self.instance, entries=entries)
         write_atomically(self.history_file, reply.model_dump_json(indent=1) + "\n")
         self._history = entries  # only once written: a failed write leaves the history as it was
 
-    def _load_history(self) -> list[AnchorHistoryEntry]:
-        if self.history_file.parent.is_dir():
-            remove_stale_temporaries(self.history_file)  # writes a crash interrupted
-        if not self.history_file.is_file():
-            return []
-        try:
-            return AnchorHistoryReply.model_validate_json(self.history_file.read_text("utf-8")).entries
-        except (OSError, ValueError, MessageError) as err:
-            log.error("ignoring the anchor history file %s: %s", self.history_file, err)
-            return []
-
     def close(self) -> None:
         self._worker.shutdown(wait=True)
+
+
+def load_history(history_file: Path) -> list[AnchorHistoryEntry]:
+    """The accepted sets, newest (the active one) first; empty if there is no usable history file."""
+    if history_file.parent.is_dir():
+        remove_stale_temporaries(history_file)  # writes a crash interrupted
+    if not history_file.is_file():
+        return []
+    try:
+        return AnchorHistoryReply.model_validate_json(history_file.read_text("utf-8")).entries
+    except (OSError, ValueError, MessageError) as err:
+        log.error("ignoring the anchor history file %s: %s", history_file, err)
+        return []

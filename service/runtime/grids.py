@@ -63,7 +63,7 @@ class SourceGrid:
         return PinholeCamera(camera.fx * sx, camera.fy * sy, camera.cx * sx, camera.cy * sy, *image_size)
 
     def base_points(self, map_shape: tuple[int, int], image_size: tuple[int, int]):  # type: ignore[no-untyped-def]
-        """Ground (or depth) points in the base frame of every map cell, and which cells have one."""
+        """Ground (or depth) points in the base frame of every map patch, and which patches have one."""
         camera = self.camera_for(image_size)
         u, v = map_cell_pixels(map_shape, image_size)
         if self.depth is not None:
@@ -208,13 +208,17 @@ class GridOutputs:
             weights / weights.sum(),
             anchors,
             grid.config.source,
-            grid.seq,
+            None,  # a cell fuses many frames: no one frame's seq
             grid.grid.stamp or 0.0,
             self.header(grid, anchors.version).frame_id,
-            patch=(i, j),
         )
         return reply.model_copy(
-            update={"cell_xy": grid.grid.centre_of(i, j), "observations": int(grid.grid.count[i, j])}
+            update={
+                "cell": (i, j),
+                "cell_xy": grid.grid.centre_of(i, j),
+                "observations": int(grid.grid.count[i, j]),
+                "grid_updates": grid.seq,
+            }
         )
 
     def _path(self, grid: SourceGrid, points: list[tuple[float, float]], anchors: AnchorSet) -> PathReply:

@@ -29,7 +29,7 @@ class FrameRecord:
 
     @property
     def scale(self) -> tuple[float, float]:
-        """Image pixels per map cell, (sx, sy)."""
+        """Image pixels per patch, (sx, sy)."""
         h, w = self.map_shape
         return self.image_size[0] / w, self.image_size[1] / h
 

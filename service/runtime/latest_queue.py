@@ -90,6 +90,14 @@ class LatestFrameQueue(Generic[T]):
             self._bytes -= nbytes
             self._counters.pop(source, None)
 
+    def discard_pending(self) -> dict[str, int]:
+        """Drop every pending frame (shutdown); returns how many per source, for the caller to count by reason."""
+        with self._cond:
+            discarded = {source: 1 for source in self._pending}
+            self._pending.clear()
+            self._bytes = 0
+            return discarded
+
     def close(self) -> None:
         with self._cond:
             self._closed = True

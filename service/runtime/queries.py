@@ -1,7 +1,7 @@
 """The patch/region distribution query over the frame history. No middleware here.
 
 Query parameters (zenoh selector parameters, all strings):
-  x, y      image pixel          | i, j   map cell (row, column)   | region=x0,y0,x1,y1 image pixels
+  x, y      image pixel          | i, j   map patch (row, column)  | region=x0,y0,x1,y1 image pixels
   seq       a kept frame's sequence number [default: the latest]
   stamp     a kept frame's input stamp (s since epoch, e.g. a ROS header stamp), matched within 1 ms
 """
@@ -35,7 +35,7 @@ def _number(params: Mapping[str, str], name: str, kind: type = float) -> float:
     return parse_number(params[name], name, kind)
 
 
-def _cell_of_pixel(record: FrameRecord, x: float, y: float) -> tuple[int, int]:
+def _patch_of_pixel(record: FrameRecord, x: float, y: float) -> tuple[int, int]:
     width, height = record.image_size
     if not (0 <= x < width and 0 <= y < height):
         raise QueryError(f"pixel ({x:g}, {y:g}) is outside the {width}x{height} image")
@@ -60,7 +60,7 @@ def _region_cells(record: FrameRecord, text: str) -> tuple[int, int, int, int]:
 
 
 KNOWN_PARAMETERS = {"x", "y", "i", "j", "seq", "stamp", "region"}
-PATCH_FORMS = "x=..;y=.. (image pixels), i=..;j=.. (map cell) or region=x0,y0,x1,y1, and optionally seq=.. or stamp=.."
+PATCH_FORMS = "x=..;y=.. (image pixels), i=..;j=.. (map patch) or region=x0,y0,x1,y1, and optionally seq=.. or stamp=.."
 
 
 def parameter_pairs(text: str) -> list[tuple[str, str]]:
@@ -92,11 +92,11 @@ def answer_patch_query(history: FrameHistory, source: str, params: Mapping[str, 
     record = history.get(source, seq, stamp)
     forms = [form for form in (("x", "y"), ("i", "j"), ("region",)) if any(p in params for p in form)]
     if len(forms) != 1 or not all(p in params for p in forms[0]):
-        raise QueryError("give exactly one of: x and y (image pixels), i and j (map cell), region=x0,y0,x1,y1")
+        raise QueryError("give exactly one of: x and y (image pixels), i and j (map patch), region=x0,y0,x1,y1")
     patch: tuple[int, int] | None = None
     region: tuple[int, int, int, int] | None = None
     if forms[0] == ("x", "y"):
-        patch = _cell_of_pixel(record, _number(params, "x"), _number(params, "y"))
+        patch = _patch_of_pixel(record, _number(params, "x"), _number(params, "y"))
     elif forms[0] == ("i", "j"):
         i, j = int(_number(params, "i", int)), int(_number(params, "j", int))
         h, w = record.map_shape
@@ -119,7 +119,7 @@ def distribution_of(
     weights: NDArray[np.float32],
     anchors: AnchorSet,
     source: str,
-    seq: int,
+    seq: int | None,
     stamp: float,
     frame_id: str = "",
     patch: tuple[int, int] | None = None,

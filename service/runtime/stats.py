@@ -30,6 +30,7 @@ def percentiles(values: deque[float]) -> dict[str, float]:
 class SourceStats:
     processed: int = 0
     rejected: int = 0
+    dropped: int = 0  # taken or finished but not published (shutdown, ...); the queue counts replaced frames
     last_seq: int | None = None
     latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
     inference_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
@@ -41,6 +42,7 @@ class StatsSnapshot:
 
     sources: dict[str, SourceStatus]
     rejected_by_reason: dict[str, int]
+    dropped_by_reason: dict[str, int]
     last_errors: list[str]
 
 
@@ -52,6 +54,7 @@ class ServiceStats:
         self._log = log
         self.sources: dict[str, SourceStats] = {}
         self.rejected_by_reason: Counter[str] = Counter()
+        self.dropped_by_reason: Counter[str] = Counter()
         self.last_errors: deque[str] = deque(maxlen=LAST_ERRORS)
         self._last_logged: dict[str, float] = {}
         self._suppressed: Counter[str] = Counter()
@@ -63,6 +66,12 @@ class ServiceStats:
             stats.last_seq = seq
             stats.latency_ms.append(latency_ms)
             stats.inference_ms.append(inference_ms)
+
+    def dropped(self, name: str, reason: str, count: int = 1) -> None:
+        """Count good frames that will never be published, by reason."""
+        with self._lock:
+            self.sources.setdefault(name, SourceStats()).dropped += count
+            self.dropped_by_reason[reason] += count
 
     def forget(self, name: str) -> None:
         with self._lock:
@@ -91,13 +100,15 @@ class ServiceStats:
             sources = {
                 name: self._source_status(queued.get(name), name) for name in sorted(set(queued) | set(self.sources))
             }
-            return StatsSnapshot(sources, dict(self.rejected_by_reason), list(self.last_errors))
+            replaced = sum(counters.dropped for counters in queued.values())
+            dropped = {**({"replaced": replaced} if replaced else {}), **self.dropped_by_reason}
+            return StatsSnapshot(sources, dict(self.rejected_by_reason), dropped, list(self.last_errors))
 
     def _source_status(self, queued: QueueCounters | None, name: str) -> SourceStatus:
         stats = self.sources.get(name, SourceStats())
         return SourceStatus(
             received=queued.received if queued else 0,
-            dropped=queued.dropped if queued else 0,
+            dropped=(queued.dropped if queued else 0) + stats.dropped,
             processed=stats.processed,
             rejected=stats.rejected,
             last_seq=stats.last_seq,

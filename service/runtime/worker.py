@@ -35,7 +35,7 @@ class FrameWorker:
         stats: ServiceStats,
         sources: SourceTracker,
         settings: ServiceSettings,
-        publish: Callable[[ProcessedFrame], None],
+        publish: Callable[[ProcessedFrame], bool],
     ) -> None:
         self.frames, self.pipeline, self.history, self.stats = frames, pipeline, history, stats
         self.sources, self.settings, self.publish = sources, settings, publish
@@ -55,21 +55,22 @@ class FrameWorker:
         for thread in self._threads:
             thread.start()
 
-    def stop(self, deadline: float) -> None:
-        """Finish the frames in flight (the queue is closed by its owner), by ``deadline`` (monotonic)."""
+    def stop(self, deadline: float) -> bool:
+        """Finish the frame in flight, by ``deadline`` (monotonic); frames still queued are dropped and counted
+        (``shutdown``). True if the threads ended in time: only then may the outputs be closed behind them."""
         self._stopping.set()
         for thread in self._threads:
             if thread.is_alive():
                 thread.join(max(0.0, deadline - time.monotonic()))
+        for source, count in self.frames.discard_pending().items():
+            self.stats.dropped(source, "shutdown", count)
+        return not any(thread.is_alive() for thread in self._threads)
 
     def _infer_loop(self) -> None:
-        while True:
+        while not self._stopping.is_set():
             self.sources.sweep()
             item = self.frames.take(timeout=0.25)
             if item is None:
-                if self._stopping.is_set():
-                    self._inferred.put(None)  # after the frames already handed on
-                    return
                 continue
             _, pending = item
             inferred = self._guarded(pending, self._infer, pending)
@@ -79,6 +80,7 @@ class FrameWorker:
                 self._inferred.put(inferred)
             else:
                 self._guarded(pending, self._finish, inferred)
+        self._inferred.put(None)  # after the frame already handed on
 
     def _output_loop(self) -> None:
         while (item := self._inferred.get()) is not None:
@@ -117,6 +119,8 @@ class FrameWorker:
         record = self.history.record(
             source, result.maps.weights, result.anchors, image.stamp, image.frame_id, (width, height)
         )
-        self.publish(ProcessedFrame(inferred, result, record))
+        if not self.publish(ProcessedFrame(inferred, result, record)):
+            self.stats.dropped(source, "shutdown")  # finished after the outputs closed
+            return
         latency_ms = (time.time() - inferred.pending.received_at) * 1e3
         self.stats.processed(source, record.seq, latency_ms, result.inference_ms)

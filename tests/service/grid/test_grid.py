@@ -161,7 +161,8 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
             assert grid.count[grid.cell_index(0.0, 0.0)] == 0 and grid.count[grid.cell_index(2.7, 0.0)] > 0
             cell = client.cell("cam", 2.7, 0.0)
             i, j = grid.cell_index(2.7, 0.0)
-            assert cell.patch == (i, j) and cell.observations == grid.count[i, j]
+            assert cell.cell == (i, j) and cell.observations == grid.count[i, j]
+            assert cell.patch is None and cell.seq is None and cell.grid_updates == header.seq  # no names that lie
             assert cell.mean == pytest.approx(grid.traversability[i, j], abs=2 / 65535)
             path = client.path("cam", [(0.0, 0.0), (4.5, 0.0)])
             assert path.unknown_cells > 0 and path.cells and path.lowest_t is not None

@@ -100,3 +100,57 @@ def test_rollback_returns_to_the_set_before(switch) -> None:  # type: ignore[no-
     assert error is None and anchors is not None and anchors.version == original == pipeline.anchors.version
     _, error, _ = swap_and_wait(switch.submit_rollback, 5)
     assert isinstance(error, AnchorSetError) and "no set 5 step(s) back" in str(error)
+
+
+def restart(state_file: Path) -> tuple[AnchorSet, AnchorSwitch]:
+    """What a restarted service serves (the state file, else the default), and its switch."""
+    anchors = load_anchor_state(state_file) or default_anchor_set()
+    return anchors, AnchorSwitch(Pipeline(ThreadRecordingBackend(), anchors, EngineSettings()), state_file, "b", 65536)
+
+
+class Killed(BaseException):
+    """The process dies here: nothing after it runs, nothing catches it."""
+
+
+def test_a_crash_between_the_history_and_the_state_file_restarts_consistent(switch, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Killed after the history and before the commit point (the state file): the swap was never acknowledged;
+    the restart serves the old set and the history names it first again."""
+    switch, pipeline, _ = switch
+    before = pipeline.anchors
+
+    def killed(*_: object) -> None:
+        raise Killed
+
+    monkeypatch.setattr("gcdtrav.service.runtime.anchor_switch.save_anchor_state", killed)
+    with pytest.raises(Killed):
+        switch.swap(TWO)
+    monkeypatch.undo()
+    anchors, restarted = restart(switch.state_file)
+    assert anchors == before
+    assert restarted.history().entries[0].version == before.version
+    restarted.close()
+
+
+@pytest.mark.parametrize("failing", ["history", "state"])
+def test_a_refused_write_refuses_the_swap_and_survives_a_restart(switch, monkeypatch, failing: str) -> None:  # type: ignore[no-untyped-def]
+    """A full disk at either write: the swap is refused, nothing changes, the history does not name the refused
+    set, and a restart serves the set that was active, never the refused one."""
+    switch, pipeline, _ = switch
+    before = pipeline.anchors
+    real_write = __import__("gcdtrav.service.runtime.state", fromlist=["x"]).write_atomically
+
+    def full_disk(path: Path, text: str) -> None:
+        if (failing == "history") == (path == switch.history_file):
+            raise OSError(28, "No space left on device")
+        real_write(path, text)
+
+    monkeypatch.setattr("gcdtrav.service.runtime.anchor_switch.write_atomically", full_disk)
+    monkeypatch.setattr("gcdtrav.service.runtime.state.write_atomically", full_disk)
+    anchors, error, _ = swap_and_wait(switch.submit, TWO.model_dump_json().encode())
+    monkeypatch.undo()
+    assert anchors is None and isinstance(error, OSError)
+    assert pipeline.anchors == before and load_anchor_state(switch.state_file) in (None, before)
+    assert [entry.version for entry in switch.history().entries] == [before.version]
+    anchors, restarted = restart(switch.state_file)
+    assert anchors == before and restarted.history().entries[0].version == before.version
+    restarted.close()

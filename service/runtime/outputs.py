@@ -1,0 +1,161 @@
+"""What the service publishes for one processed frame, as payloads: maps, preview, ROS images, ground grid.
+No middleware here: ``service/bus/outputs.py`` puts them on their keys and topics.
+
+The preview is drawn at its own size (at most ``preview_max_width`` for T-over-image beside U): T and U are
+resized once to that size, not to the image's and back. T and U at the image's size are made only when
+something needs them (``full_resolution``, ROS outputs).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import cv2
+import numpy as np
+from gcdtrav.schemas.images import encode_jpeg, encode_maps_png16, resize_map
+from gcdtrav.schemas.keys import Keys
+from gcdtrav.schemas.messages import MapsHeader, MapsMessage
+from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.service import viz
+from gcdtrav.service.ros import cdr as ros_io
+from gcdtrav.service.runtime.frames import ProcessedFrame
+from gcdtrav.service.runtime.grids import GridOutputs
+from numpy.typing import NDArray
+
+Encoding = Literal["msgpack", "jpeg", "cdr"]
+RosQos = Literal["image", "grid"]  # rclcpp's default publisher profile; a map's (transient local, depth 1)
+PREVIEW_JPEG_QUALITY = 80
+
+
+@dataclass(frozen=True)
+class Output:
+    """One payload for a zenoh key (``topic`` None) or, for ROS cameras, a ROS topic."""
+
+    key: str
+    payload: bytes
+    encoding: Encoding
+    topic: ros_io.RosTopic | None = None
+    qos: RosQos = "image"
+
+
+def preview_size(width: int, height: int, max_width: int) -> tuple[int, int]:
+    """(width, height) of one half of the preview panel (T over the image, or U)."""
+    half = min(width, max(1, max_width // 2))
+    return half, max(1, round(height * half / width))
+
+
+def preview_panel(
+    image: NDArray[np.uint8], t: NDArray[np.floating], u: NDArray[np.floating], max_width: int
+) -> NDArray[np.uint8]:
+    """T over the image, beside U, at most ``max_width`` wide (RGB): maps resized straight to that size."""
+    height, width = image.shape[:2]
+    size = preview_size(width, height, max_width)
+    small = image if size == (width, height) else cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    t_small, u_small = resize_map(t, *size), resize_map(u, *size)
+    left = viz.overlay(np.asarray(small, np.uint8), viz.colorize_traversability(t_small))
+    return np.concatenate([left, viz.colorize_uncertainty(u_small)], axis=1)
+
+
+class OutputBuilder:
+    """The payloads of one frame, by the settings; the grid's fusion happens here too (``grids``)."""
+
+    def __init__(self, settings: ServiceSettings, model_id: str, grids: GridOutputs | None) -> None:
+        self.settings, self.model_id, self.grids = settings, model_id, grids
+        self.keys = Keys(settings.prefix)
+
+    def build(self, done: ProcessedFrame) -> list[Output]:
+        t, u = done.result.maps.traversability, done.result.maps.uncertainty
+        width, height = done.record.image_size
+        ros_out = self.settings.ros_output.enabled and done.pending.ros is not None
+        full = None
+        if self.settings.full_resolution or ros_out:
+            full = resize_map(t, width, height), resize_map(u, width, height)
+        outputs = [Output(self.keys.maps(done.source), self.maps(done, full).pack(), "msgpack")]
+        panel = None
+        if self.settings.preview or (ros_out and self.settings.ros_output.preview != "none"):
+            panel = preview_panel(done.image.image, t, u, self.settings.preview_max_width)
+        jpeg = encode_jpeg(panel, PREVIEW_JPEG_QUALITY) if panel is not None else None
+        if self.settings.preview and jpeg is not None:
+            outputs.append(Output(self.keys.preview(done.source), jpeg, "jpeg"))
+        if ros_out and full is not None:
+            outputs += self._ros_images(done, *full, panel, jpeg)
+        if self.grids is not None:
+            outputs += self._grid(done)
+        return outputs
+
+    def maps(self, done: ProcessedFrame, full: tuple[NDArray[np.float32], NDArray[np.float32]] | None) -> MapsMessage:
+        record, result = done.record, done.result
+        header = MapsHeader(
+            source=done.source,
+            key=done.pending.key,
+            seq=record.seq,
+            stamp=done.image.stamp,
+            frame_id=done.image.frame_id,
+            received_at=done.pending.received_at,
+            published_at=time.time(),
+            inference_ms=result.inference_ms,
+            model=self.model_id,
+            instance=self.settings.instance,
+            anchor_set_version=result.anchors.version,
+            method=result.method,
+            map_shape=record.map_shape,
+            image_size=record.image_size,
+            scale=record.scale,
+        )
+        with_full = self.settings.full_resolution and full is not None
+        maps = [result.maps.traversability, result.maps.uncertainty, *(full if with_full and full else ())]
+        encoded = encode_maps_png16(*maps)
+        return MapsMessage(
+            header=header,
+            traversability_png=encoded[0],
+            uncertainty_png=encoded[1],
+            traversability_full_png=encoded[2] if with_full else None,
+            uncertainty_full_png=encoded[3] if with_full else None,
+        )
+
+    def _ros_images(
+        self,
+        done: ProcessedFrame,
+        t: NDArray[np.float32],
+        u: NDArray[np.float32],
+        panel: NDArray[np.uint8] | None,
+        jpeg: bytes | None,
+    ) -> list[Output]:
+        """T and U as 32FC1 images at the input's size with the input's header, and the preview."""
+        topic, header, names = done.pending.ros, done.inferred.ros_header, self.settings.ros_output
+        assert topic is not None
+        images = [
+            (names.traversability_topic, ros_io.IMAGE, ros_io.float_image_cdr(header, t)),
+            (names.uncertainty_topic, ros_io.IMAGE, ros_io.float_image_cdr(header, u)),
+        ]
+        if names.preview == "compressed" and jpeg is not None:  # image_transport: <base topic>/compressed
+            compressed = ros_io.compressed_jpeg_cdr(header, jpeg)
+            images.append((names.preview_topic + "/compressed", ros_io.COMPRESSED_IMAGE, compressed))
+        elif names.preview == "image" and panel is not None:
+            images.append((names.preview_topic, ros_io.IMAGE, ros_io.rgb_image_cdr(header, panel)))
+        return [self._ros(topic, template, msgtype, payload, "image") for template, msgtype, payload in images]
+
+    def _grid(self, done: ProcessedFrame) -> list[Output]:
+        assert self.grids is not None
+        update = self.grids.on_frame(done.source, done.record, done.result.maps.weights)
+        if update is None:
+            return []
+        outputs = [Output(self.keys.grid(done.source), update.message.pack(), "msgpack")]
+        if update.occupancy is not None and update.uncertainty is not None:
+            outputs.append(Output(self.keys.grid(done.source, "occupancy"), update.occupancy, "cdr"))
+            outputs.append(Output(self.keys.grid(done.source, "uncertainty"), update.uncertainty, "cdr"))
+            camera, names = done.pending.ros, self.settings.ros_output
+            if camera is not None and names.enabled:
+                for template, payload in (
+                    (names.occupancy_topic, update.occupancy),
+                    (names.grid_uncertainty_topic, update.uncertainty),
+                ):
+                    outputs.append(self._ros(camera, template, ros_io.OCCUPANCY_GRID, payload, "grid"))
+        return outputs
+
+    @staticmethod
+    def _ros(camera: ros_io.RosTopic, template: str, msgtype: str, payload: bytes, qos: RosQos) -> Output:
+        topic = camera.derived(ros_io.output_topic(template, camera.topic), msgtype)
+        return Output(ros_io.topic_key(topic), payload, "cdr", topic, qos)
