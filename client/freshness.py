@@ -20,7 +20,7 @@ class Staleness:
 
     source: str
     stale: bool
-    age_s: float  # of the newest maps when the change was seen; inf before any maps
+    age_s: float  # of the newest maps when the change was seen; before any, the time since they were expected
 
 
 class FreshnessWatch:
@@ -32,12 +32,15 @@ class FreshnessWatch:
         self.stale_after_s = stale_after_s
         self._clock = clock
         self._newest: dict[str, float] = {}
+        self._since: dict[str, float] = {}  # when a watched source began to be expected
         self._stale: dict[str, bool] = {}
         self._lock = threading.Lock()
 
-    def watch(self, source: str) -> None:
-        """Expect maps of ``source``: it is stale until they come."""
+    def watch(self, source: str, since: float | None = None) -> None:
+        """Expect maps of ``source`` from ``since`` (default now): without any, it goes stale
+        ``stale_after_s`` later (its age counts from ``since``; ``newest`` stays None)."""
         with self._lock:
+            self._since.setdefault(source, self._clock() if since is None else since)
             self._newest.setdefault(source, -math.inf)
             self._stale.setdefault(source, False)
 
@@ -55,9 +58,13 @@ class FreshnessWatch:
         return stamp if math.isfinite(stamp) else None
 
     def age_s(self, source: str) -> float:
-        """Now minus the newest maps' stamp; inf before any."""
+        """Now minus the newest maps' stamp; before any, the time since the source was watched (inf if not)."""
         with self._lock:
-            return self._clock() - self._newest.get(source, -math.inf)
+            return self._clock() - self._reference(source)
+
+    def _reference(self, source: str) -> float:
+        newest = self._newest.get(source, -math.inf)
+        return newest if math.isfinite(newest) else self._since.get(source, -math.inf)
 
     def is_stale(self, source: str) -> bool:
         return self.age_s(source) > self.stale_after_s
@@ -67,8 +74,8 @@ class FreshnessWatch:
         now = self._clock()
         changes = []
         with self._lock:
-            for source, newest in self._newest.items():
-                age = now - newest
+            for source in self._newest:
+                age = now - self._reference(source)
                 stale = age > self.stale_after_s
                 if stale != self._stale[source]:
                     self._stale[source] = stale

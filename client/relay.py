@@ -355,7 +355,7 @@ class Relay:
     def _log_stale(self, source: str, health: RelayHealth) -> None:
         self._last_stale_log[source] = time.time()
         if health.map_age_s is None:
-            log.warning("no maps of %s for %.1f s (since the relay started)", source, time.time() - self._started_at)
+            log.warning("no maps of %s yet, %.1f s after the relay started", source, time.time() - self._started_at)
         else:
             log.warning(
                 "maps of %s stale for %.1f s (newest %.1f s old; %d frames sent, %d credit timeouts)",

@@ -372,13 +372,14 @@ class SourceStatus(WireModel):
     received: int = 0
     processed: int = 0
     dropped: int = Field(
-        default=0, description="Good frames never published: replaced by a newer one before inference, or at shutdown."
+        default=0,
+        description="Good frames never published: replaced by a newer one before inference, stale, or at shutdown.",
     )
     rejected: int = Field(default=0, description="Undecodable, oversized or malformed payloads.")
     last_seq: int | None = None
     latency_ms: dict[str, float] = Field(default_factory=dict, description="Receive-to-publish p50/p90/p99.")
     inference_ms: dict[str, float] = Field(default_factory=dict)
-    stale: int = Field(default=0, description="Dropped before inference: captured over max_frame_age_s ago.")
+    stale: int = Field(default=0, description="Of the dropped: captured over max_frame_age_s ago.")
     bytes_per_s: float | None = Field(default=None, description="Input payload bytes per second, last 10 s.")
     frame_age_ms: dict[str, float] = Field(
         default_factory=dict, description="Capture stamp to intake p50/p95 (clocks assumed in step)."

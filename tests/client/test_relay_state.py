@@ -120,10 +120,13 @@ def test_downsized_frames_keep_their_content() -> None:
 def test_freshness_reports_stale_and_fresh_once_each() -> None:
     clock = Clock(100.0)
     watch = FreshnessWatch(stale_after_s=2.0, clock=clock)
-    watch.watch("cam")
-    assert watch.newest("cam") is None and math.isinf(watch.age_s("cam"))
+    watch.watch("cam")  # from now: stale 2 s later without maps
+    assert watch.newest("cam") is None and watch.age_s("cam") == 0.0 and watch.check() == []
+    clock.now += 2.5
     [change] = watch.check()
-    assert change.stale and change.source == "cam"
+    assert change.stale and change.source == "cam" and change.age_s == pytest.approx(2.5)
+    assert math.isinf(watch.age_s("never watched"))
+    clock.now = 100.0
     watch.observe("cam", 99.0)
     [change] = watch.check()
     assert not change.stale and change.age_s == pytest.approx(1.0)
