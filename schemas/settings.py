@@ -235,7 +235,7 @@ class ServiceSettings(StrictModel):
     )
     compact_maps_max_side: int | None = Field(
         default=None,
-        ge=8,
+        ge=2,
         description="Longer side of the compact maps ({prefix}/out/{source}/maps8); null: the model's map size.",
     )
     full_resolution: bool = Field(default=False, description="Also publish T and U at the input image's size.")
