@@ -166,6 +166,11 @@ def _optional_map(data: bytes | None) -> NDArray[np.float32] | None:
     return None if data is None else decode_map_png16(data)
 
 
+def _risk_params(alpha: float | None, tau: float | None) -> dict[str, Any]:
+    """The risk levels a query asks for; none given, the service's defaults apply."""
+    return {name: repr(float(value)) for name, value in (("alpha", alpha), ("tau", tau)) if value is not None}
+
+
 def _selector(key: str, params: Mapping[str, Any]) -> str:
     return key + ("?" + ";".join(f"{name}={value}" for name, value in params.items()) if params else "")
 
@@ -401,19 +406,29 @@ class TraversabilityClient:
         seq: int | None = None,
         timeout: float | None = None,
         stamp: float | None = None,
+        alpha: float | None = None,
+        tau: float | None = None,
     ) -> ContextDistribution:
         """The context distribution under image pixel (x, y) of ``source``'s latest frame, or of the kept
-        frame with sequence number ``seq`` or input ``stamp`` (e.g. a ROS header stamp, seconds)."""
+        frame with sequence number ``seq`` or input ``stamp`` (e.g. a ROS header stamp, seconds). Its
+        ``quantile`` and ``cvar`` are at level ``alpha``, ``p_below`` at ``tau`` (else the service's defaults)."""
         params: dict[str, Any] = {"x": x, "y": y}
         if stamp is not None:
             params["stamp"] = repr(float(stamp))
-        return self._patch_query(source, params, seq, timeout)
+        return self._patch_query(source, params, seq, timeout, alpha, tau)
 
     def patch_by_index(
-        self, source: str, i: int, j: int, seq: int | None = None, timeout: float | None = None
+        self,
+        source: str,
+        i: int,
+        j: int,
+        seq: int | None = None,
+        timeout: float | None = None,
+        alpha: float | None = None,
+        tau: float | None = None,
     ) -> ContextDistribution:
         """The same by the patch's place in the maps: row i, column j (a "cell" is always a ground-grid cell)."""
-        return self._patch_query(source, {"i": i, "j": j}, seq, timeout)
+        return self._patch_query(source, {"i": i, "j": j}, seq, timeout, alpha, tau)
 
     def patch_cell(
         self, source: str, i: int, j: int, seq: int | None = None, timeout: float | None = None
@@ -431,18 +446,38 @@ class TraversabilityClient:
         y1: float,
         seq: int | None = None,
         timeout: float | None = None,
+        alpha: float | None = None,
+        tau: float | None = None,
     ) -> ContextDistribution:
         """The distribution pooled over a box of image pixels (mean of its patch weights)."""
-        return self._patch_query(source, {"region": f"{x0},{y0},{x1},{y1}"}, seq, timeout)
+        return self._patch_query(source, {"region": f"{x0},{y0},{x1},{y1}"}, seq, timeout, alpha, tau)
 
-    def cell(self, source: str, x: float, y: float, timeout: float | None = None) -> ContextDistribution:
+    def cell(
+        self,
+        source: str,
+        x: float,
+        y: float,
+        timeout: float | None = None,
+        alpha: float | None = None,
+        tau: float | None = None,
+    ) -> ContextDistribution:
         """The fused distribution of the ground-grid cell at (x, y), metres in the grid's frame."""
-        return self._query(self.keys.cell(source), ContextDistribution, {"x": x, "y": y}, timeout=timeout)
+        params = {"x": x, "y": y} | _risk_params(alpha, tau)
+        return self._query(self.keys.cell(source), ContextDistribution, params, timeout=timeout)
 
-    def path(self, source: str, points: list[tuple[float, float]], timeout: float | None = None) -> PathReply:
-        """The known cells along a polyline (metres), with the indices of the lowest T and highest U."""
+    def path(
+        self,
+        source: str,
+        points: list[tuple[float, float]],
+        timeout: float | None = None,
+        alpha: float | None = None,
+        tau: float | None = None,
+    ) -> PathReply:
+        """The known cells along a polyline (metres), with the indices of the lowest T, highest U and lowest
+        CVaR, and the probability that some cell is below ``tau``."""
         text = ";".join(f"{x!r},{y!r}" for x, y in points)
-        return self._query(self.keys.cell(source), PathReply, {"path": text}, timeout=timeout)
+        params = {"path": text} | _risk_params(alpha, tau)
+        return self._query(self.keys.cell(source), PathReply, params, timeout=timeout)
 
     def subscribe_grid(self, selector: str, callback: Callable[[Grid], None]) -> zenoh.Subscriber[None]:
         """Call ``callback`` with every decoded ground grid of the matching sources."""
@@ -451,10 +486,17 @@ class TraversabilityClient:
         )
 
     def _patch_query(
-        self, source: str, params: dict[str, Any], seq: int | None, timeout: float | None
+        self,
+        source: str,
+        params: dict[str, Any],
+        seq: int | None,
+        timeout: float | None,
+        alpha: float | None = None,
+        tau: float | None = None,
     ) -> ContextDistribution:
         if seq is not None:
             params["seq"] = seq
+        params |= _risk_params(alpha, tau)
         return self._query(self.keys.patch(source), ContextDistribution, params, timeout=timeout)
 
     def anchors(self, timeout: float | None = None) -> AnchorSetReply:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import zenoh
 from gcdtrav.client.client import AnchorSetRejected, ServiceError, TraversabilityClient
+from gcdtrav.client.density_plot import save_distribution, where
 from gcdtrav.client.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.messages import ContextDistribution, ServiceStatus
@@ -42,6 +43,8 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
     probe.add_argument("x", type=float, help="image pixel column")
     probe.add_argument("y", type=float, help="image pixel row")
     probe.add_argument("--seq", type=int, help="a kept frame [default: the latest]")
+    probe.add_argument("--alpha", type=float, help="CVaR and quantile level, 0 < alpha <= 1 [the service's risk.alpha]")
+    probe.add_argument("--tau", type=float, help="P(T < tau) threshold, 0 <= tau <= 1 [the service's risk.tau]")
     probe.add_argument("--png", type=Path, help="also draw the density like the paper's Fig. 2 (needs matplotlib)")
     for parser in (status, get, put, history, rollback, probe):
         parser.add_argument("--prefix", default="gcdtrav", help="the service's key prefix [gcdtrav]")
@@ -227,29 +230,25 @@ def roll_back(client: TraversabilityClient, args: argparse.Namespace) -> int:
 # ---- probe -------------------------------------------------------------------------------------------
 
 
-def where_of(d: ContextDistribution) -> str:
-    """Which patch, region or cell a distribution is of, in words."""
-    if d.cell is not None:
-        return f"cell {d.cell} at {d.cell_xy} m, {d.observations} pixels"
-    frame = f"seq={d.seq} "
-    return frame + (f"patch {d.patch}" if d.patch is not None else f"region {d.region}")
-
-
 def describe(d: ContextDistribution) -> str:
     """A distribution as text: T, U, shape, and a bar per anchor weight."""
-    where = where_of(d)
     lines = [
-        f"{d.source} {where} anchors={d.anchor_set_version}",
+        f"{d.source} {where(d)} anchors={d.anchor_set_version}",
         f"T (mean) = {d.mean:.3f}   U (std) = {d.std:.3f}   modes = {d.modes}   entropy = {d.entropy:.2f} nats",
         f"skewness = {d.skewness:.2f}   excess kurtosis = {d.excess_kurtosis:.2f}",
     ]
+    if d.cvar is not None and d.quantile is not None and d.p_below is not None:
+        lines.append(
+            f"CVaR(alpha={d.alpha:g}) = {d.cvar:.3f}   quantile(alpha) = {d.quantile:.3f}   "
+            f"P(T < {d.tau:g}) = {d.p_below:.3f}" + (f"   match = {d.match:.2f}" if d.match is not None else "")
+        )
     for anchor, weight in zip(d.anchors, d.weights, strict=True):
         lines.append(f"  {anchor.concept:>14} @ {anchor.position:4.2f}  {weight:6.3f} {'#' * round(weight * 40)}")
     return "\n".join(lines)
 
 
 def probe(client: TraversabilityClient, args: argparse.Namespace) -> int:
-    distribution = client.patch(args.source, args.x, args.y, seq=args.seq)
+    distribution = client.patch(args.source, args.x, args.y, seq=args.seq, alpha=args.alpha, tau=args.tau)
     print(describe(distribution))
     if args.png is not None:
         draw_density(distribution, args.png)
@@ -258,32 +257,8 @@ def probe(client: TraversabilityClient, args: argparse.Namespace) -> int:
 
 
 def draw_density(d: ContextDistribution, path: Path) -> None:
-    """The Gaussian context distribution as in the paper's Fig. 2: density, anchor weights, T and T ± U."""
+    """The Gaussian context distribution as in the paper's Fig. 2 (the drawing `gcdtrav infer --figure` uses)."""
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        save_distribution(d, path)
     except ImportError:
         raise ValueError("--png needs matplotlib: pip install matplotlib") from None
-    figure, axis = plt.subplots(figsize=(6.4, 3.2), dpi=120)
-    axis.axvspan(
-        d.mean - d.std, d.mean + d.std, color="tab:orange", alpha=0.15, label=f"T ± U = {d.mean:.2f} ± {d.std:.2f}"
-    )
-    axis.plot(d.density_x, d.density, color="tab:blue", label="context distribution")
-    axis.axvline(d.mean, color="tab:orange", linestyle="--", label="T (mean)")
-    weights = axis.twinx()
-    weights.bar([a.position for a in d.anchors], d.weights, width=0.012, color="tab:gray", alpha=0.8)
-    for anchor, weight in zip(d.anchors, d.weights, strict=True):
-        if weight >= 0.05:
-            weights.annotate(anchor.concept, (anchor.position, weight), fontsize=7, rotation=90, va="bottom")
-    weights.set_ylabel("anchor weight")
-    weights.set_ylim(0, max(1.0, max(d.weights) * 1.3))
-    axis.set_xlim(0, 1)
-    axis.set_xlabel("traversability (0 = untraversable, 1 = ideal ground)")
-    axis.set_ylabel("density")
-    axis.set_title(f"{d.source} {where_of(d)}", fontsize=9)
-    axis.legend(loc="upper right", fontsize=7)
-    figure.tight_layout()
-    figure.savefig(path)
-    plt.close(figure)

@@ -269,6 +269,14 @@ class ContextDistribution(Message):
     density_x: list[float] = Field(description="Grid on [0, 1] where the density is sampled.")
     density: list[float] = Field(description="Mixture density at density_x (zero widths drawn at the bandwidth).")
     density_bandwidth: float
+    alpha: float | None = Field(default=None, description="The level of quantile and cvar. Since 1.1.")
+    tau: float | None = Field(default=None, description="The threshold of p_below. Since 1.1.")
+    quantile: float | None = Field(default=None, description="Lower alpha-quantile of T. Since 1.1.")
+    cvar: float | None = Field(default=None, description="CVaR_alpha: the mean of T over its worst alpha. Since 1.1.")
+    p_below: float | None = Field(default=None, description="P(T < tau). Since 1.1.")
+    match: float | None = Field(
+        default=None, description="The best concept's own score (sigmoid of its logit): low = novel. Since 1.1."
+    )
     cell: tuple[int, int] | None = Field(default=None, description="Grid queries: (i, j) = (row, column) in the grid.")
     cell_xy: tuple[float, float] | None = Field(default=None, description="Grid queries: the cell's centre, m.")
     observations: int | None = Field(default=None, description="Grid queries: pixels fused into the cell.")
@@ -337,6 +345,13 @@ class PathReply(Message):
     unknown_cells: int = Field(description="Cells along the path never observed (not in ``cells``).")
     lowest_t: int | None = Field(default=None, description="Index in ``cells`` of the lowest T.")
     highest_u: int | None = Field(default=None, description="Index in ``cells`` of the highest U.")
+    lowest_cvar: int | None = Field(default=None, description="Index in ``cells`` of the lowest CVaR. Since 1.1.")
+    p_any_below: float | None = Field(
+        default=None,
+        description="P(some known cell has T < tau), cells taken as independent: 1 - prod(1 - p_below). Since 1.1.",
+    )
+    alpha: float | None = Field(default=None, description="The level of the cells' cvar. Since 1.1.")
+    tau: float | None = Field(default=None, description="The threshold of the cells' p_below. Since 1.1.")
 
 
 class AnchorSetReply(Message):

@@ -188,6 +188,17 @@ class GridSettings(StrictModel):
         return self
 
 
+class RiskSettings(StrictModel):
+    """The risk measures' defaults, for answers whose query names none (docs/risk.md)."""
+
+    alpha: float = Field(
+        default=0.1, gt=0, le=1, description="CVaR and quantile level: the worst alpha of the distribution."
+    )
+    tau: float = Field(
+        default=0.3, ge=0, le=1, description="p_below = P(T < tau): the traversability too low to drive."
+    )
+
+
 class ServiceSettings(StrictModel):
     prefix: str = Field(default="gcdtrav", description="Key prefix of every key the service declares.")
     inputs: list[str] = Field(
@@ -202,6 +213,7 @@ class ServiceSettings(StrictModel):
         description="Where the last accepted anchor set is kept across restarts.",
     )
     engine: EngineSettings = Field(default_factory=EngineSettings)
+    risk: RiskSettings = Field(default_factory=RiskSettings)
     history: int = Field(default=8, ge=1, le=256, description="Frames per source kept for patch queries.")
     history_budget_mb: float = Field(
         default=512,

@@ -83,8 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="X,Y",
-        help="pixel whose context distribution the figure shows (repeatable) "
-        "[default: the most certain, median and most ambiguous pixels]",
+        help="pixel whose context distribution the figure shows (repeatable); outside an image it is an error "
+        "(exit 2) [default: the most certain, median and most ambiguous pixels]",
     )
     infer.add_argument(
         "--save-raw",
@@ -206,11 +206,15 @@ def build_pipeline(args: argparse.Namespace):  # type: ignore[no-untyped-def]
 
 
 def cmd_infer(args: argparse.Namespace) -> int:
-    from gcdtrav.service.offline import InferOptions, run_infer
+    from gcdtrav.service.offline import InferOptions, ProbeOutsideImage, run_infer
 
     pipeline = build_pipeline(args)
     options = InferOptions(out_dir=args.out, probes=args.probe, save_raw=args.save_raw, figure=args.figure)
-    failures = run_infer(pipeline, args.images, options)
+    try:
+        failures = run_infer(pipeline, args.images, options)
+    except ProbeOutsideImage as err:
+        print(f"gcdtrav infer: {err}", file=sys.stderr)
+        return EXIT_USAGE
     done = len(args.images) - failures
     print(f"{done} of {len(args.images)} images written to {args.out}", file=sys.stderr)
     return EXIT_FAILURES if failures else 0

@@ -24,6 +24,18 @@ class InferOptions:
     figure: bool = True
 
 
+class ProbeOutsideImage(ValueError):
+    """A --probe pixel the image does not have: a usage error, not something to clamp."""
+
+
+def check_probes(probes: Sequence[tuple[int, int]], path: Path, width: int, height: int) -> None:
+    for x, y in probes:
+        if not (0 <= x < width and 0 <= y < height):
+            raise ProbeOutsideImage(
+                f"--probe {x},{y} is outside {path} ({width}x{height} pixels: x 0..{width - 1}, y 0..{height - 1})"
+            )
+
+
 def read_image(path: Path) -> NDArray[np.uint8]:
     try:
         data = path.read_bytes()
@@ -67,7 +79,6 @@ def write_outputs(stem_dir: Path, image: NDArray[np.uint8], result: FrameResult,
         (stem_dir / "anchors.json").write_text(result.anchors.to_json() + "\n", "utf-8")
     if options.figure:
         probes = list(options.probes) or default_probes(result.maps.uncertainty, height, width)
-        probes = [(min(max(x, 0), width - 1), min(max(y, 0), height - 1)) for x, y in probes]
         viz.save_context_figure(
             stem_dir / "figure.png",
             image,
@@ -92,7 +103,10 @@ def output_dirs(images: Sequence[Path], out_dir: Path) -> list[Path]:
 
 
 def run_infer(pipeline: Pipeline, images: Sequence[Path], options: InferOptions) -> int:
-    """Process every image; a bad one is reported and skipped. Returns the number of failures."""
+    """Process every image; a bad one is reported and skipped. Returns the number of failures.
+
+    Raises ProbeOutsideImage (before that image's inference) for a --probe pixel outside an image.
+    """
     from tqdm import tqdm
 
     failures = 0
@@ -105,6 +119,8 @@ def run_infer(pipeline: Pipeline, images: Sequence[Path], options: InferOptions)
             failures += 1
             progress.write(f"error: {path}: {err}", file=sys.stderr)
             continue
+        if options.figure:
+            check_probes(options.probes, path, image.shape[1], image.shape[0])
         result = pipeline.process(image)
         write_outputs(stem_dir, image, result, options)
         summary = {

@@ -10,9 +10,10 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from gcdtrav.client.density_plot import draw_distribution, pyplot
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.images import colorize_traversability, colorize_uncertainty
-from gcdtrav.service.engine import gcd
+from gcdtrav.service.runtime.queries import distribution_of
 from numpy.typing import NDArray
 
 __all__ = ["colorize_traversability", "colorize_uncertainty", "overlay", "save_context_figure"]
@@ -33,15 +34,12 @@ def save_context_figure(
     anchors: AnchorSet,
     title: str = "",
 ) -> None:
-    """Input, T, U with the probes marked; below, each probe's context distribution (like the paper's Fig. 2).
+    """Input, T, U with the probes marked; below, each probe's context distribution (like the paper's Fig. 2),
+    drawn as `gcdtrav probe --png` draws it.
 
     ``weights_at_probes`` is (n, len(probes)); ``probes`` are (x, y) image pixels.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     colours = [plt.get_cmap("tab10")(i) for i in range(10)]
     columns = max(3, len(probes))
     fig, axes = plt.subplots(2, columns, figsize=(4.2 * columns, 7.5), squeeze=False)
@@ -60,38 +58,14 @@ def save_context_figure(
         ax.axis("off")
     for ax in axes[0][3:]:
         ax.axis("off")
-    grid = gcd.density_grid()
-    positions = np.asarray(anchors.positions)
-    widths = np.asarray(anchors.widths)
     for k, ax in enumerate(axes[1]):
         if k >= len(probes):
             ax.axis("off")
             continue
-        w = weights_at_probes[:, k]
-        density = gcd.mixture_density(w[:, None], positions, widths, grid)[0]
-        stats = gcd.mixture_statistics(w[:, None], positions, widths)
-        mean, std = float(stats.mean[0]), float(stats.std[0])
-        ax.bar(positions, w, width=0.012, color="0.35", label="anchor weights")
-        ax2 = ax.twinx()
-        ax2.plot(grid, density, color=colours[k % 10], lw=2, label="mixture density")
-        ax2.set_yticks([])
-        ax.axvline(mean, color="k", ls="--", lw=1)
-        ax.axvspan(max(mean - std, 0), min(mean + std, 1), color=colours[k % 10], alpha=0.12)
+        d = distribution_of(np.asarray(weights_at_probes[:, k], np.float32), anchors, title, seq=0, stamp=0.0)
         x, y = probes[k]
-        ax.set_title(f"({x}, {y}): T={mean:.2f}  U={std:.2f}  modes={int(stats.modes[0])}")
-        ax.set_xlim(0, 1)
-        ax.set_ylim(0, 1)
-        ax.set_xlabel("traversability")
-        ax.set_ylabel("weight")
-        top = int(np.argmax(w))
-        ax.annotate(
-            anchors.concepts[top],
-            (positions[top], w[top]),
-            textcoords="offset points",
-            xytext=(0, 4),
-            ha="center",
-            fontsize=8,
-        )
+        heading = f"({x}, {y}): T={d.mean:.2f}  U={d.std:.2f}  modes={d.modes}"
+        draw_distribution(ax, d, heading, colour=colours[k % 10])
     if title:
         fig.suptitle(title)
     fig.tight_layout()

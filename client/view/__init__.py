@@ -2,6 +2,7 @@
 and MCAP recording. Torch-free; needs the ``view`` extra (foxglove-sdk, mcap).
 
 Modules: ``pictures`` (what is drawn, numpy/OpenCV only), ``anchor_parameters`` (anchor set <-> parameters),
-``latest`` (latest-only buffers), ``recorder`` (rotating MCAP files), ``viewer`` (zenoh in, Foxglove out),
-``command`` (the command line). Nothing is imported here, so ``gcdtrav --help`` never loads foxglove.
+``latest`` (latest-only buffers), ``recorder`` (rotating MCAP files under a total cap), ``json_schema`` (flat
+JSON schemas that viewers parse), ``viewer`` (zenoh in, Foxglove out), ``command`` (the command line).
+Nothing is imported here, so ``gcdtrav --help`` never loads foxglove.
 """

@@ -43,7 +43,14 @@ def add_view_command(commands: argparse._SubParsersAction) -> None:
         help="where robots publish images, for the camera channel [gcdtrav/in]; '' to not subscribe to inputs",
     )
     view.add_argument("--record", type=Path, metavar="DIR", help="also record every channel to MCAP files in DIR")
-    view.add_argument("--record-max-mb", type=float, default=256, help="start a new MCAP file beyond this [256]")
+    view.add_argument("--record-file-mb", type=float, default=256, help="start a new MCAP file beyond this [256]")
+    view.add_argument(
+        "--record-max-mb",
+        type=float,
+        default=0,
+        help="total size of the recording: the oldest files are deleted to stay under it, and files are at most "
+        "a quarter of it [0: no limit]",
+    )
     view.add_argument("--max-sources", type=int, default=32, help="sources shown at most [32]")
     view.add_argument("--status-period", type=float, default=1.0, help="seconds between status queries [1]")
     view.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the service's answers [5]")
@@ -55,9 +62,9 @@ def run(args: argparse.Namespace) -> int:
     if missing:
         print(f"gcdtrav view: needs {' and '.join(missing)}; install the view extra: {INSTALL}", file=sys.stderr)
         return EXIT_USAGE
-    if args.record_max_mb <= 0 or args.max_sources < 1 or args.status_period <= 0 or not 0 <= args.port < 65536:
-        print("gcdtrav view: --record-max-mb, --max-sources and --status-period must be positive, and --port "
-              "0..65535", file=sys.stderr)  # fmt: skip
+    problem = usage_problem(args)
+    if problem:
+        print(f"gcdtrav view: {problem}", file=sys.stderr)
         return EXIT_USAGE
     from gcdtrav.client.client import TraversabilityClient
     from gcdtrav.client.view.viewer import Viewer, ViewOptions
@@ -72,7 +79,8 @@ def run(args: argparse.Namespace) -> int:
         status_period_s=args.status_period,
         timeout_s=args.timeout,
         record=args.record,
-        record_max_bytes=int(args.record_max_mb * 1024 * 1024),
+        record_file_bytes=megabytes(args.record_file_mb),
+        record_max_bytes=megabytes(args.record_max_mb) if args.record_max_mb else None,
     )
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -89,10 +97,25 @@ def run(args: argparse.Namespace) -> int:
                     pass
             if viewer.recorder is not None:
                 print(recording_summary(viewer.recorder.files), flush=True)
+                if viewer.recorder.deleted:
+                    deleted = len(viewer.recorder.deleted)
+                    print(f"gcdtrav view: {deleted} oldest files deleted (--record-max-mb {args.record_max_mb:g})")
     except Exception as err:  # zenoh errors, a port in use, an unwritable directory: one line
         print(f"gcdtrav view: {type(err).__name__}: {' '.join(str(err).split())}", file=sys.stderr)
         return EXIT_FAILED
     return EXIT_OK
+
+
+def usage_problem(args: argparse.Namespace) -> str | None:
+    if args.record_file_mb <= 0 or args.max_sources < 1 or args.status_period <= 0 or not 0 <= args.port < 65536:
+        return "--record-file-mb, --max-sources and --status-period must be positive, and --port 0..65535"
+    if args.record_max_mb < 0:
+        return "--record-max-mb must be positive (or 0: no limit)"
+    return None
+
+
+def megabytes(value: float) -> int:
+    return int(value * 1024 * 1024)
 
 
 def _has(module: str) -> bool:

@@ -40,12 +40,25 @@ def colour_map(values: NDArray[np.floating], kind: MapKind) -> NDArray[np.uint8]
     return colorize_traversability(values) if kind == "T" else colorize_uncertainty(values)
 
 
-def map_with_legend(values: NDArray[np.floating], kind: MapKind) -> NDArray[np.uint8]:
-    """The colour-mapped map, enlarged to at least MIN_HEIGHT rows, with a colour bar and its scale at the right."""
-    height, width = values.shape
-    scale = max(1, -(-MIN_HEIGHT // height))
-    picture = cv2.resize(colour_map(values, kind), (width * scale, height * scale), interpolation=cv2.INTER_NEAREST)
-    return np.concatenate([picture, legend(kind, height * scale)], axis=1)
+def map_with_legend(
+    values: NDArray[np.floating], kind: MapKind, image_size: tuple[int, int] | None = None
+) -> NDArray[np.uint8]:
+    """The colour-mapped map at the camera's aspect (``image_size`` = (width, height); else the map's own), at
+    least MIN_HEIGHT rows, with a colour bar and its scale at the right."""
+    width, height = picture_size(values.shape, image_size)
+    picture = cv2.resize(colour_map(values, kind), (width, height), interpolation=cv2.INTER_NEAREST)
+    return np.concatenate([picture, legend(kind, height)], axis=1)
+
+
+def picture_size(map_shape: tuple[int, ...], image_size: tuple[int, int] | None) -> tuple[int, int]:
+    """(width, height) to draw a map of ``map_shape`` (rows, columns): whole multiples of its rows up to
+    MIN_HEIGHT (cells stay sharp), and the image's aspect, since the maps cover the image whatever their shape."""
+    rows, columns = map_shape[:2]
+    height = rows * max(1, -(-MIN_HEIGHT // rows))
+    if image_size is None or min(image_size) <= 0:
+        return columns * height // rows, height
+    image_width, image_height = image_size
+    return max(1, round(height * image_width / image_height)), height
 
 
 def legend(kind: MapKind, height: int) -> NDArray[np.uint8]:

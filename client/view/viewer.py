@@ -2,9 +2,11 @@
 with the active anchor set as Foxglove parameters.
 
 Threads: zenoh's callbacks only keep each payload as the newest of its (source, kind) slot; one worker turns
-slots into Foxglove messages; one poller asks for status (and the anchor set when its version changes);
-parameter edits arrive on the server's thread and swap the set on the service. Nothing here can block the
-service: its publishers drop rather than wait, and the viewer holds at most one payload per slot.
+slots into Foxglove messages; one poller asks for status (and the anchor set when its version changes) and
+sends the anchor set again every ANCHORS_REPEAT_S; parameter edits and subscriptions arrive on the server's
+thread (a new subscriber to the anchor channel gets the set at once; edits swap it on the service).
+Nothing here can block the service: its publishers drop rather than wait, and the viewer holds at most one
+payload per slot.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from gcdtrav.client.client import AnchorSetRejected, Maps, ServiceError, Travers
 from gcdtrav.client.client import Grid as GridMaps
 from gcdtrav.client.view import pictures
 from gcdtrav.client.view.anchor_parameters import anchor_parameters, apply_parameters, parameter_message
+from gcdtrav.client.view.json_schema import model_schema
 from gcdtrav.client.view.latest import LatestSlots
 from gcdtrav.client.view.recorder import McapRecorder
 from gcdtrav.schemas.anchors import AnchorSetError
@@ -47,10 +50,12 @@ from gcdtrav.schemas.inputs import decode_payload
 from gcdtrav.schemas.keys import Keys, input_key, input_source_of
 from gcdtrav.schemas.messages import AnchorSetReply, ServiceStatus, SourceView
 from numpy.typing import NDArray
+from pydantic import BaseModel
 
 log = logging.getLogger(__name__)
 
 KINDS = ("maps", "grid", "preview", "camera")  # what arrives per source, each in its own latest-only slot
+ANCHORS_REPEAT_S = 2.0  # the anchor set is sent again this often, so each MCAP file and a seek find it
 NUMERIC_TYPES = {
     "float32": PackedElementFieldNumericType.Float32,
     "uint32": PackedElementFieldNumericType.Uint32,
@@ -69,7 +74,8 @@ class ViewOptions:
     status_period_s: float = 1.0
     timeout_s: float = 5.0
     record: Path | None = None
-    record_max_bytes: int = 256 * 1024 * 1024
+    record_file_bytes: int = 256 * 1024 * 1024  # a new MCAP file beyond this
+    record_max_bytes: int | None = None  # the whole recording: the oldest files are deleted beyond this
     message_backlog: int = 64  # per browser: the oldest message is dropped beyond this
 
 
@@ -81,25 +87,36 @@ def stamp(seconds: float) -> Timestamp:
     return Timestamp.from_epoch_secs(max(seconds, 0.0))
 
 
-def json_schema(model: type[Any], title: str) -> dict[str, Any]:
-    schema = dict(model.model_json_schema())
-    schema["title"] = title
-    return schema
+class ServiceStatuses(BaseModel):
+    """The status channel's message: every instance's status."""
+
+    instances: list[ServiceStatus]
 
 
 class SourceChannels:
-    """The Foxglove channels of one source, created when its first message arrives."""
+    """The Foxglove channels of one source: status with its first message, each other channel with the first
+    message of its kind, so a source without a grid (or previews, or camera) advertises no empty channel."""
 
     def __init__(self, topic: str, context: foxglove.Context) -> None:
-        self.camera = CompressedImageChannel(f"{topic}/camera", context=context)
-        self.preview = CompressedImageChannel(f"{topic}/preview", context=context)
-        self.traversability = CompressedImageChannel(f"{topic}/traversability", context=context)
-        self.uncertainty = CompressedImageChannel(f"{topic}/uncertainty", context=context)
-        self.grid = GridChannel(f"{topic}/grid", context=context)
+        self.topic, self.context = topic, context
         self.status = foxglove.Channel(
-            f"{topic}/status", schema=json_schema(SourceView, "gcdtrav.SourceView"), context=context
+            f"{topic}/status", schema=model_schema(SourceView, "gcdtrav.SourceView"), context=context
         )
         self.view: SourceView | None = None
+        self._images: dict[str, CompressedImageChannel] = {}
+        self._grid: GridChannel | None = None
+
+    def image(self, name: str) -> CompressedImageChannel:
+        """The image channel ``{topic}/{name}``: camera, preview, traversability or uncertainty."""
+        if name not in self._images:
+            self._images[name] = CompressedImageChannel(f"{self.topic}/{name}", context=self.context)
+        return self._images[name]
+
+    @property
+    def grid(self) -> GridChannel:
+        if self._grid is None:
+            self._grid = GridChannel(f"{self.topic}/grid", context=self.context)
+        return self._grid
 
 
 class Viewer:
@@ -120,18 +137,25 @@ class Viewer:
         self._threads: list[threading.Thread] = []
         self._subscribers: list[zenoh.Subscriber[None]] = []
         topic = f"/{options.prefix}"
+        self._anchors_sent = 0.0  # time.monotonic() of the last anchor-set message
         self.anchors_channel = foxglove.Channel(
-            f"{topic}/anchors", schema=json_schema(AnchorSetReply, "gcdtrav.AnchorSetReply"), context=self.context
+            f"{topic}/anchors", schema=model_schema(AnchorSetReply, "gcdtrav.AnchorSetReply"), context=self.context
         )
-        self.status_channel = foxglove.Channel(f"{topic}/status", schema=statuses_schema(), context=self.context)
+        self.status_channel = foxglove.Channel(
+            f"{topic}/status", schema=model_schema(ServiceStatuses, "gcdtrav.ServiceStatuses"), context=self.context
+        )
         self.log_channel = LogChannel(f"{topic}/log", context=self.context)
-        self.recorder = McapRecorder(options.record, self.context, options.record_max_bytes) if options.record else None
+        self.recorder = (
+            McapRecorder(options.record, self.context, options.record_file_bytes, options.record_max_bytes)
+            if options.record
+            else None
+        )
         self.server = foxglove.start_server(
             name=f"gcdtrav view ({options.prefix})",
             host=options.host,
             port=options.port,
             capabilities=[Capability.Parameters],
-            server_listener=ParameterListener(self),
+            server_listener=ViewerListener(self),
             context=self.context,
             message_backlog_size=options.message_backlog,
         )
@@ -237,13 +261,14 @@ class Viewer:
         maps = Maps.from_payload(payload)
         header = maps.header
         when = stamp(header.stamp)
-        layers: tuple[tuple[CompressedImageChannel, NDArray[np.float32], pictures.MapKind], ...] = (
-            (channels.traversability, maps.traversability, "T"),
-            (channels.uncertainty, maps.uncertainty, "U"),
+        layers: tuple[tuple[str, NDArray[np.float32], pictures.MapKind], ...] = (
+            ("traversability", maps.traversability, "T"),
+            ("uncertainty", maps.uncertainty, "U"),
         )
-        for channel, values, kind in layers:
-            picture = pictures.png(pictures.map_with_legend(values, kind))
-            self.emit(channel, CompressedImage(timestamp=when, frame_id=header.frame_id, data=picture, format="png"))
+        for name, values, kind in layers:
+            picture = pictures.png(pictures.map_with_legend(values, kind, header.image_size))
+            message = CompressedImage(timestamp=when, frame_id=header.frame_id, data=picture, format="png")
+            self.emit(channels.image(name), message)
         previous = channels.view or SourceView(source=header.source)
         latency = (time.time() - header.stamp) * 1e3
         channels.view = previous.model_copy(update={"maps": header, "latency_ms": round(latency, 2)})
@@ -271,11 +296,12 @@ class Viewer:
         self.emit(channels.grid, message)
 
     def _show_preview(self, channels: SourceChannels, payload: bytes) -> None:
-        self.emit(channels.preview, CompressedImage(timestamp=stamp(time.time()), data=payload, format="jpeg"))
+        self.emit(channels.image("preview"), CompressedImage(timestamp=stamp(time.time()), data=payload, format="jpeg"))
 
     def _show_camera(self, channels: SourceChannels, payload: bytes) -> None:
         data, kind, when, frame_id = camera_image(payload)
-        self.emit(channels.camera, CompressedImage(timestamp=stamp(when), frame_id=frame_id, data=data, format=kind))
+        message = CompressedImage(timestamp=stamp(when), frame_id=frame_id, data=data, format=kind)
+        self.emit(channels.image("camera"), message)
 
     # ---- poller: status and the anchor set -------------------------------------------------------------
     def _poll(self) -> None:
@@ -299,6 +325,8 @@ class Viewer:
         if self._active is None or self._active.version not in versions or len(versions) > 1:
             with self._swap_lock:  # not in the middle of a swap from the Parameters panel
                 self.refresh_anchors()
+        if time.monotonic() - self._anchors_sent >= ANCHORS_REPEAT_S:
+            self.send_anchors()
         for source, channels in list(self._sources.items()):
             counters = {s.instance: s.sources[source] for s in statuses if source in s.sources}
             channels.view = (channels.view or SourceView(source=source)).model_copy(update={"instances": counters})
@@ -310,9 +338,17 @@ class Viewer:
         changed = self._active is None or self._active.version != active.version or self._active != active
         self._active = active
         if changed:
-            self.emit(self.anchors_channel, active.model_dump(mode="json"))
+            self.send_anchors()
             self.server.publish_parameter_values(self.parameters())
         return active
+
+    def send_anchors(self) -> None:
+        """The active set on /{prefix}/anchors (once it is known): when it changes, every ANCHORS_REPEAT_S and
+        when a client subscribes, since a channel keeps no last message for late subscribers."""
+        active = self._active
+        if active is not None:
+            self.emit(self.anchors_channel, active.model_dump(mode="json"))
+            self._anchors_sent = time.monotonic()
 
     # ---- parameters ------------------------------------------------------------------------------------
     def parameters(self, names: list[str] | None = None) -> list[foxglove.Parameter]:
@@ -355,18 +391,6 @@ class Viewer:
         self.emit(self.log_channel, Log(timestamp=stamp(time.time()), level=level, message=text, name="gcdtrav view"))
 
 
-def statuses_schema() -> dict[str, Any]:
-    """JSON schema of the status channel: every instance's ServiceStatus (definitions at the root)."""
-    status = dict(ServiceStatus.model_json_schema())
-    definitions = status.pop("$defs", {})
-    return {
-        "title": "gcdtrav.ServiceStatuses",
-        "type": "object",
-        "properties": {"instances": {"type": "array", "items": status}},
-        "$defs": definitions,
-    }
-
-
 def to_parameter(name: str, value: str | float) -> foxglove.Parameter:
     if isinstance(value, float):  # whole numbers such as 1.0 stay floats in Foxglove's panel
         return foxglove.Parameter(name, value=value, type=foxglove.ParameterType.Float64)
@@ -390,8 +414,9 @@ def camera_image(payload: bytes) -> tuple[bytes, str, float, str]:
     return pictures.jpeg(frame.image), "jpeg", envelope.stamp, envelope.frame_id
 
 
-class ParameterListener(ServerListener):
-    """Foxglove's Parameters panel: reads the active set, and edits swap it on the service."""
+class ViewerListener(ServerListener):
+    """Foxglove's Parameters panel reads the active set, and edits swap it on the service; a subscriber to the
+    anchor channel gets the active set at once."""
 
     def __init__(self, viewer: Viewer) -> None:
         self.viewer = viewer
@@ -416,3 +441,5 @@ class ParameterListener(ServerListener):
 
     def on_subscribe(self, client: Client, channel: ChannelView) -> None:
         log.debug("client %s subscribed to %s", client.id, channel.topic)
+        if channel.topic == self.viewer.anchors_channel.topic():
+            self.viewer.send_anchors()  # to every sink: foxglove-sdk's Python Client has no sink id to aim at

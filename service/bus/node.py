@@ -188,7 +188,7 @@ class TraversabilityService:
             self.admission.offer(source, key, size, sample.payload.to_bytes, str(sample.encoding), ros)
 
     def _declare_queryables(self) -> None:
-        per_source = SourceQueries(self.keys, self.history, self.grids, self.owns)
+        per_source = SourceQueries(self.keys, self.history, self.grids, self.owns, self.settings.risk)
         anchors = AnchorQueries(self.keys, self.pipeline, self.anchor_switch, self.stats)
         handlers = [(self.keys.patch("**"), per_source.on_patch, False)]
         if self.grids is not None:

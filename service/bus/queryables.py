@@ -10,6 +10,7 @@ import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import AnchorSetRejection, AnchorSetReply
+from gcdtrav.schemas.settings import RiskSettings
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus.guard import guarded
 from gcdtrav.service.pipeline import Pipeline
@@ -27,20 +28,26 @@ class SourceQueries:
     """``{prefix}/out/{source}/patch`` from the frame history, ``.../cell`` from the ground grids."""
 
     def __init__(
-        self, keys: Keys, history: FrameHistory, grids: GridOutputs | None, owns: Callable[[str], bool]
+        self,
+        keys: Keys,
+        history: FrameHistory,
+        grids: GridOutputs | None,
+        owns: Callable[[str], bool],
+        risk: RiskSettings | None = None,
     ) -> None:
         self.keys, self.history, self.grids, self.owns = keys, history, grids, owns
+        self.risk = risk or RiskSettings()
 
     def on_patch(self, query: zenoh.Query) -> None:
         source = self._owned_source(query, "patch")
         if source is not None:
             params = strict_parameters(replies.without_format(query), PATCH_FORMS)
-            replies.reply(query, str(query.key_expr), answer_patch_query(self.history, source, params))
+            replies.reply(query, str(query.key_expr), answer_patch_query(self.history, source, params, self.risk))
 
     def on_cell(self, query: zenoh.Query) -> None:
         source = self._owned_source(query, "cell")
         if source is not None and self.grids is not None:
-            answer = self.grids.answer(source, replies.text_without_format(str(query.parameters)))
+            answer = self.grids.answer(source, replies.text_without_format(str(query.parameters)), self.risk)
             replies.reply(query, str(query.key_expr), answer)
 
     def _owned_source(self, query: zenoh.Query, kind: str) -> str | None:

@@ -1,4 +1,4 @@
-"""Replies in msgpack by default, in JSON when the selector says ``format=json``.
+"""Replies in msgpack by default, in JSON when the selector says ``format=json`` (any case: ``format=JSON``).
 
 zenoh's own tools print what they get: ``z_get -s 'gcdtrav/status?format=json'`` from zenoh-python's
 examples and the router's REST plugin (``curl 'http://router:8000/gcdtrav/status?format=json'``) show JSON
@@ -21,15 +21,21 @@ def parameters(query: zenoh.Query) -> list[tuple[str, str]]:
     return [(name, value) for name, value in query.parameters]  # type: ignore[attr-defined]
 
 
+def formats(query: zenoh.Query) -> list[str]:
+    """The selector's ``format`` values, lower case: people type ``format=JSON`` too."""
+    return [value.lower() for name, value in parameters(query) if name == "format"]
+
+
 def wants_json(query: zenoh.Query) -> bool:
     """Whether the selector asks for JSON; an unknown format falls back to msgpack (and is reported)."""
-    return ("format", "json") in parameters(query)
+    return "json" in formats(query)
 
 
 def check_format(query: zenoh.Query) -> None:
-    formats = [value for name, value in parameters(query) if name == "format"]
-    if len(formats) > 1 or (formats and formats[0] not in FORMATS):
-        raise QueryError(f"format={';format='.join(formats)}: give format=json or format=msgpack once [msgpack]")
+    asked = formats(query)
+    if len(asked) > 1 or (asked and asked[0] not in FORMATS):
+        given = ";".join(f"{name}={value}" for name, value in parameters(query) if name == "format")
+        raise QueryError(f"{given}: give format=json or format=msgpack once [msgpack]")
 
 
 def check_no_parameters(query: zenoh.Query) -> None:

@@ -22,17 +22,29 @@ import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.images import encode_count_png, encode_map_png16
 from gcdtrav.schemas.messages import ContextDistribution, GridHeader, GridMessage, PathReply, Pose2D
-from gcdtrav.schemas.settings import GridSettings
+from gcdtrav.schemas.settings import GridSettings, RiskSettings
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points, map_cell_pixels
 from gcdtrav.service.ros.cdr import decode_camera_info, decode_depth, decode_pose, occupancy_cdr
 from gcdtrav.service.runtime.errors import QueryError
 from gcdtrav.service.runtime.history import FrameRecord
-from gcdtrav.service.runtime.queries import distribution_of, parameter_pairs, parse_number, strict_parameters
+from gcdtrav.service.runtime.queries import (
+    RISK_PARAMETERS,
+    RiskLevels,
+    distribution_of,
+    parameter_pairs,
+    parse_number,
+    risk_levels,
+    strict_parameters,
+    with_risk,
+)
 from numpy.typing import NDArray
 
 log = logging.getLogger("gcdtrav.service")
-CELL_FORMS = "x=..;y=.. (metres, grid frame), or path=x0,y0;x1,y1;..."
+CELL_FORMS = (
+    "x=..;y=.. (metres, grid frame), or path=x0,y0;x1,y1;..., and optionally alpha=.. (0 < alpha <= 1), tau=.. "
+    "(0 <= tau <= 1)"
+)
 MAX_PATH_POINTS = 256
 
 
@@ -168,18 +180,20 @@ class GridOutputs:
         )
 
     # ---- queries -------------------------------------------------------------------------------------
-    def answer(self, source: str, raw_parameters: str) -> ContextDistribution | PathReply:
+    def answer(
+        self, source: str, raw_parameters: str, risk: RiskSettings | None = None
+    ) -> ContextDistribution | PathReply:
         """A cell's or a path's distributions, over the anchor set the grid's weights were fused with."""
         grid = self.sources.get(source)
         if grid is None:
             raise QueryError(f"no grid for source '{source}' (grids: {sorted(self.sources)})")
-        params = raw_parameters.strip()
+        params, levels = _without_risk_levels(raw_parameters.strip(), risk or RiskSettings())
         with grid.lock:
             anchors = grid.grid.anchors
             if anchors is None:
                 raise QueryError(f"the grid of '{source}' has no frame yet")
             if params.startswith("path="):
-                return self._path(grid, _points(params[len("path=") :]), anchors)
+                return self._path(grid, _points(params[len("path=") :]), anchors, levels)
             values = strict_parameters(parameter_pairs(params), CELL_FORMS)
             if set(values) != {"x", "y"}:
                 raise QueryError(f"give {CELL_FORMS}")
@@ -195,24 +209,27 @@ class GridOutputs:
                     ),
                 )
                 raise QueryError(f"({x:g}, {y:g}) is outside the grid [{lo[0]:g}, {hi[0]:g}) x [{lo[1]:g}, {hi[1]:g})")
-            cell = self._cell(grid, i, j, anchors)
+            cell = self._cell(grid, i, j, anchors, levels)
             if cell is None:
                 raise QueryError(f"cell ({x:g}, {y:g}) is unknown: never observed")
             return cell
 
-    def _cell(self, grid: SourceGrid, i: int, j: int, anchors: AnchorSet) -> ContextDistribution | None:
+    def _cell(
+        self, grid: SourceGrid, i: int, j: int, anchors: AnchorSet, levels: RiskLevels
+    ) -> ContextDistribution | None:
         weights = grid.grid.cell_weights(i, j)
         if weights is None:
             return None
+        weights = weights / weights.sum()
         reply = distribution_of(
-            weights / weights.sum(),
+            weights,
             anchors,
             grid.config.source,
             None,  # a cell fuses many frames: no one frame's seq
             grid.grid.stamp or 0.0,
             self.header(grid, anchors.version).frame_id,
         )
-        return reply.model_copy(
+        return with_risk(reply, weights, anchors, levels).model_copy(
             update={
                 "cell": (i, j),
                 "cell_xy": grid.grid.centre_of(i, j),
@@ -221,14 +238,17 @@ class GridOutputs:
             }
         )
 
-    def _path(self, grid: SourceGrid, points: list[tuple[float, float]], anchors: AnchorSet) -> PathReply:
+    def _path(
+        self, grid: SourceGrid, points: list[tuple[float, float]], anchors: AnchorSet, levels: RiskLevels
+    ) -> PathReply:
         cells, unknown = [], 0
         for i, j in grid.grid.path_cells(points):
-            cell = self._cell(grid, i, j, anchors)
+            cell = self._cell(grid, i, j, anchors, levels)
             if cell is None:
                 unknown += 1
             else:
                 cells.append(cell)
+        below = [cell.p_below or 0.0 for cell in cells]
         return PathReply(
             source=grid.config.source,
             stamp=grid.grid.stamp or 0.0,
@@ -238,7 +258,20 @@ class GridOutputs:
             unknown_cells=unknown,
             lowest_t=min(range(len(cells)), key=lambda k: cells[k].mean) if cells else None,
             highest_u=max(range(len(cells)), key=lambda k: cells[k].std) if cells else None,
+            lowest_cvar=min(range(len(cells)), key=lambda k: cells[k].cvar or 0.0) if cells else None,
+            p_any_below=float(1 - np.prod(1 - np.asarray(below, np.float64))) if cells else None,
+            alpha=levels.alpha,
+            tau=levels.tau,
         )
+
+
+def _without_risk_levels(params: str, defaults: RiskSettings) -> tuple[str, RiskLevels]:
+    """The cell or path parameters without alpha and tau, and the levels they give: a path's points are
+    ';'-separated too, so alpha=.. and tau=.. are taken out wherever they stand."""
+    risky = [(name, value) for name, value in parameter_pairs(params) if name in RISK_PARAMETERS]
+    rest = ";".join(part for part in params.split(";") if part.split("=", 1)[0] not in RISK_PARAMETERS)
+    levels = strict_parameters(risky, CELL_FORMS)
+    return rest, risk_levels(levels, defaults)
 
 
 def _points(text: str) -> list[tuple[float, float]]:

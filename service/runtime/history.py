@@ -22,6 +22,7 @@ class FrameRecord:
     weights: NDArray[np.float16]  # (n, h, w): float16 halves the history's memory; ~1e-3 relative
     anchors: AnchorSet
     image_size: tuple[int, int]  # (width, height)
+    match: NDArray[np.float16] | None = None  # (h, w): the best concept's own score per patch
 
     @property
     def map_shape(self) -> tuple[int, int]:
@@ -59,17 +60,19 @@ class FrameHistory:
         stamp: float,
         frame_id: str,
         image_size: tuple[int, int],
+        match: NDArray[np.floating] | None = None,
     ) -> FrameRecord:
         """Number a processed frame (0, 1, ... per source) and keep it; returns its record."""
         with self._lock:
             seq = self._next_seq.get(source, 0)
             self._next_seq[source] = seq + 1
-        record = FrameRecord(seq, stamp, frame_id, weights.astype(np.float16), anchors, image_size)
+        kept_match = match.astype(np.float16) if match is not None else None
+        record = FrameRecord(seq, stamp, frame_id, weights.astype(np.float16), anchors, image_size, kept_match)
         self.add(source, record)
         return record
 
     def add(self, source: str, record: FrameRecord) -> None:
-        size = record.weights.nbytes
+        size = record.weights.nbytes + (record.match.nbytes if record.match is not None else 0)
         with self._lock:
             if len(self._frames.get(source, ())) >= self.depth:
                 self._drop_oldest_of(source)  # may delete the source's deque (depth 1): take it afterwards

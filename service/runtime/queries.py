@@ -4,17 +4,21 @@ Query parameters (zenoh selector parameters, all strings):
   x, y      image pixel          | i, j   map patch (row, column)  | region=x0,y0,x1,y1 image pixels
   seq       a kept frame's sequence number [default: the latest]
   stamp     a kept frame's input stamp (s since epoch, e.g. a ROS header stamp), matched within 1 ms
+  alpha     level of quantile and cvar, in (0, 1] [settings risk.alpha]
+  tau       threshold of p_below, in [0, 1] [settings risk.tau]
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.messages import AnchorPoint, ContextDistribution
-from gcdtrav.service.engine import gcd
+from gcdtrav.schemas.settings import RiskSettings
+from gcdtrav.service.engine import gcd, risk
 from gcdtrav.service.runtime.errors import QueryError
 from gcdtrav.service.runtime.history import FrameHistory, FrameRecord
 from numpy.typing import NDArray
@@ -59,8 +63,31 @@ def _region_cells(record: FrameRecord, text: str) -> tuple[int, int, int, int]:
     return i0, j0, i1, j1
 
 
-KNOWN_PARAMETERS = {"x", "y", "i", "j", "seq", "stamp", "region"}
-PATCH_FORMS = "x=..;y=.. (image pixels), i=..;j=.. (map patch) or region=x0,y0,x1,y1, and optionally seq=.. or stamp=.."
+RISK_PARAMETERS = {"alpha", "tau"}
+KNOWN_PARAMETERS = {"x", "y", "i", "j", "seq", "stamp", "region"} | RISK_PARAMETERS
+PATCH_FORMS = (
+    "x=..;y=.. (image pixels), i=..;j=.. (map patch) or region=x0,y0,x1,y1, and optionally seq=.. or stamp=.., "
+    "alpha=.. (0 < alpha <= 1), tau=.. (0 <= tau <= 1)"
+)
+
+
+@dataclass(frozen=True)
+class RiskLevels:
+    """The alpha and tau an answer's risk measures are computed at."""
+
+    alpha: float
+    tau: float
+
+
+def risk_levels(params: Mapping[str, str], defaults: RiskSettings) -> RiskLevels:
+    """alpha and tau from the query's parameters, else the settings'; a clear error when out of range."""
+    alpha = parse_number(params["alpha"], "alpha") if "alpha" in params else defaults.alpha
+    tau = parse_number(params["tau"], "tau") if "tau" in params else defaults.tau
+    if not 0 < alpha <= 1:
+        raise QueryError(f"parameter alpha={alpha:g} must satisfy 0 < alpha <= 1 (the worst alpha of the distribution)")
+    if not 0 <= tau <= 1:
+        raise QueryError(f"parameter tau={tau:g} must satisfy 0 <= tau <= 1 (a traversability)")
+    return RiskLevels(alpha, tau)
 
 
 def parameter_pairs(text: str) -> list[tuple[str, str]]:
@@ -81,10 +108,13 @@ def strict_parameters(pairs: Iterable[tuple[str, str]], forms: str) -> dict[str,
     return params
 
 
-def answer_patch_query(history: FrameHistory, source: str, params: Mapping[str, str]) -> ContextDistribution:
+def answer_patch_query(
+    history: FrameHistory, source: str, params: Mapping[str, str], risk: RiskSettings | None = None
+) -> ContextDistribution:
     unknown = set(params) - KNOWN_PARAMETERS
     if unknown:
-        raise QueryError(f"unknown parameter(s) {sorted(unknown)}; use x,y or i,j or region, and optionally seq")
+        raise QueryError(f"unknown parameter(s) {sorted(unknown)}; give {PATCH_FORMS}")
+    levels = risk_levels(params, risk or RiskSettings())
     seq = int(_number(params, "seq", int)) if "seq" in params else None
     stamp = _number(params, "stamp") if "stamp" in params else None
     if seq is not None and stamp is not None:
@@ -105,14 +135,12 @@ def answer_patch_query(history: FrameHistory, source: str, params: Mapping[str, 
         patch = (i, j)
     else:
         region = _region_cells(record, params["region"])
-    if patch is not None:
-        weights = record.weights[:, patch[0], patch[1]].astype(np.float32)
-    else:
-        assert region is not None
-        i0, j0, i1, j1 = region
-        weights = record.weights[:, i0:i1, j0:j1].astype(np.float32).mean(axis=(1, 2))
+    i0, j0, i1, j1 = region if region is not None else _single(patch)
+    weights = record.weights[:, i0:i1, j0:j1].astype(np.float32).mean(axis=(1, 2))
     weights /= weights.sum()  # float16 storage: renormalise
-    return distribution_of(weights, record.anchors, source, record.seq, record.stamp, record.frame_id, patch, region)
+    match = float(record.match[i0:i1, j0:j1].astype(np.float32).mean()) if record.match is not None else None
+    answer = distribution_of(weights, record.anchors, source, record.seq, record.stamp, record.frame_id, patch, region)
+    return with_risk(answer, weights, record.anchors, levels, match)
 
 
 def distribution_of(
@@ -153,4 +181,31 @@ def distribution_of(
         density_x=[float(v) for v in grid],
         density=[float(v) for v in density],
         density_bandwidth=gcd.DEFAULT_DENSITY_BANDWIDTH,
+    )
+
+
+def _single(patch: tuple[int, int] | None) -> tuple[int, int, int, int]:
+    """One patch as the region of it alone."""
+    assert patch is not None
+    return patch[0], patch[1], patch[0] + 1, patch[1] + 1
+
+
+def with_risk(
+    answer: ContextDistribution,
+    weights: NDArray[np.float32],
+    anchors: AnchorSet,
+    levels: RiskLevels,
+    match: float | None = None,
+) -> ContextDistribution:
+    """The answer with its quantile, CVaR and P(T < tau) at ``levels`` (service/engine/risk.py), and match."""
+    measures = risk.risk_measures(weights[:, None], anchors.positions, anchors.widths, levels.alpha, levels.tau)
+    return answer.model_copy(
+        update={
+            "alpha": levels.alpha,
+            "tau": levels.tau,
+            "quantile": float(measures.quantile[0]),
+            "cvar": float(measures.cvar[0]),
+            "p_below": float(measures.p_below[0]),
+            "match": match,
+        }
     )

@@ -125,8 +125,9 @@ class FrameWorker:
         source, image = inferred.pending.source, inferred.image
         result = self.pipeline.finish(inferred.inference)
         height, width = image.image.shape[:2]
+        maps = result.maps
         record = self.history.record(
-            source, result.maps.weights, result.anchors, image.stamp, image.frame_id, (width, height)
+            source, maps.weights, result.anchors, image.stamp, image.frame_id, (width, height), maps.match
         )
         if not self.publish(ProcessedFrame(inferred, result, record)):
             self.stats.dropped(source, "shutdown")  # finished after the outputs closed

@@ -73,9 +73,17 @@ def test_probe_prints_a_pixels_distribution_and_draws_it(service, tmp_path: Path
     png = tmp_path / "probe.png"
     probe = gcdtrav("probe", "r1/front", "20", "10", "--png", str(png), *flags)
     assert probe.returncode == 0, probe.stderr
-    expected = running.history.get("r1/front", None)
-    assert probe.stdout.startswith(f"r1/front seq={expected.seq} cell ")
+    from gcdtrav.service.runtime.queries import answer_patch_query
+
+    expected = answer_patch_query(running.history, "r1/front", {"x": "20", "y": "10"})
+    assert probe.stdout.startswith(f"r1/front seq={expected.seq} patch {expected.patch}")
     assert "T (mean) =" in probe.stdout and "concrete @ 1.00" in probe.stdout
+    assert (
+        f"CVaR(alpha=0.1) = {expected.cvar:.3f}" in probe.stdout
+        and f"P(T < 0.3) = {expected.p_below:.3f}" in probe.stdout
+    )
+    tighter = gcdtrav("probe", "r1/front", "20", "10", "--alpha", "0.5", "--tau", "0.9", *flags)
+    assert "CVaR(alpha=0.5)" in tighter.stdout and "P(T < 0.9)" in tighter.stdout
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 10_000
     outside = gcdtrav("probe", "r1/front", "5000", "10", *flags)
     assert outside.returncode == 1 and "outside the 64x48 image" in outside.stderr

@@ -133,7 +133,7 @@ async def watch_and_steer(url: str, client: TraversabilityClient, running: Trave
 def test_foxglove_client_sees_maps_grid_and_steers_the_anchor_set(service, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     running, port = service
     record = tmp_path / "record"
-    options = ViewOptions(port=0, record=record, record_max_bytes=64 * 1024, status_period_s=0.5)
+    options = ViewOptions(port=0, record=record, record_file_bytes=64 * 1024, status_period_s=0.5)
     with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
         assert wait_until(lambda: service_reachable(client), 10)
         grids: list[Grid] = []

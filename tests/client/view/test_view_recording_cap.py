@@ -1,0 +1,63 @@
+"""`gcdtrav view --record DIR --record-max-mb N`: files rotate, and the oldest files of the recording are
+deleted to keep it under the cap; what is kept is the newest data, every file readable."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+foxglove = pytest.importorskip("foxglove", reason="the view extra: pip install 'gcdtrav[view]'")
+mcap_reader = pytest.importorskip("mcap.reader")
+
+from gcdtrav.client.view.command import megabytes, usage_problem  # noqa: E402
+from gcdtrav.client.view.recorder import FILES_UNDER_CAP, McapRecorder  # noqa: E402
+from gcdtrav.service.cli import build_parser  # noqa: E402
+
+CAP = 96 * 1024
+MESSAGE_BYTES = 3000  # random, so zstd cannot shrink it
+
+
+def record(directory: Path, messages: int) -> McapRecorder:
+    context = foxglove.Context()
+    channel = foxglove.Channel("/noise", schema={"type": "object", "title": "noise"}, context=context)
+    recorder = McapRecorder(directory, context, file_bytes=256 * 1024 * 1024, total_bytes=CAP)
+    rng = np.random.default_rng(0)
+    for index in range(messages):
+        channel.log({"index": index, "noise": rng.bytes(MESSAGE_BYTES).hex()[:MESSAGE_BYTES]})
+        recorder.rotate_if_full()
+    recorder.close()
+    return recorder
+
+
+def indexes_in(path: Path) -> list[int]:
+    with path.open("rb") as stream:
+        reader = mcap_reader.make_reader(stream)
+        assert reader.get_summary() is not None, f"{path} was not closed cleanly"
+        return [json.loads(message.data)["index"] for _, _, message in reader.iter_messages()]
+
+
+def test_the_oldest_files_go_and_the_newest_data_stays_under_the_cap(tmp_path: Path) -> None:
+    foreign = tmp_path / "someone-elses.mcap"
+    foreign.write_bytes(b"not ours")
+    recorder = record(tmp_path, messages=300)  # about 900 kB through a 96 kB cap
+
+    assert recorder.file_bytes == CAP // FILES_UNDER_CAP  # the per-file size follows the small cap
+    assert len(recorder.deleted) > 10 and not any(path.exists() for path in recorder.deleted)
+    assert foreign.read_bytes() == b"not ours"  # only the recorder's own files are deleted
+    kept = sorted(tmp_path.glob("gcdtrav-*.mcap"))
+    assert kept == sorted(recorder.files) and len(kept) >= FILES_UNDER_CAP - 1
+    total = sum(path.stat().st_size for path in kept)
+    assert total <= CAP + 16 * 1024 + MESSAGE_BYTES, total  # the cap, passed by at most a chunk and a message
+    indexes = [index for path in recorder.files for index in indexes_in(path)]
+    assert indexes == list(range(indexes[0], 300)) and indexes[0] > 0  # the newest, contiguous, none twice
+
+
+def test_record_max_mb_is_the_total_and_0_means_no_limit() -> None:
+    parse = build_parser().parse_args
+    assert parse(["view"]).record_max_mb == 0 and parse(["view"]).record_file_mb == 256
+    negative = usage_problem(parse(["view", "--record-max-mb", "-1"]))
+    assert negative == "--record-max-mb must be positive (or 0: no limit)"
+    assert usage_problem(parse(["view", "--record-max-mb", "512"])) is None and megabytes(0.5) == 512 * 1024

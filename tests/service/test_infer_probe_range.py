@@ -1,0 +1,39 @@
+"""`gcdtrav infer --figure --probe X,Y` outside the image: exit 2, one line naming the image and its size
+(it was clamped to the border, silently)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import pytest
+from conftest import textured_image
+
+pytest.importorskip("torch")
+
+from gcdtrav.service.cli import main
+
+
+@pytest.mark.parametrize("probe", ["140,10", "10,90", "-1,5"])
+def test_a_probe_outside_the_image_is_a_usage_error_naming_its_size(
+    tmp_path: Path, tiny_model_dir: Path, capsys: pytest.CaptureFixture[str], probe: str
+) -> None:
+    image = tmp_path / "scene.png"
+    cv2.imwrite(str(image), textured_image(90, 140))
+    out = tmp_path / "out"
+    args = ["infer", str(image), "--out", str(out), "--model", str(tiny_model_dir), "--figure", f"--probe={probe}"]
+    assert main([*args, "--probe", "139,89"]) == 2
+    err = capsys.readouterr().err  # the model's loading progress, then the error
+    assert err.strip().splitlines()[-1] == (
+        f"gcdtrav infer: --probe {probe} is outside {image} (140x90 pixels: x 0..139, y 0..89)"
+    )
+    assert "Traceback" not in err
+    assert not (out / "scene" / "figure.png").exists()
+
+
+def test_the_last_pixel_is_inside(tmp_path: Path, tiny_model_dir: Path) -> None:
+    image = tmp_path / "scene.png"
+    cv2.imwrite(str(image), textured_image(90, 140))
+    args = ["infer", str(image), "--out", str(tmp_path / "out"), "--model", str(tiny_model_dir), "--figure"]
+    assert main([*args, "--probe", "139,89", "--probe", "0,0"]) == 0
+    assert (tmp_path / "out" / "scene" / "figure.png").exists()
