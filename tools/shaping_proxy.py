@@ -166,12 +166,12 @@ class ShapingProxy:
                 return
             await asyncio.sleep(max(0.0, due - time.monotonic()))
             await self._link_up.wait()
-            writer.write(data)
-            await writer.drain()
-            if way == "up":
+            if way == "up":  # counted as handed to the far end's socket, before it can be read there
                 self.counters.up += len(data)
             else:
                 self.counters.down += len(data)
+            writer.write(data)
+            await writer.drain()
 
 
 @contextlib.contextmanager
