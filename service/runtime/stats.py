@@ -14,6 +14,7 @@ from gcdtrav.schemas.messages import SourceStatus
 from gcdtrav.service.runtime.latest_queue import QueueCounters
 
 LATENCY_WINDOW = 1000
+RATE_WINDOW_S = 10.0
 ERROR_LOG_INTERVAL_S = 5.0
 LAST_ERRORS = 20
 
@@ -34,6 +35,26 @@ class SourceStats:
     last_seq: int | None = None
     latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
     inference_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
+    stale: int = 0  # of the dropped: captured over max_frame_age_s ago
+    credits: int = 0
+    age_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))  # capture to intake
+    arrivals: deque[tuple[float, int]] = field(default_factory=deque)  # (monotonic time, bytes), last 10 s
+
+    def bytes_per_s(self, now: float) -> float | None:
+        while self.arrivals and self.arrivals[0][0] < now - RATE_WINDOW_S:
+            self.arrivals.popleft()
+        if not self.arrivals:
+            return None
+        # Over the window, or over what the capped deque still holds of it at high frame rates.
+        span = RATE_WINDOW_S if len(self.arrivals) < LATENCY_WINDOW else max(now - self.arrivals[0][0], 1e-3)
+        return round(sum(n for _, n in self.arrivals) / span, 1)
+
+
+def age_percentiles(values: deque[float]) -> dict[str, float]:
+    if not values:
+        return {}
+    p50, p95 = np.percentile(np.fromiter(values, dtype=np.float64), [50, 95])
+    return {"p50": round(float(p50), 2), "p95": round(float(p95), 2)}
 
 
 @dataclass(frozen=True)
@@ -72,6 +93,28 @@ class ServiceStats:
         with self._lock:
             self.sources.setdefault(name, SourceStats()).dropped += count
             self.dropped_by_reason[reason] += count
+
+    def intake(self, name: str, nbytes: int, age_s: float | None) -> None:
+        """A frame of ``name`` reached the service: its bytes and, when stamped, its capture-to-intake age."""
+        with self._lock:
+            stats = self.sources.setdefault(name, SourceStats())
+            stats.arrivals.append((time.monotonic(), nbytes))
+            if len(stats.arrivals) > LATENCY_WINDOW:
+                stats.arrivals.popleft()
+            if age_s is not None:
+                stats.age_ms.append(age_s * 1e3)
+
+    def stale(self, name: str) -> None:
+        """A frame older than max_frame_age_s, dropped: counted stale and dropped (reason ``stale``)."""
+        with self._lock:
+            stats = self.sources.setdefault(name, SourceStats())
+            stats.stale += 1
+            stats.dropped += 1
+            self.dropped_by_reason["stale"] += 1
+
+    def credit(self, name: str) -> None:
+        with self._lock:
+            self.sources.setdefault(name, SourceStats()).credits += 1
 
     def forget(self, name: str) -> None:
         with self._lock:
@@ -114,4 +157,8 @@ class ServiceStats:
             last_seq=stats.last_seq,
             latency_ms=percentiles(stats.latency_ms),
             inference_ms=percentiles(stats.inference_ms),
+            stale=stats.stale,
+            bytes_per_s=stats.bytes_per_s(time.monotonic()),
+            frame_age_ms=age_percentiles(stats.age_ms),
+            credits=stats.credits,
         )
