@@ -63,7 +63,7 @@ class Admission:
         frame_times = FrameTimes(times.stamp, times.sent_at, received_at)
         if self.age_limit.is_stale(times.stamp, received_at):
             self.queue.count_unqueued(source)
-            self.stats.stale(source)
+            self.stats.stale(source, self.age_limit.explain(times.stamp, received_at))
             self.on_freed(source, STALE, frame_times)
             return False
         pending = PendingFrame(source, key, payload, encoding, received_at, ros, times.stamp, times.sent_at)

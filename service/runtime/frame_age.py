@@ -72,3 +72,10 @@ class FrameAgeLimit:
     def is_stale(self, stamp: float | None, now: float) -> bool:
         age = self.age_s(stamp, now)
         return self.max_age_s is not None and age is not None and age > self.max_age_s
+
+    def explain(self, stamp: float | None, now: float) -> str:
+        """Why a frame is stale, with what to check."""
+        return (
+            f"captured {self.age_s(stamp, now) or 0:.1f} s ago, over max_frame_age_s = {self.max_age_s:g} s "
+            "(robot and service clocks out of step, or replayed data? max_frame_age_s: null turns the limit off)"
+        )

@@ -104,13 +104,16 @@ class ServiceStats:
             if age_s is not None:
                 stats.age_ms.append(age_s * 1e3)
 
-    def stale(self, name: str) -> None:
-        """A frame older than max_frame_age_s, dropped: counted stale and dropped (reason ``stale``)."""
+    def stale(self, name: str, detail: str = "") -> None:
+        """A frame older than max_frame_age_s, dropped: counted stale and dropped (reason ``stale``), and
+        logged at the rate limit: a robot whose clock is off would otherwise lose every frame in silence."""
         with self._lock:
             stats = self.sources.setdefault(name, SourceStats())
             stats.stale += 1
             stats.dropped += 1
             self.dropped_by_reason["stale"] += 1
+        if detail:
+            self._log_limited("stale", f"dropped {name}: stale: {detail}")
 
     def credit(self, name: str) -> None:
         with self._lock:
@@ -128,6 +131,11 @@ class ServiceStats:
                 self.sources.setdefault(name, SourceStats()).rejected += 1
             self.rejected_by_reason[reason] += 1
             self.last_errors.append(f"{time.strftime('%H:%M:%S')} {message}")
+        self._log_limited(reason, f"rejected {message}", error)
+
+    def _log_limited(self, reason: str, message: str, error: BaseException | None = None) -> None:
+        """Log at most once per reason every ERROR_LOG_INTERVAL_S, saying how many were suppressed."""
+        with self._lock:
             now = time.monotonic()
             if now - self._last_logged.get(reason, -1e9) < ERROR_LOG_INTERVAL_S:
                 self._suppressed[reason] += 1
@@ -135,7 +143,7 @@ class ServiceStats:
             self._last_logged[reason] = now
             suppressed = self._suppressed.pop(reason, 0)
         extra = f" (+{suppressed} similar since last report)" if suppressed else ""
-        self._log.warning("rejected %s%s", message, extra, exc_info=error)
+        self._log.warning("%s%s", message, extra, exc_info=error)
 
     def snapshot(self, queued: Mapping[str, QueueCounters]) -> StatsSnapshot:
         """Per source: the queue's counts (received, dropped) with this object's (processed, rejected, latency)."""

@@ -105,8 +105,9 @@ class FrameWorker:
     def _infer(self, pending: PendingFrame) -> InferredFrame | None:
         """Decoded and inferred; None (counted stale) if it waited past max_frame_age_s: not worth computing."""
         image, ros_header = self._decode(pending)
-        if self.age_limit.is_stale(image.stamp, time.time()):
-            self.stats.stale(pending.source)
+        now = time.time()
+        if self.age_limit.is_stale(image.stamp, now):
+            self.stats.stale(pending.source, self.age_limit.explain(image.stamp, now))
             return None
         return InferredFrame(pending, image, ros_header, self.pipeline.infer(image.image))
 
