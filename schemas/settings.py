@@ -13,10 +13,10 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal, get_args
 
-import yaml
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.limits import DEFAULT_MAX_ANCHOR_SET_BYTES
 from gcdtrav.schemas.strict import StrictModel
+from gcdtrav.schemas.yaml_file import load_mapping
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 ENV_PREFIX = "GCDTRAV_"
@@ -322,15 +322,7 @@ def load_settings(
     overrides: Mapping[str, Any] | None = None,
     environ: Mapping[str, str] | None = None,
 ) -> ServiceSettings:
-    data: dict[str, Any] = {}
-    if file is not None:
-        try:
-            loaded = yaml.safe_load(Path(file).read_text("utf-8")) or {}
-        except (OSError, yaml.YAMLError) as err:
-            raise SettingsError(f"{file}: cannot read the settings file: {err}") from None
-        if not isinstance(loaded, dict):
-            raise SettingsError(f"{file}: expected a mapping of settings")
-        data = loaded
+    data = load_mapping(file, "settings file", SettingsError) if file is not None else {}
     env = os.environ if environ is None else environ
     try:
         data = _merge(data, _env_overrides(env))

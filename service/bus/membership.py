@@ -15,6 +15,7 @@ from collections.abc import Callable, Iterable
 
 import zenoh
 from gcdtrav.schemas.keys import Keys
+from gcdtrav.service.bus.entities import undeclare_all
 
 log = logging.getLogger("gcdtrav.service")
 
@@ -69,8 +70,4 @@ class Membership:
         return self.owner(source) == self.instance
 
     def close(self) -> None:
-        for entity in (self._subscriber, self._token):
-            try:
-                entity.undeclare()
-            except zenoh.ZError as err:
-                log.debug("undeclare failed: %s", err)
+        undeclare_all((self._subscriber, self._token))

@@ -24,6 +24,7 @@ from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus.credits import CreditPublisher
+from gcdtrav.service.bus.entities import undeclare_all
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
@@ -133,11 +134,7 @@ class TraversabilityService:
             log.warning("the frame in flight did not finish within %.0f s; its outputs are dropped", timeout)
         self.outputs.close()  # before the session's entities: a late frame is refused, not put on a dead key
         self.credits.close()
-        for entity in self._declared:
-            try:
-                entity.undeclare()
-            except zenoh.ZError as err:  # the session may already be closing
-                log.debug("undeclare failed: %s", err)
+        undeclare_all(self._declared)
         self._declared.clear()
         self.anchor_switch.close()
         if self.ros_graph is not None:
