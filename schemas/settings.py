@@ -245,6 +245,18 @@ class ServiceSettings(StrictModel):
         description="Larger anchor-set bodies sent to {prefix}/config/anchors are rejected before parsing.",
     )
     max_pixels: int = Field(default=40_000_000, ge=1, description="Larger images are rejected before decoding.")
+    max_frame_age_s: float | None = Field(
+        default=5.0,
+        gt=0,
+        description="Frames captured longer ago are dropped (counted stale) at intake and before inference, e.g. "
+        "what a link buffered during an outage. Assumes robot and service clocks in step (NTP, chrony); null: "
+        "never (robots on simulated time).",
+    )
+    compact_maps_max_side: int | None = Field(
+        default=None,
+        ge=2,
+        description="Longer side of the compact maps ({prefix}/out/{source}/maps8); null: the model's map size.",
+    )
     full_resolution: bool = Field(default=False, description="Also publish T and U at the input image's size.")
     preview: bool = Field(default=True, description="Publish a colourised JPEG on {prefix}/out/{source}/preview.")
     preview_max_width: int = Field(default=640, ge=64)

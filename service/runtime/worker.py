@@ -16,6 +16,7 @@ from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.cpus import usable_cpus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
+from gcdtrav.service.runtime.frame_age import FrameAgeLimit
 from gcdtrav.service.runtime.frames import InferredFrame, PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
@@ -36,9 +37,12 @@ class FrameWorker:
         sources: SourceTracker,
         settings: ServiceSettings,
         publish: Callable[[ProcessedFrame], bool],
+        on_taken: Callable[[PendingFrame], None] = lambda pending: None,
     ) -> None:
         self.frames, self.pipeline, self.history, self.stats = frames, pipeline, history, stats
         self.sources, self.settings, self.publish = sources, settings, publish
+        self.on_taken = on_taken  # the source's slot is free: its sender may send the next frame (credits)
+        self.age_limit = FrameAgeLimit(settings.max_frame_age_s)
         # With a CPU left over by torch (threads below the CPUs this process may use), a second thread
         # runs the last frame's engine work, encoding and publishing while the next frame is decoded and
         # inferred: +9 % frames/s with 1 torch thread on 2 cores (benchmarks/README.md). When torch has every
@@ -73,6 +77,7 @@ class FrameWorker:
             if item is None:
                 continue
             _, pending = item
+            self._guarded(pending, self.on_taken, pending)
             inferred = self._guarded(pending, self._infer, pending)
             if inferred is None:
                 continue
@@ -97,8 +102,13 @@ class FrameWorker:
             self.stats.rejected(pending.source, "processing_failed", repr(err)[:200])
         return None
 
-    def _infer(self, pending: PendingFrame) -> InferredFrame:
+    def _infer(self, pending: PendingFrame) -> InferredFrame | None:
+        """Decoded and inferred; None (counted stale) if it waited past max_frame_age_s: not worth computing."""
         image, ros_header = self._decode(pending)
+        now = time.time()
+        if self.age_limit.is_stale(image.stamp, now):
+            self.stats.stale(pending.source, self.age_limit.explain(image.stamp, now))
+            return None
         return InferredFrame(pending, image, ros_header, self.pipeline.infer(image.image))
 
     def _decode(self, pending: PendingFrame) -> tuple[DecodedFrame, Any]:
