@@ -20,6 +20,7 @@ import os
 import statistics
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
@@ -102,10 +103,16 @@ class PrecisionChoice:
     measurements: list[ModeMeasurement]
 
 
-def measure_modes(backend: Any, modes: list[str], runs: int = MEASURED_RUNS) -> list[ModeMeasurement]:
+class MeasurementCancelled(Exception):
+    """The service is shutting down: the measurement stops between modes, and nothing is cached."""
+
+
+def measure_modes(
+    backend: Any, modes: list[str], runs: int = MEASURED_RUNS, cancelled: Callable[[], bool] = lambda: False
+) -> list[ModeMeasurement]:
     """Median ms per frame and p99 |dT| against fp32 of each mode, on the backend's loaded weights. Each mode's
     compute is built and run beside the one the backend runs, which keeps serving; one at a time, so at
-    most the reference and one candidate are in memory."""
+    most the reference and one candidate are in memory. ``cancelled`` is asked before each mode."""
     anchors = default_anchor_set()
     images = [synthetic_image(seed=seed) for seed in range(PARITY_IMAGES)]
     reference_compute = backend.compute_for("fp32")
@@ -113,6 +120,8 @@ def measure_modes(backend: Any, modes: list[str], runs: int = MEASURED_RUNS) -> 
     references = [backend.logits_with(reference_compute, image, prepared) for image in images]
     results = []
     for mode in modes:
+        if cancelled():
+            raise MeasurementCancelled
         try:
             compute = reference_compute if mode == "fp32" else backend.compute_for(mode)
         except Exception as err:  # an export or a runtime that fails here must not stop the service
@@ -206,12 +215,14 @@ def cached_choice(backend: Any, modes: list[str]) -> PrecisionChoice | None:
     return choice
 
 
-def measure_and_store(backend: Any, modes: list[str], runs: int = MEASURED_RUNS) -> PrecisionChoice:
+def measure_and_store(
+    backend: Any, modes: list[str], runs: int = MEASURED_RUNS, cancelled: Callable[[], bool] = lambda: False
+) -> PrecisionChoice:
     """Measure every mode now, cache the figures (the one cache every command reads) and pick."""
     key = choice_key(backend, modes)
     path = choice_path(backend, key)
     log.info("precision auto: timing %s on this machine (once; cached in %s) ...", ", ".join(modes), path.parent)
-    measurements = measure_modes(backend, modes, runs)
+    measurements = measure_modes(backend, modes, runs, cancelled=cancelled)
     try:
         _store(path, key, measurements)
     except OSError as err:
@@ -221,15 +232,19 @@ def measure_and_store(backend: Any, modes: list[str], runs: int = MEASURED_RUNS)
     return choice
 
 
-def measure_then_switch(backend: Any, modes: list[str]) -> None:
+def measure_then_switch(backend: Any, modes: list[str], cancel: threading.Event | None = None) -> None:
     """Measure the modes while the backend serves in its safe mode, then switch it to auto's choice between
-    frames. ``backend.measuring`` is true meanwhile. A failure leaves the safe mode running, with the reason."""
+    frames. ``backend.measuring`` is true meanwhile. A failure leaves the safe mode running, with the reason;
+    ``cancel`` set (shutdown) stops it before the next mode, caching nothing."""
     backend.measuring = True
+    stop = cancel or threading.Event()
     try:
-        choice = measure_and_store(backend, modes)
+        choice = measure_and_store(backend, modes, cancelled=stop.is_set)
         compute = backend.compute if choice.mode == backend.precision else backend.compute_for(choice.mode)
         backend.switch_to(compute, choice.mode, choice.reason)
         log.info("precision switched to %s", choice.mode)
+    except MeasurementCancelled:
+        log.info("precision auto: measurement stopped by the shutdown; nothing cached")
     except Exception as err:  # the service keeps serving in the safe mode
         log.exception("precision auto: the measurement failed; staying on %s", backend.precision)
         reason = f"auto: the measurement failed ({err}); {backend.precision}"
@@ -239,13 +254,31 @@ def measure_then_switch(backend: Any, modes: list[str]) -> None:
         backend.needs_measurement = False
 
 
-def measure_in_background(backend: Any) -> threading.Thread:
-    """Start ``measure_then_switch`` in a daemon thread (a shutdown does not wait for a measurement)."""
+@dataclass
+class BackgroundMeasurement:
+    """``measure_then_switch`` in a daemon thread, and how to stop it at shutdown."""
+
+    thread: threading.Thread
+    cancel: threading.Event
+
+    def join(self, timeout: float | None = None) -> bool:
+        """True once the measurement has ended."""
+        self.thread.join(timeout)
+        return not self.thread.is_alive()
+
+    def stop(self, timeout: float) -> bool:
+        """Cancel (effective before the next mode) and wait; False if it is still inside one (an ONNX export)."""
+        self.cancel.set()
+        return self.join(timeout)
+
+
+def measure_in_background(backend: Any) -> BackgroundMeasurement:
     from gcdtrav.service.backends.machine import available_precisions
 
     backend.measuring = True  # before the thread starts: a status asked right now already says so
+    cancel = threading.Event()
     thread = threading.Thread(
-        target=measure_then_switch, args=(backend, available_precisions()), name="precision-auto", daemon=True
+        target=measure_then_switch, args=(backend, available_precisions(), cancel), name="precision-auto", daemon=True
     )
     thread.start()
-    return thread
+    return BackgroundMeasurement(thread, cancel)

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import logging
+import os
 import signal
+import sys
 import threading
 from types import FrameType
+from typing import NoReturn
 
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
@@ -15,6 +18,7 @@ from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.state import load_anchor_state
 
 log = logging.getLogger("gcdtrav.service")
+MEASUREMENT_STOP_S = 5.0  # at shutdown, how long a background measurement may take to reach its next mode
 
 
 def starting_anchor_set(settings: ServiceSettings) -> AnchorSet:
@@ -97,16 +101,30 @@ def run_service(settings: ServiceSettings, config: zenoh.Config, fallback: zenoh
     except SettingsError:
         session.close()
         raise
+    measurement = None
     try:
         service.start()
         if getattr(pipeline.backend, "needs_measurement", False):  # status answers meanwhile: measuring
             from gcdtrav.service.precision_choice import measure_in_background
 
-            measure_in_background(pipeline.backend)
+            measurement = measure_in_background(pipeline.backend)
         while not stop.wait(0.5):
             pass
     finally:
         service.stop()
         session.close()
     log.info("stopped")
+    if measurement is not None and not measurement.stop(MEASUREMENT_STOP_S):
+        leave_during_measurement()
     return 0
+
+
+def leave_during_measurement() -> NoReturn:
+    """Exit now, status 0: the background measurement is inside native code (an ONNX export, a quantisation)
+    that cannot be interrupted, and the interpreter's exit around a thread running it aborts the process
+    ('terminate called without an active exception'). Everything else has been stopped and closed."""
+    log.info("the measurement of the modes is inside an export: not waiting for it (nothing cached)")
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)

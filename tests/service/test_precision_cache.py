@@ -30,7 +30,7 @@ def no_measuring(*args: object, **kwargs: object) -> list[ModeMeasurement]:
 def test_doctor_fills_the_cache_that_infer_and_serve_read(
     tiny_model_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setattr(precision_choice, "measure_modes", lambda backend, modes, runs=3: FIGURES)
+    monkeypatch.setattr(precision_choice, "measure_modes", lambda *args, **kwargs: FIGURES)
     args = argparse.Namespace(model=str(tiny_model_dir), runs=1, cache_dir=tmp_path, measure=False)
     assert doctor.run(args) == doctor.EXIT_OK
     assert "precision auto picks int8 here" in capsys.readouterr().out
@@ -49,11 +49,11 @@ def test_doctor_fills_the_cache_that_infer_and_serve_read(
 def test_doctor_measure_replaces_the_cached_figures(
     tiny_model_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    monkeypatch.setattr(precision_choice, "measure_modes", lambda backend, modes, runs=3: FIGURES)
+    monkeypatch.setattr(precision_choice, "measure_modes", lambda *args, **kwargs: FIGURES)
     args = argparse.Namespace(model=str(tiny_model_dir), runs=1, cache_dir=tmp_path, measure=False)
     doctor.run(args)
     slower_int8 = [FIGURES[0], ModeMeasurement("int8", 400.0, 0.001)]
-    monkeypatch.setattr(precision_choice, "measure_modes", lambda backend, modes, runs=3: slower_int8)
+    monkeypatch.setattr(precision_choice, "measure_modes", lambda *args, **kwargs: slower_int8)
     doctor.run(argparse.Namespace(**{**vars(args), "measure": True}))
     assert "precision auto picks fp32 here" in capsys.readouterr().out
     assert ClipSegBackend(str(tiny_model_dir), precision="auto", cache_dir=tmp_path).precision == "fp32"
@@ -67,7 +67,7 @@ def test_serve_way_runs_fp32_while_measuring_then_switches_between_frames(
     assert "measuring in the background" in backend.precision_reason
     release, started = threading.Event(), threading.Event()
 
-    def slow_measurement(backend: ClipSegBackend, modes: list[str], runs: int = 3) -> list[ModeMeasurement]:
+    def slow_measurement(*args: object, **kwargs: object) -> list[ModeMeasurement]:
         started.set()
         assert release.wait(60)
         return FIGURES
@@ -113,3 +113,25 @@ def test_a_mode_asked_for_is_never_measured(
     backend = ClipSegBackend(str(tiny_model_dir), precision="int8", cache_dir=tmp_path, measure_now=False)
     assert backend.precision == "int8" and backend.precision_reason == "asked for int8"
     assert not backend.needs_measurement and not (tmp_path / "precision").exists()
+
+
+def test_a_cancelled_measurement_stops_before_the_next_mode_and_caches_nothing(
+    tiny_model_dir: Path, tmp_path: Path
+) -> None:
+    backend = ClipSegBackend(str(tiny_model_dir), precision="auto", cache_dir=tmp_path, measure_now=False)
+    asked: list[int] = []
+
+    def cancel_after_the_first_mode() -> bool:
+        asked.append(1)
+        return len(asked) > 1
+
+    with pytest.raises(precision_choice.MeasurementCancelled):
+        precision_choice.measure_modes(
+            backend, ["fp32", "int8", "ort-fp32"], runs=1, cancelled=cancel_after_the_first_mode
+        )
+    assert len(asked) == 2  # asked before fp32 (measured), then before int8 (stopped)
+
+    cancel = threading.Event()
+    cancel.set()
+    precision_choice.measure_then_switch(backend, ["fp32", "int8"], cancel)
+    assert backend.precision == "fp32" and not backend.measuring and not (tmp_path / "precision").exists()

@@ -32,7 +32,7 @@ SLOW_MEASUREMENT = textwrap.dedent(
     from gcdtrav.service import precision_choice
     from gcdtrav.service.precision_choice import ModeMeasurement
 
-    def measure_when_released(backend, modes, runs=3):
+    def measure_when_released(backend, modes, runs=3, **options):
         while not Path(sys.argv[1]).exists():
             time.sleep(0.05)
         return [ModeMeasurement("fp32", 100.0, 0.0), ModeMeasurement("int8", 40.0, 0.001)]
@@ -104,3 +104,28 @@ def test_serve_answers_at_once_while_auto_measures_then_switches(tiny_model_dir:
     written = files_under(home)
     assert written and all(path.startswith((".cache/gcdtrav/", ".local/state/gcdtrav/")) for path in written), written
     assert any(path.startswith(".cache/gcdtrav/precision/") for path in written)
+
+
+def test_serve_stops_cleanly_in_the_middle_of_the_measurement(tiny_model_dir: Path, tmp_path: Path) -> None:
+    """SIGTERM while a mode is being measured (here: forever): exit status 0, no abort of a native thread."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GCDTRAV_")}
+    env |= {"PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))}
+    env |= {"XDG_CACHE_HOME": str(tmp_path / "cache"), "XDG_STATE_HOME": str(tmp_path / "state")}
+    port = free_port()
+    serve = ["serve", "--model", str(tiny_model_dir), "-l", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
+    never = str(tmp_path / "never-released")
+    process = subprocess.Popen(
+        [sys.executable, "-c", SLOW_MEASUREMENT, never, *serve], env=env, stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    try:
+        with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
+            assert wait_until(lambda: getattr(status_or_none(client), "measuring", False), 60)
+        process.send_signal(signal.SIGTERM)
+        output, _ = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 0, output
+    assert "stopped" in output and "not waiting for it (nothing cached)" in output
+    assert not (tmp_path / "cache" / "gcdtrav" / "precision").exists()
