@@ -234,6 +234,7 @@ class TraversabilityService:
             method=self.pipeline.settings.method,
             precision=self._precision(),
             precision_reason=str(getattr(self.pipeline.backend, "precision_reason", "")),
+            measuring=bool(getattr(self.pipeline.backend, "measuring", False)),
             queued=len(self.queue),
             queued_bytes=self.queue.nbytes,
             sources=counts.sources,
