@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import contextlib
 import queue
+import threading
 import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping
@@ -105,6 +106,26 @@ class Grid:
         return int((y - self.header.origin[1]) // r), int((x - self.header.origin[0]) // r)
 
 
+class MapsOrder:
+    """Per source, the order (``MapsHeader.order``) of the last map let through: a map not above it is older
+    than what was shown, or the same frame again (two instances during a hand-over), and is held back."""
+
+    def __init__(self) -> None:
+        self._last: dict[str, tuple[float, float]] = {}
+        self._lock = threading.Lock()
+        self.held_back = 0
+
+    def is_newer(self, header: MapsHeader) -> bool:
+        order = header.order or (header.stamp, header.received_at)  # a 1.1 service: the same two fields
+        with self._lock:
+            last = self._last.get(header.source)
+            if last is not None and order <= last:
+                self.held_back += 1
+                return False
+            self._last[header.source] = order
+            return True
+
+
 def _optional_map(data: bytes | None) -> NDArray[np.float32] | None:
     return None if data is None else decode_map_png16(data)
 
@@ -136,6 +157,7 @@ class TraversabilityClient:
         self.input_prefix = input_prefix
         self.timeout = timeout
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self._orders: list[MapsOrder] = []  # one per subscription: each delivers every source in order
 
     def close(self) -> None:
         for publisher in self._publishers.values():
@@ -208,12 +230,20 @@ class TraversabilityClient:
         return self.keys.maps(selector)
 
     def subscribe_maps(
-        self, selector: str, callback: Callable[[Maps], None], on_error: Callable[[Exception], None] | None = None
+        self,
+        selector: str,
+        callback: Callable[[Maps], None],
+        on_error: Callable[[Exception], None] | None = None,
+        in_order: bool = True,
     ) -> zenoh.Subscriber[None]:
         """Call ``callback`` with every decoded Maps of the matching sources ('**' = all, 'r1/*', ...).
 
+        ``in_order``: a map older than one already delivered for its source (a previous owner's, late, during
+        a hand-over between instances) is held back and counted in ``maps_held_back``.
         Keep the returned subscriber; undeclare() it to stop.
         """
+
+        order = self._new_order()
 
         def handle(sample: zenoh.Sample) -> None:
             try:
@@ -222,12 +252,14 @@ class TraversabilityClient:
                 if on_error is not None:
                     on_error(err)
                 return
-            callback(maps)
+            if not in_order or order.is_newer(maps.header):
+                callback(maps)
 
         return self.session.declare_subscriber(self.maps_key(selector), handle)
 
     def iter_maps(self, selector: str = "**", timeout: float | None = None, limit: int | None = None) -> Iterator[Maps]:
-        """Yield decoded maps as they arrive; stop after ``limit`` maps or ``timeout`` s without one."""
+        """Yield decoded maps as they arrive, each newer than the last of its source (``subscribe_maps``); stop
+        after ``limit`` maps or ``timeout`` s without one."""
         inbox: queue.Queue[bytes] = queue.Queue(maxsize=64)
 
         def keep_newest(sample: zenoh.Sample) -> None:
@@ -240,6 +272,7 @@ class TraversabilityClient:
                         inbox.get_nowait()
 
         subscriber = self.session.declare_subscriber(self.maps_key(selector), keep_newest)
+        order = self._new_order()
         try:
             count = 0
             while limit is None or count < limit:
@@ -247,10 +280,22 @@ class TraversabilityClient:
                     payload = inbox.get(timeout=timeout)
                 except queue.Empty:
                     return
-                yield Maps.from_payload(payload)
-                count += 1
+                maps = Maps.from_payload(payload)
+                if order.is_newer(maps.header):
+                    yield maps
+                    count += 1
         finally:
             subscriber.undeclare()
+
+    def _new_order(self) -> MapsOrder:
+        order = MapsOrder()
+        self._orders.append(order)
+        return order
+
+    @property
+    def maps_held_back(self) -> int:
+        """Maps not delivered by subscribe_maps or iter_maps because their source had shown a newer one."""
+        return sum(order.held_back for order in self._orders)
 
     # ---- queries -------------------------------------------------------------------------------------
     def _replies(

@@ -31,15 +31,19 @@ from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.admission import Admission
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
+from gcdtrav.service.runtime.assignment import Assignment
 from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.service.runtime.freshness import FrameGate
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.worker import FrameWorker
 
 log = logging.getLogger("gcdtrav.service")
+WATCHDOG_INTERVAL_S = 0.25
 
 
 class TraversabilityService:
@@ -65,9 +69,21 @@ class TraversabilityService:
         forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget)
         self.sources = SourceTracker(settings.max_sources, settings.source_idle_s, forget)
         self.admission = Admission(settings, self.sources, self.queue, self.stats)
+        self.assignment = Assignment(idle_s=settings.source_idle_s, max_known=4 * settings.max_sources)
+        self.progress = ProgressMonitor(settings.stall_after_s)
+        gate = FrameGate(self.owns, settings.max_frame_age_s, settings.max_stamp_skew_s)
         self.worker = FrameWorker(
-            self.queue, pipeline, self.history, self.stats, self.sources, settings, self.outputs.publish
+            self.queue,
+            pipeline,
+            self.history,
+            self.stats,
+            self.sources,
+            settings,
+            self.outputs.publish,
+            self.progress,
+            gate,
         )
+        self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
 
     def _check_inputs(self) -> None:
@@ -86,7 +102,7 @@ class TraversabilityService:
     # ---- lifecycle -----------------------------------------------------------------------------------
     def start(self) -> None:
         # Membership first: a frame arriving during start-up must already go to its owner only.
-        self.membership = Membership(self.session, self.prefix, self.settings.instance)
+        self.membership = Membership(self.session, self.prefix, self.settings.instance, assignment=self.assignment)
         for expression in self.settings.inputs:
             head = literal_head(expression)
             self._declared.append(self.session.declare_subscriber(expression, self._image_handler(head)))
@@ -98,6 +114,7 @@ class TraversabilityService:
             self._declare_grid_inputs(self.grids)
         self._declare_queryables()
         self.worker.start()
+        self._watchdog.start()
         log.info(
             "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, model %s (%s), anchor set %s "
             "(%d anchors), method %s, outputs %s",
@@ -164,7 +181,22 @@ class TraversabilityService:
         """Instances of one prefix share the sources; before start() this instance owns them all."""
         return self.membership is None or self.membership.owns(source)
 
+    def _watch_progress(self) -> None:
+        """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again."""
+        while not self._stopping.wait(WATCHDOG_INTERVAL_S):
+            change = self.progress.check(len(self.queue))
+            if change is None or self.membership is None:
+                continue
+            if change.health.healthy:
+                log.warning("worker %s: rejoining the fleet", change.health.reason)
+                self.membership.rejoin()
+            else:
+                log.error("worker %s: withdrawing from the fleet (its sources fail over)", change.health.reason)
+                self.membership.withdraw()
+
     def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None) -> None:
+        if self.membership is not None:
+            self.membership.note(source)
         if self.owns(source):  # else another live instance serves this source
             key, size = str(sample.key_expr), len(sample.payload)
             self.admission.offer(source, key, size, sample.payload.to_bytes, str(sample.encoding), ros)
@@ -210,6 +242,7 @@ class TraversabilityService:
 
     def status(self) -> ServiceStatus:
         counts = self.stats.snapshot(self.queue.counters())
+        health = self.progress.health()
         return ServiceStatus(
             instance=self.settings.instance,
             instances=sorted(self.membership.live()) if self.membership else [self.settings.instance],
@@ -229,6 +262,8 @@ class TraversabilityService:
             history_budget_bytes=self.history.budget_bytes or 0,
             tracked_sources=len(self.sources),
             max_sources=self.sources.max_sources,
+            healthy=health.healthy,
+            reason=health.reason,
         )
 
     def _precision(self) -> str:
