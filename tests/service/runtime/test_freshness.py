@@ -11,8 +11,8 @@ from gcdtrav.schemas.images import encode_png
 from gcdtrav.schemas.inputs import DecodedFrame, RejectedInput
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.runtime.freshness import Dropped, FrameGate, check_stamp
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
+from gcdtrav.service.runtime.freshness import Dropped, FrameGate, check_stamp
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
