@@ -16,14 +16,23 @@ from typing import Any
 
 import numpy as np
 import zenoh
+from gcdtrav.client.freshness import FreshnessWatch, Staleness
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.images import decode_count_png, decode_map_png16, encode_jpeg, encode_png, peek_image_size
+from gcdtrav.schemas.images import (
+    decode_count_png,
+    decode_map_png8,
+    decode_map_png16,
+    encode_jpeg,
+    encode_png,
+    peek_image_size,
+)
 from gcdtrav.schemas.keys import Keys, input_key
 from gcdtrav.schemas.messages import (
     MSGPACK_ENCODING,
     AnchorHistoryReply,
     AnchorSetRejection,
     AnchorSetReply,
+    CompactMapsMessage,
     ContextDistribution,
     ErrorReply,
     GridHeader,
@@ -36,6 +45,7 @@ from gcdtrav.schemas.messages import (
     PathReply,
     PixelEncoding,
     ServiceStatus,
+    peek_fields,
 )
 from numpy.typing import NDArray
 
@@ -62,13 +72,15 @@ class AnchorSetRejected(ServiceError):
 
 @dataclass(frozen=True)
 class Maps:
-    """A decoded MapsMessage: T and U in [0, 1] as float32 at the decoder's resolution."""
+    """A decoded MapsMessage: T and U in [0, 1] as float32 at the decoder's resolution (1/65535 steps), or a
+    decoded CompactMapsMessage (``compact``: 1/255 steps, at its header's ``map_shape``)."""
 
     header: MapsHeader
     traversability: NDArray[np.float32]
     uncertainty: NDArray[np.float32]
     traversability_full: NDArray[np.float32] | None = None
     uncertainty_full: NDArray[np.float32] | None = None
+    compact: bool = False
 
     @classmethod
     def from_payload(cls, payload: bytes) -> Maps:
@@ -80,6 +92,19 @@ class Maps:
             traversability_full=_optional_map(message.traversability_full_png),
             uncertainty_full=_optional_map(message.uncertainty_full_png),
         )
+
+    @classmethod
+    def from_compact_payload(cls, payload: bytes) -> Maps:
+        message = CompactMapsMessage.unpack(payload)
+        t, u = decode_map_png8(message.traversability_png), decode_map_png8(message.uncertainty_png)
+        return cls(header=message.header, traversability=t, uncertainty=u, compact=True)
+
+    @property
+    def age_s(self) -> float:
+        """Now minus the capture stamp. Exact on the robot that stamped the image (its own clock); elsewhere
+        it assumes clocks in step (NTP, chrony). A bare JPEG/PNG input has the service's receive time as its
+        stamp, the service's clock."""
+        return time.time() - self.header.stamp
 
 
 @dataclass(frozen=True)
@@ -99,6 +124,11 @@ class Grid:
         t, u = decode_map_png16(message.traversability_png), decode_map_png16(message.uncertainty_png)
         t[unknown], u[unknown] = np.nan, np.nan
         return cls(header=message.header, traversability=t, uncertainty=u, count=count)
+
+    @property
+    def age_s(self) -> float:
+        """Now minus the stamp of the last frame fused (the same clock assumption as ``Maps.age_s``)."""
+        return time.time() - self.header.stamp
 
     def cell_index(self, x: float, y: float) -> tuple[int, int]:
         """(row, column) of the cell holding the point (x, y), metres in the grid's frame."""
@@ -124,6 +154,32 @@ class MapsOrder:
                 return False
             self._last[header.source] = order
             return True
+
+
+class MapsFreshness:
+    """A running ``TraversabilityClient.watch_freshness``: ``watch`` answers ``age_s(source)`` at any time."""
+
+    def __init__(
+        self,
+        watch: FreshnessWatch,
+        subscriber: zenoh.Subscriber[None],
+        on_change: Callable[[Staleness], None],
+        period_s: float,
+    ) -> None:
+        self.watch, self._subscriber, self._on_change, self._period_s = watch, subscriber, on_change, period_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="gcdtrav-freshness", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.wait(self._period_s):
+            for change in self.watch.check():
+                self._on_change(change)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+        self._subscriber.undeclare()
 
 
 def _optional_map(data: bytes | None) -> NDArray[np.float32] | None:
@@ -226,28 +282,31 @@ class TraversabilityClient:
         return ImageEnvelope(stamp=stamp, frame_id=frame_id, encoding=kind, width=width, height=height, data=data)
 
     # ---- maps out ------------------------------------------------------------------------------------
-    def maps_key(self, selector: str = "**") -> str:
-        return self.keys.maps(selector)
+    def maps_key(self, selector: str = "**", compact: bool = False) -> str:
+        return self.keys.maps8(selector) if compact else self.keys.maps(selector)
 
     def subscribe_maps(
         self,
         selector: str,
         callback: Callable[[Maps], None],
         on_error: Callable[[Exception], None] | None = None,
+        compact: bool = False,
         in_order: bool = True,
     ) -> zenoh.Subscriber[None]:
         """Call ``callback`` with every decoded Maps of the matching sources ('**' = all, 'r1/*', ...).
 
-        ``in_order``: a map older than one already delivered for its source (a previous owner's, late, during
-        a hand-over between instances) is held back and counted in ``maps_held_back``.
-        Keep the returned subscriber; undeclare() it to stop.
+        ``compact``: the 8-bit maps (``maps8``, a fraction of the bytes: for slow links; the service encodes
+        them only while someone subscribes). ``in_order``: a map older than one already delivered for its
+        source (a previous owner's, late, during a hand-over between instances) is held back and counted in
+        ``maps_held_back``. Keep the returned subscriber; undeclare() it to stop.
         """
+        decode = Maps.from_compact_payload if compact else Maps.from_payload
 
         order = self._new_order()
 
         def handle(sample: zenoh.Sample) -> None:
             try:
-                maps = Maps.from_payload(sample.payload.to_bytes())
+                maps = decode(sample.payload.to_bytes())
             except (MessageError, ValueError) as err:
                 if on_error is not None:
                     on_error(err)
@@ -255,7 +314,34 @@ class TraversabilityClient:
             if not in_order or order.is_newer(maps.header):
                 callback(maps)
 
-        return self.session.declare_subscriber(self.maps_key(selector), handle)
+        return self.session.declare_subscriber(self.maps_key(selector, compact), handle)
+
+    def watch_freshness(
+        self,
+        sources: list[str],
+        stale_after_s: float,
+        on_change: Callable[[Staleness], None],
+        compact: bool = False,
+        period_s: float = 0.5,
+    ) -> MapsFreshness:
+        """Call ``on_change`` when the maps of a source go stale (none newer than ``stale_after_s``, by the
+        clock assumption of ``Maps.age_s``; also when none came at all) and when they are fresh again: a robot
+        slows down or stops. ``close()`` the returned watcher to stop."""
+        watch = FreshnessWatch(stale_after_s)
+        for source in sources:
+            watch.watch(source)
+
+        def observe(sample: zenoh.Sample) -> None:
+            source = self.keys.source_of(str(sample.key_expr), "maps8" if compact else "maps")
+            if source is not None and source in sources:
+                try:
+                    stamp = peek_fields(sample.payload.to_bytes(), ("header",))["header"]["stamp"]
+                    watch.observe(source, float(stamp))
+                except (MessageError, KeyError, TypeError, ValueError):
+                    return
+
+        subscriber = self.session.declare_subscriber(self.maps_key("**", compact), observe)
+        return MapsFreshness(watch, subscriber, on_change, period_s)
 
     def iter_maps(self, selector: str = "**", timeout: float | None = None, limit: int | None = None) -> Iterator[Maps]:
         """Yield decoded maps as they arrive, each newer than the last of its source (``subscribe_maps``); stop

@@ -12,6 +12,7 @@ from gcdtrav.schemas.messages import MessageError
 from numpy.typing import NDArray
 
 MAP_QUANTUM = 65535  # maps travel as 16-bit PNGs: value = round(x * 65535), x clipped to [0, 1]
+COMPACT_QUANTUM = 255  # compact maps (maps8): 8-bit PNGs, value = round(x * 255)
 
 
 class ImageDecodeError(ValueError):
@@ -127,6 +128,25 @@ def decode_map_png16(data: bytes) -> NDArray[np.float32]:
     if image is None or image.dtype != np.uint16 or image.ndim != 2:
         raise ImageDecodeError("not a single-channel 16-bit PNG map")
     return image.astype(np.float32) / np.float32(MAP_QUANTUM)
+
+
+def encode_map_png8(values: NDArray[np.floating], size: tuple[int, int] | None = None) -> bytes:
+    """A [0, 1] map as an 8-bit PNG (resolution 1/255), optionally resized first to ``size`` (width, height)."""
+    array = np.asarray(values, np.float32)
+    if size is not None and size != (array.shape[1], array.shape[0]):
+        array = np.asarray(cv2.resize(array, size, interpolation=cv2.INTER_AREA), np.float32)
+    quantised = np.round(np.clip(array, 0.0, 1.0) * COMPACT_QUANTUM).astype(np.uint8)
+    ok, buffer = cv2.imencode(".png", quantised, [cv2.IMWRITE_PNG_COMPRESSION, 6])
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buffer.tobytes()
+
+
+def decode_map_png8(data: bytes) -> NDArray[np.float32]:
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if image is None or image.dtype != np.uint8 or image.ndim != 2:
+        raise ImageDecodeError("not a single-channel 8-bit PNG map")
+    return image.astype(np.float32) / np.float32(COMPACT_QUANTUM)
 
 
 # ---- colour maps: the service's preview and the viewer (gcdtrav view) look alike ---------------------

@@ -3,6 +3,7 @@
 A service with prefix ``gcdtrav`` (the default) answers and publishes on:
 
   {prefix}/out/{source}/maps                 MapsMessage per processed frame
+  {prefix}/out/{source}/maps8                CompactMapsMessage (8-bit T and U, for slow links), when subscribed
   {prefix}/out/{source}/preview              colourised JPEG (T overlay | U)
   {prefix}/out/{source}/patch                queryable: a map patch's or region's ContextDistribution
   {prefix}/out/{source}/grid                 GridMessage (ground grid); .../grid/occupancy, .../grid/uncertainty
@@ -12,6 +13,11 @@ A service with prefix ``gcdtrav`` (the default) answers and publishes on:
   {prefix}/config/anchors/rollback           queryable: go back N sets
   {prefix}/status                            queryable: ServiceStatus
   {prefix}/alive/{instance}                  liveliness token
+  {prefix}/credit/{source}                   CreditGrant: the source's owner is ready for its next frame
+
+A relay on a robot (``gcdtrav relay``) publishes on the robot's own bus:
+
+  {prefix}/relay/{source}/health             RelayHealth: map age, credits and link figures of one camera
 
 Robots publish images on ``input_key(input_prefix, source)``. A source name may hold slashes
 (``robot1/front``); ``source_of`` recovers it from an output key, ``input_source_of`` from an input key.
@@ -21,7 +27,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-OUTPUT_KINDS = ("maps", "preview", "patch", "grid", "cell")
+OUTPUT_KINDS = ("maps", "maps8", "preview", "patch", "grid", "cell")
 
 
 @dataclass(frozen=True)
@@ -42,6 +48,10 @@ class Keys:
 
     def maps(self, source: str) -> str:
         return self.output(source, "maps")
+
+    def maps8(self, source: str) -> str:
+        """The compact maps: 8-bit T and U, published only while someone subscribes."""
+        return self.output(source, "maps8")
 
     def preview(self, source: str) -> str:
         return self.output(source, "preview")
@@ -74,6 +84,20 @@ class Keys:
 
     def alive(self, instance: str = "*") -> str:
         return f"{self.prefix}/alive/{instance}"
+
+    def credit(self, source: str) -> str:
+        """Where the owner of ``source`` grants it a frame (``source`` may be ``**`` where subscribing)."""
+        return f"{self.prefix}/credit/{source}"
+
+    def relay_health(self, source: str) -> str:
+        """A robot relay's freshness and link figures for one camera, on the robot's bus."""
+        return f"{self.prefix}/relay/{source}/health"
+
+    def credit_source_of(self, key: str) -> str | None:
+        """The source in ``{prefix}/credit/{source}``; None when the key is not of that form."""
+        head = f"{self.prefix}/credit/"
+        source = key[len(head) :] if key.startswith(head) else ""
+        return source if source and "*" not in source and "$" not in source else None
 
     def source_of(self, key: str, kind: str) -> str | None:
         """The source in ``{prefix}/out/{source}/{kind}``; None when the key is not of that form."""

@@ -90,6 +90,27 @@ class Message(WireModel):
 M = TypeVar("M", bound=Message)
 
 
+def peek_fields(payload: bytes, names: tuple[str, ...]) -> dict[str, Any]:
+    """Some top-level fields of a msgpack message, skipping the others unread (a frame's pixels, a map's
+    PNGs): a message's stamp at intake costs no copy of its data. Missing fields are absent; a MessageError
+    if ``payload`` is not a msgpack map."""
+    unpacker = msgpack.Unpacker(raw=False, strict_map_key=True, max_buffer_size=max(len(payload), 1))
+    found: dict[str, Any] = {}
+    try:
+        unpacker.feed(payload)
+        for _ in range(unpacker.read_map_header()):
+            key = unpacker.unpack()
+            if key in names:
+                found[key] = unpacker.unpack()
+                if len(found) == len(names):
+                    break
+            else:
+                unpacker.skip()
+    except (ValueError, msgpack.UnpackException, msgpack.OutOfData, TypeError) as err:
+        raise MessageError(f"not a msgpack map: {type(err).__name__}: {err}") from None
+    return found
+
+
 # ---- images in -------------------------------------------------------------------------------------
 
 
@@ -117,6 +138,11 @@ class ImageEnvelope(Message):
     width: int = Field(ge=1)
     height: int = Field(ge=1)
     data: bytes = Field(description="Row-major pixels (raw encodings) or the compressed file (jpeg, png).")
+    sent_at: float | None = Field(
+        default=None,
+        description="When the sender published it, its own clock (a relay sets it): echoed in the credit, so the "
+        "sender can estimate the link's round trip and the clock offset.",
+    )
 
 
 # ---- maps out --------------------------------------------------------------------------------------
@@ -154,6 +180,65 @@ class MapsMessage(Message):
     uncertainty_png: bytes
     traversability_full_png: bytes | None = Field(default=None, description="At image size, if enabled.")
     uncertainty_full_png: bytes | None = None
+
+
+class CompactMapsMessage(Message):
+    """T and U of one frame for slow links: 8-bit PNGs, value = round(x * 255), at ``header.map_shape`` (the
+    model's map, or smaller: ``compact_maps_max_side``), ``header.scale`` for that shape."""
+
+    header: MapsHeader
+    traversability_png: bytes
+    uncertainty_png: bytes
+
+
+# ---- credits: a robot's relay sends a frame only when the service is ready for it -------------------
+
+
+class CreditGrant(Message):
+    """The source's owner freed the source's slot: the relay may send its next frame (docs/messages.md)."""
+
+    source: str
+    instance: str = Field(description="The instance that owns the source and granted this credit.")
+    grant: int = Field(description="Credits this instance granted the source so far, from 0.")
+    reason: str = Field(
+        description="What freed the slot: 'taken' (the frame went to inference), 'stale' (older than "
+        "max_frame_age_s) or 'refused' (rejected at intake).",
+    )
+    granted_at: float = Field(description="The service's clock, s since epoch.")
+    model_input: tuple[int, int] = Field(
+        description="(width, height) the model resizes every image to: more pixels are wasted on the link."
+    )
+    max_frame_age_s: float | None = Field(description="Frames older than this are dropped; None: never.")
+    frame_stamp: float | None = Field(default=None, description="Capture stamp of the frame that freed the slot.")
+    frame_sent_at: float | None = Field(default=None, description="Its envelope's sent_at (the sender's clock).")
+    frame_received_at: float | None = Field(default=None, description="When the service received it, its clock.")
+    last_maps_stamp: float | None = Field(
+        default=None, description="Capture stamp of the newest frame whose maps this instance published."
+    )
+
+
+class RelayHealth(Message):
+    """What a robot's relay knows of one camera, on the robot's bus once a second (docs/messages.md)."""
+
+    source: str
+    published_at: float = Field(description="The robot's clock, s since epoch.")
+    newest_map_stamp: float | None = Field(
+        description="Capture stamp of the newest maps (or grid) that reached the relay, or that the owner "
+        "reported publishing in a credit; None before any."
+    )
+    map_age_s: float | None = Field(description="published_at - newest_map_stamp; None before any maps.")
+    stale: bool = Field(description="No maps newer than stale_after_s: slow down or stop.")
+    stale_after_s: float
+    frames_captured: int = Field(description="Camera frames the relay received.")
+    frames_sent: int = Field(description="Frames sent to the service (the rest were replaced by newer ones).")
+    credit_timeouts: int = Field(description="Frames sent without a credit after the timeout (credit lost).")
+    uplink_bytes_per_s: float = Field(description="Payload bytes sent to the service, last 10 s.")
+    downlink_bytes_per_s: float = Field(description="Payload bytes forwarded from the service, last 10 s.")
+    owner: str | None = Field(default=None, description="The instance of the last credit.")
+    clock_offset_s: float | None = Field(
+        default=None, description="Service clock minus robot clock, estimated from credit round trips."
+    )
+    round_trip_s: float | None = Field(default=None, description="Link round trip of the best recent estimate.")
 
 
 # ---- queries ---------------------------------------------------------------------------------------
@@ -309,12 +394,19 @@ class SourceStatus(WireModel):
     received: int = 0
     processed: int = 0
     dropped: int = Field(
-        default=0, description="Good frames never published: replaced by a newer one before inference, or at shutdown."
+        default=0,
+        description="Good frames never published: replaced by a newer one before inference, stale, or at shutdown.",
     )
     rejected: int = Field(default=0, description="Undecodable, oversized or malformed payloads.")
     last_seq: int | None = None
     latency_ms: dict[str, float] = Field(default_factory=dict, description="Receive-to-publish p50/p90/p99.")
     inference_ms: dict[str, float] = Field(default_factory=dict)
+    stale: int = Field(default=0, description="Of the dropped: captured over max_frame_age_s ago.")
+    bytes_per_s: float | None = Field(default=None, description="Input payload bytes per second, last 10 s.")
+    frame_age_ms: dict[str, float] = Field(
+        default_factory=dict, description="Capture stamp to intake p50/p95 (clocks assumed in step)."
+    )
+    credits: int = Field(default=0, description="Credits granted to the source (CreditGrant).")
 
 
 class ServiceStatus(Message):

@@ -232,17 +232,12 @@ class ServiceSettings(StrictModel):
         default=300, gt=0, description="A source without a frame for this long is forgotten (history, counters)."
     )
     max_payload_bytes: int = Field(default=20_000_000, ge=1024, description="Larger payloads are rejected unread.")
-    max_frame_age_s: float = Field(
-        default=5.0,
-        gt=0,
-        description="Frames received longer ago than this are dropped (stale), before inference or before "
-        "publishing: no map older than this is ever published.",
-    )
     max_stamp_skew_s: float | None = Field(
         default=300.0,
         gt=0,
-        description="Frames whose stamp is further than this from their receipt are rejected (skewed_stamp); "
-        "null accepts any finite stamp (simulated time). NaN, inf and negative stamps are always rejected.",
+        description="Frames stamped further than this ahead of their receipt are rejected (skewed_stamp): they "
+        "would order their source's maps ahead of later frames; null: no limit. NaN, inf and negative stamps "
+        "are always rejected (bad_stamp); stamps in the past are max_frame_age_s's to judge.",
     )
     stall_after_s: float = Field(
         default=4.0,
@@ -257,6 +252,18 @@ class ServiceSettings(StrictModel):
         description="Larger anchor-set bodies sent to {prefix}/config/anchors are rejected before parsing.",
     )
     max_pixels: int = Field(default=40_000_000, ge=1, description="Larger images are rejected before decoding.")
+    max_frame_age_s: float | None = Field(
+        default=5.0,
+        gt=0,
+        description="Frames captured longer ago are dropped (counted stale) at intake and before inference, e.g. "
+        "what a link buffered during an outage. Assumes robot and service clocks in step (NTP, chrony); null: "
+        "never (robots on simulated time).",
+    )
+    compact_maps_max_side: int | None = Field(
+        default=None,
+        ge=2,
+        description="Longer side of the compact maps ({prefix}/out/{source}/maps8); null: the model's map size.",
+    )
     full_resolution: bool = Field(default=False, description="Also publish T and U at the input image's size.")
     preview: bool = Field(default=True, description="Publish a colourised JPEG on {prefix}/out/{source}/preview.")
     preview_max_width: int = Field(default=640, ge=64)

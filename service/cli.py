@@ -1,6 +1,7 @@
 """The `gcdtrav` command: `infer` (offline), `serve` (Zenoh service), `bench` (benchmarks), `doctor` (this
 machine's modes: the first thing to run on a new box), and the torch-free operator commands `status` and
-`anchors` (gcdtrav.client.operator) and `view` (Foxglove, gcdtrav.client.view)."""
+`anchors` (gcdtrav.client.operator), `view` (Foxglove, gcdtrav.client.view) and `relay` (on the robot,
+gcdtrav.client.relay_command)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from gcdtrav.client import operator
+from gcdtrav.client import operator, relay_command
 from gcdtrav.client.view import command as view_command
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings, Method
@@ -189,6 +190,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     operator.add_operator_commands(commands)
     view_command.add_view_command(commands)
+    relay_command.add_relay_command(commands)
     return parser
 
 
@@ -321,6 +323,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return operator.run(args)
     if args.command == "view":  # torch-free too, with the view extra
         return view_command.run(args)
+    if args.command == "relay":  # torch-free: the robot's side of a slow link
+        return relay_command.run(args)
     handlers = {"infer": cmd_infer, "serve": cmd_serve, "bench": cmd_bench, "eval": cmd_eval, "doctor": cmd_doctor}
     from gcdtrav.service.backends.base import ModelUnavailableError
 

@@ -20,8 +20,10 @@ from gcdtrav.schemas.messages import (
     MessageError,
     ServiceStatus,
 )
+from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
 from gcdtrav.service.bus import replies
+from gcdtrav.service.bus.credits import CreditPublisher
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
@@ -32,7 +34,8 @@ from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.admission import Admission
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.assignment import Assignment
-from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.service.runtime.credits import CreditLedger
+from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.freshness import FrameGate
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
@@ -44,6 +47,12 @@ from gcdtrav.service.runtime.worker import FrameWorker
 
 log = logging.getLogger("gcdtrav.service")
 WATCHDOG_INTERVAL_S = 0.25
+
+
+def model_input(pipeline: Pipeline) -> tuple[int, int]:
+    """(width, height) the backend resizes every image to; CLIPSeg's 352 for backends that do not say."""
+    side = int(getattr(getattr(pipeline.backend, "preprocess", None), "size", CLIPSEG_INPUT_SIDE))
+    return side, side
 
 
 class TraversabilityService:
@@ -66,9 +75,11 @@ class TraversabilityService:
         self.anchor_switch = AnchorSwitch(
             pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes
         )
-        forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget)
+        ledger = CreditLedger(settings.instance, model_input(pipeline), settings.max_frame_age_s)
+        self.credits = CreditPublisher(session, self.keys, ledger, self.stats)
+        forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget, self.credits.forget)
         self.sources = SourceTracker(settings.max_sources, settings.source_idle_s, forget)
-        self.admission = Admission(settings, self.sources, self.queue, self.stats)
+        self.admission = Admission(settings, self.sources, self.queue, self.stats, self.credits.freed)
         self.assignment = Assignment(idle_s=settings.source_idle_s, max_known=4 * settings.max_sources)
         self.progress = ProgressMonitor(settings.stall_after_s)
         gate = FrameGate(self.owns, settings.max_frame_age_s, settings.max_stamp_skew_s)
@@ -79,7 +90,8 @@ class TraversabilityService:
             self.stats,
             self.sources,
             settings,
-            self.outputs.publish,
+            self._publish,
+            self.credits.taken,
             self.progress,
             gate,
         )
@@ -138,6 +150,7 @@ class TraversabilityService:
         if not self.worker.stop(time.monotonic() + timeout):
             log.warning("the frame in flight did not finish within %.0f s; its outputs are dropped", timeout)
         self.outputs.close()  # before the session's entities: a late frame is refused, not put on a dead key
+        self.credits.close()
         for entity in self._declared:
             try:
                 entity.undeclare()
@@ -147,6 +160,12 @@ class TraversabilityService:
         self.anchor_switch.close()
         if self.ros_graph is not None:
             self.ros_graph.close()
+
+    def _publish(self, done: ProcessedFrame) -> bool:
+        published = self.outputs.publish(done)
+        if published:  # later credits say how fresh the maps are
+            self.credits.ledger.published(done.source, done.image.stamp)
+        return published
 
     # ---- input ---------------------------------------------------------------------------------------
     def _image_handler(self, head: str) -> Callable[[zenoh.Sample], None]:

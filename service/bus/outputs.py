@@ -46,7 +46,7 @@ class FrameOutputs:
 
     def publish(self, done: ProcessedFrame) -> bool:
         """Build and put the frame's outputs; False (nothing put) once closed."""
-        outputs = self.builder.build(done)
+        outputs = self.builder.build(done, compact=self._compact_wanted(done.source))
         with self._lock:
             if self._closed:
                 return False
@@ -64,14 +64,28 @@ class FrameOutputs:
             self._ros_keys_of_source.setdefault(source, set()).add(publisher.key)
             publisher.put(output.payload)
             return
-        zenoh_publisher = self._publishers.get(output.key)
-        if zenoh_publisher is None:
-            zenoh_publisher = self.session.declare_publisher(
-                output.key, encoding=ENCODINGS[output.encoding], congestion_control=zenoh.CongestionControl.DROP
+        self._publisher(source, output.key, output.encoding).put(output.payload)
+
+    def _publisher(self, source: str, key: str, encoding: str) -> zenoh.Publisher:
+        """The key's publisher, declared at its first use (under ``_lock``)."""
+        publisher = self._publishers.get(key)
+        if publisher is None:
+            publisher = self.session.declare_publisher(
+                key, encoding=ENCODINGS[encoding], congestion_control=zenoh.CongestionControl.DROP
             )
-            self._publishers[output.key] = zenoh_publisher
-            self._keys_of_source.setdefault(source, set()).add(output.key)
-        zenoh_publisher.put(output.payload)
+            self._publishers[key] = publisher
+            self._keys_of_source.setdefault(source, set()).add(key)
+        return publisher
+
+    def _compact_wanted(self, source: str) -> bool:
+        """Whether anyone subscribes to the source's compact maps: they are encoded only then. The publisher
+        is declared with the source's first frame; zenoh knows its matching subscribers from then on."""
+        with self._lock:
+            if self._closed:
+                return False
+            publisher = self._publisher(source, self.builder.keys.maps8(source), "msgpack")
+            status = publisher.matching_status  # a MatchingStatus at runtime (the 1.x stub says bool)
+            return bool(getattr(status, "matching", status))
 
     def forget(self, source: str) -> None:
         """Undeclare the publishers of a source the service no longer tracks."""

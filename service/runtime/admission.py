@@ -1,6 +1,9 @@
 """What the subscriber callback checks before a frame takes any state, in order: the source's name, the
-source cap, the payload's size (refused unread: never copied out of the middleware's buffer) and the pending
-frames' byte budget. No middleware here: the bus hands over the source, the size and a way to read."""
+source cap, the payload's size (refused unread: never copied out of the middleware's buffer), the frame's
+age (its capture stamp, read without decoding: service/runtime/frame_age.py) and the pending frames' byte
+budget. No middleware here: the bus hands over the source, the size and a way to read.
+
+A tracked source's frame that is refused frees its slot at once: ``on_freed`` (the credits) hears of it."""
 
 from __future__ import annotations
 
@@ -10,6 +13,8 @@ from collections.abc import Callable
 from gcdtrav.schemas.limits import MAX_SOURCE_CHARS
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros.cdr import RosTopic
+from gcdtrav.service.runtime.credits import REFUSED, STALE, FrameTimes
+from gcdtrav.service.runtime.frame_age import FrameAgeLimit, input_times
 from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.runtime.sources import SourceTracker
@@ -23,8 +28,11 @@ class Admission:
         sources: SourceTracker,
         queue: LatestFrameQueue[PendingFrame],
         stats: ServiceStats,
+        on_freed: Callable[[str, str, FrameTimes | None], None] = lambda source, reason, times: None,
     ) -> None:
         self.settings, self.sources, self.queue, self.stats = settings, sources, queue, stats
+        self.age_limit = FrameAgeLimit(settings.max_frame_age_s)
+        self.on_freed = on_freed
 
     def offer(
         self, source: str, key: str, size: int, read: Callable[[], bytes], encoding: str, ros: RosTopic | None = None
@@ -40,16 +48,29 @@ class Admission:
                 None, "too_many_sources", f"'{source[:200]}': already tracking {self.sources.max_sources} sources"
             )
             return False
+        received_at = time.time()
         if size > self.settings.max_payload_bytes:
             self.queue.count_unqueued(source)
+            self.stats.intake(source, size, None)
             self.stats.rejected(
                 source, "oversized", f"{size} bytes exceeds the limit of {self.settings.max_payload_bytes}"
             )
+            self.on_freed(source, REFUSED, FrameTimes(None, None, received_at))
             return False
-        pending = PendingFrame(source, key, read(), encoding, time.time(), ros)
+        payload = read()
+        times = input_times(payload, encoding, ros is not None)
+        self.stats.intake(source, size, self.age_limit.age_s(times.stamp, received_at))
+        frame_times = FrameTimes(times.stamp, times.sent_at, received_at)
+        if self.age_limit.is_stale(times.stamp, received_at):
+            self.queue.count_unqueued(source)
+            self.stats.stale(source, self.age_limit.explain(times.stamp, received_at))
+            self.on_freed(source, STALE, frame_times)
+            return False
+        pending = PendingFrame(source, key, payload, encoding, received_at, ros, times.stamp, times.sent_at)
         try:
             self.queue.put(source, pending, size)
         except PendingBudgetExceeded as err:
             self.stats.rejected(source, "pending_budget", str(err))
+            self.on_freed(source, REFUSED, frame_times)
             return False
         return True

@@ -22,6 +22,8 @@ class PendingFrame:
     encoding: str
     received_at: float
     ros: RosTopic | None = None  # set for CDR payloads from ROS 2 inputs
+    stamp: float | None = None  # capture, read at intake without decoding (None: a bare image, or unreadable)
+    sent_at: float | None = None  # the envelope's sent_at (a relay's clock), echoed in the credit
 
 
 @dataclass(frozen=True)

@@ -14,9 +14,9 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from gcdtrav.schemas.images import encode_jpeg, encode_maps_png16, resize_map
+from gcdtrav.schemas.images import encode_jpeg, encode_map_png8, encode_maps_png16, resize_map
 from gcdtrav.schemas.keys import Keys
-from gcdtrav.schemas.messages import MapsHeader, MapsMessage
+from gcdtrav.schemas.messages import CompactMapsMessage, MapsHeader, MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service import viz
 from gcdtrav.service.ros import cdr as ros_io
@@ -65,14 +65,18 @@ class OutputBuilder:
         self.settings, self.model_id, self.grids = settings, model_id, grids
         self.keys = Keys(settings.prefix)
 
-    def build(self, done: ProcessedFrame) -> list[Output]:
+    def build(self, done: ProcessedFrame, compact: bool = False) -> list[Output]:
+        """Every payload of the frame; ``compact``: the 8-bit maps too (only while someone subscribes)."""
         t, u = done.result.maps.traversability, done.result.maps.uncertainty
         width, height = done.record.image_size
         ros_out = self.settings.ros_output.enabled and done.pending.ros is not None
         full = None
         if self.settings.full_resolution or ros_out:
             full = resize_map(t, width, height), resize_map(u, width, height)
-        outputs = [Output(self.keys.maps(done.source), self.maps(done, full).pack(), "msgpack")]
+        maps = self.maps(done, full)
+        outputs = [Output(self.keys.maps(done.source), maps.pack(), "msgpack")]
+        if compact:
+            outputs.append(Output(self.keys.maps8(done.source), self.compact_maps(done, maps.header).pack(), "msgpack"))
         panel = None
         if self.settings.preview or (ros_out and self.settings.ros_output.preview != "none"):
             panel = preview_panel(done.image.image, t, u, self.settings.preview_max_width)
@@ -114,6 +118,26 @@ class OutputBuilder:
             uncertainty_png=encoded[1],
             traversability_full_png=encoded[2] if with_full else None,
             uncertainty_full_png=encoded[3] if with_full else None,
+        )
+
+    def compact_maps(self, done: ProcessedFrame, header: MapsHeader) -> CompactMapsMessage:
+        """T and U as 8-bit PNGs, at the map's size or within ``compact_maps_max_side``."""
+        height, width = done.record.map_shape
+        side = self.settings.compact_maps_max_side
+        if side is not None and max(width, height) > side:
+            width, height = (
+                max(1, round(width * side / max(width, height))),
+                max(1, round(height * side / max(width, height))),
+            )
+        image_width, image_height = done.record.image_size
+        header = header.model_copy(
+            update={"map_shape": (height, width), "scale": (image_width / width, image_height / height)}
+        )
+        maps = done.result.maps
+        return CompactMapsMessage(
+            header=header,
+            traversability_png=encode_map_png8(maps.traversability, (width, height)),
+            uncertainty_png=encode_map_png8(maps.uncertainty, (width, height)),
         )
 
     def _ros_images(

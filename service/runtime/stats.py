@@ -14,6 +14,7 @@ from gcdtrav.schemas.messages import SourceStatus
 from gcdtrav.service.runtime.latest_queue import QueueCounters
 
 LATENCY_WINDOW = 1000
+RATE_WINDOW_S = 10.0
 ERROR_LOG_INTERVAL_S = 5.0
 LAST_ERRORS = 20
 
@@ -34,6 +35,26 @@ class SourceStats:
     last_seq: int | None = None
     latency_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
     inference_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
+    stale: int = 0  # of the dropped: captured over max_frame_age_s ago
+    credits: int = 0
+    age_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))  # capture to intake
+    arrivals: deque[tuple[float, int]] = field(default_factory=deque)  # (monotonic time, bytes), last 10 s
+
+    def bytes_per_s(self, now: float) -> float | None:
+        while self.arrivals and self.arrivals[0][0] < now - RATE_WINDOW_S:
+            self.arrivals.popleft()
+        if not self.arrivals:
+            return None
+        # Over the window, or over what the capped deque still holds of it at high frame rates.
+        span = RATE_WINDOW_S if len(self.arrivals) < LATENCY_WINDOW else max(now - self.arrivals[0][0], 1e-3)
+        return round(sum(n for _, n in self.arrivals) / span, 1)
+
+
+def age_percentiles(values: deque[float]) -> dict[str, float]:
+    if not values:
+        return {}
+    p50, p95 = np.percentile(np.fromiter(values, dtype=np.float64), [50, 95])
+    return {"p50": round(float(p50), 2), "p95": round(float(p95), 2)}
 
 
 @dataclass(frozen=True)
@@ -73,6 +94,31 @@ class ServiceStats:
             self.sources.setdefault(name, SourceStats()).dropped += count
             self.dropped_by_reason[reason] += count
 
+    def intake(self, name: str, nbytes: int, age_s: float | None) -> None:
+        """A frame of ``name`` reached the service: its bytes and, when stamped, its capture-to-intake age."""
+        with self._lock:
+            stats = self.sources.setdefault(name, SourceStats())
+            stats.arrivals.append((time.monotonic(), nbytes))
+            if len(stats.arrivals) > LATENCY_WINDOW:
+                stats.arrivals.popleft()
+            if age_s is not None:
+                stats.age_ms.append(age_s * 1e3)
+
+    def stale(self, name: str, detail: str = "") -> None:
+        """A frame older than max_frame_age_s, dropped: counted stale and dropped (reason ``stale``), and
+        logged at the rate limit: a robot whose clock is off would otherwise lose every frame in silence."""
+        with self._lock:
+            stats = self.sources.setdefault(name, SourceStats())
+            stats.stale += 1
+            stats.dropped += 1
+            self.dropped_by_reason["stale"] += 1
+        if detail:
+            self._log_limited("stale", f"dropped {name}: stale: {detail}")
+
+    def credit(self, name: str) -> None:
+        with self._lock:
+            self.sources.setdefault(name, SourceStats()).credits += 1
+
     def forget(self, name: str) -> None:
         with self._lock:
             self.sources.pop(name, None)
@@ -85,6 +131,11 @@ class ServiceStats:
                 self.sources.setdefault(name, SourceStats()).rejected += 1
             self.rejected_by_reason[reason] += 1
             self.last_errors.append(f"{time.strftime('%H:%M:%S')} {message}")
+        self._log_limited(reason, f"rejected {message}", error)
+
+    def _log_limited(self, reason: str, message: str, error: BaseException | None = None) -> None:
+        """Log at most once per reason every ERROR_LOG_INTERVAL_S, saying how many were suppressed."""
+        with self._lock:
             now = time.monotonic()
             if now - self._last_logged.get(reason, -1e9) < ERROR_LOG_INTERVAL_S:
                 self._suppressed[reason] += 1
@@ -92,7 +143,7 @@ class ServiceStats:
             self._last_logged[reason] = now
             suppressed = self._suppressed.pop(reason, 0)
         extra = f" (+{suppressed} similar since last report)" if suppressed else ""
-        self._log.warning("rejected %s%s", message, extra, exc_info=error)
+        self._log.warning("%s%s", message, extra, exc_info=error)
 
     def snapshot(self, queued: Mapping[str, QueueCounters]) -> StatsSnapshot:
         """Per source: the queue's counts (received, dropped) with this object's (processed, rejected, latency)."""
@@ -114,4 +165,8 @@ class ServiceStats:
             last_seq=stats.last_seq,
             latency_ms=percentiles(stats.latency_ms),
             inference_ms=percentiles(stats.inference_ms),
+            stale=stats.stale,
+            bytes_per_s=stats.bytes_per_s(time.monotonic()),
+            frame_age_ms=age_percentiles(stats.age_ms),
+            credits=stats.credits,
         )

@@ -24,6 +24,11 @@ def test_every_key_under_a_prefix() -> None:
     assert keys.anchor_rollback == "fleet/a/config/anchors/rollback"
     assert keys.status == "fleet/a/status"
     assert keys.alive("box-1") == "fleet/a/alive/box-1" and keys.alive() == "fleet/a/alive/*"
+    assert keys.maps8("r1/front") == "fleet/a/out/r1/front/maps8"
+    assert keys.credit("r1/front") == "fleet/a/credit/r1/front" and keys.credit("**") == "fleet/a/credit/**"
+    assert keys.credit_source_of("fleet/a/credit/r1/front") == "r1/front"
+    assert keys.credit_source_of("fleet/a/credit/**") is None and keys.credit_source_of("fleet/a/status") is None
+    assert keys.relay_health("r1/front") == "fleet/a/relay/r1/front/health"
     assert keys.outputs == "fleet/a/out/**"
     assert input_key("gcdtrav/in", "r1/front") == "gcdtrav/in/r1/front"
     with pytest.raises(ValueError, match="unknown output kind 'map'"):
@@ -48,9 +53,10 @@ def test_source_of_refuses_what_is_not_one_source() -> None:
 
 
 def test_docs_list_the_same_keys() -> None:
-    documented = set(re.findall(r"`(\{prefix\}/[a-z/{}]+)", DOCS.read_text("utf-8")))
+    documented = set(re.findall(r"`(\{prefix\}/[a-z0-9/{}]+)", DOCS.read_text("utf-8")))
     keys = Keys("{prefix}")
     built = {keys.output("{source}", kind) for kind in OUTPUT_KINDS}
     built |= {keys.grid("{source}", "occupancy"), keys.grid("{source}", "uncertainty")}
     built |= {keys.anchors, keys.anchor_history, keys.anchor_rollback, keys.status, keys.alive("{instance}")}
+    built |= {keys.credit("{source}"), keys.relay_health("{source}")}
     assert built <= documented, f"missing from docs/messages.md: {sorted(built - documented)}"

@@ -62,6 +62,33 @@ SAMPLES: dict[type[m.Message], m.Message] = {
         last_errors=[],
     ),
     m.SourceView: m.SourceView(source="r1/front", maps=MAPS_HEADER, instances={"box-1": m.SourceStatus()}),
+    m.CompactMapsMessage: m.CompactMapsMessage(header=MAPS_HEADER, traversability_png=b"t", uncertainty_png=b"u"),
+    m.CreditGrant: m.CreditGrant(
+        source="r1/front",
+        instance="box-1",
+        grant=0,
+        reason="taken",
+        granted_at=2.0,
+        model_input=(352, 352),
+        max_frame_age_s=5.0,
+        frame_stamp=1.0,
+        frame_sent_at=1.1,
+        frame_received_at=1.2,
+        last_maps_stamp=0.5,
+    ),
+    m.RelayHealth: m.RelayHealth(
+        source="r1/front",
+        published_at=3.0,
+        newest_map_stamp=1.0,
+        map_age_s=2.0,
+        stale=False,
+        stale_after_s=3.0,
+        frames_captured=10,
+        frames_sent=2,
+        credit_timeouts=0,
+        uplink_bytes_per_s=1e4,
+        downlink_bytes_per_s=2e4,
+    ),
 }
 
 

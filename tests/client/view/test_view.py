@@ -41,7 +41,10 @@ LAYOUT = Path(__file__).resolve().parents[3] / "examples" / "foxglove" / "gcdtra
 
 
 def grid_settings(state_dir: Path) -> ServiceSettings:
-    return ServiceSettings.model_validate({"state_dir": str(state_dir), "instance": "view-1", "grids": [camera_grid()]})
+    # max_frame_age_s off: frames are stamped 100 s after the epoch
+    return ServiceSettings.model_validate(
+        {"state_dir": str(state_dir), "instance": "view-1", "grids": [camera_grid()], "max_frame_age_s": None}
+    )
 
 
 @pytest.fixture()

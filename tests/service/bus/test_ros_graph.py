@@ -283,6 +283,7 @@ def test_camera_is_subscribed_and_outputs_join_the_graph(
         {
             "state_dir": str(tmp_path),
             "instance": f"graph-{distro}",
+            "max_frame_age_s": None,  # frames stamped STAMP (2023)
             "inputs": [],
             "ros_inputs": [
                 {"key": f"{prefix}0/**/sensor_msgs::msg::dds_::Image_/*", "zenoh_namespace": zenoh_namespace}

@@ -129,6 +129,7 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
         {
             "state_dir": str(tmp_path),
             "instance": "grid-test",
+            "max_frame_age_s": None,  # frames stamped 100 s after the epoch
             "preview": False,
             "grids": [camera_grid(max_range_m=6.0, half_life_s=5.0, occupancy_grid=True)],
         }

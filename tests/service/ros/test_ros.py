@@ -170,6 +170,7 @@ def test_ros_in_maps_out_both_layouts(tiny_backend, tmp_path: Path) -> None:  # 
         {
             "state_dir": str(tmp_path),
             "instance": "ros-test",
+            "max_frame_age_s": None,  # frames stamped STAMP (2023)
             "full_resolution": True,
             "inputs": [],
             "ros_inputs": [

@@ -1,0 +1,138 @@
+"""Settings of `gcdtrav relay`, the robot side of a slow link: strict, like every configuration.
+
+One relay serves every camera of a robot. Each camera is a zenoh key of images (JPEG, PNG or ImageEnvelope)
+or a ROS 2 topic on the robot's own zenoh router (rmw_zenoh, or zenoh-bridge-ros2dds), and becomes one
+source of the service.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from gcdtrav.schemas.strict import StrictModel
+from pydantic import Field, ValidationError, field_validator, model_validator
+
+Output = Literal["maps", "maps8", "grid", "preview"]
+FORWARDABLE: tuple[Output, ...] = ("maps", "maps8", "grid", "preview")
+CLIPSEG_INPUT_SIDE = 352  # the model's input until a credit announces the service's
+_KEY_CHUNK = re.compile(r"^[^*$#?\s/]+$")
+
+
+class RelaySettingsError(ValueError):
+    pass
+
+
+def _literal_key(value: str, what: str) -> str:
+    if not value or not all(_KEY_CHUNK.match(chunk) for chunk in value.split("/")):
+        raise ValueError(f"{what} '{value}' must be a literal zenoh key (chunks without * $ # ? or spaces)")
+    return value
+
+
+class RelayCamera(StrictModel):
+    """One camera of the robot and the source it becomes."""
+
+    camera: str = Field(
+        description="A zenoh key (expression) of images, e.g. 'robot/front/jpeg', or a ROS topic, starting "
+        "with '/', e.g. '/camera/front/image_raw'."
+    )
+    source: str = Field(description="The source name at the service, e.g. 'r1/front' (a literal key).")
+    ros_layout: Literal["rmw_zenoh", "bridge"] = Field(
+        default="rmw_zenoh", description="How the robot's ROS topics reach zenoh (ROS topics only)."
+    )
+    ros_domain: int = Field(default=0, ge=0, le=232, description="ROS_DOMAIN_ID (rmw_zenoh keys start with it).")
+    ros_message_type: Literal["auto", "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"] = Field(
+        default="auto", description="auto: from the rmw_zenoh key; bridge keys carry no type, so set it."
+    )
+    zenoh_namespace: str = Field(default="", description="The robot's zenoh 'namespace', prefixed to its keys.")
+
+    @field_validator("source")
+    @classmethod
+    def _source_is_literal(cls, value: str) -> str:
+        return _literal_key(value, "source")
+
+    @property
+    def is_ros(self) -> bool:
+        return self.camera.startswith("/")
+
+    @model_validator(mode="after")
+    def _ros_type_known(self) -> RelayCamera:
+        if self.is_ros and self.ros_layout == "bridge" and self.ros_message_type == "auto":
+            raise ValueError(f"camera '{self.camera}': bridge keys carry no type; set ros_message_type")
+        if self.zenoh_namespace:
+            _literal_key(self.zenoh_namespace, "zenoh_namespace")
+        return self
+
+
+class RelaySettings(StrictModel):
+    cameras: list[RelayCamera] = Field(min_length=1, description="The robot's cameras, one source each.")
+    prefix: str = Field(default="gcdtrav", description="The service's key prefix.")
+    input_prefix: str = Field(default="gcdtrav/in", description="Where the service takes images (input_key).")
+    jpeg_quality: int = Field(default=80, ge=1, le=100, description="JPEG quality of the frames sent.")
+    max_side: int | Literal["auto"] = Field(
+        default="auto",
+        description="auto: the shorter side at the model's input size (the credit announces it), aspect kept; "
+        "N: the longer side at most N pixels. Never enlarges.",
+    )
+    credit_timeout_s: float = Field(
+        default=5.0,
+        gt=0,
+        description="Send the newest frame without a credit after this long (a lost credit, a restarted "
+        "service); stretched to 3 x the recent time between credits, at most 30 s.",
+    )
+    stale_after_s: float = Field(
+        default=3.0, gt=0, description="Maps of a camera older than this are reported stale (log, health key)."
+    )
+    forward: list[Output] = Field(
+        default_factory=lambda: list(FORWARDABLE),
+        description="Outputs brought to the robot's bus, each only while a robot-side consumer subscribes.",
+    )
+    health_period_s: float = Field(default=1.0, gt=0, description="Seconds between RelayHealth messages.")
+    local_mode: Literal["client", "peer"] = Field(default="client", description="The robot-side session's mode.")
+    local_connect: list[str] = Field(
+        default_factory=lambda: ["tcp/127.0.0.1:7447"],
+        description="The robot's own zenoh router (rmw_zenoh's default), where cameras and consumers are.",
+    )
+    local_listen: list[str] = Field(default_factory=list, description="Robot-side endpoints to listen on.")
+
+    @field_validator("prefix", "input_prefix")
+    @classmethod
+    def _prefix_is_literal(cls, value: str) -> str:
+        return _literal_key(value, "prefix")
+
+    @field_validator("max_side")
+    @classmethod
+    def _side_positive(cls, value: int | str) -> int | str:
+        if isinstance(value, int) and value < 16:
+            raise ValueError(f"max_side {value} is below 16 pixels")
+        return value
+
+    @model_validator(mode="after")
+    def _sources_unique(self) -> RelaySettings:
+        sources = [camera.source for camera in self.cameras]
+        duplicates = sorted({s for s in sources if sources.count(s) > 1})
+        if duplicates:
+            raise ValueError(f"sources named twice: {', '.join(duplicates)}")
+        return self
+
+
+def load_relay_settings(file: str | Path | None, overrides: dict[str, object] | None = None) -> RelaySettings:
+    """A YAML file's settings with ``overrides`` (flags) on top; a RelaySettingsError naming every problem."""
+    data: dict[str, object] = {}
+    if file is not None:
+        try:
+            loaded = yaml.safe_load(Path(file).read_text("utf-8")) or {}
+        except (OSError, yaml.YAMLError) as err:
+            raise RelaySettingsError(f"{file}: cannot read the relay settings: {err}") from None
+        if not isinstance(loaded, dict):
+            raise RelaySettingsError(f"{file}: expected a mapping of settings")
+        data = loaded
+    data |= {key: value for key, value in (overrides or {}).items() if value is not None}
+    try:
+        return RelaySettings.model_validate(data)
+    except ValidationError as err:
+        problems = [f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in err.errors()]
+        where = f"{file}: " if file is not None else ""
+        raise RelaySettingsError(where + "invalid relay settings: " + "; ".join(problems)) from None

@@ -1,0 +1,82 @@
+"""Credits: the service tells a source's sender when it is ready for the next frame. No zenoh here.
+
+A robot on a slow link should send a frame only when the service will compute it: every frame sent while
+one already waits is replaced unseen, its bytes wasted on the link. The instance that owns a source (only it
+takes the source's frames) grants a credit whenever the source's slot frees: its frame went to inference, or
+was refused at intake (stale, over a limit). The sender (``gcdtrav relay``) then sends its newest frame, so
+at most one frame of the source is inferred and one waits. Lost credits are the sender's to recover (it sends
+after a timeout); the ledger only numbers and describes the grants.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from gcdtrav.schemas.messages import CreditGrant
+
+TAKEN, STALE, REFUSED = "taken", "stale", "refused"
+
+
+@dataclass(frozen=True)
+class FrameTimes:
+    """The times of the frame that freed the slot, echoed so the sender can time the link."""
+
+    stamp: float | None  # capture, the sender's clock
+    sent_at: float | None  # the envelope's sent_at, the sender's clock
+    received_at: float  # this service's clock
+
+
+class CreditLedger:
+    """Thread-safe: grants come from the subscriber callbacks (refusals) and the worker (takes)."""
+
+    def __init__(
+        self,
+        instance: str,
+        model_input: tuple[int, int],
+        max_frame_age_s: float | None,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.instance = instance
+        self.model_input = model_input
+        self.max_frame_age_s = max_frame_age_s
+        self._clock = clock
+        self._granted: dict[str, int] = {}
+        self._last_maps: dict[str, float] = {}
+        self._lock = threading.Lock()
+
+    def freed(self, source: str, reason: str, frame: FrameTimes | None = None) -> CreditGrant:
+        """The source's slot is free: the grant to publish on ``{prefix}/credit/{source}``."""
+        with self._lock:
+            number = self._granted.get(source, 0)
+            self._granted[source] = number + 1
+            last_maps = self._last_maps.get(source)
+        return CreditGrant(
+            source=source,
+            instance=self.instance,
+            grant=number,
+            reason=reason,
+            granted_at=self._clock(),
+            model_input=self.model_input,
+            max_frame_age_s=self.max_frame_age_s,
+            frame_stamp=frame.stamp if frame else None,
+            frame_sent_at=frame.sent_at if frame else None,
+            frame_received_at=frame.received_at if frame else None,
+            last_maps_stamp=last_maps,
+        )
+
+    def published(self, source: str, stamp: float) -> None:
+        """Maps of ``source`` captured at ``stamp`` went out: later grants say so."""
+        with self._lock:
+            self._last_maps[source] = max(stamp, self._last_maps.get(source, stamp))
+
+    def granted(self, source: str) -> int:
+        with self._lock:
+            return self._granted.get(source, 0)
+
+    def forget(self, source: str) -> None:
+        with self._lock:
+            self._granted.pop(source, None)
+            self._last_maps.pop(source, None)

@@ -1,0 +1,120 @@
+"""The service's side of slow links without a bus: stale frames dropped at intake and before inference,
+credits at every freed slot, the compact maps."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from fakes import MAP_SIDE, pipeline, processed
+from gcdtrav.client.client import Maps
+from gcdtrav.schemas.images import encode_jpeg
+from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
+from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.service.runtime.admission import Admission
+from gcdtrav.service.runtime.credits import FrameTimes
+from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
+from gcdtrav.service.runtime.history import FrameHistory
+from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.outputs import OutputBuilder
+from gcdtrav.service.runtime.sources import SourceTracker
+from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.runtime.worker import FrameWorker
+
+LOG = __import__("logging").getLogger("test")
+JPEG = encode_jpeg(np.full((48, 64, 3), 100, np.uint8))
+
+
+def envelope(age_s: float, sent_at: float | None = None) -> bytes:
+    stamp = time.time() - age_s
+    message = ImageEnvelope(stamp=stamp, encoding=PixelEncoding.JPEG, width=64, height=48, data=JPEG, sent_at=sent_at)
+    return message.pack()
+
+
+def admission(**settings: object) -> tuple[Admission, LatestFrameQueue[PendingFrame], ServiceStats, list[tuple]]:
+    queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue()
+    stats = ServiceStats(LOG)
+    freed: list[tuple[str, str, FrameTimes | None]] = []
+    service = ServiceSettings.model_validate({"max_payload_bytes": 100_000} | settings)
+    gate = Admission(service, SourceTracker(8, 60), queue, stats, lambda *args: freed.append(args))
+    return gate, queue, stats, freed
+
+
+def offer(gate: Admission, payload: bytes, source: str = "r1") -> bool:
+    return gate.offer(source, f"gcdtrav/in/{source}", len(payload), lambda: payload, "application/msgpack")
+
+
+def test_a_stale_frame_is_dropped_at_intake_and_frees_the_slot() -> None:
+    gate, queue, stats, freed = admission(max_frame_age_s=2.0)
+    assert not offer(gate, envelope(age_s=10.0, sent_at=5.0))
+    [(source, reason, times)] = freed
+    assert (source, reason) == ("r1", "stale") and times is not None and times.sent_at == 5.0
+    assert offer(gate, envelope(age_s=0.5, sent_at=6.0))  # a fresh one waits, with its times
+    _, pending = queue.take(timeout=0)  # type: ignore[misc]
+    assert pending.sent_at == 6.0 and pending.stamp == pytest.approx(time.time() - 0.5, abs=1.0)
+    status = stats.snapshot(queue.counters()).sources["r1"]
+    assert (status.received, status.stale, status.dropped) == (2, 1, 1)  # received = dropped + the waiting one
+    assert status.frame_age_ms["p95"] > 5000 and status.bytes_per_s is not None and status.bytes_per_s > 0
+    assert stats.snapshot(queue.counters()).dropped_by_reason == {"stale": 1}
+
+
+@pytest.mark.parametrize("limit", [None, 1e9])
+def test_no_limit_or_a_huge_one_keeps_every_frame(limit: float | None) -> None:
+    gate, _, _, freed = admission(max_frame_age_s=limit)
+    assert offer(gate, envelope(age_s=1e6)) and not freed
+
+
+def test_a_refused_frame_frees_the_slot_too() -> None:
+    gate, _, _, freed = admission(max_payload_bytes=1024)
+    assert not offer(gate, envelope(age_s=0.0) + bytes(2000))  # over 1 kB
+    assert [reason for _, reason, _ in freed] == ["refused"]
+
+
+def test_the_worker_grants_at_take_and_drops_what_waited_too_long() -> None:
+    queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue()
+    stats, published, taken = ServiceStats(LOG), [], []
+    settings = ServiceSettings(max_frame_age_s=1.0)
+
+    def publish(done: ProcessedFrame) -> bool:
+        published.append(done)
+        return True
+
+    worker = FrameWorker(
+        queue, pipeline(), FrameHistory(2), stats, SourceTracker(8, 60), settings, publish, taken.append
+    )
+    # Admitted fresh, but it waited in the queue (its capture stamp is what counts): stale at take.
+    old = PendingFrame("r1", "gcdtrav/in/r1", envelope(age_s=3.0), "application/msgpack", time.time())
+    queue.put("r1", old)
+    worker.start()
+    try:
+        deadline = time.monotonic() + 10
+        while not taken and time.monotonic() < deadline:
+            time.sleep(0.01)
+        queue.put("r1", PendingFrame("r1", "gcdtrav/in/r1", envelope(age_s=0.0), "application/msgpack", time.time()))
+        while len(published) < 1 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        worker.stop(time.monotonic() + 5)
+    assert len(taken) == 2 and len(published) == 1  # both freed the slot; only the fresh one was computed
+    status = stats.snapshot(queue.counters()).sources["r1"]
+    assert (status.stale, status.processed) == (1, 1)
+
+
+@pytest.mark.parametrize(
+    ("max_side", "shape"), [(None, (MAP_SIDE, MAP_SIDE)), (4, (4, 4)), (100, (MAP_SIDE, MAP_SIDE))]
+)
+def test_compact_maps_decode_to_the_maps_within_their_steps(max_side: int | None, shape: tuple[int, int]) -> None:
+    frame = processed(height=48, width=64)
+    builder = OutputBuilder(ServiceSettings(compact_maps_max_side=max_side), "fake", None)
+    outputs = {output.key: output for output in builder.build(frame, compact=True)}
+    assert "gcdtrav/out/r1/front/maps8" not in {o.key for o in builder.build(frame)}  # only when asked
+    compact = Maps.from_compact_payload(outputs["gcdtrav/out/r1/front/maps8"].payload)
+    full = Maps.from_payload(outputs["gcdtrav/out/r1/front/maps"].payload)
+    assert compact.compact and compact.header.map_shape == shape == compact.traversability.shape
+    assert compact.header.scale == pytest.approx((64 / shape[1], 48 / shape[0]))
+    assert compact.header.stamp == full.header.stamp == 12.5
+    if shape == (MAP_SIDE, MAP_SIDE):
+        np.testing.assert_allclose(compact.traversability, full.traversability, atol=0.5 / 255 + 1e-6)
+        np.testing.assert_allclose(compact.uncertainty, full.uncertainty, atol=0.5 / 255 + 1e-6)
+    assert len(outputs["gcdtrav/out/r1/front/maps8"].payload) < len(outputs["gcdtrav/out/r1/front/maps"].payload)
