@@ -29,6 +29,7 @@ from gcdtrav.schemas.images import (
 from gcdtrav.schemas.keys import Keys, input_key
 from gcdtrav.schemas.messages import (
     MSGPACK_ENCODING,
+    AnchorHistoryEntry,
     AnchorHistoryReply,
     AnchorSetRejection,
     AnchorSetReply,
@@ -64,10 +65,26 @@ class QueryTimeout(ServiceError):
 class AnchorSetRejected(ServiceError):
     """The service refused an anchor set; ``messages`` says why, the active set is unchanged."""
 
-    def __init__(self, messages: list[str], active_version: str) -> None:
-        super().__init__("anchor set rejected: " + "; ".join(messages))
+    def __init__(self, messages: list[str], active_version: str, instance: str | None = None) -> None:
+        where = f" by {instance}" if instance else ""
+        super().__init__(f"anchor set rejected{where}: " + "; ".join(messages))
         self.messages = messages
         self.active_version = active_version
+        self.instance = instance
+
+
+class PartialSwap(ServiceError):
+    """A swap some instances took and others refused or did not answer: ``swapped`` (instance -> version) and
+    ``failed`` (instance -> error). They converge to the newest accepted set by themselves (the fleet's
+    anchor tokens); the message names which instance holds what."""
+
+    def __init__(self, version: str, swapped: dict[str, str], failed: dict[str, ServiceError]) -> None:
+        held = "; ".join(f"{name}: {error}" for name, error in sorted(failed.items()))
+        super().__init__(
+            f"anchor set {version} active on {', '.join(sorted(swapped))}; not on the others: {held}. The "
+            "others adopt it once they can (gcdtrav status shows each instance's set)"
+        )
+        self.version, self.swapped, self.failed = version, swapped, failed
 
 
 @dataclass(frozen=True)
@@ -431,7 +448,7 @@ class TraversabilityClient:
     def _error_from(payload: bytes, key: str) -> ServiceError:
         try:
             rejection = AnchorSetRejection.unpack(payload)
-            return AnchorSetRejected(rejection.errors, rejection.active_version)
+            return AnchorSetRejected(rejection.errors, rejection.active_version, rejection.instance)
         except MessageError:
             pass
         try:
@@ -561,8 +578,12 @@ class TraversabilityClient:
             timeout=timeout,
             every_instance=True,
         )
-        if errors:
+        if errors and not answers:
             raise errors[0]
+        if errors:
+            swapped = {answer.instance or f"instance {k + 1}": answer.version for k, answer in enumerate(answers)}
+            failed = {getattr(error, "instance", None) or f"unnamed {k + 1}": error for k, error in enumerate(errors)}
+            raise PartialSwap(answers[0].version, swapped, failed)
         return answers[0].version
 
     def anchor_history(self, timeout: float | None = None) -> list[AnchorHistoryReply]:
@@ -574,18 +595,24 @@ class TraversabilityClient:
             raise errors[0]
         return sorted(answers, key=lambda history: history.instance)
 
+    def rollback_target(self, steps: int = 1, timeout: float | None = None) -> tuple[AnchorHistoryEntry, AnchorSet]:
+        """The fleet's active entry and the set ``steps`` before it, from the history of the instance whose
+        active set is the newest accepted (instances' histories may differ: one may have joined later)."""
+        histories = [history for history in self.anchor_history(timeout) if history.entries]
+        if not histories:
+            raise ServiceError("no instance answered with an anchor history")
+        newest = max(histories, key=lambda h: (h.entries[0].accepted_at, h.entries[0].version, h.instance))
+        if not 1 <= steps < len(newest.entries):
+            raise ValueError(
+                f"no set {steps} step(s) back: {newest.instance}'s history holds {len(newest.entries)} set(s), "
+                "the active first; see gcdtrav anchors history"
+            )
+        return newest.entries[0], newest.entries[steps].anchor_set
+
     def rollback_anchors(self, steps: int = 1, timeout: float | None = None) -> str:
-        """Swap every instance back to the set ``steps`` before its active one; returns the version."""
-        answers, errors = self._replies(
-            self.keys.anchor_rollback,
-            AnchorSetReply,
-            params={"steps": steps},
-            timeout=timeout,
-            every_instance=True,
-        )
-        if errors:
-            raise errors[0]
-        return answers[0].version
+        """Swap the whole fleet back to the set ``steps`` before the fleet's active one (a swap to that set on
+        every instance, so that all end on the same set); returns the version."""
+        return self.set_anchors(self.rollback_target(steps, timeout)[1], timeout)
 
     def status(self, timeout: float | None = None) -> ServiceStatus:
         """The nearest instance's status; ``statuses()`` gives every instance's."""

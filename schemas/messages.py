@@ -364,6 +364,7 @@ class PathReply(Message):
 class AnchorSetReply(Message):
     anchor_set: AnchorSet
     version: str
+    instance: str | None = Field(default=None, description="The instance that answered. Since 1.2.")
 
 
 class AnchorHistoryEntry(WireModel):
@@ -384,6 +385,7 @@ class AnchorSetRejection(Message):
 
     errors: list[str]
     active_version: str
+    instance: str | None = Field(default=None, description="The instance that refused. Since 1.2.")
 
 
 class ErrorReply(Message):

@@ -23,6 +23,7 @@ from gcdtrav.schemas.messages import (
 from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
 from gcdtrav.service.bus import replies
+from gcdtrav.service.bus.anchor_sync import AnchorSync
 from gcdtrav.service.bus.credits import CreditPublisher
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
@@ -69,6 +70,7 @@ class TraversabilityService:
         self._stopping = threading.Event()
         self._started_at = time.time()
         self.membership: Membership | None = None
+        self.anchor_sync: AnchorSync | None = None
         self.grids = GridOutputs(settings.grids, len(pipeline.anchors), settings.instance) if settings.grids else None
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if settings.ros_inputs else None
         self.outputs = FrameOutputs(session, settings, pipeline.backend.model_id, self.grids, self.ros_graph)
@@ -115,6 +117,7 @@ class TraversabilityService:
     def start(self) -> None:
         # Membership first: a frame arriving during start-up must already go to its owner only.
         self.membership = Membership(self.session, self.prefix, self.settings.instance, assignment=self.assignment)
+        self.anchor_sync = AnchorSync(self.session, self.keys, self.settings.instance, self.anchor_switch)
         for expression in self.settings.inputs:
             head = literal_head(expression)
             self._declared.append(self.session.declare_subscriber(expression, self._image_handler(head)))
@@ -157,6 +160,8 @@ class TraversabilityService:
             except zenoh.ZError as err:  # the session may already be closing
                 log.debug("undeclare failed: %s", err)
         self._declared.clear()
+        if self.anchor_sync is not None:
+            self.anchor_sync.close()
         self.anchor_switch.close()
         if self.ros_graph is not None:
             self.ros_graph.close()
@@ -262,6 +267,7 @@ class TraversabilityService:
     def status(self) -> ServiceStatus:
         counts = self.stats.snapshot(self.queue.counters())
         health = self.progress.health()
+        accepted_at = self.anchor_switch.head().accepted_at
         return ServiceStatus(
             instance=self.settings.instance,
             instances=sorted(self.membership.live()) if self.membership else [self.settings.instance],
@@ -283,6 +289,8 @@ class TraversabilityService:
             max_sources=self.sources.max_sources,
             healthy=health.healthy,
             reason=health.reason,
+            anchor_set_accepted_at=accepted_at or None,  # 0: the set it started with, never swapped
+            anchor_sets=self.anchor_sync.fleet.versions() if self.anchor_sync else {},
         )
 
     def _precision(self) -> str:
