@@ -23,7 +23,7 @@ MSGPACK_ENCODING = "application/msgpack"
 # major.minor of every message below. A minor step adds fields (older readers ignore them); a major step
 # changes or removes one, and a reader refuses a message of another major with both versions named.
 # 1.0 was the integer 1 in MapsHeader only; 1.1 puts the version in every message and adds risk fields;
-# 1.2 adds MapsHeader.order and the status's health and anchor-set fleet fields.
+# 1.2 adds ServiceStatus.measuring, MapsHeader.order and the status's health and anchor-set fleet fields.
 SCHEMA_VERSION = "1.2"
 _VERSION = re.compile(r"^(\d+)(?:\.\d+)?$")
 
@@ -419,10 +419,17 @@ class ServiceStatus(Message):
     anchor_set_version: str
     method: Method
     precision: str = Field(
-        default="", description="The backend's mode: fp32, bf16, bf16-vit, int8, ort-fp32, ort-int8-vit or ort-int8."
+        default="",
+        description="The mode running now (service/backends/modes.py): fp32, bf16, bf16-vit, int8, ort-fp32, "
+        "ort-int8-vit or ort-int8.",
     )
     precision_reason: str = Field(
         default="", description="Why this mode runs: asked for, or auto's measurements on this machine (ms per frame)."
+    )
+    measuring: bool = Field(
+        default=False,
+        description="precision auto is timing the modes on this machine in the background; precision is the safe "
+        "mode meanwhile, then auto's choice. Since 1.2.",
     )
     queued: int = Field(description="Frames waiting for inference (at most one per source).")
     queued_bytes: int = Field(default=0, description="Their payload bytes (at most pending_budget_mb).")

@@ -11,8 +11,8 @@ import re
 from pathlib import Path
 from typing import Literal
 
-import yaml
 from gcdtrav.schemas.strict import StrictModel
+from gcdtrav.schemas.yaml_file import load_mapping
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 Output = Literal["maps", "maps8", "grid", "preview"]
@@ -120,15 +120,7 @@ class RelaySettings(StrictModel):
 
 def load_relay_settings(file: str | Path | None, overrides: dict[str, object] | None = None) -> RelaySettings:
     """A YAML file's settings with ``overrides`` (flags) on top; a RelaySettingsError naming every problem."""
-    data: dict[str, object] = {}
-    if file is not None:
-        try:
-            loaded = yaml.safe_load(Path(file).read_text("utf-8")) or {}
-        except (OSError, yaml.YAMLError) as err:
-            raise RelaySettingsError(f"{file}: cannot read the relay settings: {err}") from None
-        if not isinstance(loaded, dict):
-            raise RelaySettingsError(f"{file}: expected a mapping of settings")
-        data = loaded
+    data: dict[str, object] = load_mapping(file, "relay settings", RelaySettingsError) if file is not None else {}
     data |= {key: value for key, value in (overrides or {}).items() if value is not None}
     try:
         return RelaySettings.model_validate(data)

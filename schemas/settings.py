@@ -13,10 +13,11 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal, get_args
 
-import yaml
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.limits import DEFAULT_MAX_ANCHOR_SET_BYTES
+from gcdtrav.schemas.paths import default_cache_dir, default_state_dir, expanded
 from gcdtrav.schemas.strict import StrictModel
+from gcdtrav.schemas.yaml_file import load_mapping
 from pydantic import Field, ValidationError, field_validator, model_validator
 
 ENV_PREFIX = "GCDTRAV_"
@@ -209,8 +210,14 @@ class ServiceSettings(StrictModel):
     model: str | None = Field(default=None, description="CLIPSeg directory or hub id [env GCDTRAV_MODEL].")
     anchors_file: Path | None = Field(default=None, description="Anchor set to start with (JSON/YAML).")
     state_dir: Path = Field(
-        default=Path("~/.local/state/gcdtrav"),
-        description="Where the last accepted anchor set is kept across restarts.",
+        default_factory=default_state_dir,
+        description="Where the last accepted anchor set is kept across restarts "
+        "[$XDG_STATE_HOME/gcdtrav, else ~/.local/state/gcdtrav].",
+    )
+    cache_dir: Path = Field(
+        default_factory=default_cache_dir,
+        description="ONNX exports and the measurement of precision auto, shared with gcdtrav doctor and infer "
+        "[$XDG_CACHE_HOME/gcdtrav, else ~/.cache/gcdtrav].",
     )
     engine: EngineSettings = Field(default_factory=EngineSettings)
     risk: RiskSettings = Field(default_factory=RiskSettings)
@@ -274,13 +281,24 @@ class ServiceSettings(StrictModel):
     ros_node: RosNode = Field(default_factory=RosNode)
     precision: Precision = Field(
         default="auto",
-        description="Model arithmetic: auto = the fastest mode passing the parity gate, measured at start.",
+        description="Model arithmetic: auto = the fastest mode passing the parity gate, measured on this "
+        "machine once and cached (gcdtrav doctor measures it too).",
+    )
+    measure_before_serving: bool = Field(
+        default=False,
+        description="precision auto with nothing cached: measure the modes before serving. Default: serve in "
+        "fp32 at once, measure in the background, then switch between frames (status says measuring).",
     )
     threads: int | None = Field(
         default=None,
         ge=1,
         description="torch intra-op threads [default: the usable CPUs, within a container's CPU quota].",
     )
+
+    @field_validator("state_dir", "cache_dir")
+    @classmethod
+    def _expand_home(cls, value: Path) -> Path:
+        return expanded(value)
 
     @field_validator("prefix", "instance")
     @classmethod
@@ -299,7 +317,7 @@ class ServiceSettings(StrictModel):
     @property
     def state_file(self) -> Path:
         """The last accepted anchor set. Named by prefix, not instance: a restarted process must find it."""
-        return self.state_dir.expanduser() / f"{self.prefix.replace('/', '_')}.anchors.json"
+        return self.state_dir / f"{self.prefix.replace('/', '_')}.anchors.json"
 
 
 def _env_overrides(environ: Mapping[str, str]) -> dict[str, Any]:
@@ -336,15 +354,7 @@ def load_settings(
     overrides: Mapping[str, Any] | None = None,
     environ: Mapping[str, str] | None = None,
 ) -> ServiceSettings:
-    data: dict[str, Any] = {}
-    if file is not None:
-        try:
-            loaded = yaml.safe_load(Path(file).read_text("utf-8")) or {}
-        except (OSError, yaml.YAMLError) as err:
-            raise SettingsError(f"{file}: cannot read the settings file: {err}") from None
-        if not isinstance(loaded, dict):
-            raise SettingsError(f"{file}: expected a mapping of settings")
-        data = loaded
+    data = load_mapping(file, "settings file", SettingsError) if file is not None else {}
     env = os.environ if environ is None else environ
     try:
         data = _merge(data, _env_overrides(env))

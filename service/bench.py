@@ -23,6 +23,7 @@ import numpy as np
 from gcdtrav.schemas.anchors import Anchor, AnchorSet, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.images import encode_maps_png16
+from gcdtrav.service.backends.modes import runtime_mode
 from gcdtrav.service.doctor import machine_info
 from gcdtrav.service.engine import gcd
 from gcdtrav.service.engine.maps import compute_maps
@@ -215,7 +216,7 @@ class Bench:
             prepared = backend.prepare(anchors.concepts)
             times, peak = time_call(self.frame(backend, prepared), self.runs)
             self.add(make_row(f"{count} anchors ({precision})", "anchors", times, peak))
-        if precision.startswith("ort-"):  # an ONNX export is made for the checkpoint's input size
+        if runtime_mode(precision).on_onnxruntime:  # an ONNX export is made for the checkpoint's input size
             precision = "fp32"
             backend = self.backend(precision)
         prepared = backend.prepare(self.anchors.concepts)
@@ -334,7 +335,7 @@ def log_line(text: str) -> None:
 
 def run(args: argparse.Namespace, cache_dir: Path | None = None, more_rows: MoreRows | None = None) -> int:
     from gcdtrav.service.backends import default_model
-    from gcdtrav.service.backends.clipseg import available_precisions
+    from gcdtrav.service.backends.machine import available_precisions
 
     skip = {part.strip() for part in args.skip.split(",") if part.strip()}
     bench = Bench(Path(args.model or default_model()), args.runs, args.naive_runs, log_line, cache_dir)

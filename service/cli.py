@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import json
 import logging
 import sys
 from collections.abc import Sequence
@@ -22,6 +23,13 @@ from gcdtrav.service.backends import default_model
 SERVICE_MODULES = ("torch", "transformers", "matplotlib", "tqdm")
 EXIT_FAILURES = 1  # some inputs could not be processed
 EXIT_USAGE = 2  # bad configuration: anchor file, model weights, arguments
+CACHE_DIR_HELP = (
+    "ONNX exports and the measurement of precision auto, shared by doctor, infer, eval and serve "
+    "[$XDG_CACHE_HOME/gcdtrav, else ~/.cache/gcdtrav]"
+)
+# Peer mode listens on a port zenoh picks unless told otherwise: serve listens on zenoh's usual port, so that
+# another machine can connect with -e tcp/HOST:7447 (a taken port falls back to zenoh's pick, with a warning).
+DEFAULT_SERVE_LISTEN = "tcp/0.0.0.0:7447"
 PRECISION_HELP = (
     "model arithmetic: auto = the fastest mode within the parity gate, measured on this machine at the first "
     "start and cached (gcdtrav doctor shows the figures)"
@@ -66,6 +74,7 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
         default="auto",
         help=PRECISION_HELP + " [auto]",
     )
+    parser.add_argument("--cache-dir", type=Path, default=None, help=CACHE_DIR_HELP)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -128,7 +137,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     group.add_argument("--method", choices=[m.value for m in Method], default=None)
     group.add_argument("--history", type=int, default=None, help="frames per source kept for queries [8]")
-    group.add_argument("--state-dir", default=None, help="where the accepted anchor set is kept")
+    group.add_argument(
+        "--state-dir",
+        default=None,
+        help="where the accepted anchor set is kept [$XDG_STATE_HOME/gcdtrav, else ~/.local/state/gcdtrav]",
+    )
+    group.add_argument("--cache-dir", default=None, help=CACHE_DIR_HELP)
     group.add_argument("--instance", default=None, help="instance name [default: host-pid]")
     group.add_argument(
         "--full-resolution", action="store_true", default=None, help="also publish T and U at the input image's size"
@@ -150,6 +164,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help=PRECISION_HELP + " [auto]",
     )
+    group.add_argument(
+        "--measure-first",
+        dest="measure_before_serving",
+        action="store_true",
+        default=None,
+        help="precision auto with nothing cached: measure the modes before serving "
+        "[off: serve fp32 at once, measure in the background, then switch]",
+    )
 
     evaluate = commands.add_parser(
         "eval",
@@ -168,6 +190,7 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--model", default=None, help="CLIPSeg directory or hub id [env GCDTRAV_MODEL]")
     evaluate.add_argument("--anchors", default=None, help="anchor-set file [the paper's set]")
     evaluate.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP + " [auto]")
+    evaluate.add_argument("--cache-dir", type=Path, default=None, help=CACHE_DIR_HELP)
     evaluate.add_argument("--temperature", type=float, default=1.0)
     evaluate.add_argument("--grid", type=int, default=8, help="sample every GRID-th pixel in x and y [8]")
     evaluate.add_argument("--out", type=Path, default=Path("eval_out"), help="output folder [eval_out]")
@@ -196,13 +219,15 @@ def build_parser() -> argparse.ArgumentParser:
 
 def build_pipeline(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     """Anchors first (cheap to validate), then the model (slow to load)."""
+    from gcdtrav.service.cpus import set_torch_threads
     from gcdtrav.service.pipeline import clipseg_pipeline
 
     anchors = load_anchors(args.anchors)
     settings = EngineSettings(
         method=Method(args.method), temperature=args.temperature, normalize_uncertainty=args.normalize_u
     )
-    return clipseg_pipeline(args.model, args.precision, anchors, settings)
+    set_torch_threads(None)  # as serve and doctor do: auto's cached measurement is keyed by the threads
+    return clipseg_pipeline(args.model, args.precision, anchors, settings, args.cache_dir)
 
 
 def cmd_infer(args: argparse.Namespace) -> int:
@@ -232,12 +257,14 @@ def serve_settings(args: argparse.Namespace):  # type: ignore[no-untyped-def]
             "anchors_file",
             "history",
             "state_dir",
+            "cache_dir",
             "instance",
             "full_resolution",
             "preview",
             "max_payload_bytes",
             "threads",
             "precision",
+            "measure_before_serving",
         )
     }
     if args.method is not None:
@@ -257,7 +284,17 @@ def cmd_serve(args: argparse.Namespace) -> int:
         return EXIT_USAGE
     if args.mode is None:
         config.insert_json5("mode", '"peer"')
-    return run_service(settings, config)
+    fallback = None
+    if args.mode in (None, "peer") and not listens_by_choice(args):
+        fallback = zenoh_config_from_args(args)  # zenoh's own pick of a port, if 7447 is taken
+        fallback.insert_json5("mode", '"peer"')
+        config.insert_json5("listen/endpoints", json.dumps([DEFAULT_SERVE_LISTEN]))
+    return run_service(settings, config, fallback)
+
+
+def listens_by_choice(args: argparse.Namespace) -> bool:
+    """The user said where to listen: -l, a config file, or --cfg listen/..."""
+    return bool(args.listen or args.config or any(item.startswith("listen") for item in args.cfg))
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -280,7 +317,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     except DatasetError as err:
         print(f"gcdtrav: {err}", file=sys.stderr)
         return EXIT_USAGE
-    backend = ClipSegBackend(args.model or default_model(), precision=args.precision)
+    from gcdtrav.service.cpus import set_torch_threads
+
+    set_torch_threads(None)
+    backend = ClipSegBackend(args.model or default_model(), precision=args.precision, cache_dir=args.cache_dir)
     options = EvalOptions(
         out_dir=args.out,
         methods=methods,

@@ -66,3 +66,15 @@ def usable_cpus(root: Path = CGROUP_ROOT) -> int:
     if quota is None:
         return affinity
     return max(1, min(affinity, math.floor(quota)))
+
+
+def set_torch_threads(configured: int | None = None) -> int:
+    """torch's intra-op threads: as configured, else torch's default capped by the usable CPUs. Every command
+    that runs the model sets them the same way: the measurement of precision auto is keyed by them, so
+    `gcdtrav doctor`, `infer` and `serve` find each other's figures."""
+    import torch
+
+    threads = configured if configured is not None else min(torch.get_num_threads(), usable_cpus())
+    if threads != torch.get_num_threads():
+        torch.set_num_threads(threads)
+    return threads

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from gcdtrav.service.backends import ModelUnavailableError, default_model
-from gcdtrav.service.cpus import cpu_features, cpu_name, usable_cpus
+from gcdtrav.service.cpus import cpu_features, cpu_name, set_torch_threads, usable_cpus
 
 EXIT_OK, EXIT_NO_WEIGHTS = 0, 1
 PACKAGES = ("torch", "transformers", "onnxruntime", "onnx", "eclipse-zenoh", "numpy", "opencv-python-headless")
@@ -26,7 +26,16 @@ def build_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     )
     parser.add_argument("--runs", type=int, default=3, help="timed frames per mode [3]")
     parser.add_argument(
-        "--cache-dir", type=Path, default=None, help="where ONNX exports are kept [$XDG_CACHE_HOME/gcdtrav]"
+        "--cache-dir",
+        type=Path,
+        default=None,
+        help="where ONNX exports and the measurement are kept, shared with infer and serve "
+        "[$XDG_CACHE_HOME/gcdtrav, else ~/.cache/gcdtrav]",
+    )
+    parser.add_argument(
+        "--measure",
+        action="store_true",
+        help="measure the modes again even if figures for this machine are cached (and cache the new ones)",
     )
     return parser
 
@@ -41,7 +50,7 @@ def version_of(package: str) -> str:
 def machine_info() -> dict[str, Any]:
     """This machine as benchmarks and the doctor report it (the bench JSON's ``machine``)."""
     import torch
-    from gcdtrav.service.backends.clipseg import cpu_has_fast_bf16
+    from gcdtrav.service.backends.machine import cpu_has_fast_bf16
 
     return {
         "python": platform.python_version(),
@@ -70,9 +79,11 @@ def machine_lines() -> list[str]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from gcdtrav.service.backends.clipseg import ClipSegBackend, available_precisions
-    from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, measure_modes, pick
+    from gcdtrav.service.backends.clipseg import ClipSegBackend
+    from gcdtrav.service.backends.machine import available_precisions
+    from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, cached_choice, measure_and_store
 
+    set_torch_threads(None)  # as infer and serve do: the cached figures are keyed by the threads
     for line in machine_lines():
         print(line)
     model = args.model or default_model()
@@ -83,9 +94,16 @@ def run(args: argparse.Namespace) -> int:
         return EXIT_NO_WEIGHTS
     print(f"weights      found: {backend.checkpoint_dir or model}")
     modes = available_precisions()
-    print(f"\ntiming {', '.join(modes)} ({args.runs} frames each, 13 anchors, {backend.preprocess.size} px) ...")
-    sys.stdout.flush()
-    measured = measure_modes(backend, modes, runs=args.runs)
+    choice = None if args.measure else cached_choice(backend, modes)
+    if choice is None:
+        print(f"\ntiming {', '.join(modes)} ({args.runs} frames each, 13 anchors, {backend.preprocess.size} px) ...")
+        sys.stdout.flush()
+        choice = measure_and_store(backend, modes, runs=args.runs)
+        print(f"(cached in {backend.cache_dir / 'precision'}: infer and serve run the mode picked below)")
+    else:
+        print(f"\nfigures of an earlier measurement on this machine, cached in {backend.cache_dir / 'precision'}")
+        print("(gcdtrav doctor --measure measures again)")
+    measured = choice.measurements
     print(f"\n| mode | ms per frame | frames/s | p99 abs dT vs fp32 | parity (<= {PARITY_P99_DT_LIMIT}) |")
     print("|---|---:|---:|---:|---|")
     for m in measured:
@@ -94,7 +112,6 @@ def run(args: argparse.Namespace) -> int:
             continue
         verdict = "passes" if m.passes else "FAILS"
         print(f"| {m.mode} | {m.ms_per_frame:.0f} | {1000 / m.ms_per_frame:.2f} | {m.p99_dT:.4f} | {verdict} |")
-    choice = pick(measured)
     best = next(m for m in measured if m.mode == choice.mode)
     print(f"\nprecision auto picks {choice.mode} here.")
     if best.ms_per_frame:

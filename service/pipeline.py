@@ -87,13 +87,21 @@ class Pipeline:
 
 
 def clipseg_pipeline(
-    model: str | None, precision: str, anchors: AnchorSet, engine: EngineSettings, cache_dir: Path | None = None
+    model: str | None,
+    precision: str,
+    anchors: AnchorSet,
+    engine: EngineSettings,
+    cache_dir: Path | None = None,
+    measure_now: bool = True,
 ) -> Pipeline:
     """The one assembly of CLIPSeg and the engine, for `gcdtrav infer` and `gcdtrav serve`: ``model`` a
     directory or hub id (None: $GCDTRAV_MODEL, else CIDAS/clipseg-rd64-refined); ``cache_dir`` where the
-    ONNX exports and auto's measurement live (None: the user's cache)."""
+    ONNX exports and auto's measurement live (None: the user's cache); ``measure_now`` False: auto with
+    nothing cached starts in fp32 and leaves the measurement to the caller."""
     from gcdtrav.service.backends import default_model
     from gcdtrav.service.backends.clipseg import ClipSegBackend
 
-    backend = ClipSegBackend(model or default_model(), precision=precision, cache_dir=cache_dir)
+    backend = ClipSegBackend(
+        model or default_model(), precision=precision, cache_dir=cache_dir, measure_now=measure_now
+    )
     return Pipeline(backend, anchors, engine)

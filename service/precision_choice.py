@@ -2,11 +2,14 @@
 
 CPU flags do not say which mode is fastest: on an AVX2-only EPYC ONNX Runtime's int8 trunk wins, on an AMX
 Xeon torch's bf16 does, and a container's CPU quota changes the picture again. So at start every mode
-this machine can run (``available_precisions``) is timed on a fixed internal input (a synthetic image,
-the paper's 13 anchors), its T compared with fp32's (``parity``), and the fastest that passes the gate
-(p99 |dT| <= 0.02) is used. The figures are logged, reported in the status reply, and cached in the cache
-directory under the same kind of key as the ONNX export (checkpoint, versions, CPU, threads), so a restart
-on the same machine skips the measurement.
+this machine can run (``machine.available_precisions``, from the table in ``backends/modes.py``) is timed
+on a fixed internal input (a synthetic image, the paper's 13 anchors), its T compared with fp32's
+(``parity``), and the fastest that passes the gate (p99 |dT| <= 0.02) is used. The figures are logged,
+reported in the status reply, and cached in the cache directory under the same kind of key as the ONNX
+export (checkpoint, versions, CPU, threads): ONE cache, which ``gcdtrav doctor`` fills and ``infer``,
+``eval`` and ``serve`` read, so they all run the mode doctor printed. ``infer`` and ``eval`` measure
+before the first image when nothing is cached; ``serve`` starts in fp32 at once and measures in the
+background (``measure_then_switch``), unless told to measure before serving.
 """
 
 from __future__ import annotations
@@ -15,7 +18,9 @@ import json
 import logging
 import os
 import statistics
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from functools import partial
 from pathlib import Path
@@ -98,28 +103,39 @@ class PrecisionChoice:
     measurements: list[ModeMeasurement]
 
 
-def measure_modes(backend: Any, modes: list[str], runs: int = MEASURED_RUNS) -> list[ModeMeasurement]:
-    """Median ms per frame and p99 |dT| against fp32 of each mode, on the backend's loaded weights."""
+class MeasurementCancelled(Exception):
+    """The service is shutting down: the measurement stops between modes, and nothing is cached."""
+
+
+def measure_modes(
+    backend: Any, modes: list[str], runs: int = MEASURED_RUNS, cancelled: Callable[[], bool] = lambda: False
+) -> list[ModeMeasurement]:
+    """Median ms per frame and p99 |dT| against fp32 of each mode, on the backend's loaded weights. Each mode's
+    compute is built and run beside the one the backend runs, which keeps serving; one at a time, so at
+    most the reference and one candidate are in memory. ``cancelled`` is asked before each mode."""
     anchors = default_anchor_set()
     images = [synthetic_image(seed=seed) for seed in range(PARITY_IMAGES)]
     reference_compute = backend.compute_for("fp32")
-    backend.use_compute(reference_compute, "fp32")
     prepared = backend.prepare(anchors.concepts)
-    references = [backend.logits(image, prepared) for image in images]
+    references = [backend.logits_with(reference_compute, image, prepared) for image in images]
     results = []
     for mode in modes:
+        if cancelled():
+            raise MeasurementCancelled
         try:
-            backend.use_compute(reference_compute if mode == "fp32" else backend.compute_for(mode), mode)
+            compute = reference_compute if mode == "fp32" else backend.compute_for(mode)
         except Exception as err:  # an export or a runtime that fails here must not stop the service
             log.warning("precision %s is unavailable here: %s", mode, err)
             results.append(ModeMeasurement(mode, None, None, f"{type(err).__name__}: {err}"[:300]))
             continue
-        outputs = [backend.logits(images[0], prepared)]  # warm-up (first-call allocations), and parity
-        times = interleaved_ms({mode: partial(backend.logits, images[0], prepared)}, runs, warmup=0)[mode]
-        outputs += [backend.logits(image, prepared) for image in images[1:]]
+        run = partial(backend.logits_with, compute)
+        outputs = [run(images[0], prepared)]  # warm-up (first-call allocations), and parity
+        times = interleaved_ms({mode: partial(run, images[0], prepared)}, runs, warmup=0)[mode]
+        outputs += [run(image, prepared) for image in images[1:]]
         worst = max(parity(r, o, anchors)["p99_dT"] for r, o in zip(references, outputs, strict=True))
         results.append(ModeMeasurement(mode, round(statistics.median(times), 1), round(worst, 5)))
         log.info("precision %-12s %8.1f ms/frame, p99 |dT| %.4f", mode, results[-1].ms_per_frame, worst)
+        del compute, run
     return results
 
 
@@ -184,23 +200,85 @@ def _store(path: Path, key: dict[str, Any], measurements: list[ModeMeasurement])
     os.replace(temporary, path)
 
 
-def choose_precision(backend: Any, use_cache: bool = True) -> PrecisionChoice:
-    """Measure (or recall) every available mode and pick the fastest that passes the gate (the caller
-    builds the chosen mode's compute)."""
-    from gcdtrav.service.backends.clipseg import available_precisions
+def choice_path(backend: Any, key: dict[str, Any]) -> Path:
     from gcdtrav.service.backends.onnx_runtime import key_digest
 
-    modes = available_precisions()
+    return Path(backend.cache_dir) / "precision" / f"{key_digest(key)}.json"
+
+
+def cached_choice(backend: Any, modes: list[str]) -> PrecisionChoice | None:
+    """auto's choice from the measurement cached for this checkpoint and machine; None if there is none."""
     key = choice_key(backend, modes)
-    path = backend.cache_dir / "precision" / f"{key_digest(key)}.json"
-    choice = _cached(path, key) if use_cache else None
-    if choice is None:
-        log.info("precision auto: timing %s on this machine (once; cached in %s) ...", ", ".join(modes), path.parent)
-        measurements = measure_modes(backend, modes)
-        try:
-            _store(path, key, measurements)
-        except OSError as err:
-            log.warning("cannot cache the precision measurements in %s: %s", path, err)
-        choice = pick(measurements)
+    choice = _cached(choice_path(backend, key), key)
+    if choice is not None:
+        log.info("precision %s: %s", choice.mode, choice.reason)
+    return choice
+
+
+def measure_and_store(
+    backend: Any, modes: list[str], runs: int = MEASURED_RUNS, cancelled: Callable[[], bool] = lambda: False
+) -> PrecisionChoice:
+    """Measure every mode now, cache the figures (the one cache every command reads) and pick."""
+    key = choice_key(backend, modes)
+    path = choice_path(backend, key)
+    log.info("precision auto: timing %s on this machine (once; cached in %s) ...", ", ".join(modes), path.parent)
+    measurements = measure_modes(backend, modes, runs, cancelled=cancelled)
+    try:
+        _store(path, key, measurements)
+    except OSError as err:
+        log.warning("cannot cache the precision measurements in %s: %s", path, err)
+    choice = pick(measurements)
     log.info("precision %s: %s", choice.mode, choice.reason)
     return choice
+
+
+def measure_then_switch(backend: Any, modes: list[str], cancel: threading.Event | None = None) -> None:
+    """Measure the modes while the backend serves in its safe mode, then switch it to auto's choice between
+    frames. ``backend.measuring`` is true meanwhile. A failure leaves the safe mode running, with the reason;
+    ``cancel`` set (shutdown) stops it before the next mode, caching nothing."""
+    backend.measuring = True
+    stop = cancel or threading.Event()
+    try:
+        choice = measure_and_store(backend, modes, cancelled=stop.is_set)
+        compute = backend.compute if choice.mode == backend.precision else backend.compute_for(choice.mode)
+        backend.switch_to(compute, choice.mode, choice.reason)
+        log.info("precision switched to %s", choice.mode)
+    except MeasurementCancelled:
+        log.info("precision auto: measurement stopped by the shutdown; nothing cached")
+    except Exception as err:  # the service keeps serving in the safe mode
+        log.exception("precision auto: the measurement failed; staying on %s", backend.precision)
+        reason = f"auto: the measurement failed ({err}); {backend.precision}"
+        backend.use_compute(backend.compute, backend.precision, reason)
+    finally:
+        backend.measuring = False
+        backend.needs_measurement = False
+
+
+@dataclass
+class BackgroundMeasurement:
+    """``measure_then_switch`` in a daemon thread, and how to stop it at shutdown."""
+
+    thread: threading.Thread
+    cancel: threading.Event
+
+    def join(self, timeout: float | None = None) -> bool:
+        """True once the measurement has ended."""
+        self.thread.join(timeout)
+        return not self.thread.is_alive()
+
+    def stop(self, timeout: float) -> bool:
+        """Cancel (effective before the next mode) and wait; False if it is still inside one (an ONNX export)."""
+        self.cancel.set()
+        return self.join(timeout)
+
+
+def measure_in_background(backend: Any) -> BackgroundMeasurement:
+    from gcdtrav.service.backends.machine import available_precisions
+
+    backend.measuring = True  # before the thread starts: a status asked right now already says so
+    cancel = threading.Event()
+    thread = threading.Thread(
+        target=measure_then_switch, args=(backend, available_precisions(), cancel), name="precision-auto", daemon=True
+    )
+    thread.start()
+    return BackgroundMeasurement(thread, cancel)

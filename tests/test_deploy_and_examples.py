@@ -96,6 +96,7 @@ def test_readme_python_example_runs(tiny_backend, tmp_path: Path) -> None:  # ty
     pytest.importorskip("torch")
     import re
 
+    from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
     from gcdtrav.schemas.settings import ServiceSettings
 
     from tools.loopback import in_process_service
@@ -112,7 +113,11 @@ def test_readme_python_example_runs(tiny_backend, tmp_path: Path) -> None:  # ty
         result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
         assert result.returncode == 0, result.stderr
         assert "'r1/front': SourceStatus(received=1, processed=1" in result.stdout
-        assert len(service.pipeline.anchors) == 2
+        # the snippet swapped in the whole set plus a puddle, then rolled back to the whole set
+        paper = default_anchor_set().model_dump()
+        extended = sorted([*paper["anchors"], {"concept": "puddle", "position": 0.05}], key=lambda a: a["position"])
+        assert AnchorSet.parse({**paper, "anchors": extended}).version in result.stdout
+        assert service.pipeline.anchors == default_anchor_set()
 
 
 def test_container_health_check_finds_its_instance(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]

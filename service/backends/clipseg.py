@@ -22,6 +22,7 @@ import json
 import logging
 import mmap
 import sys
+import threading
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -31,16 +32,17 @@ from typing import Any, TypeAlias
 import cv2
 import numpy as np
 import torch
-from gcdtrav.schemas.settings import PRECISIONS
+from gcdtrav.schemas.paths import default_cache_dir, expanded
 from gcdtrav.service.backends.base import ModelUnavailableError
 from gcdtrav.service.backends.decoder import DECODER_CHUNK, FastDecoder
+from gcdtrav.service.backends.hub import cached_in_hub_cache, hub_offline
+from gcdtrav.service.backends.machine import available_precisions, machine_has
+from gcdtrav.service.backends.modes import AUTO, RuntimeMode, missing_requirement, runtime_mode
 from gcdtrav.service.backends.onednn import QuickGeluMLP, clip_encoder_layer, fused_mlp_pays
 from gcdtrav.service.backends.onnx_runtime import (
     ExportError,
     OrtCompute,
-    default_cache_dir,
     exported_model,
-    onnx_runtime_available,
 )
 from numpy.typing import NDArray
 
@@ -55,7 +57,7 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 CLIPSEG_INPUT_SIZE = 352
 HOW_TO_PROVIDE_WEIGHTS = (
     "to provide the weights, on a machine with internet run "
-    "`huggingface-cli download CIDAS/clipseg-rd64-refined --local-dir clipseg-rd64-refined`, "
+    "`hf download CIDAS/clipseg-rd64-refined --local-dir clipseg-rd64-refined`, "
     "copy that directory to this machine, then pass `--model ./clipseg-rd64-refined` "
     "or set GCDTRAV_MODEL=./clipseg-rd64-refined"
 )
@@ -90,26 +92,10 @@ class Preprocessing:
         return torch.from_numpy(np.ascontiguousarray(scaled.transpose(2, 0, 1)))[None]
 
 
-def cpu_has_fast_bf16() -> bool:
-    """AVX512-BF16 or AMX: bf16 matrix products run natively (x86). Elsewhere bf16 is emulated and slow."""
-    checks = ("_is_avx512_bf16_supported", "_is_amx_tile_supported")
-    return any(bool(getattr(torch.cpu, name, lambda: False)()) for name in checks)
-
-
-def available_precisions() -> list[str]:
-    """The concrete modes worth running on this machine: bf16 only where native, ONNX Runtime if installed."""
-    modes = ["fp32", "int8"]
-    if cpu_has_fast_bf16():
-        modes += ["bf16", "bf16-vit"]
-    if onnx_runtime_available():
-        modes += ["ort-fp32", "ort-int8-vit", "ort-int8"]
-    return modes
-
-
 def check_precision(requested: str) -> str:
-    if requested not in PRECISIONS:
-        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, not '{requested}'")
-    if requested.startswith("ort-") and not onnx_runtime_available():
+    """A concrete mode (not auto) this machine can build; the error says what is missing."""
+    missing = missing_requirement(runtime_mode(requested), machine_has)
+    if missing == "onnxruntime":
         raise ModelUnavailableError(
             f"precision '{requested}' needs ONNX Runtime: pip install onnxruntime onnx (in gcdtrav[service])"
         )
@@ -135,16 +121,16 @@ class VisionTrunk(torch.nn.Module):
         self.fused_mlps: list[QuickGeluMLP | None] = [None] * len(layers)
 
     @classmethod
-    def build(cls, vision: Any, last_layer: int, precision: str, tokens: int) -> VisionTrunk:
+    def build(cls, vision: Any, last_layer: int, arithmetic: str, tokens: int) -> VisionTrunk:
         """``tokens``: how many the input size gives (patches + class token), for timing the fused MLP."""
         layers = torch.nn.ModuleList(list(vision.encoder.layers)[: last_layer + 1])
         trunk = cls(vision.embeddings, vision.pre_layrnorm, layers, torch.float32)
-        if precision in ("bf16", "bf16-vit"):
+        if arithmetic == "bf16":
             # Copied one module at a time: never a second fp32 copy of the whole trunk in memory.
             copies = [copy.deepcopy(module).to(torch.bfloat16) for module in (vision.embeddings, vision.pre_layrnorm)]
             bf16_layers = torch.nn.ModuleList(copy.deepcopy(layer).to(torch.bfloat16) for layer in layers)
             trunk = cls(copies[0], copies[1], bf16_layers, torch.bfloat16)
-        elif precision == "int8":
+        elif arithmetic == "int8":
             quantized = torch.ao.quantization.quantize_dynamic(
                 copy.deepcopy(trunk), {torch.nn.Linear}, dtype=torch.qint8
             )
@@ -170,13 +156,13 @@ class VisionTrunk(torch.nn.Module):
 
 
 class TorchCompute:
-    """Trunk and decoder in torch, in the given precision (fp32, bf16, bf16-vit, int8)."""
+    """Trunk and decoder in torch, in a torch mode's arithmetic (modes.py)."""
 
-    def __init__(self, model: Any, extract_layers: list[int], precision: str, tokens: int) -> None:
+    def __init__(self, model: Any, extract_layers: list[int], mode: RuntimeMode, tokens: int) -> None:
         self.extract_layers = extract_layers
-        self.trunk = VisionTrunk.build(model.clip.vision_model, max(extract_layers), precision, tokens)
+        self.trunk = VisionTrunk.build(model.clip.vision_model, max(extract_layers), mode.trunk, tokens)
         decoder, self.decoder_dtype = model.decoder, torch.float32
-        if precision == "bf16":  # the decoder's MLPs, run once per anchor, cost as much as the ViT
+        if mode.decoder == "bf16":  # the decoder's MLPs, run once per anchor, cost as much as the ViT
             decoder, self.decoder_dtype = copy.deepcopy(decoder).to(torch.bfloat16), torch.bfloat16
         self.decoder = FastDecoder(decoder, tokens)
 
@@ -226,10 +212,34 @@ def _locate(model: str, filename: str) -> Path | None:
     try:
         from transformers.utils import cached_file
 
-        found = cached_file(model, filename, _raise_exceptions_for_missing_entries=False)
+        found = cached_file(model, filename, _raise_exceptions_for_missing_entries=False, local_files_only=True)
     except (OSError, ValueError):
         return None
     return Path(found) if found else None
+
+
+def hub_load_options(model: str) -> dict[str, Any]:
+    """``from_pretrained``'s options for a hub id: the local cache only when the hub cannot be reached (then a
+    model not in the cache fails now, not after the hub's retries)."""
+    why_offline = hub_offline()
+    if why_offline is None:
+        return {}
+    if not cached_in_hub_cache(model):
+        raise ModelUnavailableError(
+            f"'{model}' is not a local directory, the Hugging Face hub cannot be used ({why_offline}) and the "
+            f"model is not in the hub's local cache; {HOW_TO_PROVIDE_WEIGHTS}"
+        )
+    log.info("the Hugging Face hub cannot be used (%s): loading '%s' from its local cache", why_offline, model)
+    return {"local_files_only": True}
+
+
+@dataclass(frozen=True)
+class RunningMode:
+    """The compute frames run with, its mode and why: swapped as one reference, between frames."""
+
+    compute: Compute
+    precision: str
+    reason: str
 
 
 class ClipSegBackend:
@@ -243,27 +253,32 @@ class ClipSegBackend:
         prepared_cache_size: int = 4,
         keep_reference: bool = False,
         cache_dir: Path | None = None,
+        measure_now: bool = True,
     ) -> None:
         """``keep_reference``: keep transformers' complete fp32 model for ``naive_logits`` (benchmark, tests).
 
         Without it, the vision layers the chosen mode does not use are released: the fp32 ViT when the
         trunk is a bf16, int8 or ONNX Runtime copy (about 340 MB for rd64-refined), the layers after the
         last one the decoder reads otherwise. ``cache_dir`` keeps the ONNX exports and the measurements of
-        ``precision='auto'`` [$XDG_CACHE_HOME/gcdtrav].
+        ``precision='auto'`` [$XDG_CACHE_HOME/gcdtrav]. ``measure_now`` False: with auto and no measurement
+        cached for this machine, run fp32 and leave ``needs_measurement`` set for the caller to measure (in
+        the background: ``precision_choice.measure_then_switch``).
         """
         from transformers import CLIPSegForImageSegmentation, CLIPTokenizer
 
         self.model_id = model
         self.keeps_reference = keep_reference
         self.device = torch.device(device)
-        self.cache_dir = cache_dir or default_cache_dir()
-        check_precision(precision)
+        self.cache_dir = expanded(cache_dir) if cache_dir is not None else default_cache_dir()
+        if precision != AUTO:
+            check_precision(precision)
         if model.startswith(("/", ".", "~")) and not Path(model).expanduser().is_dir():
             raise ModelUnavailableError(f"model directory '{model}' does not exist; {HOW_TO_PROVIDE_WEIGHTS}")
         model = str(Path(model).expanduser()) if model.startswith("~") else model
+        options = {} if Path(model).is_dir() else hub_load_options(model)
         try:
-            self.model = CLIPSegForImageSegmentation.from_pretrained(model).eval().to(self.device)
-            self.tokenizer = CLIPTokenizer.from_pretrained(model)
+            self.model = CLIPSegForImageSegmentation.from_pretrained(model, **options).eval().to(self.device)
+            self.tokenizer = CLIPTokenizer.from_pretrained(model, **options)
         except (OSError, ValueError) as err:
             reason = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
             raise ModelUnavailableError(
@@ -275,22 +290,35 @@ class ClipSegBackend:
         self.extract_layers = list(self.model.config.extract_layers)
         self._prepared: OrderedDict[tuple[str, ...], torch.Tensor] = OrderedDict()
         self._prepared_cache_size = prepared_cache_size
-        self.precision_reason = f"asked for {precision}"
-        if precision == "auto":
-            from gcdtrav.service.precision_choice import choose_precision
-
-            choice = choose_precision(self)
-            precision, self.precision_reason = choice.mode, choice.reason
-        self.precision = precision
-        self._compute: Compute = self.compute_for(precision)
+        self._prepare_lock = threading.Lock()  # the anchor switch and a background measurement both prepare
+        self._frame_lock = threading.Lock()  # held for a frame: a mode switch waits for the frame in flight
+        self.measuring = False  # a background measurement of the modes is running (status reports it)
+        self.needs_measurement = False
+        precision, reason = self._resolve(precision, measure_now)
+        self._running = RunningMode(self.compute_for(precision), precision, reason)
         if not keep_reference:
             self._release_unused_vision_layers()
 
+    def _resolve(self, precision: str, measure_now: bool) -> tuple[str, str]:
+        """The concrete mode to start with, and why."""
+        if precision != AUTO:
+            return precision, f"asked for {precision}"
+        from gcdtrav.service import precision_choice
+
+        modes = available_precisions()
+        choice = precision_choice.cached_choice(self, modes)
+        if choice is None and measure_now:
+            choice = precision_choice.measure_and_store(self, modes)
+        if choice is None:
+            self.needs_measurement = True
+            return "fp32", "auto: fp32 until the modes are measured on this machine (measuring in the background)"
+        return choice.mode, choice.reason
+
     def compute_for(self, precision: str) -> Compute:
         """The trunk and decoder of a concrete mode; ONNX Runtime's are exported on first use and cached."""
-        check_precision(precision)
-        if not precision.startswith("ort-"):
-            return TorchCompute(self.model, self.extract_layers, precision, self.vision_tokens)
+        mode = runtime_mode(check_precision(precision))
+        if not mode.on_onnxruntime:
+            return TorchCompute(self.model, self.extract_layers, mode, self.vision_tokens)
         if self.checkpoint_dir is None:
             raise ExportError(f"cannot find the files of checkpoint '{self.model_id}' to key the ONNX export")
         exported = exported_model(
@@ -301,8 +329,7 @@ class ClipSegBackend:
             self.preprocess.size,
             self.cache_dir,
         )
-        int8_trunk, int8_decoder = precision in ("ort-int8", "ort-int8-vit"), precision == "ort-int8"
-        return OrtCompute(exported, int8_trunk, int8_decoder, threads=torch.get_num_threads())
+        return OrtCompute(exported, mode.trunk == "int8", mode.decoder == "int8", threads=torch.get_num_threads())
 
     @property
     def vision_tokens(self) -> int:
@@ -311,15 +338,32 @@ class ClipSegBackend:
 
     @property
     def compute(self) -> Compute:
-        return self._compute
+        return self._running.compute
 
-    def use_compute(self, compute: Compute, precision: str) -> None:
-        """Run with another mode's compute from now on (used while measuring modes; not thread-safe)."""
-        self._compute, self.precision = compute, precision
+    @property
+    def precision(self) -> str:
+        return self._running.precision
+
+    @property
+    def precision_reason(self) -> str:
+        return self._running.reason
+
+    def use_compute(self, compute: Compute, precision: str, reason: str | None = None) -> None:
+        """Run with another mode's compute from the next frame on (one reference swap)."""
+        self._running = RunningMode(compute, precision, self.precision_reason if reason is None else reason)
+
+    def switch_to(self, compute: Compute, precision: str, reason: str) -> None:
+        """Swap the mode between frames (waits for the frame in flight), then give back the vision layers
+        the new mode does not use."""
+        with self._frame_lock:
+            self.use_compute(compute, precision, reason)
+            if not self.keeps_reference:
+                self._release_unused_vision_layers()
 
     def _release_unused_vision_layers(self) -> None:
         encoder = self.model.clip.vision_model.encoder
-        trunk = self._compute.trunk if isinstance(self._compute, TorchCompute) else None
+        compute = self._running.compute
+        trunk = compute.trunk if isinstance(compute, TorchCompute) else None
         run = {id(layer) for layer in trunk.layers} if trunk is not None else set()  # fp32 shares the layers
         for layer in encoder.layers:
             if id(layer) not in run:
@@ -333,36 +377,42 @@ class ClipSegBackend:
     def prepare(self, concepts: Sequence[str]) -> torch.Tensor:
         """Text-conditional embeddings (n, projection_dim), cached per tuple of concepts."""
         key = tuple(concepts)
-        if key in self._prepared:
-            self._prepared.move_to_end(key)
-            return self._prepared[key]
-        tokens = self.tokenizer(list(key), padding=True, return_tensors="pt").to(self.device)
-        embeddings = self.model.get_conditional_embeddings(
-            batch_size=len(key), input_ids=tokens["input_ids"], attention_mask=tokens["attention_mask"]
-        )
-        self._prepared[key] = embeddings
-        while len(self._prepared) > self._prepared_cache_size:
-            self._prepared.popitem(last=False)
-        return embeddings
+        with self._prepare_lock:
+            if key in self._prepared:
+                self._prepared.move_to_end(key)
+                return self._prepared[key]
+            tokens = self.tokenizer(list(key), padding=True, return_tensors="pt").to(self.device)
+            embeddings = self.model.get_conditional_embeddings(
+                batch_size=len(key), input_ids=tokens["input_ids"], attention_mask=tokens["attention_mask"]
+            )
+            self._prepared[key] = embeddings
+            while len(self._prepared) > self._prepared_cache_size:
+                self._prepared.popitem(last=False)
+            return embeddings
 
     # ---- per image -----------------------------------------------------------------------------------
     @torch.inference_mode()
     def vision_activations(self, pixel_values: torch.Tensor) -> list[torch.Tensor]:
         """Hidden states after each layer in ``extract_layers``; later layers are never run."""
-        return self._compute.activations(pixel_values)
+        return self._running.compute.activations(pixel_values)
 
     @torch.inference_mode()
     def decode(self, activations: list[torch.Tensor], conditional: torch.Tensor) -> torch.Tensor:
         """(n, h, w) fp32 logits from a single image's activations, the decoder batched over concepts."""
-        return self._compute.decode(activations, conditional).float()
+        return self._running.compute.decode(activations, conditional).float()
+
+    def logits(self, image_rgb: NDArray[np.uint8], prepared: object) -> NDArray[np.float32]:
+        """A frame with the running mode (read once: the whole frame runs in one mode)."""
+        with self._frame_lock:
+            return self.logits_with(self._running.compute, image_rgb, prepared)
 
     @torch.inference_mode()
-    def logits(self, image_rgb: NDArray[np.uint8], prepared: object) -> NDArray[np.float32]:
+    def logits_with(self, compute: Compute, image_rgb: NDArray[np.uint8], prepared: object) -> NDArray[np.float32]:
+        """A frame with the given compute, whatever runs: measurements of the modes use it beside the service."""
         if not isinstance(prepared, torch.Tensor):
             raise TypeError("prepared must come from ClipSegBackend.prepare()")
         pixels = self.preprocess(image_rgb).to(self.device)
-        result = self.decode(self.vision_activations(pixels), prepared)
-        return result.float().cpu().numpy()
+        return compute.decode(compute.activations(pixels), prepared).float().cpu().numpy()
 
     @torch.inference_mode()
     def naive_logits(self, image_rgb: NDArray[np.uint8], concepts: Sequence[str]) -> NDArray[np.float32]:

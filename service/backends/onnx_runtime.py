@@ -34,6 +34,12 @@ from gcdtrav.service.cpus import cpu_features
 
 log = logging.getLogger(__name__)
 
+# ONNX Runtime's POSIX telemetry writes a device id and an event queue under ~/.cache/Microsoft/DeveloperTools/
+# when it is first imported, unless this is set before (it is read once, at that import). gcdtrav writes
+# only to its state and cache directories, and a robot's box sends nothing it was not asked to: off, unless
+# the user set it. Every import of onnxruntime in gcdtrav goes through this module.
+os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
+
 EXPORT_FORMAT = 2  # bump when the exported graphs change
 TRUNK, TRUNK_INT8, DECODER, DECODER_INT8 = "trunk.onnx", "trunk-int8.onnx", "decoder.onnx", "decoder-int8.onnx"
 EXPORTED_FILES = (TRUNK, TRUNK_INT8, DECODER, DECODER_INT8)
@@ -101,11 +107,6 @@ def export_key(checkpoint: Path, input_size: int, extract_layers: Sequence[int])
 
 def key_digest(key: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:24]
-
-
-def default_cache_dir() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "gcdtrav"
 
 
 @dataclass(frozen=True)

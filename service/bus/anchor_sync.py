@@ -16,6 +16,7 @@ import zenoh
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply, MessageError
+from gcdtrav.service.bus.entities import undeclare_all
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.fleet_anchors import ActiveSet, FleetAnchors
 
@@ -53,7 +54,7 @@ class AnchorSync:
             )
         self.fleet.announced(self.instance, active)
         if old is not None:
-            old.undeclare()
+            undeclare_all([old])
 
     def _on_token(self, sample: zenoh.Sample) -> None:
         parsed = self.keys.parse_active_anchors(str(sample.key_expr))
@@ -119,10 +120,4 @@ class AnchorSync:
         with self._lock:
             self._closed = True
             token, self._token = self._token, None
-        for entity in (self._subscriber, token):
-            if entity is None:
-                continue
-            try:
-                entity.undeclare()
-            except zenoh.ZError as err:
-                log.debug("undeclare failed: %s", err)
+        undeclare_all(entity for entity in (self._subscriber, token) if entity is not None)

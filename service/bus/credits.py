@@ -14,6 +14,7 @@ import threading
 import zenoh
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import MSGPACK_ENCODING
+from gcdtrav.service.bus.entities import undeclare_all
 from gcdtrav.service.runtime.credits import TAKEN, CreditLedger, FrameTimes
 from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.stats import ServiceStats
@@ -55,19 +56,11 @@ class CreditPublisher:
         with self._lock:
             publisher = self._publishers.pop(source, None)
         if publisher is not None:
-            self._undeclare(publisher)
+            undeclare_all([publisher])
 
     def close(self) -> None:
         with self._lock:
             self._closed = True
             publishers = list(self._publishers.values())
             self._publishers.clear()
-        for publisher in publishers:
-            self._undeclare(publisher)
-
-    @staticmethod
-    def _undeclare(publisher: zenoh.Publisher) -> None:
-        try:
-            publisher.undeclare()
-        except zenoh.ZError as err:  # the session may already be closing
-            log.debug("undeclare failed: %s", err)
+        undeclare_all(publishers)

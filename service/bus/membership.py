@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 import zenoh
 from gcdtrav.schemas.keys import Keys
+from gcdtrav.service.bus.entities import undeclare_all
 from gcdtrav.service.runtime.assignment import Assignment, owner_of, weight
 
 log = logging.getLogger("gcdtrav.service")
@@ -73,7 +74,7 @@ class Membership:
         with self._lock:
             token, self._token = self._token, None
         if token is not None:
-            self._undeclare(token)
+            undeclare_all([token])
             self._changed()
 
     def rejoin(self) -> None:
@@ -101,13 +102,4 @@ class Membership:
     def close(self) -> None:
         with self._lock:
             token, self._token = self._token, None
-        for entity in (self._subscriber, token):
-            if entity is not None:
-                self._undeclare(entity)
-
-    @staticmethod
-    def _undeclare(entity: zenoh.LivelinessToken | zenoh.Subscriber[None]) -> None:
-        try:
-            entity.undeclare()
-        except zenoh.ZError as err:
-            log.debug("undeclare failed: %s", err)
+        undeclare_all(entity for entity in (self._subscriber, token) if entity is not None)

@@ -25,6 +25,7 @@ from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus.anchor_sync import AnchorSync
 from gcdtrav.service.bus.credits import CreditPublisher
+from gcdtrav.service.bus.entities import undeclare_all
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
@@ -154,11 +155,7 @@ class TraversabilityService:
             log.warning("the frame in flight did not finish within %.0f s; its outputs are dropped", timeout)
         self.outputs.close()  # before the session's entities: a late frame is refused, not put on a dead key
         self.credits.close()
-        for entity in self._declared:
-            try:
-                entity.undeclare()
-            except zenoh.ZError as err:  # the session may already be closing
-                log.debug("undeclare failed: %s", err)
+        undeclare_all(self._declared)
         self._declared.clear()
         if self.anchor_sync is not None:
             self.anchor_sync.close()
@@ -277,6 +274,7 @@ class TraversabilityService:
             method=self.pipeline.settings.method,
             precision=self._precision(),
             precision_reason=str(getattr(self.pipeline.backend, "precision_reason", "")),
+            measuring=bool(getattr(self.pipeline.backend, "measuring", False)),
             queued=len(self.queue),
             queued_bytes=self.queue.nbytes,
             sources=counts.sources,

@@ -13,6 +13,7 @@ import threading
 import zenoh
 from gcdtrav.schemas.messages import MSGPACK_ENCODING
 from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.service.bus.entities import undeclare_all
 from gcdtrav.service.bus.ros_graph import GRID_QOS, IMAGE_QOS, RosGraph
 from gcdtrav.service.runtime.frames import ProcessedFrame
 from gcdtrav.service.runtime.grids import GridOutputs
@@ -95,21 +96,12 @@ class FrameOutputs:
             ros_keys = self._ros_keys_of_source.pop(source, set())
             if self.ros_graph is not None:
                 self.ros_graph.forget(ros_keys)
-            for publisher in publishers:
-                self._undeclare(publisher)
+            undeclare_all(publishers)
 
     def close(self) -> None:
         with self._lock:
             self._closed = True
-            for publisher in self._publishers.values():
-                self._undeclare(publisher)
+            undeclare_all(self._publishers.values())
             self._publishers.clear()
             self._keys_of_source.clear()
             self._ros_keys_of_source.clear()
-
-    @staticmethod
-    def _undeclare(publisher: zenoh.Publisher) -> None:
-        try:
-            publisher.undeclare()
-        except zenoh.ZError as err:  # the session may already be closing
-            log.debug("undeclare failed: %s", err)

@@ -26,6 +26,7 @@ from typing import Any, Literal
 import zenoh
 from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.service.bus.entities import undeclare_all
 from gcdtrav.service.ros import cdr as ros_io
 from zenoh.ext import Int64, UInt8, z_serialize
 
@@ -166,11 +167,7 @@ class RosPublisher:
         self.publisher.put(payload, attachment=rmw_attachment(self.sequence, time.time_ns(), self.gid))
 
     def close(self) -> None:
-        for declared in (self.token, self.publisher):
-            try:
-                declared.undeclare()
-            except zenoh.ZError as err:  # the session may already be closing
-                log.debug("undeclare failed: %s", err)
+        undeclare_all((self.token, self.publisher))
 
 
 class RosGraph:
@@ -218,11 +215,7 @@ class RosGraph:
             tokens, self._tokens = list(self._tokens.values()), {}
             self._subscriptions.clear()
             self._nodes.clear()
-        for entity in [*watchers, *tokens]:
-            try:
-                entity.undeclare()
-            except zenoh.ZError as err:  # the session may already be closing
-                log.debug("undeclare failed: %s", err)
+        undeclare_all([*watchers, *tokens])
         for publisher in publishers:
             publisher.close()
 

@@ -104,25 +104,53 @@ def _rugd_ids(path: Path, colours: dict[tuple[int, int, int], int]) -> NDArray[n
     return ids
 
 
+RUGD_COLORMAP = "RUGD_annotation-colormap.txt"
+RUGD_LAYOUTS = (("RUGD_frames-with-annotations", "RUGD_annotations"), ("images", "annotations"))
+
+
+def _rugd_folders(root: Path) -> tuple[Path, Path, Path]:
+    """(frames, annotations, colormap) of the official layout or of the flat one of the common samples."""
+    for frames_name, annotations_name in RUGD_LAYOUTS:
+        frames, annotations = root / frames_name, root / annotations_name
+        if frames.is_dir() and annotations.is_dir():
+            candidates = (annotations / RUGD_COLORMAP, root / RUGD_COLORMAP)
+            colormap = next((path for path in candidates if path.is_file()), None)
+            if colormap is None:
+                raise DatasetError(f"{root}: no {RUGD_COLORMAP} in {annotations_name}/ or in the root folder")
+            return frames, annotations, colormap
+    raise DatasetError(
+        f"{root}: expected RUGD's layout, RUGD_frames-with-annotations/<seq>/*.png and RUGD_annotations/<seq>/*.png, "
+        f"or the flat one, images/ and annotations/ (same names, annotations as PNG); with {RUGD_COLORMAP}"
+    )
+
+
+def _rugd_sequence(relative: Path) -> str:
+    """The sequence a frame belongs to: its folder, or in a flat folder its name before the frame number
+    (``creek_00001`` -> ``creek``)."""
+    return relative.parts[0] if len(relative.parts) > 1 else relative.stem.rsplit("_", 1)[0]
+
+
 def load_rugd(root: Path, split: str | None) -> Dataset:
-    """RUGD: ``RUGD_frames-with-annotations/<seq>/*.png``, colour ``RUGD_annotations/<seq>/*.png`` and
-    ``RUGD_annotations/RUGD_annotation-colormap.txt``. ``split`` is a comma list of sequences, or all."""
-    frames, annotations = root / "RUGD_frames-with-annotations", root / "RUGD_annotations"
-    colormap = annotations / "RUGD_annotation-colormap.txt"
-    if not frames.is_dir() or not colormap.is_file():
-        raise DatasetError(f"{root}: expected RUGD_frames-with-annotations/ and {colormap.relative_to(root)}")
+    """RUGD, in its official layout: ``RUGD_frames-with-annotations/<seq>/*.png``, colour annotations
+    ``RUGD_annotations/<seq>/*.png`` and ``RUGD_annotations/RUGD_annotation-colormap.txt``; or flat, as
+    samples of it are often shared: ``images/*.(png|jpg)``, ``annotations/*.png`` and the colormap in
+    ``annotations/`` or the root. ``split`` is a comma list of sequences, or all."""
+    frames, annotations, colormap = _rugd_folders(root)
     names, colours = read_rugd_colormap(colormap)
     wanted = None if split in (None, "", "all", "val") else set(split.split(","))
     samples = []
-    for image_path in sorted(frames.rglob("*.png")):
-        sequence = image_path.parent.name
-        if wanted is not None and sequence not in wanted:
+    for image_path in sorted(p for p in frames.rglob("*") if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()):
+        relative = image_path.relative_to(frames)
+        if wanted is not None and _rugd_sequence(relative) not in wanted:
             continue
-        annotation = annotations / sequence / image_path.name
+        annotation = annotations / relative.with_suffix(".png")
         if annotation.is_file():
-            samples.append(Sample(f"{sequence}/{image_path.stem}", image_path, partial(_rugd_ids, annotation, colours)))
+            name = relative.with_suffix("").as_posix()
+            samples.append(Sample(name, image_path, partial(_rugd_ids, annotation, colours)))
     if not samples:
-        raise DatasetError(f"{root}: no frame with a matching annotation")
+        raise DatasetError(
+            f"{root}: no frame in {frames.name}/ with an annotation of the same name in {annotations.name}/"
+        )
     return Dataset("rugd", names, samples)
 
 

@@ -87,3 +87,38 @@ def test_serve_rejects_inputs_that_overlap_outputs(tiny_model_dir: Path, tmp_pat
     result = subprocess.run(args, capture_output=True, text=True, timeout=60)
     assert result.returncode == 2
     assert "overlaps the service's outputs" in result.stderr
+
+
+def test_serve_listens_on_7447_unless_told_where() -> None:
+    from gcdtrav.service.cli import DEFAULT_SERVE_LISTEN, build_parser, listens_by_choice
+
+    assert DEFAULT_SERVE_LISTEN == "tcp/0.0.0.0:7447"
+    parse = build_parser().parse_args
+    assert not listens_by_choice(parse(["serve"]))
+    assert not listens_by_choice(parse(["serve", "-e", "tcp/robot:7447", "--cfg", "scouting/gossip/enabled:false"]))
+    for told in (["-l", "tcp/127.0.0.1:9000"], ["-c", "zenoh.json5"], ["--cfg", "listen/endpoints:[]"]):
+        assert listens_by_choice(parse(["serve", *told]))
+
+
+def test_a_taken_default_port_falls_back_to_zenohs_pick(caplog: pytest.LogCaptureFixture) -> None:
+    import socket
+
+    from gcdtrav.client.zenoh_args import zenoh_config
+    from gcdtrav.schemas.settings import SettingsError
+    from gcdtrav.service.bus.run import open_session
+
+    with socket.socket() as taken:
+        taken.bind(("0.0.0.0", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        busy = zenoh_config(mode="peer", listen=[f"tcp/0.0.0.0:{port}"], multicast_scouting=False)
+        with pytest.raises(SettingsError, match="cannot open the zenoh session"):
+            open_session(busy)
+        free = free_port()
+        fallback = zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{free}"], multicast_scouting=False)
+        session = open_session(busy, fallback)
+        try:
+            socket.create_connection(("127.0.0.1", free), timeout=5).close()  # the fallback listens
+        finally:
+            session.close()
+    assert "cannot listen on serve's default endpoint" in caplog.text and "give -l ENDPOINT" in caplog.text

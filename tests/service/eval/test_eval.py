@@ -187,6 +187,43 @@ def test_rugd_and_generic_loaders(tmp_path: Path) -> None:
     assert dataset.class_names == {0: "road", 1: "pond"} and dataset.samples[0].read_labels()[0, 0] == 1
 
 
+def dirt_annotation() -> np.ndarray:
+    colour = np.zeros((4, 4, 3), np.uint8)
+    colour[:2] = (20, 64, 108)  # BGR of dirt
+    return colour
+
+
+def test_rugd_flat_sample_layout(tmp_path: Path) -> None:
+    """The layout RUGD samples are often shared in: images/ and annotations/, the colormap beside them."""
+    flat = tmp_path / "rugd-sample"
+    (flat / "images").mkdir(parents=True)
+    (flat / "annotations").mkdir()
+    (flat / "RUGD_annotation-colormap.txt").write_text("0 void 0 0 0\n1 dirt 108 64 20\n")
+    for name in ("creek_00001", "creek_00002", "trail-3_00001", "park-1_00001"):
+        cv2.imwrite(str(flat / "images" / f"{name}.jpg"), np.zeros((4, 4, 3), np.uint8))
+        if name != "park-1_00001":  # a frame without an annotation is skipped
+            cv2.imwrite(str(flat / "annotations" / f"{name}.png"), dirt_annotation())
+    dataset = load_dataset("rugd", flat, None)
+    assert [s.name for s in dataset.samples] == ["creek_00001", "creek_00002", "trail-3_00001"]
+    assert dataset.class_names == {0: "void", 1: "dirt"} and dataset.samples[0].read_labels()[0, 0] == 1
+    assert [s.name for s in load_dataset("rugd", flat, "trail-3").samples] == ["trail-3_00001"]
+    (flat / "RUGD_annotation-colormap.txt").rename(flat / "annotations" / "RUGD_annotation-colormap.txt")
+    assert len(load_dataset("rugd", flat, "creek").samples) == 2  # the colormap in annotations/ is found too
+    (flat / "annotations" / "RUGD_annotation-colormap.txt").unlink()
+    with pytest.raises(DatasetError, match=r"no RUGD_annotation-colormap\.txt in annotations/ or in the root"):
+        load_dataset("rugd", flat, None)
+
+
+def test_rugd_without_either_layout_names_both(tmp_path: Path) -> None:
+    (tmp_path / "images").mkdir()
+    with pytest.raises(DatasetError, match=r"RUGD_frames-with-annotations.*or the flat one, images/ and annotations/"):
+        load_dataset("rugd", tmp_path, None)
+    (tmp_path / "annotations").mkdir()
+    (tmp_path / "RUGD_annotation-colormap.txt").write_text("0 void 0 0 0\n")
+    with pytest.raises(DatasetError, match="no frame in images/ with an annotation of the same name"):
+        load_dataset("rugd", tmp_path, None)
+
+
 def test_metric_functions_by_hand() -> None:
     assert metrics.average_ranks(np.array([3.0, 1.0, 3.0, 2.0])).tolist() == [3.5, 1.0, 3.5, 2.0]
     assert metrics.spearman(np.array([1.0, 2, 3, 4]), np.array([10.0, 20, 30, 40])) == pytest.approx(1.0)

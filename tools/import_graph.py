@@ -1,0 +1,151 @@
+"""The static import graph of the gcdtrav package: modules, edges, cycles.
+
+    python -m tools.import_graph            # summary: modules, edges, cycles (exit 1 if there is a cycle)
+    python -m tools.import_graph --edges    # every edge too
+
+Every ``import`` statement counts, function-local ones included (a local import only delays a cycle to the
+first call: the module imported second sees the first half-initialised). ``from a.b import c`` is an edge
+to ``a.b.c`` when that is a module, else to ``a.b``. A package is not counted as imported by its own
+submodules: Python initialises the parent first, and a package's ``__init__`` importing its children is
+the normal shape, not a cycle. Only edges inside gcdtrav are kept.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE_ROOTS = ("schemas", "client", "service")  # folders mapped to gcdtrav.<name> by setup.py
+
+
+@dataclass(frozen=True)
+class ImportGraph:
+    modules: dict[str, Path]
+    edges: dict[str, set[str]]
+
+    @property
+    def edge_count(self) -> int:
+        return sum(len(targets) for targets in self.edges.values())
+
+    def cycles(self) -> list[list[str]]:
+        """The strongly connected components of more than one module, sorted."""
+        return sorted(sorted(c) for c in strongly_connected(self.edges) if len(c) > 1)
+
+    def summary(self, with_edges: bool = False) -> str:
+        cycles = self.cycles()
+        lines = [f"gcdtrav import graph: {len(self.modules)} modules, {self.edge_count} edges, {len(cycles)} cycles"]
+        for cycle in cycles:
+            inner = [f"{a} -> {b}" for a in cycle for b in sorted(self.edges[a]) if b in cycle]
+            lines.append(f"  cycle of {len(cycle)}: " + "; ".join(inner))
+        if with_edges:
+            for module in sorted(self.edges):
+                for target in sorted(self.edges[module]):
+                    lines.append(f"  {module} -> {target}")
+        return "\n".join(lines)
+
+
+def package_modules(root: Path = ROOT) -> dict[str, Path]:
+    """gcdtrav.<folder>.<...> -> file, for every .py below the package roots."""
+    modules = {}
+    for folder in PACKAGE_ROOTS:
+        for path in sorted((root / folder).rglob("*.py")):
+            parts = list(path.relative_to(root).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            modules[".".join(["gcdtrav", *parts])] = path
+    return modules
+
+
+def imported_modules(path: Path, module: str, modules: dict[str, Path]) -> set[str]:
+    """The gcdtrav modules the file's import statements load: ``from a.b import c`` loads ``a.b.c`` when that
+    is a module, else ``a.b``; importing ``a.b.c`` also runs the ``__init__`` of its packages ``a.b`` (not
+    counted for the importer's own packages, which Python initialises before it)."""
+    tree = ast.parse(path.read_text("utf-8"), str(path))
+    package = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
+    named: set[str] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            named.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package[: len(package) - (node.level - 1)]
+                base = ".".join([*anchor, base] if base else anchor)
+            for alias in node.names:
+                named.add(f"{base}.{alias.name}" if f"{base}.{alias.name}" in modules else base)
+    loaded: set[str] = set()
+    for name in named:
+        parts = name.split(".")
+        loaded.update(".".join(parts[:end]) for end in range(2, len(parts) + 1))
+    own_packages = {".".join(module.split(".")[:end]) for end in range(1, len(module.split(".")) + 1)}
+    return {name for name in loaded if name in modules and name not in own_packages}
+
+
+def build_graph(root: Path = ROOT) -> ImportGraph:
+    modules = package_modules(root)
+    edges = {module: imported_modules(path, module, modules) for module, path in modules.items()}
+    return ImportGraph(modules, edges)
+
+
+def strongly_connected(edges: dict[str, set[str]]) -> list[list[str]]:
+    """Tarjan's algorithm, iterative (no recursion limit on long chains)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    on_stack: set[str] = set()
+    stack: list[str] = []
+    components: list[list[str]] = []
+    counter = 0
+    for start in sorted(edges):
+        if start in index:
+            continue
+        work = [(start, iter(sorted(edges[start])))]
+        index[start] = low[start] = counter
+        counter += 1
+        stack.append(start)
+        on_stack.add(start)
+        while work:
+            node, children = work[-1]
+            advanced = False
+            for child in children:
+                if child not in index:
+                    index[child] = low[child] = counter
+                    counter += 1
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(edges.get(child, set())))))
+                    advanced = True
+                    break
+                if child in on_stack:
+                    low[node] = min(low[node], index[child])
+            if advanced:
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                component = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    component.append(member)
+                    if member == node:
+                        break
+                components.append(component)
+    return components
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--edges", action="store_true", help="list every edge")
+    args = parser.parse_args(argv)
+    graph = build_graph()
+    print(graph.summary(with_edges=args.edges))
+    return 1 if graph.cycles() else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
