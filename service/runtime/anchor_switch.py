@@ -174,11 +174,11 @@ class AnchorSwitch:
 
 def load_history(history_file: Path) -> list[AnchorHistoryEntry]:
     """The accepted sets, newest (the active one) first; empty if there is no usable history file."""
-    if history_file.parent.is_dir():
-        remove_stale_temporaries(history_file)  # writes a crash interrupted
-    if not history_file.is_file():
-        return []
     try:
+        if history_file.parent.is_dir():
+            remove_stale_temporaries(history_file)  # writes a crash interrupted
+        if not history_file.is_file():
+            return []
         return AnchorHistoryReply.model_validate_json(history_file.read_text("utf-8")).entries
     except (OSError, ValueError, MessageError) as err:
         log.error("ignoring the anchor history file %s: %s", history_file, err)
