@@ -81,7 +81,9 @@ class TraversabilityService:
         ledger = CreditLedger(settings.instance, model_input(pipeline), settings.max_frame_age_s)
         self.credits = CreditPublisher(session, self.keys, ledger, self.stats)
         forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget, self.credits.forget)
-        self.sources = SourceTracker(settings.max_sources, settings.source_idle_s, forget)
+        self.sources = SourceTracker(
+            settings.max_sources, settings.source_idle_s, forget, reclaim_after_s=settings.reclaim_after_s
+        )
         self.admission = Admission(settings, self.sources, self.queue, self.stats, self.credits.freed)
         self.assignment = Assignment(idle_s=settings.source_idle_s, max_known=4 * settings.max_sources)
         self.progress = ProgressMonitor(settings.stall_after_s)
@@ -97,6 +99,7 @@ class TraversabilityService:
             self.credits.taken,
             self.progress,
             gate,
+            self.admission,
         )
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()

@@ -122,7 +122,9 @@ from tools.loopback import in_process_service  # noqa: E402
 
 
 def test_service_caps_sources_reports_them_and_forgets_idle_ones(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
-    settings = ServiceSettings(state_dir=tmp_path, instance="bounded", max_sources=3, source_idle_s=1.5, preview=False)
+    settings = ServiceSettings(
+        state_dir=tmp_path, instance="bounded", max_sources=3, source_idle_s=1.5, reclaim_after_s=60, preview=False
+    )
     with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (service, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         try:
