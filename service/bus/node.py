@@ -57,6 +57,12 @@ def model_input(pipeline: Pipeline) -> tuple[int, int]:
     return side, side
 
 
+def publisher_of(sample: zenoh.Sample) -> str | None:
+    """The publishing session's id if the publisher says (client/source_info.py); None: not capped."""
+    info = sample.source_info
+    return None if info is None else str(info.source_id.zid)
+
+
 class TraversabilityService:
     def __init__(self, session: zenoh.Session, pipeline: Pipeline, settings: ServiceSettings) -> None:
         self.session = session
@@ -223,7 +229,8 @@ class TraversabilityService:
             self.membership.note(source)
         if self.owns(source):  # else another live instance serves this source
             key, size = str(sample.key_expr), len(sample.payload)
-            self.admission.offer(source, key, size, sample.payload.to_bytes, str(sample.encoding), ros)
+            encoding, publisher = str(sample.encoding), publisher_of(sample)
+            self.admission.offer(source, key, size, sample.payload.to_bytes, encoding, ros, publisher)
 
     def _declare_queryables(self) -> None:
         per_source = SourceQueries(self.keys, self.history, self.grids, self.owns, self.settings.risk)

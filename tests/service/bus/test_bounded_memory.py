@@ -151,3 +151,19 @@ def test_service_caps_sources_reports_them_and_forgets_idle_ones(tiny_backend, t
             assert wait_until(lambda: "r1/frame_000004" in client.status().sources, 15)
         finally:
             client.close()
+
+
+def test_a_publisher_that_invents_names_is_capped(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """Our client sets zenoh's source info on every frame: the service caps the sources of its session."""
+    settings = ServiceSettings(state_dir=tmp_path, instance="capped", max_sources_per_publisher=2, preview=False)
+    with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (_, port):
+        client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
+        try:
+            assert wait_until(lambda: service_reachable(client), 10)
+            for k in range(4):
+                client.publish_image(f"r1/frame_{k}", textured_image(48, 64))
+            assert wait_until(lambda: client.status().rejected_by_reason.get("too_many_sources_per_publisher") == 2, 15)
+            assert wait_until(lambda: sum(s.processed for s in client.status().sources.values()) == 2, 15)
+            assert sorted(client.status().sources) == ["r1/frame_0", "r1/frame_1"]
+        finally:
+            client.close()
