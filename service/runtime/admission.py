@@ -100,11 +100,16 @@ class Admission:
             self.sources.forget_untracked(source)
             raise RejectedInput("too_many_sources", str(err)) from None
 
-    def undecodable(self, source: str) -> None:
-        """One of ``source``'s frames failed: a candidate is forgotten at once."""
+    def taken(self, source: str) -> None:
+        """The worker took a frame of ``source``: a candidate's is no longer evictable."""
+        self.candidates.take(source)
+
+    def undecodable(self, source: str) -> bool:
+        """One of ``source``'s frames failed: a candidate is forgotten at once. False if the frame was already
+        counted (its candidate evicted between the queue and ``taken``): not to be counted again."""
         was_candidate, _ = self.candidates.pop(source)
-        if was_candidate:
-            self.sources.forget_untracked(source)
+        self.sources.forget_untracked(source)  # also what taking an evicted candidate's frame left (credits)
+        return was_candidate or source in self.sources
 
     def _offer_frame(
         self, source: str, key: str, size: int, read: Callable[[], bytes], encoding: str, ros: RosTopic | None

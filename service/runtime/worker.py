@@ -125,7 +125,10 @@ class FrameWorker:
 
     def _infer(self, pending: PendingFrame) -> InferredFrame | None:
         """Decoded and inferred; None (counted stale) if it waited past max_frame_age_s: not worth computing."""
-        image, ros_header = self._decode_admitted(pending)
+        decoded = self._decode_admitted(pending)
+        if decoded is None:
+            return None
+        image, ros_header = decoded
         if self.gate is not None:
             self.gate.before_inference(pending, image)
         now = time.time()
@@ -134,15 +137,18 @@ class FrameWorker:
             return None
         return InferredFrame(pending, image, ros_header, self.pipeline.infer(image.image))
 
-    def _decode_admitted(self, pending: PendingFrame) -> tuple[DecodedFrame, Any]:
-        """Decoded; a new source takes its slot only now (or, if its frame fails, is forgotten at once)."""
+    def _decode_admitted(self, pending: PendingFrame) -> tuple[DecodedFrame, Any] | None:
+        """Decoded; a new source takes its slot only now (or, if its frame fails, is forgotten at once).
+        None: it failed and was already counted (evicted as a candidate while it was being taken)."""
         if self.admission is None:
             return self._decode(pending)
+        self.admission.taken(pending.source)
         try:
             decoded = self._decode(pending)
         except Exception:
-            self.admission.undecodable(pending.source)
-            raise
+            if self.admission.undecodable(pending.source):
+                raise
+            return None
         self.admission.decoded(pending.source)
         return decoded
 

@@ -192,3 +192,21 @@ def test_per_publisher_cap_one_and_no_publisher() -> None:
     assert service.snapshot().rejected_by_reason == {"too_many_sources_per_publisher": 2}
     assert over_publisher_cap("p", 1, 1) and not over_publisher_cap("p", 0, 1)
     assert not over_publisher_cap(None, 100, 1) and not over_publisher_cap("p", 100, None)
+
+
+def test_a_candidate_evicted_while_its_frame_is_taken_is_counted_once() -> None:
+    service = Service(max_candidates=1)
+    service.offer("a", GARBAGE)
+    _, pending = service.queue.take(0)  # type: ignore[misc]
+    service.offer("b", GARBAGE)  # evicts "a" before the worker marked it taken
+    assert service.worker._guarded(pending, service.worker._infer, pending) is None
+    assert service.snapshot().rejected_by_reason == {"candidate_evicted": 1}  # not also undecodable
+    service.serve()
+    service.offer("c", GARBAGE)
+    _, pending = service.queue.take(0)  # type: ignore[misc]
+    service.admission.taken("c")  # taken: a newer new source no longer evicts it
+    service.offer("d", GARBAGE)
+    service.worker._guarded(pending, service.worker._infer, pending)
+    service.serve()
+    assert service.snapshot().rejected_by_reason == {"candidate_evicted": 1, "undecodable": 3}
+    assert service.snapshot().sources == {} and len(service.admission.candidates) == 0
