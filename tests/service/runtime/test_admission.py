@@ -191,6 +191,8 @@ def test_per_publisher_cap_one_and_no_publisher() -> None:
     assert service.offer("a", publisher="robot-session")  # its own source again
     assert service.snapshot().rejected_by_reason == {"too_many_sources_per_publisher": 2}
     assert over_publisher_cap("p", 1, 1) and not over_publisher_cap("p", 0, 1)
+    uncapped = Service(max_sources_per_publisher=None)
+    assert all(uncapped.offer(f"n/{k}", publisher="robot-session") for k in range(20))
     assert not over_publisher_cap(None, 100, 1) and not over_publisher_cap("p", 100, None)
 
 
