@@ -1,0 +1,59 @@
+"""`gcdtrav serve` with injectable faults, for benchmarks/faults.py (repo tooling, not in the wheel).
+The variables are not GCDTRAV_*: those are the service's settings.
+
+    python -m tools.faulty_serve serve --model ... [gcdtrav serve arguments]
+
+FAULTY_SERVE_HANG_FLAG=PATH: while the file PATH exists, inference blocks (a hung worker; the process stays alive).
+FAULTY_SERVE_FULL_DIR=DIR: writes of the anchor state under DIR fail with ENOSPC (a full disk, without root mounts).
+Everything else is the real `gcdtrav serve`.
+"""
+
+from __future__ import annotations
+
+import errno
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+
+def hang_while_flagged(flag: Path) -> None:
+    from gcdtrav.service.backends.clipseg import ClipSegBackend
+
+    real_logits = ClipSegBackend.logits
+
+    def logits(self: ClipSegBackend, image_rgb: Any, prepared: object) -> Any:
+        while flag.exists():
+            time.sleep(0.02)
+        return real_logits(self, image_rgb, prepared)
+
+    ClipSegBackend.logits = logits  # type: ignore[method-assign]
+
+
+def fail_writes_under(directory: Path) -> None:
+    from gcdtrav.service.runtime import anchor_switch, state
+
+    real_write = state.write_atomically
+
+    def write_atomically(path: Path, text: str) -> None:
+        if Path(path).resolve().is_relative_to(directory.resolve()):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        real_write(path, text)
+
+    state.write_atomically = write_atomically  # save_anchor_state looks it up here
+    anchor_switch.write_atomically = write_atomically  # the history file
+
+
+def main() -> int:
+    if flag := os.environ.get("FAULTY_SERVE_HANG_FLAG"):
+        hang_while_flagged(Path(flag))
+    if full := os.environ.get("FAULTY_SERVE_FULL_DIR"):
+        fail_writes_under(Path(full))
+    from gcdtrav.service.cli import main as serve_main
+
+    return serve_main()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
