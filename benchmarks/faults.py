@@ -76,7 +76,7 @@ class Consumer:
 
     def on_maps(self, maps: Maps) -> None:
         header = maps.header
-        order = tuple(header.order) if header.order else (header.stamp, header.received_at)
+        order = (header.order[0], header.order[1]) if header.order else (header.stamp, header.received_at)
         arrival = MapArrival(time.monotonic(), time.time(), header.source, header.instance, header.stamp, order)
         with self.lock:
             self.arrivals.append(arrival)
@@ -475,7 +475,9 @@ def table(results: list[dict[str, Any]]) -> str:
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in results:
-        extra = {k: r[k] for k in ("newcomer_first_map_s", "flood_frames", "versions_agree_after_hang_s") if k in r}
+        extra: dict[str, Any] = {
+            k: r[k] for k in ("newcomer_first_map_s", "flood_frames", "versions_agree_after_hang_s") if k in r
+        }
         if "swap" in r:
             extra["swap"] = r["swap"]["result"]
         if "restart_serves_old_set" in r:
@@ -518,8 +520,8 @@ def main(argv: list[str] | None = None) -> int:
             result = measure(fault, model, window, args.robots, args.threads)
             result["goals"] = goals(result, args.fps)
             results.append(result)
-    report = {"settings": vars(args) | {"out": str(args.out), "faults": faults}, "window": vars(window)}
-    report["results"] = results
+    report: dict[str, Any] = {"settings": vars(args) | {"out": str(args.out), "faults": faults}}
+    report |= {"window": vars(window), "results": results}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(report, indent=2) + "\n")
     print(table(results))
