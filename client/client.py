@@ -30,6 +30,7 @@ from gcdtrav.schemas.images import (
 from gcdtrav.schemas.keys import Keys, input_key
 from gcdtrav.schemas.messages import (
     MSGPACK_ENCODING,
+    AnchorHistoryEntry,
     AnchorHistoryReply,
     AnchorSetRejection,
     AnchorSetReply,
@@ -65,10 +66,26 @@ class QueryTimeout(ServiceError):
 class AnchorSetRejected(ServiceError):
     """The service refused an anchor set; ``messages`` says why, the active set is unchanged."""
 
-    def __init__(self, messages: list[str], active_version: str) -> None:
-        super().__init__("anchor set rejected: " + "; ".join(messages))
+    def __init__(self, messages: list[str], active_version: str, instance: str | None = None) -> None:
+        where = f" by {instance}" if instance else ""
+        super().__init__(f"anchor set rejected{where}: " + "; ".join(messages))
         self.messages = messages
         self.active_version = active_version
+        self.instance = instance
+
+
+class PartialSwap(ServiceError):
+    """A swap some instances took and others refused or did not answer: ``swapped`` (instance -> version) and
+    ``failed`` (instance -> error). They converge to the newest accepted set by themselves (the fleet's
+    anchor tokens); the message names which instance holds what."""
+
+    def __init__(self, version: str, swapped: dict[str, str], failed: dict[str, ServiceError]) -> None:
+        held = "; ".join(f"{name}: {error}" for name, error in sorted(failed.items()))
+        super().__init__(
+            f"anchor set {version} active on {', '.join(sorted(swapped))}; not on the others: {held}. The "
+            "others adopt it once they can (gcdtrav status shows each instance's set)"
+        )
+        self.version, self.swapped, self.failed = version, swapped, failed
 
 
 @dataclass(frozen=True)
@@ -172,6 +189,26 @@ class Grid:
         return int((y - self.header.origin[1]) // r), int((x - self.header.origin[0]) // r)
 
 
+class MapsOrder:
+    """Per source, the order (``MapsHeader.order``) of the last map let through: a map not above it is older
+    than what was shown, or the same frame again (two instances during a hand-over), and is held back."""
+
+    def __init__(self) -> None:
+        self._last: dict[str, tuple[float, float]] = {}
+        self._lock = threading.Lock()
+        self.held_back = 0
+
+    def is_newer(self, header: MapsHeader) -> bool:
+        order = header.order or (header.stamp, header.received_at)  # a 1.1 service: the same two fields
+        with self._lock:
+            last = self._last.get(header.source)
+            if last is not None and order <= last:
+                self.held_back += 1
+                return False
+            self._last[header.source] = order
+            return True
+
+
 class MapsFreshness:
     """A running ``TraversabilityClient.watch_freshness``: ``watch`` answers ``age_s(source)`` at any time."""
 
@@ -229,6 +266,7 @@ class TraversabilityClient:
         self.input_prefix = input_prefix
         self.timeout = timeout
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self._orders: list[MapsOrder] = []  # one per subscription: each delivers every source in order
 
     def close(self) -> None:
         for publisher in self._publishers.values():
@@ -306,13 +344,18 @@ class TraversabilityClient:
         callback: Callable[[Maps], None],
         on_error: Callable[[Exception], None] | None = None,
         compact: bool = False,
+        in_order: bool = True,
     ) -> zenoh.Subscriber[None]:
         """Call ``callback`` with every decoded Maps of the matching sources ('**' = all, 'r1/*', ...).
 
         ``compact``: the 8-bit maps (``maps8``, a fraction of the bytes: for slow links; the service encodes
-        them only while someone subscribes). Keep the returned subscriber; undeclare() it to stop.
+        them only while someone subscribes). ``in_order``: a map older than one already delivered for its
+        source (a previous owner's, late, during a hand-over between instances) is held back and counted in
+        ``maps_held_back``. Keep the returned subscriber; undeclare() it to stop.
         """
         decode = Maps.from_compact_payload if compact else Maps.from_payload
+
+        order = self._new_order()
 
         def handle(sample: zenoh.Sample) -> None:
             try:
@@ -321,7 +364,8 @@ class TraversabilityClient:
                 if on_error is not None:
                     on_error(err)
                 return
-            callback(maps)
+            if not in_order or order.is_newer(maps.header):
+                callback(maps)
 
         return self.session.declare_subscriber(self.maps_key(selector, compact), handle)
 
@@ -353,7 +397,8 @@ class TraversabilityClient:
         return MapsFreshness(watch, subscriber, on_change, period_s)
 
     def iter_maps(self, selector: str = "**", timeout: float | None = None, limit: int | None = None) -> Iterator[Maps]:
-        """Yield decoded maps as they arrive; stop after ``limit`` maps or ``timeout`` s without one."""
+        """Yield decoded maps as they arrive, each newer than the last of its source (``subscribe_maps``); stop
+        after ``limit`` maps or ``timeout`` s without one."""
         inbox: queue.Queue[bytes] = queue.Queue(maxsize=64)
 
         def keep_newest(sample: zenoh.Sample) -> None:
@@ -366,6 +411,7 @@ class TraversabilityClient:
                         inbox.get_nowait()
 
         subscriber = self.session.declare_subscriber(self.maps_key(selector), keep_newest)
+        order = self._new_order()
         try:
             count = 0
             while limit is None or count < limit:
@@ -373,10 +419,22 @@ class TraversabilityClient:
                     payload = inbox.get(timeout=timeout)
                 except queue.Empty:
                     return
-                yield Maps.from_payload(payload)
-                count += 1
+                maps = Maps.from_payload(payload)
+                if order.is_newer(maps.header):
+                    yield maps
+                    count += 1
         finally:
             subscriber.undeclare()
+
+    def _new_order(self) -> MapsOrder:
+        order = MapsOrder()
+        self._orders.append(order)
+        return order
+
+    @property
+    def maps_held_back(self) -> int:
+        """Maps not delivered by subscribe_maps or iter_maps because their source had shown a newer one."""
+        return sum(order.held_back for order in self._orders)
 
     # ---- queries -------------------------------------------------------------------------------------
     def _replies(
@@ -426,7 +484,7 @@ class TraversabilityClient:
     def _error_from(payload: bytes, key: str) -> ServiceError:
         try:
             rejection = AnchorSetRejection.unpack(payload)
-            return AnchorSetRejected(rejection.errors, rejection.active_version)
+            return AnchorSetRejected(rejection.errors, rejection.active_version, rejection.instance)
         except MessageError:
             pass
         try:
@@ -556,8 +614,12 @@ class TraversabilityClient:
             timeout=timeout,
             every_instance=True,
         )
-        if errors:
+        if errors and not answers:
             raise errors[0]
+        if errors:
+            swapped = {answer.instance or f"instance {k + 1}": answer.version for k, answer in enumerate(answers)}
+            failed = {getattr(error, "instance", None) or f"unnamed {k + 1}": error for k, error in enumerate(errors)}
+            raise PartialSwap(answers[0].version, swapped, failed)
         return answers[0].version
 
     def anchor_history(self, timeout: float | None = None) -> list[AnchorHistoryReply]:
@@ -569,18 +631,24 @@ class TraversabilityClient:
             raise errors[0]
         return sorted(answers, key=lambda history: history.instance)
 
+    def rollback_target(self, steps: int = 1, timeout: float | None = None) -> tuple[AnchorHistoryEntry, AnchorSet]:
+        """The fleet's active entry and the set ``steps`` before it, from the history of the instance whose
+        active set is the newest accepted (instances' histories may differ: one may have joined later)."""
+        histories = [history for history in self.anchor_history(timeout) if history.entries]
+        if not histories:
+            raise ServiceError("no instance answered with an anchor history")
+        newest = max(histories, key=lambda h: (h.entries[0].accepted_at, h.entries[0].version, h.instance))
+        if not 1 <= steps < len(newest.entries):
+            raise ValueError(
+                f"no set {steps} step(s) back: {newest.instance}'s history holds {len(newest.entries)} set(s), "
+                "the active first; see gcdtrav anchors history"
+            )
+        return newest.entries[0], newest.entries[steps].anchor_set
+
     def rollback_anchors(self, steps: int = 1, timeout: float | None = None) -> str:
-        """Swap every instance back to the set ``steps`` before its active one; returns the version."""
-        answers, errors = self._replies(
-            self.keys.anchor_rollback,
-            AnchorSetReply,
-            params={"steps": steps},
-            timeout=timeout,
-            every_instance=True,
-        )
-        if errors:
-            raise errors[0]
-        return answers[0].version
+        """Swap the whole fleet back to the set ``steps`` before the fleet's active one (a swap to that set on
+        every instance, so that all end on the same set); returns the version."""
+        return self.set_anchors(self.rollback_target(steps, timeout)[1], timeout)
 
     def status(self, timeout: float | None = None) -> ServiceStatus:
         """The nearest instance's status; ``statuses()`` gives every instance's."""

@@ -1,4 +1,5 @@
-"""Health check for containers and supervisors: exit 0 if this host's service instance answers its status.
+"""Health check for containers and supervisors: exit 0 if this host's service instance answers its status
+and reports itself healthy (its worker progresses: a stalled instance has left the fleet, see stall_after_s).
 
     python -m gcdtrav.client.health -m client -e tcp/zenoh-router:7447 --no-multicast-scouting
 
@@ -30,13 +31,20 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         with TraversabilityClient(config=zenoh_config_from_args(args), prefix=args.prefix) as client:
-            names = [status.instance for status in client.statuses(timeout=args.timeout)]
+            statuses = client.statuses(timeout=args.timeout)
     except (ServiceError, ValueError) as err:
         print(f"unhealthy: {err}", file=sys.stderr)
         return 1
-    if not any(is_this_instance(name, args.instance) for name in names):
+    mine = [status for status in statuses if is_this_instance(status.instance, args.instance)]
+    if not mine:
         expected = args.instance or f"{socket.gethostname()}-*"
+        names = [status.instance for status in statuses]
         print(f"unhealthy: instance {expected} did not answer (answered: {names or 'none'})", file=sys.stderr)
+        return 1
+    stalled = [status for status in mine if status.healthy is False]
+    if stalled:
+        for status in stalled:
+            print(f"unhealthy: instance {status.instance} {status.reason}", file=sys.stderr)
         return 1
     print("healthy")
     return 0

@@ -100,6 +100,7 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
                 f"{name[:25]:<25} {s.instance[:14]:<14} {fps(s.instance, name):>8}  {src.received:>8}  "
                 f"{src.processed:>9}  {src.dropped:>7}  {src.rejected:>8}  {p50:>6}  {p99:>6}"
             )
+    lines += fleet_warnings(statuses)
     reasons = [f"{s.instance}: {s.precision} ({s.precision_reason})" for s in statuses if s.precision_reason]
     if reasons:
         lines += ["", *(f"precision {line}" for line in reasons)]
@@ -107,6 +108,23 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
     if rejected:
         lines += ["", "rejected: " + ", ".join(f"{reason} {n}" for reason, n in sorted(rejected.items()))]
     return "\n".join(lines)
+
+
+def fleet_warnings(statuses: list[ServiceStatus]) -> list[str]:
+    """Unhealthy instances, and instances that disagree on the anchor set or the precision."""
+    lines = [f"UNHEALTHY {s.instance}: {s.reason}" for s in statuses if s.healthy is False]
+    versions = {s.instance: s.anchor_set_version for s in statuses}
+    if len(set(versions.values())) > 1:
+        held = ", ".join(f"{instance} has {version}" for instance, version in sorted(versions.items()))
+        lines.append(f"ANCHOR SETS DIFFER: {held} (they converge to the newest accepted set)")
+    precisions = {s.precision for s in statuses if s.precision}
+    if len(precisions) > 1:
+        lines.append(
+            "precision differs: "
+            + ", ".join(f"{s.instance} {s.precision}" for s in statuses)
+            + " (precision: auto measured each machine; set precision explicitly for identical maps)"
+        )
+    return ["", *lines] if lines else []
 
 
 def live_statuses(client: TraversabilityClient) -> list[ServiceStatus]:
@@ -198,10 +216,15 @@ def set_anchors(client: TraversabilityClient, args: argparse.Namespace) -> int:
     if args.dry_run:
         print("dry run: nothing swapped")
         return EXIT_OK
-    instances = [s.instance for s in client.statuses()]
-    version = client.set_anchors(new)
-    print(f"swapped: anchor set {version} active on {len(instances)} instance(s): {', '.join(instances)}")
+    version = client.set_anchors(new)  # PartialSwap (exit 1) names which instance holds what
+    print(f"swapped: anchor set {version} active on {fleet_sets(client)}")
     return EXIT_OK
+
+
+def fleet_sets(client: TraversabilityClient) -> str:
+    """Which instance holds which anchor set now, e.g. 'box-1 (3f2a...), box-2 (3f2a...)'."""
+    statuses = client.statuses()
+    return ", ".join(f"{s.instance} ({s.anchor_set_version})" for s in statuses) or "no instance answered"
 
 
 def show_history(client: TraversabilityClient, args: argparse.Namespace) -> int:
@@ -216,14 +239,13 @@ def show_history(client: TraversabilityClient, args: argparse.Namespace) -> int:
 
 
 def roll_back(client: TraversabilityClient, args: argparse.Namespace) -> int:
-    histories = client.anchor_history()
-    if not histories or len(histories[0].entries) <= args.steps:
-        raise ValueError(f"no set {args.steps} step(s) back in the history; see gcdtrav anchors history")
-    active, target = histories[0].entries[0].anchor_set, histories[0].entries[args.steps].anchor_set
+    """A fleet action: the set before the fleet's newest, swapped in on every instance."""
+    head, target = client.rollback_target(args.steps)
+    active = head.anchor_set
     print(f"{active.version} ({len(active)} anchors) -> {target.version} ({len(target)} anchors)")
     print("\n".join(anchor_diff(active, target)) or "no change")
-    version = client.rollback_anchors(args.steps)
-    print(f"rolled back: anchor set {version} active on {len(histories)} instance(s)")
+    version = client.set_anchors(target)
+    print(f"rolled back: anchor set {version} active on {fleet_sets(client)}")
     return EXIT_OK
 
 

@@ -14,6 +14,8 @@ A service with prefix ``gcdtrav`` (the default) answers and publishes on:
   {prefix}/config/anchors/rollback           queryable: go back N sets
   {prefix}/status                            queryable: ServiceStatus
   {prefix}/alive/{instance}                  liveliness token
+  {prefix}/active/{instance}/{millis}/{version}  liveliness token: the instance's active anchor set, accepted at
+                                             {millis} (ms since epoch); the fleet converges to the newest
   {prefix}/credit/{source}                   CreditGrant: the source's owner is ready for its next frame
 
 A relay on a robot (``gcdtrav relay``) publishes on the robot's own bus:
@@ -108,6 +110,21 @@ class Keys:
             return None
         source = key[len(head) : -len(tail)]
         return source if "*" not in source and "$" not in source else None
+
+    def active_anchors(self, instance: str = "*", millis: str = "*", version: str = "*") -> str:
+        """The liveliness token announcing an instance's active anchor set (``**`` for all: instance names may
+        hold slashes)."""
+        if instance == "**":
+            return f"{self.prefix}/active/**"
+        return f"{self.prefix}/active/{instance}/{millis}/{version}"
+
+    def parse_active_anchors(self, key: str) -> tuple[str, int, str] | None:
+        """(instance, accepted_at in ms, version) of an active-anchors token key; None for another key."""
+        head = f"{self.prefix}/active/"
+        parts = key[len(head) :].split("/") if key.startswith(head) else []
+        if len(parts) < 3 or not parts[-2].isdigit():
+            return None
+        return "/".join(parts[:-2]), int(parts[-2]), parts[-1]
 
     def instance_of(self, alive_key: str) -> str | None:
         head = f"{self.prefix}/alive/"

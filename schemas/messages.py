@@ -23,7 +23,8 @@ MSGPACK_ENCODING = "application/msgpack"
 # major.minor of every message below. A minor step adds fields (older readers ignore them); a major step
 # changes or removes one, and a reader refuses a message of another major with both versions named.
 # 1.0 was the integer 1 in MapsHeader only; 1.1 puts the version in every message and adds risk fields;
-# 1.2 adds ServiceStatus.measuring and the grid's planner layers (GridMessage, GridHeader).
+# 1.2 adds ServiceStatus.measuring, MapsHeader.order, the status's health and anchor-set fleet fields, and the
+# grid's planner layers (GridMessage, GridHeader).
 SCHEMA_VERSION = "1.2"
 _VERSION = re.compile(r"^(\d+)(?:\.\d+)?$")
 
@@ -164,6 +165,12 @@ class MapsHeader(WireModel):
     map_shape: tuple[int, int] = Field(description="(height, width) of T and U in this message.")
     image_size: tuple[int, int] = Field(description="(width, height) of the input image, pixels.")
     scale: tuple[float, float] = Field(description="(sx, sy): image pixels per patch along x and y.")
+    order: tuple[float, float] | None = Field(
+        default=None,
+        description="The source's order across instances and hand-overs: (stamp, received_at), compared as a "
+        "tuple; a map whose order is not above the last one shown of its source is older (or the same frame "
+        "again) and is dropped by the client. seq counts per instance and does not order. Since 1.2.",
+    )
 
 
 class MapsMessage(Message):
@@ -376,6 +383,7 @@ class PathReply(Message):
 class AnchorSetReply(Message):
     anchor_set: AnchorSet
     version: str
+    instance: str | None = Field(default=None, description="The instance that answered. Since 1.2.")
 
 
 class AnchorHistoryEntry(WireModel):
@@ -396,6 +404,7 @@ class AnchorSetRejection(Message):
 
     errors: list[str]
     active_version: str
+    instance: str | None = Field(default=None, description="The instance that refused. Since 1.2.")
 
 
 class ErrorReply(Message):
@@ -453,6 +462,20 @@ class ServiceStatus(Message):
     history_budget_bytes: int = Field(default=0, description="The history's limit (history_budget_mb).")
     tracked_sources: int = Field(default=0, description="Sources the service keeps state for now.")
     max_sources: int = Field(default=0, description="The limit of tracked sources (max_sources).")
+    healthy: bool | None = Field(
+        default=None,
+        description="False while the worker makes no progress with frames queued (stall_after_s): the "
+        "instance has withdrawn its liveliness token and serves no source. None: an instance before 1.2.",
+    )
+    reason: str = Field(default="", description="Why it is unhealthy, or what it last recovered from. Since 1.2.")
+    anchor_set_accepted_at: float | None = Field(
+        default=None, description="When the active anchor set was accepted in the fleet, s since epoch. Since 1.2."
+    )
+    anchor_sets: dict[str, str] = Field(
+        default_factory=dict,
+        description="The active anchor set version of every live instance, as this one last learnt it; more "
+        "than one distinct version is a divergence. Since 1.2.",
+    )
 
 
 class SourceView(Message):

@@ -341,6 +341,20 @@ class ServiceSettings(StrictModel):
         default=300, gt=0, description="A source without a frame for this long is forgotten (history, counters)."
     )
     max_payload_bytes: int = Field(default=20_000_000, ge=1024, description="Larger payloads are rejected unread.")
+    max_stamp_skew_s: float | None = Field(
+        default=300.0,
+        gt=0,
+        description="Frames stamped further than this ahead of their receipt are rejected (skewed_stamp): they "
+        "would order their source's maps ahead of later frames; null: no limit. NaN, inf and negative stamps "
+        "are always rejected (bad_stamp); stamps in the past are max_frame_age_s's to judge.",
+    )
+    stall_after_s: float = Field(
+        default=4.0,
+        gt=0,
+        description="An instance whose worker makes no progress for this long with frames queued withdraws "
+        "from the fleet (its sources fail over) and reports itself unhealthy until it progresses again; set it a "
+        "few seconds above the slowest frame's inference time.",
+    )
     max_anchor_set_bytes: int = Field(
         default=DEFAULT_MAX_ANCHOR_SET_BYTES,
         ge=1024,

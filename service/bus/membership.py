@@ -1,73 +1,105 @@
-"""Which live instance serves which source: rendezvous (highest-random-weight) hashing over liveliness.
+"""Which live instance serves which source: liveliness tokens in, ``service/runtime/assignment.py`` decides.
 
-Every instance declares ``{prefix}/alive/{instance}`` and watches the others' tokens. A source belongs to
-the live instance with the highest hash of (instance, source): every instance computes the same owner
-from the same membership, with no coordinator, and when an instance joins or leaves only the sources it
-gains or loses move.
+Every instance declares ``{prefix}/alive/{instance}`` and watches the others' tokens; each computes the same
+bounded-load table from the live instances and the sources it sees on the inputs, with no coordinator.
+An instance that stalls (``service/runtime/progress.py``) withdraws its token: the others take its sources
+within their liveliness delay, and it serves nothing until it rejoins (declares the token again).
 """
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import threading
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 
 import zenoh
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.service.bus.entities import undeclare_all
+from gcdtrav.service.runtime.assignment import Assignment, owner_of, weight
 
 log = logging.getLogger("gcdtrav.service")
-
-
-def weight(instance: str, source: str) -> int:
-    digest = hashlib.sha256(f"{instance}\x00{source}".encode()).digest()
-    return int.from_bytes(digest[:8], "big")
-
-
-def owner_of(source: str, instances: Iterable[str]) -> str:
-    return max(instances, key=lambda instance: (weight(instance, source), instance))
+__all__ = ["Membership", "owner_of", "weight"]
 
 
 class Membership:
     """The live instances of one prefix, kept current by a liveliness subscriber."""
 
     def __init__(
-        self, session: zenoh.Session, prefix: str, instance: str, on_change: Callable[[set[str]], None] | None = None
+        self,
+        session: zenoh.Session,
+        prefix: str,
+        instance: str,
+        on_change: Callable[[set[str]], None] | None = None,
+        assignment: Assignment | None = None,
     ) -> None:
         self.instance = instance
+        self.session = session
+        self.assignment = assignment or Assignment()
         self._keys = Keys(prefix)
-        self._live: set[str] = {instance}
+        self._others: set[str] = set()
         self._lock = threading.Lock()
         self._on_change = on_change
-        self._token = session.liveliness().declare_token(self._keys.alive(instance))
+        self._token: zenoh.LivelinessToken | None = session.liveliness().declare_token(self._keys.alive(instance))
+        self.assignment.set_instances(self.live())
         self._subscriber = session.liveliness().declare_subscriber(self._keys.alive("*"), self._on_sample, history=True)
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
         name = self._keys.instance_of(str(sample.key_expr))
-        if name is None:
+        if name is None or name == self.instance:
             return
         with self._lock:
-            before = set(self._live)
-            if sample.kind == zenoh.SampleKind.DELETE and name != self.instance:
-                self._live.discard(name)
+            before = set(self._others)
+            if sample.kind == zenoh.SampleKind.DELETE:
+                self._others.discard(name)
             elif sample.kind == zenoh.SampleKind.PUT:
-                self._live.add(name)
-            after = set(self._live)
-        if after != before:
-            log.info("instances now %s", sorted(after))
-            if self._on_change is not None:
-                self._on_change(after)
+                self._others.add(name)
+            changed = self._others != before
+        if changed:
+            self._changed()
+
+    def _changed(self) -> None:
+        live = self.live()
+        self.assignment.set_instances(live)
+        log.info("instances now %s", sorted(live))
+        if self._on_change is not None:
+            self._on_change(live)
+
+    @property
+    def withdrawn(self) -> bool:
+        with self._lock:
+            return self._token is None
+
+    def withdraw(self) -> None:
+        """Leave the fleet: undeclare the token; this instance owns nothing until ``rejoin``."""
+        with self._lock:
+            token, self._token = self._token, None
+        if token is not None:
+            undeclare_all([token])
+            self._changed()
+
+    def rejoin(self) -> None:
+        with self._lock:
+            if self._token is not None:
+                return
+            self._token = self.session.liveliness().declare_token(self._keys.alive(self.instance))
+        self._changed()
 
     def live(self) -> set[str]:
+        """The instances serving now, this one unless withdrawn."""
         with self._lock:
-            return set(self._live)
+            return self._others | ({self.instance} if self._token is not None else set())
 
-    def owner(self, source: str) -> str:
-        return owner_of(source, self.live())
+    def note(self, source: str) -> None:
+        """A frame of ``source`` on the inputs: it counts in the table once established."""
+        self.assignment.note(source)
+
+    def owner(self, source: str) -> str | None:
+        return self.assignment.owner(source)
 
     def owns(self, source: str) -> bool:
-        return self.owner(source) == self.instance
+        return not self.withdrawn and self.owner(source) == self.instance
 
     def close(self) -> None:
-        undeclare_all((self._subscriber, self._token))
+        with self._lock:
+            token, self._token = self._token, None
+        undeclare_all(entity for entity in (self._subscriber, token) if entity is not None)

@@ -23,6 +23,7 @@ from gcdtrav.schemas.messages import (
 from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
 from gcdtrav.service.bus import replies
+from gcdtrav.service.bus.anchor_sync import AnchorSync
 from gcdtrav.service.bus.credits import CreditPublisher
 from gcdtrav.service.bus.entities import undeclare_all
 from gcdtrav.service.bus.guard import answering
@@ -34,16 +35,20 @@ from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.admission import Admission
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
+from gcdtrav.service.runtime.assignment import Assignment
 from gcdtrav.service.runtime.credits import CreditLedger
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
+from gcdtrav.service.runtime.freshness import FrameGate
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.worker import FrameWorker
 
 log = logging.getLogger("gcdtrav.service")
+WATCHDOG_INTERVAL_S = 0.25
 
 
 def model_input(pipeline: Pipeline) -> tuple[int, int]:
@@ -66,6 +71,7 @@ class TraversabilityService:
         self._stopping = threading.Event()
         self._started_at = time.time()
         self.membership: Membership | None = None
+        self.anchor_sync: AnchorSync | None = None
         self.grids = (
             GridOutputs(settings.grids, len(pipeline.anchors), settings.instance, settings.risk)
             if settings.grids
@@ -81,9 +87,22 @@ class TraversabilityService:
         forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget, self.credits.forget)
         self.sources = SourceTracker(settings.max_sources, settings.source_idle_s, forget)
         self.admission = Admission(settings, self.sources, self.queue, self.stats, self.credits.freed)
+        self.assignment = Assignment(idle_s=settings.source_idle_s, max_known=4 * settings.max_sources)
+        self.progress = ProgressMonitor(settings.stall_after_s)
+        gate = FrameGate(self.owns, settings.max_frame_age_s, settings.max_stamp_skew_s)
         self.worker = FrameWorker(
-            self.queue, pipeline, self.history, self.stats, self.sources, settings, self._publish, self.credits.taken
+            self.queue,
+            pipeline,
+            self.history,
+            self.stats,
+            self.sources,
+            settings,
+            self._publish,
+            self.credits.taken,
+            self.progress,
+            gate,
         )
+        self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
 
     def _check_inputs(self) -> None:
@@ -102,7 +121,8 @@ class TraversabilityService:
     # ---- lifecycle -----------------------------------------------------------------------------------
     def start(self) -> None:
         # Membership first: a frame arriving during start-up must already go to its owner only.
-        self.membership = Membership(self.session, self.prefix, self.settings.instance)
+        self.membership = Membership(self.session, self.prefix, self.settings.instance, assignment=self.assignment)
+        self.anchor_sync = AnchorSync(self.session, self.keys, self.settings.instance, self.anchor_switch)
         for expression in self.settings.inputs:
             head = literal_head(expression)
             self._declared.append(self.session.declare_subscriber(expression, self._image_handler(head)))
@@ -114,6 +134,7 @@ class TraversabilityService:
             self._declare_grid_inputs(self.grids)
         self._declare_queryables()
         self.worker.start()
+        self._watchdog.start()
         log.info(
             "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, model %s (%s), anchor set %s "
             "(%d anchors), method %s, outputs %s",
@@ -140,6 +161,8 @@ class TraversabilityService:
         self.credits.close()
         undeclare_all(self._declared)
         self._declared.clear()
+        if self.anchor_sync is not None:
+            self.anchor_sync.close()
         self.anchor_switch.close()
         if self.ros_graph is not None:
             self.ros_graph.close()
@@ -183,7 +206,22 @@ class TraversabilityService:
         """Instances of one prefix share the sources; before start() this instance owns them all."""
         return self.membership is None or self.membership.owns(source)
 
+    def _watch_progress(self) -> None:
+        """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again."""
+        while not self._stopping.wait(WATCHDOG_INTERVAL_S):
+            change = self.progress.check(len(self.queue))
+            if change is None or self.membership is None:
+                continue
+            if change.health.healthy:
+                log.warning("worker %s: rejoining the fleet", change.health.reason)
+                self.membership.rejoin()
+            else:
+                log.error("worker %s: withdrawing from the fleet (its sources fail over)", change.health.reason)
+                self.membership.withdraw()
+
     def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None) -> None:
+        if self.membership is not None:
+            self.membership.note(source)
         if self.owns(source):  # else another live instance serves this source
             key, size = str(sample.key_expr), len(sample.payload)
             self.admission.offer(source, key, size, sample.payload.to_bytes, str(sample.encoding), ros)
@@ -223,6 +261,8 @@ class TraversabilityService:
 
     def status(self) -> ServiceStatus:
         counts = self.stats.snapshot(self.queue.counters())
+        health = self.progress.health()
+        accepted_at = self.anchor_switch.head().accepted_at
         return ServiceStatus(
             instance=self.settings.instance,
             instances=sorted(self.membership.live()) if self.membership else [self.settings.instance],
@@ -243,6 +283,10 @@ class TraversabilityService:
             history_budget_bytes=self.history.budget_bytes or 0,
             tracked_sources=len(self.sources),
             max_sources=self.sources.max_sources,
+            healthy=health.healthy,
+            reason=health.reason,
+            anchor_set_accepted_at=accepted_at or None,  # 0: the set it started with, never swapped
+            anchor_sets=self.anchor_sync.fleet.versions() if self.anchor_sync else {},
         )
 
     def _precision(self) -> str:

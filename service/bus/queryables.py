@@ -76,7 +76,11 @@ class AnchorQueries:
         payload = query.payload
         if payload is None or len(payload) == 0:
             active = self.pipeline.anchors
-            replies.reply(query, self.keys.anchors, AnchorSetReply(anchor_set=active, version=active.version))
+            replies.reply(
+                query,
+                self.keys.anchors,
+                AnchorSetReply(anchor_set=active, version=active.version, instance=self.switch.instance),
+            )
             return
         self.switch.submit(payload.to_bytes(), self._swap_answer(query, self.keys.anchors))
 
@@ -92,6 +96,9 @@ class AnchorQueries:
         replies.check_no_parameters(query)
         replies.reply(query, self.keys.anchor_history, self.switch.history())
 
+    def _set_reply(self, anchors: AnchorSet) -> AnchorSetReply:
+        return AnchorSetReply(anchor_set=anchors, version=anchors.version, instance=self.switch.instance)
+
     def _swap_answer(self, query: zenoh.Query, key: str) -> SwapDone:
         """Reply to a swap or rollback query once the switch's worker is done with it."""
 
@@ -100,14 +107,20 @@ class AnchorQueries:
 
         def respond(query: zenoh.Query, anchors: AnchorSet | None, error: BaseException | None) -> None:
             if anchors is not None:
-                replies.reply(query, key, AnchorSetReply(anchor_set=anchors, version=anchors.version))
+                replies.reply(
+                    query,
+                    key,
+                    AnchorSetReply(anchor_set=anchors, version=anchors.version, instance=self.switch.instance),
+                )
                 return
             if isinstance(error, AnchorSetError):
                 messages, reason = error.messages, "invalid_anchor_set"
             else:
                 messages, reason = [f"swap failed: {type(error).__name__}: {error}"], "swap_failed"
             self.stats.rejected(None, reason, "; ".join(messages)[:300], None if reason != "swap_failed" else error)
-            rejection = AnchorSetRejection(errors=messages, active_version=self.pipeline.anchors.version)
+            rejection = AnchorSetRejection(
+                errors=messages, active_version=self.pipeline.anchors.version, instance=self.switch.instance
+            )
             replies.reply_error(query, rejection)
 
         return answer

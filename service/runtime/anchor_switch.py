@@ -49,9 +49,25 @@ class AnchorSwitch:
         self.max_body_bytes = max_body_bytes
         self._lock = threading.Lock()
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gcdtrav-anchors")
+        self._listeners: list[Callable[[AnchorHistoryEntry], None]] = []
         self._history = load_history(self.history_file)
         if not self._history or self._history[0].version != pipeline.anchors.version:
-            self._remember(pipeline.anchors)  # the set it started with: rollback can return to it
+            # The set it started with (rollback can return to it), never accepted in the fleet: accepted_at 0
+            # makes it lose to any accepted set another instance announces (service/runtime/fleet_anchors.py).
+            try:
+                self._remember(pipeline.anchors, accepted_at=0.0)
+            except OSError as err:  # a full or read-only state dir: serve anyway, say so once
+                start = AnchorHistoryEntry(
+                    accepted_at=0.0, version=pipeline.anchors.version, anchor_set=pipeline.anchors
+                )
+                self._history = [start, *self._history][:HISTORY_LENGTH]
+                log.error(
+                    "cannot write the anchor history %s (%s): serving anchor set %s; swaps will fail until the state "
+                    "dir is writable",
+                    self.history_file,
+                    err.strerror or err,
+                    pipeline.anchors.version,
+                )
 
     # ---- swaps, on the worker ------------------------------------------------------------------------
     def submit(self, body: bytes, done: SwapDone) -> None:
@@ -61,6 +77,29 @@ class AnchorSwitch:
     def submit_rollback(self, steps: int, done: SwapDone) -> None:
         """Swap back to the set ``steps`` entries before the active one, on the worker."""
         self._run(lambda: self.swap(self.rollback_target(steps)), done)
+
+    def submit_adopt(self, fetch: Callable[[], AnchorHistoryEntry | None], done: SwapDone) -> None:
+        """Adopt the fleet's set that ``fetch`` returns (it may query the bus: it runs on the worker), keeping
+        its accepted_at; nothing if it returns None or the set is already active."""
+
+        def adopt() -> AnchorSet:
+            entry = fetch()
+            if entry is None:
+                raise AnchorSetError(["the fleet's newest set could not be fetched"])
+            if entry.version == self.pipeline.anchors.version:
+                return self.pipeline.anchors
+            return self.swap(entry.anchor_set, entry.accepted_at)
+
+        self._run(adopt, done)
+
+    def on_change(self, listener: Callable[[AnchorHistoryEntry], None]) -> None:
+        """Call ``listener`` with the new head of the history after every swap (on the worker)."""
+        self._listeners.append(listener)
+
+    def head(self) -> AnchorHistoryEntry:
+        """The active set's entry: when it was accepted in the fleet, its version."""
+        with self._lock:
+            return self._history[0]
 
     def _run(self, job: Callable[[], AnchorSet], done: SwapDone) -> None:
         def report(future: Future[AnchorSet]) -> None:
@@ -79,19 +118,23 @@ class AnchorSwitch:
             )
         return AnchorSet.from_text(body, source="anchor set")
 
-    def swap(self, anchors: AnchorSet) -> AnchorSet:
-        """prepare -> persist -> activate under one lock; the active set stays if any step fails."""
+    def swap(self, anchors: AnchorSet, accepted_at: float | None = None) -> AnchorSet:
+        """prepare -> persist -> activate under one lock; the active set stays if any step fails. ``accepted_at``:
+        when the fleet accepted it (an adopted set keeps its time), else now."""
         with self._lock:
             prepared = self.pipeline.prepare(anchors)
             before = self._history
-            self._remember(anchors)
+            self._remember(anchors, accepted_at)
             try:
                 save_anchor_state(self.state_file, anchors)  # the commit point
             except Exception:
                 self._restore(before)
                 raise
             self.pipeline.activate(prepared)
+            head = self._history[0]
         log.info("anchor set swapped to %s (%d anchors)", anchors.version, len(anchors))
+        for listener in self._listeners:
+            listener(head)
         return anchors
 
     # ---- history -------------------------------------------------------------------------------------
@@ -107,8 +150,9 @@ class AnchorSwitch:
                 )
             return self._history[steps].anchor_set
 
-    def _remember(self, anchors: AnchorSet) -> None:
-        entry = AnchorHistoryEntry(accepted_at=time.time(), version=anchors.version, anchor_set=anchors)
+    def _remember(self, anchors: AnchorSet, accepted_at: float | None = None) -> None:
+        when = round(time.time(), 3) if accepted_at is None else accepted_at  # ms: the fleet's tokens carry ms
+        entry = AnchorHistoryEntry(accepted_at=when, version=anchors.version, anchor_set=anchors)
         self._write_history([entry, *self._history][:HISTORY_LENGTH])
 
     def _restore(self, entries: list[AnchorHistoryEntry]) -> None:
@@ -130,11 +174,11 @@ class AnchorSwitch:
 
 def load_history(history_file: Path) -> list[AnchorHistoryEntry]:
     """The accepted sets, newest (the active one) first; empty if there is no usable history file."""
-    if history_file.parent.is_dir():
-        remove_stale_temporaries(history_file)  # writes a crash interrupted
-    if not history_file.is_file():
-        return []
     try:
+        if history_file.parent.is_dir():
+            remove_stale_temporaries(history_file)  # writes a crash interrupted
+        if not history_file.is_file():
+            return []
         return AnchorHistoryReply.model_validate_json(history_file.read_text("utf-8")).entries
     except (OSError, ValueError, MessageError) as err:
         log.error("ignoring the anchor history file %s: %s", history_file, err)

@@ -107,6 +107,7 @@ class OutputBuilder:
             map_shape=record.map_shape,
             image_size=record.image_size,
             scale=record.scale,
+            order=(done.image.stamp, done.pending.received_at),
         )
         with_full = self.settings.full_resolution and full is not None
         maps = [result.maps.traversability, result.maps.uncertainty, *(full if with_full and full else ())]

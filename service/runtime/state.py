@@ -37,19 +37,26 @@ def save_anchor_state(path: Path, anchors: AnchorSet) -> None:
 
 
 def remove_stale_temporaries(path: Path) -> None:
-    """Temporary files of writes a crash interrupted (``path`` itself is intact)."""
-    for stale in path.parent.glob(f".{path.name}.*.tmp"):
-        stale.unlink(missing_ok=True)
+    """Temporary files of writes a crash interrupted (``path`` itself is intact); best effort: a read-only
+    state dir keeps them, and says so."""
+    try:
+        for stale in path.parent.glob(f".{path.name}.*.tmp"):
+            stale.unlink(missing_ok=True)
+    except OSError as err:
+        log.warning("cannot remove interrupted writes next to %s: %s", path, err.strerror or err)
 
 
 def load_anchor_state(path: Path) -> AnchorSet | None:
-    """The persisted set, or None if there is none or it is unusable (then the configured set is used)."""
-    if path.parent.is_dir():
-        remove_stale_temporaries(path)
-    if not path.is_file():
-        return None
+    """The persisted set, or None if there is none or it is unusable (then the configured set is used): a
+    corrupt, unreadable or unreachable state file is one log line, never a failed start."""
     try:
+        if path.parent.is_dir():
+            remove_stale_temporaries(path)
+        if not path.is_file():
+            return None
         return AnchorSet.load(path)
     except AnchorSetError as err:
-        log.error("ignoring the anchor state file: %s", err)
-        return None
+        log.error("ignoring the anchor state file: %s; serving the configured set", err)
+    except OSError as err:
+        log.error("cannot read the anchor state file %s: %s; serving the configured set", path, err.strerror or err)
+    return None

@@ -18,8 +18,10 @@ from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.frame_age import FrameAgeLimit
 from gcdtrav.service.runtime.frames import InferredFrame, PendingFrame, ProcessedFrame
+from gcdtrav.service.runtime.freshness import Dropped, FrameGate
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
 
@@ -38,11 +40,15 @@ class FrameWorker:
         settings: ServiceSettings,
         publish: Callable[[ProcessedFrame], bool],
         on_taken: Callable[[PendingFrame], None] = lambda pending: None,
+        progress: ProgressMonitor | None = None,
+        gate: FrameGate | None = None,
     ) -> None:
         self.frames, self.pipeline, self.history, self.stats = frames, pipeline, history, stats
         self.sources, self.settings, self.publish = sources, settings, publish
         self.on_taken = on_taken  # the source's slot is free: its sender may send the next frame (credits)
         self.age_limit = FrameAgeLimit(settings.max_frame_age_s)
+        self.progress = progress or ProgressMonitor(float("inf"))  # beaten round every loop and after every step
+        self.gate = gate  # stamps and ownership before inference; ownership and age again before publishing
         # With a CPU left over by torch (threads below the CPUs this process may use), a second thread
         # runs the last frame's engine work, encoding and publishing while the next frame is decoded and
         # inferred: +9 % frames/s with 1 torch thread on 2 cores (benchmarks/README.md). When torch has every
@@ -72,6 +78,7 @@ class FrameWorker:
 
     def _infer_loop(self) -> None:
         while not self._stopping.is_set():
+            self.progress.beat()
             self.sources.sweep()
             item = self.frames.take(timeout=0.25)
             if item is None:
@@ -97,14 +104,23 @@ class FrameWorker:
             return step(*args)
         except RejectedInput as err:
             self.stats.rejected(pending.source, err.reason, err.detail)
+        except Dropped as err:
+            if err.reason == "stale":
+                self.stats.stale(pending.source, err.detail)
+            else:
+                self.stats.dropped(pending.source, err.reason)
         except Exception as err:
             log.exception("frame from %s failed", pending.key)
             self.stats.rejected(pending.source, "processing_failed", repr(err)[:200])
+        finally:
+            self.progress.beat()
         return None
 
     def _infer(self, pending: PendingFrame) -> InferredFrame | None:
         """Decoded and inferred; None (counted stale) if it waited past max_frame_age_s: not worth computing."""
         image, ros_header = self._decode(pending)
+        if self.gate is not None:
+            self.gate.before_inference(pending, image)
         now = time.time()
         if self.age_limit.is_stale(image.stamp, now):
             self.stats.stale(pending.source, self.age_limit.explain(image.stamp, now))
@@ -121,15 +137,21 @@ class FrameWorker:
         ros_frame = ros_io.decode_ros_image(pending.payload, pending.ros.msgtype, self.settings.max_pixels)
         return DecodedFrame(ros_frame.image, ros_frame.stamp, ros_frame.frame_id), ros_frame.header
 
+    def _check_gate(self, inferred: InferredFrame) -> None:
+        if self.gate is not None:
+            self.gate.before_publish(inferred.pending, inferred.image.stamp)
+
     def _finish(self, inferred: InferredFrame) -> None:
         """Engine, numbering and history, outputs, counters."""
         source, image = inferred.pending.source, inferred.image
+        self._check_gate(inferred)
         result = self.pipeline.finish(inferred.inference)
         height, width = image.image.shape[:2]
         maps = result.maps
         record = self.history.record(
             source, maps.weights, result.anchors, image.stamp, image.frame_id, (width, height), maps.match
         )
+        self._check_gate(inferred)  # the engine took time too
         if not self.publish(ProcessedFrame(inferred, result, record)):
             self.stats.dropped(source, "shutdown")  # finished after the outputs closed
             return

@@ -64,7 +64,7 @@ def test_status_anchors_get_and_a_swap_with_its_diff(service, tmp_path: Path) ->
 
     swap = gcdtrav("anchors", "set", str(PUDDLES), *flags)
     assert swap.returncode == 0, swap.stderr
-    assert f"swapped: anchor set {new.version} active on 1 instance(s): ops-1" in swap.stdout
+    assert f"swapped: anchor set {new.version} active on ops-1 ({new.version})" in swap.stdout
     assert running.pipeline.anchors.version == new.version
 
 
@@ -107,7 +107,7 @@ def test_history_and_rollback_survive_a_restart(tiny_backend, tmp_path: Path) ->
         assert default_anchor_set().version in lines[3]  # the set it started with
         rolled = gcdtrav("anchors", "rollback", *flags)
         assert rolled.returncode == 0, rolled.stderr
-        assert f"rolled back: anchor set {puddles.version} active on 1 instance(s)" in rolled.stdout
+        assert f"rolled back: anchor set {puddles.version} active on ops-2 ({puddles.version})" in rolled.stdout
         assert "- lake @ 0.00" in rolled.stdout and running.pipeline.anchors.version == puddles.version
         too_far = gcdtrav("anchors", "rollback", "9", *flags)
         assert too_far.returncode == 1 and "no set 9 step(s) back" in too_far.stderr

@@ -50,6 +50,10 @@ def test_source_of_refuses_what_is_not_one_source() -> None:
     assert keys.source_of("other/out/cam/patch", "patch") is None
     assert keys.source_of("gcdtrav/out/$*/patch", "patch") is None
     assert keys.instance_of("gcdtrav/alive/box-1") == "box-1" and keys.instance_of("gcdtrav/status") is None
+    token = keys.active_anchors("site/box-1", "1700000000123", "0123456789abcdef")
+    assert keys.parse_active_anchors(token) == ("site/box-1", 1700000000123, "0123456789abcdef")
+    assert keys.parse_active_anchors(keys.alive("box-1")) is None
+    assert keys.parse_active_anchors(keys.active_anchors("box-1", "soon", "v")) is None
 
 
 def test_docs_list_the_same_keys() -> None:
@@ -59,4 +63,5 @@ def test_docs_list_the_same_keys() -> None:
     built |= {keys.grid("{source}", layer) for layer in GRID_LAYERS}
     built |= {keys.anchors, keys.anchor_history, keys.anchor_rollback, keys.status, keys.alive("{instance}")}
     built |= {keys.credit("{source}"), keys.relay_health("{source}")}
+    built |= {keys.active_anchors("{instance}", "{millis}", "{version}")}
     assert built <= documented, f"missing from docs/messages.md: {sorted(built - documented)}"

@@ -91,6 +91,8 @@ def test_a_bad_patch_query_is_answered_with_its_error(stats: ServiceStats, param
 class ImmediateSwitch:
     """Reports a swap at once, from another thread, as the AnchorSwitch's worker does."""
 
+    instance = "box-1"
+
     def submit(self, body: bytes, done: Any) -> None:
         anchors = AnchorSet.from_text(body, source="test")
         threading.Thread(target=done, args=(anchors, None)).start()
