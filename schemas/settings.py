@@ -250,7 +250,7 @@ class GridSettings(StrictModel):
     @model_validator(mode="after")
     def _one_form(self) -> GridSettings:
         if self.cameras is not None:
-            given = sorted(name for name in SINGLE_CAMERA_FIELDS if name in self.model_fields_set)
+            given = sorted(name for name in SINGLE_CAMERA_FIELDS if getattr(self, name) != _default(name))
             if given:
                 raise ValueError(
                     f"grid '{self.source or self.cameras[0].source}': give either cameras or the single-camera "
@@ -280,6 +280,11 @@ class GridSettings(StrictModel):
             depth_key=self.depth_key,
         )
         return [single]
+
+
+def _default(field: str) -> Any:
+    """A GridSettings field's default (its dump holds the single-camera fields' defaults in either form)."""
+    return GridSettings.model_fields[field].get_default(call_default_factory=True)
 
 
 def _one_grid_per_camera(grids: list[GridSettings]) -> None:
