@@ -239,9 +239,11 @@ class GridOutputs:
             layers = grid_layers(grid.grid, positions, widths, risk.alpha, risk.tau, grid.config.lethal_tau)
             header = self.header(grid, anchors.version)
             ros_topic = grid.ros_topic()
-        return self._update(grid.config, header, layers, ros_topic)
+        return self.encode_update(grid.config, header, layers, ros_topic)
 
-    def _update(self, config: GridSettings, header: GridHeader, layers: GridLayers, ros: RosTopic | None) -> GridUpdate:
+    def encode_update(
+        self, config: GridSettings, header: GridHeader, layers: GridLayers, ros: RosTopic | None
+    ) -> GridUpdate:
         """The payloads of one grid update (encoded outside the grid's lock)."""
         maps = (layers.traversability, layers.uncertainty, layers.cvar, layers.p_below, layers.match)
         t, u, cvar, p_below, match = encode_maps_png16(*(np.nan_to_num(values) for values in maps))

@@ -357,3 +357,23 @@ def test_grid_outputs_say_their_levels_age_and_expired_cells() -> None:
     assert (grid.match[known] == 1.0).all()  # no scores: matched; the left camera's 0.25 expired
     assert set(grid.planning_layers()) == {"traversability", "cvar", "p_below"}
     assert math.isnan(grid.cvar[~known][0])
+
+
+def test_the_nav2_example_subscribes_the_topic_the_service_publishes() -> None:
+    from pathlib import Path
+
+    import yaml
+    from gcdtrav.schemas.settings import load_settings
+    from gcdtrav.service.ros.cdr import output_topic
+
+    examples = Path(__file__).resolve().parents[3] / "examples" / "nav2"
+    settings = load_settings(examples / "gcdtrav.yaml", environ={})
+    (grid,) = settings.grids
+    assert grid.costmap and grid.grid_map and grid.pose_format == "odometry"
+    costmap = yaml.safe_load((examples / "nav2_costmap.yaml").read_text())["local_costmap"]["local_costmap"]
+    parameters = costmap["ros__parameters"]
+    topic = output_topic(settings.ros_output.costmap_topic, "/" + grid.source)
+    assert parameters["gcdtrav_layer"]["map_topic"] == topic == "/camera/front/image_raw/gcdtrav/grid/costmap"
+    assert parameters["gcdtrav_layer"]["map_subscribe_transient_local"] is True
+    assert parameters["trinary_costmap"] is False and parameters["track_unknown_space"] is True
+    assert parameters["resolution"] == grid.resolution_m
