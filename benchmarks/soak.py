@@ -159,8 +159,9 @@ def main() -> int:
     common += ["--threads", str(args.threads), "--no-preview"]
     state = Path(scratch.name)
     settings = state / "bounds.yaml"
+    # The churn comes from one client session: no per-publisher cap, so that it measures the source cap.
     settings.write_text(
-        f"max_sources: {args.max_sources}\nsource_idle_s: {args.source_idle_s}\n"
+        f"max_sources: {args.max_sources}\nsource_idle_s: {args.source_idle_s}\nmax_sources_per_publisher: null\n"
         f"history_budget_mb: {args.history_budget_mb}\npending_budget_mb: {args.pending_budget_mb}\n"
     )
     common += ["--settings", str(settings)]

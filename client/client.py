@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import zenoh
 from gcdtrav.client.freshness import FreshnessWatch, Staleness
+from gcdtrav.client.source_info import put_identified
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.images import (
     decode_age_png,
@@ -303,7 +304,7 @@ class TraversabilityClient:
         if publisher is None:
             publisher = self.session.declare_publisher(key, encoding=MSGPACK)
             self._publishers[key] = publisher
-        publisher.put(envelope.pack())
+        put_identified(publisher, envelope.pack())  # lets the service cap the sources per publisher
 
     @staticmethod
     def _envelope(

@@ -35,6 +35,7 @@ from gcdtrav.client.ros_camera import (
     ros_camera_key,
     ros_type_of_key,
 )
+from gcdtrav.client.source_info import put_identified
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.inputs import RejectedInput, decode_payload
 from gcdtrav.schemas.keys import Keys, input_key
@@ -143,7 +144,7 @@ class CameraLink:
                 self.sent += 1
             assert self._publisher is not None
             try:
-                self._publisher.put(payload)
+                put_identified(self._publisher, payload)
             except zenoh.ZError as err:  # the session is closing
                 log.debug("%s: send failed: %s", self.source, err)
             self.uplink.add(len(payload))

@@ -345,6 +345,24 @@ class ServiceSettings(StrictModel):
     source_idle_s: float = Field(
         default=300, gt=0, description="A source without a frame for this long is forgotten (history, counters)."
     )
+    max_candidates: int = Field(
+        default=32,
+        ge=1,
+        description="New sources whose first frame waits to be decoded before they take a slot; a new one evicts "
+        "the oldest (a flood of invented names holds at most this many pending frames).",
+    )
+    reclaim_after_s: float = Field(
+        default=2.0,
+        ge=0,
+        description="When max_sources are tracked, a source with a single frame idle for this long gives its slot "
+        "to a new source whose frame decoded (the idlest first); sources with two frames or more keep theirs.",
+    )
+    max_sources_per_publisher: int | None = Field(
+        default=16,
+        ge=1,
+        description="Sources tracked or waiting per publisher (the zenoh session its samples' source info names); "
+        "samples without source info are not capped; null: no cap.",
+    )
     max_payload_bytes: int = Field(default=20_000_000, ge=1024, description="Larger payloads are rejected unread.")
     max_stamp_skew_s: float | None = Field(
         default=300.0,

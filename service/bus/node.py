@@ -57,6 +57,12 @@ def model_input(pipeline: Pipeline) -> tuple[int, int]:
     return side, side
 
 
+def publisher_of(sample: zenoh.Sample) -> str | None:
+    """The publishing session's id if the publisher says (client/source_info.py); None: not capped."""
+    info = sample.source_info
+    return None if info is None else str(info.source_id.zid)
+
+
 class TraversabilityService:
     def __init__(self, session: zenoh.Session, pipeline: Pipeline, settings: ServiceSettings) -> None:
         self.session = session
@@ -85,7 +91,9 @@ class TraversabilityService:
         ledger = CreditLedger(settings.instance, model_input(pipeline), settings.max_frame_age_s)
         self.credits = CreditPublisher(session, self.keys, ledger, self.stats)
         forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget, self.credits.forget)
-        self.sources = SourceTracker(settings.max_sources, settings.source_idle_s, forget)
+        self.sources = SourceTracker(
+            settings.max_sources, settings.source_idle_s, forget, reclaim_after_s=settings.reclaim_after_s
+        )
         self.admission = Admission(settings, self.sources, self.queue, self.stats, self.credits.freed)
         self.assignment = Assignment(idle_s=settings.source_idle_s, max_known=4 * settings.max_sources)
         self.progress = ProgressMonitor(settings.stall_after_s)
@@ -101,6 +109,7 @@ class TraversabilityService:
             self.credits.taken,
             self.progress,
             gate,
+            self.admission,
         )
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
@@ -224,7 +233,8 @@ class TraversabilityService:
             self.membership.note(source)
         if self.owns(source):  # else another live instance serves this source
             key, size = str(sample.key_expr), len(sample.payload)
-            self.admission.offer(source, key, size, sample.payload.to_bytes, str(sample.encoding), ros)
+            encoding, publisher = str(sample.encoding), publisher_of(sample)
+            self.admission.offer(source, key, size, sample.payload.to_bytes, encoding, ros, publisher)
 
     def _declare_queryables(self) -> None:
         per_source = SourceQueries(self.keys, self.history, self.grids, self.owns, self.settings.risk)

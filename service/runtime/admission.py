@@ -1,23 +1,30 @@
-"""What the subscriber callback checks before a frame takes any state, in order: the source's name, the
-source cap, the payload's size (refused unread: never copied out of the middleware's buffer), the frame's
-age (its capture stamp, read without decoding: service/runtime/frame_age.py) and the pending frames' byte
-budget. No middleware here: the bus hands over the source, the size and a way to read.
+"""What the subscriber callback checks before a frame takes any state, in order: the source's name, for a
+new source the candidates' caps (service/runtime/candidates.py), the payload's size (refused unread: never
+copied out of the middleware's buffer), the frame's age (its capture stamp, read without decoding:
+service/runtime/frame_age.py) and the pending frames' byte budget. No middleware here: the bus hands over
+the source, the size and a way to read.
 
-A tracked source's frame that is refused frees its slot at once: ``on_freed`` (the credits) hears of it."""
+A tracked source's frame that is refused frees its slot at once: ``on_freed`` (the credits) hears of it.
+
+A new source is a candidate until the worker decodes one of its frames (``decoded``: it takes a slot of the
+SourceTracker) or fails to (``undecodable``: forgotten at once, the frame counted rejected with its reason).
+What is counted against a candidate is counted by reason only: invented names leave no per-source state."""
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
 
+from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.limits import MAX_SOURCE_CHARS
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros.cdr import RosTopic
+from gcdtrav.service.runtime.candidates import CandidatePool, over_publisher_cap
 from gcdtrav.service.runtime.credits import REFUSED, STALE, FrameTimes
 from gcdtrav.service.runtime.frame_age import FrameAgeLimit, input_times
 from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue, PendingBudgetExceeded
-from gcdtrav.service.runtime.sources import SourceTracker
+from gcdtrav.service.runtime.sources import SourcesFull, SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
 
 
@@ -33,9 +40,17 @@ class Admission:
         self.settings, self.sources, self.queue, self.stats = settings, sources, queue, stats
         self.age_limit = FrameAgeLimit(settings.max_frame_age_s)
         self.on_freed = on_freed
+        self.candidates = CandidatePool(settings.max_candidates)
 
     def offer(
-        self, source: str, key: str, size: int, read: Callable[[], bytes], encoding: str, ros: RosTopic | None = None
+        self,
+        source: str,
+        key: str,
+        size: int,
+        read: Callable[[], bytes],
+        encoding: str,
+        ros: RosTopic | None = None,
+        publisher: str | None = None,
     ) -> bool:
         """Queue the frame as the source's newest, or count why not; True if queued."""
         if len(source) > MAX_SOURCE_CHARS:
@@ -43,11 +58,62 @@ class Admission:
                 None, "source_name_too_long", f"'{source[:60]}...' is over {MAX_SOURCE_CHARS} characters"
             )
             return False
-        if not self.sources.admit(source):
+        if self.sources.note(source):
+            return self._offer_frame(source, key, size, read, encoding, ros)
+        waiting = source in self.candidates
+        if not waiting and not self._may_wait(source, publisher):
+            return False
+        queued = self._offer_frame(source, key, size, read, encoding, ros)
+        if queued:
+            self._forget_evicted(self.candidates.add(source, publisher))
+        elif not waiting:
+            self.sources.forget_untracked(source)  # the counters the refusal left
+        return queued
+
+    def _may_wait(self, source: str, publisher: str | None) -> bool:
+        """A new source may wait as a candidate: a slot could be had and its publisher is under its cap."""
+        if not self.sources.can_reclaim():
             self.stats.rejected(
                 None, "too_many_sources", f"'{source[:200]}': already tracking {self.sources.max_sources} sources"
             )
             return False
+        cap = self.settings.max_sources_per_publisher
+        if publisher is not None and over_publisher_cap(publisher, self._of_publisher(publisher), cap):
+            self.stats.rejected(None, "too_many_sources_per_publisher", f"'{source[:200]}': publisher has {cap}")
+            return False
+        return True
+
+    def _of_publisher(self, publisher: str) -> int:
+        return self.sources.of_publisher(publisher) + self.candidates.of_publisher(publisher)
+
+    def _forget_evicted(self, evicted: str | None) -> None:
+        if evicted is not None:
+            self.sources.forget_untracked(evicted)  # its pending frame and counters
+            self.stats.rejected(None, "candidate_evicted", f"'{evicted[:200]}': a newer new source took its place")
+
+    def decoded(self, source: str) -> None:
+        """One of ``source``'s frames decoded: a candidate takes a slot. Raises RejectedInput if none is left."""
+        _, publisher = self.candidates.pop(source)
+        try:
+            self.sources.promote(source, publisher)
+        except SourcesFull as err:
+            self.sources.forget_untracked(source)
+            raise RejectedInput("too_many_sources", str(err)) from None
+
+    def taken(self, source: str) -> None:
+        """The worker took a frame of ``source``: a candidate's is no longer evictable."""
+        self.candidates.take(source)
+
+    def undecodable(self, source: str) -> bool:
+        """One of ``source``'s frames failed: a candidate is forgotten at once. False if the frame was already
+        counted (its candidate evicted between the queue and ``taken``): not to be counted again."""
+        was_candidate, _ = self.candidates.pop(source)
+        self.sources.forget_untracked(source)  # also what taking an evicted candidate's frame left (credits)
+        return was_candidate or source in self.sources
+
+    def _offer_frame(
+        self, source: str, key: str, size: int, read: Callable[[], bytes], encoding: str, ros: RosTopic | None
+    ) -> bool:
         received_at = time.time()
         if size > self.settings.max_payload_bytes:
             self.queue.count_unqueued(source)

@@ -16,6 +16,7 @@ from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.cpus import usable_cpus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
+from gcdtrav.service.runtime.admission import Admission
 from gcdtrav.service.runtime.frame_age import FrameAgeLimit
 from gcdtrav.service.runtime.frames import InferredFrame, PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.freshness import Dropped, FrameGate
@@ -42,12 +43,14 @@ class FrameWorker:
         on_taken: Callable[[PendingFrame], None] = lambda pending: None,
         progress: ProgressMonitor | None = None,
         gate: FrameGate | None = None,
+        admission: Admission | None = None,
     ) -> None:
         self.frames, self.pipeline, self.history, self.stats = frames, pipeline, history, stats
         self.sources, self.settings, self.publish = sources, settings, publish
         self.on_taken = on_taken  # the source's slot is free: its sender may send the next frame (credits)
         self.age_limit = FrameAgeLimit(settings.max_frame_age_s)
         self.progress = progress or ProgressMonitor(float("inf"))  # beaten round every loop and after every step
+        self.admission = admission  # a new source takes a slot once its frame decodes; None: every source has one
         self.gate = gate  # stamps and ownership before inference; ownership and age again before publishing
         # With a CPU left over by torch (threads below the CPUs this process may use), a second thread
         # runs the last frame's engine work, encoding and publishing while the next frame is decoded and
@@ -103,7 +106,7 @@ class FrameWorker:
         try:
             return step(*args)
         except RejectedInput as err:
-            self.stats.rejected(pending.source, err.reason, err.detail)
+            self.stats.rejected(self._counted_as(pending.source), err.reason, err.detail)
         except Dropped as err:
             if err.reason == "stale":
                 self.stats.stale(pending.source, err.detail)
@@ -111,14 +114,21 @@ class FrameWorker:
                 self.stats.dropped(pending.source, err.reason)
         except Exception as err:
             log.exception("frame from %s failed", pending.key)
-            self.stats.rejected(pending.source, "processing_failed", repr(err)[:200])
+            self.stats.rejected(self._counted_as(pending.source), "processing_failed", repr(err)[:200])
         finally:
             self.progress.beat()
         return None
 
+    def _counted_as(self, source: str) -> str | None:
+        """Counted per source only if tracked: a refused candidate leaves no per-source state."""
+        return source if self.admission is None or source in self.sources else None
+
     def _infer(self, pending: PendingFrame) -> InferredFrame | None:
         """Decoded and inferred; None (counted stale) if it waited past max_frame_age_s: not worth computing."""
-        image, ros_header = self._decode(pending)
+        decoded = self._decode_admitted(pending)
+        if decoded is None:
+            return None
+        image, ros_header = decoded
         if self.gate is not None:
             self.gate.before_inference(pending, image)
         now = time.time()
@@ -126,6 +136,21 @@ class FrameWorker:
             self.stats.stale(pending.source, self.age_limit.explain(image.stamp, now))
             return None
         return InferredFrame(pending, image, ros_header, self.pipeline.infer(image.image))
+
+    def _decode_admitted(self, pending: PendingFrame) -> tuple[DecodedFrame, Any] | None:
+        """Decoded; a new source takes its slot only now (or, if its frame fails, is forgotten at once).
+        None: it failed and was already counted (evicted as a candidate while it was being taken)."""
+        if self.admission is None:
+            return self._decode(pending)
+        self.admission.taken(pending.source)
+        try:
+            decoded = self._decode(pending)
+        except Exception:
+            if self.admission.undecodable(pending.source):
+                raise
+            return None
+        self.admission.decoded(pending.source)
+        return decoded
 
     def _decode(self, pending: PendingFrame) -> tuple[DecodedFrame, Any]:
         """The image and, for ROS inputs, the message header to reuse on the ROS outputs."""

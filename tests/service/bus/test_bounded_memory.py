@@ -122,7 +122,9 @@ from tools.loopback import in_process_service  # noqa: E402
 
 
 def test_service_caps_sources_reports_them_and_forgets_idle_ones(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
-    settings = ServiceSettings(state_dir=tmp_path, instance="bounded", max_sources=3, source_idle_s=1.5, preview=False)
+    settings = ServiceSettings(
+        state_dir=tmp_path, instance="bounded", max_sources=3, source_idle_s=1.5, reclaim_after_s=60, preview=False
+    )
     with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (service, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         try:
@@ -147,5 +149,42 @@ def test_service_caps_sources_reports_them_and_forgets_idle_ones(tiny_backend, t
                 client.patch("r1/frame_000000", 1, 1)
             client.publish_image("r1/frame_000004", image)  # room again: a new source is served
             assert wait_until(lambda: "r1/frame_000004" in client.status().sources, 15)
+        finally:
+            client.close()
+
+
+def test_a_publisher_that_invents_names_is_capped(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """Our client sets zenoh's source info on every frame: the service caps the sources of its session."""
+    settings = ServiceSettings(state_dir=tmp_path, instance="capped", max_sources_per_publisher=2, preview=False)
+    with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (_, port):
+        client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
+        try:
+            assert wait_until(lambda: service_reachable(client), 10)
+            for k in range(4):
+                client.publish_image(f"r1/frame_{k}", textured_image(48, 64))
+            assert wait_until(lambda: client.status().rejected_by_reason.get("too_many_sources_per_publisher") == 2, 15)
+            assert wait_until(lambda: sum(s.processed for s in client.status().sources.values()) == 2, 15)
+            assert sorted(client.status().sources) == ["r1/frame_0", "r1/frame_1"]
+        finally:
+            client.close()
+
+
+def test_a_flood_of_undecodable_names_is_rejected_by_reason_and_a_robot_still_served(  # type: ignore[no-untyped-def]
+    tiny_backend, tmp_path: Path
+) -> None:
+    settings = ServiceSettings(state_dir=tmp_path, instance="flooded", max_sources=1, max_candidates=4, preview=False)
+    with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (_, port):
+        client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
+        try:
+            assert wait_until(lambda: service_reachable(client), 10)
+            for k in range(200):  # raw puts without source info: not capped per publisher
+                client.session.put(f"gcdtrav/in/junk/{k}", b"\x89PNG not an image")
+            client.publish_image("r1/cam", textured_image(48, 64))
+            assert wait_until(lambda: client.status().sources.get("r1/cam", None) is not None, 15)
+            assert wait_until(lambda: client.status().sources["r1/cam"].processed == 1, 15)
+            status = client.status()
+            assert sum(status.rejected_by_reason.values()) == 200 and "candidate_evicted" in status.rejected_by_reason
+            assert status.dropped_by_reason == {} and status.tracked_sources == 1
+            assert list(status.sources) == ["r1/cam"]
         finally:
             client.close()

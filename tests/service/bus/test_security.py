@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from conftest import textured_image
 from zenoh_helpers import free_port, service_reachable, wait_until
 
 pytest.importorskip("torch")
@@ -67,6 +68,33 @@ def test_only_the_operator_can_change_the_anchor_set(tiny_backend, tmp_path: Pat
             with TraversabilityClient(config=user_config(port, user, password), timeout=1.0) as stranger:
                 time.sleep(0.5)
                 assert not service_reachable(stranger)
+    finally:
+        service.stop()
+        session.close()
+
+
+def test_only_robots_can_put_frames(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    port = free_port()
+    credentials = tmp_path / "credentials.txt"
+    credentials.write_text("robot:robot-secret\nplanner:planner-secret\n")
+    config = zenoh.Config.from_file(DEPLOY / "access-control.json5")
+    config.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    config.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(credentials)))
+    service, session = start(tiny_backend, config, tmp_path)
+    try:
+        with (
+            TraversabilityClient(config=user_config(port, "planner", "planner-secret"), timeout=5.0) as planner,
+            TraversabilityClient(config=user_config(port, "robot", "robot-secret"), timeout=5.0) as robot,
+        ):
+            assert wait_until(lambda: service_reachable(planner) and service_reachable(robot), 10)
+            for _ in range(3):
+                planner.publish_image("intruder/cam", textured_image(48, 64))
+            robot.publish_image("r1/cam", textured_image(48, 64))
+            assert wait_until(lambda: "r1/cam" in robot.status().sources, 15)
+            planner.publish_image("intruder/cam", textured_image(48, 64))
+            time.sleep(0.5)
+            status = robot.status()
+            assert list(status.sources) == ["r1/cam"] and status.rejected_by_reason == {}  # never reached it
     finally:
         service.stop()
         session.close()

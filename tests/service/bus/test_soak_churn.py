@@ -41,4 +41,4 @@ def test_churning_sources_stay_capped_are_forgotten_and_steady_robots_are_served
     assert churn["churn_frames_sent"] - refused > 2 * MAX_SOURCES, summary  # ... forgotten sources made room
     low, high = churn["steady_maps_min_max"]
     assert low > 0 and high - low <= max(3, 0.25 * high), summary  # the steady robots are served evenly
-    assert report["lost"] == 0 and set(report["errors"]["soak-0"]) == {"too_many_sources"}, summary
+    assert report["lost"] == 0 and set(report["errors"]["soak-0"]) <= {"too_many_sources", "candidate_evicted"}, summary
