@@ -20,6 +20,7 @@ from gcdtrav.client.freshness import FreshnessWatch, Staleness
 from gcdtrav.client.source_info import put_identified
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.images import (
+    decode_age_png,
     decode_count_png,
     decode_map_png8,
     decode_map_png16,
@@ -127,21 +128,56 @@ class Maps:
 
 @dataclass(frozen=True)
 class Grid:
-    """A decoded GridMessage: T and U per cell (NaN where never observed) and observation counts."""
+    """A decoded GridMessage: T and U per cell (NaN where unknown: never observed, or expired) and observation
+    counts (0 where unknown); from 1.2 writers also the planner's layers, None from older ones:
+
+    - ``cvar``: CVaR of T at ``header.alpha`` (the mean of its worst alpha), NaN where unknown;
+    - ``p_below``: P(T < ``header.tau``), NaN where unknown;
+    - ``match``: the fused match score (near 0: no anchor describes the ground), NaN where unknown;
+    - ``age``: seconds from each cell's last observation to ``header.stamp`` (add ``header.age_s`` for its age
+      when published), NaN where never observed; expired cells keep theirs.
+    """
 
     header: GridHeader
     traversability: NDArray[np.float32]
     uncertainty: NDArray[np.float32]
     count: NDArray[np.int64]
+    cvar: NDArray[np.float32] | None = None
+    p_below: NDArray[np.float32] | None = None
+    match: NDArray[np.float32] | None = None
+    age: NDArray[np.float32] | None = None
 
     @classmethod
     def from_payload(cls, payload: bytes) -> Grid:
         message = GridMessage.unpack(payload)
         count = decode_count_png(message.count_png)
         unknown = count == 0
-        t, u = decode_map_png16(message.traversability_png), decode_map_png16(message.uncertainty_png)
-        t[unknown], u[unknown] = np.nan, np.nan
-        return cls(header=message.header, traversability=t, uncertainty=u, count=count)
+
+        def layer(data: bytes | None) -> NDArray[np.float32] | None:
+            if data is None:
+                return None
+            values = decode_map_png16(data)
+            values[unknown] = np.nan
+            return values
+
+        t, u = layer(message.traversability_png), layer(message.uncertainty_png)
+        assert t is not None and u is not None
+        age = decode_age_png(message.age_png) if message.age_png is not None else None
+        return cls(
+            header=message.header,
+            traversability=t,
+            uncertainty=u,
+            count=count,
+            cvar=layer(message.cvar_png),
+            p_below=layer(message.p_below_png),
+            match=layer(message.match_png),
+            age=age,
+        )
+
+    def planning_layers(self) -> dict[str, NDArray[np.float32]]:
+        """The layers ``client.planning.plan`` reads (traversability, cvar, p_below), those the grid has."""
+        found = {"traversability": self.traversability, "cvar": self.cvar, "p_below": self.p_below}
+        return {name: values for name, values in found.items() if values is not None}
 
     @property
     def age_s(self) -> float:

@@ -188,3 +188,26 @@ def decode_count_png(data: bytes) -> NDArray[np.int64]:
     if decoded is None:
         raise MessageError("grid count layer is not a PNG")
     return decoded.astype(np.int64)
+
+
+AGE_STEP_S = 0.1  # a grid's age layer travels in tenths of a second
+AGE_NEVER = 65535  # the age layer's value of a cell never observed; ages cap one step below (6553.4 s)
+
+
+def encode_age_png(age_s: NDArray[np.floating]) -> bytes:
+    """A grid's cell ages (seconds, NaN: never observed) as a 16-bit PNG of tenths of a second."""
+    age = np.asarray(age_s, np.float64)
+    with np.errstate(invalid="ignore"):
+        steps = np.clip(np.round(np.nan_to_num(age, nan=0.0) / AGE_STEP_S), 0, AGE_NEVER - 1)
+    ok, buffer = cv2.imencode(".png", np.where(np.isnan(age), AGE_NEVER, steps).astype(np.uint16))
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return buffer.tobytes()
+
+
+def decode_age_png(data: bytes) -> NDArray[np.float32]:
+    """The inverse of ``encode_age_png``: seconds, NaN where never observed; MessageError if not a 16-bit PNG."""
+    decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if decoded is None or decoded.dtype != np.uint16 or decoded.ndim != 2:
+        raise MessageError("grid age layer is not a single-channel 16-bit PNG")
+    return np.where(decoded == AGE_NEVER, np.nan, decoded * AGE_STEP_S).astype(np.float32)

@@ -6,7 +6,8 @@ A service with prefix ``gcdtrav`` (the default) answers and publishes on:
   {prefix}/out/{source}/maps8                CompactMapsMessage (8-bit T and U, for slow links), when subscribed
   {prefix}/out/{source}/preview              colourised JPEG (T overlay | U)
   {prefix}/out/{source}/patch                queryable: a map patch's or region's ContextDistribution
-  {prefix}/out/{source}/grid                 GridMessage (ground grid); .../grid/occupancy, .../grid/uncertainty
+  {prefix}/out/{source}/grid                 GridMessage (ground grid); .../grid/occupancy, .../grid/uncertainty,
+                                             .../grid/gridmap (grid_map_msgs/GridMap), .../grid/costmap (Nav2)
   {prefix}/out/{source}/cell                 queryable: a ground cell's ContextDistribution, or a path
   {prefix}/config/anchors                    queryable: the active anchor set, or a swap (payload = new set)
   {prefix}/config/anchors/history            queryable: the last accepted sets
@@ -30,6 +31,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 OUTPUT_KINDS = ("maps", "maps8", "preview", "patch", "grid", "cell")
+GRID_LAYERS = ("occupancy", "uncertainty", "gridmap", "costmap")  # the grid's CDR messages, under .../grid/
 
 
 @dataclass(frozen=True)
@@ -62,7 +64,7 @@ class Keys:
         return self.output(source, "patch")
 
     def grid(self, source: str, layer: str = "") -> str:
-        """The ground grid, or one of its ROS layers (``occupancy``, ``uncertainty``)."""
+        """The ground grid, or one of its ROS messages (``occupancy``, ``uncertainty``, ``gridmap``, ``costmap``)."""
         return self.output(source, "grid") + (f"/{layer}" if layer else "")
 
     def cell(self, source: str) -> str:

@@ -23,7 +23,8 @@ MSGPACK_ENCODING = "application/msgpack"
 # major.minor of every message below. A minor step adds fields (older readers ignore them); a major step
 # changes or removes one, and a reader refuses a message of another major with both versions named.
 # 1.0 was the integer 1 in MapsHeader only; 1.1 puts the version in every message and adds risk fields;
-# 1.2 adds ServiceStatus.measuring, MapsHeader.order and the status's health and anchor-set fleet fields.
+# 1.2 adds ServiceStatus.measuring, MapsHeader.order, the status's health and anchor-set fleet fields, and the
+# grid's planner layers (GridMessage, GridHeader).
 SCHEMA_VERSION = "1.2"
 _VERSION = re.compile(r"^(\d+)(?:\.\d+)?$")
 
@@ -331,16 +332,34 @@ class GridHeader(WireModel):
     last_reset: str = ""
     known_cells: int
     instance: str
+    alpha: float | None = Field(default=None, description="The level of the cvar layer. Since 1.2.")
+    tau: float | None = Field(default=None, description="The threshold of the p_below layer. Since 1.2.")
+    expired_cells: int | None = Field(
+        default=None, description="Cells observed once but not for max_age_s: unknown again. Since 1.2."
+    )
+    age_s: float | None = Field(
+        default=None,
+        description="Publication time minus stamp (the last fused frame's), s: the grid's own age, clock skew "
+        "included. Since 1.2.",
+    )
 
 
 class GridMessage(Message):
     """T and U per cell as 16-bit PNGs (value / 65535) and observation counts (16-bit, capped); a cell with
-    count 0 is unknown, whatever its T and U pixels hold."""
+    count 0 is unknown, whatever its other pixels hold. Since 1.2 the planner's layers too (absent from older
+    writers): CVaR at header.alpha, P(T < header.tau) and the fused match score as 16-bit PNGs (value / 65535),
+    and each cell's age (16-bit PNG of tenths of a second before header.stamp, 65535: never observed)."""
 
     header: GridHeader
     traversability_png: bytes
     uncertainty_png: bytes
     count_png: bytes
+    cvar_png: bytes | None = Field(default=None, description="CVaR_alpha of T per cell. Since 1.2.")
+    p_below_png: bytes | None = Field(default=None, description="P(T < tau) per cell. Since 1.2.")
+    match_png: bytes | None = Field(default=None, description="Fused match score per cell. Since 1.2.")
+    age_png: bytes | None = Field(
+        default=None, description="Seconds since each cell was last observed, in 0.1 s steps. Since 1.2."
+    )
 
 
 class PathReply(Message):

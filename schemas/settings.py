@@ -123,9 +123,23 @@ class RosOutput(StrictModel):
         description="nav_msgs/OccupancyGrid of the camera's grid, cost 100 (1 - T) (grids with occupancy_grid).",
     )
     grid_uncertainty_topic: str = "{topic}/gcdtrav/grid/uncertainty"
+    gridmap_topic: str = Field(
+        default="{topic}/gcdtrav/grid/gridmap",
+        description="grid_map_msgs/GridMap of the camera's grid, every layer (grids with grid_map).",
+    )
+    costmap_topic: str = Field(
+        default="{topic}/gcdtrav/grid/costmap",
+        description="nav_msgs/OccupancyGrid graded for Nav2's static layer (grids with costmap; docs/grid.md).",
+    )
 
     _templates = field_validator(
-        "traversability_topic", "uncertainty_topic", "preview_topic", "occupancy_topic", "grid_uncertainty_topic"
+        "traversability_topic",
+        "uncertainty_topic",
+        "preview_topic",
+        "occupancy_topic",
+        "grid_uncertainty_topic",
+        "gridmap_topic",
+        "costmap_topic",
     )(_topic_template)
 
     def topic_templates(self) -> list[str]:
@@ -137,6 +151,8 @@ class RosOutput(StrictModel):
             self.preview_topic + "/compressed",
             self.occupancy_topic,
             self.grid_uncertainty_topic,
+            self.gridmap_topic,
+            self.costmap_topic,
         ]
 
 
@@ -162,10 +178,42 @@ class CameraMountSettings(StrictModel):
     yaw: float = 0.0
 
 
-class GridSettings(StrictModel):
-    """A ground grid around the robot for one source (see docs/grid.md)."""
+class GridCamera(StrictModel):
+    """One camera of a grid: its source, intrinsics and where it sits on the robot."""
 
-    source: str = Field(description="The source whose maps feed the grid, e.g. 'r1/front'.")
+    source: str = Field(description="The source whose maps this camera's frames are, e.g. 'r1/front'.")
+    intrinsics: CameraIntrinsics | None = None
+    camera_info_key: str | None = Field(default=None, description="sensor_msgs/CameraInfo CDR key (overrides).")
+    mount: CameraMountSettings = Field(default_factory=CameraMountSettings)
+    depth_key: str | None = Field(default=None, description="Depth image (32FC1 m or 16UC1 mm, CDR) for 3-D points.")
+
+    @model_validator(mode="after")
+    def _needs_intrinsics(self) -> GridCamera:
+        if self.intrinsics is None and self.camera_info_key is None:
+            raise ValueError(f"camera '{self.source}': give intrinsics or a camera_info_key")
+        return self
+
+
+# The single-camera form's own fields: with ``cameras`` they belong to each camera instead.
+SINGLE_CAMERA_FIELDS = ("intrinsics", "camera_info_key", "mount", "depth_key")
+
+
+class GridSettings(StrictModel):
+    """A ground grid around the robot, fed by one camera or several (see docs/grid.md).
+
+    One camera: ``source`` with ``intrinsics`` or ``camera_info_key``, ``mount`` and ``depth_key``, as before.
+    Several: ``cameras``, each with those fields; ``source`` then names the grid (default: the first camera's
+    source). Either way the grid is published and queried under ``source``.
+    """
+
+    source: str = Field(
+        default="",
+        description="One camera: the source whose maps feed the grid, e.g. 'r1/front'. With cameras: the name "
+        "the grid is published and queried under [default: the first camera's source].",
+    )
+    cameras: list[GridCamera] | None = Field(
+        default=None, min_length=1, description="Several cameras fused into this grid (instead of the fields above)."
+    )
     intrinsics: CameraIntrinsics | None = None
     camera_info_key: str | None = Field(default=None, description="sensor_msgs/CameraInfo CDR key (overrides).")
     mount: CameraMountSettings = Field(default_factory=CameraMountSettings)
@@ -173,20 +221,79 @@ class GridSettings(StrictModel):
     resolution_m: float = Field(default=0.1, gt=0)
     max_range_m: float = Field(default=10.0, gt=0, description="Ground points farther from the camera are dropped.")
     half_life_s: float = Field(default=2.0, gt=0, description="Old observations weigh half after this long.")
+    max_age_s: float | None = Field(
+        default=30.0,
+        ge=0,
+        description="A cell not observed for this long (by the frames' stamps) becomes unknown again, counted "
+        "expired; 0 or null: never.",
+    )
     pose_key: str | None = Field(default=None, description="Robot pose stream: the grid then lives in its frame.")
     pose_format: Literal["gcdtrav", "odometry"] = Field(
         default="gcdtrav", description="gcdtrav: msgpack Pose2D; odometry: nav_msgs/msg/Odometry CDR."
     )
     depth_key: str | None = Field(default=None, description="Depth image (32FC1 m or 16UC1 mm, CDR) for 3-D points.")
     occupancy_grid: bool = Field(default=False, description="Also publish nav_msgs/OccupancyGrid CDR (T and U).")
+    grid_map: bool = Field(default=False, description="Also publish grid_map_msgs/GridMap CDR with every layer.")
+    costmap: bool = Field(default=False, description="Also publish a nav_msgs/OccupancyGrid costmap for Nav2.")
+    lethal_tau: float = Field(
+        default=0.1, ge=0, le=1, description="Costmap: a cell is lethal when P(T < lethal_tau) > lethal_probability."
+    )
+    lethal_probability: float = Field(default=0.25, ge=0, le=1, description="See lethal_tau.")
+    min_match: float = Field(
+        default=0.0,
+        ge=0,
+        le=1,
+        description="Costmap: cells whose fused match score is below this are unknown (no anchor describes "
+        "them); 0: never.",
+    )
 
     @model_validator(mode="after")
-    def _needs_intrinsics(self) -> GridSettings:
-        if self.intrinsics is None and self.camera_info_key is None:
+    def _one_form(self) -> GridSettings:
+        if self.cameras is not None:
+            given = sorted(name for name in SINGLE_CAMERA_FIELDS if getattr(self, name) != _default(name))
+            if given:
+                raise ValueError(
+                    f"grid '{self.source or self.cameras[0].source}': give either cameras or the single-camera "
+                    f"fields, not both (move {', '.join(given)} into each camera)"
+                )
+            sources = [camera.source for camera in self.cameras]
+            if len(set(sources)) != len(sources):
+                raise ValueError(f"grid '{self.source or sources[0]}': a camera is listed twice in {sources}")
+            self.source = self.source or sources[0]
+        elif not self.source:
+            raise ValueError("a grid needs a source (one camera) or cameras (several)")
+        elif self.intrinsics is None and self.camera_info_key is None:
             raise ValueError(f"grid of '{self.source}': give intrinsics or a camera_info_key")
         if self.size_m / self.resolution_m > 2000:
             raise ValueError(f"grid of '{self.source}': more than 2000 x 2000 cells; coarsen resolution_m")
         return self
+
+    def camera_list(self) -> list[GridCamera]:
+        """The grid's cameras, the single-camera form as a list of one."""
+        if self.cameras is not None:
+            return self.cameras
+        single = GridCamera(
+            source=self.source,
+            intrinsics=self.intrinsics,
+            camera_info_key=self.camera_info_key,
+            mount=self.mount,
+            depth_key=self.depth_key,
+        )
+        return [single]
+
+
+def _default(field: str) -> Any:
+    """A GridSettings field's default (its dump holds the single-camera fields' defaults in either form)."""
+    return GridSettings.model_fields[field].get_default(call_default_factory=True)
+
+
+def _one_grid_per_camera(grids: list[GridSettings]) -> None:
+    names = [grid.source for grid in grids]
+    if len(set(names)) != len(names):
+        raise ValueError(f"two grids are published under the same source: {names}")
+    cameras = [camera.source for grid in grids for camera in grid.camera_list()]
+    if len(set(cameras)) != len(cameras):
+        raise ValueError(f"a camera feeds two grids: {cameras}")
 
 
 class RiskSettings(StrictModel):
@@ -293,7 +400,9 @@ class ServiceSettings(StrictModel):
     preview: bool = Field(default=True, description="Publish a colourised JPEG on {prefix}/out/{source}/preview.")
     preview_max_width: int = Field(default=640, ge=64)
     instance: str = Field(default_factory=default_instance_name, description="Name in results and liveliness.")
-    grids: list[GridSettings] = Field(default_factory=list, description="Ground grids, one per source.")
+    grids: list[GridSettings] = Field(
+        default_factory=list, description="Ground grids: one per source, or fusing several cameras."
+    )
     ros_inputs: list[RosInput] = Field(default_factory=list, description="ROS 2 image topics (CDR).")
     ros_output: RosOutput = Field(default_factory=RosOutput)
     ros_node: RosNode = Field(default_factory=RosNode)
@@ -330,6 +439,7 @@ class ServiceSettings(StrictModel):
     def _some_input(self) -> ServiceSettings:
         if not self.inputs and not self.ros_inputs:
             raise ValueError("at least one input is needed: inputs (e.g. gcdtrav/in/**) or ros_inputs")
+        _one_grid_per_camera(self.grids)
         return self
 
     @property

@@ -78,7 +78,11 @@ class TraversabilityService:
         self._started_at = time.time()
         self.membership: Membership | None = None
         self.anchor_sync: AnchorSync | None = None
-        self.grids = GridOutputs(settings.grids, len(pipeline.anchors), settings.instance) if settings.grids else None
+        self.grids = (
+            GridOutputs(settings.grids, len(pipeline.anchors), settings.instance, settings.risk)
+            if settings.grids
+            else None
+        )
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if settings.ros_inputs else None
         self.outputs = FrameOutputs(session, settings, pipeline.backend.model_id, self.grids, self.ros_graph)
         self.anchor_switch = AnchorSwitch(
@@ -250,15 +254,9 @@ class TraversabilityService:
             )
 
     def _declare_grid_inputs(self, grids: GridOutputs) -> None:
-        for config in self.settings.grids:
-            for key, setter, reason in (
-                (config.pose_key, grids.set_pose, "bad_pose"),
-                (config.camera_info_key, grids.set_camera_info, "bad_camera_info"),
-                (config.depth_key, grids.set_depth, "bad_depth"),
-            ):
-                if key is not None:
-                    handler = self._grid_input_handler(config.source, setter, reason)
-                    self._declared.append(self.session.declare_subscriber(key, handler))
+        for key, source, setter, reason in grids.inputs():  # poses by grid, CameraInfo and depth by camera
+            handler = self._grid_input_handler(source, setter, reason)
+            self._declared.append(self.session.declare_subscriber(key, handler))
 
     def _grid_input_handler(
         self, source: str, setter: Callable[[str, bytes], None], reason: str

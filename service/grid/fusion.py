@@ -3,7 +3,11 @@
 Each cell keeps, per anchor, the sum of the anchor weights of the pixels that fell in it, and the number of
 those pixels (its mass); both decay by one half every ``half_life_s``. The cell's distribution is
 weight_sums / mass: the mean of its pixels' weight vectors, recent frames counting more. T, U and the rest
-come from it with the same engine as the image maps. Cells never observed are unknown (NaN), not zero.
+come from it with the same engine as the image maps. Cells never observed are unknown (NaN), not zero. The
+pixels' match scores (how well the best concept fits, engine/novelty.py) are fused the same way.
+
+Each cell also keeps the stamp it was last observed at. A cell not observed for ``max_age_s`` (by the frames'
+stamps, not the wall clock) expires: it is cleared, unknown again, and counted ``expired`` until observed anew.
 
 Index convention (as nav_msgs/OccupancyGrid): cell (row i, column j) covers
 x in [origin_x + j r, origin_x + (j + 1) r) and y in [origin_y + i r, origin_y + (i + 1) r).
@@ -29,6 +33,7 @@ class GridSpec:
     size_m: float = 20.0
     resolution_m: float = 0.1
     half_life_s: float = 2.0
+    max_age_s: float | None = None  # None or 0: cells never expire
 
     @property
     def cells(self) -> int:
@@ -41,8 +46,11 @@ class GroundGrid:
         n = spec.cells
         self.origin = origin if origin is not None else (-n * spec.resolution_m / 2, -n * spec.resolution_m / 2)
         self.weight_sums = np.zeros((anchor_count, n, n), np.float32)
+        self.match_sums = np.zeros((n, n), np.float32)
         self.mass = np.zeros((n, n), np.float64)
         self.count = np.zeros((n, n), np.int64)
+        self.last_seen = np.full((n, n), np.nan, np.float64)  # stamp of the last frame that observed the cell
+        self.expired = np.zeros((n, n), np.bool_)  # observed once, then not for max_age_s: cleared
         self.stamp: float | None = None
         # The set the weights were fused with: answers use it, not the service's active set, which may have
         # been swapped since (another count, or other concepts in the same places) until the next frame.
@@ -58,8 +66,11 @@ class GroundGrid:
     def reset(self, anchor_count: int, reason: str) -> None:
         n = self.spec.cells
         self.weight_sums = np.zeros((anchor_count, n, n), np.float32)
+        self.match_sums[:] = 0
         self.mass[:] = 0
         self.count[:] = 0
+        self.last_seen[:] = np.nan
+        self.expired[:] = False
         self.resets += 1
         self.last_reset = reason
 
@@ -67,8 +78,25 @@ class GroundGrid:
         if self.stamp is not None and stamp > self.stamp:
             factor = 0.5 ** ((stamp - self.stamp) / self.spec.half_life_s)
             self.weight_sums *= np.float32(factor)
+            self.match_sums *= np.float32(factor)
             self.mass *= factor
         self.stamp = stamp if self.stamp is None else max(self.stamp, stamp)
+        self.expire()
+
+    def expire(self) -> int:
+        """Clear the cells not observed for max_age_s before the newest stamp; how many expired now."""
+        max_age = self.spec.max_age_s
+        if not max_age or self.stamp is None:
+            return 0
+        with np.errstate(invalid="ignore"):  # NaN: never observed, never expires
+            old = (self.stamp - self.last_seen > max_age) & (self.count > 0)
+        if old.any():
+            self.weight_sums[:, old] = 0
+            self.match_sums[old] = 0
+            self.mass[old] = 0
+            self.count[old] = 0
+            self.expired |= old
+        return int(old.sum())
 
     def index_of(self, x: NDArray[np.floating], y: NDArray[np.floating]) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
         r = self.spec.resolution_m
@@ -82,8 +110,16 @@ class GroundGrid:
         return round(self.origin[0] + (j + 0.5) * r, 9), round(self.origin[1] + (i + 0.5) * r, 9)
 
     # ---- fusion --------------------------------------------------------------------------------------
-    def add(self, points: NDArray[np.floating], weights: NDArray[np.floating], stamp: float, anchors: AnchorSet) -> int:
-        """Fuse pixel weights (n, P) over ``anchors`` at ground points (P, 2); returns pixels that landed."""
+    def add(
+        self,
+        points: NDArray[np.floating],
+        weights: NDArray[np.floating],
+        stamp: float,
+        anchors: AnchorSet,
+        match: NDArray[np.floating] | None = None,
+    ) -> int:
+        """Fuse pixel weights (n, P) over ``anchors`` and match scores (P,) at ground points (P, 2); returns
+        the pixels that landed. Without match scores the pixels count as matched (1)."""
         if weights.shape[0] != len(anchors):
             raise ValueError(f"{weights.shape[0]} weight rows for an anchor set of {len(anchors)}")
         if self.anchors is not None and anchors.version != self.anchors.version:
@@ -99,6 +135,11 @@ class GroundGrid:
         landed = np.bincount(flat, minlength=n * n).reshape(n, n)
         self.mass += landed
         self.count += landed
+        seen = landed > 0
+        self.last_seen[seen] = np.fmax(self.last_seen[seen], stamp)  # fmax: NaN (never seen) loses
+        self.expired[seen] = False
+        scores = np.ones(int(inside.sum())) if match is None else np.asarray(match, np.float64)[inside]
+        self.match_sums += np.bincount(flat, weights=scores, minlength=n * n).reshape(n, n).astype(np.float32)
         sums = self.weight_sums.reshape(weights.shape[0], -1)
         for k in range(weights.shape[0]):  # one bincount per anchor: vectorised over the pixels
             sums[k] += np.bincount(flat, weights=weights[k, inside], minlength=n * n).astype(np.float32)
@@ -113,8 +154,11 @@ class GroundGrid:
             return
         self.origin = (self.origin[0] + dj * r, self.origin[1] + di * r)
         self.weight_sums = _shift(self.weight_sums, di, dj)
+        self.match_sums = _shift(self.match_sums, di, dj)
         self.mass = _shift(self.mass, di, dj)
         self.count = _shift(self.count, di, dj)
+        self.last_seen = _shift(self.last_seen, di, dj, fill=np.nan)
+        self.expired = _shift(self.expired, di, dj)
 
     # ---- reading -------------------------------------------------------------------------------------
     @property
@@ -141,6 +185,21 @@ class GroundGrid:
             t[known], u[known] = mean, std
         return t, u, self.count.copy()
 
+    def match(self) -> NDArray[np.float32]:
+        """The fused match score of every cell (mean of its pixels', recent frames counting more); NaN where
+        unknown."""
+        out = np.full(self.mass.shape, np.nan, np.float32)
+        known = self.known & (self.mass > 0)
+        out[known] = self.match_sums[known] / self.mass[known]
+        return out
+
+    def age(self) -> NDArray[np.float64]:
+        """Seconds from each cell's last observation to the newest stamp; NaN where never observed (expired
+        cells keep their age)."""
+        if self.stamp is None:
+            return np.full(self.last_seen.shape, np.nan)
+        return self.stamp - self.last_seen
+
     def cell_weights(self, i: int, j: int) -> NDArray[np.float32] | None:
         if not self.known[i, j]:
             return None
@@ -161,9 +220,9 @@ class GroundGrid:
         return cells
 
 
-def _shift(array: ArrayT, di: int, dj: int) -> ArrayT:
-    """``out[..., i, j] = array[..., i + di, j + dj]``, zero where that falls outside."""
-    out = np.zeros_like(array)
+def _shift(array: ArrayT, di: int, dj: int, fill: float = 0) -> ArrayT:
+    """``out[..., i, j] = array[..., i + di, j + dj]``, ``fill`` where that falls outside."""
+    out = np.full_like(array, fill)
     n_i, n_j = array.shape[-2:]
     src_i = slice(max(di, 0), n_i + min(di, 0))
     dst_i = slice(max(-di, 0), n_i + min(-di, 0))

@@ -21,6 +21,8 @@ from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
 from gcdtrav.schemas.messages import GridHeader, MessageError, Pose2D
 from gcdtrav.service.grid.geometry import PinholeCamera
+from gcdtrav.service.ros.grid_map_msgs import GRID_MAP as GRID_MAP  # re-exported: the output types in one place
+from gcdtrav.service.ros.grid_map_msgs import register_types
 from numpy.typing import NDArray
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -47,10 +49,13 @@ RAW_ENCODINGS = {
 
 @cache
 def typestore() -> Any:
-    """Message definitions of ROS 2 Jazzy (rmw_zenoh's first release): sensor_msgs are the same since Humble."""
+    """Message definitions of ROS 2 Jazzy (rmw_zenoh's first release): sensor_msgs are the same since Humble.
+    grid_map_msgs, not built in, registered from their .msg text (service/ros/grid_map_msgs.py)."""
     from rosbags.typesys import Stores, get_typestore
 
-    return get_typestore(Stores.ROS2_JAZZY)
+    store = get_typestore(Stores.ROS2_JAZZY)
+    register_types(store)
+    return store
 
 
 def dds_type_name(msgtype: str) -> str:
@@ -328,8 +333,13 @@ def decode_depth(payload: bytes) -> NDArray[np.float32]:
 
 def occupancy_cdr(header: GridHeader, values: NDArray[np.floating], known: NDArray[np.bool_]) -> bytes:
     """nav_msgs/OccupancyGrid with cells 0..100 where known, -1 elsewhere."""
-    types = typestore().types
     data = np.where(known, np.clip(np.round(np.nan_to_num(values) * 100), 0, 100), -1).astype(np.int8)
+    return occupancy_values_cdr(header, data)
+
+
+def occupancy_values_cdr(header: GridHeader, data: NDArray[np.int8]) -> bytes:
+    """nav_msgs/OccupancyGrid of the grid's cells, given their values (row i = y, column j = x, as the grid)."""
+    types = typestore().types
     ros_header = make_header(header.stamp, header.frame_id)
     pose = types["geometry_msgs/msg/Pose"](
         position=types["geometry_msgs/msg/Point"](x=header.origin[0], y=header.origin[1], z=0.0),

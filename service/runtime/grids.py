@@ -1,10 +1,12 @@
-"""Ground grids on the bus: per configured source, project each frame's anchor weights onto the ground,
-fuse them, publish the grid, and answer cell and path queries in metres.
+"""Ground grids on the bus: per configured grid, project each frame of its cameras onto the ground, fuse
+them, publish the grid and its layers, and answer cell and path queries in metres.
 
-Keys, for a source with a grid:
-  {prefix}/out/{source}/grid                      GridMessage (msgpack)
+Keys, for a grid published under {source} (its single camera's source, or its name; docs/grid.md):
+  {prefix}/out/{source}/grid                      GridMessage (msgpack): T, U, counts, CVaR, p_below, match, age
   {prefix}/out/{source}/grid/occupancy            nav_msgs/OccupancyGrid CDR, cost = 100 (1 - T), unknown -1
   {prefix}/out/{source}/grid/uncertainty          nav_msgs/OccupancyGrid CDR, 100 U / 0.5, unknown -1
+  {prefix}/out/{source}/grid/gridmap              grid_map_msgs/GridMap CDR, every layer
+  {prefix}/out/{source}/grid/costmap              nav_msgs/OccupancyGrid CDR graded for Nav2 (layers.nav2_costs)
   {prefix}/out/{source}/cell?x=..;y=..            ContextDistribution of the cell (grid frame, metres)
   {prefix}/out/{source}/cell?path=x0,y0;x1,y1;..  PathReply: the known cells along the polyline
 """
@@ -14,18 +16,29 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from dataclasses import dataclass
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.images import encode_count_png, encode_map_png16
+from gcdtrav.schemas.images import encode_age_png, encode_count_png, encode_maps_png16
 from gcdtrav.schemas.messages import ContextDistribution, GridHeader, GridMessage, PathReply, Pose2D
-from gcdtrav.schemas.settings import GridSettings, RiskSettings
+from gcdtrav.schemas.settings import GridCamera, GridSettings, RiskSettings
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points, map_cell_pixels
-from gcdtrav.service.ros.cdr import decode_camera_info, decode_depth, decode_pose, occupancy_cdr
+from gcdtrav.service.grid.layers import GridLayers, grid_layers, nav2_costs
+from gcdtrav.service.ros.cdr import (
+    RosTopic,
+    decode_camera_info,
+    decode_depth,
+    decode_pose,
+    occupancy_cdr,
+    occupancy_values_cdr,
+)
+from gcdtrav.service.ros.grid_map import grid_map_cdr
 from gcdtrav.service.runtime.errors import QueryError
 from gcdtrav.service.runtime.history import FrameRecord
 from gcdtrav.service.runtime.queries import (
@@ -46,21 +59,20 @@ CELL_FORMS = (
     "(0 <= tau <= 1)"
 )
 MAX_PATH_POINTS = 256
+GRID_MAP_BASIC_LAYERS = ["traversability"]  # a GridMap cell is valid where T is (grid_map's basic layers)
 
 
 @dataclass
-class SourceGrid:
-    """One source's grid and what it needs besides the maps: camera, mount, latest pose and depth."""
+class CameraState:
+    """One camera of a grid: intrinsics (configured or from CameraInfo), mount, latest depth, ROS topic."""
 
-    config: GridSettings
-    grid: GroundGrid
+    config: GridCamera
+    max_range_m: float
     camera: PinholeCamera | None = None
-    pose: Pose2D | None = None
     depth: NDArray[np.float32] | None = None
-    seq: int = -1
+    ros: RosTopic | None = None  # the topic of its last frame, if a ROS camera
 
     def __post_init__(self) -> None:
-        self.lock = threading.Lock()
         self.mount = CameraMount(**self.config.mount.model_dump())
         if self.config.intrinsics is not None and self.camera is None:
             self.camera = PinholeCamera(**self.config.intrinsics.model_dump())
@@ -74,99 +86,196 @@ class SourceGrid:
         sx, sy = image_size[0] / camera.width, image_size[1] / camera.height
         return PinholeCamera(camera.fx * sx, camera.fy * sy, camera.cx * sx, camera.cy * sy, *image_size)
 
-    def base_points(self, map_shape: tuple[int, int], image_size: tuple[int, int]):  # type: ignore[no-untyped-def]
+    def base_points(
+        self, map_shape: tuple[int, int], image_size: tuple[int, int]
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
         """Ground (or depth) points in the base frame of every map patch, and which patches have one."""
         camera = self.camera_for(image_size)
         u, v = map_cell_pixels(map_shape, image_size)
         if self.depth is not None:
             depth = np.asarray(cv2.resize(self.depth, image_size, interpolation=cv2.INTER_NEAREST), np.float32)
-            return depth_points(camera, self.mount, u, v, depth, self.config.max_range_m)
+            return depth_points(camera, self.mount, u, v, depth, self.max_range_m)
         key = (map_shape, image_size, camera)
         if key not in self._ground_cache:  # a fixed camera: the same rays every frame
-            self._ground_cache = {key: ground_points(camera, self.mount, u, v, self.config.max_range_m)}
+            self._ground_cache = {key: ground_points(camera, self.mount, u, v, self.max_range_m)}
         return self._ground_cache[key]
 
-    def fuse(self, weights: NDArray[np.floating], image_size: tuple[int, int], stamp: float, anchors: AnchorSet) -> int:
-        points, valid = self.base_points((weights.shape[1], weights.shape[2]), image_size)
+
+@dataclass
+class SourceGrid:
+    """One grid, its cameras and the robot's latest pose; published and queried under ``config.source``."""
+
+    config: GridSettings
+    grid: GroundGrid
+    pose: Pose2D | None = None
+    seq: int = -1
+    cameras: dict[str, CameraState] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.lock = threading.Lock()
+        self.cameras = {c.source: CameraState(c, self.config.max_range_m) for c in self.config.camera_list()}
+
+    def fuse(
+        self,
+        camera: CameraState,
+        weights: NDArray[np.floating],
+        image_size: tuple[int, int],
+        stamp: float,
+        anchors: AnchorSet,
+        match: NDArray[np.floating] | None = None,
+    ) -> int:
+        points, valid = camera.base_points((weights.shape[1], weights.shape[2]), image_size)
         flat = weights.reshape(weights.shape[0], -1)[:, valid].astype(np.float32)
+        scores = None if match is None else np.asarray(match, np.float32).reshape(-1)[valid]
         ground = points[valid]
         if self.pose is not None:  # into the odometry frame, and keep the robot at the grid's centre
             c, s = math.cos(self.pose.yaw), math.sin(self.pose.yaw)
             ground = ground @ np.array([[c, s], [-s, c]]) + np.array([self.pose.x, self.pose.y])
             half = self.grid.spec.cells * self.grid.spec.resolution_m / 2
             self.grid.scroll_to((self.pose.x - half, self.pose.y - half))
-        landed = self.grid.add(ground, flat, stamp, anchors)
+        landed = self.grid.add(ground, flat, stamp, anchors, scores)
         self.seq += 1
         return landed
+
+    def ros_topic(self) -> RosTopic | None:
+        """The ROS topic the grid's ROS outputs derive from: its first camera (in the configured order) that
+        has sent a ROS frame; None if none has."""
+        return next((camera.ros for camera in self.cameras.values() if camera.ros is not None), None)
 
 
 @dataclass(frozen=True)
 class GridUpdate:
-    """One frame's grid outputs: the message, and the OccupancyGrid CDRs (cost, uncertainty) if enabled."""
+    """One frame's grid outputs, under the grid's ``source``: the message, and the CDRs that are enabled
+    (OccupancyGrids of T and U, the GridMap, the Nav2 costmap); ``ros``: the topic ROS outputs derive from."""
 
+    source: str
     message: GridMessage
     occupancy: bytes | None = None
     uncertainty: bytes | None = None
+    grid_map: bytes | None = None
+    costmap: bytes | None = None
+    ros: RosTopic | None = None
+
+
+GridInput = tuple[str, str, Callable[[str, bytes], None], str]  # key, grid or camera, setter, rejection reason
 
 
 class GridOutputs:
-    """All configured grids of a service; thread-safe (frames from the worker, queries from zenoh)."""
+    """All configured grids of a service; thread-safe (frames from the worker, queries from zenoh).
 
-    def __init__(self, configs: list[GridSettings], anchor_count: int, instance: str) -> None:
-        self.instance = instance
-        self.sources = {
-            c.source: SourceGrid(c, GroundGrid(GridSpec(c.size_m, c.resolution_m, c.half_life_s), anchor_count))
-            for c in configs
-        }
+    ``sources``: the grids by the source they are published under; frames arrive by camera source.
+    """
+
+    def __init__(
+        self,
+        configs: list[GridSettings],
+        anchor_count: int,
+        instance: str,
+        risk: RiskSettings | None = None,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.instance, self.risk, self.clock = instance, risk or RiskSettings(), clock
+        self.sources = {c.source: SourceGrid(c, GroundGrid(_spec(c), anchor_count)) for c in configs}
+        self.camera_grids = {camera: grid for grid in self.sources.values() for camera in grid.cameras}
+
+    def inputs(self) -> list[GridInput]:
+        """What the grids subscribe to besides the maps: pose streams (by grid), CameraInfo and depth (by
+        camera), with their setters and the reason a bad message is counted under."""
+        found: list[GridInput] = []
+        for grid in self.sources.values():
+            if grid.config.pose_key is not None:
+                found.append((grid.config.pose_key, grid.config.source, self.set_pose, "bad_pose"))
+            for camera in grid.cameras.values():
+                for key, setter, reason in (
+                    (camera.config.camera_info_key, self.set_camera_info, "bad_camera_info"),
+                    (camera.config.depth_key, self.set_depth, "bad_depth"),
+                ):
+                    if key is not None:
+                        found.append((key, camera.config.source, setter, reason))
+        return found
 
     def set_pose(self, source: str, payload: bytes) -> None:
+        """The pose of the grid published under ``source``."""
         grid = self.sources[source]
         pose = decode_pose(payload, grid.config.pose_format)
         with grid.lock:
             grid.pose = pose
 
-    def set_camera_info(self, source: str, payload: bytes) -> None:
-        camera = decode_camera_info(payload)
-        grid = self.sources[source]
+    def set_camera_info(self, camera: str, payload: bytes) -> None:
+        intrinsics = decode_camera_info(payload)
+        grid = self.camera_grids[camera]
         with grid.lock:
-            grid.camera = camera
+            grid.cameras[camera].camera = intrinsics
 
-    def set_depth(self, source: str, payload: bytes) -> None:
+    def set_depth(self, camera: str, payload: bytes) -> None:
         depth = decode_depth(payload)
-        grid = self.sources[source]
+        grid = self.camera_grids[camera]
         with grid.lock:
-            grid.depth = depth
+            grid.cameras[camera].depth = depth
 
-    def on_frame(self, source: str, record: FrameRecord, weights: NDArray[np.floating]) -> GridUpdate | None:
-        """Fuse a processed frame into its source's grid; what to publish, or None."""
-        grid = self.sources.get(source)
+    def on_frame(
+        self,
+        source: str,
+        record: FrameRecord,
+        weights: NDArray[np.floating],
+        match: NDArray[np.floating] | None = None,
+        ros: RosTopic | None = None,
+    ) -> GridUpdate | None:
+        """Fuse a processed frame of camera ``source`` (its weights and match scores per map patch, its ROS
+        topic if a ROS camera) into its grid; what to publish, or None."""
+        grid = self.camera_grids.get(source)
         if grid is None:
             return None
+        camera = grid.cameras[source]
         with grid.lock:
-            if grid.camera is None:
+            camera.ros = ros or camera.ros
+            if camera.camera is None:
                 log.warning("grid of %s: no intrinsics yet (waiting for CameraInfo), frame not fused", source)
                 return None
-            grid.fuse(weights, record.image_size, record.stamp, record.anchors)
+            grid.fuse(camera, weights, record.image_size, record.stamp, record.anchors, match)
             anchors = record.anchors
-            t, u, count = grid.grid.layers(np.asarray(anchors.positions), np.asarray(anchors.widths))
+            positions, widths = np.asarray(anchors.positions), np.asarray(anchors.widths)
+            risk = self.risk
+            layers = grid_layers(grid.grid, positions, widths, risk.alpha, risk.tau, grid.config.lethal_tau)
             header = self.header(grid, anchors.version)
+            ros_topic = grid.ros_topic()
+        return self.encode_update(grid.config, header, layers, ros_topic)
+
+    def encode_update(
+        self, config: GridSettings, header: GridHeader, layers: GridLayers, ros: RosTopic | None
+    ) -> GridUpdate:
+        """The payloads of one grid update (encoded outside the grid's lock)."""
+        maps = (layers.traversability, layers.uncertainty, layers.cvar, layers.p_below, layers.match)
+        t, u, cvar, p_below, match = encode_maps_png16(*(np.nan_to_num(values) for values in maps))
         message = GridMessage(
             header=header,
-            traversability_png=encode_map_png16(np.nan_to_num(t)),
-            uncertainty_png=encode_map_png16(np.nan_to_num(u)),
-            count_png=encode_count_png(count),
+            traversability_png=t,
+            uncertainty_png=u,
+            count_png=encode_count_png(layers.count),
+            cvar_png=cvar,
+            p_below_png=p_below,
+            match_png=match,
+            age_png=encode_age_png(layers.age),
         )
-        if not grid.config.occupancy_grid:
-            return GridUpdate(message)
-        known = count > 0
-        return GridUpdate(message, occupancy_cdr(header, 1.0 - t, known), occupancy_cdr(header, u / 0.5, known))
+        known = layers.known
+        occupancy = uncertainty = grid_map = costmap = None
+        if config.occupancy_grid:
+            occupancy = occupancy_cdr(header, 1.0 - layers.traversability, known)
+            uncertainty = occupancy_cdr(header, layers.uncertainty / 0.5, known)
+        if config.grid_map:
+            grid_map = grid_map_cdr(header, layers.float_layers(), GRID_MAP_BASIC_LAYERS)
+        if config.costmap:
+            costs = nav2_costs(layers, config.lethal_probability, config.min_match)
+            costmap = occupancy_values_cdr(header, costs)
+        return GridUpdate(config.source, message, occupancy, uncertainty, grid_map, costmap, ros)
 
     def header(self, grid: SourceGrid, version: str) -> GridHeader:
         pose = grid.pose
+        stamp = grid.grid.stamp or 0.0
         return GridHeader(
             source=grid.config.source,
             seq=grid.seq,
-            stamp=grid.grid.stamp or 0.0,
+            stamp=stamp,
             frame_id=pose.frame_id if pose is not None else "base_link",
             origin=grid.grid.origin,
             resolution=grid.grid.spec.resolution_m,
@@ -177,6 +286,10 @@ class GridOutputs:
             last_reset=grid.grid.last_reset,
             known_cells=int(grid.grid.known.sum()),
             instance=self.instance,
+            alpha=self.risk.alpha,
+            tau=self.risk.tau,
+            expired_cells=int(grid.grid.expired.sum()),
+            age_s=self.clock() - stamp if grid.grid.stamp is not None else None,
         )
 
     # ---- queries -------------------------------------------------------------------------------------
@@ -286,3 +399,7 @@ def _points(text: str) -> list[tuple[float, float]]:
     if not 2 <= len(points) <= MAX_PATH_POINTS:
         raise QueryError(f"a path needs 2 to {MAX_PATH_POINTS} points x,y separated by ';', got {len(points)}")
     return points
+
+
+def _spec(config: GridSettings) -> GridSpec:
+    return GridSpec(config.size_m, config.resolution_m, config.half_life_s, config.max_age_s)

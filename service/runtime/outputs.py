@@ -163,21 +163,26 @@ class OutputBuilder:
         return [self._ros(topic, template, msgtype, payload, "image") for template, msgtype, payload in images]
 
     def _grid(self, done: ProcessedFrame) -> list[Output]:
+        """The grid the frame's camera feeds, under the grid's source (the camera's own, or the grid's name)."""
         assert self.grids is not None
-        update = self.grids.on_frame(done.source, done.record, done.result.maps.weights)
+        maps = done.result.maps
+        update = self.grids.on_frame(done.source, done.record, maps.weights, maps.match, done.pending.ros)
         if update is None:
             return []
-        outputs = [Output(self.keys.grid(done.source), update.message.pack(), "msgpack")]
-        if update.occupancy is not None and update.uncertainty is not None:
-            outputs.append(Output(self.keys.grid(done.source, "occupancy"), update.occupancy, "cdr"))
-            outputs.append(Output(self.keys.grid(done.source, "uncertainty"), update.uncertainty, "cdr"))
-            camera, names = done.pending.ros, self.settings.ros_output
-            if camera is not None and names.enabled:
-                for template, payload in (
-                    (names.occupancy_topic, update.occupancy),
-                    (names.grid_uncertainty_topic, update.uncertainty),
-                ):
-                    outputs.append(self._ros(camera, template, ros_io.OCCUPANCY_GRID, payload, "grid"))
+        source, names = update.source, self.settings.ros_output
+        outputs = [Output(self.keys.grid(source), update.message.pack(), "msgpack")]
+        layers = (
+            ("occupancy", update.occupancy, names.occupancy_topic, ros_io.OCCUPANCY_GRID),
+            ("uncertainty", update.uncertainty, names.grid_uncertainty_topic, ros_io.OCCUPANCY_GRID),
+            ("gridmap", update.grid_map, names.gridmap_topic, ros_io.GRID_MAP),
+            ("costmap", update.costmap, names.costmap_topic, ros_io.OCCUPANCY_GRID),
+        )
+        for layer, payload, template, msgtype in layers:
+            if payload is None:
+                continue
+            outputs.append(Output(self.keys.grid(source, layer), payload, "cdr"))
+            if update.ros is not None and names.enabled:
+                outputs.append(self._ros(update.ros, template, msgtype, payload, "grid"))
         return outputs
 
     @staticmethod

@@ -6,7 +6,7 @@ import re
 from pathlib import Path
 
 import pytest
-from gcdtrav.schemas.keys import OUTPUT_KINDS, Keys, input_key
+from gcdtrav.schemas.keys import GRID_LAYERS, OUTPUT_KINDS, Keys, input_key
 
 DOCS = Path(__file__).resolve().parents[2] / "docs" / "messages.md"
 
@@ -60,7 +60,7 @@ def test_docs_list_the_same_keys() -> None:
     documented = set(re.findall(r"`(\{prefix\}/[a-z0-9/{}]+)", DOCS.read_text("utf-8")))
     keys = Keys("{prefix}")
     built = {keys.output("{source}", kind) for kind in OUTPUT_KINDS}
-    built |= {keys.grid("{source}", "occupancy"), keys.grid("{source}", "uncertainty")}
+    built |= {keys.grid("{source}", layer) for layer in GRID_LAYERS}
     built |= {keys.anchors, keys.anchor_history, keys.anchor_rollback, keys.status, keys.alive("{instance}")}
     built |= {keys.credit("{source}"), keys.relay_health("{source}")}
     built |= {keys.active_anchors("{instance}", "{millis}", "{version}")}

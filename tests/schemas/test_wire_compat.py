@@ -29,13 +29,23 @@ DISTRIBUTION = m.ContextDistribution(
 GRID_HEADER = m.GridHeader(
     source="cam", seq=1, stamp=1.0, frame_id="odom", origin=(0.0, 0.0), resolution=0.1, cells=4,
     anchor_set_version=ANCHORS.version, resets=0, known_cells=3, instance="box-1",
+    alpha=0.1, tau=0.3, expired_cells=2, age_s=0.5,
 )  # fmt: skip
 SAMPLES: dict[type[m.Message], m.Message] = {
     m.ImageEnvelope: m.ImageEnvelope(stamp=1.0, encoding="rgb8", width=1, height=1, data=b"\0\0\0"),
     m.MapsMessage: m.MapsMessage(header=MAPS_HEADER, traversability_png=b"t", uncertainty_png=b"u"),
     m.ContextDistribution: DISTRIBUTION,
     m.Pose2D: m.Pose2D(stamp=1.0, x=1.0, y=2.0, yaw=0.5),
-    m.GridMessage: m.GridMessage(header=GRID_HEADER, traversability_png=b"t", uncertainty_png=b"u", count_png=b"c"),
+    m.GridMessage: m.GridMessage(
+        header=GRID_HEADER,
+        traversability_png=b"t",
+        uncertainty_png=b"u",
+        count_png=b"c",
+        cvar_png=b"v",
+        p_below_png=b"p",
+        match_png=b"m",
+        age_png=b"a",
+    ),
     m.PathReply: m.PathReply(
         source="cam",
         stamp=1.0,

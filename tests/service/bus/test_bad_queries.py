@@ -223,7 +223,9 @@ def test_bad_poses_and_intrinsics_are_rejected_and_the_grid_keeps_the_last_good_
     subscriber.undeclare()
     assert grids[-1].header.robot == (2.0, 0.0, 0.0) and grids[-1].header.known_cells > 0  # the last good pose
     assert "processing_failed" not in rejected()
-    assert service.grids is not None and service.grids.sources["cam"].camera.fx == 60  # the configured intrinsics
+    assert (
+        service.grids is not None and service.grids.sources["cam"].cameras["cam"].camera.fx == 60
+    )  # the configured intrinsics
 
 
 def boom(*args: object, **kwargs: object) -> None:

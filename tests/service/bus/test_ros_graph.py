@@ -247,7 +247,7 @@ class Camera:
             return sorted(k for k, v in self.tokens.items() if v == "PUT" and k.startswith(prefix))
 
     def send_frame(self) -> None:
-        from test_ros import RGB, image_cdr
+        from ros_images import RGB, image_cdr
 
         gid = entity_gid(self.publisher_token)
         self.session.put(

@@ -121,6 +121,7 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
     from gcdtrav.schemas.messages import Pose2D
     from gcdtrav.schemas.settings import ServiceSettings
     from gcdtrav.service.ros import cdr as ros
+    from gcdtrav.service.ros.grid_map import decode_grid_map
     from zenoh_helpers import connecting_config, wait_until
 
     from tools.loopback import in_process_service
@@ -131,17 +132,25 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
             "instance": "grid-test",
             "max_frame_age_s": None,  # frames stamped 100 s after the epoch
             "preview": False,
-            "grids": [camera_grid(max_range_m=6.0, half_life_s=5.0, occupancy_grid=True)],
+            "grids": [camera_grid(max_range_m=6.0, half_life_s=5.0, occupancy_grid=True, grid_map=True, costmap=True)],
         }
     )
     with in_process_service(tiny_backend, settings) as (_, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         grids: list[Grid] = []
         occupancy: list[bytes] = []
+        grid_maps: list[bytes] = []
+        costmaps: list[bytes] = []
         subscriptions = [
             client.subscribe_grid("cam", grids.append),
             client.session.declare_subscriber(
                 "gcdtrav/out/cam/grid/occupancy", lambda s: occupancy.append(s.payload.to_bytes())
+            ),
+            client.session.declare_subscriber(
+                "gcdtrav/out/cam/grid/gridmap", lambda s: grid_maps.append(s.payload.to_bytes())
+            ),
+            client.session.declare_subscriber(
+                "gcdtrav/out/cam/grid/costmap", lambda s: costmaps.append(s.payload.to_bytes())
             ),
         ]
         try:
@@ -181,6 +190,17 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
             known = grid.count > 0
             expected = np.round((1 - grid.traversability[known]) * 100)
             assert np.abs(data[known] - expected).max() <= 1
+            # The planner's layers: in the message, the GridMap and the Nav2 costmap alike.
+            assert wait_until(lambda: len(grid_maps) >= 3 and len(costmaps) >= 3, 10)
+            assert grid.cvar is not None and grid.p_below is not None and grid.age is not None
+            assert (grid.cvar[known] <= grid.traversability[known] + 2 / 65535).all()
+            assert header.alpha == 0.1 and header.tau == 0.3 and header.expired_cells == 0
+            _, layers = decode_grid_map(grid_maps[-1])
+            assert (np.isfinite(layers["traversability"]) == known).all()
+            np.testing.assert_allclose(layers["cvar"][known], grid.cvar[known], atol=1 / 65535)
+            costmap = ros.typestore().deserialize_cdr(costmaps[-1], "nav_msgs/msg/OccupancyGrid")
+            costs = np.asarray(costmap.data, np.int8).reshape(data.shape)
+            assert ((costs == -1) == ~known).all() and ((costs >= 1) & (costs <= 100))[known].all()
             # A new anchor set resets the grid, and the grid says so.
             client.set_anchors(
                 {"anchors": [{"concept": "lake", "position": 0.0}, {"concept": "road", "position": 1.0}]}

@@ -10,14 +10,13 @@ import cv2
 import numpy as np
 import pytest
 import zenoh
-from conftest import textured_image
 from zenoh_helpers import connecting_config, wait_until
 
 pytest.importorskip("rosbags")
 
 from gcdtrav.service.ros import cdr as ros
+from ros_images import RGB, STAMP, image_cdr
 
-STAMP = 1_700_000_000.25
 BAYER_TO_OPENCV = {  # as cv_bridge: ROS names the top-left 2x2 pattern, OpenCV the second row's
     "bayer_rggb8": cv2.COLOR_BayerBG2RGB,
     "bayer_bggr8": cv2.COLOR_BayerRG2RGB,
@@ -25,34 +24,6 @@ BAYER_TO_OPENCV = {  # as cv_bridge: ROS names the top-left 2x2 pattern, OpenCV 
     "bayer_grbg8": cv2.COLOR_BayerGB2RGB,
 }
 BAYER_OFFSETS = {"bayer_rggb8": "RGGB", "bayer_bggr8": "BGGR", "bayer_gbrg8": "GBRG", "bayer_grbg8": "GRBG"}
-
-
-def image_cdr(
-    array: np.ndarray,
-    encoding: str,
-    stamp: float = STAMP,
-    frame_id: str = "cam",
-    step: int | None = None,
-    data: np.ndarray | None = None,
-    width: int | None = None,
-    height: int | None = None,
-) -> bytes:
-    header = ros.make_header(stamp, frame_id)
-    flat = np.ascontiguousarray(array).view(np.uint8).reshape(array.shape[0], -1)
-    row = flat.shape[1]
-    if step is not None and step > row:
-        flat = np.concatenate([flat, np.full((flat.shape[0], step - row), 7, np.uint8)], axis=1)
-    payload = flat.ravel() if data is None else data
-    message = ros.typestore().types[ros.IMAGE](
-        header=header,
-        height=height or array.shape[0],
-        width=width or array.shape[1],
-        encoding=encoding,
-        is_bigendian=0,
-        step=step or row,
-        data=payload,
-    )
-    return bytes(ros.typestore().serialize_cdr(message, ros.IMAGE))
 
 
 def compressed_cdr(data: bytes, fmt: str, stamp: float = STAMP, frame_id: str = "cam") -> bytes:
@@ -70,7 +41,6 @@ def bayer_mosaic(rgb: np.ndarray, pattern: str) -> np.ndarray:
     return mosaic
 
 
-RGB = textured_image(24, 32, seed=4)
 GRAY16 = (np.arange(24 * 32, dtype=np.uint16).reshape(24, 32) * 85).astype(np.uint16)
 CASES: dict[str, tuple[np.ndarray, np.ndarray]] = {
     "rgb8": (RGB, RGB),
