@@ -372,7 +372,7 @@ class ServiceSettings(StrictModel):
         "are always rejected (bad_stamp); stamps in the past are max_frame_age_s's to judge.",
     )
     stall_after_s: float = Field(
-        default=4.0,
+        default=2.5,  # issue 26's goal: a hung instance's robots blind at most 3 s beyond their frame time
         gt=0,
         description="An instance whose worker makes no progress for this long with frames queued withdraws "
         "from the fleet (its sources fail over) and reports itself unhealthy until it progresses again; set it a "

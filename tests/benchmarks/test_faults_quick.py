@@ -4,8 +4,8 @@ The goals it checks (issue 26), with the looser bounds this shared CI box needs:
 - no map arrives older than max_frame_age_s (exact);
 - a SIGKILLed instance's robots are blind at most 3 s beyond their frame time (exact goal: the TCP link
   closes, fail-over is immediate);
-- a hung instance's robots: at most stall_after_s (4 s) + 3 s. The goal's 3 s cannot hold while stall_after_s
-  is 4 s by default; benchmarks/README.md, Faults, reports the measured value;
+- a hung instance's robots: at most stall_after_s (2.5 s) + 3 s, room for this shared box; benchmarks/README.md,
+  Faults, reports the measured value;
 - every live instance ends on the same anchor version;
 - a new robot during a 1000 names/s flood gets a map: within 2 s here (the goal, one frame time, is in the table).
 """
@@ -22,7 +22,7 @@ import pytest
 pytest.importorskip("torch")
 
 ROOT = Path(__file__).resolve().parents[2]
-STALL_AFTER_S = 4.0
+STALL_AFTER_S = 2.5  # the setting's default
 
 
 def test_quick_faults_keep_robots_served_fresh_and_anchor_versions_agree(tmp_path: Path) -> None:
