@@ -51,7 +51,10 @@ def add_relay_command(commands: argparse._SubParsersAction) -> None:
     relay.add_argument(
         "--max-side", type=max_side, help="longest side sent, pixels, or 'auto': the model's input [auto]"
     )
-    relay.add_argument("--credit-timeout", type=float, help="send without a credit after this long, s [5]")
+    from gcdtrav.schemas.relay import RelaySettings
+
+    timeout = RelaySettings.model_fields["credit_timeout_s"].default
+    relay.add_argument("--credit-timeout", type=float, help=f"send without a credit after this long, s [{timeout:g}]")
     relay.add_argument("--stale-after", type=float, help="report maps older than this as stale, s [3]")
     relay.add_argument(
         "--local-connect", action="append", metavar="ENDPOINT", help="the robot's router [tcp/127.0.0.1:7447]"
