@@ -4,7 +4,9 @@ client."""
 from __future__ import annotations
 
 import struct
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
+from typing import Any
 
 import cv2
 import numpy as np
@@ -21,6 +23,19 @@ class ImageDecodeError(ValueError):
     def __init__(self, message: str, reason: str = "undecodable") -> None:
         super().__init__(message)
         self.reason = reason
+
+
+def png_bytes(array: NDArray[Any], params: Sequence[int] = ()) -> bytes:
+    """``array`` (as OpenCV orders its channels) as a PNG file."""
+    ok, buffer = cv2.imencode(".png", array, list(params))
+    if not ok:
+        raise ValueError("PNG encoding failed")
+    return bytes(buffer.tobytes())
+
+
+def png_array(data: bytes) -> NDArray[Any] | None:
+    """A PNG's pixels as stored (bit depth and channels kept); None if ``data`` is not a readable image."""
+    return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
 
 
 def peek_image_size(data: bytes) -> tuple[int, int] | None:
@@ -83,10 +98,7 @@ def encode_jpeg(image_rgb: NDArray[np.uint8], quality: int = 90) -> bytes:
 
 
 def encode_png(image_rgb: NDArray[np.uint8]) -> bytes:
-    ok, buffer = cv2.imencode(".png", cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise ValueError("PNG encoding failed")
-    return buffer.tobytes()
+    return png_bytes(cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR))
 
 
 def resize_map(values: NDArray[np.floating], width: int, height: int) -> NDArray[np.float32]:
@@ -109,10 +121,7 @@ def encode_map_png16(values: NDArray[np.floating]) -> bytes:
         cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE,
         cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_AVG,
     ]  # fmt: skip
-    ok, buffer = cv2.imencode(".png", quantize_map(values), params)
-    if not ok:
-        raise ValueError("PNG encoding failed")
-    return buffer.tobytes()
+    return png_bytes(quantize_map(values), params)
 
 
 _ENCODERS = ThreadPoolExecutor(max_workers=2, thread_name_prefix="png")
@@ -124,7 +133,7 @@ def encode_maps_png16(*maps: NDArray[np.floating]) -> list[bytes]:
 
 
 def decode_map_png16(data: bytes) -> NDArray[np.float32]:
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    image = png_array(data)
     if image is None or image.dtype != np.uint16 or image.ndim != 2:
         raise ImageDecodeError("not a single-channel 16-bit PNG map")
     return image.astype(np.float32) / np.float32(MAP_QUANTUM)
@@ -136,14 +145,11 @@ def encode_map_png8(values: NDArray[np.floating], size: tuple[int, int] | None =
     if size is not None and size != (array.shape[1], array.shape[0]):
         array = np.asarray(cv2.resize(array, size, interpolation=cv2.INTER_AREA), np.float32)
     quantised = np.round(np.clip(array, 0.0, 1.0) * COMPACT_QUANTUM).astype(np.uint8)
-    ok, buffer = cv2.imencode(".png", quantised, [cv2.IMWRITE_PNG_COMPRESSION, 6])
-    if not ok:
-        raise ValueError("PNG encoding failed")
-    return buffer.tobytes()
+    return png_bytes(quantised, [cv2.IMWRITE_PNG_COMPRESSION, 6])
 
 
 def decode_map_png8(data: bytes) -> NDArray[np.float32]:
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    image = png_array(data)
     if image is None or image.dtype != np.uint8 or image.ndim != 2:
         raise ImageDecodeError("not a single-channel 8-bit PNG map")
     return image.astype(np.float32) / np.float32(COMPACT_QUANTUM)
@@ -176,15 +182,12 @@ def colorize_uncertainty(u: NDArray[np.floating], vmax: float = UNCERTAINTY_VMAX
 
 def encode_count_png(count: NDArray[np.integer]) -> bytes:
     """A grid's observation counts as a 16-bit PNG (saturating at 65535)."""
-    ok, buffer = cv2.imencode(".png", np.clip(count, 0, 65535).astype(np.uint16))
-    if not ok:
-        raise ValueError("PNG encoding failed")
-    return buffer.tobytes()
+    return png_bytes(np.clip(count, 0, 65535).astype(np.uint16))
 
 
 def decode_count_png(data: bytes) -> NDArray[np.int64]:
     """The inverse of ``encode_count_png``; MessageError if ``data`` is not a PNG."""
-    decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    decoded = png_array(data)
     if decoded is None:
         raise MessageError("grid count layer is not a PNG")
     return decoded.astype(np.int64)
@@ -199,15 +202,12 @@ def encode_age_png(age_s: NDArray[np.floating]) -> bytes:
     age = np.asarray(age_s, np.float64)
     with np.errstate(invalid="ignore"):
         steps = np.clip(np.round(np.nan_to_num(age, nan=0.0) / AGE_STEP_S), 0, AGE_NEVER - 1)
-    ok, buffer = cv2.imencode(".png", np.where(np.isnan(age), AGE_NEVER, steps).astype(np.uint16))
-    if not ok:
-        raise ValueError("PNG encoding failed")
-    return buffer.tobytes()
+    return png_bytes(np.where(np.isnan(age), AGE_NEVER, steps).astype(np.uint16))
 
 
 def decode_age_png(data: bytes) -> NDArray[np.float32]:
     """The inverse of ``encode_age_png``: seconds, NaN where never observed; MessageError if not a 16-bit PNG."""
-    decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    decoded = png_array(data)
     if decoded is None or decoded.dtype != np.uint16 or decoded.ndim != 2:
         raise MessageError("grid age layer is not a single-channel 16-bit PNG")
     return np.where(decoded == AGE_NEVER, np.nan, decoded * AGE_STEP_S).astype(np.float32)
