@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
 from gcdtrav.schemas.images import ImageDecodeError, decode_image
-from gcdtrav.schemas.messages import RAW_CHANNELS, ImageEnvelope, MessageError, PixelEncoding
+from gcdtrav.schemas.messages import MSGPACK_ENCODING, RAW_CHANNELS, ImageEnvelope, MessageError, PixelEncoding
 from numpy.typing import NDArray
 
 
@@ -28,20 +29,55 @@ class DecodedFrame:
     frame_id: str
 
 
-def _looks_like_msgpack_map(payload: bytes) -> bool:
-    first = payload[0]
-    return 0x80 <= first <= 0x8F or first in (0xDE, 0xDF)
+InputKind = Literal["envelope", "image"]
+# The first bytes of the image files OpenCV reads. None of them can start a msgpack map (an envelope): JPEG's
+# 0xFF and the ASCII letters are integers in msgpack, and PNG's 0x89 (a map of 9 entries) is followed by 'P',
+# an integer where a map needs a string key. So a signature decides even against a wrong zenoh encoding.
+IMAGE_SIGNATURES = (
+    (b"\x89PNG\r\n\x1a\n", "PNG"),
+    (b"\xff\xd8\xff", "JPEG"),
+    (b"BM", "BMP"),
+    (b"GIF87a", "GIF"),
+    (b"GIF89a", "GIF"),
+    (b"II*\x00", "TIFF"),
+    (b"MM\x00*", "TIFF"),
+    (b"RIFF", "WebP"),
+)
+UNSET_ENCODINGS = ("", "zenoh/bytes", "application/octet-stream")  # what a publisher that sets none sends
+
+
+def image_format(payload: bytes) -> str | None:
+    """The image file format ``payload`` starts with (PNG, JPEG, BMP, GIF, TIFF, WebP), or None."""
+    return next((name for signature, name in IMAGE_SIGNATURES if payload.startswith(signature)), None)
+
+
+def _starts_a_msgpack_map(payload: bytes) -> bool:
+    return bool(payload) and (0x80 <= payload[0] <= 0x8F or payload[0] in (0xDE, 0xDF))
+
+
+def input_kind(payload: bytes, encoding: str) -> InputKind:
+    """What an input payload is: a bare image file or an ImageEnvelope (msgpack). The one rule of intake, the
+    age peek (service/runtime/frame_age.py) and the decoder: an image file's signature first (it cannot start
+    an envelope, so it wins over a wrong encoding), then the zenoh encoding when set (``image/*`` or
+    ``application/msgpack``), then a msgpack map's first byte; anything else is taken as an image and the
+    decoder says why it is not one."""
+    if image_format(payload) is not None:
+        return "image"
+    mime = encoding.split(";", 1)[0].strip().lower()
+    if mime.startswith("image/"):
+        return "image"
+    if mime == MSGPACK_ENCODING:
+        return "envelope"
+    return "envelope" if _starts_a_msgpack_map(payload) else "image"
 
 
 def decode_payload(payload: bytes, encoding: str, received_at: float, max_bytes: int, max_pixels: int) -> DecodedFrame:
-    """JPEG/PNG bytes (by zenoh encoding or content) or an ImageEnvelope (msgpack)."""
+    """A bare image file or an ImageEnvelope (msgpack), told apart by ``input_kind``."""
     if len(payload) > max_bytes:
         raise RejectedInput("oversized", f"{len(payload)} bytes exceeds the limit of {max_bytes}")
     if not payload:
         raise RejectedInput("empty", "payload has 0 bytes")
-    if encoding.startswith("application/msgpack") or (
-        not encoding.startswith("image/") and _looks_like_msgpack_map(payload)
-    ):
+    if input_kind(payload, encoding) == "envelope":
         return _decode_envelope(payload, max_bytes, max_pixels)
     try:
         return DecodedFrame(decode_image(payload, max_pixels), stamp=received_at, frame_id="")
