@@ -29,7 +29,9 @@ def where(d: ContextDistribution) -> str:
     """Which patch or region of which frame, or which ground-grid cell, a distribution is of, in words."""
     if d.cell is not None:
         return f"cell {d.cell} at {d.cell_xy} m, {d.observations} pixels"
-    return f"seq={d.seq} " + (f"patch {d.patch}" if d.patch is not None else f"region {d.region}")
+    if d.patch is not None:
+        return f"seq={d.seq} patch (row i={d.patch[0]}, column j={d.patch[1]})"
+    return f"seq={d.seq} region {d.region} (i0, j0, i1, j1: rows and columns, end exclusive)"
 
 
 def draw_distribution(

@@ -252,10 +252,11 @@ def roll_back(client: TraversabilityClient, args: argparse.Namespace) -> int:
 # ---- probe -------------------------------------------------------------------------------------------
 
 
-def describe(d: ContextDistribution) -> str:
-    """A distribution as text: T, U, shape, and a bar per anchor weight."""
+def describe(d: ContextDistribution, pixel: tuple[float, float] | None = None) -> str:
+    """A distribution as text: T, U, shape, and a bar per anchor weight; ``pixel``: the (x, y) asked for."""
+    asked = f"pixel (x={pixel[0]:g}, y={pixel[1]:g}) in " if pixel is not None else ""
     lines = [
-        f"{d.source} {where(d)} anchors={d.anchor_set_version}",
+        f"{d.source} {asked}{where(d)} anchors={d.anchor_set_version}",
         f"T (mean) = {d.mean:.3f}   U (std) = {d.std:.3f}   modes = {d.modes}   entropy = {d.entropy:.2f} nats",
         f"skewness = {d.skewness:.2f}   excess kurtosis = {d.excess_kurtosis:.2f}",
     ]
@@ -271,7 +272,7 @@ def describe(d: ContextDistribution) -> str:
 
 def probe(client: TraversabilityClient, args: argparse.Namespace) -> int:
     distribution = client.patch(args.source, args.x, args.y, seq=args.seq, alpha=args.alpha, tau=args.tau)
-    print(describe(distribution))
+    print(describe(distribution, (args.x, args.y)))
     if args.png is not None:
         draw_density(distribution, args.png)
         print(f"density drawn to {args.png}")

@@ -152,7 +152,7 @@ class CameraLink:
     def _envelope(self, frame: CapturedFrame, model_input: tuple[int, int]) -> ImageEnvelope | None:
         """The frame decoded, shrunk to what the model uses and JPEG-encoded; None (counted) when unusable."""
         try:
-            image, stamp, frame_id = self._decode(frame)
+            image, stamp, frame_id, original_size = self._decode(frame)
         except (RejectedInput, RosImageError) as err:
             self.undecodable += 1
             log.warning("%s: camera frame on %s not usable: %s", self.source, frame.key, err)
@@ -168,16 +168,19 @@ class CameraLink:
             height=height,
             data=encode_jpeg(small, settings.jpeg_quality),
             sent_at=time.time(),
+            original_size=original_size,  # answers and maps in the camera's pixels, not the shrunk frame's
         )
 
-    def _decode(self, frame: CapturedFrame) -> tuple[Any, float, str]:
+    def _decode(self, frame: CapturedFrame) -> tuple[Any, float, str, tuple[int, int]]:
+        """The camera's image, stamp, frame id and size in the camera's pixels."""
         payload = frame.payload.to_bytes()
         if not self.camera.is_ros:
             decoded = decode_payload(payload, frame.encoding, frame.arrived_at, MAX_CAMERA_BYTES, MAX_CAMERA_PIXELS)
-            return decoded.image, decoded.stamp, decoded.frame_id
+            return decoded.image, decoded.stamp, decoded.frame_id, decoded.camera_size
         configured = self.camera.ros_message_type
         msgtype = (ros_type_of_key(frame.key) or "") if configured == "auto" else configured
-        return decode_ros_image(payload, msgtype, MAX_CAMERA_PIXELS)
+        image, stamp, frame_id = decode_ros_image(payload, msgtype, MAX_CAMERA_PIXELS)
+        return image, stamp, frame_id, (int(image.shape[1]), int(image.shape[0]))
 
     def stop(self) -> None:
         with self._cond:

@@ -35,7 +35,7 @@ def main() -> int:
         except ServiceError as err:
             print(f"error: {err}", file=sys.stderr)
             return 1
-    print(describe(reply))
+    print(describe(reply, None if args.region is not None else (args.x, args.y)))
     return 0
 
 

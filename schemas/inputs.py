@@ -27,6 +27,12 @@ class DecodedFrame:
     image: NDArray[np.uint8]  # (H, W, 3) RGB
     stamp: float
     frame_id: str
+    original_size: tuple[int, int] | None = None  # (width, height) of the camera's image, if the sender shrank it
+
+    @property
+    def camera_size(self) -> tuple[int, int]:
+        """(width, height) in the camera's pixels: what the maps' geometry and the queries use."""
+        return self.original_size or (int(self.image.shape[1]), int(self.image.shape[0]))
 
 
 InputKind = Literal["envelope", "image"]
@@ -90,10 +96,9 @@ def _decode_envelope(payload: bytes, max_bytes: int, max_pixels: int) -> Decoded
         envelope = ImageEnvelope.unpack(payload, max_bytes)
     except MessageError as err:
         raise RejectedInput("malformed_envelope", str(err)) from None
-    if envelope.width * envelope.height > max_pixels:
-        raise RejectedInput(
-            "too_many_pixels", f"{envelope.width}x{envelope.height} exceeds the limit of {max_pixels} pixels"
-        )
+    for width, height in ((envelope.width, envelope.height), envelope.original_size or (1, 1)):
+        if width * height > max_pixels:  # an original size is a geometry: full-resolution maps are made at it
+            raise RejectedInput("too_many_pixels", f"{width}x{height} exceeds the limit of {max_pixels} pixels")
     if envelope.encoding in RAW_CHANNELS:
         image = _raw_pixels(envelope)
     else:
@@ -101,7 +106,7 @@ def _decode_envelope(payload: bytes, max_bytes: int, max_pixels: int) -> Decoded
             image = decode_image(envelope.data, max_pixels)
         except ImageDecodeError as err:
             raise RejectedInput(err.reason, f"envelope {envelope.encoding.value}: {err}") from None
-    return DecodedFrame(image, stamp=envelope.stamp, frame_id=envelope.frame_id)
+    return DecodedFrame(image, envelope.stamp, envelope.frame_id, envelope.original_size)
 
 
 def _raw_pixels(envelope: ImageEnvelope) -> NDArray[np.uint8]:

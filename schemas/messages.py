@@ -144,6 +144,18 @@ class ImageEnvelope(Message):
         description="When the sender published it, its own clock (a relay sets it): echoed in the credit, so the "
         "sender can estimate the link's round trip and the clock offset.",
     )
+    original_size: tuple[int, int] | None = Field(
+        default=None,
+        description="(width, height) of the camera's image when the sender shrank it (a relay does): the maps' "
+        "geometry and the answers' pixels are in it. None: the image is the camera's. Since 1.2.",
+    )
+
+    @field_validator("original_size")
+    @classmethod
+    def _positive_size(cls, value: tuple[int, int] | None) -> tuple[int, int] | None:
+        if value is not None and min(value) < 1:
+            raise ValueError(f"{value} must be (width, height), each at least 1")
+        return value
 
 
 # ---- maps out --------------------------------------------------------------------------------------
@@ -163,8 +175,11 @@ class MapsHeader(WireModel):
     anchor_set_version: str
     method: Method
     map_shape: tuple[int, int] = Field(description="(height, width) of T and U in this message.")
-    image_size: tuple[int, int] = Field(description="(width, height) of the input image, pixels.")
-    scale: tuple[float, float] = Field(description="(sx, sy): image pixels per patch along x and y.")
+    image_size: tuple[int, int] = Field(
+        description="(width, height) of the camera's image, pixels: the input's, or the original_size a relay sent "
+        "with a shrunk frame. Pixel coordinates of queries are in it."
+    )
+    scale: tuple[float, float] = Field(description="(sx, sy): image_size pixels per patch along x and y.")
     order: tuple[float, float] | None = Field(
         default=None,
         description="The source's order across instances and hand-overs: (stamp, received_at), compared as a "

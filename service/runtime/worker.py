@@ -171,10 +171,9 @@ class FrameWorker:
         source, image = inferred.pending.source, inferred.image
         self._check_gate(inferred)
         result = self.pipeline.finish(inferred.inference)
-        height, width = image.image.shape[:2]
         maps = result.maps
         record = self.history.record(
-            source, maps.weights, result.anchors, image.stamp, image.frame_id, (width, height), maps.match
+            source, maps.weights, result.anchors, image.stamp, image.frame_id, image.camera_size, maps.match
         )
         self._check_gate(inferred)  # the engine took time too
         if not self.publish(ProcessedFrame(inferred, result, record)):

@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 
 import cv2
+import msgpack
 import numpy as np
 import pytest
 from gcdtrav.schemas.images import encode_png
@@ -110,3 +111,23 @@ def test_the_bug_a_bare_png_was_a_malformed_envelope() -> None:
     png = encode_png(IMAGE)
     assert png[0] == 0x89
     assert decode_payload(png, "zenoh/bytes", 1.0, 10**7, 10**6).image.shape == (20, 30, 3)
+
+
+def test_an_original_size_is_kept_and_bounded() -> None:
+    """A relay's shrunk frame says the camera's size: kept for the geometry, under the same pixel limit."""
+    from gcdtrav.schemas.messages import MessageError
+
+    def shrunk(original: tuple[int, int]) -> bytes:
+        return ImageEnvelope(
+            stamp=1.0, encoding="png", width=30, height=20, data=encode_png(IMAGE), original_size=original
+        ).pack()
+
+    decoded = decode_payload(shrunk((1920, 1280)), "application/msgpack", 0.0, 10**7, 1920 * 1280)
+    assert decoded.image.shape == (20, 30, 3) and decoded.camera_size == (1920, 1280)
+    assert decode_payload(encode_png(IMAGE), "", 0.0, 10**7, 10**6).camera_size == (30, 20)
+    with pytest.raises(RejectedInput) as rejected:
+        decode_payload(shrunk((1921, 1280)), "application/msgpack", 0.0, 10**7, 1920 * 1280)
+    assert rejected.value.reason == "too_many_pixels" and "1921x1280" in rejected.value.detail
+    fields = ImageEnvelope.unpack(shrunk((10, 20))).model_dump() | {"original_size": (0, 20)}
+    with pytest.raises(MessageError, match="original_size"):
+        ImageEnvelope.unpack(msgpack.packb(fields, use_bin_type=True))

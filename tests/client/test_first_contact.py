@@ -1,0 +1,208 @@
+"""A new user's first contact (issue 36), end to end on loopback: the README's examples against a PNG camera,
+a JPEG camera and a relayed camera, answers in the camera's own pixels, and a starved source that says why.
+
+Sessions as on a real robot: the robot's bus (camera, consumers), the relay's two sessions, the service's.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+from conftest import TINY_INPUT_SIZE, textured_image, torch_free_gcdtrav
+from zenoh_helpers import connecting_config, free_port, wait_until
+
+pytest.importorskip("torch")
+
+from gcdtrav.client import Maps, TraversabilityClient
+from gcdtrav.client.freshness import Staleness
+from gcdtrav.client.relay import Relay
+from gcdtrav.client.zenoh_args import zenoh_config
+from gcdtrav.schemas.images import encode_jpeg, encode_png
+from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
+from gcdtrav.schemas.relay import RelaySettings
+from gcdtrav.schemas.settings import ServiceSettings
+
+from tools.loopback import in_process_service
+
+REPO = Path(__file__).resolve().parents[2]
+CAMERA_KEY = "robot/camera/front"
+SOURCE = "r1/front"
+
+
+class Camera:
+    """Publishes one image over and over on ``key`` (about 5 frames/s): bare bytes with ``encoding`` (None:
+    zenoh's default), or envelopes stamped now less ``age_s``."""
+
+    def __init__(self, session: zenoh.Session, key: str, data: bytes, encoding: str | None, size: tuple[int, int]):
+        self.publisher = session.declare_publisher(key)
+        self.data, self.encoding, self.size = data, encoding, size
+        self.envelope: PixelEncoding | None = None
+        self.age_s = 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.2):
+            if self.envelope is None:
+                options = {} if self.encoding is None else {"encoding": zenoh.Encoding(self.encoding)}
+                self.publisher.put(self.data, **options)
+            else:
+                envelope = ImageEnvelope(
+                    stamp=time.time() - self.age_s, encoding=self.envelope, width=self.size[0], height=self.size[1],
+                    data=self.data,
+                )  # fmt: skip
+                self.publisher.put(envelope.pack(), encoding=zenoh.Encoding("application/msgpack"))
+
+    def start(self) -> Camera:
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(5)
+
+
+@dataclass
+class Setup:
+    port: int  # the service's
+    client: TraversabilityClient  # on the service's side
+    bus: zenoh.Session  # the robot's
+    relay: Relay | None = None
+    changes: list[Staleness] = field(default_factory=list)
+
+
+@contextmanager
+def service_and_robot(tiny_backend, tmp_path: Path, relay: dict | None = None, **settings: object) -> Iterator[Setup]:  # type: ignore[no-untyped-def]
+    service_settings = ServiceSettings(state_dir=tmp_path, instance="box-1", preview=False, **settings)  # type: ignore[arg-type]
+    with in_process_service(tiny_backend, service_settings) as (_, port):
+        robot_port = free_port()
+        bus = zenoh.open(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{robot_port}"], multicast_scouting=False))
+        link = zenoh.open(connecting_config(port, mode="client"))
+        local = zenoh.open(connecting_config(robot_port, mode="client"))
+        client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
+        setup = Setup(port, client, bus)
+        if relay is not None:
+            relay_settings = RelaySettings.model_validate(
+                {"cameras": [{"camera": CAMERA_KEY, "source": SOURCE}], "stale_after_s": 1.0, "health_period_s": 0.2}
+                | relay
+            )
+            setup.relay = Relay(relay_settings, link, local, on_stale=setup.changes.append).start()
+        try:
+            yield setup
+        finally:
+            if setup.relay is not None:
+                setup.relay.close()
+            client.close()
+            for session in (local, link, bus):
+                session.close()
+
+
+def maps_of(client: TraversabilityClient, source: str) -> list[Maps]:
+    received: list[Maps] = []
+    client.subscribe_maps(source, received.append)
+    return received
+
+
+def run_example(port: int, script: str, *args: str) -> subprocess.CompletedProcess[str]:
+    """An example as the README runs it, pointed at the loopback service."""
+    zenoh_flags = ("-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / ".pkg"), os.environ.get("PYTHONPATH", "")])}
+    command = [sys.executable, str(REPO / "examples" / script), *args, *zenoh_flags]
+    return subprocess.run(command, capture_output=True, text=True, timeout=120, env=env, cwd=REPO)
+
+
+def gcdtrav(port: int, *args: str) -> subprocess.CompletedProcess[str]:
+    zenoh_flags = ("-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting")
+    return subprocess.run(torch_free_gcdtrav(*args, *zenoh_flags), capture_output=True, text=True, timeout=120)
+
+
+def expected_patch(x: float, y: float, image_size: tuple[int, int], map_shape: tuple[int, int]) -> tuple[int, int]:
+    (width, height), (rows, cols) = image_size, map_shape
+    return int(y / (height / rows)), int(x / (width / cols))
+
+
+# ---- a camera straight on the service's bus: PNG and JPEG, bare, with and without an encoding --------------
+
+
+@pytest.mark.parametrize(
+    ("form", "encoding"),
+    [("png", None), ("png", "image/png"), ("jpeg", None), ("jpeg", "image/jpeg")],
+    ids=["png-no-encoding", "png", "jpeg-no-encoding", "jpeg"],
+)
+def test_a_bare_camera_gets_maps_and_the_readme_probe_answers(tiny_backend, tmp_path: Path, form, encoding) -> None:  # type: ignore[no-untyped-def]
+    image = textured_image(480, 640)
+    data = encode_png(image) if form == "png" else encode_jpeg(image)
+    with service_and_robot(tiny_backend, tmp_path) as setup:
+        received = maps_of(setup.client, SOURCE)
+        camera_bus = zenoh.open(connecting_config(setup.port))
+        camera = Camera(camera_bus, f"gcdtrav/in/{SOURCE}", data, encoding, (640, 480)).start()
+        try:
+            assert wait_until(lambda: len(received) >= 1, 30), setup.client.status().rejected_by_reason
+            assert received[0].header.image_size == (640, 480)
+            probe = run_example(setup.port, "planner_probe.py", "--source", SOURCE, "--x", "320", "--y", "400")
+            assert probe.returncode == 0, probe.stderr
+            assert "T (mean)" in probe.stdout and "pixel (x=320, y=400)" in probe.stdout
+            status = setup.client.status()
+            assert status.rejected_by_reason == {} and status.sources[SOURCE].rejected == 0
+        finally:
+            camera.stop()
+            camera_bus.close()
+
+
+# ---- a relayed camera: answers in the camera's pixels ------------------------------------------------------
+
+
+def test_a_relayed_camera_is_answered_in_its_own_pixels(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """The README's `--x 320 --y 400` on a 1920x1200 camera relayed at 563x352: the maps and answers are in
+    the camera's pixels, and the pixel points at the patch it covers."""
+    image = textured_image(1200, 1920)
+    with service_and_robot(tiny_backend, tmp_path, relay={"max_side": 563}) as setup:
+        received = maps_of(setup.client, SOURCE)
+        camera = Camera(setup.bus, CAMERA_KEY, encode_jpeg(image), "image/jpeg", (1920, 1200)).start()
+        try:
+            assert wait_until(lambda: len(received) >= 1, 60), "no maps of the relayed camera"
+            header = received[-1].header
+            assert header.image_size == (1920, 1200)  # the camera's, not the 563x352 frame's
+            assert header.map_shape == (TINY_INPUT_SIZE, TINY_INPUT_SIZE)
+            assert header.scale == (1920 / TINY_INPUT_SIZE, 1200 / TINY_INPUT_SIZE)
+
+            answer = setup.client.patch(SOURCE, x=320, y=400, seq=header.seq)
+            i, j = expected_patch(320, 400, (1920, 1200), header.map_shape)
+            assert answer.patch == (i, j) == (32, 16)
+            same = setup.client.patch_by_index(SOURCE, i, j, seq=header.seq)
+            assert np.allclose(answer.weights, same.weights)
+            corner = setup.client.patch(SOURCE, x=1919, y=1199, seq=header.seq)
+            assert corner.patch == (TINY_INPUT_SIZE - 1, TINY_INPUT_SIZE - 1)
+            region = setup.client.region(SOURCE, 0, 0, 1920, 1200, seq=header.seq)
+            assert region.region == (0, 0, TINY_INPUT_SIZE, TINY_INPUT_SIZE)
+
+            probe = run_example(setup.port, "planner_probe.py", "--source", SOURCE, "--x", "320", "--y", "400")
+            assert probe.returncode == 0, probe.stderr
+            far = gcdtrav(setup.port, "probe", SOURCE, "1920", "10")
+            assert far.returncode == 1 and "outside the 1920x1200 image" in far.stderr
+        finally:
+            camera.stop()
+
+
+def test_a_relayed_png_camera_gets_maps(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """A camera key of bare PNGs without an encoding: the relay took them for envelopes and never sent one."""
+    with service_and_robot(tiny_backend, tmp_path, relay={}) as setup:
+        received = maps_of(setup.client, SOURCE)
+        camera = Camera(setup.bus, CAMERA_KEY, encode_png(textured_image(240, 320)), None, (320, 240)).start()
+        try:
+            assert wait_until(lambda: len(received) >= 1, 60), "no maps of the relayed PNG camera"
+            assert setup.relay is not None and setup.relay.camera(SOURCE).undecodable == 0
+            assert received[-1].header.image_size == (320, 240)
+        finally:
+            camera.stop()
