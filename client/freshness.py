@@ -21,6 +21,7 @@ class Staleness:
     source: str
     stale: bool
     age_s: float  # of the newest maps when the change was seen; before any, the time since they were expected
+    reason: str | None = None  # why the service gives no maps, as it last said (a credit's problem), if it did
 
 
 class FreshnessWatch:
@@ -34,6 +35,7 @@ class FreshnessWatch:
         self._newest: dict[str, float] = {}
         self._since: dict[str, float] = {}  # when a watched source began to be expected
         self._stale: dict[str, bool] = {}
+        self._reasons: dict[str, str | None] = {}
         self._lock = threading.Lock()
 
     def watch(self, source: str, since: float | None = None) -> None:
@@ -51,6 +53,15 @@ class FreshnessWatch:
         with self._lock:
             self._newest[source] = max(self._newest.get(source, -math.inf), stamp)
             self._stale.setdefault(source, False)
+
+    def note_reason(self, source: str, reason: str | None) -> None:
+        """What the service last said of ``source``'s frames (None: nothing wrong); changes report it."""
+        with self._lock:
+            self._reasons[source] = reason
+
+    def reason(self, source: str) -> str | None:
+        with self._lock:
+            return self._reasons.get(source)
 
     def newest(self, source: str) -> float | None:
         with self._lock:
@@ -79,5 +90,5 @@ class FreshnessWatch:
                 stale = age > self.stale_after_s
                 if stale != self._stale[source]:
                     self._stale[source] = stale
-                    changes.append(Staleness(source, stale, age))
+                    changes.append(Staleness(source, stale, age, self._reasons.get(source) if stale else None))
         return changes

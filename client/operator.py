@@ -18,7 +18,7 @@ from gcdtrav.client.client import AnchorSetRejected, ServiceError, Traversabilit
 from gcdtrav.client.density_plot import save_distribution, where
 from gcdtrav.client.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
-from gcdtrav.schemas.messages import ContextDistribution, ServiceStatus
+from gcdtrav.schemas.messages import ContextDistribution, ServiceStatus, SourceStatus
 
 COMMANDS = ("status", "anchors", "probe")
 EXIT_OK, EXIT_FAILED = 0, 1
@@ -81,33 +81,52 @@ def one_line(err: BaseException) -> str:
 # ---- status ------------------------------------------------------------------------------------------
 
 
+INSTANCE_ROW = "{:<{w}}  {:>7}  {:<52}  {:>6}  {:>10}  {:>7}"
+SOURCE_ROW = "{:<{w}}  {:<{iw}}  {:>8}  {:>8}  {:>9}  {:>7}  {:>8}  {:>6}  {:>6}  {}"
+
+
 def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] = lambda i, s: "-") -> str:
-    lines = ["instance       uptime  model / anchors / method / precision                  queued  history MB  sources"]
+    """Instances, then every source that sent anything (also those refused before they took a slot), with its
+    drops and rejects by reason and, below, why its last frame gave no maps. Names are never cut: columns are
+    as wide as the longest (ROS topics are long)."""
+    width = max([len("instance"), *(len(s.instance) for s in statuses)])
+    lines = [INSTANCE_ROW.format("instance", "uptime", "model / anchors / method / precision", "queued",
+                                 "history MB", "sources", w=width)]  # fmt: skip
     for s in statuses:
         what = f"{s.model[-24:]} / {s.anchor_set_version} / {s.method.value} / {s.precision or '-'}"
+        uptime, history = f"{s.uptime_s:.0f}s", f"{s.history_bytes / 1e6:.1f}"
+        sources = f"{s.tracked_sources}/{s.max_sources}"
+        lines.append(INSTANCE_ROW.format(s.instance, uptime, what, s.queued, history, sources, w=width))
+    rows = [(name, s.instance, src) for s in statuses for name, src in sorted(s.sources.items())]
+    name_width = max([len("source"), *(len(name) for name, _, _ in rows)])
+    header = ("source", "instance", "frames/s", "received", "processed", "dropped", "rejected", "p50 ms", "p99 ms")
+    lines += ["", SOURCE_ROW.format(*header, "dropped and rejected by reason", w=name_width, iw=width)]
+    problems = []
+    for name, instance, src in rows:
+        p50, p99 = src.latency_ms.get("p50", "-"), src.latency_ms.get("p99", "-")
+        counts = (src.received, src.processed, src.dropped, src.rejected, p50, p99)
         lines.append(
-            f"{s.instance:<14} {s.uptime_s:6.0f}s  {what:<52}  {s.queued:>6}  {s.history_bytes / 1e6:10.1f}  "
-            f"{s.tracked_sources}/{s.max_sources}"
+            SOURCE_ROW.format(name, instance, fps(instance, name), *counts, reasons(src), w=name_width, iw=width)
         )
-    lines += [
-        "",
-        "source                    instance       frames/s  received  processed  dropped  rejected  p50 ms  p99 ms",
-    ]
-    for s in statuses:
-        for name, src in sorted(s.sources.items()):
-            p50, p99 = src.latency_ms.get("p50", "-"), src.latency_ms.get("p99", "-")
-            lines.append(
-                f"{name[:25]:<25} {s.instance[:14]:<14} {fps(s.instance, name):>8}  {src.received:>8}  "
-                f"{src.processed:>9}  {src.dropped:>7}  {src.rejected:>8}  {p50:>6}  {p99:>6}"
-            )
+        if src.problem:
+            problems.append(f"{name} ({instance}): {src.problem}")
+    if problems:
+        lines += ["", "why the last frame gave no maps:", *(f"  {line}" for line in problems)]
     lines += fleet_warnings(statuses)
-    reasons = [f"{s.instance}: {s.precision} ({s.precision_reason})" for s in statuses if s.precision_reason]
-    if reasons:
-        lines += ["", *(f"precision {line}" for line in reasons)]
+    precision = [f"{s.instance}: {s.precision} ({s.precision_reason})" for s in statuses if s.precision_reason]
+    if precision:
+        lines += ["", *(f"precision {line}" for line in precision)]
     rejected = {reason: n for s in statuses for reason, n in s.rejected_by_reason.items()}
     if rejected:
         lines += ["", "rejected: " + ", ".join(f"{reason} {n}" for reason, n in sorted(rejected.items()))]
     return "\n".join(lines)
+
+
+def reasons(source: SourceStatus) -> str:
+    """'stale 3, undecodable 1' (and 'refused: no slot' for a source that never took one)."""
+    counts = {**source.dropped_by_reason, **source.rejected_by_reason}
+    text = ", ".join(f"{reason} {n}" for reason, n in sorted(counts.items()))
+    return text + ("" if source.tracked else " (refused: no slot)")
 
 
 def fleet_warnings(statuses: list[ServiceStatus]) -> list[str]:

@@ -77,6 +77,7 @@ class CameraLink:
         self.uplink = RateWindow()
         self.model_input = (CLIPSEG_INPUT_SIDE, CLIPSEG_INPUT_SIDE)
         self.captured = self.sent = self.undecodable = 0
+        self.unusable: str | None = None  # why the last camera frame could not be sent, if it could not
         self._slot: CapturedFrame | None = None
         self._cond = threading.Condition()
         self._publisher: zenoh.Publisher | None = None
@@ -119,6 +120,7 @@ class CameraLink:
             return
         self.clock.add(grant, arrived_at)
         self.relay.grant_seen(self.source, grant)
+        self.relay.freshness.note_reason(self.source, grant.problem)
         with self._cond:
             self.model_input = grant.model_input
             self.window.grant(grant)
@@ -155,8 +157,10 @@ class CameraLink:
             image, stamp, frame_id, original_size = self._decode(frame)
         except (RejectedInput, RosImageError) as err:
             self.undecodable += 1
-            log.warning("%s: camera frame on %s not usable: %s", self.source, frame.key, err)
+            self.unusable = f"camera frame on {frame.key} not usable: {err}"
+            log.warning("%s: %s", self.source, self.unusable)
             return None
+        self.unusable = None
         settings = self.relay.settings
         small = downsized(image, settings.max_side, model_input)
         height, width = small.shape[:2]
@@ -206,6 +210,7 @@ class CameraLink:
             owner=self.window.owner,
             clock_offset_s=None if best is None else best[1],
             round_trip_s=None if best is None else best[0],
+            problem=self.unusable or freshness.reason(self.source),
         )
 
 
@@ -358,16 +363,19 @@ class Relay:
 
     def _log_stale(self, source: str, health: RelayHealth) -> None:
         self._last_stale_log[source] = time.time()
+        why = f"; why: {health.problem}" if health.problem else ""
         if health.map_age_s is None:
-            log.warning("no maps of %s yet, %.1f s after the relay started", source, time.time() - self._started_at)
+            waited = time.time() - self._started_at
+            log.warning("no maps of %s yet, %.1f s after the relay started%s", source, waited, why)
         else:
             log.warning(
-                "maps of %s stale for %.1f s (newest %.1f s old; %d frames sent, %d credit timeouts)",
+                "maps of %s stale for %.1f s (newest %.1f s old; %d frames sent, %d credit timeouts)%s",
                 source,
                 health.map_age_s - self.settings.stale_after_s,
                 health.map_age_s,
                 health.frames_sent,
                 health.credit_timeouts,
+                why,
             )
 
     def close(self) -> None:

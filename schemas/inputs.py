@@ -40,7 +40,7 @@ InputKind = Literal["envelope", "image"]
 # 0xFF and the ASCII letters are integers in msgpack, and PNG's 0x89 (a map of 9 entries) is followed by 'P',
 # an integer where a map needs a string key. So a signature decides even against a wrong zenoh encoding.
 IMAGE_SIGNATURES = (
-    (b"\x89PNG\r\n\x1a\n", "PNG"),
+    (b"\x89PNG", "PNG"),
     (b"\xff\xd8\xff", "JPEG"),
     (b"BM", "BMP"),
     (b"GIF87a", "GIF"),

@@ -231,6 +231,11 @@ class CreditGrant(Message):
     last_maps_stamp: float | None = Field(
         default=None, description="Capture stamp of the newest frame whose maps this instance published."
     )
+    problem: str | None = Field(
+        default=None,
+        description="Why the source's last frame gave no maps, as the service counted it ('reason: detail', e.g. "
+        "'stale: captured 3600.0 s ago, over max_frame_age_s = 5 s ...'); None once maps are published. Since 1.2.",
+    )
 
 
 class RelayHealth(Message):
@@ -255,6 +260,11 @@ class RelayHealth(Message):
         default=None, description="Service clock minus robot clock, estimated from credit round trips."
     )
     round_trip_s: float | None = Field(default=None, description="Link round trip of the best recent estimate.")
+    problem: str | None = Field(
+        default=None,
+        description="Why the service gives no maps, as its last credit said (CreditGrant.problem), or the "
+        "relay's own (camera frames not usable). Since 1.2.",
+    )
 
 
 # ---- queries ---------------------------------------------------------------------------------------
@@ -443,6 +453,22 @@ class SourceStatus(WireModel):
         default_factory=dict, description="Capture stamp to intake p50/p95 (clocks assumed in step)."
     )
     credits: int = Field(default=0, description="Credits granted to the source (CreditGrant).")
+    dropped_by_reason: dict[str, int] = Field(
+        default_factory=dict, description="Its dropped frames by reason (replaced, stale, ...). Since 1.2."
+    )
+    rejected_by_reason: dict[str, int] = Field(
+        default_factory=dict, description="Its rejected frames by reason (undecodable, oversized, ...). Since 1.2."
+    )
+    problem: str = Field(
+        default="",
+        description="Why its last frame gave no maps ('reason: detail', e.g. 'stale: captured 3600.0 s ago, ...'); "
+        "empty once maps are published. Since 1.2.",
+    )
+    tracked: bool = Field(
+        default=True,
+        description="False: a source refused before it took a slot (every frame stale or undecodable so far), "
+        "listed with its counts (at most 32 such sources). Since 1.2.",
+    )
 
 
 class ServiceStatus(Message):

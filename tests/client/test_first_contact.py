@@ -29,7 +29,7 @@ from gcdtrav.client.freshness import Staleness
 from gcdtrav.client.relay import Relay
 from gcdtrav.client.zenoh_args import zenoh_config
 from gcdtrav.schemas.images import encode_jpeg, encode_png
-from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
+from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding, RelayHealth
 from gcdtrav.schemas.relay import RelaySettings
 from gcdtrav.schemas.settings import ServiceSettings
 
@@ -206,3 +206,54 @@ def test_a_relayed_png_camera_gets_maps(tiny_backend, tmp_path: Path) -> None:  
             assert received[-1].header.image_size == (320, 240)
         finally:
             camera.stop()
+
+
+# ---- a starved source is visible, and the robot side hears why ---------------------------------------------
+
+
+def test_a_camera_whose_every_frame_is_stale_is_shown_with_why_on_both_sides(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """A robot clock an hour behind: every frame is stale by the clock. The status lists the source with its
+    drops by reason and the detail; the relay's health, its staleness log and watch_freshness (on either bus)
+    name the reason the service gave."""
+    with service_and_robot(tiny_backend, tmp_path, relay={}, max_frame_age_s=2.0) as setup:
+        camera = Camera(setup.bus, CAMERA_KEY, encode_jpeg(textured_image(240, 320)), None, (320, 240))
+        camera.envelope, camera.age_s = PixelEncoding.JPEG, 3600.0
+        service_side: list[Staleness] = []
+        robot_client = TraversabilityClient(session=setup.bus)
+        robot_side: list[Staleness] = []
+        watches = [
+            setup.client.watch_freshness([SOURCE], 1.0, service_side.append, period_s=0.1),
+            robot_client.watch_freshness([SOURCE], 1.0, robot_side.append, period_s=0.1),
+        ]
+        health: list[RelayHealth] = []
+        listener = setup.bus.declare_subscriber(
+            f"gcdtrav/relay/{SOURCE}/health", lambda s: health.append(RelayHealth.unpack(s.payload.to_bytes()))
+        )
+        camera.start()
+        try:
+            assert wait_until(lambda: getattr(setup.client.status().sources.get(SOURCE), "stale", 0) >= 3, 30)
+            source = setup.client.status().sources[SOURCE]
+            assert not source.tracked and source.processed == 0  # refused before it took a slot, yet listed
+            assert source.dropped_by_reason == {"stale": source.dropped} and source.received == source.dropped
+            assert source.problem.startswith("stale: captured 3600.") and "max_frame_age_s = 2 s" in source.problem
+
+            table = gcdtrav(setup.port, "status")
+            assert table.returncode == 0, table.stderr
+            row = next(line for line in table.stdout.splitlines() if line.startswith(SOURCE))
+            assert "stale" in row and "refused" in row
+            assert f"{SOURCE} (box-1): stale: captured 3600." in table.stdout
+
+            assert wait_until(lambda: bool(health) and (health[-1].problem or "").startswith("stale: captured"), 10)
+            for changes in (setup.changes, service_side, robot_side):  # the relay's, watch_freshness on both buses
+                assert wait_until(lambda seen=changes: any(said_stale(c) for c in seen), 10)
+            assert "stale: captured" in (watches[0].reason(SOURCE) or "")
+        finally:
+            camera.stop()
+            listener.undeclare()
+            for watch in watches:
+                watch.close()
+            robot_client.close()
+
+
+def said_stale(change: Staleness) -> bool:
+    return change.stale and (change.reason or "").startswith("stale: captured 3600.")
