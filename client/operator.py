@@ -15,7 +15,7 @@ from pathlib import Path
 
 import zenoh
 from gcdtrav.client.client import AnchorSetRejected, ServiceError, TraversabilityClient
-from gcdtrav.client.density_plot import save_distribution, where
+from gcdtrav.client.density_plot import describe, save_distribution
 from gcdtrav.client.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.messages import ContextDistribution, ServiceStatus, SourceStatus
@@ -269,24 +269,6 @@ def roll_back(client: TraversabilityClient, args: argparse.Namespace) -> int:
 
 
 # ---- probe -------------------------------------------------------------------------------------------
-
-
-def describe(d: ContextDistribution, pixel: tuple[float, float] | None = None) -> str:
-    """A distribution as text: T, U, shape, and a bar per anchor weight; ``pixel``: the (x, y) asked for."""
-    asked = f"pixel (x={pixel[0]:g}, y={pixel[1]:g}) in " if pixel is not None else ""
-    lines = [
-        f"{d.source} {asked}{where(d)} anchors={d.anchor_set_version}",
-        f"T (mean) = {d.mean:.3f}   U (std) = {d.std:.3f}   modes = {d.modes}   entropy = {d.entropy:.2f} nats",
-        f"skewness = {d.skewness:.2f}   excess kurtosis = {d.excess_kurtosis:.2f}",
-    ]
-    if d.cvar is not None and d.quantile is not None and d.p_below is not None:
-        lines.append(
-            f"CVaR(alpha={d.alpha:g}) = {d.cvar:.3f}   quantile(alpha) = {d.quantile:.3f}   "
-            f"P(T < {d.tau:g}) = {d.p_below:.3f}" + (f"   match = {d.match:.2f}" if d.match is not None else "")
-        )
-    for anchor, weight in zip(d.anchors, d.weights, strict=True):
-        lines.append(f"  {anchor.concept:>14} @ {anchor.position:4.2f}  {weight:6.3f} {'#' * round(weight * 40)}")
-    return "\n".join(lines)
 
 
 def probe(client: TraversabilityClient, args: argparse.Namespace) -> int:
