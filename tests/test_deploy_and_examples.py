@@ -33,6 +33,25 @@ def test_service_settings_example_is_valid() -> None:
     assert settings.prefix == "gcdtrav" and settings.inputs == ["gcdtrav/in/**"]
 
 
+def test_service_yaml_lists_every_setting() -> None:
+    """The README says deploy/service.yaml lists every setting (it lacked max_frame_age_s): each field of
+    ServiceSettings is a key there, or a commented one for those configured per camera; the fields of the
+    nested sections it sets are keys under them."""
+    import re
+
+    import yaml
+    from gcdtrav.schemas.settings import ServiceSettings
+
+    text = (ROOT / "deploy" / "service.yaml").read_text("utf-8")
+    listed = set(re.findall(r"^#? ?([a-z_]+):", text, re.MULTILINE))
+    assert set(ServiceSettings.model_fields) - listed == set()
+    values = yaml.safe_load(text)
+    for section, model in ServiceSettings.model_fields.items():
+        if isinstance(values.get(section), dict):
+            nested = model.annotation.model_fields  # type: ignore[union-attr]
+            assert set(nested) - set(values[section]) == set(), section
+
+
 def test_example_anchor_set_is_valid() -> None:
     from gcdtrav.schemas.anchors import AnchorSet
 
