@@ -18,7 +18,7 @@ from gcdtrav.client.client import AnchorSetRejected, ServiceError, Traversabilit
 from gcdtrav.client.density_plot import describe, save_distribution
 from gcdtrav.client.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
-from gcdtrav.schemas.messages import ContextDistribution, ServiceStatus, SourceStatus
+from gcdtrav.schemas.messages import AnchorHistoryReply, ContextDistribution, ServiceStatus, SourceStatus
 
 COMMANDS = ("status", "anchors", "probe")
 EXIT_OK, EXIT_FAILED = 0, 1
@@ -247,14 +247,24 @@ def fleet_sets(client: TraversabilityClient) -> str:
 
 
 def show_history(client: TraversabilityClient, args: argparse.Namespace) -> int:
-    for history in client.anchor_history():
-        print(f"instance {history.instance}:")
+    print("\n".join(history_lines(client.anchor_history())))
+    return EXIT_OK
+
+
+def history_lines(histories: list[AnchorHistoryReply]) -> list[str]:
+    """Each instance's accepted sets, newest first; the set an instance started with (never accepted in the
+    fleet: ``accepted_at`` 0) reads 'start set', not 1970."""
+    lines = []
+    for history in histories:
+        lines.append(f"instance {history.instance}:")
         for steps, entry in enumerate(history.entries):
-            when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(entry.accepted_at))
+            when = "start set".ljust(19)
+            if entry.accepted_at > 0:
+                when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(entry.accepted_at))
             label = "active" if steps == 0 else f"rollback {steps}"
             anchors = entry.anchor_set
-            print(f"  {label:>11}  {when}  {entry.version}  {anchors.name[:30]:<30} {len(anchors):>2} anchors")
-    return EXIT_OK
+            lines.append(f"  {label:>11}  {when}  {entry.version}  {anchors.name[:30]:<30} {len(anchors):>2} anchors")
+    return lines
 
 
 def roll_back(client: TraversabilityClient, args: argparse.Namespace) -> int:

@@ -257,3 +257,43 @@ def test_a_camera_whose_every_frame_is_stale_is_shown_with_why_on_both_sides(tin
 
 def said_stale(change: Staleness) -> bool:
     return change.stale and (change.reason or "").startswith("stale: captured 3600.")
+
+
+# ---- the README's Python snippet ---------------------------------------------------------------------------
+
+
+def readme_snippet(port: int) -> str:
+    """The README's client example, as written, but on loopback without multicast scouting."""
+    text = (REPO / "README.md").read_text("utf-8")
+    start = text.index("```python\nimport time")
+    code = text[start + len("```python\n") : text.index("```", start + 10)]
+    assert 'zenoh_config(mode="peer")' in code
+    return code.replace('zenoh_config(mode="peer")', f"connecting_config({port})")
+
+
+@pytest.mark.parametrize("start_with_puddle", [False, True], ids=["paper-set", "set-with-puddle"])
+def test_the_readme_python_snippet_runs(tiny_backend, tmp_path: Path, start_with_puddle: bool) -> None:  # type: ignore[no-untyped-def]
+    """It added "puddle" to the active set, which failed (duplicate concept) once the active set held one, as
+    after the README's own `gcdtrav anchors set examples/anchors/puddles.yaml`."""
+    from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
+
+    start = AnchorSet.load(REPO / "examples" / "anchors" / "puddles.yaml") if start_with_puddle else None
+    settings = ServiceSettings(state_dir=tmp_path, instance="box-1", preview=False)
+    with in_process_service(tiny_backend, settings, start) as (service, port):
+        before = service.pipeline.anchors.version
+        namespace = {"connecting_config": connecting_config}
+        errors: list[BaseException] = []
+
+        def run() -> None:
+            try:
+                exec(compile(readme_snippet(port), "README.md", "exec"), namespace)  # the README's code, as written
+            except BaseException as err:
+                errors.append(err)
+
+        thread = threading.Thread(target=run, daemon=True)
+        thread.start()
+        thread.join(60)
+        assert not thread.is_alive(), "the snippet hung"
+        assert errors == []
+        assert service.pipeline.anchors.version == before  # swapped in, then rolled back
+        assert (before != default_anchor_set().version) == start_with_puddle  # the service started as asked

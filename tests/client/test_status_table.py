@@ -53,3 +53,19 @@ def test_every_source_in_full_under_aligned_headers_with_reasons_and_why() -> No
     why = "  r9/stale (a-rather-long-instance-name): stale: captured 3600.0 s ago, over max_frame_age_s = 5 s"
     assert why in lines
     assert "  png (b): undecodable: x" in lines
+
+
+def test_history_names_the_start_set_instead_of_1970() -> None:
+    from gcdtrav.client.operator import history_lines
+    from gcdtrav.schemas.anchors import default_anchor_set
+    from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply
+
+    paper = default_anchor_set()
+    entries = [
+        AnchorHistoryEntry(accepted_at=1_795_000_000.0, version=paper.version, anchor_set=paper),
+        AnchorHistoryEntry(accepted_at=0.0, version=paper.version, anchor_set=paper),  # the set it started with
+    ]
+    lines = history_lines([AnchorHistoryReply(instance="box-1", entries=entries)])
+    assert lines[0] == "instance box-1:" and "1970" not in "\n".join(lines)
+    assert lines[2].startswith("   rollback 1  start set           ") and lines[1].split()[1].startswith("2026-")
+    assert lines[1].index(paper.version) == lines[2].index(paper.version)  # columns still aligned
