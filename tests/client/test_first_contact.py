@@ -160,6 +160,26 @@ def test_a_bare_camera_gets_maps_and_the_readme_probe_answers(tiny_backend, tmp_
             camera_bus.close()
 
 
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+def test_the_readme_robot_and_planner_examples_on_a_folder(tiny_backend, tmp_path: Path, suffix: str) -> None:  # type: ignore[no-untyped-def]
+    """The README's `robot_stream_folder.py my_images/ --source r1/front --fps 2`, then
+    `planner_probe.py --source r1/front --x 320 --y 400` and `gcdtrav probe r1/front 320 400`, as written."""
+    import cv2
+
+    folder = tmp_path / "my_images"
+    folder.mkdir()
+    for index in range(2):
+        cv2.imwrite(str(folder / f"{index:03d}{suffix}"), textured_image(480, 640, seed=index))
+    with service_and_robot(tiny_backend, tmp_path) as setup:
+        robot = run_example(setup.port, "robot_stream_folder.py", str(folder), "--source", SOURCE, "--fps", "2")
+        assert robot.returncode == 0, robot.stderr
+        assert f"maps {SOURCE} seq=" in robot.stdout
+        planner = run_example(setup.port, "planner_probe.py", "--source", SOURCE, "--x", "320", "--y", "400")
+        assert planner.returncode == 0 and "pixel (x=320, y=400) in seq=" in planner.stdout, planner.stderr
+        probe = gcdtrav(setup.port, "probe", SOURCE, "320", "400")
+        assert probe.returncode == 0 and "patch (row i=80, column j=48)" in probe.stdout, probe.stderr
+
+
 # ---- a relayed camera: answers in the camera's pixels ------------------------------------------------------
 
 
