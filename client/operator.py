@@ -126,7 +126,7 @@ def reasons(source: SourceStatus) -> str:
     """'stale 3, undecodable 1' (and 'refused: no slot' for a source that never took one)."""
     counts = {**source.dropped_by_reason, **source.rejected_by_reason}
     text = ", ".join(f"{reason} {n}" for reason, n in sorted(counts.items()))
-    return text + ("" if source.tracked else " (refused: no slot)")
+    return text + (" (refused: no slot)" if source.refused else "")
 
 
 def fleet_warnings(statuses: list[ServiceStatus]) -> list[str]:

@@ -464,10 +464,10 @@ class SourceStatus(WireModel):
         description="Why its last frame gave no maps ('reason: detail', e.g. 'stale: captured 3600.0 s ago, ...'); "
         "empty once maps are published. Since 1.2.",
     )
-    tracked: bool = Field(
-        default=True,
-        description="False: a source refused before it took a slot (every frame stale or undecodable so far), "
-        "listed with its counts (at most 32 such sources). Since 1.2.",
+    refused: bool = Field(
+        default=False,
+        description="A source refused before it took a slot (every frame stale or undecodable so far, or no slot "
+        "left), listed with its counts and problem (at most 32 such sources). Since 1.2.",
     )
 
 

@@ -256,5 +256,5 @@ class ServiceStats:
             dropped_by_reason=dict(stats.dropped_by),
             rejected_by_reason=dict(stats.rejected_by),
             problem=stats.problem,
-            tracked=False,
+            refused=True,
         )

@@ -253,7 +253,7 @@ def test_a_camera_whose_every_frame_is_stale_is_shown_with_why_on_both_sides(tin
         try:
             assert wait_until(lambda: getattr(setup.client.status().sources.get(SOURCE), "stale", 0) >= 3, 30)
             source = setup.client.status().sources[SOURCE]
-            assert not source.tracked and source.processed == 0  # refused before it took a slot, yet listed
+            assert source.refused and source.processed == 0  # refused before it took a slot, yet listed
             assert source.dropped_by_reason == {"stale": source.dropped} and source.received == source.dropped
             assert source.problem.startswith("stale: captured 3600.") and "max_frame_age_s = 2 s" in source.problem
 

@@ -28,7 +28,7 @@ def test_every_source_in_full_under_aligned_headers_with_reasons_and_why() -> No
         received=10, processed=8, dropped=2, dropped_by_reason={"replaced": 2}, latency_ms={"p50": 80.0, "p99": 120.0}
     )
     stale = SourceStatus(
-        received=3, dropped=3, stale=3, dropped_by_reason={"stale": 3}, tracked=False,
+        received=3, dropped=3, stale=3, dropped_by_reason={"stale": 3}, refused=True,
         problem="stale: captured 3600.0 s ago, over max_frame_age_s = 5 s",
     )  # fmt: skip
     broken = SourceStatus(received=6, rejected=6, rejected_by_reason={"undecodable": 6}, problem="undecodable: x")

@@ -90,9 +90,10 @@ def test_a_source_takes_a_slot_only_once_a_frame_decodes() -> None:
     assert service.offer("robot") and service.serve() == ["robot"] and "robot" in service.sources
     snapshot = service.snapshot()
     assert sum(snapshot.rejected_by_reason.values()) == 1 and snapshot.dropped_by_reason == {}
-    assert service.published == ["robot"] and [name for name, s in snapshot.sources.items() if s.tracked] == ["robot"]
+    assert service.published == ["robot"]
+    assert [name for name, s in snapshot.sources.items() if not s.refused] == ["robot"]
     junk = snapshot.sources["junk"]  # shown, with why, but it holds no slot (issue 36: it was invisible)
-    assert not junk.tracked and junk.received == junk.rejected == 1 and junk.rejected_by_reason == {"undecodable": 1}
+    assert junk.refused and junk.received == junk.rejected == 1 and junk.rejected_by_reason == {"undecodable": 1}
     assert junk.problem.startswith("undecodable: not a decodable image")
 
 
@@ -108,8 +109,8 @@ def test_a_flood_of_undecodable_names_never_keeps_a_robot_out_and_counts_as_reje
     assert snapshot.dropped_by_reason == {}
     # The robot's frame evicted one more; the 31 still waiting were decoded and refused with their reason.
     assert snapshot.rejected_by_reason == {"candidate_evicted": 1000 - 32 + 1, "undecodable": 31}
-    assert [name for name, s in snapshot.sources.items() if s.tracked] == ["robot"]
-    refused = [name for name, s in snapshot.sources.items() if not s.tracked]
+    assert [name for name, s in snapshot.sources.items() if not s.refused] == ["robot"]
+    refused = [name for name, s in snapshot.sources.items() if s.refused]
     assert 0 < len(refused) <= REFUSED_SOURCES  # the invented names shown are bounded
 
 
@@ -173,7 +174,7 @@ def test_a_candidate_whose_slot_went_is_refused_at_promotion() -> None:
     assert list(service.sources._last_seen) == ["a"] and service.published == ["a"]
     snapshot = service.snapshot()
     assert snapshot.rejected_by_reason == {"too_many_sources": 1} and list(snapshot.sources) == ["a", "b"]
-    assert not snapshot.sources["b"].tracked and snapshot.sources["b"].rejected_by_reason == {"too_many_sources": 1}
+    assert snapshot.sources["b"].refused and snapshot.sources["b"].rejected_by_reason == {"too_many_sources": 1}
 
 
 def test_candidates_cap_one_keeps_the_newest() -> None:
@@ -217,5 +218,5 @@ def test_a_candidate_evicted_while_its_frame_is_taken_is_counted_once() -> None:
     service.worker._guarded(pending, service.worker._infer, pending)
     service.serve()
     assert service.snapshot().rejected_by_reason == {"candidate_evicted": 1, "undecodable": 3}
-    assert len(service.admission.candidates) == 0 and not any(s.tracked for s in service.snapshot().sources.values())
+    assert len(service.admission.candidates) == 0 and all(s.refused for s in service.snapshot().sources.values())
     assert sorted(service.snapshot().sources) == ["b", "c", "d"]  # refused with why; "a" is counted by reason only
