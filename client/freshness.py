@@ -36,6 +36,7 @@ class FreshnessWatch:
         self._since: dict[str, float] = {}  # when a watched source began to be expected
         self._stale: dict[str, bool] = {}
         self._reasons: dict[str, str | None] = {}
+        self._told: dict[str, str | None] = {}  # the reason of each source's last reported change
         self._lock = threading.Lock()
 
     def watch(self, source: str, since: float | None = None) -> None:
@@ -81,14 +82,17 @@ class FreshnessWatch:
         return self.age_s(source) > self.stale_after_s
 
     def check(self) -> list[Staleness]:
-        """The sources whose state changed since the last check (stale, or fresh again)."""
+        """The sources whose state changed since the last check (stale, or fresh again), and stale ones whose
+        reason changed (the service named one only after they went stale, or another)."""
         now = self._clock()
         changes = []
         with self._lock:
             for source in self._newest:
                 age = now - self._reference(source)
                 stale = age > self.stale_after_s
-                if stale != self._stale[source]:
+                reason = self._reasons.get(source) if stale else None
+                if stale != self._stale[source] or (stale and reason != self._told.get(source)):
                     self._stale[source] = stale
-                    changes.append(Staleness(source, stale, age, self._reasons.get(source) if stale else None))
+                    self._told[source] = reason
+                    changes.append(Staleness(source, stale, age, reason))
         return changes

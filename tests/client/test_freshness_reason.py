@@ -20,3 +20,14 @@ def test_a_stale_change_carries_the_services_reason_and_fresh_again_clears_it() 
     now[0] += 2.0
     [again] = watch.check()
     assert again.stale and again.reason is None  # stale for another cause the service did not name (a dead link)
+
+
+def test_a_reason_heard_after_going_stale_is_reported_once() -> None:
+    now = [0.0]
+    watch = FreshnessWatch(1.0, clock=lambda: now[0])
+    watch.watch("cam")
+    now[0] = 2.0
+    assert [(c.stale, c.reason) for c in watch.check()] == [(True, None)]  # stale before the service said why
+    watch.note_reason("cam", "undecodable: not a decodable image")
+    assert [(c.stale, c.reason) for c in watch.check()] == [(True, "undecodable: not a decodable image")]
+    assert watch.check() == []  # told once
