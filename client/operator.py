@@ -81,7 +81,7 @@ def one_line(err: BaseException) -> str:
 # ---- status ------------------------------------------------------------------------------------------
 
 
-INSTANCE_ROW = "{:<{w}}  {:>7}  {:<52}  {:>6}  {:>10}  {:>7}"
+INSTANCE_ROW = "{:<{w}}  {:>7}  {:<{mw}}  {:>6}  {:>10}  {:>7}"
 SOURCE_ROW = "{:<{w}}  {:<{iw}}  {:>8}  {:>8}  {:>9}  {:>7}  {:>8}  {:>6}  {:>6}  {}"
 
 
@@ -90,13 +90,15 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
     drops and rejects by reason and, below, why its last frame gave no maps. Names are never cut: columns are
     as wide as the longest (ROS topics are long)."""
     width = max([len("instance"), *(len(s.instance) for s in statuses)])
-    lines = [INSTANCE_ROW.format("instance", "uptime", "model / anchors / method / precision", "queued",
-                                 "history MB", "sources", w=width)]  # fmt: skip
-    for s in statuses:
-        what = f"{s.model[-24:]} / {s.anchor_set_version} / {s.method.value} / {s.precision or '-'}"
+    whats = [f"{s.model[-24:]} / {s.anchor_set_version} / {s.method.value} / {s.precision or '-'}" for s in statuses]
+    what_header = "model / anchors / method / precision"
+    what_width = max([len(what_header), *(len(what) for what in whats)])
+    lines = [INSTANCE_ROW.format("instance", "uptime", what_header, "queued", "history MB", "sources",
+                                 w=width, mw=what_width)]  # fmt: skip
+    for s, what in zip(statuses, whats, strict=True):
         uptime, history = f"{s.uptime_s:.0f}s", f"{s.history_bytes / 1e6:.1f}"
         sources = f"{s.tracked_sources}/{s.max_sources}"
-        lines.append(INSTANCE_ROW.format(s.instance, uptime, what, s.queued, history, sources, w=width))
+        lines.append(INSTANCE_ROW.format(s.instance, uptime, what, s.queued, history, sources, w=width, mw=what_width))
     rows = [(name, s.instance, src) for s in statuses for name, src in sorted(s.sources.items())]
     name_width = max([len("source"), *(len(name) for name, _, _ in rows)])
     header = ("source", "instance", "frames/s", "received", "processed", "dropped", "rejected", "p50 ms", "p99 ms")

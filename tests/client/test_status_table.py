@@ -13,8 +13,8 @@ ROS_TOPIC = "robot_42/sensors/camera/front_left/color/image_raw"  # longer than 
 
 def a_status(instance: str, sources: dict[str, SourceStatus]) -> ServiceStatus:
     return ServiceStatus(
-        instance=instance, uptime_s=12.0, model="CIDAS/clipseg-rd64-refined", anchor_set_version="3f2a",
-        method=Method.GCD, queued=0, sources=sources, rejected_by_reason={}, last_errors=[],
+        instance=instance, uptime_s=12.0, model="CIDAS/clipseg-rd64-refined", anchor_set_version="624409ca726582b2",
+        method=Method.GCD, precision="ort-int8-vit", queued=0, sources=sources, rejected_by_reason={}, last_errors=[],
     )  # fmt: skip
 
 
@@ -39,8 +39,10 @@ def test_every_source_in_full_under_aligned_headers_with_reasons_and_why() -> No
     lines = status_table(statuses).splitlines()
 
     instance_header, *instance_rows = lines[: lines.index("")]
-    for row in instance_rows:  # right-aligned numbers end under their headers' ends
-        assert [end for _, end in columns(row)][1:2] == [end for _, end in columns(instance_header)][1:2]
+    for row in instance_rows:  # right-aligned numbers end under their headers' ends, the model column's start
+        ends, header_ends = [end for _, end in columns(row)], [end for _, end in columns(instance_header)]
+        assert ends[1] == header_ends[1] and ends[3:] == header_ends[3:]
+        assert columns(row)[2][0] == columns(instance_header)[2][0]
     header = next(line for line in lines if line.startswith("source "))
     rows = [line for line in lines if line.startswith((ROS_TOPIC, "r9/stale", "png "))]
     assert [row.split()[0] for row in rows] == ["r9/stale", ROS_TOPIC, "png"]  # never cut
