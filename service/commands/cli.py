@@ -93,8 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="X,Y",
-        help="pixel whose context distribution the figure shows (repeatable); outside an image it is an error "
-        "(exit 2) [default: the most certain, median and most ambiguous pixels]",
+        help="pixel whose context distribution is printed, and drawn with --figure (repeatable); outside an "
+        "image it is an error (exit 2) [figure default: the most certain, median and most ambiguous pixels]",
     )
     infer.add_argument(
         "--save-raw",
