@@ -26,7 +26,7 @@ pytest.importorskip("torch")
 
 from gcdtrav.client import Maps, TraversabilityClient
 from gcdtrav.client.freshness import Staleness
-from gcdtrav.client.relay import Relay
+from gcdtrav.client.relay.relay import Relay
 from gcdtrav.client.session.zenoh_args import zenoh_config
 from gcdtrav.schemas.images import encode_jpeg, encode_png
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding, RelayHealth

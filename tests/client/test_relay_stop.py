@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import zenoh
-from gcdtrav.client.relay import Relay
+from gcdtrav.client.relay.relay import Relay
 from gcdtrav.client.session.zenoh_args import zenoh_config
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.messages import CreditGrant, ImageEnvelope, PixelEncoding
