@@ -55,6 +55,7 @@ from gcdtrav.schemas.messages import (
 from numpy.typing import NDArray
 
 DEFAULT_TIMEOUT_S = 5.0
+FLEET_POLL_S = 0.1  # how often a rollback asks whether every instance holds the set yet
 MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
 
 
@@ -657,24 +658,43 @@ class TraversabilityClient:
             raise errors[0]
         return sorted(answers, key=lambda history: history.instance)
 
-    def rollback_target(self, steps: int = 1, timeout: float | None = None) -> tuple[AnchorHistoryEntry, AnchorSet]:
-        """The fleet's active entry and the set ``steps`` before it, from the history of the instance whose
-        active set is the newest accepted (instances' histories may differ: one may have joined later)."""
+    def rollback(self, steps: int = 1, timeout: float | None = None) -> tuple[AnchorHistoryEntry, AnchorSetReply]:
+        """Roll the fleet back ``steps`` sets: the server's rollback, asked of the instance whose active set is
+        the fleet's newest (instances' histories may differ: one may have joined later); the others adopt the
+        set it then announces, and this waits (up to ``timeout``) until every instance holds it. Returns the
+        entry that was active and the reply naming the set now active; raises ``PartialSwap`` if some
+        instance does not hold it in time, ``AnchorSetRejected`` if there is no set that far back."""
         histories = [history for history in self.anchor_history(timeout) if history.entries]
         if not histories:
             raise ServiceError("no instance answered with an anchor history")
         newest = max(histories, key=lambda h: (h.entries[0].accepted_at, h.entries[0].version, h.instance))
-        if not 1 <= steps < len(newest.entries):
-            raise ValueError(
-                f"no set {steps} step(s) back: {newest.instance}'s history holds {len(newest.entries)} set(s), "
-                "the active first; see gcdtrav anchors history"
-            )
-        return newest.entries[0], newest.entries[steps].anchor_set
+        params = {"steps": steps, "instance": newest.instance}
+        answers, errors = self._replies(
+            self.keys.anchor_rollback, AnchorSetReply, params, timeout=timeout, every_instance=True
+        )
+        if not answers:
+            raise errors[0]
+        self._await_fleet_on(answers[0].version, self.timeout if timeout is None else timeout)
+        return newest.entries[0], answers[0]
 
     def rollback_anchors(self, steps: int = 1, timeout: float | None = None) -> str:
-        """Swap the whole fleet back to the set ``steps`` before the fleet's active one (a swap to that set on
-        every instance, so that all end on the same set); returns the version."""
-        return self.set_anchors(self.rollback_target(steps, timeout)[1], timeout)
+        """Swap the whole fleet back to the set ``steps`` before the fleet's active one (``rollback``);
+        returns the version now active everywhere."""
+        return self.rollback(steps, timeout)[1].version
+
+    def _await_fleet_on(self, version: str, timeout: float) -> None:
+        """Until every instance that answers its status holds ``version``; PartialSwap after ``timeout``."""
+        deadline = time.monotonic() + timeout
+        while True:
+            held = {status.instance: status.anchor_set_version for status in self.statuses(timeout)}
+            behind = {name: held_version for name, held_version in held.items() if held_version != version}
+            if not behind:
+                return
+            if time.monotonic() >= deadline:
+                swapped = {name: version for name in held if name not in behind}
+                failed = {name: ServiceError(f"still on {held_version}") for name, held_version in behind.items()}
+                raise PartialSwap(version, swapped, failed)
+            time.sleep(FLEET_POLL_S)
 
     def status(self, timeout: float | None = None) -> ServiceStatus:
         """The nearest instance's status; ``statuses()`` gives every instance's."""

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.config import EngineSettings, Method
-from gcdtrav.service.backends.base import SegmentationBackend
+from gcdtrav.service.backends.base import BackendDescription, SegmentationBackend
 from gcdtrav.service.engine.maps import TraversabilityMaps, compute_maps
 from numpy.typing import NDArray
 
@@ -51,7 +51,13 @@ class Pipeline:
 
     @property
     def anchors(self) -> AnchorSet:
+        """The set the next frame runs with. In the service the AnchorSwitch owns which set is active (its
+        history's head, with when it was accepted) and installs it here with ``activate``."""
         return self._active.anchors
+
+    def describe(self) -> BackendDescription:
+        """The backend's model, input size and running mode, as callers may read them."""
+        return self.backend.describe()
 
     def prepare(self, anchors: AnchorSet) -> ActiveAnchors:
         """The slow part of a swap (text embeddings), done while frames keep flowing."""

@@ -270,13 +270,12 @@ def history_lines(histories: list[AnchorHistoryReply]) -> list[str]:
 
 
 def roll_back(client: TraversabilityClient, args: argparse.Namespace) -> int:
-    """A fleet action: the set before the fleet's newest, swapped in on every instance."""
-    head, target = client.rollback_target(args.steps)
-    active = head.anchor_set
+    """A fleet action: the server's rollback on the instance holding the fleet's newest set; the others adopt."""
+    head, reply = client.rollback(args.steps)
+    active, target = head.anchor_set, reply.anchor_set
     print(f"{active.version} ({len(active)} anchors) -> {target.version} ({len(target)} anchors)")
     print("\n".join(anchor_diff(active, target)) or "no change")
-    version = client.set_anchors(target)
-    print(f"rolled back: anchor set {version} active on {fleet_sets(client)}")
+    print(f"rolled back: anchor set {reply.version} active on {fleet_sets(client)}")
     return EXIT_OK
 
 

@@ -1,6 +1,6 @@
 """Model backends: image -> (n, h, w) logits. Only this layer imports torch."""
 
-from gcdtrav.service.backends.base import ModelUnavailableError, SegmentationBackend
+from gcdtrav.service.backends.base import BackendDescription, ModelUnavailableError, SegmentationBackend
 
 DEFAULT_MODEL = "CIDAS/clipseg-rd64-refined"
 
@@ -12,4 +12,4 @@ def default_model() -> str:
     return os.environ.get("GCDTRAV_MODEL", DEFAULT_MODEL)
 
 
-__all__ = ["DEFAULT_MODEL", "ModelUnavailableError", "SegmentationBackend", "default_model"]
+__all__ = ["DEFAULT_MODEL", "BackendDescription", "ModelUnavailableError", "SegmentationBackend", "default_model"]

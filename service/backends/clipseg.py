@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 import torch
 from gcdtrav.schemas.paths import default_cache_dir, expanded
-from gcdtrav.service.backends.base import ModelUnavailableError
+from gcdtrav.service.backends.base import BackendDescription, ModelUnavailableError
 from gcdtrav.service.backends.decoder import DECODER_CHUNK, FastDecoder
 from gcdtrav.service.backends.hub import cached_in_hub_cache, hub_offline
 from gcdtrav.service.backends.machine import available_precisions, machine_has
@@ -347,6 +347,17 @@ class ClipSegBackend:
     @property
     def precision_reason(self) -> str:
         return self._running.reason
+
+    def describe(self) -> BackendDescription:
+        running = self._running  # one read: precision and reason of the same mode
+        return BackendDescription(
+            model_id=self.model_id,
+            input_size=(self.preprocess.size, self.preprocess.size),
+            precision=running.precision,
+            precision_reason=running.reason,
+            measuring=self.measuring,
+            needs_measurement=self.needs_measurement,
+        )
 
     def use_compute(self, compute: Compute, precision: str, reason: str | None = None) -> None:
         """Run with another mode's compute from the next frame on (one reference swap)."""

@@ -16,11 +16,7 @@ from typing import Any
 import zenoh
 from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.keys import Keys, input_source_of, literal_head
-from gcdtrav.schemas.messages import (
-    MessageError,
-    ServiceStatus,
-)
-from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE
+from gcdtrav.schemas.messages import MessageError, ServiceStatus
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus.anchor_sync import AnchorSync
@@ -45,16 +41,11 @@ from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.runtime.status import StatusParts
 from gcdtrav.service.runtime.worker import FrameWorker
 
 log = logging.getLogger("gcdtrav.service")
 WATCHDOG_INTERVAL_S = 0.25
-
-
-def model_input(pipeline: Pipeline) -> tuple[int, int]:
-    """(width, height) the backend resizes every image to; CLIPSeg's 352 for backends that do not say."""
-    side = int(getattr(getattr(pipeline.backend, "preprocess", None), "size", CLIPSEG_INPUT_SIDE))
-    return side, side
 
 
 def publisher_of(sample: zenoh.Sample) -> str | None:
@@ -75,20 +66,20 @@ class TraversabilityService:
         self.stats = ServiceStats(log, settings.source_idle_s)
         self._declared: list[Any] = []
         self._stopping = threading.Event()
-        self._started_at = time.time()
         self.membership: Membership | None = None
         self.anchor_sync: AnchorSync | None = None
+        self.anchor_switch = AnchorSwitch(
+            pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes
+        )
+        backend = pipeline.describe()
         self.grids = (
-            GridOutputs(settings.grids, len(pipeline.anchors), settings.instance, settings.risk)
+            GridOutputs(settings.grids, len(self.anchor_switch.head().anchor_set), settings.instance, settings.risk)
             if settings.grids
             else None
         )
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if settings.ros_inputs else None
-        self.outputs = FrameOutputs(session, settings, pipeline.backend.model_id, self.grids, self.ros_graph)
-        self.anchor_switch = AnchorSwitch(
-            pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes
-        )
-        ledger = CreditLedger(settings.instance, model_input(pipeline), settings.max_frame_age_s)
+        self.outputs = FrameOutputs(session, settings, backend.model_id, self.grids, self.ros_graph)
+        ledger = CreditLedger(settings.instance, backend.input_size, settings.max_frame_age_s)
         self.credits = CreditPublisher(session, self.keys, ledger, self.stats)
         forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget, self.credits.forget)
         self.sources = SourceTracker(
@@ -97,6 +88,17 @@ class TraversabilityService:
         self.admission = Admission(settings, self.sources, self.queue, self.stats, self.credits.freed)
         self.assignment = Assignment(idle_s=settings.source_idle_s, max_known=4 * settings.max_sources)
         self.progress = ProgressMonitor(settings.stall_after_s)
+        self.status_parts = StatusParts(
+            settings.instance,
+            time.time(),
+            pipeline,
+            self.anchor_switch,
+            self.queue,
+            self.history,
+            self.stats,
+            self.sources,
+            self.progress,
+        )
         gate = FrameGate(self.owns, settings.max_frame_age_s, settings.max_stamp_skew_s)
         self.worker = FrameWorker(
             self.queue,
@@ -144,16 +146,17 @@ class TraversabilityService:
         self._declare_queryables()
         self.worker.start()
         self._watchdog.start()
+        backend, active = self.pipeline.describe(), self.anchor_switch.head().anchor_set
         log.info(
             "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, model %s (%s), anchor set %s "
             "(%d anchors), method %s, outputs %s",
             self.settings.inputs,
             [r.key for r in self.settings.ros_inputs],
             self.prefix,
-            self.pipeline.backend.model_id,
-            self._precision(),
-            self.pipeline.anchors.version,
-            len(self.pipeline.anchors),
+            backend.model_id,
+            backend.precision,
+            active.version,
+            len(active),
             self.pipeline.settings.method.value,
             "overlapping inference" if self.worker.overlap_outputs else "after inference, same thread",
         )
@@ -238,7 +241,7 @@ class TraversabilityService:
 
     def _declare_queryables(self) -> None:
         per_source = SourceQueries(self.keys, self.history, self.grids, self.owns, self.settings.risk)
-        anchors = AnchorQueries(self.keys, self.pipeline, self.anchor_switch, self.stats)
+        anchors = AnchorQueries(self.keys, self.anchor_switch, self.stats)
         handlers = [(self.keys.patch("**"), per_source.on_patch, False)]
         if self.grids is not None:
             handlers.append((self.keys.cell("**"), per_source.on_cell, False))
@@ -270,37 +273,9 @@ class TraversabilityService:
         return handle
 
     def status(self) -> ServiceStatus:
-        counts = self.stats.snapshot(self.queue.counters())
-        health = self.progress.health()
-        accepted_at = self.anchor_switch.head().accepted_at
-        return ServiceStatus(
-            instance=self.settings.instance,
-            instances=sorted(self.membership.live()) if self.membership else [self.settings.instance],
-            uptime_s=time.time() - self._started_at,
-            model=self.pipeline.backend.model_id,
-            anchor_set_version=self.pipeline.anchors.version,
-            method=self.pipeline.settings.method,
-            precision=self._precision(),
-            precision_reason=str(getattr(self.pipeline.backend, "precision_reason", "")),
-            measuring=bool(getattr(self.pipeline.backend, "measuring", False)),
-            queued=len(self.queue),
-            queued_bytes=self.queue.nbytes,
-            sources=counts.sources,
-            rejected_by_reason=counts.rejected_by_reason,
-            dropped_by_reason=counts.dropped_by_reason,
-            last_errors=counts.last_errors,
-            history_bytes=self.history.nbytes,
-            history_budget_bytes=self.history.budget_bytes or 0,
-            tracked_sources=len(self.sources),
-            max_sources=self.sources.max_sources,
-            healthy=health.healthy,
-            reason=health.reason,
-            anchor_set_accepted_at=accepted_at or None,  # 0: the set it started with, never swapped
-            anchor_sets=self.anchor_sync.fleet.versions() if self.anchor_sync else {},
-        )
-
-    def _precision(self) -> str:
-        return str(getattr(self.pipeline.backend, "precision", "-"))  # backends without modes say "-"
+        live = sorted(self.membership.live()) if self.membership else None
+        fleet = self.anchor_sync.fleet.versions() if self.anchor_sync else {}
+        return self.status_parts.status(time.time(), live, fleet)
 
     def _on_status_query(self, query: zenoh.Query) -> None:
         replies.check_no_parameters(query)

@@ -13,7 +13,6 @@ from gcdtrav.schemas.messages import AnchorSetRejection, AnchorSetReply
 from gcdtrav.schemas.settings import RiskSettings
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus.guard import guarded
-from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch, SwapDone
 from gcdtrav.service.runtime.errors import QueryError
 from gcdtrav.service.runtime.grids import GridOutputs
@@ -21,7 +20,7 @@ from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.queries import PATCH_FORMS, answer_patch_query, parse_number, strict_parameters
 from gcdtrav.service.runtime.stats import ServiceStats
 
-ROLLBACK_FORM = "steps=N (1 = the set before the active one)"
+ROLLBACK_FORM = "steps=N (1 = the set before the active one)[;instance=NAME (only that instance rolls back)]"
 
 
 class SourceQueries:
@@ -67,15 +66,15 @@ class SourceQueries:
 class AnchorQueries:
     """``{prefix}/config/anchors`` (get, or swap with a body), its ``history`` and ``rollback``."""
 
-    def __init__(self, keys: Keys, pipeline: Pipeline, switch: AnchorSwitch, stats: ServiceStats) -> None:
-        self.keys, self.pipeline, self.switch, self.stats = keys, pipeline, switch, stats
+    def __init__(self, keys: Keys, switch: AnchorSwitch, stats: ServiceStats) -> None:
+        self.keys, self.switch, self.stats = keys, switch, stats
 
     def on_anchors(self, query: zenoh.Query) -> None:
         """Get the active set (no payload) or swap it; the swap runs on the switch's worker, not here."""
         replies.check_no_parameters(query)
         payload = query.payload
         if payload is None or len(payload) == 0:
-            active = self.pipeline.anchors
+            active = self.switch.head().anchor_set
             replies.reply(
                 query,
                 self.keys.anchors,
@@ -87,9 +86,12 @@ class AnchorQueries:
     def on_rollback(self, query: zenoh.Query) -> None:
         replies.check_format(query)
         params = strict_parameters(replies.without_format(query), ROLLBACK_FORM)
-        if set(params) - {"steps"}:
-            raise QueryError(f"unknown parameter(s) {sorted(set(params) - {'steps'})}; give steps=N [1]")
+        if set(params) - {"steps", "instance"}:
+            unknown = sorted(set(params) - {"steps", "instance"})
+            raise QueryError(f"unknown parameter(s) {unknown}; give steps=N [1] and optionally instance=NAME")
         steps = int(parse_number(params.get("steps", "1"), "steps", int))
+        if params.get("instance", self.switch.instance) != self.switch.instance:
+            return  # addressed to another instance of the fleet (the one holding its newest set): no reply
         self.switch.submit_rollback(steps, self._swap_answer(query, self.keys.anchor_rollback))
 
     def on_history(self, query: zenoh.Query) -> None:
@@ -119,7 +121,7 @@ class AnchorQueries:
                 messages, reason = [f"swap failed: {type(error).__name__}: {error}"], "swap_failed"
             self.stats.rejected(None, reason, "; ".join(messages)[:300], None if reason != "swap_failed" else error)
             rejection = AnchorSetRejection(
-                errors=messages, active_version=self.pipeline.anchors.version, instance=self.switch.instance
+                errors=messages, active_version=self.switch.head().version, instance=self.switch.instance
             )
             replies.reply_error(query, rejection)
 

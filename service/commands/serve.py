@@ -104,7 +104,7 @@ def run_service(settings: ServiceSettings, config: zenoh.Config, fallback: zenoh
     measurement = None
     try:
         service.start()
-        if getattr(pipeline.backend, "needs_measurement", False):  # status answers meanwhile: measuring
+        if pipeline.describe().needs_measurement:  # status answers meanwhile: measuring
             from gcdtrav.service.backends.precision_choice import measure_in_background
 
             measurement = measure_in_background(pipeline.backend)

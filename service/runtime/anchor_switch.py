@@ -86,8 +86,9 @@ class AnchorSwitch:
             entry = fetch()
             if entry is None:
                 raise AnchorSetError(["the fleet's newest set could not be fetched"])
-            if entry.version == self.pipeline.anchors.version:
-                return self.pipeline.anchors
+            active = self.head()
+            if entry.version == active.version:
+                return active.anchor_set
             return self.swap(entry.anchor_set, entry.accepted_at)
 
         self._run(adopt, done)
@@ -97,7 +98,8 @@ class AnchorSwitch:
         self._listeners.append(listener)
 
     def head(self) -> AnchorHistoryEntry:
-        """The active set's entry: when it was accepted in the fleet, its version."""
+        """The active set's entry (the set, its version, when the fleet accepted it): the one owner of which
+        set is active. The pipeline holds the same set with its embeddings, installed by ``swap``, for frames."""
         with self._lock:
             return self._history[0]
 

@@ -43,7 +43,10 @@ class SlowBackend:
     """A CPU box slower than the camera: every frame takes ``delay`` more."""
 
     def __init__(self, inner, delay: float) -> None:  # type: ignore[no-untyped-def]
-        self.inner, self.delay, self.model_id, self.preprocess = inner, delay, inner.model_id, inner.preprocess
+        self.inner, self.delay, self.model_id = inner, delay, inner.model_id
+
+    def describe(self):  # type: ignore[no-untyped-def]
+        return self.inner.describe()
 
     def prepare(self, concepts):  # type: ignore[no-untyped-def]
         return self.inner.prepare(concepts)

@@ -24,6 +24,10 @@ def test_loads_through_the_real_path_and_is_a_backend(tiny_backend: ClipSegBacke
     assert isinstance(tiny_backend, SegmentationBackend)
     assert tiny_backend.preprocess.size == TINY_INPUT_SIZE  # read from preprocessor_config.json
     assert tiny_backend.extract_layers == [1, 2, 3]
+    described = tiny_backend.describe()  # what the service reads of it
+    assert described.input_size == (TINY_INPUT_SIZE, TINY_INPUT_SIZE) and described.model_id == tiny_backend.model_id
+    assert (described.precision, described.precision_reason) == ("fp32", "asked for fp32")
+    assert not described.measuring and not described.needs_measurement
 
 
 def test_fast_path_matches_transformers_forward(tiny_backend: ClipSegBackend) -> None:

@@ -38,6 +38,9 @@ class SlowBackend:
     def __init__(self, inner, delay: float) -> None:  # type: ignore[no-untyped-def]
         self.inner, self.delay, self.model_id = inner, delay, inner.model_id
 
+    def describe(self):  # type: ignore[no-untyped-def]
+        return self.inner.describe()
+
     def prepare(self, concepts):  # type: ignore[no-untyped-def]
         return self.inner.prepare(concepts)
 

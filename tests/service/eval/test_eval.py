@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
 from gcdtrav.schemas.config import Method
+from gcdtrav.service.backends.base import BackendDescription
 from gcdtrav.service.eval import metrics
 from gcdtrav.service.eval.datasets import DatasetError, goose_class_names, load_dataset
 from gcdtrav.service.eval.mapping import load_mapping
@@ -38,6 +39,9 @@ class FakeBackend:
 
     def set(self, image: np.ndarray, logits: np.ndarray) -> None:
         self.by_image[hashlib.sha1(image.tobytes()).hexdigest()] = logits
+
+    def describe(self) -> BackendDescription:
+        return BackendDescription(self.model_id)
 
     def prepare(self, concepts):  # type: ignore[no-untyped-def]
         return tuple(concepts)

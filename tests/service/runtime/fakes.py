@@ -11,6 +11,7 @@ from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.images import encode_png
 from gcdtrav.schemas.inputs import DecodedFrame
+from gcdtrav.service.backends.base import BackendDescription
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.frames import InferredFrame, PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.history import FrameHistory
@@ -27,6 +28,9 @@ class FakeBackend:
     def __init__(self, delay_s: float = 0.0) -> None:
         self.delay_s = delay_s
         self.started = threading.Event()
+
+    def describe(self) -> BackendDescription:
+        return BackendDescription(self.model_id)
 
     def prepare(self, concepts: Sequence[str]) -> object:
         return len(concepts)

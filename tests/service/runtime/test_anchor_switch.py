@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
+from gcdtrav.service.backends.base import BackendDescription
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.state import load_anchor_state
@@ -30,6 +31,9 @@ class ThreadRecordingBackend:
     def __init__(self) -> None:
         self.prepared_on: list[tuple[str, tuple[str, ...]]] = []
         self.fail_on: str | None = None
+
+    def describe(self) -> BackendDescription:
+        return BackendDescription(self.model_id)
 
     def prepare(self, concepts: Sequence[str]) -> object:
         if self.fail_on in concepts:
