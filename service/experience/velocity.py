@@ -2,8 +2,8 @@
 
 While the command in force asks for more than ``min_command_mps``, each odometry sample scores
 achieved / commanded speed, clipped to [0, 1]; every ``outcome_period_s`` (by odometry stamps) the mean score
-becomes one ``TraversalOutcome`` of kind ``velocity`` at the robot's position, over its footprint
-(radius footprint_m / 2). A command is in force for ``command_timeout_s`` after it was *received* (a Twist
+becomes one ``TraversalOutcome`` of kind ``velocity`` at the mean of the window's positions (where the score
+was earned), over the robot's footprint (radius footprint_m / 2). A command is in force for ``command_timeout_s`` after it was *received* (a Twist
 carries no stamp, and the robot's clock need not agree with the service's), so the command's age is judged
 on the receiving clock for both streams.
 
@@ -70,6 +70,8 @@ def decode_odometry(payload: bytes, ros: bool) -> Odometry2D:
 class _Window:
     start: float  # odometry stamp of the window's first sample
     total: float = 0.0
+    x: float = 0.0  # sums of the samples' positions: the outcome sits at their mean
+    y: float = 0.0
     samples: int = 0
 
 
@@ -107,6 +109,8 @@ class VelocityTracker:
             if window is None or odometry.stamp < window.start:  # a replayed bag jumped back: start again
                 window = self._window = _Window(odometry.stamp)
             window.total += score
+            window.x += odometry.x
+            window.y += odometry.y
             window.samples += 1
             if odometry.stamp - window.start < s.outcome_period_s:
                 return None
@@ -114,8 +118,8 @@ class VelocityTracker:
             self._count("outcomes")
         return TraversalOutcome(
             stamp=odometry.stamp,
-            x=odometry.x,
-            y=odometry.y,
+            x=window.x / window.samples,
+            y=window.y / window.samples,
             score=window.total / window.samples,
             kind="velocity",
             radius_m=s.footprint_m / 2,
