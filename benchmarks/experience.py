@@ -43,6 +43,7 @@ from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore
 from gcdtrav.service.experience.velocity import VelocityTracker, decode_command, decode_odometry
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
+
 from tools.synthetic_scene import TRUTH, SceneBackend, World, default_camera, make_world, start_anchors
 
 START_STAMP = 1.7e9
@@ -84,7 +85,9 @@ class Robot:
         return COMMAND_MPS * ratio, rate
 
 
-def fuse(grid: GroundGrid, weights: np.ndarray, base: np.ndarray, robot: Robot, stamp: float, anchors: AnchorSet) -> None:
+def fuse(
+    grid: GroundGrid, weights: np.ndarray, base: np.ndarray, robot: Robot, stamp: float, anchors: AnchorSet
+) -> None:
     """As service/runtime/grids.py SourceGrid.fuse: patches into the odometry frame, the grid centred on the robot."""
     valid = np.isfinite(base[:, 0])
     c, s = math.cos(robot.yaw), math.sin(robot.yaw)
@@ -235,8 +238,8 @@ def table(result: dict[str, Any]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--drive-s", type=float, default=1200.0, help="first drive, simulated seconds [1200]")
-    parser.add_argument("--after-s", type=float, default=600.0, help="drive after applying [600]")
+    parser.add_argument("--drive-s", type=float, default=3600.0, help="first drive, simulated seconds [3600]")
+    parser.add_argument("--after-s", type=float, default=1200.0, help="drive after applying [1200]")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quick", action="store_true", help="120 s + 60 s: a smoke check, goals not expected")
     parser.add_argument("--out", type=Path, help="also write the result as JSON")

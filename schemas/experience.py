@@ -267,8 +267,11 @@ class ExperienceSettings(StrictModel):
         default=0.1, ge=0, description="Only commands faster than this are graded (a robot told to stop is not slow)."
     )
     command_timeout_s: float = Field(default=0.5, gt=0, description="A command older than this is not in force.")
+    outcome_spacing_m: float = Field(
+        default=0.3, gt=0, description="One velocity outcome per this distance driven: the mean score over it."
+    )
     outcome_period_s: float = Field(
-        default=0.5, gt=0, description="One velocity outcome per this long: the mean score over it."
+        default=2.0, gt=0, description="At the latest this long after the last one (a robot that barely moves)."
     )
     lookahead_s: float = Field(
         default=2.0,

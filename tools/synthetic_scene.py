@@ -3,9 +3,9 @@ now and then, another; a camera that renders what it sees as colours; a backend 
 colour under each pixel; a robot whose tracked speed follows the true traversability.
 
 *Honest confusion.* Each tile has an appearance (what the camera sees: grassy, sandy, ...) and a true terrain
-drawn from ``CONFUSION[appearance]``: a grassy tile is grass 94 % of the time and bush 6 %, as bush looks like
-grass to CLIP. The backend's softmax over the concepts is that same row (with a little noise per pixel), so
-its weights are honest probabilities of the terrain, which the GCD assumes: then the anchor positions that
+drawn from ``CONFUSION[appearance]``: a patch of a grassy tile is grass 97 % of the time and bush 3 %, a bushy
+one bush 90 % and grass 10 %, as bush and grass look alike to CLIP. The backend's softmax over the concepts is
+that same row (with a little noise per pixel), so its weights are honest probabilities of the terrain, which the GCD assumes: then the anchor positions that
 best explain the outcomes are the terrains' true traversabilities, and a mixture with the right widths is
 calibrated. Not in the wheel: tests and benchmarks import it from the checkout.
 """
@@ -28,18 +28,18 @@ START: dict[str, float] = {
 TRUTH: dict[str, float] = {**START, "sand": 0.15, "bush": 0.25, "grass": 0.8}
 # appearance -> (its colour, P(true terrain | appearance))
 CONFUSION: dict[str, tuple[tuple[int, int, int], dict[str, float]]] = {
-    "grassy": ((40, 160, 60), {"grass": 0.94, "bush": 0.06}),
-    "bushy": ((30, 90, 40), {"bush": 0.8, "grass": 0.2}),
-    "sandy": ((210, 190, 130), {"sand": 0.92, "dirt": 0.08}),
-    "paved": ((90, 90, 90), {"asphalt": 0.96, "gravel": 0.04}),
-    "gravelly": ((150, 150, 140), {"gravel": 0.88, "dirt": 0.08, "asphalt": 0.04}),
-    "dirty": ((120, 85, 50), {"dirt": 0.88, "gravel": 0.07, "mud": 0.05}),
-    "muddy": ((80, 60, 40), {"mud": 0.85, "water": 0.1, "dirt": 0.05}),
-    "wet": ((60, 80, 150), {"water": 0.9, "mud": 0.1}),
+    "grassy": ((40, 160, 60), {"grass": 0.97, "bush": 0.03}),
+    "bushy": ((30, 90, 40), {"bush": 0.9, "grass": 0.1}),
+    "sandy": ((210, 190, 130), {"sand": 0.96, "dirt": 0.04}),
+    "paved": ((90, 90, 90), {"asphalt": 0.98, "gravel": 0.02}),
+    "gravelly": ((150, 150, 140), {"gravel": 0.92, "dirt": 0.05, "asphalt": 0.03}),
+    "dirty": ((120, 85, 50), {"dirt": 0.92, "gravel": 0.05, "mud": 0.03}),
+    "muddy": ((80, 60, 40), {"mud": 0.9, "water": 0.07, "dirt": 0.03}),
+    "wet": ((60, 80, 150), {"water": 0.95, "mud": 0.05}),
 }
 APPEARANCE_SHARE: dict[str, float] = {
-    "grassy": 0.34, "bushy": 0.06, "sandy": 0.24, "paved": 0.08, "gravelly": 0.08, "dirty": 0.1, "muddy": 0.05,
-    "wet": 0.05,
+    "grassy": 0.36, "bushy": 0.1, "sandy": 0.26, "paved": 0.06, "gravelly": 0.06, "dirty": 0.08, "muddy": 0.04,
+    "wet": 0.04,
 }  # fmt: skip
 SKY = (200, 220, 250)
 APPEARANCES = list(CONFUSION)
@@ -125,7 +125,10 @@ def make_world(tiles: int = 24, tile_m: float = 8.0, split: int = 4, seed: int =
     for index, name in enumerate(APPEARANCES):
         rows = CONFUSION[name][1]
         where = patches == index
-        drawn = rng.choice(len(rows), size=int(where.sum()), p=np.array(list(rows.values())))
+        # Stratified: the world's patches of this appearance hold each terrain in the row's proportion exactly.
+        counts = np.floor(np.array(list(rows.values())) * int(where.sum())).astype(int)
+        counts[0] += int(where.sum()) - counts.sum()
+        drawn = rng.permutation(np.repeat(np.arange(len(rows)), counts))
         terrain[where] = [concepts.index(list(rows)[d]) for d in drawn]
     return World(tile_m, appearance, terrain, -tiles * tile_m / 2)
 
