@@ -2,12 +2,12 @@
 now and then, another; a camera that renders what it sees as colours; a backend whose logits follow the
 colour under each pixel; a robot whose tracked speed follows the true traversability.
 
-*Honest confusion.* Each tile has an appearance (what the camera sees: grassy, sandy, ...) and a true terrain
-drawn from ``CONFUSION[appearance]``: a patch of a grassy tile is grass 97 % of the time and bush 3 %, a bushy
-one bush 90 % and grass 10 %, as bush and grass look alike to CLIP. The backend's softmax over the concepts is
-that same row (with a little noise per pixel), so its weights are honest probabilities of the terrain, which the GCD assumes: then the anchor positions that
-best explain the outcomes are the terrains' true traversabilities, and a mixture with the right widths is
-calibrated. Not in the wheel: tests and benchmarks import it from the checkout.
+*Honest confusion.* Each tile has an appearance (what the camera sees: grassy, sandy, ...), and each of its
+patches a true terrain drawn from ``CONFUSION[appearance]``: a patch of a grassy tile is grass 97 % of the time
+and bush 3 %, a bushy one bush 90 % and grass 10 %, as bush and grass look alike to CLIP. The backend's
+softmax over the concepts is that same row (with a little noise per pixel), so its weights are honest
+probabilities of the terrain, which the GCD assumes: then the anchor positions that best explain the outcomes
+are the terrains' true traversabilities, and a mixture with the right widths is calibrated. Not in the wheel: tests and benchmarks import it from the checkout.
 """
 
 from __future__ import annotations
