@@ -7,7 +7,8 @@ patches a true terrain drawn from ``CONFUSION[appearance]``: a patch of a grassy
 and bush 3 %, a bushy one bush 90 % and grass 10 %, as bush and grass look alike to CLIP. The backend's
 softmax over the concepts is that same row (with a little noise per pixel), so its weights are honest
 probabilities of the terrain, which the GCD assumes: then the anchor positions that best explain the outcomes
-are the terrains' true traversabilities, and a mixture with the right widths is calibrated. Not in the wheel: tests and benchmarks import it from the checkout.
+are the terrains' true traversabilities, and a mixture with the right widths is calibrated.
+Not in the wheel: tests and benchmarks import it from the checkout.
 """
 
 from __future__ import annotations
