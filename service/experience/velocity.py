@@ -125,7 +125,7 @@ class VelocityTracker:
             window.last = (odometry.x, odometry.y)
             if window.travelled < s.outcome_spacing_m and odometry.stamp - window.start < s.outcome_period_s:
                 return None
-            self._window = _Window(odometry.stamp)
+            self._window = _Window(odometry.stamp, last=(odometry.x, odometry.y))  # the next starts here
             self._count("outcomes")
         return TraversalOutcome(
             stamp=odometry.stamp,
