@@ -106,9 +106,9 @@ def test_bad_outcome_messages_are_rejected_with_a_reason_and_counted(world: tupl
     bad = {
         b"\xc1garbage": "bad_outcome",
         json.dumps({"stamp": 1, "x": 0, "y": 0, "score": 1.5, "kind": "velocity"}).encode(): "bad_outcome",
-        json.dumps({"stamp": 1, "x": 0, "y": 0, "score": 0.5, "kind": "teleport"}).encode(): "bad_outcome",
+        json.dumps({"stamp": 1, "x": 0, "y": 0, "score": 0, "kind": "teleport"}).encode(): "bad_outcome",
         b'{"stamp": NaN, "x": 0, "y": 0, "score": 0.5, "kind": "contact"}': "bad_outcome",
-        json.dumps({"stamp": 1, "x": 0, "y": 0, "score": 0.5, "kind": "contact", "radius_m": 99}).encode(): "bad_outcome",
+        json.dumps({"stamp": 1, "x": 0, "y": 0, "score": 0, "kind": "contact", "radius_m": 99}).encode(): "bad_outcome",
         b"[1, 2]": "bad_outcome",
         b"{" + b" " * 5000 + b"}": "oversized",
     }  # fmt: skip
