@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -143,3 +144,16 @@ def test_zero_outcomes() -> None:
 def test_mismatched_lengths_are_refused() -> None:
     with pytest.raises(ValueError, match="2 weight rows for 3 outcomes"):
         calibration_figures(np.full((2, 4), 0.25), np.zeros(3), ANCHORS, TAU)
+
+
+def test_the_reliability_diagram_is_a_png(tmp_path: Path) -> None:
+    pytest.importorskip("matplotlib")
+    from gcdtrav.service.experience.figures import reliability_diagram
+
+    weights, y = pairs(200)
+    for name, figures in (
+        ("some.png", calibration_figures(weights, y, ANCHORS, TAU)),
+        ("none.png", calibration_figures(np.zeros((0, 4)), np.zeros(0), ANCHORS, TAU)),
+    ):
+        reliability_diagram(figures, tmp_path / name, "cam")
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
