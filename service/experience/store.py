@@ -154,31 +154,42 @@ class ExperienceStore:
         """Pair the outcome with every known cell in its footprint as ``ring`` held it ``lookahead_s`` before;
         the number of pairs made (0: counted as ignored, with the reason)."""
         snapshot = ring.before(outcome.stamp - self.lookahead_s)
+        if snapshot is None:
+            with self._lock:
+                self._count("outcomes")
+                self._count("ignored_no_prediction")
+            return 0
+        _, weights = snapshot.weights_at(snapshot.cells_near(outcome.x, outcome.y, outcome.radius_m))
+        return self.add_predicted(weights, snapshot.anchors, outcome)
+
+    def add_predicted(self, weights: np.ndarray, anchors: AnchorSet, outcome: TraversalOutcome) -> int:
+        """Pair the outcome with given predictions: (cells, n) weights over ``anchors`` (an operator's answer
+        pairs with the cells its question showed)."""
         with self._lock:
             self._count("outcomes")
-            if snapshot is None:
-                self._count("ignored_no_prediction")
-                return 0
-            cells, weights = snapshot.weights_at(snapshot.cells_near(outcome.x, outcome.y, outcome.radius_m))
-            if len(cells) == 0:
+            if len(weights) == 0:
                 self._count("ignored_unknown_cell")
                 return 0
-            key = concept_key(snapshot.anchors.concepts)
+            key = concept_key(anchors.concepts)
             bucket = self._buckets.setdefault(key, _Bucket(key))
-            column = [snapshot.anchors.concepts.index(c) for c in key]
+            column = [anchors.concepts.index(c) for c in key]
             kind = OUTCOME_KINDS.index(outcome.kind)
-            for row in weights[:, column]:
+            made = 0
+            for row in np.asarray(weights, np.float32)[:, column]:
                 total = float(row.sum())
                 if not total > 0:
                     continue
-                bucket.append(row / total, outcome.score, outcome.stamp, kind, snapshot.anchors.version, self._seq)
+                bucket.append(row / total, outcome.score, outcome.stamp, kind, anchors.version, self._seq)
                 self._seq += 1
                 self._order.append(key)
                 self._bytes += bucket.pair_bytes
-            self._count("pairs", len(cells))
+                made += 1
+            if not bucket.outcomes:
+                del self._buckets[key]
+            self._count("pairs", made)
             self._evict()
             self._dirty = True
-            return len(cells)
+            return made
 
     def _evict(self) -> None:
         while self._order and (len(self._order) > self.max_pairs or self._bytes > self.max_bytes):
