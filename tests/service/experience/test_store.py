@@ -203,3 +203,15 @@ def test_experience_is_off_by_default() -> None:
         ServiceSettings.model_validate({"experience": {"enabled": True, "cmd_vel": "/cmd_vel"}})
     with pytest.raises(ValueError, match="Extra inputs"):
         ServiceSettings.model_validate({"experience": {"lookahed_s": 2}})
+
+
+def test_the_settings_in_docs_calibration_md_are_valid() -> None:
+    import yaml
+
+    text = (Path(__file__).resolve().parents[3] / "docs" / "calibration.md").read_text("utf-8")
+    block = text.split("## Settings", 1)[1].split("```yaml", 1)[1].split("```", 1)[0]
+    settings = ServiceSettings.model_validate(yaml.safe_load(block))
+    defaults = ServiceSettings()
+    assert settings.ask == defaults.ask  # the page shows the defaults
+    shown = settings.experience.model_copy(update={"cmd_vel": None, "odometry": None})
+    assert shown == defaults.experience and settings.experience.cmd_vel == "/cmd_vel"
