@@ -35,7 +35,8 @@ from typing import Any
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.experience import ExperienceSettings, Odometry2D, TraversalOutcome, Twist2D
+from gcdtrav.schemas.experience import Odometry2D, TraversalOutcome, Twist2D
+from gcdtrav.schemas.settings import ExperienceSettings
 from gcdtrav.service.engine import gcd
 from gcdtrav.service.experience.calibration import calibration_figures
 from gcdtrav.service.experience.fitter import FitOptions, propose
@@ -88,7 +89,7 @@ class Robot:
 def fuse(
     grid: GroundGrid, weights: np.ndarray, base: np.ndarray, robot: Robot, stamp: float, anchors: AnchorSet
 ) -> None:
-    """As service/runtime/grids.py SourceGrid.fuse: patches into the odometry frame, the grid centred on the robot."""
+    """As SourceGrid.fuse (service/runtime/grids/state.py): into the odometry frame, the grid centred on the robot."""
     valid = np.isfinite(base[:, 0])
     c, s = math.cos(robot.yaw), math.sin(robot.yaw)
     ground = base[valid] @ np.array([[c, s], [-s, c]]) + np.array([robot.x, robot.y])

@@ -20,8 +20,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.experience import AskSettings, OperatorAnswer, OperatorQuestion, QuestionConcept, TraversalOutcome
+from gcdtrav.schemas.experience import OperatorAnswer, OperatorQuestion, QuestionConcept, TraversalOutcome
 from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.schemas.settings import AskSettings
 from gcdtrav.service.engine import gcd, risk
 from gcdtrav.service.grid.fusion import GroundGrid
 from numpy.typing import NDArray

@@ -15,15 +15,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.experience import (
-    AnchorProposal,
-    AskSettings,
-    CalibrationReport,
-    ExperienceSettings,
-    OperatorAnswer,
-    OperatorQuestion,
-)
+from gcdtrav.schemas.experience import AnchorProposal, CalibrationReport, OperatorAnswer, OperatorQuestion
 from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.schemas.settings import AskSettings, ExperienceSettings
 from gcdtrav.service.experience.ask import Crop, OperatorAsker
 from gcdtrav.service.experience.fitter import FitOptions
 from gcdtrav.service.experience.snapshots import SnapshotRing

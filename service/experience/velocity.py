@@ -25,8 +25,9 @@ import threading
 from dataclasses import dataclass
 from typing import TypeVar
 
-from gcdtrav.schemas.experience import ExperienceSettings, Odometry2D, TraversalOutcome, Twist2D
+from gcdtrav.schemas.experience import Odometry2D, TraversalOutcome, Twist2D
 from gcdtrav.schemas.messages import Message, MessageError
+from gcdtrav.schemas.settings import ExperienceSettings
 from gcdtrav.service.ros.cdr import decode_odometry_motion, decode_twist
 
 MAX_INPUT_BYTES = 64 * 1024  # an Odometry CDR with its covariances is about 700 bytes

@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
-from gcdtrav.schemas.experience import AskSettings, ExperienceSettings, Odometry2D, OperatorAnswer, TraversalOutcome
+from gcdtrav.schemas.experience import Odometry2D, OperatorAnswer, TraversalOutcome
 from gcdtrav.schemas.messages import MessageError, Pose2D
+from gcdtrav.schemas.settings import AskSettings, ExperienceSettings
 from gcdtrav.service.experience.service import Experience, experience_file
 from gcdtrav.service.experience.store import OutcomeRejected
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid

@@ -6,8 +6,9 @@ import json
 
 import numpy as np
 import pytest
-from gcdtrav.schemas.experience import ExperienceSettings, Odometry2D, Twist2D
+from gcdtrav.schemas.experience import Odometry2D, Twist2D
 from gcdtrav.schemas.messages import MessageError
+from gcdtrav.schemas.settings import ExperienceSettings
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.velocity import VelocityTracker, decode_command, decode_odometry, is_ros_topic
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid

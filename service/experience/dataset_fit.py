@@ -1,4 +1,4 @@
-"""`gcdtrav eval --fit-anchors`: the experience fitter (service/experience/fitter.py) on a labelled dataset.
+"""`gcdtrav eval --fit-anchors`: the experience fitter (fitter.py) on a labelled dataset.
 
 Every sampled pixel of the split (the grid of `gcdtrav eval`) is a pair: its anchor weights (the softmax of the
 model's logits there) and the traversability its label maps to. The pairs are ordered by image, the last

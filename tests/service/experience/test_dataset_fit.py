@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from gcdtrav.schemas.anchors import Anchor, AnchorSet, anchor_diff
 from gcdtrav.service.eval.datasets import load_dataset
-from gcdtrav.service.eval.fit_anchors import PROPOSED_FILE, fit_on_dataset, summary
 from gcdtrav.service.eval.mapping import load_mapping
+from gcdtrav.service.experience.dataset_fit import PROPOSED_FILE, fit_on_dataset, summary
 from gcdtrav.service.experience.fitter import FitOptions
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -85,7 +85,7 @@ def test_the_cli_on_synthetic_goose_with_the_tiny_model(tmp_path: Path, tiny_mod
         check=True,
         capture_output=True,
     )
-    from gcdtrav.service.cli import main
+    from gcdtrav.service.commands.cli import main
 
     code = main(
         ["eval", "--dataset", "goose", "--root", str(tmp_path / "goose"), "--model", str(tiny_model_dir),
