@@ -17,7 +17,7 @@ import zenoh
 from gcdtrav.client.client import AnchorSetRejected, ServiceError, TraversabilityClient
 from gcdtrav.client.commands.density_plot import describe, save_distribution
 from gcdtrav.client.session.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
-from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
+from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, anchor_diff
 from gcdtrav.schemas.messages import AnchorHistoryReply, ContextDistribution, ServiceStatus, SourceStatus
 
 COMMANDS = ("status", "anchors", "probe")
@@ -205,27 +205,6 @@ def active_yaml(anchors: AnchorSet) -> str:
     import yaml
 
     return yaml.safe_dump(anchors.model_dump(exclude_none=True), sort_keys=False)
-
-
-def anchor_diff(active: AnchorSet, new: AnchorSet) -> list[str]:
-    """What swapping ``active`` for ``new`` changes, one line per concept: + added, - removed, ~ moved."""
-    old = {a.concept: a for a in active.anchors}
-    lines = [f"- {c} @ {a.position:.2f}" for c, a in old.items() if c not in set(new.concepts)]
-    for anchor in new.anchors:
-        before = old.get(anchor.concept)
-        width = new.widths[new.concepts.index(anchor.concept)]
-        if before is None:
-            lines.append(f"+ {anchor.concept} @ {anchor.position:.2f}")
-        else:
-            old_width = active.widths[active.concepts.index(anchor.concept)]
-            if (before.position, old_width) != (anchor.position, width):
-                lines.append(
-                    f"~ {anchor.concept} @ {before.position:.2f} -> {anchor.position:.2f}"
-                    + (f", width {old_width:g} -> {width:g}" if old_width != width else "")
-                )
-    if active.name != new.name:
-        lines.append(f"~ name {active.name!r} -> {new.name!r}")
-    return lines
 
 
 def set_anchors(client: TraversabilityClient, args: argparse.Namespace) -> int:

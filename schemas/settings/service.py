@@ -16,6 +16,7 @@ from gcdtrav.schemas.settings.base import (
     Precision,
     default_instance_name,
 )
+from gcdtrav.schemas.settings.experience import AskSettings, ExperienceSettings
 from gcdtrav.schemas.settings.grids import GridSettings, one_grid_per_camera
 from gcdtrav.schemas.settings.risk import RiskSettings
 from gcdtrav.schemas.settings.ros import RosInput, RosNode, RosOutput
@@ -44,6 +45,8 @@ class ServiceSettings(StrictModel):
     )
     engine: EngineSettings = Field(default_factory=EngineSettings)
     risk: RiskSettings = Field(default_factory=RiskSettings)
+    experience: ExperienceSettings = Field(default_factory=ExperienceSettings)
+    ask: AskSettings = Field(default_factory=AskSettings)
     history: int = Field(default=8, ge=1, le=256, description="Frames per source kept for patch queries.")
     history_budget_mb: float = Field(
         default=512,
