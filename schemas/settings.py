@@ -385,7 +385,7 @@ class ServiceSettings(StrictModel):
         "null: no limit.",
     )
     intake_rate_anonymous: float | None = Field(
-        default=2000.0,
+        default=1000.0,
         gt=0,
         description="Frames a second shared by every sample without source info (ROS bridges, plain zenoh "
         "puts): a fleet behind one bridge shares it, so size it above the fleet's total frame rate. null: no "
