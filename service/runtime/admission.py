@@ -134,7 +134,7 @@ class Admission:
             return False
         payload = read()
         times = input_times(payload, encoding, ros is not None)
-        age = self.freshness.at_intake(source, times.stamp, received_at, tracked)
+        age = self.freshness.at_intake(source, times.stamp, received_at)
         self.stats.intake(source, size, age.lag_s)
         frame_times = FrameTimes(times.stamp, times.sent_at, received_at)
         if age.refusal is not None:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -31,6 +32,7 @@ from gcdtrav.service.runtime.clock_offset import ClockOffsets, Reading, usable_s
 from gcdtrav.service.runtime.frames import PendingFrame
 
 ClockMode = Literal["estimated", "synced"]
+WARN_INTERVAL_S = 5.0
 
 
 class Dropped(Exception):
@@ -69,20 +71,22 @@ class Freshness:
         self.max_age_s, self.max_skew_s, self.clock = max_age_s, max_skew_s, clock
         self.offsets = ClockOffsets(max_age_s, max_skew_s)
         self._log = log or logging.getLogger("gcdtrav.service")
+        self._warned_at = -math.inf
+        self._warn_lock = threading.Lock()
 
     @classmethod
     def from_settings(cls, settings: ServiceSettings, log: logging.Logger | None = None) -> Freshness:
         return cls(settings.max_frame_age_s, settings.max_stamp_skew_s, settings.clock, log)
 
-    def at_intake(self, source: str, stamp: float | None, received_at: float, tracked: bool) -> IntakeAge:
-        """The frame's lag and, if it is not to be queued, why. A tracked source's clock learns from it; a new
-        source's first frame is judged without state (lag 0 under estimated)."""
+    def at_intake(self, source: str, stamp: float | None, received_at: float) -> IntakeAge:
+        """The frame's lag and, if it is not to be queued, why; its source's clock learns from it (the first
+        frame of a source sets it: lag 0 under estimated). The clock is forgotten with the source, or with a
+        new source that is refused (``SourceTracker``'s forget callbacks)."""
         if not usable_stamp(stamp):
             return IntakeAge(None, None)  # a bare image, or a stamp the decoder rejects (bad_stamp)
         assert stamp is not None
-        reading = self._observe(source, stamp, received_at) if tracked else None
-        learnt = reading.lag_s if reading is not None else 0.0
-        lag = received_at - stamp if self.clock == "synced" else learnt
+        reading = self._observe(source, stamp, received_at)
+        lag = received_at - stamp if self.clock == "synced" else reading.lag_s
         if self.max_skew_s is not None and lag < -self.max_skew_s:
             return IntakeAge(lag, RejectedInput("skewed_stamp", self._explain_skew(lag, reading)))
         try:
@@ -114,9 +118,19 @@ class Freshness:
                 -reading.stepped_s,
                 reading.offset_s,
             )
-        if reading.first_large_offset:
+        if reading.first_large_offset and self._may_warn():
             self._log.warning("%s: %s", source, self._offset_advice(reading.offset_s))
         return reading
+
+    def _may_warn(self) -> bool:
+        """At most one offset warning every WARN_INTERVAL_S, whatever the sources: new names with wrong clocks
+        (each forgotten when refused, so warned again) cannot flood the log."""
+        now = time.monotonic()
+        with self._warn_lock:
+            if now - self._warned_at < WARN_INTERVAL_S:
+                return False
+            self._warned_at = now
+            return True
 
     def _offset_advice(self, offset_s: float) -> str:
         said = f"clock offset {offset_s:+.3f} s (service minus robot, plus the link's smallest delay)"
@@ -140,14 +154,13 @@ class Freshness:
         offset = f", clock offset {reading.offset_s:+.1f} s" if reading is not None else ""
         return f"{age:.1f} s slower than its source's fastest recent frame{offset}, {limit} (a link's backlog)"
 
-    def _explain_skew(self, lag: float, reading: Reading | None) -> str:
+    def _explain_skew(self, lag: float, reading: Reading) -> str:
         limit = f"(max_stamp_skew_s {self.max_skew_s:g})"
         if self.clock == "synced":
             return f"stamp {-lag:.1f} s ahead of its receipt {limit}: sync the robot's clock (NTP, chrony)"
-        offset = f"{reading.offset_s:+.1f} s" if reading is not None else "-"
         return (
-            f"stamp {-lag:.1f} s ahead of its source's clock (offset {offset}) {limit}: a step forward is "
-            "learnt once it holds"
+            f"stamp {-lag:.1f} s ahead of its source's clock (offset {reading.offset_s:+.1f} s) {limit}: a step "
+            "forward is learnt once it holds"
         )
 
 

@@ -54,7 +54,7 @@ class Outcome:
 def judge(rule: Freshness, frames: list[Frame], source: str = "r1/front") -> Outcome:
     outcome = Outcome([], [], [])
     for frame in frames:
-        refusal = rule.at_intake(source, frame.stamp, frame.received, tracked=True).refusal
+        refusal = rule.at_intake(source, frame.stamp, frame.received).refusal
         if refusal is None:
             outcome.served.append(frame)
         elif isinstance(refusal, Dropped):
@@ -95,11 +95,16 @@ def test_synced_with_clocks_in_step_serves_everything() -> None:
     assert judge(Freshness(MAX_AGE_S, SKEW_S, "synced"), frames).served == frames
 
 
-def test_the_offset_is_warned_once_per_source_beyond_a_second(caplog: pytest.LogCaptureFixture) -> None:
+def test_the_offset_is_warned_once_per_source_beyond_a_second_and_rarely_overall(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     rule = estimated()
     with caplog.at_level(logging.WARNING, "gcdtrav.test"):
         judge(rule, stream(3, -HOUR), "behind")
         judge(rule, stream(3, 0.5), "close")
+        for k in range(100):  # invented names with wrong clocks, each forgotten when refused
+            judge(rule, stream(0.2, HOUR), f"invented{k}")
+            rule.offsets.forget(f"invented{k}")
     warnings = [r.getMessage() for r in caplog.records]
     assert len(warnings) == 1 and warnings[0].startswith("behind: clock offset +3600.0")
     assert "clock: estimated" in warnings[0]
@@ -174,19 +179,18 @@ def test_a_frame_stamped_far_ahead_once_is_rejected_and_changes_nothing() -> Non
 
 def test_bare_images_carry_no_stamp_and_teach_no_clock() -> None:
     rule = estimated()
-    age = rule.at_intake("cam", None, T0, tracked=True)
+    age = rule.at_intake("cam", None, T0)
     assert age.lag_s is None and age.refusal is None and "cam" not in rule.offsets
     for bad in (float("nan"), float("inf"), -1.0):  # the decoder rejects them (bad_stamp), the clock ignores them
-        assert rule.at_intake("cam", bad, T0, tracked=True) == age
+        assert rule.at_intake("cam", bad, T0) == age
 
 
-def test_a_new_sources_first_frame_is_judged_without_keeping_anything() -> None:
+def test_a_sources_first_frame_sets_its_clock() -> None:
     rule = estimated()
-    assert rule.at_intake("invented", T0 - HOUR, T0, tracked=False).refusal is None
-    assert "invented" not in rule.offsets
+    first = rule.at_intake("new", T0 - HOUR, T0)
+    assert first.refusal is None and first.lag_s == 0.0 and rule.offsets.offsets() == {"new": HOUR}
     synced = Freshness(MAX_AGE_S, SKEW_S, "synced")
-    assert isinstance(synced.at_intake("invented", T0 - HOUR, T0, tracked=False).refusal, Dropped)
-    assert "invented" not in synced.offsets
+    assert isinstance(synced.at_intake("new", T0 - HOUR, T0).refusal, Dropped)
 
 
 def test_replayed_bags_without_an_age_limit_are_served_through_loops_and_learnt() -> None:

@@ -39,12 +39,12 @@ def test_a_stamp_ahead_beyond_the_skew_is_rejected_at_intake_and_none_accepts_an
         Freshness(None, None, clock),
     )
     for rule in (at_limit, limited, unlimited):
-        assert rule.at_intake("r", 1000.0, 1000.0, tracked=True).refusal is None  # learns offset 0
-    assert at_limit.at_intake("r", 1005.1, 1000.1, tracked=True).refusal is None  # at the limit
-    refusal = limited.at_intake("r", 1005.2, 1000.1, tracked=True).refusal
+        assert rule.at_intake("r", 1000.0, 1000.0).refusal is None  # learns offset 0
+    assert at_limit.at_intake("r", 1005.1, 1000.1).refusal is None  # at the limit
+    refusal = limited.at_intake("r", 1005.2, 1000.1).refusal
     assert isinstance(refusal, RejectedInput) and refusal.reason == "skewed_stamp"
     assert "max_stamp_skew_s" in refusal.detail
-    assert unlimited.at_intake("r", 1e12, 1000.2, tracked=True).refusal is None
+    assert unlimited.at_intake("r", 1e12, 1000.2).refusal is None
 
 
 def test_gate_drops_frames_of_other_instances_and_frames_too_old() -> None:
@@ -125,10 +125,10 @@ def test_age_before_publishing_is_the_lag_at_intake_plus_the_wait_and_none_turns
     rule = Freshness(5.0, None, clock)
     gate = FrameGate(lambda source: True, rule, clock=lambda: now[0])
     received = replace(png_frame("mine"), received_at=1009.0)
-    rule.at_intake("mine", 1008.9, 1008.0, tracked=True)  # its clock learnt: robot ahead by 0.9 s
-    ahead = replace(received, lag_s=rule.at_intake("mine", 1009.5, 1009.0, tracked=True).lag_s)
+    rule.at_intake("mine", 1008.9, 1008.0)  # its clock learnt: robot ahead by 0.9 s
+    ahead = replace(received, lag_s=rule.at_intake("mine", 1009.5, 1009.0).lag_s)
     gate.before_publish(ahead)  # a robot clock slightly ahead: the receipt still ages it (1 s)
-    buffered = replace(received, lag_s=rule.at_intake("mine", 1004.9, 1009.0, tracked=True).lag_s)
+    buffered = replace(received, lag_s=rule.at_intake("mine", 1004.9, 1009.0).lag_s)
     with pytest.raises(Dropped):
         gate.before_publish(buffered)  # 4.5 s slower than the fastest (estimated) / 6 s by the clock (synced)
     now[0] = 1014.5
