@@ -91,14 +91,16 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
         )
     lines += [
         "",
-        "source                    instance       frames/s  received  processed  dropped  rejected  p50 ms  p99 ms",
+        "source                    instance       frames/s  received  processed  dropped  rejected  p50 ms  p99 ms"
+        "    clock s",
     ]
     for s in statuses:
         for name, src in sorted(s.sources.items()):
             p50, p99 = src.latency_ms.get("p50", "-"), src.latency_ms.get("p99", "-")
             lines.append(
                 f"{name[:25]:<25} {s.instance[:14]:<14} {fps(s.instance, name):>8}  {src.received:>8}  "
-                f"{src.processed:>9}  {src.dropped:>7}  {src.rejected:>8}  {p50:>6}  {p99:>6}"
+                f"{src.processed:>9}  {src.dropped:>7}  {src.rejected:>8}  {p50:>6}  {p99:>6}  "
+                f"{clock_offset(src.clock_offset_s):>9}"
             )
     lines += fleet_warnings(statuses)
     reasons = [f"{s.instance}: {s.precision} ({s.precision_reason})" for s in statuses if s.precision_reason]
@@ -110,9 +112,22 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
     return "\n".join(lines)
 
 
+def clock_offset(offset_s: float | None) -> str:
+    """The source's clock as the service learnt it (service minus robot, plus the link's smallest delay)."""
+    if offset_s is None:
+        return "-"
+    return f"{offset_s:+.2f}" if abs(offset_s) < 1e5 else f"{offset_s:+.3g}"
+
+
 def fleet_warnings(statuses: list[ServiceStatus]) -> list[str]:
     """Unhealthy instances, and instances that disagree on the anchor set or the precision."""
     lines = [f"UNHEALTHY {s.instance}: {s.reason}" for s in statuses if s.healthy is False]
+    off = {name for s in statuses for name, src in s.sources.items() if abs(src.clock_offset_s or 0.0) > 1.0}
+    if off:
+        lines.append(
+            f"clocks off by more than 1 s: {', '.join(sorted(off))} (served: ages are judged by delay unless "
+            "clock: synced; their maps keep their own stamps)"
+        )
     versions = {s.instance: s.anchor_set_version for s in statuses}
     if len(set(versions.values())) > 1:
         held = ", ".join(f"{instance} has {version}" for instance, version in sorted(versions.items()))
