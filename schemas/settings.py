@@ -6,6 +6,7 @@ Sources, later ones winning: defaults < YAML file < ``GCDTRAV_*`` environment va
 from __future__ import annotations
 
 import json
+import logging
 import os
 import re
 import socket
@@ -18,9 +19,10 @@ from gcdtrav.schemas.limits import DEFAULT_MAX_ANCHOR_SET_BYTES
 from gcdtrav.schemas.paths import default_cache_dir, default_state_dir, expanded
 from gcdtrav.schemas.strict import StrictModel
 from gcdtrav.schemas.yaml_file import load_mapping
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
 
 ENV_PREFIX = "GCDTRAV_"
+log = logging.getLogger("gcdtrav.settings")
 
 # How the model's arithmetic runs. fp32: torch, the reference. bf16: ViT and decoder in bfloat16 (native on
 # AVX512-BF16/AMX only). bf16-vit: the ViT only. int8: torch's dynamic int8 ViT. ort-fp32: ONNX Runtime in
@@ -471,13 +473,33 @@ class ServiceSettings(StrictModel):
         return self.state_dir / f"{self.prefix.replace('/', '_')}.anchors.json"
 
 
+def unknown_setting(path: list[str], section: type[BaseModel] | None = None) -> str | None:
+    """None if ``path`` (lower-case names, nested) names a setting; else the names that exist where it strays."""
+    model: type[BaseModel] = section or ServiceSettings
+    for depth, part in enumerate(path):
+        field = model.model_fields.get(part)
+        if field is None:
+            return ", ".join(ENV_PREFIX + "__".join([*path[:depth], name]).upper() for name in model.model_fields)
+        nested = field.annotation
+        if depth + 1 < len(path):
+            if not (isinstance(nested, type) and issubclass(nested, BaseModel)):
+                return f"{ENV_PREFIX}{'__'.join(path[: depth + 1]).upper()} (a value, not a section)"
+            model = nested
+    return None
+
+
 def _env_overrides(environ: Mapping[str, str]) -> dict[str, Any]:
-    """GCDTRAV_HISTORY=4, GCDTRAV_INPUTS='["a/**","b/*"]' or 'a/**,b/*', GCDTRAV_ENGINE__METHOD=argmax."""
+    """GCDTRAV_HISTORY=4, GCDTRAV_INPUTS='["a/**","b/*"]' or 'a/**,b/*', GCDTRAV_ENGINE__METHOD=argmax.
+    A GCDTRAV_* variable that names no setting is ignored with a warning (a stray variable in a user's shell
+    must not stop the service); its value is still checked like any other setting's when it names one."""
     result: dict[str, Any] = {}
     for name, raw in environ.items():
         if not name.startswith(ENV_PREFIX):
             continue
         path = name[len(ENV_PREFIX) :].lower().split("__")
+        if (settings := unknown_setting(path)) is not None:
+            log.warning("environment variable %s is not a setting and is ignored; the settings: %s", name, settings)
+            continue
         value: Any = raw
         if path == ["inputs"] and not raw.lstrip().startswith("["):
             value = [part.strip() for part in raw.split(",") if part.strip()]
