@@ -59,7 +59,7 @@ def model_input(pipeline: Pipeline) -> tuple[int, int]:
 
 
 def publisher_of(sample: zenoh.Sample) -> str | None:
-    """The publishing session's id if the publisher says (client/source_info.py); None: not capped."""
+    """The publishing session's id if the publisher says (client/session/source_info.py); None: not capped."""
     info = sample.source_info
     return None if info is None else str(info.source_id.zid)
 
@@ -73,7 +73,7 @@ class TraversabilityService:
         self.keys = Keys(settings.prefix)
         self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(round(settings.pending_budget_mb * 1e6))
         self.history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
-        self.stats = ServiceStats(log)
+        self.stats = ServiceStats(log, settings.source_idle_s)
         self.intake_rate = IntakeRate(
             settings.intake_rate_per_publisher, settings.intake_rate_anonymous, settings.intake_burst_s
         )

@@ -142,7 +142,7 @@ class Admission:
             if isinstance(age.refusal, Dropped):
                 self.stats.stale(source, age.refusal.detail)
             else:
-                self.stats.rejected(source if tracked else None, age.refusal.reason, age.refusal.detail)
+                self.stats.rejected(source, age.refusal.reason, age.refusal.detail, tracked=tracked)
             self.on_freed(source, STALE if isinstance(age.refusal, Dropped) else REFUSED, frame_times)
             return False
         pending = PendingFrame(source, key, payload, encoding, received_at, ros, times.stamp, times.sent_at, age.lag_s)

@@ -13,7 +13,7 @@ from typing import Any, TypeVar
 
 from gcdtrav.schemas.inputs import DecodedFrame, RejectedInput, decode_payload
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.cpus import usable_cpus
+from gcdtrav.service.backends.cpus import usable_cpus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.admission import Admission
@@ -105,7 +105,7 @@ class FrameWorker:
         try:
             return step(*args)
         except RejectedInput as err:
-            self.stats.rejected(self._counted_as(pending.source), err.reason, err.detail)
+            self.stats.rejected(pending.source, err.reason, err.detail, tracked=self._tracked(pending.source))
         except Dropped as err:
             if err.reason == "stale":
                 self.stats.stale(pending.source, err.detail)
@@ -113,14 +113,15 @@ class FrameWorker:
                 self.stats.dropped(pending.source, err.reason)
         except Exception as err:
             log.exception("frame from %s failed", pending.key)
-            self.stats.rejected(self._counted_as(pending.source), "processing_failed", repr(err)[:200])
+            failure = repr(err)[:200]
+            self.stats.rejected(pending.source, "processing_failed", failure, tracked=self._tracked(pending.source))
         finally:
             self.progress.beat()
         return None
 
-    def _counted_as(self, source: str) -> str | None:
-        """Counted per source only if tracked: a refused candidate leaves no per-source state."""
-        return source if self.admission is None or source in self.sources else None
+    def _tracked(self, source: str) -> bool:
+        """Whether ``source`` holds a slot: a refused candidate's counts go to the stats' bounded refused list."""
+        return self.admission is None or source in self.sources
 
     def _infer(self, pending: PendingFrame) -> InferredFrame | None:
         """Decoded and inferred; the gate raises (counted) for a frame not worth computing."""
@@ -161,10 +162,9 @@ class FrameWorker:
         source, image = inferred.pending.source, inferred.image
         self.gate.before_publish(inferred.pending)
         result = self.pipeline.finish(inferred.inference)
-        height, width = image.image.shape[:2]
         maps = result.maps
         record = self.history.record(
-            source, maps.weights, result.anchors, image.stamp, image.frame_id, (width, height), maps.match
+            source, maps.weights, result.anchors, image.stamp, image.frame_id, image.camera_size, maps.match
         )
         self.gate.before_publish(inferred.pending)  # the engine took time too
         if not self.publish(ProcessedFrame(inferred, result, record)):

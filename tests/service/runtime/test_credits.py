@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import msgpack
 import pytest
-from gcdtrav.client.ros_camera import compressed_image_cdr
+from gcdtrav.client.relay.ros_camera import compressed_image_cdr
 from gcdtrav.schemas.messages import CreditGrant, ImageEnvelope
 from gcdtrav.service.runtime.credits import REFUSED, STALE, TAKEN, CreditLedger, FrameTimes
 from gcdtrav.service.runtime.frame_age import input_times, ros_header_stamp

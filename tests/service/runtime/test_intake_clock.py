@@ -9,7 +9,7 @@ from collections.abc import Callable
 
 import pytest
 from fakes import image, pipeline
-from gcdtrav.client.ros_camera import compressed_image_cdr
+from gcdtrav.client.relay.ros_camera import compressed_image_cdr
 from gcdtrav.schemas.images import encode_jpeg, encode_png
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
 from gcdtrav.schemas.settings import ServiceSettings
@@ -107,7 +107,8 @@ def test_with_clock_synced_a_robot_an_hour_behind_is_dropped_stale_and_its_credi
     status = service.status()
     assert not service.published and status.dropped_by_reason == {"stale": 5}
     assert service.freed == [("r1/front", STALE)] * 5
-    assert "r1/front" not in status.sources  # never took a slot: counted by reason only
+    refused = status.sources["r1/front"]  # never took a slot: listed as refused, with why
+    assert refused.refused and refused.stale == 5 and "by the service's clock" in refused.problem
 
 
 def test_with_clock_synced_a_robot_an_hour_ahead_is_rejected_skewed_and_its_slot_freed() -> None:
@@ -115,6 +116,7 @@ def test_with_clock_synced_a_robot_an_hour_ahead_is_rejected_skewed_and_its_slot
     service.stream("envelope", "r1/front", HOUR)
     status = service.status()
     assert status.rejected_by_reason == {"skewed_stamp": 5} and not service.published
+    assert status.sources["r1/front"].refused and "sync the robot's clock" in status.sources["r1/front"].problem
     assert service.freed == [("r1/front", REFUSED)] * 5
 
 
