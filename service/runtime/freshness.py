@@ -44,6 +44,11 @@ class Dropped(Exception):
         self.detail = detail
 
 
+def _age(lag_s: float | None, waited_s: float) -> float:
+    """The lag at intake (a negative one, a clock slightly ahead, ages nothing) plus the time waited here."""
+    return max(lag_s or 0.0, 0.0) + waited_s
+
+
 def check_stamp(stamp: float) -> None:
     """A stamp that is a finite, non-negative time: anything else says nothing about when or in what order."""
     if not math.isfinite(stamp) or stamp < 0:
@@ -96,7 +101,7 @@ class Freshness:
         return IntakeAge(lag, None)
 
     def age_s(self, lag_s: float | None, received_at: float, now: float) -> float:
-        return max(lag_s or 0.0, 0.0) + now - received_at
+        return _age(lag_s, now - received_at)
 
     def check(self, pending: PendingFrame, now: float, when: str) -> None:
         """Raise Dropped (``stale``) if the frame is older than max_frame_age_s at ``now``."""
@@ -105,7 +110,7 @@ class Freshness:
     def _check_age(self, lag_s: float | None, waited_s: float, when: str, reading: Reading | None) -> None:
         if self.max_age_s is None:
             return
-        age = max(lag_s or 0.0, 0.0) + waited_s
+        age = _age(lag_s, waited_s)
         if age > self.max_age_s:
             raise Dropped("stale", self._explain_age(age, waited_s, when, reading))
 
