@@ -185,6 +185,27 @@ class AnchorSet(FrozenStrictModel):
             path.write_text(self.to_json() + "\n", "utf-8")
 
 
+def anchor_diff(active: AnchorSet, new: AnchorSet) -> list[str]:
+    """What swapping ``active`` for ``new`` changes, one line per concept: + added, - removed, ~ moved."""
+    old = {a.concept: a for a in active.anchors}
+    lines = [f"- {c} @ {a.position:.2f}" for c, a in old.items() if c not in set(new.concepts)]
+    for anchor in new.anchors:
+        before = old.get(anchor.concept)
+        width = new.widths[new.concepts.index(anchor.concept)]
+        if before is None:
+            lines.append(f"+ {anchor.concept} @ {anchor.position:.2f}")
+        else:
+            old_width = active.widths[active.concepts.index(anchor.concept)]
+            if (before.position, old_width) != (anchor.position, width):
+                lines.append(
+                    f"~ {anchor.concept} @ {before.position:.2f} -> {anchor.position:.2f}"
+                    + (f", width {old_width:g} -> {width:g}" if old_width != width else "")
+                )
+    if active.name != new.name:
+        lines.append(f"~ name {active.name!r} -> {new.name!r}")
+    return lines
+
+
 class DocumentTooDeep(ValueError):
     pass
 

@@ -9,6 +9,7 @@ from typing import Any
 from gcdtrav.schemas.messages import ServiceStatus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
+from gcdtrav.service.runtime.clock_offset import ClockOffsets
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
@@ -29,13 +30,14 @@ class StatusParts:
     stats: ServiceStats
     sources: SourceTracker
     progress: ProgressMonitor
+    clock_offsets: ClockOffsets  # each source's clock against this instance's, as estimated
 
     def status(
         self, now: float, live: list[str] | None = None, fleet: Mapping[str, str] | None = None
     ) -> ServiceStatus:
         """This instance's status at ``now``; ``live``: the instances of the prefix (None: this one alone);
         ``fleet``: every instance's anchor-set version as this one knows it."""
-        counts = self.stats.snapshot(self.queue.counters())
+        counts = self.stats.snapshot(self.queue.counters(), self.clock_offsets.offsets())
         health = self.progress.health()
         head = self.anchors.head()
         backend = self.pipeline.describe()

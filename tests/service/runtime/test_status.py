@@ -11,6 +11,7 @@ from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.config import Method
 from gcdtrav.service.backends.base import BackendDescription
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
+from gcdtrav.service.runtime.clock_offset import ClockOffsets
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
@@ -38,7 +39,8 @@ def parts(tmp_path: Path, clock: Clock) -> StatusParts:
     sources = SourceTracker(max_sources=3, idle_s=60.0)
     progress = ProgressMonitor(2.0, clock)
     stats = ServiceStats(logging.getLogger("test"))
-    return StatusParts("box-1", 100.0, run, switch, queue, FrameHistory(2), stats, sources, progress)
+    offsets = ClockOffsets(1.0, 5.0)
+    return StatusParts("box-1", 100.0, run, switch, queue, FrameHistory(2), stats, sources, progress, offsets)
 
 
 def test_a_fresh_instance_reports_its_start_set_backend_and_bounds(tmp_path: Path) -> None:
