@@ -51,6 +51,10 @@ class CreditPublisher:
     def taken(self, pending: PendingFrame) -> None:
         self.freed(pending.source, TAKEN, FrameTimes(pending.stamp, pending.sent_at, pending.received_at))
 
+    def published(self, source: str, stamp: float) -> None:
+        """Maps of ``source`` captured at ``stamp`` went out: later credits say how fresh the maps are."""
+        self.ledger.published(source, stamp)
+
     def forget(self, source: str) -> None:
         self.ledger.forget(source)
         with self._lock:

@@ -33,12 +33,13 @@ from gcdtrav.service.runtime.admission import Admission
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.assignment import Assignment
 from gcdtrav.service.runtime.credits import CreditLedger
-from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
+from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.freshness import FrameGate, Freshness
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.intake_rate import IntakeRate
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.outputs import FramePublisher, OutputBuilder
 from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
@@ -82,7 +83,7 @@ class TraversabilityService:
             else None
         )
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if settings.ros_inputs else None
-        self.outputs = FrameOutputs(session, settings, backend.model_id, self.grids, self.ros_graph)
+        self.outputs = FrameOutputs(session, self.keys, self.ros_graph)
         self.freshness = Freshness.from_settings(settings, log)  # the one judge of a frame's age
         ledger = CreditLedger(settings.instance, backend.input_size, self.freshness.max_age_s)
         self.credits = CreditPublisher(session, self.keys, ledger, self.stats)
@@ -120,11 +121,12 @@ class TraversabilityService:
             self.stats,
             self.sources,
             settings,
-            self._publish,
+            FramePublisher(OutputBuilder(settings, backend.model_id), self.outputs, self.credits.published),
             self.credits.taken,
             self.progress,
             gate,
             self.admission,
+            self.grids,
         )
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
@@ -191,12 +193,6 @@ class TraversabilityService:
         self.anchor_switch.close()
         if self.ros_graph is not None:
             self.ros_graph.close()
-
-    def _publish(self, done: ProcessedFrame) -> bool:
-        published = self.outputs.publish(done)
-        if published:  # later credits say how fresh the maps are
-            self.credits.ledger.published(done.source, done.image.stamp)
-        return published
 
     # ---- input ---------------------------------------------------------------------------------------
     def _image_handler(self, head: str) -> Callable[[zenoh.Sample], None]:

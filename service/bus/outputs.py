@@ -1,4 +1,5 @@
-"""Puts each processed frame's payloads (``service/runtime/outputs.py``) on their keys and ROS topics.
+"""Puts each processed frame's payloads, encoded in the runtime (``service/runtime/outputs.py``), on their keys
+and ROS topics: the runtime's ``OutputSink``.
 
 Publishers are declared once per key with congestion control DROP, so a slow consumer loses samples
 instead of blocking inference. After ``close`` nothing is published: a frame finished during shutdown is
@@ -11,13 +12,11 @@ import logging
 import threading
 
 import zenoh
+from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import MSGPACK_ENCODING
-from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.entities import undeclare_all
 from gcdtrav.service.bus.ros_graph import GRID_QOS, IMAGE_QOS, RosGraph
-from gcdtrav.service.runtime.frames import ProcessedFrame
-from gcdtrav.service.runtime.grids import GridOutputs
-from gcdtrav.service.runtime.outputs import Output, OutputBuilder
+from gcdtrav.service.runtime.outputs import Output
 
 log = logging.getLogger("gcdtrav.service")
 ENCODINGS = {
@@ -28,31 +27,21 @@ ENCODINGS = {
 
 
 class FrameOutputs:
-    def __init__(
-        self,
-        session: zenoh.Session,
-        settings: ServiceSettings,
-        model_id: str,
-        grids: GridOutputs | None,
-        ros_graph: RosGraph | None = None,
-    ) -> None:
-        self.session = session
-        self.builder = OutputBuilder(settings, model_id, grids)
-        self.ros_graph = ros_graph
+    def __init__(self, session: zenoh.Session, keys: Keys, ros_graph: RosGraph | None = None) -> None:
+        self.session, self.keys, self.ros_graph = session, keys, ros_graph
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._keys_of_source: dict[str, set[str]] = {}
         self._ros_keys_of_source: dict[str, set[str]] = {}  # publishers (and their tokens) of the ROS graph
         self._lock = threading.Lock()  # publishing, forgetting and closing exclude each other
         self._closed = False
 
-    def publish(self, done: ProcessedFrame) -> bool:
-        """Build and put the frame's outputs; False (nothing put) once closed."""
-        outputs = self.builder.build(done, compact=self._compact_wanted(done.source))
+    def put(self, source: str, outputs: list[Output]) -> bool:
+        """Put a frame's outputs; False (nothing put) once closed."""
         with self._lock:
             if self._closed:
                 return False
             for output in outputs:
-                self._put(done.source, output)
+                self._put(source, output)
             return True
 
     def _put(self, source: str, output: Output) -> None:
@@ -78,13 +67,13 @@ class FrameOutputs:
             self._keys_of_source.setdefault(source, set()).add(key)
         return publisher
 
-    def _compact_wanted(self, source: str) -> bool:
+    def wants_compact(self, source: str) -> bool:
         """Whether anyone subscribes to the source's compact maps: they are encoded only then. The publisher
         is declared with the source's first frame; zenoh knows its matching subscribers from then on."""
         with self._lock:
             if self._closed:
                 return False
-            publisher = self._publisher(source, self.builder.keys.maps8(source), "msgpack")
+            publisher = self._publisher(source, self.keys.maps8(source), "msgpack")
             status = publisher.matching_status  # a MatchingStatus at runtime (the 1.x stub says bool)
             return bool(getattr(status, "matching", status))
 

@@ -9,6 +9,7 @@ from typing import Any
 from gcdtrav.schemas.inputs import DecodedFrame
 from gcdtrav.service.pipeline import FrameResult, Inference
 from gcdtrav.service.ros.cdr import RosTopic
+from gcdtrav.service.runtime.grids.encoding import FusedGrid
 from gcdtrav.service.runtime.history import FrameRecord
 
 
@@ -39,11 +40,13 @@ class InferredFrame:
 
 @dataclass(frozen=True)
 class ProcessedFrame:
-    """T and U computed, numbered and kept in the history: what every output is built from."""
+    """T and U computed, numbered, kept in the history and fused into its ground grid: what every output is
+    encoded from."""
 
     inferred: InferredFrame
     result: FrameResult
     record: FrameRecord
+    grid: FusedGrid | None = None  # the grid this frame's camera feeds, just fused; None: none, or not fused
 
     @property
     def pending(self) -> PendingFrame:

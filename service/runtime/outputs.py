@@ -1,5 +1,7 @@
 """What the service publishes for one processed frame, as payloads: maps, preview, ROS images, ground grid.
-No middleware here: ``service/bus/outputs.py`` puts them on their keys and topics.
+Only encoding: the worker has fused the grid (``ProcessedFrame.grid``); ``FramePublisher`` is the worker's
+one hand-off out, and the bus (``service/bus/outputs.py``, an ``OutputSink``) only puts the payloads on
+their keys and topics.
 
 The preview is drawn at its own size (at most ``preview_max_width`` for T-over-image beside U): T and U are
 resized once to that size, not to the image's and back. T and U at the image's size are made only when
@@ -9,8 +11,9 @@ something needs them (``full_resolution``, ROS outputs).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Protocol
 
 import cv2
 import numpy as np
@@ -28,7 +31,7 @@ from gcdtrav.schemas.messages import CompactMapsMessage, MapsHeader, MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.frames import ProcessedFrame
-from gcdtrav.service.runtime.grids import GridOutputs
+from gcdtrav.service.runtime.grids import GridUpdate
 from numpy.typing import NDArray
 
 Encoding = Literal["msgpack", "jpeg", "cdr"]
@@ -65,11 +68,43 @@ def preview_panel(
     return np.concatenate([left, colorize_uncertainty(u_small)], axis=1)
 
 
-class OutputBuilder:
-    """The payloads of one frame, by the settings; the grid's fusion happens here too (``grids``)."""
+class OutputSink(Protocol):
+    """Where a frame's payloads go: the bus puts them (``service/bus/outputs.py``)."""
 
-    def __init__(self, settings: ServiceSettings, model_id: str, grids: GridOutputs | None) -> None:
-        self.settings, self.model_id, self.grids = settings, model_id, grids
+    def wants_compact(self, source: str) -> bool:
+        """Whether anyone takes the source's compact maps (they are encoded only then)."""
+        ...
+
+    def put(self, source: str, outputs: list[Output]) -> bool:
+        """Put every payload; False, nothing put, once closed (shutdown)."""
+        ...
+
+
+class FramePublisher:
+    """The worker's one hand-off out: encode a processed frame, give the payloads to the sink and, once they
+    are out, tell ``published(source, stamp)`` (the credits: later grants say how fresh the maps are)."""
+
+    def __init__(
+        self,
+        builder: OutputBuilder,
+        sink: OutputSink,
+        published: Callable[[str, float], None] = lambda source, stamp: None,
+    ) -> None:
+        self.builder, self.sink, self.published = builder, sink, published
+
+    def __call__(self, done: ProcessedFrame) -> bool:
+        outputs = self.builder.build(done, compact=self.sink.wants_compact(done.source))
+        if not self.sink.put(done.source, outputs):
+            return False
+        self.published(done.source, done.image.stamp)
+        return True
+
+
+class OutputBuilder:
+    """The payloads of one frame, by the settings. Encoding only: nothing here changes any state."""
+
+    def __init__(self, settings: ServiceSettings, model_id: str) -> None:
+        self.settings, self.model_id = settings, model_id
         self.keys = Keys(settings.prefix)
 
     def build(self, done: ProcessedFrame, compact: bool = False) -> list[Output]:
@@ -92,8 +127,8 @@ class OutputBuilder:
             outputs.append(Output(self.keys.preview(done.source), jpeg, "jpeg"))
         if ros_out and full is not None:
             outputs += self._ros_images(done, *full, panel, jpeg)
-        if self.grids is not None:
-            outputs += self._grid(done)
+        if done.grid is not None:
+            outputs += self._grid(done.grid.encode())
         return outputs
 
     def maps(self, done: ProcessedFrame, full: tuple[NDArray[np.float32], NDArray[np.float32]] | None) -> MapsMessage:
@@ -169,13 +204,8 @@ class OutputBuilder:
             images.append((names.preview_topic, ros_io.IMAGE, ros_io.rgb_image_cdr(header, panel)))
         return [self._ros(topic, template, msgtype, payload, "image") for template, msgtype, payload in images]
 
-    def _grid(self, done: ProcessedFrame) -> list[Output]:
+    def _grid(self, update: GridUpdate) -> list[Output]:
         """The grid the frame's camera feeds, under the grid's source (the camera's own, or the grid's name)."""
-        assert self.grids is not None
-        maps = done.result.maps
-        update = self.grids.on_frame(done.source, done.record, maps.weights, maps.match, done.pending.ros)
-        if update is None:
-            return []
         source, names = update.source, self.settings.ros_output
         outputs = [Output(self.keys.grid(source), update.message.pack(), "msgpack")]
         layers = (

@@ -1,6 +1,7 @@
 """The worker threads: the newest frame of the next source is decoded and inferred, then the engine, the
-history and the outputs follow. No zenoh here: frames come from the latest-only queue, results leave
-through ``publish``. Whatever a frame raises is counted against that frame and never stops a thread."""
+history, the ground grid's fusion and the outputs follow. No zenoh here: frames come from the latest-only
+queue, results leave through ``publish`` (in the service, runtime/outputs.py's ``FramePublisher``).
+Whatever a frame raises is counted against that frame and never stops a thread."""
 
 from __future__ import annotations
 
@@ -14,12 +15,13 @@ from typing import Any, TypeVar
 from gcdtrav.schemas.inputs import DecodedFrame, RejectedInput, decode_payload
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.backends.cpus import usable_cpus
-from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.pipeline import FrameResult, Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.admission import Admission
 from gcdtrav.service.runtime.frames import InferredFrame, PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.freshness import Dropped, FrameGate, Freshness
-from gcdtrav.service.runtime.history import FrameHistory
+from gcdtrav.service.runtime.grids import FusedGrid, GridOutputs
+from gcdtrav.service.runtime.history import FrameHistory, FrameRecord
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.sources import SourceTracker
@@ -43,12 +45,14 @@ class FrameWorker:
         progress: ProgressMonitor | None = None,
         gate: FrameGate | None = None,
         admission: Admission | None = None,
+        grids: GridOutputs | None = None,
     ) -> None:
         self.frames, self.pipeline, self.history, self.stats = frames, pipeline, history, stats
         self.sources, self.settings, self.publish = sources, settings, publish
         self.on_taken = on_taken  # the source's slot is free: its sender may send the next frame (credits)
         self.progress = progress or ProgressMonitor(float("inf"))  # beaten round every loop and after every step
         self.admission = admission  # a new source takes a slot once its frame decodes; None: every source has one
+        self.grids = grids  # the ground grids a computed frame is fused into (before its outputs are encoded)
         # stamps, ownership and age before inference and again before publishing
         self.gate = gate or FrameGate(lambda source: True, Freshness.from_settings(settings))
         # With a CPU left over by torch (threads below the CPUs this process may use), a second thread
@@ -158,7 +162,7 @@ class FrameWorker:
         return DecodedFrame(ros_frame.image, ros_frame.stamp, ros_frame.frame_id), ros_frame.header
 
     def _finish(self, inferred: InferredFrame) -> None:
-        """Engine, numbering and history, outputs, counters."""
+        """Engine, numbering and history, the grid, outputs, counters."""
         source, image = inferred.pending.source, inferred.image
         self.gate.before_publish(inferred.pending)
         result = self.pipeline.finish(inferred.inference)
@@ -167,8 +171,15 @@ class FrameWorker:
             source, maps.weights, result.anchors, image.stamp, image.frame_id, image.camera_size, maps.match
         )
         self.gate.before_publish(inferred.pending)  # the engine took time too
-        if not self.publish(ProcessedFrame(inferred, result, record)):
+        grid = self._fuse(inferred.pending, result, record)
+        if not self.publish(ProcessedFrame(inferred, result, record, grid)):
             self.stats.dropped(source, "shutdown")  # finished after the outputs closed
             return
         latency_ms = (time.time() - inferred.pending.received_at) * 1e3
         self.stats.processed(source, record.seq, latency_ms, result.inference_ms)
+
+    def _fuse(self, pending: PendingFrame, result: FrameResult, record: FrameRecord) -> FusedGrid | None:
+        """Fuse a frame about to be published into the grid its camera feeds (if any)."""
+        if self.grids is None:
+            return None
+        return self.grids.fuse(pending.source, record, result.maps.weights, result.maps.match, pending.ros)

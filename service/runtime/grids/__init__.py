@@ -3,7 +3,7 @@
 queryables use)."""
 
 from gcdtrav.service.runtime.grids.answers import CELL_FORMS, MAX_PATH_POINTS
-from gcdtrav.service.runtime.grids.encoding import GRID_MAP_BASIC_LAYERS, GridUpdate
+from gcdtrav.service.runtime.grids.encoding import GRID_MAP_BASIC_LAYERS, FusedGrid, GridUpdate
 from gcdtrav.service.runtime.grids.outputs import GridInput, GridOutputs
 from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid
 
@@ -12,6 +12,7 @@ __all__ = [
     "GRID_MAP_BASIC_LAYERS",
     "MAX_PATH_POINTS",
     "CameraState",
+    "FusedGrid",
     "GridInput",
     "GridOutputs",
     "GridUpdate",

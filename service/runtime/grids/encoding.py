@@ -35,6 +35,20 @@ class GridUpdate:
     ros: RosTopic | None = None
 
 
+@dataclass(frozen=True)
+class FusedGrid:
+    """A grid right after a frame was fused into it (``GridOutputs.fuse``, in the worker): its layers and
+    header, taken under the grid's lock, for the outputs to encode (``encode``) outside it."""
+
+    config: GridSettings
+    header: GridHeader
+    layers: GridLayers
+    ros: RosTopic | None  # the topic its ROS outputs derive from
+
+    def encode(self) -> GridUpdate:
+        return encode_update(self.config, self.header, self.layers, self.ros)
+
+
 def encode_update(config: GridSettings, header: GridHeader, layers: GridLayers, ros: RosTopic | None) -> GridUpdate:
     """The payloads of one grid update (encoded outside the grid's lock)."""
     maps = (layers.traversability, layers.uncertainty, layers.cvar, layers.p_below, layers.match)

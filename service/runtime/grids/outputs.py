@@ -29,7 +29,7 @@ from gcdtrav.service.ros.cdr import (
     decode_pose,
 )
 from gcdtrav.service.runtime.grids import answers
-from gcdtrav.service.runtime.grids.encoding import GridUpdate, encode_update, grid_header
+from gcdtrav.service.runtime.grids.encoding import FusedGrid, GridUpdate, encode_update, grid_header
 from gcdtrav.service.runtime.grids.state import SourceGrid, grid_spec
 from gcdtrav.service.runtime.history import FrameRecord
 from numpy.typing import NDArray
@@ -100,8 +100,21 @@ class GridOutputs:
         match: NDArray[np.floating] | None = None,
         ros: RosTopic | None = None,
     ) -> GridUpdate | None:
+        """``fuse``, then encode: for tools and tests (the service fuses in the worker, encodes in the outputs)."""
+        fused = self.fuse(source, record, weights, match, ros)
+        return fused.encode() if fused is not None else None
+
+    def fuse(
+        self,
+        source: str,
+        record: FrameRecord,
+        weights: NDArray[np.floating],
+        match: NDArray[np.floating] | None = None,
+        ros: RosTopic | None = None,
+    ) -> FusedGrid | None:
         """Fuse a processed frame of camera ``source`` (its weights and match scores per map patch, its ROS
-        topic if a ROS camera) into its grid; what to publish, or None."""
+        topic if a ROS camera) into its grid; the grid's layers to publish, or None (not a grid's camera,
+        or no intrinsics yet)."""
         grid = self.camera_grids.get(source)
         if grid is None:
             return None
@@ -118,7 +131,7 @@ class GridOutputs:
             layers = grid_layers(grid.grid, positions, widths, risk.alpha, risk.tau, grid.config.lethal_tau)
             header = self.header(grid, anchors.version)
             ros_topic = grid.ros_topic()
-        return self.encode_update(grid.config, header, layers, ros_topic)
+        return FusedGrid(grid.config, header, layers, ros_topic)
 
     def encode_update(
         self, config: GridSettings, header: GridHeader, layers: GridLayers, ros: RosTopic | None

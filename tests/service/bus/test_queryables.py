@@ -98,12 +98,8 @@ class ImmediateSwitch:
         threading.Thread(target=done, args=(anchors, None)).start()
 
 
-class Active:
-    anchors = ANCHORS
-
-
 def test_a_swap_reply_that_raises_still_answers_the_query(stats: ServiceStats, monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    handlers = queryables.AnchorQueries(KEYS, Active(), ImmediateSwitch(), stats)  # type: ignore[arg-type]
+    handlers = queryables.AnchorQueries(KEYS, ImmediateSwitch(), stats)  # type: ignore[arg-type]
     real_reply = replies.reply
 
     def broken(query: Any, key: str, message: Any) -> None:

@@ -1,4 +1,5 @@
-"""The grid's outputs through the OutputBuilder: every CDR message on its key and on the camera's ROS topics."""
+"""The grid's outputs through the OutputBuilder: every CDR message on its key and on the camera's ROS topics;
+the outputs only encode the grid the worker fused."""
 
 from __future__ import annotations
 
@@ -38,7 +39,9 @@ def test_the_grids_cdr_outputs_go_on_their_keys_and_the_cameras_ros_topics() -> 
     pending = replace(done.inferred.pending, ros=camera)
     done = replace(done, inferred=replace(done.inferred, pending=pending, ros_header=ros.make_header(12.5, "cam")))
     grids = GridOutputs(settings.grids, 13, "test", settings.risk)
-    outputs = {output.key: output for output in OutputBuilder(settings, "fake", grids).build(done)}
+    maps = done.result.maps
+    done = replace(done, grid=grids.fuse("cam", done.record, maps.weights, maps.match, camera))  # as the worker does
+    outputs = {output.key: output for output in OutputBuilder(settings, "fake").build(done)}
     for layer in ("occupancy", "uncertainty", "gridmap", "costmap"):
         assert f"gcdtrav/out/cam/grid/{layer}" in outputs
     gridmap_key = f"0/cam/image_raw/gcdtrav/grid/gridmap/grid_map_msgs::msg::dds_::GridMap_/{GRID_MAP_HASH}"

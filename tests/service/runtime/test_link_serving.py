@@ -106,7 +106,7 @@ def test_the_worker_grants_at_take_and_drops_what_waited_too_long() -> None:
 )
 def test_compact_maps_decode_to_the_maps_within_their_steps(max_side: int | None, shape: tuple[int, int]) -> None:
     frame = processed(height=48, width=64)
-    builder = OutputBuilder(ServiceSettings(compact_maps_max_side=max_side), "fake", None)
+    builder = OutputBuilder(ServiceSettings(compact_maps_max_side=max_side), "fake")
     outputs = {output.key: output for output in builder.build(frame, compact=True)}
     assert "gcdtrav/out/r1/front/maps8" not in {o.key for o in builder.build(frame)}  # only when asked
     compact = Maps.from_compact_payload(outputs["gcdtrav/out/r1/front/maps8"].payload)

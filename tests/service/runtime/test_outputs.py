@@ -11,7 +11,7 @@ from gcdtrav.service.runtime.outputs import OutputBuilder, preview_size
 
 
 def build(frame=None, **settings: object):  # type: ignore[no-untyped-def]
-    builder = OutputBuilder(ServiceSettings(instance="box-1", **settings), "fake", None)
+    builder = OutputBuilder(ServiceSettings(instance="box-1", **settings), "fake")
     return {output.key: output for output in builder.build(frame or processed())}
 
 
