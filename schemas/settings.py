@@ -13,6 +13,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal, get_args
 
+from gcdtrav.schemas.compute_share import ReuseSettings, ScheduleSettings
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.limits import DEFAULT_MAX_ANCHOR_SET_BYTES
 from gcdtrav.schemas.paths import default_cache_dir, default_state_dir, expanded
@@ -328,6 +329,8 @@ class ServiceSettings(StrictModel):
     )
     engine: EngineSettings = Field(default_factory=EngineSettings)
     risk: RiskSettings = Field(default_factory=RiskSettings)
+    reuse: ReuseSettings = Field(default_factory=ReuseSettings)
+    schedule: ScheduleSettings = Field(default_factory=ScheduleSettings)
     history: int = Field(default=8, ge=1, le=256, description="Frames per source kept for patch queries.")
     history_budget_mb: float = Field(
         default=512,

@@ -36,6 +36,7 @@ from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.admission import Admission
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.assignment import Assignment
+from gcdtrav.service.runtime.change import Glance
 from gcdtrav.service.runtime.credits import CreditLedger
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.freshness import FrameGate
@@ -43,8 +44,11 @@ from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
+from gcdtrav.service.runtime.reuse import ReuseTracker
+from gcdtrav.service.runtime.share import policy_for
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.runtime.triage import Triage
 from gcdtrav.service.runtime.worker import FrameWorker
 
 log = logging.getLogger("gcdtrav.service")
@@ -70,7 +74,6 @@ class TraversabilityService:
         self.settings = settings
         self.prefix = settings.prefix
         self.keys = Keys(settings.prefix)
-        self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(round(settings.pending_budget_mb * 1e6))
         self.history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
         self.stats = ServiceStats(log)
         self._declared: list[Any] = []
@@ -83,6 +86,13 @@ class TraversabilityService:
             if settings.grids
             else None
         )
+        grids = self.grids
+        self.reuse = ReuseTracker(settings.reuse, settings.schedule, grids.pose_of if grids else lambda source: None)
+        self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
+            round(settings.pending_budget_mb * 1e6),
+            policy=policy_for(settings.schedule, self.reuse.motion),
+            triage=settings.reuse.enabled or settings.schedule.policy == "need",
+        )
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if settings.ros_inputs else None
         self.outputs = FrameOutputs(session, settings, pipeline.backend.model_id, self.grids, self.ros_graph)
         self.anchor_switch = AnchorSwitch(
@@ -90,7 +100,14 @@ class TraversabilityService:
         )
         ledger = CreditLedger(settings.instance, model_input(pipeline), settings.max_frame_age_s)
         self.credits = CreditPublisher(session, self.keys, ledger, self.stats)
-        forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget, self.credits.forget)
+        forget = (
+            self.queue.forget,
+            self.history.forget,
+            self.stats.forget,
+            self.outputs.forget,
+            self.credits.forget,
+            self.reuse.forget,
+        )
         self.sources = SourceTracker(
             settings.max_sources, settings.source_idle_s, forget, reclaim_after_s=settings.reclaim_after_s
         )
@@ -110,6 +127,9 @@ class TraversabilityService:
             self.progress,
             gate,
             self.admission,
+            Triage(self.queue, self.reuse, settings, self.stats, self._republish, self.credits.reused)
+            if self.queue.triage
+            else None,
         )
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
@@ -180,6 +200,12 @@ class TraversabilityService:
         published = self.outputs.publish(done)
         if published:  # later credits say how fresh the maps are
             self.credits.ledger.published(done.source, done.image.stamp)
+        return published
+
+    def _republish(self, pending: PendingFrame, seen: Glance) -> bool:
+        published = self.outputs.republish(pending, seen)
+        if published:
+            self.credits.ledger.published(pending.source, seen.stamp)
         return published
 
     # ---- input ---------------------------------------------------------------------------------------
@@ -270,7 +296,7 @@ class TraversabilityService:
         return handle
 
     def status(self) -> ServiceStatus:
-        counts = self.stats.snapshot(self.queue.counters())
+        counts = self.stats.snapshot(self.queue.counters(), self.queue.policy.shares())
         health = self.progress.health()
         accepted_at = self.anchor_switch.head().accepted_at
         return ServiceStatus(

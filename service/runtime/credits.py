@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 from gcdtrav.schemas.messages import CreditGrant
 
-TAKEN, STALE, REFUSED = "taken", "stale", "refused"
+TAKEN, STALE, REFUSED, UNCHANGED = "taken", "stale", "refused", "unchanged"
 
 
 @dataclass(frozen=True)

@@ -201,6 +201,14 @@ class GridOutputs:
         with grid.lock:
             grid.pose = pose
 
+    def pose_of(self, camera: str) -> Pose2D | None:
+        """The latest pose of the robot carrying camera ``camera`` (its grid's pose stream); None: unknown."""
+        grid = self.camera_grids.get(camera)
+        if grid is None:
+            return None
+        with grid.lock:
+            return grid.pose
+
     def set_camera_info(self, camera: str, payload: bytes) -> None:
         intrinsics = decode_camera_info(payload)
         grid = self.camera_grids[camera]

@@ -7,14 +7,23 @@ robot from starving the others.
 Sources whose first frame is waiting take at most every other turn while a returning source waits: a
 flood of new names (a frame counter in the key, a hostile peer) then gets at most half of the inference,
 and the robots that keep streaming the other half, instead of one turn in (flood + robots).
+
+Which waiting source goes next is the ``policy``'s (service/runtime/share.py): round-robin by default, or
+a weighted share by need. With ``triage`` on, a frame is first glanced at (``take_untriaged``) and then
+either settled as reused (it leaves the queue, never inferred) or ready for inference; a source's newer
+frame replacing a ready one stays ready, so a source never loses its turn to the glance.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
+
+from gcdtrav.service.runtime.share import RoundRobin, SharePolicy, Waiting
 
 T = TypeVar("T")
 
@@ -30,9 +39,21 @@ class PendingBudgetExceeded(Exception):
 
 
 @dataclass
+class _Slot(Generic[T]):
+    item: T
+    nbytes: int
+    since: float  # monotonic: when the source began waiting (kept when a newer frame replaces the item)
+    ready: bool  # may be taken for inference
+    glanced: bool  # the triage has this item (or needs none)
+
+
+@dataclass
 class LatestFrameQueue(Generic[T]):
     max_bytes: int | None = None  # all pending frames together; None: one frame per source is the only bound
-    _pending: OrderedDict[str, tuple[T, int]] = field(default_factory=OrderedDict)
+    policy: SharePolicy = field(default_factory=RoundRobin)
+    triage: bool = False  # frames are glanced at (take_untriaged, settle) before they may be inferred
+    clock: Callable[[], float] = time.monotonic
+    _pending: OrderedDict[str, _Slot[T]] = field(default_factory=OrderedDict)
     _counters: dict[str, QueueCounters] = field(default_factory=dict)
     _cond: threading.Condition = field(default_factory=threading.Condition)
     _closed: bool = False
@@ -48,15 +69,17 @@ class LatestFrameQueue(Generic[T]):
             counters = self._counters.setdefault(source, QueueCounters())
             counters.received += 1
             older = self._pending.get(source)
-            freed = older[1] if older is not None else 0
+            freed = older.nbytes if older is not None else 0
             if self.max_bytes is not None and self._bytes - freed + nbytes > self.max_bytes:
                 raise PendingBudgetExceeded(f"{nbytes} bytes would take the pending frames over {self.max_bytes} bytes")
             if older is not None:
                 counters.dropped += 1
             # A replaced item keeps the source's place in the rotation; a new one joins at the back.
-            self._pending[source] = (item, nbytes)
+            since = older.since if older is not None else self.clock()
+            ready = not self.triage or (older is not None and older.ready)
+            self._pending[source] = _Slot(item, nbytes, since, ready, glanced=not self.triage)
             self._bytes += nbytes - freed
-            self._cond.notify()
+            self._cond.notify_all()
             return older is None
 
     def count_unqueued(self, source: str) -> None:
@@ -65,19 +88,56 @@ class LatestFrameQueue(Generic[T]):
             self._counters.setdefault(source, QueueCounters()).received += 1
 
     def take(self, timeout: float | None = None) -> tuple[str, T] | None:
-        """The oldest-waiting source's newest frame; None on timeout or after close()."""
+        """The next source's newest frame ready for inference, by the policy; None on timeout or after close()."""
         with self._cond:
-            if not self._cond.wait_for(lambda: self._pending or self._closed, timeout):
+            if not self._cond.wait_for(lambda: self._any_ready() or self._closed, timeout):
                 return None
-            if not self._pending:
+            waiting = [Waiting(source, slot.since) for source, slot in self._pending.items() if slot.ready]
+            if not waiting:
                 return None
-            source = next(iter(self._pending))  # the oldest waiting
-            if self._last_took_new and self._is_new(source):
-                source = next((s for s in self._pending if not self._is_new(s)), source)
+            if self._last_took_new:  # a new source's first frame takes at most every other turn
+                waiting = [w for w in waiting if not self._is_new(w.source)] or waiting
+            now = self.clock()
+            source = self.policy.choose(waiting, now)
+            self.policy.taken(source, now)
             self._last_took_new = self._is_new(source)
-            item, nbytes = self._pending.pop(source)
-            self._bytes -= nbytes
-            return source, item
+            slot = self._pending.pop(source)
+            self._bytes -= slot.nbytes
+            return source, slot.item
+
+    def _any_ready(self) -> bool:
+        return any(slot.ready for slot in self._pending.values())
+
+    def take_untriaged(self, timeout: float | None = None) -> tuple[str, T] | None:
+        """A frame not yet glanced at (it stays queued: ``settle`` says what becomes of it); None on timeout or
+        after close()."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._unglanced() is not None or self._closed, timeout):
+                return None
+            source = self._unglanced()
+            if source is None:
+                return None
+            slot = self._pending[source]
+            slot.glanced = True
+            return source, slot.item
+
+    def _unglanced(self) -> str | None:
+        return next((source for source, slot in self._pending.items() if not slot.glanced), None)
+
+    def settle(self, source: str, item: T, reused: bool) -> bool:
+        """The glance's verdict on ``item``: reused (it leaves the queue) or ready for inference. False if the
+        item is no longer queued (replaced by a newer frame, taken, or its source forgotten): nothing changed."""
+        with self._cond:
+            slot = self._pending.get(source)
+            if slot is None or slot.item is not item:
+                return False
+            if reused:
+                del self._pending[source]
+                self._bytes -= slot.nbytes
+            else:
+                slot.ready = True
+                self._cond.notify_all()
+            return True
 
     def _is_new(self, source: str) -> bool:
         """Its first frame: nothing received from it before (forgotten sources start again)."""
@@ -86,9 +146,10 @@ class LatestFrameQueue(Generic[T]):
     def forget(self, source: str) -> None:
         """Drop the source's pending frame and counters (a source the service no longer tracks)."""
         with self._cond:
-            _, nbytes = self._pending.pop(source, (None, 0))
-            self._bytes -= nbytes
+            slot = self._pending.pop(source, None)
+            self._bytes -= slot.nbytes if slot is not None else 0
             self._counters.pop(source, None)
+        self.policy.forget(source)
 
     def discard_pending(self) -> dict[str, int]:
         """Drop every pending frame (shutdown); returns how many per source, for the caller to count by reason."""

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from gcdtrav.schemas.messages import SourceStatus
 from gcdtrav.service.runtime.latest_queue import QueueCounters
+from gcdtrav.service.runtime.share import Share
 
 LATENCY_WINDOW = 1000
 RATE_WINDOW_S = 10.0
@@ -37,6 +38,7 @@ class SourceStats:
     inference_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
     stale: int = 0  # of the dropped: captured over max_frame_age_s ago
     credits: int = 0
+    unchanged: int = 0  # not inferred: the view had not changed, the last maps were published again
     age_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))  # capture to intake
     arrivals: deque[tuple[float, int]] = field(default_factory=deque)  # (monotonic time, bytes), last 10 s
 
@@ -87,6 +89,11 @@ class ServiceStats:
             stats.last_seq = seq
             stats.latency_ms.append(latency_ms)
             stats.inference_ms.append(inference_ms)
+
+    def unchanged(self, name: str) -> None:
+        """A frame whose view had not changed: not inferred, the source's last maps published again."""
+        with self._lock:
+            self.sources.setdefault(name, SourceStats()).unchanged += 1
 
     def dropped(self, name: str, reason: str, count: int = 1) -> None:
         """Count good frames that will never be published, by reason."""
@@ -145,17 +152,20 @@ class ServiceStats:
         extra = f" (+{suppressed} similar since last report)" if suppressed else ""
         self._log.warning("%s%s", message, extra, exc_info=error)
 
-    def snapshot(self, queued: Mapping[str, QueueCounters]) -> StatsSnapshot:
-        """Per source: the queue's counts (received, dropped) with this object's (processed, rejected, latency)."""
+    def snapshot(self, queued: Mapping[str, QueueCounters], shares: Mapping[str, Share] | None = None) -> StatsSnapshot:
+        """Per source: the queue's counts (received, dropped) with this object's (processed, rejected, latency)
+        and the scheduler's weight and share."""
+        shares = shares or {}
         with self._lock:
             sources = {
-                name: self._source_status(queued.get(name), name) for name in sorted(set(queued) | set(self.sources))
+                name: self._source_status(queued.get(name), name, shares.get(name))
+                for name in sorted(set(queued) | set(self.sources))
             }
             replaced = sum(counters.dropped for counters in queued.values())
             dropped = {**({"replaced": replaced} if replaced else {}), **self.dropped_by_reason}
             return StatsSnapshot(sources, dict(self.rejected_by_reason), dropped, list(self.last_errors))
 
-    def _source_status(self, queued: QueueCounters | None, name: str) -> SourceStatus:
+    def _source_status(self, queued: QueueCounters | None, name: str, share: Share | None) -> SourceStatus:
         stats = self.sources.get(name, SourceStats())
         return SourceStatus(
             received=queued.received if queued else 0,
@@ -169,4 +179,7 @@ class ServiceStats:
             bytes_per_s=stats.bytes_per_s(time.monotonic()),
             frame_age_ms=age_percentiles(stats.age_ms),
             credits=stats.credits,
+            unchanged=stats.unchanged,
+            weight=share.weight if share is not None else None,
+            share=share.share if share is not None else None,
         )

@@ -17,14 +17,16 @@ from gcdtrav.service.cpus import usable_cpus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.admission import Admission
+from gcdtrav.service.runtime.change import Glance
 from gcdtrav.service.runtime.frame_age import FrameAgeLimit
 from gcdtrav.service.runtime.frames import InferredFrame, PendingFrame, ProcessedFrame
-from gcdtrav.service.runtime.freshness import Dropped, FrameGate
+from gcdtrav.service.runtime.freshness import Dropped, FrameGate, check_stamp
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.runtime.triage import Triage
 
 log = logging.getLogger("gcdtrav.service")
 _R = TypeVar("_R")
@@ -44,6 +46,7 @@ class FrameWorker:
         progress: ProgressMonitor | None = None,
         gate: FrameGate | None = None,
         admission: Admission | None = None,
+        triage: Triage | None = None,
     ) -> None:
         self.frames, self.pipeline, self.history, self.stats = frames, pipeline, history, stats
         self.sources, self.settings, self.publish = sources, settings, publish
@@ -52,6 +55,7 @@ class FrameWorker:
         self.progress = progress or ProgressMonitor(float("inf"))  # beaten round every loop and after every step
         self.admission = admission  # a new source takes a slot once its frame decodes; None: every source has one
         self.gate = gate  # stamps and ownership before inference; ownership and age again before publishing
+        self.triage = triage  # frames glanced at on their own thread first: unchanged views reuse the last maps
         # With a CPU left over by torch (threads below the CPUs this process may use), a second thread
         # runs the last frame's engine work, encoding and publishing while the next frame is decoded and
         # inferred: +9 % frames/s with 1 torch thread on 2 cores (benchmarks/README.md). When torch has every
@@ -63,6 +67,8 @@ class FrameWorker:
         self._threads = [threading.Thread(target=self._infer_loop, name="gcdtrav-infer", daemon=True)]
         if self.overlap_outputs:
             self._threads.append(threading.Thread(target=self._output_loop, name="gcdtrav-output", daemon=True))
+        if triage is not None:
+            self._threads.append(threading.Thread(target=self._triage_loop, name="gcdtrav-triage", daemon=True))
 
     def start(self) -> None:
         for thread in self._threads:
@@ -96,6 +102,21 @@ class FrameWorker:
             else:
                 self._guarded(pending, self._finish, inferred)
         self._inferred.put(None)  # after the frame already handed on
+
+    def _triage_loop(self) -> None:
+        assert self.triage is not None
+        while not self._stopping.is_set():
+            reusable = self.triage.next_reusable(timeout=0.25)
+            if reusable is not None:
+                self._guarded(reusable[0], self._reuse, *reusable)
+
+    def _reuse(self, pending: PendingFrame, seen: Glance) -> None:
+        """The source's last maps again, for an unchanged frame: checked like a frame about to be published."""
+        assert self.triage is not None
+        if self.gate is not None:
+            check_stamp(seen.stamp, pending.received_at, self.gate.max_stamp_skew_s)
+            self.gate.before_publish(pending, seen.stamp)
+        self.triage.reuse(pending, seen)
 
     def _output_loop(self) -> None:
         while (item := self._inferred.get()) is not None:
@@ -177,8 +198,11 @@ class FrameWorker:
             source, maps.weights, result.anchors, image.stamp, image.frame_id, (width, height), maps.match
         )
         self._check_gate(inferred)  # the engine took time too
-        if not self.publish(ProcessedFrame(inferred, result, record)):
+        done = ProcessedFrame(inferred, result, record)
+        if not self.publish(done):
             self.stats.dropped(source, "shutdown")  # finished after the outputs closed
             return
         latency_ms = (time.time() - inferred.pending.received_at) * 1e3
         self.stats.processed(source, record.seq, latency_ms, result.inference_ms)
+        if self.triage is not None:
+            self.triage.inferred(done)
