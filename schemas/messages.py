@@ -209,8 +209,9 @@ class CreditGrant(Message):
     grant: int = Field(description="Credits this instance granted the source so far, from 0.")
     reason: str = Field(
         description="What freed the slot: 'taken' (the frame went to inference), 'unchanged' (not inferred, its "
-        "view had not changed: the last maps went out again), 'stale' (older than max_frame_age_s) or 'refused' "
-        "(rejected at intake).",
+        "view had not changed: the last maps went out again), 'refresh' (an unchanged view past max_reuse_s waits "
+        "for inference; later unchanged frames are answered meanwhile), 'stale' (older than max_frame_age_s) or "
+        "'refused' (rejected at intake).",
     )
     granted_at: float = Field(description="The service's clock, s since epoch.")
     model_input: tuple[int, int] = Field(

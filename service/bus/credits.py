@@ -15,7 +15,7 @@ import zenoh
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import MSGPACK_ENCODING
 from gcdtrav.service.bus.entities import undeclare_all
-from gcdtrav.service.runtime.credits import TAKEN, UNCHANGED, CreditLedger, FrameTimes
+from gcdtrav.service.runtime.credits import TAKEN, CreditLedger, FrameTimes
 from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.stats import ServiceStats
 
@@ -51,9 +51,10 @@ class CreditPublisher:
     def taken(self, pending: PendingFrame) -> None:
         self.freed(pending.source, TAKEN, FrameTimes(pending.stamp, pending.sent_at, pending.received_at))
 
-    def reused(self, pending: PendingFrame) -> None:
-        """The frame was not inferred (its view had not changed) and the last maps went out again for it."""
-        self.freed(pending.source, UNCHANGED, FrameTimes(pending.stamp, pending.sent_at, pending.received_at))
+    def answered(self, pending: PendingFrame, reason: str) -> None:
+        """The frame freed its slot without being taken: answered with the last maps (``unchanged``), or
+        waiting for its refresh (``refresh``)."""
+        self.freed(pending.source, reason, FrameTimes(pending.stamp, pending.sent_at, pending.received_at))
 
     def forget(self, source: str) -> None:
         self.ledger.forget(source)

@@ -127,7 +127,7 @@ class TraversabilityService:
             self.progress,
             gate,
             self.admission,
-            Triage(self.queue, self.reuse, settings, self.stats, self._republish, self.credits.reused)
+            Triage(self.queue, self.reuse, settings, self.stats, self._republish, self.credits.answered)
             if self.queue.triage
             else None,
         )

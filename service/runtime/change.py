@@ -24,7 +24,7 @@ from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.frames import PendingFrame
 from numpy.typing import NDArray
 
-MIN_CONTRAST = 2.0  # grey levels: below this a view is flat (a lens cap, darkness); no division by noise
+MIN_CONTRAST = 8.0  # grey levels: a flatter view (a lens cap, darkness) is not stretched, its noise not amplified
 JPEG_MAGIC = b"\xff\xd8"
 
 Thumbnail = NDArray[np.float32]  # (rows, columns) normalised block means

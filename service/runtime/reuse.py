@@ -22,8 +22,9 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from gcdtrav.schemas.compute_share import ReuseSettings, ScheduleSettings
@@ -39,6 +40,7 @@ from gcdtrav.service.runtime.change import (
 from gcdtrav.service.runtime.frames import PendingFrame
 from numpy.typing import NDArray
 
+GLANCES_KEPT = 2
 MOTION_TIME_CONSTANT_S = 1.0  # the motion estimate follows the glances with this time constant
 
 UNCHANGED, CHANGED, POSE, FIRST, MAX_REUSE, OFF = "unchanged", "changed", "pose", "first", "max_reuse", "off"
@@ -62,7 +64,9 @@ class _View:
     previous_at: float = -math.inf
     previous_pose: Pose2D | None = None
     motion: float = 0.0  # 0..1
-    glanced: tuple[PendingFrame, Thumbnail] | None = None  # the last frame glanced at, for the reference
+    # The last frames glanced at, for the reference: the one inferred is the newest ready one, maybe one
+    # arrival behind the newest glance.
+    glanced: deque[tuple[PendingFrame, Thumbnail]] = field(default_factory=lambda: deque(maxlen=GLANCES_KEPT))
 
 
 class ReuseTracker:
@@ -80,19 +84,23 @@ class ReuseTracker:
         self._views: dict[str, _View] = {}
         self._lock = threading.Lock()
 
-    def judge(self, source: str, pending: PendingFrame, glance: Glance) -> Verdict:
-        """Reuse the source's last maps for this frame, or infer it (and how urgently)."""
+    def judge(self, source: str, pending: PendingFrame, glance: Glance, refresh_waiting: bool = False) -> Verdict:
+        """Reuse the source's last maps for this frame, or infer it (and how urgently). ``refresh_waiting``: a
+        frame of the source already waits for inference; an unchanged view past ``max_reuse_s`` is then
+        reused while that frame waits, instead of replacing it."""
         now, pose = self.clock(), self.pose_of(source)
         with self._lock:
             view = self._views.setdefault(source, _View())
             self._follow_motion(view, glance.thumbnail, pose, now)
-            view.glanced = (pending, glance.thumbnail)
-            verdict = self._verdict(view, glance.thumbnail, pose, now)
+            view.glanced.append((pending, glance.thumbnail))
+            verdict = self._verdict(view, glance.thumbnail, pose, now, refresh_waiting)
             if verdict.reuse:
                 view.reusing = True
             return verdict
 
-    def _verdict(self, view: _View, thumbnail: Thumbnail, pose: Pose2D | None, now: float) -> Verdict:
+    def _verdict(
+        self, view: _View, thumbnail: Thumbnail, pose: Pose2D | None, now: float, refresh_waiting: bool
+    ) -> Verdict:
         if view.reference is None:
             return Verdict(False, FIRST, 1.0)
         moved = moved_fraction(view.reference, thumbnail, self.settings.block_threshold)
@@ -103,7 +111,7 @@ class ReuseTracker:
             return Verdict(False, CHANGED if changed else POSE, moved, urgent=view.reusing)
         if not self.settings.enabled:
             return Verdict(False, OFF, moved)
-        if now - view.inferred_at >= self.settings.max_reuse_s:
+        if now - view.inferred_at >= self.settings.max_reuse_s and not refresh_waiting:
             return Verdict(False, MAX_REUSE, moved)
         return Verdict(True, UNCHANGED, moved)
 
@@ -131,11 +139,9 @@ class ReuseTracker:
         now, pose = self.clock(), self.pose_of(source)
         with self._lock:
             view = self._views.setdefault(source, _View())
-            glanced = view.glanced
-            if glanced is not None and glanced[0] is pending:
-                thumbnail = glanced[1]
-            else:  # inferred without a glance (taken before its glance finished): from the decoded image
-                thumbnail = thumbnail_of_rgb(image, self.settings.blocks)
+            kept = next((thumbnail for frame, thumbnail in view.glanced if frame is pending), None)
+            # Not glanced at (no triage for it, or its glance forgotten): from the decoded image, the same means.
+            thumbnail = kept if kept is not None else thumbnail_of_rgb(image, self.settings.blocks)
             view.reference, view.reference_pose, view.inferred_at = thumbnail, pose, now
             view.reusing = False
 

@@ -13,16 +13,19 @@ map, the ground ahead of a forward camera. In order:
 2. **a changed view after reuse** (urgent: its consumers hold maps of a view that is gone) goes next, but
    takes at most every other turn while other frames wait, so views that keep flipping cannot starve the
    rest;
-3. otherwise the largest ``weight * (now - last inferred)``: its need times its maps' age. With every source
-   always waiting, source i is served when its product reaches the common level, every ``L / w_i``
-   seconds: inference rates in proportion to the weights. A source that was not waiting (parked, its
-   views reused) comes back with its maps' real age, not behind the others.
+3. otherwise weighted fair queueing (a virtual clock, as in stride scheduling): each turn a source takes
+   costs it ``1 / weight`` of virtual time; the waiting source whose next turn would finish first
+   (``max(virtual now, its last finish) + 1 / weight``) goes, and virtual now moves to that turn's start.
+   Sources that always wait get turns in proportion to their weights; a source that was not waiting
+   (parked, its views reused) comes back at virtual now, neither ahead (no credit banked while idle) nor
+   behind. Weights are read at each choice, so a robot that starts moving gets its share at once.
 
 The queue keeps its own rule on top: a new source's first frame takes at most every other turn.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections import deque
@@ -128,7 +131,9 @@ class NeedShare:
     ) -> None:
         self.settings, self.motion_of = settings, motion_of
         self._log = _TakeLog(clock)
-        self._last_served: dict[str, float] = {}
+        self._finish: dict[str, float] = {}  # virtual time each source's last turn finished
+        self._start: dict[str, float] = {}  # virtual start of a waiting source's next turn, fixed when it began
+        self._virtual_now = 0.0
         self._ambiguity: dict[str, float] = {}
         self._urgent: set[str] = set()
         self._last_took_urgent = False
@@ -149,14 +154,25 @@ class NeedShare:
             urgent = [w for w in waiting if w.source in self._urgent]
             others = [w for w in waiting if w.source not in self._urgent]
             urgent_turn = bool(urgent) and (not self._last_took_urgent or not others)
-            served = dict(self._last_served)
         if urgent_turn:
             return min(urgent, key=lambda w: w.since).source
-        return max(others, key=lambda w: self.weight(w.source) * (now - served.get(w.source, w.since))).source
+        return min(others, key=lambda w: (self._turn(w.source)[1], w.since)).source
+
+    def _turn(self, source: str) -> tuple[float, float]:
+        """(start, finish) in virtual time of the source's next turn; its start is fixed when first asked."""
+        weight = self.weight(source)
+        with self._lock:
+            start = self._start.get(source)
+            if start is None:
+                start = self._start[source] = max(self._virtual_now, self._finish.get(source, -math.inf))
+        return start, start + 1.0 / weight
 
     def taken(self, source: str, now: float) -> None:
+        start, finish = self._turn(source)
         with self._lock:
-            self._last_served[source] = now
+            del self._start[source]
+            self._finish[source] = finish
+            self._virtual_now = max(self._virtual_now, start)
             self._last_took_urgent = source in self._urgent
             self._urgent.discard(source)
         self._log.add(source, now)
@@ -172,7 +188,7 @@ class NeedShare:
     def shares(self) -> dict[str, Share]:
         measured = self._log.shares()
         with self._lock:
-            known = set(self._last_served) | set(self._ambiguity)
+            known = set(self._finish) | set(self._ambiguity)
         return {
             source: Share(round(self.weight(source), 3), round(measured.get(source, 0.0), 3))
             for source in sorted(known | set(measured))
@@ -180,7 +196,8 @@ class NeedShare:
 
     def forget(self, source: str) -> None:
         with self._lock:
-            self._last_served.pop(source, None)
+            self._finish.pop(source, None)
+            self._start.pop(source, None)
             self._ambiguity.pop(source, None)
             self._urgent.discard(source)
         self._log.forget(source)

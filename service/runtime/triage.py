@@ -12,9 +12,10 @@ from collections.abc import Callable
 
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.runtime.change import Glance, glance
+from gcdtrav.service.runtime.credits import REFRESH, UNCHANGED
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
-from gcdtrav.service.runtime.reuse import ReuseTracker
+from gcdtrav.service.runtime.reuse import MAX_REUSE, ReuseTracker
 from gcdtrav.service.runtime.share import SharePolicy, ambiguity_of
 from gcdtrav.service.runtime.stats import ServiceStats
 
@@ -29,10 +30,11 @@ class Triage:
         settings: ServiceSettings,
         stats: ServiceStats,
         republish: Republish,
-        on_reused: Callable[[PendingFrame], None] = lambda pending: None,
+        on_freed: Callable[[PendingFrame, str], None] = lambda pending, reason: None,
     ) -> None:
         self.frames, self.tracker, self.settings, self.stats = frames, tracker, settings, stats
-        self.republish, self.on_reused = republish, on_reused
+        self.republish = republish
+        self.on_freed = on_freed  # the credits: the source may send its next frame (service/runtime/credits.py)
 
     @property
     def policy(self) -> SharePolicy:
@@ -51,11 +53,12 @@ class Triage:
         except Exception:  # the worker decodes it again and counts why it failed
             self.frames.settle(source, pending, reused=False)
             return None
-        verdict = self.tracker.judge(source, pending, seen)
+        verdict = self.tracker.judge(source, pending, seen, refresh_waiting=self.frames.has_ready(source))
         if not verdict.reuse:
             if verdict.urgent:
                 self.policy.mark_urgent(source)
-            self.frames.settle(source, pending, reused=False)
+            if self.frames.settle(source, pending, reused=False) and verdict.reason == MAX_REUSE:
+                self.on_freed(pending, REFRESH)
             return None
         if not self.frames.settle(source, pending, reused=True):
             return None  # replaced meanwhile: the newer frame is glanced at next
@@ -67,7 +70,7 @@ class Triage:
             self.stats.dropped(pending.source, "shutdown")
             return
         self.stats.unchanged(pending.source)
-        self.on_reused(pending)
+        self.on_freed(pending, UNCHANGED)
 
     def inferred(self, done: ProcessedFrame) -> None:
         """A frame's maps went out: the source's new reference, and its ambiguity ahead for the scheduler."""
