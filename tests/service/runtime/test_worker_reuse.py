@@ -66,10 +66,14 @@ def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
 
 def feed(queue: LatestFrameQueue[PendingFrame], outputs: Outputs, frames: list[np.ndarray], source: str = "r1") -> None:
     """One frame at a time, each answered (inferred or reused) before the next: a robot on credits."""
+
+    def answered() -> int:
+        return len(outputs.inferred) + len(outputs.reused)
+
     for image in frames:
-        answered = len(outputs.inferred) + len(outputs.reused)
+        before = answered()
         queue.put(source, jpeg_frame(image, source))
-        until(lambda: len(outputs.inferred) + len(outputs.reused) > answered)
+        until(lambda before=before: answered() > before)
 
 
 def accounted(stats: ServiceStats, queue: LatestFrameQueue[PendingFrame]) -> dict[str, tuple[int, int]]:
@@ -108,7 +112,7 @@ def test_reuse_off_infers_every_frame() -> None:
 
 def test_all_parked_and_all_moving_are_accounted_for_under_load() -> None:
     """Several sources streaming faster than the answers: replaced frames are dropped, none lost."""
-    worker, queue, stats, outputs = serving()
+    worker, queue, stats, _outputs = serving()
     worker.start()
     try:
         for k in range(30):
