@@ -87,7 +87,12 @@ class TraversabilityService:
             else None
         )
         grids = self.grids
-        self.reuse = ReuseTracker(settings.reuse, settings.schedule, grids.pose_of if grids else lambda source: None)
+        self.reuse = ReuseTracker(
+            settings.reuse,
+            settings.schedule,
+            grids.pose_of if grids else lambda source: None,
+            anchors_version=lambda: pipeline.anchors.version,
+        )
         self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
             round(settings.pending_budget_mb * 1e6),
             policy=policy_for(settings.schedule, self.reuse.motion),

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from gcdtrav.schemas.compute_share import ReuseSettings
+from gcdtrav.schemas.images import peek_image_size
 from gcdtrav.schemas.inputs import decode_payload
 from gcdtrav.schemas.messages import ImageEnvelope, MessageError, PixelEncoding, Pose2D, peek_fields
 from gcdtrav.service.ros import cdr as ros_io
@@ -37,6 +38,7 @@ class Glance:
     thumbnail: Thumbnail
     stamp: float
     frame_id: str
+    size: tuple[int, int] | None = None  # (width, height) of the image; None: not known without decoding
 
 
 def thumbnail_of_grey(grey: NDArray[np.uint8], blocks: tuple[int, int]) -> Thumbnail:
@@ -56,14 +58,19 @@ def glance(pending: PendingFrame, max_bytes: int, max_pixels: int, blocks: tuple
         if pending.ros.msgtype is None:
             raise ValueError(f"no message type for '{pending.key}'")
         frame = ros_io.decode_ros_image(pending.payload, pending.ros.msgtype, max_pixels)
-        return Glance(thumbnail_of_rgb(frame.image, blocks), frame.stamp, frame.frame_id)
+        return Glance(thumbnail_of_rgb(frame.image, blocks), frame.stamp, frame.frame_id, size_of(frame.image))
     jpeg, stamp, frame_id = _jpeg_inside(pending)
     if jpeg is not None:
         grey = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_REDUCED_GRAYSCALE_8)
         if grey is not None:
-            return Glance(thumbnail_of_grey(np.asarray(grey, np.uint8), blocks), stamp, frame_id)
+            return Glance(thumbnail_of_grey(np.asarray(grey, np.uint8), blocks), stamp, frame_id, peek_image_size(jpeg))
     decoded = decode_payload(pending.payload, pending.encoding, pending.received_at, max_bytes, max_pixels)
-    return Glance(thumbnail_of_rgb(decoded.image, blocks), decoded.stamp, decoded.frame_id)
+    return Glance(thumbnail_of_rgb(decoded.image, blocks), decoded.stamp, decoded.frame_id, size_of(decoded.image))
+
+
+def size_of(image: NDArray[np.uint8]) -> tuple[int, int]:
+    """(width, height)."""
+    return int(image.shape[1]), int(image.shape[0])
 
 
 def _jpeg_inside(pending: PendingFrame) -> tuple[bytes | None, float, str]:

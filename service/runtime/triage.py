@@ -74,6 +74,6 @@ class Triage:
 
     def inferred(self, done: ProcessedFrame) -> None:
         """A frame's maps went out: the source's new reference, and its ambiguity ahead for the scheduler."""
-        self.tracker.inferred(done.source, done.pending, done.image.image)
+        self.tracker.inferred(done.source, done.pending, done.image.image, done.result.anchors.version)
         maps = done.result.maps
         self.policy.set_ambiguity(done.source, ambiguity_of(maps.uncertainty, maps.match, self.settings.schedule))

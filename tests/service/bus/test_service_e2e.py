@@ -57,6 +57,7 @@ class Running:
 @contextmanager
 def started_service(backend, state_dir: Path, **settings_kw: object) -> Iterator[tuple[TraversabilityService, int]]:  # type: ignore[no-untyped-def]
     settings_kw.setdefault("max_frame_age_s", None)  # some frames are stamped in 1970
+    settings_kw.setdefault("reuse", {"enabled": False})  # one image again and again: inferred each time here
     settings = ServiceSettings(state_dir=state_dir, instance="test-1", **settings_kw)  # type: ignore[arg-type]
     with in_process_service(backend, settings, starting_anchor_set(settings)) as (service, port):
         yield service, port

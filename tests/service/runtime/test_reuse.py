@@ -10,7 +10,17 @@ from gcdtrav.schemas.images import decode_image
 from gcdtrav.schemas.messages import Pose2D
 from gcdtrav.service.runtime.change import glance
 from gcdtrav.service.runtime.frames import PendingFrame
-from gcdtrav.service.runtime.reuse import CHANGED, FIRST, MAX_REUSE, OFF, POSE, UNCHANGED, ReuseTracker, Verdict
+from gcdtrav.service.runtime.reuse import (
+    ANCHORS,
+    CHANGED,
+    FIRST,
+    MAX_REUSE,
+    OFF,
+    POSE,
+    UNCHANGED,
+    ReuseTracker,
+    Verdict,
+)
 from scenes import flicker, jpeg_frame, noisy, scene, with_person
 
 LIMITS = (20_000_000, 40_000_000)
@@ -30,7 +40,10 @@ class Robot:
     def __init__(self, settings: ReuseSettings | None = None, with_pose: bool = False) -> None:
         self.clock = Clock()
         self.pose: Pose2D | None = Pose2D(stamp=0.0, x=0.0, y=0.0, yaw=0.0) if with_pose else None
-        self.tracker = ReuseTracker(settings or ReuseSettings(), ScheduleSettings(), lambda s: self.pose, self.clock)
+        self.anchors = "v1"
+        self.tracker = ReuseTracker(
+            settings or ReuseSettings(), ScheduleSettings(), lambda s: self.pose, self.clock, lambda: self.anchors
+        )
         self.settings = self.tracker.settings
 
     def frame(self, image: np.ndarray, after_s: float = 0.2, refresh_waiting: bool = False) -> Verdict:
@@ -43,7 +56,7 @@ class Robot:
         return verdict
 
     def infer(self, pending: PendingFrame) -> None:
-        self.tracker.inferred("r1", pending, decode_image(pending.payload))
+        self.tracker.inferred("r1", pending, decode_image(pending.payload), self.anchors)
 
 
 def test_the_first_frame_is_inferred_then_the_same_view_is_reused() -> None:
@@ -66,6 +79,8 @@ def test_max_reuse_s_reached_with_a_refresh_already_waiting_keeps_answering_with
     robot.frame(view)
     robot.clock.now += 1.0
     assert robot.frame(view, refresh_waiting=True).reuse
+    robot.clock.now += ScheduleSettings().max_wait_s  # the refresh never served: a hung worker
+    assert robot.frame(view, refresh_waiting=True).reason == MAX_REUSE
 
 
 def test_a_person_walking_in_is_inferred_at_the_next_frame_and_is_urgent_after_reuse() -> None:
@@ -93,6 +108,14 @@ def test_turning_in_place_before_a_blank_wall_is_a_change() -> None:
     assert robot.frame(wall).reason == UNCHANGED  # the new reference has the new heading
 
 
+def test_a_pose_that_appears_after_the_reference_is_a_change() -> None:
+    robot, view = Robot(), scene()
+    robot.frame(view)
+    robot.pose = Pose2D(stamp=1.0, x=2.0, y=0.0, yaw=0.0)
+    assert robot.frame(view).reason == POSE
+    assert robot.frame(view).reason == UNCHANGED
+
+
 def test_reuse_off_infers_every_frame() -> None:
     robot, view = Robot(ReuseSettings(enabled=False)), scene()
     reasons = [robot.frame(view).reason for _ in range(4)]
@@ -118,3 +141,11 @@ def test_forget_starts_the_source_again() -> None:
     robot.frame(view)
     robot.tracker.forget("r1")
     assert robot.frame(view).reason == FIRST
+
+
+def test_an_anchor_swap_infers_the_next_frame_of_an_unchanged_view() -> None:
+    robot, view = Robot(), scene()
+    robot.frame(view)
+    robot.anchors = "v2"
+    assert robot.frame(view).reason == ANCHORS
+    assert robot.frame(view).reason == UNCHANGED

@@ -46,13 +46,14 @@ class Outputs:
 def serving(**settings: object):  # type: ignore[no-untyped-def]
     config = ServiceSettings.model_validate(settings)
     stats, outputs = ServiceStats(LOG), Outputs()
-    tracker = ReuseTracker(config.reuse, config.schedule)
+    run = pipeline()
+    tracker = ReuseTracker(config.reuse, config.schedule, anchors_version=lambda: run.anchors.version)
     queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
         policy=policy_for(config.schedule, tracker.motion), triage=True
     )
     triage = Triage(queue, tracker, config, stats, outputs.republish, lambda p, reason: outputs.freed.append(reason))
     worker = FrameWorker(
-        queue, pipeline(), FrameHistory(2), stats, SourceTracker(8, 60), config, outputs.publish, triage=triage
+        queue, run, FrameHistory(2), stats, SourceTracker(8, 60), config, outputs.publish, triage=triage
     )
     return worker, queue, stats, outputs
 
