@@ -250,7 +250,7 @@ def test_latest_only_under_load(tiny_backend, tmp_path: Path, threads: int | Non
                     client.publish_image("steady", image)
                 queued.append(len(service.queue))
                 time.sleep(0.005)
-            assert max(queued) <= 2  # one slot per source, whatever the rate
+            assert max(queued) <= 4  # per source the newest arrival and the newest ready frame, whatever the rate
             assert wait_until(lambda: len(service.queue) == 0 and not _busy(service), 10)
             time.sleep(0.3)
             status = service.status()
