@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the repository's tools/, not in the wheel
 COMMAND_TIMEOUT_S = 240
 SERVE_START_S = 120
-SERVE_PORT = 7447  # gcdtrav serve's default listen port (service/cli.py DEFAULT_SERVE_LISTEN)
+SERVE_PORT = 7447  # gcdtrav serve's default listen port (service/commands/cli.py DEFAULT_SERVE_LISTEN)
 ALLOWED_IN_HOME = (".cache/gcdtrav/", ".local/state/gcdtrav/")
 
 

@@ -38,7 +38,7 @@ import zenoh
 from gcdtrav.client import Maps, ServiceError, TraversabilityClient, zenoh_config
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.images import encode_jpeg
-from gcdtrav.service.bench import bench_image
+from gcdtrav.service.commands.bench import bench_image
 
 from tools.loopback import INFER_EVERY_FRAME, SimulatedRobots, free_port, wait_for_statuses
 

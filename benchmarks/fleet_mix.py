@@ -43,9 +43,9 @@ import cv2
 import numpy as np
 import zenoh
 from gcdtrav.client import TraversabilityClient, zenoh_config
-from gcdtrav.schemas.compute_share import ReuseSettings, ScheduleSettings
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.messages import peek_fields
+from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
 
 from tools.loopback import free_port, service_processes, wait_for_statuses
 

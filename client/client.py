@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import zenoh
 from gcdtrav.client.freshness import FreshnessWatch, Staleness
-from gcdtrav.client.source_info import put_identified
+from gcdtrav.client.session.source_info import put_identified
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.images import (
     decode_age_png,

@@ -9,7 +9,7 @@ import argparse
 import sys
 
 from gcdtrav.client import ServiceError, TraversabilityClient, add_zenoh_arguments, zenoh_config_from_args
-from gcdtrav.client.operator import describe  # `gcdtrav probe SOURCE X Y` prints the same
+from gcdtrav.client.commands.operator import describe  # `gcdtrav probe SOURCE X Y` prints the same
 
 
 def main() -> int:

@@ -62,7 +62,7 @@ def test_robot_planner_and_operator_examples(tiny_backend, tmp_path: Path) -> No
         missing = run_example("planner_probe.py", "--source", "nobody", "--x", "1", "--y", "1", *flags)
         assert missing.returncode == 1 and "unknown source 'nobody'" in missing.stderr
         puddles = str(ROOT / "examples" / "anchors" / "puddles.yaml")  # the operator's command replaced the script
-        command = [sys.executable, "-m", "gcdtrav.service.cli", "anchors", "set", puddles, *flags]
+        command = [sys.executable, "-m", "gcdtrav.service.commands.cli", "anchors", "set", puddles, *flags]
         operator = subprocess.run(command, capture_output=True, text=True, timeout=60)
         assert operator.returncode == 0, operator.stderr
         assert len(service.pipeline.anchors) == 8
@@ -127,7 +127,7 @@ def test_container_health_check_finds_its_instance(tiny_backend, tmp_path: Path)
     from tools.loopback import in_process_service
 
     def health(*args: str) -> subprocess.CompletedProcess[str]:
-        command = [sys.executable, "-m", "gcdtrav.client.health", "--timeout", "2", *args]
+        command = [sys.executable, "-m", "gcdtrav.client.commands.health", "--timeout", "2", *args]
         return subprocess.run(command, capture_output=True, text=True, timeout=60)
 
     settings = ServiceSettings(state_dir=tmp_path / "state")  # the default name: {hostname}-{pid}

@@ -50,7 +50,7 @@ def main() -> int:
         hang_while_flagged(Path(flag))
     if full := os.environ.get("FAULTY_SERVE_FULL_DIR"):
         fail_writes_under(Path(full))
-    from gcdtrav.service.cli import main as serve_main
+    from gcdtrav.service.commands.cli import main as serve_main
 
     return serve_main()
 

@@ -62,7 +62,7 @@ def model_input(pipeline: Pipeline) -> tuple[int, int]:
 
 
 def publisher_of(sample: zenoh.Sample) -> str | None:
-    """The publishing session's id if the publisher says (client/source_info.py); None: not capped."""
+    """The publishing session's id if the publisher says (client/session/source_info.py); None: not capped."""
     info = sample.source_info
     return None if info is None else str(info.source_id.zid)
 

@@ -17,10 +17,10 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from gcdtrav.schemas.compute_share import ReuseSettings
 from gcdtrav.schemas.images import peek_image_size
 from gcdtrav.schemas.inputs import decode_payload
 from gcdtrav.schemas.messages import ImageEnvelope, MessageError, PixelEncoding, Pose2D, peek_fields
+from gcdtrav.schemas.settings.share import ReuseSettings
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.frames import PendingFrame
 from numpy.typing import NDArray

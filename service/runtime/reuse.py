@@ -31,8 +31,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-from gcdtrav.schemas.compute_share import ReuseSettings, ScheduleSettings
 from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
 from gcdtrav.service.runtime.change import (
     Glance,
     Thumbnail,

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-from gcdtrav.schemas.compute_share import ScheduleSettings
+from gcdtrav.schemas.settings.share import ScheduleSettings
 from numpy.typing import NDArray
 
 SHARE_WINDOW_S = 10.0

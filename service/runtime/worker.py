@@ -13,7 +13,7 @@ from typing import Any, TypeVar
 
 from gcdtrav.schemas.inputs import DecodedFrame, RejectedInput, decode_payload
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.cpus import usable_cpus
+from gcdtrav.service.backends.cpus import usable_cpus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.admission import Admission

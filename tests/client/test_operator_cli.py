@@ -13,7 +13,7 @@ from zenoh_helpers import connecting_config, first_frame_through, service_reacha
 pytest.importorskip("torch")
 
 from gcdtrav.client import TraversabilityClient
-from gcdtrav.client.operator import anchor_diff
+from gcdtrav.client.commands.operator import anchor_diff
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
@@ -113,7 +113,7 @@ def test_history_and_rollback_survive_a_restart(tiny_backend, tmp_path: Path) ->
         assert too_far.returncode == 1 and "no set 9 step(s) back" in too_far.stderr
     # A restarted service keeps its history (written atomically in the state directory) and clears
     # the temporaries of history writes a crash interrupted.
-    from gcdtrav.service.bus.run import starting_anchor_set
+    from gcdtrav.service.commands.serve import starting_anchor_set
 
     interrupted = settings.state_dir / f".{running.anchor_switch.history_file.name}.x1y2z3.tmp"
     interrupted.write_text('{"instance": "ops-2", "entries": [')

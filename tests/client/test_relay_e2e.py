@@ -26,8 +26,8 @@ pytest.importorskip("torch")
 
 from gcdtrav.client import Maps, TraversabilityClient
 from gcdtrav.client.freshness import Staleness
-from gcdtrav.client.relay import Relay
-from gcdtrav.client.zenoh_args import zenoh_config
+from gcdtrav.client.relay.relay import Relay
+from gcdtrav.client.session.zenoh_args import zenoh_config
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding, RelayHealth
 from gcdtrav.schemas.relay import RelaySettings
@@ -208,7 +208,7 @@ def test_relay_command_is_torch_free_and_checks_its_arguments() -> None:
 
 def test_frames_shrink_to_the_model_and_keep_their_stamp() -> None:
     """The relay's envelope without a bus: a raw frame from a camera key, shrunk, JPEG, stamp kept."""
-    from gcdtrav.client.relay import CameraLink, CapturedFrame
+    from gcdtrav.client.relay.relay import CameraLink, CapturedFrame
     from gcdtrav.schemas.images import decode_image
 
     class FakeRelay:

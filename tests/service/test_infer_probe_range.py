@@ -11,7 +11,7 @@ from conftest import textured_image
 
 pytest.importorskip("torch")
 
-from gcdtrav.service.cli import main
+from gcdtrav.service.commands.cli import main
 
 
 @pytest.mark.parametrize("probe", ["140,10", "10,90", "-1,5"])

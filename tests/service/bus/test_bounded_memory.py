@@ -116,7 +116,7 @@ pytest.importorskip("torch")
 
 from gcdtrav.client import ServiceError, TraversabilityClient  # noqa: E402
 from gcdtrav.schemas.settings import ServiceSettings  # noqa: E402
-from gcdtrav.service.bus.run import starting_anchor_set  # noqa: E402
+from gcdtrav.service.commands.serve import starting_anchor_set  # noqa: E402
 
 from tools.loopback import in_process_service  # noqa: E402
 

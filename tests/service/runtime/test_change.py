@@ -6,9 +6,9 @@ import math
 
 import numpy as np
 import pytest
-from gcdtrav.schemas.compute_share import ReuseSettings
 from gcdtrav.schemas.images import decode_image
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding, Pose2D
+from gcdtrav.schemas.settings.share import ReuseSettings
 from gcdtrav.service.runtime.change import glance, moved_fraction, pose_moved, pose_speeds, thumbnail_of_rgb
 from gcdtrav.service.runtime.frames import PendingFrame
 from scenes import flicker, jpeg_frame, noisy, scene, with_person

@@ -6,7 +6,7 @@ import math
 
 import msgpack
 import pytest
-from gcdtrav.client.ros_camera import compressed_image_cdr
+from gcdtrav.client.relay.ros_camera import compressed_image_cdr
 from gcdtrav.schemas.messages import CreditGrant, ImageEnvelope
 from gcdtrav.service.runtime.credits import REFUSED, STALE, TAKEN, CreditLedger, FrameTimes
 from gcdtrav.service.runtime.frame_age import FrameAgeLimit, input_times, ros_header_stamp

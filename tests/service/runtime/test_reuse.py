@@ -5,9 +5,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from gcdtrav.schemas.compute_share import ReuseSettings, ScheduleSettings
 from gcdtrav.schemas.images import decode_image
 from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
 from gcdtrav.service.runtime.change import glance
 from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.reuse import (

@@ -7,7 +7,7 @@ from collections import Counter
 
 import numpy as np
 import pytest
-from gcdtrav.schemas.compute_share import ScheduleSettings
+from gcdtrav.schemas.settings.share import ScheduleSettings
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.share import NeedShare, RoundRobin, SharePolicy, ambiguity_of
 

@@ -14,7 +14,7 @@ import threading
 from pathlib import Path
 from types import FrameType
 
-from gcdtrav.client.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
+from gcdtrav.client.session.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 INSTALL = "pip install 'gcdtrav[view]'"

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import zenoh
 from gcdtrav.client.client import AnchorSetRejected, ServiceError, TraversabilityClient
-from gcdtrav.client.density_plot import save_distribution, where
-from gcdtrav.client.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
+from gcdtrav.client.commands.density_plot import save_distribution, where
+from gcdtrav.client.session.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.messages import ContextDistribution, ServiceStatus
 

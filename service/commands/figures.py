@@ -1,6 +1,7 @@
-"""Pictures of T, U and context distributions for people: overlays, the paper's Fig. 2.
+"""Pictures of T, U and context distributions for people (`gcdtrav infer`): overlays, the paper's Fig. 2.
 
-The colour maps live in gcdtrav.schemas.images, shared with the torch-free viewer (gcdtrav view).
+The colour maps and the overlay live in gcdtrav.schemas.images, shared with the service's preview and the
+torch-free viewer (gcdtrav view).
 """
 
 from __future__ import annotations
@@ -8,20 +9,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-import cv2
 import numpy as np
-from gcdtrav.client.density_plot import draw_distribution, pyplot
+from gcdtrav.client.commands.density_plot import draw_distribution, pyplot
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.images import colorize_traversability, colorize_uncertainty
+from gcdtrav.schemas.images import colorize_traversability, colorize_uncertainty, overlay
 from gcdtrav.service.runtime.queries import distribution_of
 from numpy.typing import NDArray
 
 __all__ = ["colorize_traversability", "colorize_uncertainty", "overlay", "save_context_figure"]
-
-
-def overlay(image_rgb: NDArray[np.uint8], colours: NDArray[np.uint8], alpha: float = 0.55) -> NDArray[np.uint8]:
-    blended = cv2.addWeighted(image_rgb, 1 - alpha, colours, alpha, 0.0)
-    return np.asarray(blended, dtype=np.uint8)
 
 
 def save_context_figure(

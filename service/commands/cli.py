@@ -1,7 +1,7 @@
 """The `gcdtrav` command: `infer` (offline), `serve` (Zenoh service), `bench` (benchmarks), `doctor` (this
 machine's modes: the first thing to run on a new box), and the torch-free operator commands `status` and
-`anchors` (gcdtrav.client.operator), `view` (Foxglove, gcdtrav.client.view) and `relay` (on the robot,
-gcdtrav.client.relay_command)."""
+`anchors` (gcdtrav.client.commands.operator), `view` (Foxglove, gcdtrav.client.view) and `relay` (on the robot,
+gcdtrav.client.commands.relay)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,9 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from gcdtrav.client import operator, relay_command
-from gcdtrav.client.view import command as view_command
+from gcdtrav.client.commands import operator
+from gcdtrav.client.commands import relay as relay_command
+from gcdtrav.client.commands import view as view_command
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings, Method
 from gcdtrav.schemas.settings import PRECISIONS, SettingsError
@@ -114,7 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run the traversability service on the Zenoh bus. Settings: "
         "defaults < --settings YAML < GCDTRAV_* environment < flags.",
     )
-    from gcdtrav.client.zenoh_args import add_zenoh_arguments
+    from gcdtrav.client.session.zenoh_args import add_zenoh_arguments
 
     add_zenoh_arguments(serve)
     group = serve.add_argument_group("service")
@@ -197,12 +198,12 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--limit", type=int, default=None, help="only the first N images")
     evaluate.add_argument("--no-figures", action="store_true")
 
-    from gcdtrav.service import bench
+    from gcdtrav.service.commands import bench
 
     bench.build_parser(
         commands.add_parser("bench", help="benchmark every backend mode on this machine", description=bench.__doc__)
     )
-    from gcdtrav.service import doctor
+    from gcdtrav.service.commands import doctor
 
     doctor.build_parser(
         commands.add_parser(
@@ -219,7 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def build_pipeline(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     """Anchors first (cheap to validate), then the model (slow to load)."""
-    from gcdtrav.service.cpus import set_torch_threads
+    from gcdtrav.service.backends.cpus import set_torch_threads
     from gcdtrav.service.pipeline import clipseg_pipeline
 
     anchors = load_anchors(args.anchors)
@@ -231,7 +232,7 @@ def build_pipeline(args: argparse.Namespace):  # type: ignore[no-untyped-def]
 
 
 def cmd_infer(args: argparse.Namespace) -> int:
-    from gcdtrav.service.offline import InferOptions, ProbeOutsideImage, run_infer
+    from gcdtrav.service.commands.infer import InferOptions, ProbeOutsideImage, run_infer
 
     pipeline = build_pipeline(args)
     options = InferOptions(out_dir=args.out, probes=args.probe, save_raw=args.save_raw, figure=args.figure)
@@ -273,8 +274,8 @@ def serve_settings(args: argparse.Namespace):  # type: ignore[no-untyped-def]
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
-    from gcdtrav.client.zenoh_args import zenoh_config_from_args
-    from gcdtrav.service.bus.run import run_service
+    from gcdtrav.client.session.zenoh_args import zenoh_config_from_args
+    from gcdtrav.service.commands.serve import run_service
 
     settings = serve_settings(args)
     try:
@@ -317,7 +318,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     except DatasetError as err:
         print(f"gcdtrav: {err}", file=sys.stderr)
         return EXIT_USAGE
-    from gcdtrav.service.cpus import set_torch_threads
+    from gcdtrav.service.backends.cpus import set_torch_threads
 
     set_torch_threads(None)
     backend = ClipSegBackend(args.model or default_model(), precision=args.precision, cache_dir=args.cache_dir)
@@ -342,13 +343,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from gcdtrav.service import bench
+    from gcdtrav.service.commands import bench
 
     return bench.run(args)
 
 
 def cmd_doctor(args: argparse.Namespace) -> int:
-    from gcdtrav.service import doctor
+    from gcdtrav.service.commands import doctor
 
     return doctor.run(args)
 

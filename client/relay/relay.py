@@ -28,14 +28,14 @@ from typing import Any
 
 import zenoh
 from gcdtrav.client.freshness import FreshnessWatch, Staleness
-from gcdtrav.client.relay_state import ClockEstimate, CreditWindow, RateWindow, downsized
-from gcdtrav.client.ros_camera import (
+from gcdtrav.client.relay.ros_camera import (
     RosImageError,
     decode_ros_image,
     ros_camera_key,
     ros_type_of_key,
 )
-from gcdtrav.client.source_info import put_identified
+from gcdtrav.client.relay.state import ClockEstimate, CreditWindow, RateWindow, downsized
+from gcdtrav.client.session.source_info import put_identified
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.inputs import RejectedInput, decode_payload
 from gcdtrav.schemas.keys import Keys, input_key

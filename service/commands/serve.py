@@ -13,7 +13,7 @@ from typing import NoReturn
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings, SettingsError
-from gcdtrav.service.cpus import set_torch_threads, usable_cpus
+from gcdtrav.service.backends.cpus import set_torch_threads, usable_cpus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.state import load_anchor_state
 
@@ -105,7 +105,7 @@ def run_service(settings: ServiceSettings, config: zenoh.Config, fallback: zenoh
     try:
         service.start()
         if getattr(pipeline.backend, "needs_measurement", False):  # status answers meanwhile: measuring
-            from gcdtrav.service.precision_choice import measure_in_background
+            from gcdtrav.service.backends.precision_choice import measure_in_background
 
             measurement = measure_in_background(pipeline.backend)
         while not stop.wait(0.5):

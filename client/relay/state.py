@@ -1,5 +1,5 @@
 """The relay's decisions, without zenoh: when a camera may send, what the link's clock offset is, how many
-bytes pass, how large a frame goes out. client/relay.py wires them to the bus."""
+bytes pass, how large a frame goes out. client/relay/relay.py wires them to the bus."""
 
 from __future__ import annotations
 

@@ -27,7 +27,7 @@ def max_side(text: str) -> int | str:
 
 
 def add_relay_command(commands: argparse._SubParsersAction) -> None:
-    from gcdtrav.client.zenoh_args import add_zenoh_arguments
+    from gcdtrav.client.session.zenoh_args import add_zenoh_arguments
 
     relay = commands.add_parser(
         "relay",
@@ -87,8 +87,8 @@ def relay_settings(args: argparse.Namespace) -> Any:
 
 def run(args: argparse.Namespace) -> int:
     import zenoh
-    from gcdtrav.client.relay import Relay
-    from gcdtrav.client.zenoh_args import zenoh_config, zenoh_config_from_args
+    from gcdtrav.client.relay.relay import Relay
+    from gcdtrav.client.session.zenoh_args import zenoh_config, zenoh_config_from_args
     from gcdtrav.schemas.relay import RelaySettingsError
 
     try:

@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 from gcdtrav.schemas.images import ImageDecodeError, decode_image, quantize_map, resize_map
-from gcdtrav.service import viz
+from gcdtrav.service.commands import figures as viz
 from gcdtrav.service.pipeline import FrameResult, Pipeline
 from numpy.typing import NDArray
 

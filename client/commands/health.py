@@ -1,7 +1,7 @@
 """Health check for containers and supervisors: exit 0 if this host's service instance answers its status
 and reports itself healthy (its worker progresses: a stalled instance has left the fleet, see stall_after_s).
 
-    python -m gcdtrav.client.health -m client -e tcp/zenoh-router:7447 --no-multicast-scouting
+    python -m gcdtrav.client.commands.health -m client -e tcp/zenoh-router:7447 --no-multicast-scouting
 
 The instance is found by name: ``--instance``, else $GCDTRAV_INSTANCE, else the default name the service
 gives itself on this host (``{hostname}-{pid}``, matched by its ``{hostname}-`` prefix). Torch-free.
@@ -15,7 +15,7 @@ import socket
 import sys
 
 from gcdtrav.client.client import ServiceError, TraversabilityClient
-from gcdtrav.client.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
+from gcdtrav.client.session.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
 
 
 def is_this_instance(name: str, wanted: str | None) -> bool:
@@ -23,7 +23,9 @@ def is_this_instance(name: str, wanted: str | None) -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m gcdtrav.client.health", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(
+        prog="python -m gcdtrav.client.commands.health", description=__doc__.split("\n")[0]
+    )
     add_zenoh_arguments(parser)
     parser.add_argument("--prefix", default="gcdtrav", help="the service's key prefix [gcdtrav]")
     parser.add_argument("--instance", default=os.environ.get("GCDTRAV_INSTANCE"), help="instance name to expect")

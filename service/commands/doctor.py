@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from gcdtrav.service.backends import ModelUnavailableError, default_model
-from gcdtrav.service.cpus import cpu_features, cpu_name, set_torch_threads, usable_cpus
+from gcdtrav.service.backends.cpus import cpu_features, cpu_name, set_torch_threads, usable_cpus
 
 EXIT_OK, EXIT_NO_WEIGHTS = 0, 1
 PACKAGES = ("torch", "transformers", "onnxruntime", "onnx", "eclipse-zenoh", "numpy", "opencv-python-headless")
@@ -81,7 +81,7 @@ def machine_lines() -> list[str]:
 def run(args: argparse.Namespace) -> int:
     from gcdtrav.service.backends.clipseg import ClipSegBackend
     from gcdtrav.service.backends.machine import available_precisions
-    from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, cached_choice, measure_and_store
+    from gcdtrav.service.backends.precision_choice import PARITY_P99_DT_LIMIT, cached_choice, measure_and_store
 
     set_torch_threads(None)  # as infer and serve do: the cached figures are keyed by the threads
     for line in machine_lines():

@@ -24,11 +24,11 @@ from gcdtrav.schemas.anchors import Anchor, AnchorSet, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.images import encode_maps_png16
 from gcdtrav.service.backends.modes import runtime_mode
-from gcdtrav.service.doctor import machine_info
+from gcdtrav.service.backends.precision_choice import PARITY_P99_DT_LIMIT, parity, synthetic_image
+from gcdtrav.service.backends.timing import interleaved_ms
+from gcdtrav.service.commands.doctor import machine_info
 from gcdtrav.service.engine import gcd
 from gcdtrav.service.engine.maps import compute_maps
-from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, parity, synthetic_image
-from gcdtrav.service.timing import interleaved_ms
 from numpy.typing import NDArray
 
 # ---- measurement helpers ---------------------------------------------------------------------------

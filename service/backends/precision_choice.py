@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
+from gcdtrav.service.backends.timing import interleaved_ms
 from gcdtrav.service.engine.maps import compute_maps
-from gcdtrav.service.timing import interleaved_ms
 from numpy.typing import NDArray
 
 log = logging.getLogger(__name__)
@@ -159,8 +159,8 @@ def pick(measurements: list[ModeMeasurement]) -> PrecisionChoice:
 
 def choice_key(backend: Any, modes: list[str]) -> dict[str, Any]:
     import torch
+    from gcdtrav.service.backends.cpus import cpu_features
     from gcdtrav.service.backends.onnx_runtime import checkpoint_digests
-    from gcdtrav.service.cpus import cpu_features
 
     checkpoint = backend.checkpoint_dir
     files = checkpoint_digests(checkpoint) if checkpoint is not None else {}
