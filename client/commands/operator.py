@@ -91,14 +91,18 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
         )
     lines += [
         "",
-        "source                    instance       frames/s  received  processed  dropped  rejected  p50 ms  p99 ms",
+        "source                    instance       frames/s  received  processed  unchanged  dropped  rejected  "
+        "p50 ms  p99 ms  weight  share",
     ]
     for s in statuses:
         for name, src in sorted(s.sources.items()):
             p50, p99 = src.latency_ms.get("p50", "-"), src.latency_ms.get("p99", "-")
+            weight = "-" if src.weight is None else f"{src.weight:.2f}"
+            share = "-" if src.share is None else f"{src.share:.0%}"
             lines.append(
                 f"{name[:25]:<25} {s.instance[:14]:<14} {fps(s.instance, name):>8}  {src.received:>8}  "
-                f"{src.processed:>9}  {src.dropped:>7}  {src.rejected:>8}  {p50:>6}  {p99:>6}"
+                f"{src.processed:>9}  {src.unchanged:>9}  {src.dropped:>7}  {src.rejected:>8}  {p50:>6}  {p99:>6}  "
+                f"{weight:>6}  {share:>5}"
             )
     lines += fleet_warnings(statuses)
     reasons = [f"{s.instance}: {s.precision} ({s.precision_reason})" for s in statuses if s.precision_reason]
