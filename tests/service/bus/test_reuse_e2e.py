@@ -15,7 +15,7 @@ pytest.importorskip("torch")
 
 from gcdtrav.client import Maps, TraversabilityClient
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.bus.run import starting_anchor_set
+from gcdtrav.service.commands.serve import starting_anchor_set
 
 from tools.loopback import in_process_service
 
