@@ -37,6 +37,7 @@ from gcdtrav.schemas.messages import (
     AnchorSetReply,
     CompactMapsMessage,
     ContextDistribution,
+    CreditGrant,
     ErrorReply,
     GridHeader,
     GridMessage,
@@ -47,6 +48,7 @@ from gcdtrav.schemas.messages import (
     MessageError,
     PathReply,
     PixelEncoding,
+    RelayHealth,
     ServiceStatus,
     peek_fields,
 )
@@ -228,11 +230,11 @@ class MapsFreshness:
     def __init__(
         self,
         watch: FreshnessWatch,
-        subscriber: zenoh.Subscriber[None],
+        subscribers: list[zenoh.Subscriber[None]],
         on_change: Callable[[Staleness], None],
         period_s: float,
     ) -> None:
-        self.watch, self._subscriber, self._on_change, self._period_s = watch, subscriber, on_change, period_s
+        self.watch, self._subscribers, self._on_change, self._period_s = watch, subscribers, on_change, period_s
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="gcdtrav-freshness", daemon=True)
         self._thread.start()
@@ -242,10 +244,15 @@ class MapsFreshness:
             for change in self.watch.check():
                 self._on_change(change)
 
+    def reason(self, source: str) -> str | None:
+        """Why the service gives ``source`` no maps, as it last said (a credit, or a relay's health), or None."""
+        return self.watch.reason(source)
+
     def close(self) -> None:
         self._stop.set()
         self._thread.join(5)
-        self._subscriber.undeclare()
+        for subscriber in self._subscribers:
+            subscriber.undeclare()
 
 
 def _optional_map(data: bytes | None) -> NDArray[np.float32] | None:
@@ -392,7 +399,9 @@ class TraversabilityClient:
     ) -> MapsFreshness:
         """Call ``on_change`` when the maps of a source go stale (none newer than ``stale_after_s``, by the
         clock assumption of ``Maps.age_s``; also when none came at all) and when they are fresh again: a robot
-        slows down or stops. ``close()`` the returned watcher to stop."""
+        slows down or stops. A stale change carries the ``reason`` the service gave for the source's frames
+        (e.g. 'stale: captured 3600.0 s ago, ...'), heard from its credits (on the service's bus) or from a
+        relay's health (on the robot's bus). ``close()`` the returned watcher to stop."""
         watch = FreshnessWatch(stale_after_s)
         for source in sources:
             watch.watch(source)
@@ -406,8 +415,24 @@ class TraversabilityClient:
                 except (MessageError, KeyError, TypeError, ValueError):
                     return
 
-        subscriber = self.session.declare_subscriber(self.maps_key("**", compact), observe)
-        return MapsFreshness(watch, subscriber, on_change, period_s)
+        def hear_credit(sample: zenoh.Sample) -> None:
+            source = self.keys.credit_source_of(str(sample.key_expr))
+            if source in sources:
+                with contextlib.suppress(MessageError):
+                    watch.note_reason(source, CreditGrant.unpack(sample.payload.to_bytes()).problem)
+
+        def hear_relay(sample: zenoh.Sample) -> None:
+            with contextlib.suppress(MessageError):
+                health = RelayHealth.unpack(sample.payload.to_bytes())
+                if health.source in sources:
+                    watch.note_reason(health.source, health.problem)
+
+        subscribers = [
+            self.session.declare_subscriber(self.maps_key("**", compact), observe),
+            self.session.declare_subscriber(self.keys.credit("**"), hear_credit),
+            self.session.declare_subscriber(self.keys.relay_health("**"), hear_relay),
+        ]
+        return MapsFreshness(watch, subscribers, on_change, period_s)
 
     def iter_maps(self, selector: str = "**", timeout: float | None = None, limit: int | None = None) -> Iterator[Maps]:
         """Yield decoded maps as they arrive, each newer than the last of its source (``subscribe_maps``); stop

@@ -33,6 +33,39 @@ def test_service_settings_example_is_valid() -> None:
     assert settings.prefix == "gcdtrav" and settings.inputs == ["gcdtrav/in/**"]
 
 
+def test_service_yaml_lists_every_setting() -> None:
+    """The README says deploy/service.yaml lists every setting (it lacked max_frame_age_s): each field of
+    ServiceSettings is a key there, or a commented one for those configured per camera; the fields of the
+    nested sections it sets are keys under them."""
+    import re
+
+    import yaml
+    from gcdtrav.schemas.settings import ServiceSettings
+
+    text = (ROOT / "deploy" / "service.yaml").read_text("utf-8")
+    listed = set(re.findall(r"^#? ?([a-z_]+):", text, re.MULTILINE))
+    assert set(ServiceSettings.model_fields) - listed == set()
+    values = yaml.safe_load(text)
+    for section, model in ServiceSettings.model_fields.items():
+        if isinstance(values.get(section), dict):
+            nested = model.annotation.model_fields  # type: ignore[union-attr]
+            assert set(nested) - set(values[section]) == set(), section
+
+
+def test_the_planning_example_writes_its_figure_where_it_runs(tmp_path: Path) -> None:
+    """It wrote into the checkout's docs/ by default; now into the working directory, or --out."""
+    pytest.importorskip("matplotlib")
+    shipped = ROOT / "docs" / "ambiguity-aware-planning.png"
+    before = shipped.stat().st_mtime_ns
+    script = str(ROOT / "examples" / "ambiguity_aware_planning.py")
+    ran = subprocess.run([sys.executable, script], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr
+    assert (tmp_path / "ambiguity-aware-planning.png").stat().st_size > 10_000
+    elsewhere = run_example("ambiguity_aware_planning.py", "--out", str(tmp_path / "plots" / "p.png"))
+    assert elsewhere.returncode == 0 and (tmp_path / "plots" / "p.png").exists()
+    assert shipped.stat().st_mtime_ns == before
+
+
 def test_example_anchor_set_is_valid() -> None:
     from gcdtrav.schemas.anchors import AnchorSet
 

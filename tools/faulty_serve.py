@@ -36,7 +36,7 @@ def fail_writes_under(directory: Path) -> None:
 
     real_write = state.write_atomically
 
-    def write_atomically(path: Path, text: str) -> None:
+    def write_atomically(path: Path, text: str | bytes) -> None:
         if Path(path).resolve().is_relative_to(directory.resolve()):
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
         real_write(path, text)

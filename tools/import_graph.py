@@ -25,13 +25,14 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE_ROOTS = ("schemas", "client", "service")  # folders mapped to gcdtrav.<name> by setup.py
 
 # The layer table (docs/architecture.md#layers): each layer and the layers it may import. The service's layers
-# stack schemas < engine < backends < pipeline < runtime < bus < commands, with grid, ros and eval beside
-# them; the client stands apart and imports only schemas (it runs on a robot without torch); only the
+# stack schemas < engine < backends < pipeline < runtime < experience < bus < commands, with grid, ros and eval
+# beside them; the client stands apart and imports only schemas (it runs on a robot without torch); only the
 # commands, the top, import the client (`gcdtrav` dispatches the client's commands too).
 _SCHEMAS = "gcdtrav.schemas"
 _ENGINE, _BACKENDS, _PIPELINE = "gcdtrav.service.engine", "gcdtrav.service.backends", "gcdtrav.service.pipeline"
 _GRID, _ROS, _EVAL = "gcdtrav.service.grid", "gcdtrav.service.ros", "gcdtrav.service.eval"
 _RUNTIME, _BUS = "gcdtrav.service.runtime", "gcdtrav.service.bus"
+_EXPERIENCE = "gcdtrav.service.experience"
 LAYERS: dict[str, frozenset[str]] = {
     _SCHEMAS: frozenset(),
     "gcdtrav.service": frozenset({_SCHEMAS}),  # the package's own __init__
@@ -42,9 +43,10 @@ LAYERS: dict[str, frozenset[str]] = {
     _ROS: frozenset({_SCHEMAS, _GRID}),
     _EVAL: frozenset({_SCHEMAS, _ENGINE, _BACKENDS}),
     _RUNTIME: frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS}),
-    _BUS: frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS, _RUNTIME}),
+    _EXPERIENCE: frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _GRID, _ROS, _EVAL, _RUNTIME}),
+    _BUS: frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS, _RUNTIME, _EXPERIENCE}),
     "gcdtrav.service.commands": frozenset(
-        {_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS, _EVAL, _RUNTIME, _BUS, "gcdtrav.client"}
+        {_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS, _EVAL, _RUNTIME, _EXPERIENCE, _BUS, "gcdtrav.client"}
     ),
     "gcdtrav.client": frozenset({_SCHEMAS}),
 }

@@ -1,6 +1,7 @@
 """A context distribution drawn like the paper's Fig. 2: the mixture density, T ± U, and the anchor weights
 with their concepts, axes labelled and a legend. One drawing for `gcdtrav probe --png` and the density panels
-of `gcdtrav infer --figure`. Needs matplotlib (imported on use: the client stays light)."""
+of `gcdtrav infer --figure`, and one text (``describe``) for `gcdtrav probe` and `gcdtrav infer --probe`. Needs
+matplotlib to draw (imported on use: the client stays light)."""
 
 from __future__ import annotations
 
@@ -29,7 +30,28 @@ def where(d: ContextDistribution) -> str:
     """Which patch or region of which frame, or which ground-grid cell, a distribution is of, in words."""
     if d.cell is not None:
         return f"cell {d.cell} at {d.cell_xy} m, {d.observations} pixels"
-    return f"seq={d.seq} " + (f"patch {d.patch}" if d.patch is not None else f"region {d.region}")
+    frame = f"seq={d.seq} " if d.seq is not None else ""
+    if d.patch is not None:
+        return f"{frame}patch (row i={d.patch[0]}, column j={d.patch[1]})"
+    return f"{frame}region {d.region} (i0, j0, i1, j1: rows and columns, end exclusive)"
+
+
+def describe(d: ContextDistribution, pixel: tuple[float, float] | None = None) -> str:
+    """A distribution as text: T, U, shape, and a bar per anchor weight; ``pixel``: the (x, y) asked for."""
+    asked = f"pixel (x={pixel[0]:g}, y={pixel[1]:g}) in " if pixel is not None else ""
+    lines = [
+        f"{d.source} {asked}{where(d)} anchors={d.anchor_set_version}",
+        f"T (mean) = {d.mean:.3f}   U (std) = {d.std:.3f}   modes = {d.modes}   entropy = {d.entropy:.2f} nats",
+        f"skewness = {d.skewness:.2f}   excess kurtosis = {d.excess_kurtosis:.2f}",
+    ]
+    if d.cvar is not None and d.quantile is not None and d.p_below is not None:
+        lines.append(
+            f"CVaR(alpha={d.alpha:g}) = {d.cvar:.3f}   quantile(alpha) = {d.quantile:.3f}   "
+            f"P(T < {d.tau:g}) = {d.p_below:.3f}" + (f"   match = {d.match:.2f}" if d.match is not None else "")
+        )
+    for anchor, weight in zip(d.anchors, d.weights, strict=True):
+        lines.append(f"  {anchor.concept:>14} @ {anchor.position:4.2f}  {weight:6.3f} {'#' * round(weight * 40)}")
+    return "\n".join(lines)
 
 
 def draw_distribution(

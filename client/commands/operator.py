@@ -15,10 +15,10 @@ from pathlib import Path
 
 import zenoh
 from gcdtrav.client.client import AnchorSetRejected, ServiceError, TraversabilityClient
-from gcdtrav.client.commands.density_plot import save_distribution, where
+from gcdtrav.client.commands.density_plot import describe, save_distribution
 from gcdtrav.client.session.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
-from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
-from gcdtrav.schemas.messages import ContextDistribution, ServiceStatus
+from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, anchor_diff
+from gcdtrav.schemas.messages import AnchorHistoryReply, ContextDistribution, ServiceStatus, SourceStatus
 
 COMMANDS = ("status", "anchors", "probe")
 EXIT_OK, EXIT_FAILED = 0, 1
@@ -81,37 +81,57 @@ def one_line(err: BaseException) -> str:
 # ---- status ------------------------------------------------------------------------------------------
 
 
+INSTANCE_ROW = "{:<{w}}  {:>7}  {:<{mw}}  {:>6}  {:>10}  {:>7}"
+SOURCE_ROW = "{:<{w}}  {:<{iw}}  {:>8}  {:>8}  {:>9}  {:>9}  {:>7}  {:>8}  {:>6}  {:>6}  {:>6}  {:>5}  {}"
+
+
 def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] = lambda i, s: "-") -> str:
-    lines = ["instance       uptime  model / anchors / method / precision                  queued  history MB  sources"]
-    for s in statuses:
-        what = f"{s.model[-24:]} / {s.anchor_set_version} / {s.method.value} / {s.precision or '-'}"
+    """Instances, then every source that sent anything (also those refused before they took a slot), with its
+    drops and rejects by reason and, below, why its last frame gave no maps. Names are never cut: columns are
+    as wide as the longest (ROS topics are long)."""
+    width = max([len("instance"), *(len(s.instance) for s in statuses)])
+    whats = [f"{s.model[-24:]} / {s.anchor_set_version} / {s.method.value} / {s.precision or '-'}" for s in statuses]
+    what_header = "model / anchors / method / precision"
+    what_width = max([len(what_header), *(len(what) for what in whats)])
+    lines = [INSTANCE_ROW.format("instance", "uptime", what_header, "queued", "history MB", "sources",
+                                 w=width, mw=what_width)]  # fmt: skip
+    for s, what in zip(statuses, whats, strict=True):
+        uptime, history = f"{s.uptime_s:.0f}s", f"{s.history_bytes / 1e6:.1f}"
+        sources = f"{s.tracked_sources}/{s.max_sources}"
+        lines.append(INSTANCE_ROW.format(s.instance, uptime, what, s.queued, history, sources, w=width, mw=what_width))
+    rows = [(name, s.instance, src) for s in statuses for name, src in sorted(s.sources.items())]
+    name_width = max([len("source"), *(len(name) for name, _, _ in rows)])
+    header = ("source", "instance", "frames/s", "received", "processed", "unchanged", "dropped", "rejected", "p50 ms",
+              "p99 ms", "weight", "share")  # fmt: skip
+    lines += ["", SOURCE_ROW.format(*header, "dropped and rejected by reason", w=name_width, iw=width)]
+    problems = []
+    for name, instance, src in rows:
+        p50, p99 = src.latency_ms.get("p50", "-"), src.latency_ms.get("p99", "-")
+        weight = "-" if src.weight is None else f"{src.weight:.2f}"
+        share = "-" if src.share is None else f"{src.share:.0%}"
+        counts = (src.received, src.processed, src.unchanged, src.dropped, src.rejected, p50, p99, weight, share)
         lines.append(
-            f"{s.instance:<14} {s.uptime_s:6.0f}s  {what:<52}  {s.queued:>6}  {s.history_bytes / 1e6:10.1f}  "
-            f"{s.tracked_sources}/{s.max_sources}"
+            SOURCE_ROW.format(name, instance, fps(instance, name), *counts, reasons(src), w=name_width, iw=width)
         )
-    lines += [
-        "",
-        "source                    instance       frames/s  received  processed  unchanged  dropped  rejected  "
-        "p50 ms  p99 ms  weight  share",
-    ]
-    for s in statuses:
-        for name, src in sorted(s.sources.items()):
-            p50, p99 = src.latency_ms.get("p50", "-"), src.latency_ms.get("p99", "-")
-            weight = "-" if src.weight is None else f"{src.weight:.2f}"
-            share = "-" if src.share is None else f"{src.share:.0%}"
-            lines.append(
-                f"{name[:25]:<25} {s.instance[:14]:<14} {fps(s.instance, name):>8}  {src.received:>8}  "
-                f"{src.processed:>9}  {src.unchanged:>9}  {src.dropped:>7}  {src.rejected:>8}  {p50:>6}  {p99:>6}  "
-                f"{weight:>6}  {share:>5}"
-            )
+        if src.problem:
+            problems.append(f"{name} ({instance}): {src.problem}")
+    if problems:
+        lines += ["", "why the last frame gave no maps:", *(f"  {line}" for line in problems)]
     lines += fleet_warnings(statuses)
-    reasons = [f"{s.instance}: {s.precision} ({s.precision_reason})" for s in statuses if s.precision_reason]
-    if reasons:
-        lines += ["", *(f"precision {line}" for line in reasons)]
+    precision = [f"{s.instance}: {s.precision} ({s.precision_reason})" for s in statuses if s.precision_reason]
+    if precision:
+        lines += ["", *(f"precision {line}" for line in precision)]
     rejected = {reason: n for s in statuses for reason, n in s.rejected_by_reason.items()}
     if rejected:
         lines += ["", "rejected: " + ", ".join(f"{reason} {n}" for reason, n in sorted(rejected.items()))]
     return "\n".join(lines)
+
+
+def reasons(source: SourceStatus) -> str:
+    """'stale 3, undecodable 1' (and 'refused: no slot' for a source that never took one)."""
+    counts = {**source.dropped_by_reason, **source.rejected_by_reason}
+    text = ", ".join(f"{reason} {n}" for reason, n in sorted(counts.items()))
+    return text + (" (refused: no slot)" if source.refused else "")
 
 
 def fleet_warnings(statuses: list[ServiceStatus]) -> list[str]:
@@ -190,27 +210,6 @@ def active_yaml(anchors: AnchorSet) -> str:
     return yaml.safe_dump(anchors.model_dump(exclude_none=True), sort_keys=False)
 
 
-def anchor_diff(active: AnchorSet, new: AnchorSet) -> list[str]:
-    """What swapping ``active`` for ``new`` changes, one line per concept: + added, - removed, ~ moved."""
-    old = {a.concept: a for a in active.anchors}
-    lines = [f"- {c} @ {a.position:.2f}" for c, a in old.items() if c not in set(new.concepts)]
-    for anchor in new.anchors:
-        before = old.get(anchor.concept)
-        width = new.widths[new.concepts.index(anchor.concept)]
-        if before is None:
-            lines.append(f"+ {anchor.concept} @ {anchor.position:.2f}")
-        else:
-            old_width = active.widths[active.concepts.index(anchor.concept)]
-            if (before.position, old_width) != (anchor.position, width):
-                lines.append(
-                    f"~ {anchor.concept} @ {before.position:.2f} -> {anchor.position:.2f}"
-                    + (f", width {old_width:g} -> {width:g}" if old_width != width else "")
-                )
-    if active.name != new.name:
-        lines.append(f"~ name {active.name!r} -> {new.name!r}")
-    return lines
-
-
 def set_anchors(client: TraversabilityClient, args: argparse.Namespace) -> int:
     new = AnchorSet.load(args.file)  # the same pydantic model the service validates with
     active = client.anchors().anchor_set
@@ -232,14 +231,24 @@ def fleet_sets(client: TraversabilityClient) -> str:
 
 
 def show_history(client: TraversabilityClient, args: argparse.Namespace) -> int:
-    for history in client.anchor_history():
-        print(f"instance {history.instance}:")
+    print("\n".join(history_lines(client.anchor_history())))
+    return EXIT_OK
+
+
+def history_lines(histories: list[AnchorHistoryReply]) -> list[str]:
+    """Each instance's accepted sets, newest first; the set an instance started with (never accepted in the
+    fleet: ``accepted_at`` 0) reads 'start set', not 1970."""
+    lines = []
+    for history in histories:
+        lines.append(f"instance {history.instance}:")
         for steps, entry in enumerate(history.entries):
-            when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(entry.accepted_at))
+            when = "start set".ljust(19)
+            if entry.accepted_at > 0:
+                when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(entry.accepted_at))
             label = "active" if steps == 0 else f"rollback {steps}"
             anchors = entry.anchor_set
-            print(f"  {label:>11}  {when}  {entry.version}  {anchors.name[:30]:<30} {len(anchors):>2} anchors")
-    return EXIT_OK
+            lines.append(f"  {label:>11}  {when}  {entry.version}  {anchors.name[:30]:<30} {len(anchors):>2} anchors")
+    return lines
 
 
 def roll_back(client: TraversabilityClient, args: argparse.Namespace) -> int:
@@ -256,26 +265,9 @@ def roll_back(client: TraversabilityClient, args: argparse.Namespace) -> int:
 # ---- probe -------------------------------------------------------------------------------------------
 
 
-def describe(d: ContextDistribution) -> str:
-    """A distribution as text: T, U, shape, and a bar per anchor weight."""
-    lines = [
-        f"{d.source} {where(d)} anchors={d.anchor_set_version}",
-        f"T (mean) = {d.mean:.3f}   U (std) = {d.std:.3f}   modes = {d.modes}   entropy = {d.entropy:.2f} nats",
-        f"skewness = {d.skewness:.2f}   excess kurtosis = {d.excess_kurtosis:.2f}",
-    ]
-    if d.cvar is not None and d.quantile is not None and d.p_below is not None:
-        lines.append(
-            f"CVaR(alpha={d.alpha:g}) = {d.cvar:.3f}   quantile(alpha) = {d.quantile:.3f}   "
-            f"P(T < {d.tau:g}) = {d.p_below:.3f}" + (f"   match = {d.match:.2f}" if d.match is not None else "")
-        )
-    for anchor, weight in zip(d.anchors, d.weights, strict=True):
-        lines.append(f"  {anchor.concept:>14} @ {anchor.position:4.2f}  {weight:6.3f} {'#' * round(weight * 40)}")
-    return "\n".join(lines)
-
-
 def probe(client: TraversabilityClient, args: argparse.Namespace) -> int:
     distribution = client.patch(args.source, args.x, args.y, seq=args.seq, alpha=args.alpha, tau=args.tau)
-    print(describe(distribution))
+    print(describe(distribution, (args.x, args.y)))
     if args.png is not None:
         draw_density(distribution, args.png)
         print(f"density drawn to {args.png}")

@@ -24,6 +24,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import zenoh
@@ -67,6 +68,41 @@ class CapturedFrame:
     arrived_at: float
 
 
+class Guarded:
+    """A zenoh entity that one thread uses while another may undeclare it (a zenoh callback's put, the relay's
+    close). zenoh-python's entities are pyo3 objects: ``put`` borrows the publisher while zenoh works with the
+    GIL released, ``undeclare`` borrows it mutably, and the two at once raise ``RuntimeError: Already
+    borrowed``; zenoh's undeclare of a subscriber does not wait for its callbacks under way either. So every
+    use and the undeclare take one lock, and after ``undeclare`` a use is skipped."""
+
+    def __init__(self, entity: Any) -> None:
+        self._entity = entity
+        self._lock = threading.Lock()
+        self._undeclared = False
+
+    def use(self, action: Callable[[Any], object]) -> bool:
+        """``action(entity)`` unless undeclared; False if skipped."""
+        with self._lock:
+            if self._undeclared:
+                return False
+            action(self._entity)
+            return True
+
+    def put(self, payload: Any, **options: Any) -> bool:
+        """A publisher's ``put``, unless undeclared; False if skipped."""
+        return self.use(lambda publisher: publisher.put(payload, **options))
+
+    def undeclare(self) -> None:
+        with self._lock:
+            if self._undeclared:
+                return
+            self._undeclared = True
+            try:
+                self._entity.undeclare()
+            except zenoh.ZError as err:  # the session may be closing
+                log.debug("undeclare failed: %s", err)
+
+
 class CameraLink:
     """One camera, one source: the newest frame, the credit, the sending thread."""
 
@@ -77,19 +113,20 @@ class CameraLink:
         self.uplink = RateWindow()
         self.model_input = (CLIPSEG_INPUT_SIDE, CLIPSEG_INPUT_SIDE)
         self.captured = self.sent = self.undecodable = 0
+        self.unusable: str | None = None  # why the last camera frame could not be sent, if it could not
         self._slot: CapturedFrame | None = None
         self._cond = threading.Condition()
-        self._publisher: zenoh.Publisher | None = None
+        self._publisher: Guarded | None = None
         self._thread = threading.Thread(target=self._run, name=f"gcdtrav-relay-{self.source}", daemon=True)
 
-    def start(self) -> list[Any]:
+    def start(self) -> list[Guarded]:
         """Declare the camera subscriber (robot), the credit subscriber and frame publisher (link)."""
         settings = self.relay.settings
         frames_key = input_key(settings.input_prefix, self.source)
-        self._publisher = self.relay.link.declare_publisher(frames_key, encoding=MSGPACK)
+        self._publisher = Guarded(self.relay.link.declare_publisher(frames_key, encoding=MSGPACK))
         declared = [
-            self.relay.local.declare_subscriber(self.camera_key, self.on_frame),
-            self.relay.link.declare_subscriber(self.relay.keys.credit(self.source), self.on_grant),
+            Guarded(self.relay.local.declare_subscriber(self.camera_key, self.on_frame)),
+            Guarded(self.relay.link.declare_subscriber(self.relay.keys.credit(self.source), self.on_grant)),
             self._publisher,
         ]
         self._thread.start()
@@ -119,6 +156,7 @@ class CameraLink:
             return
         self.clock.add(grant, arrived_at)
         self.relay.grant_seen(self.source, grant)
+        self.relay.freshness.note_reason(self.source, grant.problem)
         with self._cond:
             self.model_input = grant.model_input
             self.window.grant(grant)
@@ -144,7 +182,7 @@ class CameraLink:
                 self.sent += 1
             assert self._publisher is not None
             try:
-                put_identified(self._publisher, payload)
+                self._publisher.use(partial(put_identified, payload=payload))
             except zenoh.ZError as err:  # the session is closing
                 log.debug("%s: send failed: %s", self.source, err)
             self.uplink.add(len(payload))
@@ -152,11 +190,13 @@ class CameraLink:
     def _envelope(self, frame: CapturedFrame, model_input: tuple[int, int]) -> ImageEnvelope | None:
         """The frame decoded, shrunk to what the model uses and JPEG-encoded; None (counted) when unusable."""
         try:
-            image, stamp, frame_id = self._decode(frame)
+            image, stamp, frame_id, original_size = self._decode(frame)
         except (RejectedInput, RosImageError) as err:
             self.undecodable += 1
-            log.warning("%s: camera frame on %s not usable: %s", self.source, frame.key, err)
+            self.unusable = f"camera frame on {frame.key} not usable: {err}"
+            log.warning("%s: %s", self.source, self.unusable)
             return None
+        self.unusable = None
         settings = self.relay.settings
         small = downsized(image, settings.max_side, model_input)
         height, width = small.shape[:2]
@@ -168,16 +208,19 @@ class CameraLink:
             height=height,
             data=encode_jpeg(small, settings.jpeg_quality),
             sent_at=time.time(),
+            original_size=original_size,  # answers and maps in the camera's pixels, not the shrunk frame's
         )
 
-    def _decode(self, frame: CapturedFrame) -> tuple[Any, float, str]:
+    def _decode(self, frame: CapturedFrame) -> tuple[Any, float, str, tuple[int, int]]:
+        """The camera's image, stamp, frame id and size in the camera's pixels."""
         payload = frame.payload.to_bytes()
         if not self.camera.is_ros:
             decoded = decode_payload(payload, frame.encoding, frame.arrived_at, MAX_CAMERA_BYTES, MAX_CAMERA_PIXELS)
-            return decoded.image, decoded.stamp, decoded.frame_id
+            return decoded.image, decoded.stamp, decoded.frame_id, decoded.camera_size
         configured = self.camera.ros_message_type
         msgtype = (ros_type_of_key(frame.key) or "") if configured == "auto" else configured
-        return decode_ros_image(payload, msgtype, MAX_CAMERA_PIXELS)
+        image, stamp, frame_id = decode_ros_image(payload, msgtype, MAX_CAMERA_PIXELS)
+        return image, stamp, frame_id, (int(image.shape[1]), int(image.shape[0]))
 
     def stop(self) -> None:
         with self._cond:
@@ -203,6 +246,7 @@ class CameraLink:
             owner=self.window.owner,
             clock_offset_s=None if best is None else best[1],
             round_trip_s=None if best is None else best[0],
+            problem=self.unusable or freshness.reason(self.source),
         )
 
 
@@ -214,11 +258,12 @@ class OutputForwarder:
         self.key = relay.keys.output(source, kind)
         self.downlink = RateWindow()
         self._wanted = False
-        self._subscriber: zenoh.Subscriber[None] | None = None
-        self._publisher = relay.local.declare_publisher(
+        self._subscriber: Guarded | None = None
+        publisher = relay.local.declare_publisher(
             self.key, encoding=OUTPUT_ENCODINGS[kind], congestion_control=zenoh.CongestionControl.DROP
         )
-        self._listener = self._publisher.declare_matching_listener(self._on_matching)
+        self._listener = Guarded(publisher.declare_matching_listener(self._on_matching))
+        self._publisher = Guarded(publisher)  # zenoh's callbacks put on it while close() may undeclare it
 
     @property
     def active(self) -> bool:
@@ -230,16 +275,17 @@ class OutputForwarder:
 
     def reconcile(self) -> None:
         if self._wanted and self._subscriber is None:
-            self._subscriber = self.relay.link.declare_subscriber(self.key, self._on_output)
+            self._subscriber = Guarded(self.relay.link.declare_subscriber(self.key, self._on_output))
             log.info("forwarding %s: a consumer on the robot subscribes", self.key)
         elif not self._wanted and self._subscriber is not None:
-            self._undeclare(self._subscriber)
+            self._subscriber.undeclare()
             self._subscriber = None
             log.info("no longer forwarding %s: no consumer on the robot", self.key)
 
     def _on_output(self, sample: zenoh.Sample) -> None:
         payload = sample.payload
-        self._publisher.put(payload, encoding=sample.encoding)
+        if not self._publisher.put(payload, encoding=sample.encoding):
+            return  # a callback under way when the relay closed
         self.downlink.add(len(payload))
         if self.kind in STAMPED_OUTPUTS:
             try:
@@ -252,15 +298,8 @@ class OutputForwarder:
     def close(self) -> None:
         for entity in (self._subscriber, self._listener, self._publisher):
             if entity is not None:
-                self._undeclare(entity)
+                entity.undeclare()
         self._subscriber = None
-
-    @staticmethod
-    def _undeclare(entity: Any) -> None:
-        try:
-            entity.undeclare()
-        except zenoh.ZError as err:  # the session may be closing
-            log.debug("undeclare failed: %s", err)
 
 
 class Relay:
@@ -280,8 +319,8 @@ class Relay:
         self.forwarders: list[OutputForwarder] = []
         self.stopping = False
         self._on_stale = on_stale
-        self._declared: list[Any] = []
-        self._health: dict[str, zenoh.Publisher] = {}
+        self._declared: list[Guarded] = []
+        self._health: dict[str, Guarded] = {}
         self._wake = threading.Event()
         self._started_at = time.time()
         self._last_stale_log: dict[str, float] = {}
@@ -290,8 +329,8 @@ class Relay:
     def start(self) -> Relay:
         for camera in self.cameras:
             self.freshness.watch(camera.source)
-            self._health[camera.source] = self.local.declare_publisher(
-                self.keys.relay_health(camera.source), encoding=MSGPACK
+            self._health[camera.source] = Guarded(
+                self.local.declare_publisher(self.keys.relay_health(camera.source), encoding=MSGPACK)
             )
             self.forwarders += [OutputForwarder(self, camera.source, kind) for kind in self.settings.forward]
             self._declared += camera.start()
@@ -355,16 +394,19 @@ class Relay:
 
     def _log_stale(self, source: str, health: RelayHealth) -> None:
         self._last_stale_log[source] = time.time()
+        why = f"; why: {health.problem}" if health.problem else ""
         if health.map_age_s is None:
-            log.warning("no maps of %s yet, %.1f s after the relay started", source, time.time() - self._started_at)
+            waited = time.time() - self._started_at
+            log.warning("no maps of %s yet, %.1f s after the relay started%s", source, waited, why)
         else:
             log.warning(
-                "maps of %s stale for %.1f s (newest %.1f s old; %d frames sent, %d credit timeouts)",
+                "maps of %s stale for %.1f s (newest %.1f s old; %d frames sent, %d credit timeouts)%s",
                 source,
                 health.map_age_s - self.settings.stale_after_s,
                 health.map_age_s,
                 health.frames_sent,
                 health.credit_timeouts,
+                why,
             )
 
     def close(self) -> None:
@@ -376,6 +418,6 @@ class Relay:
         for forwarder in self.forwarders:
             forwarder.close()
         for entity in [*self._declared, *self._health.values()]:
-            OutputForwarder._undeclare(entity)
+            entity.undeclare()
         self._declared.clear()
         self._health.clear()

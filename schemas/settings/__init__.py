@@ -1,7 +1,7 @@
 """Service settings, one module per section (like Frigate's config/ package): `base` (the error, the
-precision modes), `ros`, `grids`, `risk`, `share` (reuse and scheduling), `service` (`ServiceSettings`, the
-tree of every section) and `env` (the loader: YAML file < ``GCDTRAV_*`` environment variables < command-line
-flags). Import from here."""
+precision modes), `ros`, `grids`, `risk`, `share` (reuse and scheduling), `experience` (`experience:` and
+`ask:`), `service` (`ServiceSettings`, the tree of every section) and `env` (the loader: YAML file <
+``GCDTRAV_*`` environment variables < command-line flags). Import from here."""
 
 from gcdtrav.schemas.settings.base import (
     ENV_PREFIX,
@@ -12,6 +12,7 @@ from gcdtrav.schemas.settings.base import (
     default_instance_name,
 )
 from gcdtrav.schemas.settings.env import load_settings
+from gcdtrav.schemas.settings.experience import AskSettings, ExperienceSettings
 from gcdtrav.schemas.settings.grids import (
     SINGLE_CAMERA_FIELDS,
     CameraIntrinsics,
@@ -30,8 +31,10 @@ __all__ = [
     "KEY_CHUNK",
     "PRECISIONS",
     "SINGLE_CAMERA_FIELDS",
+    "AskSettings",
     "CameraIntrinsics",
     "CameraMountSettings",
+    "ExperienceSettings",
     "GridCamera",
     "GridSettings",
     "Precision",

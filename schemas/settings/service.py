@@ -16,6 +16,7 @@ from gcdtrav.schemas.settings.base import (
     Precision,
     default_instance_name,
 )
+from gcdtrav.schemas.settings.experience import AskSettings, ExperienceSettings
 from gcdtrav.schemas.settings.grids import GridSettings, one_grid_per_camera
 from gcdtrav.schemas.settings.risk import RiskSettings
 from gcdtrav.schemas.settings.ros import RosInput, RosNode, RosOutput
@@ -47,6 +48,8 @@ class ServiceSettings(StrictModel):
     risk: RiskSettings = Field(default_factory=RiskSettings)
     reuse: ReuseSettings = Field(default_factory=ReuseSettings)
     schedule: ScheduleSettings = Field(default_factory=ScheduleSettings)
+    experience: ExperienceSettings = Field(default_factory=ExperienceSettings)
+    ask: AskSettings = Field(default_factory=AskSettings)
     history: int = Field(default=8, ge=1, le=256, description="Frames per source kept for patch queries.")
     history_budget_mb: float = Field(
         default=512,
@@ -56,7 +59,8 @@ class ServiceSettings(StrictModel):
     pending_budget_mb: float = Field(
         default=256,
         gt=0,
-        description="Bytes of frames waiting for inference (one per source), in MB; further frames are rejected.",
+        description="Bytes of frames waiting for a glance or inference (at most two per source), in MB; further "
+        "frames are rejected.",
     )
     max_sources: int = Field(
         default=256, ge=1, description="Sources tracked at once; frames from further new sources are rejected."

@@ -75,7 +75,7 @@ class TraversabilityService:
         self.prefix = settings.prefix
         self.keys = Keys(settings.prefix)
         self.history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
-        self.stats = ServiceStats(log)
+        self.stats = ServiceStats(log, settings.source_idle_s)
         self._declared: list[Any] = []
         self._stopping = threading.Event()
         self._started_at = time.time()

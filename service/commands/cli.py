@@ -93,8 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         default=[],
         metavar="X,Y",
-        help="pixel whose context distribution the figure shows (repeatable); outside an image it is an error "
-        "(exit 2) [default: the most certain, median and most ambiguous pixels]",
+        help="pixel whose context distribution is printed, and drawn with --figure (repeatable); outside an "
+        "image it is an error (exit 2) [figure default: the most certain, median and most ambiguous pixels]",
     )
     infer.add_argument(
         "--save-raw",
@@ -197,6 +197,12 @@ def build_parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--out", type=Path, default=Path("eval_out"), help="output folder [eval_out]")
     evaluate.add_argument("--limit", type=int, default=None, help="only the first N images")
     evaluate.add_argument("--no-figures", action="store_true")
+    evaluate.add_argument(
+        "--fit-anchors",
+        action="store_true",
+        help="fit anchor positions and widths to the labels (earlier images), grade them on the later ones, "
+        "write OUT/proposed-anchors.yaml (docs/calibration.md)",
+    )
 
     from gcdtrav.service.commands import bench
 
@@ -330,6 +336,18 @@ def cmd_eval(args: argparse.Namespace) -> int:
         temperature=args.temperature,
         figures=not args.no_figures,
     )
+    if args.fit_anchors:
+        from gcdtrav.service.experience.dataset_fit import fit_on_dataset, print_summary
+        from gcdtrav.service.experience.fitter import FitOptions
+
+        try:
+            fit = fit_on_dataset(backend, anchors, dataset, table, args.out, FitOptions(), args.grid,
+                                 args.temperature, args.limit)  # fmt: skip
+        except (DatasetError, ValueError) as err:
+            print(f"gcdtrav: {err}", file=sys.stderr)
+            return EXIT_FAILURES
+        print_summary(fit)
+        return EXIT_FAILURES if fit.failures else 0
     try:
         report = run_eval(backend, anchors, dataset, table, options)
     except DatasetError as err:

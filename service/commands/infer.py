@@ -10,9 +10,12 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from gcdtrav.client.commands.density_plot import describe
 from gcdtrav.schemas.images import ImageDecodeError, decode_image, quantize_map, resize_map
+from gcdtrav.schemas.settings import RiskSettings
 from gcdtrav.service.commands import figures as viz
 from gcdtrav.service.pipeline import FrameResult, Pipeline
+from gcdtrav.service.runtime.queries import RiskLevels, distribution_of, with_risk
 from numpy.typing import NDArray
 
 
@@ -52,12 +55,32 @@ def default_probes(u: NDArray[np.float32], height: int, width: int) -> list[tupl
     return [(int((i % u.shape[1] + 0.5) * scale_x), int((i // u.shape[1] + 0.5) * scale_y)) for i in picks]
 
 
+def patches_of(
+    result: FrameResult, probes: Sequence[tuple[int, int]], height: int, width: int
+) -> list[tuple[int, int]]:
+    """(row i, column j) of the patch covering each probe pixel (x, y), as the service's patch query maps it."""
+    h, w = result.maps.weights.shape[1:]
+    return [(min(int(y * h / height), h - 1), min(int(x * w / width), w - 1)) for x, y in probes]
+
+
 def weights_at(result: FrameResult, probes: Sequence[tuple[int, int]], height: int, width: int) -> NDArray[np.float32]:
     """(n, len(probes)): each probe pixel's anchor weights, from the patch that covers it."""
-    h, w = result.maps.weights.shape[1:]
-    rows = [min(int(y * h / height), h - 1) for _, y in probes]
-    cols = [min(int(x * w / width), w - 1) for x, _ in probes]
-    return result.maps.weights[:, rows, cols]
+    rows, cols = zip(*patches_of(result, probes, height, width), strict=True) if probes else ((), ())
+    return result.maps.weights[:, list(rows), list(cols)]
+
+
+def probe_answers(
+    name: str, result: FrameResult, probes: Sequence[tuple[int, int]], height: int, width: int
+) -> list[str]:
+    """Each --probe pixel's context distribution, as `gcdtrav probe` prints it (risk at the default levels)."""
+    weights = weights_at(result, probes, height, width)
+    levels = RiskLevels(RiskSettings().alpha, RiskSettings().tau)
+    answers = []
+    for k, (pixel, patch) in enumerate(zip(probes, patches_of(result, probes, height, width), strict=True)):
+        column = np.asarray(weights[:, k], np.float32)
+        d = distribution_of(column, result.anchors, name, seq=None, stamp=0.0, patch=patch)
+        answers.append(describe(with_risk(d, column, result.anchors, levels), (float(pixel[0]), float(pixel[1]))))
+    return answers
 
 
 def write_outputs(stem_dir: Path, image: NDArray[np.uint8], result: FrameResult, options: InferOptions) -> None:
@@ -119,10 +142,11 @@ def run_infer(pipeline: Pipeline, images: Sequence[Path], options: InferOptions)
             failures += 1
             progress.write(f"error: {path}: {err}", file=sys.stderr)
             continue
-        if options.figure:
-            check_probes(options.probes, path, image.shape[1], image.shape[0])
+        check_probes(options.probes, path, image.shape[1], image.shape[0])
         result = pipeline.process(image)
         write_outputs(stem_dir, image, result, options)
+        for answer in probe_answers(str(path), result, options.probes, *image.shape[:2]):
+            progress.write(answer + "\n", file=sys.stdout)
         summary = {
             "image": str(path),
             "size": [image.shape[1], image.shape[0]],

@@ -17,7 +17,8 @@ import math
 import struct
 from dataclasses import dataclass
 
-from gcdtrav.schemas.messages import MSGPACK_ENCODING, MessageError, peek_fields
+from gcdtrav.schemas.inputs import input_kind
+from gcdtrav.schemas.messages import MessageError, peek_fields
 
 
 @dataclass(frozen=True)
@@ -51,10 +52,7 @@ def input_times(payload: bytes, encoding: str, ros: bool) -> InputTimes:
     """Capture stamp and send time of an input payload, as cheaply as possible (no pixels are touched)."""
     if ros:
         return InputTimes(ros_header_stamp(payload), None)
-    is_envelope = encoding.startswith(MSGPACK_ENCODING) or (
-        not encoding.startswith("image/") and payload[:1] and (0x80 <= payload[0] <= 0x8F or payload[0] in (0xDE, 0xDF))
-    )
-    return envelope_times(payload) if is_envelope else InputTimes(None, None)
+    return envelope_times(payload) if input_kind(payload, encoding) == "envelope" else InputTimes(None, None)
 
 
 class FrameAgeLimit:

@@ -127,7 +127,7 @@ class FrameWorker:
         try:
             return step(*args)
         except RejectedInput as err:
-            self.stats.rejected(self._counted_as(pending.source), err.reason, err.detail)
+            self.stats.rejected(pending.source, err.reason, err.detail, tracked=self._tracked(pending.source))
         except Dropped as err:
             if err.reason == "stale":
                 self.stats.stale(pending.source, err.detail)
@@ -135,14 +135,15 @@ class FrameWorker:
                 self.stats.dropped(pending.source, err.reason)
         except Exception as err:
             log.exception("frame from %s failed", pending.key)
-            self.stats.rejected(self._counted_as(pending.source), "processing_failed", repr(err)[:200])
+            failure = repr(err)[:200]
+            self.stats.rejected(pending.source, "processing_failed", failure, tracked=self._tracked(pending.source))
         finally:
             self.progress.beat()
         return None
 
-    def _counted_as(self, source: str) -> str | None:
-        """Counted per source only if tracked: a refused candidate leaves no per-source state."""
-        return source if self.admission is None or source in self.sources else None
+    def _tracked(self, source: str) -> bool:
+        """Whether ``source`` holds a slot: a refused candidate's counts go to the stats' bounded refused list."""
+        return self.admission is None or source in self.sources
 
     def _infer(self, pending: PendingFrame) -> InferredFrame | None:
         """Decoded and inferred; None (counted stale) if it waited past max_frame_age_s: not worth computing."""
@@ -192,10 +193,9 @@ class FrameWorker:
         source, image = inferred.pending.source, inferred.image
         self._check_gate(inferred)
         result = self.pipeline.finish(inferred.inference)
-        height, width = image.image.shape[:2]
         maps = result.maps
         record = self.history.record(
-            source, maps.weights, result.anchors, image.stamp, image.frame_id, (width, height), maps.match
+            source, maps.weights, result.anchors, image.stamp, image.frame_id, image.camera_size, maps.match
         )
         self._check_gate(inferred)  # the engine took time too
         done = ProcessedFrame(inferred, result, record)

@@ -76,7 +76,9 @@ def test_probe_prints_a_pixels_distribution_and_draws_it(service, tmp_path: Path
     from gcdtrav.service.runtime.queries import answer_patch_query
 
     expected = answer_patch_query(running.history, "r1/front", {"x": "20", "y": "10"})
-    assert probe.stdout.startswith(f"r1/front seq={expected.seq} patch {expected.patch}")
+    assert expected.patch is not None
+    i, j = expected.patch  # the answer in the user's terms: the pixel as typed (x, y), the patch named (row, column)
+    assert probe.stdout.startswith(f"r1/front pixel (x=20, y=10) in seq={expected.seq} patch (row i={i}, column j={j})")
     assert "T (mean) =" in probe.stdout and "concrete @ 1.00" in probe.stdout
     assert (
         f"CVaR(alpha=0.1) = {expected.cvar:.3f}" in probe.stdout
