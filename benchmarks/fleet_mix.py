@@ -328,9 +328,7 @@ def summary(phases: list[dict[str, Any]], args: argparse.Namespace) -> dict[str,
             "moving_at_least_1_8x": bool(moving) and all(r is not None and r >= 1.8 for r in moving),
             "change_within_frame_interval_plus_one_inference": bool(latencies)
             and statistics.median(latencies) <= 1 / args.fps + inference_s,
-            "inferred_gap_within_floor": all(
-                gaps[n] is None or gaps[n] <= gap_bound[n] for n in names if kinds[n] != "parked" or gaps[n]
-            ),
+            "inferred_gap_within_floor": all(gaps[n] is None or gaps[n] <= gap_bound[n] for n in names),
             "bounds_s": {"inference_s": inference_s, "gap_bound_s": gap_bound},
         },
     }
