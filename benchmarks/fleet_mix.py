@@ -196,7 +196,7 @@ def run_phase(
 ) -> dict[str, Any]:
     port = free_port()
     settings = scratch / f"{phase}.yaml"
-    settings.write_text(f"preview: false\nmax_frame_age_s: 10\n{PHASES[phase]}")
+    settings.write_text(f"preview: false\nmax_frame_age_s: 10\n{PHASES[phase] or need_settings(args)}")
     command = ["--model", model, "--precision", args.precision, "--instance", f"mix-{phase}"]
     command += ["-l", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting", "--settings", str(settings)]
     command += ["--state-dir", str(scratch / "state")]
@@ -227,6 +227,16 @@ def run_phase(
     rows = [robot_row(robot, began, ended, before, after, args) for robot in robots]
     print_phase(phase, rows)
     return {"phase": phase, "seconds": round(ended - began, 2), "robots": rows}
+
+
+def need_settings(args: argparse.Namespace) -> str:
+    """The need phase's settings: the defaults, or the reuse and floor asked for."""
+    lines = []
+    if args.max_reuse_s is not None:
+        lines.append(f"reuse: {{max_reuse_s: {args.max_reuse_s}}}")
+    if args.max_wait_s is not None:
+        lines.append(f"schedule: {{max_wait_s: {args.max_wait_s}}}")
+    return "".join(line + "\n" for line in lines)
 
 
 def robot_row(
@@ -307,8 +317,8 @@ def summary(phases: list[dict[str, Any]], args: argparse.Namespace) -> dict[str,
     latencies = [v for r in need_rows if r["kind"] == "parked" for v in r["change_to_map_s"] if v is not None]
     missed = sum(v is None for r in need_rows if r["kind"] == "parked" for v in r["change_to_map_s"])
     inference_s = args.inference_s
-    floor = ScheduleSettings().max_wait_s
-    reuse_s = ReuseSettings().max_reuse_s
+    floor = args.max_wait_s if args.max_wait_s is not None else ScheduleSettings().max_wait_s
+    reuse_s = args.max_reuse_s if args.max_reuse_s is not None else ReuseSettings().max_reuse_s
     gap_bound = {n: (reuse_s if kinds[n] == "parked" else 0.0) + floor + 2 * inference_s for n in names}
     gaps = {r["robot"]: r["inferred_gap_max_s"] for r in need_rows}
     return {
@@ -369,14 +379,18 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--seconds", type=float, default=60.0, help="measured seconds per phase [60]")
     parser.add_argument("--warmup-s", type=float, default=10.0)
     parser.add_argument("--rounds", type=int, default=1, help="round_robin then need, this many times [1]")
-    parser.add_argument("--change-every-s", type=float, default=7.0, help="a parked view changes this often [7]")
+    parser.add_argument(
+        "--change-every-s", type=float, default=30.0, help="a parked view changes this often (staggered) [30]"
+    )
+    parser.add_argument("--max-reuse-s", type=float, default=None, help="need phase: reuse.max_reuse_s [default]")
+    parser.add_argument("--max-wait-s", type=float, default=None, help="need phase: schedule.max_wait_s [default]")
     parser.add_argument(
         "--inference-s", type=float, default=None, help="one inference, for the goals [median of the maps' inference]"
     )
     parser.add_argument("--quick", action="store_true", help="tiny random model, small views, a few seconds")
     parser.add_argument("--out", type=Path, default=Path("fleet-mix.json"))
     args = parser.parse_args()
-    if args.quick:  # the tiny model infers in tens of ms: more frames, so that the service is saturated
+    if args.quick:  # tiny model, short phases, frequent changes: correctness only (it keeps up with every robot)
         args.seconds, args.warmup_s, args.change_every_s = min(args.seconds, 8.0), 3.0, 3.0
         args.fps = 20.0
     return args
