@@ -82,7 +82,7 @@ def one_line(err: BaseException) -> str:
 
 
 INSTANCE_ROW = "{:<{w}}  {:>7}  {:<{mw}}  {:>6}  {:>10}  {:>7}"
-SOURCE_ROW = "{:<{w}}  {:<{iw}}  {:>8}  {:>8}  {:>9}  {:>9}  {:>7}  {:>8}  {:>6}  {:>6}  {:>6}  {:>5}  {}"
+SOURCE_ROW = "{:<{w}}  {:<{iw}}  {:>8}  {:>8}  {:>9}  {:>9}  {:>7}  {:>8}  {:>6}  {:>6}  {:>9}  {:>6}  {:>5}  {}"
 
 
 def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] = lambda i, s: "-") -> str:
@@ -102,14 +102,15 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
     rows = [(name, s.instance, src) for s in statuses for name, src in sorted(s.sources.items())]
     name_width = max([len("source"), *(len(name) for name, _, _ in rows)])
     header = ("source", "instance", "frames/s", "received", "processed", "unchanged", "dropped", "rejected", "p50 ms",
-              "p99 ms", "weight", "share")  # fmt: skip
+              "p99 ms", "clock s", "weight", "share")  # fmt: skip
     lines += ["", SOURCE_ROW.format(*header, "dropped and rejected by reason", w=name_width, iw=width)]
     problems = []
     for name, instance, src in rows:
         p50, p99 = src.latency_ms.get("p50", "-"), src.latency_ms.get("p99", "-")
         weight = "-" if src.weight is None else f"{src.weight:.2f}"
         share = "-" if src.share is None else f"{src.share:.0%}"
-        counts = (src.received, src.processed, src.unchanged, src.dropped, src.rejected, p50, p99, weight, share)
+        counts = (src.received, src.processed, src.unchanged, src.dropped, src.rejected, p50, p99,
+                  clock_offset(src.clock_offset_s), weight, share)  # fmt: skip
         lines.append(
             SOURCE_ROW.format(name, instance, fps(instance, name), *counts, reasons(src), w=name_width, iw=width)
         )
@@ -127,6 +128,13 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
     return "\n".join(lines)
 
 
+def clock_offset(offset_s: float | None) -> str:
+    """The source's clock as the service learnt it (service minus robot, plus the link's smallest delay)."""
+    if offset_s is None:
+        return "-"
+    return f"{offset_s:+.2f}" if abs(offset_s) < 1e5 else f"{offset_s:+.3g}"
+
+
 def reasons(source: SourceStatus) -> str:
     """'stale 3, undecodable 1' (and 'refused: no slot' for a source that never took one)."""
     counts = {**source.dropped_by_reason, **source.rejected_by_reason}
@@ -137,6 +145,12 @@ def reasons(source: SourceStatus) -> str:
 def fleet_warnings(statuses: list[ServiceStatus]) -> list[str]:
     """Unhealthy instances, and instances that disagree on the anchor set or the precision."""
     lines = [f"UNHEALTHY {s.instance}: {s.reason}" for s in statuses if s.healthy is False]
+    off = {name for s in statuses for name, src in s.sources.items() if abs(src.clock_offset_s or 0.0) > 1.0}
+    if off:
+        lines.append(
+            f"clocks off by more than 1 s: {', '.join(sorted(off))} (served: ages are judged by delay unless "
+            "clock: synced; their maps keep their own stamps)"
+        )
     versions = {s.instance: s.anchor_set_version for s in statuses}
     if len(set(versions.values())) > 1:
         held = ", ".join(f"{instance} has {version}" for instance, version in sorted(versions.items()))
