@@ -321,7 +321,8 @@ class Viewer:
         """Log one message to every sink (browsers, the MCAP file); rotate the file when it is full."""
         with self._emit_lock:
             channel.log(message, log_time=log_time or now_ns())
-            self.logged[channel.topic()] += 1
+            recorded = " (recorded)" if channel.metadata() == RECORDED else ""  # the camera's MCAP-only twin
+            self.logged[channel.topic() + recorded] += 1
             if self.recorder is not None:
                 self.recorder.rotate_if_full()
 
