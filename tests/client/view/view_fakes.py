@@ -1,6 +1,6 @@
 """A stand-in for the service as the viewer sees it through TraversabilityClient: its zenoh subscriptions (the
-test hands them samples), status, anchor-set and distribution queries. No zenoh session, no torch: the viewer's Foxglove side runs
-for real."""
+test hands them samples), status, anchor-set and distribution queries. No zenoh session, no torch: the
+viewer's Foxglove side runs for real."""
 
 from __future__ import annotations
 
