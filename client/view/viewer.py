@@ -501,6 +501,9 @@ class Viewer:
         except ValueError as err:
             self.log_message(LogLevel.Error, f"probe not changed: {err}")
             return
+        channels = self._channels(self.probe.source) if self.probe.active else None
+        if channels is not None:  # advertised now, before the first drawing: viewers can subscribe early
+            channels.image("distribution")
         self.log_message(LogLevel.Info, f"probing {self.probe.target} ({self.probe.x:g}, {self.probe.y:g}) of "
                          f"{self.probe.source or 'nothing'}")  # fmt: skip
         self._probe_wake.set()

@@ -174,6 +174,9 @@ async def probe_by_parameter_and_by_point(url: str) -> dict[str, Any]:
                {"name": "probe/y", "value": 30.0}]  # fmt: skip
     await fox.send(op="setParameters", parameters=changes, id="probe")
     await fox.until(lambda: f"{TOPIC}/distribution" in fox.channels)
+    # foxglove-sdk 0.30.3 can advertise a new channel before it accepts subscriptions to it ("attempted to
+    # subscribe to unknown channel"): a client that subscribes within milliseconds may be refused
+    await asyncio.sleep(0.3)
     await fox.subscribe(f"{TOPIC}/distribution")
     await fox.until(lambda: bool(fox.received(f"{TOPIC}/distribution")))
     # the 3D panel's "Publish point": a client channel, then the point as JSON, in base_link
@@ -198,6 +201,7 @@ def test_the_probed_distribution_by_parameter_and_by_a_published_point(fed: tupl
     seen = asyncio.run(probe_by_parameter_and_by_point(viewer.url))
     assert ("patch", "cam", 40.0, 30.0) in client.queries
     x, y, yaw = ROBOT  # 1 m ahead of the robot, in odom
+    assert wait_until(lambda: any(query[0] == "cell" for query in client.queries), 10)  # the probe loop's query
     cell = next(query for query in client.queries if query[0] == "cell")
     assert cell[1] == "cam" and cell[2:] == pytest.approx((x + np.cos(yaw), y + np.sin(yaw)))
     fields = protobuf_fields(seen["picture"])
