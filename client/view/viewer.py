@@ -112,8 +112,8 @@ class SourceChannels:
     """The Foxglove channels of one source: status with its first message, each other channel with the first
     message of its kind, so a source without a grid (or previews, or camera) advertises no empty channel."""
 
-    def __init__(self, topic: str, context: foxglove.Context) -> None:
-        self.topic, self.context = topic, context
+    def __init__(self, source: str, topic: str, context: foxglove.Context) -> None:
+        self.source, self.topic, self.context = source, topic, context
         self.status = foxglove.Channel(
             f"{topic}/status", schema=model_schema(SourceView, "gcdtrav.SourceView"), context=context
         )
@@ -121,12 +121,14 @@ class SourceChannels:
         self.grid_header: GridHeader | None = None  # the latest grid's: the robot's pose, the costmap's place
         self.camera_frames = 0  # camera frames received (the recording keeps one in record_camera_every)
         self._channels: dict[str, Any] = {}
+        self._lock = threading.Lock()  # the worker, the probe and zenoh's callbacks open channels
 
     def _channel(self, name: str, kind: Callable[..., Any], **extra: Any) -> Any:
         key = name + ("#recorded" if extra.get("metadata") == RECORDED else "")
-        if key not in self._channels:
-            self._channels[key] = kind(f"{self.topic}/{name}", context=self.context, **extra)
-        return self._channels[key]
+        with self._lock:  # one channel per name: a second one would be advertised, then closed
+            if key not in self._channels:
+                self._channels[key] = kind(f"{self.topic}/{name}", context=self.context, **extra)
+            return self._channels[key]
 
     def image(self, name: str) -> CompressedImageChannel:
         """The image channel ``{topic}/{name}``: camera, preview, traversability, uncertainty, distribution,
@@ -172,6 +174,7 @@ class Viewer:
         self.errors: Counter[str] = Counter()  # payloads that could not be shown, by kind
         self._slots: LatestSlots[tuple[str, str], bytes] = LatestSlots(options.max_sources * len(KINDS))
         self._sources: dict[str, SourceChannels] = {}
+        self._sources_lock = threading.Lock()
         self._ignored_sources: set[str] = set()
         self._emit_lock = threading.Lock()  # one message at a time into the sinks, so rotation splits cleanly
         self._swap_lock = threading.Lock()  # one anchor swap at a time
@@ -303,6 +306,10 @@ class Viewer:
                         self.log_message(LogLevel.Warning, f"{kind} of {source} not shown ({count}x): {err}")
 
     def _channels(self, source: str) -> SourceChannels | None:
+        with self._sources_lock:  # the worker, the probe and zenoh's callbacks ask
+            return self._source_channels(source)
+
+    def _source_channels(self, source: str) -> SourceChannels | None:
         channels = self._sources.get(source)
         if channels is None:
             if len(self._sources) >= self.options.max_sources:
@@ -314,7 +321,7 @@ class Viewer:
                         "(--max-sources)",
                     )
                 return None
-            channels = self._sources[source] = SourceChannels(f"/{self.options.prefix}/{source}", self.context)
+            channels = self._sources[source] = SourceChannels(source, f"/{self.options.prefix}/{source}", self.context)
         return channels
 
     def emit(self, channel: Any, message: Any, log_time: int | None = None) -> None:
@@ -407,15 +414,14 @@ class Viewer:
         self._show_layer(channels, grid_layers.COSTMAP, "cost", costmap.values(), header)
 
     def _show_preview(self, channels: SourceChannels, payload: bytes) -> None:
-        frame_id = frames.camera_frame(channels.view.source if channels.view else "", "")
-        if channels.view is not None and channels.view.maps is not None:
-            frame_id = frames.camera_frame(channels.view.source, channels.view.maps.frame_id)
+        maps = channels.view.maps if channels.view is not None else None  # the preview is of the latest maps
+        frame_id = frames.camera_frame(channels.source, maps.frame_id if maps is not None else "")
         message = CompressedImage(timestamp=stamp(time.time()), frame_id=frame_id, data=payload, format="jpeg")
         self.emit(channels.image("preview"), message)
 
     def _show_camera(self, channels: SourceChannels, payload: bytes) -> None:
         data, kind, when, frame_id = camera_image(payload)
-        source = channels.topic.removeprefix(f"/{self.options.prefix}/")
+        source = channels.source
         frame_id = frames.camera_frame(source, frame_id)
         message = CompressedImage(timestamp=stamp(when), frame_id=frame_id, data=data, format=kind)
         self.emit(channels.image("camera"), message)
