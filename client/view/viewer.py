@@ -172,6 +172,7 @@ class Viewer:
         self.context = foxglove.Context()
         self.logged: Counter[str] = Counter()  # messages per topic, all sinks
         self.errors: Counter[str] = Counter()  # payloads that could not be shown, by kind
+        self.shown: Counter[str] = Counter()  # payloads shown, by kind
         self._slots: LatestSlots[tuple[str, str], bytes] = LatestSlots(options.max_sources * len(KINDS))
         self._sources: dict[str, SourceChannels] = {}
         self._sources_lock = threading.Lock()
@@ -299,6 +300,7 @@ class Viewer:
                     continue
                 try:
                     handlers[kind](channels, payload)
+                    self.shown[kind] += 1
                 except Exception as err:  # a bad payload is counted and skipped; the next one is shown
                     self.errors[kind] += 1
                     count = self.errors[kind]
@@ -399,12 +401,15 @@ class Viewer:
             *(PackedElementField(name=colour, offset=4 + k, type=PackedElementFieldNumericType.Uint8)
               for k, colour in enumerate(("red", "green", "blue", "alpha"))),
         ]  # fmt: skip
-        cells = grid_layers.layer_cells(values, kind)
-        self.emit(channels.layer(name), grid_message(header, fields, grid_layers.LAYER_CELL_BYTES, cells))
-        picture = pictures.png(grid_layers.layer_picture(values, kind, header))
-        when = stamp(header.stamp)
-        image = CompressedImage(timestamp=when, frame_id=header.frame_id, data=picture, format="png")
-        self.emit(channels.image(f"grid/{name}/image"), image)
+        layer, image_channel = channels.layer(name), channels.image(f"grid/{name}/image")
+        if layer.has_sinks():  # nobody watching, nothing recording: not drawn (seven layers a grid update)
+            cells = grid_layers.layer_cells(values, kind)
+            self.emit(layer, grid_message(header, fields, grid_layers.LAYER_CELL_BYTES, cells))
+        if image_channel.has_sinks():
+            picture = pictures.png(grid_layers.layer_picture(values, kind, header))
+            when = stamp(header.stamp)
+            image = CompressedImage(timestamp=when, frame_id=header.frame_id, data=picture, format="png")
+            self.emit(image_channel, image)
 
     def _show_costmap(self, channels: SourceChannels, payload: bytes) -> None:
         costmap = grid_layers.decode_occupancy_grid(payload)

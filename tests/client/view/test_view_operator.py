@@ -58,13 +58,13 @@ def costmap_payload() -> bytes:
 def feed(viewer: Viewer, client: FakeClient) -> None:
     """One round of everything of source 'cam': maps, a camera frame, the grid with its layers and robot, the
     costmap (the viewer shows each once it arrives)."""
-    put, before = client.session.put, viewer.logged[f"{TOPIC}/grid/costmap"]
+    put, before = client.session.put, viewer.shown["costmap"]
     put("gcdtrav/out/cam/maps", maps_payload("cam", (4, 4), (160, 120)))
     put("gcdtrav/in/cam", camera_payload(1))
     put("gcdtrav/out/cam/grid", grid_payload("cam", robot=ROBOT, layers=True))
-    assert wait_until(lambda: viewer.logged[f"{TOPIC}/grid/cvar"] > before, 10)
+    assert wait_until(lambda: viewer.shown["grid"] > before, 10)
     put("gcdtrav/out/cam/grid/costmap", costmap_payload())
-    assert wait_until(lambda: viewer.logged[f"{TOPIC}/grid/costmap"] > before, 10)
+    assert wait_until(lambda: viewer.shown["costmap"] > before, 10)
 
 
 @pytest.fixture()
@@ -114,6 +114,7 @@ def decoded(fox: FoxgloveClient, topic: str) -> dict[str, Any]:
 
 def test_a_late_viewer_gets_risk_layers_the_robot_its_camera_questions_and_the_log(fed: tuple[Viewer, Any]) -> None:
     viewer, client = fed
+    assert viewer.shown["grid"] == 1 and viewer.logged[f"{TOPIC}/grid/cvar"] == 0  # nobody watching: not drawn
     images = [f"{topic}/image" for topic in LAYER_TOPICS]
     replayed = [f"{TOPIC}/question", "/gcdtrav/log"]
     topics = [*LAYER_TOPICS, *images, *PLACED, f"{TOPIC}/camera", *replayed]
