@@ -605,7 +605,8 @@ class Viewer:
         failed = ""
         while not self._stop.is_set():
             target = self.probe
-            if target.active:
+            channels = self._channels(target.source) if target.active else None
+            if channels is not None and channels.image("distribution").has_sinks():  # else nobody to draw for
                 try:
                     self.show_distribution(target, self.query_distribution(target))
                     failed = ""

@@ -100,6 +100,7 @@ async def watch_and_steer(url: str, client: TraversabilityClient, running: Trave
     drive(client, 0)
     topics = ["/gcdtrav/cam/traversability", "/gcdtrav/cam/grid", "/gcdtrav/log"]
     await fox.until(lambda: all(topic in fox.channels for topic in topics))
+    await asyncio.sleep(0.3)  # foxglove-sdk 0.30.3 may refuse a subscription sent the instant a channel appears
     await fox.subscribe(*topics)
     await asyncio.sleep(0.3)
     for step in (1, 2):
