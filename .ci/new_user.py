@@ -15,6 +15,11 @@ once it logs that it is serving; at the end it gets SIGINT (Ctrl-C) and must exi
 exit 0. Afterwards nothing may have been written outside the state and cache directories: the working
 directory holds only the checkpoint, HOME only .local/state/gcdtrav and .cache/gcdtrav.
 
+Before the service stops, a PNG camera (issue 36: bare PNGs were rejected as malformed envelopes): the
+user's Python puts a 640x480 PNG, bare and without an encoding, on gcdtrav/in/png_camera, as a camera on
+zenoh would, and the README's `gcdtrav probe SOURCE 320 400` must answer for it (the other cameras and the
+README's other examples are tests: tests/client/test_first_contact.py).
+
 Bounded: each command at most COMMAND_TIMEOUT_S, the service's start at most SERVE_START_S.
 """
 
@@ -36,8 +41,23 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the repository's tools/, not in the wheel
 COMMAND_TIMEOUT_S = 240
 SERVE_START_S = 120
-SERVE_PORT = 7447  # gcdtrav serve's default listen port (service/cli.py DEFAULT_SERVE_LISTEN)
+SERVE_PORT = 7447  # gcdtrav serve's default listen port (service/commands/cli.py DEFAULT_SERVE_LISTEN)
 ALLOWED_IN_HOME = (".cache/gcdtrav/", ".local/state/gcdtrav/")
+CAMERA_S = 90  # the PNG camera's frames until the probe answers (the service may still measure the modes)
+PNG_CAMERA = f"""
+import sys, time
+import cv2, numpy as np, zenoh
+config = zenoh.Config()
+config.insert_json5("mode", '"client"')
+config.insert_json5("connect/endpoints", '["tcp/localhost:{SERVE_PORT}"]')
+image = np.random.default_rng(0).integers(0, 256, (480, 640, 3), np.uint8)
+png = cv2.imencode(".png", image)[1].tobytes()
+with zenoh.open(config) as session:
+    deadline = time.monotonic() + float(sys.argv[1])
+    while time.monotonic() < deadline:
+        session.put("gcdtrav/in/png_camera", png)  # no encoding: zenoh/bytes
+        time.sleep(0.5)
+"""
 
 
 def quick_start_lines(readme: str) -> list[str]:
@@ -117,7 +137,28 @@ class NewUser:
                 self.start_service(line)
             else:
                 self.command(line)
+        if self.services:
+            self.png_camera()
         self.stop_services()
+
+    def png_camera(self) -> None:
+        """A camera putting bare PNGs, and `gcdtrav probe` answering for it (see the module's docstring)."""
+        print("new user: a PNG camera on gcdtrav/in/png_camera, then gcdtrav probe png_camera 320 400", flush=True)
+        camera = subprocess.Popen(["python", "-c", PNG_CAMERA, str(CAMERA_S)], cwd=self.cwd, env=self.env)
+        probe = ["gcdtrav", "probe", "png_camera", "320", "400", "-e", f"tcp/localhost:{SERVE_PORT}"]
+        try:
+            deadline = time.monotonic() + CAMERA_S
+            while True:
+                result = subprocess.run(probe, cwd=self.cwd, env=self.env, capture_output=True, text=True, timeout=60)
+                if result.returncode == 0 or time.monotonic() > deadline:
+                    break
+                time.sleep(2)
+        finally:
+            camera.kill()
+            camera.wait()
+        print("  " + (result.stdout + result.stderr).strip().replace("\n", "\n  ")[-2000:])
+        if result.returncode != 0 or "pixel (x=320, y=400)" not in result.stdout:
+            raise SystemExit(f"new user: no answer for the PNG camera: {result.stderr.strip()[-500:]}")
 
     def install(self) -> None:
         if self.wheel is None or self.venv is None:

@@ -15,7 +15,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from gcdtrav.service import bench
+from gcdtrav.service.commands import bench
 
 from tools.random_clipseg import save_random_clipseg
 from tools.service_load import run_robots, run_zenoh

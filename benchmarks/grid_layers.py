@@ -11,7 +11,7 @@ A 200 x 200 grid (20 m at 0.1 m) with every cell known, 13 anchors (the paper's 
   the costmap's lethal threshold apart from tau (one more P(T < tau) product);
 - encode: the GridMessage (T, U, CVaR, p_below, match as 16-bit PNGs, counts and age), the GridMap CDR (7
   float32 layers), the Nav2 costmap (grading and OccupancyGrid CDR).
-Bytes per message are printed for the same grid. The calls take turns round by round (service/timing.py),
+Bytes per message are printed for the same grid. The calls take turns round by round (service/backends/timing.py),
 one warm-up round first; median and minimum in ms.
 """
 
@@ -29,13 +29,13 @@ from pathlib import Path
 import numpy as np
 from gcdtrav.schemas.anchors import Anchor, AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import GridSettings
-from gcdtrav.service.cpus import cpu_name
+from gcdtrav.service.backends.cpus import cpu_name
+from gcdtrav.service.backends.timing import interleaved_ms
 from gcdtrav.service.engine import gcd
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.layers import GridLayers, grid_layers, nav2_costs
 from gcdtrav.service.ros.cdr import occupancy_values_cdr
 from gcdtrav.service.runtime.grids import GridOutputs
-from gcdtrav.service.timing import interleaved_ms
 
 ALPHA, TAU, LETHAL_TAU = 0.1, 0.3, 0.1
 GAUSSIAN_WIDTH = 0.05

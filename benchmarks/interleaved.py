@@ -18,10 +18,10 @@ from pathlib import Path
 
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.service.backends.clipseg import ClipSegBackend
-from gcdtrav.service.bench import machine_header
-from gcdtrav.service.doctor import machine_info
-from gcdtrav.service.precision_choice import synthetic_image
-from gcdtrav.service.timing import interleaved_ms
+from gcdtrav.service.backends.precision_choice import synthetic_image
+from gcdtrav.service.backends.timing import interleaved_ms
+from gcdtrav.service.commands.bench import machine_header
+from gcdtrav.service.commands.doctor import machine_info
 
 from tools.random_clipseg import checkpoint_or_random
 

@@ -9,7 +9,7 @@ Rows (13 anchors, weights from a seeded softmax of random logits):
   grid and on a 352 x 352 map (CLIPSeg's), with the paper's zero-width anchors (point masses: exact from the
   shared table) and with every anchor 0.05 wide (Gaussians: the Newton refinement runs);
 - plan: client/planning.py plan, corner to corner of the 200 x 200 grid, CVaR cost, on the first row's layers.
-The calls take turns round by round (service/timing.py), one warm-up round first; median and minimum in ms.
+The calls take turns round by round (service/backends/timing.py), one warm-up round first; median and minimum in ms.
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ from pathlib import Path
 import numpy as np
 from gcdtrav.client.planning import plan
 from gcdtrav.schemas.anchors import default_anchor_set
-from gcdtrav.service.cpus import cpu_name
+from gcdtrav.service.backends.cpus import cpu_name
+from gcdtrav.service.backends.timing import interleaved_ms
 from gcdtrav.service.engine import gcd, risk
-from gcdtrav.service.timing import interleaved_ms
 from numpy.typing import NDArray
 
 ALPHA, TAU = 0.1, 0.1

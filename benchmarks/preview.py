@@ -13,11 +13,11 @@ import platform
 
 import cv2
 import numpy as np
+from gcdtrav.schemas import images as viz
 from gcdtrav.schemas.images import decode_image, encode_jpeg, resize_map
-from gcdtrav.service import viz
-from gcdtrav.service.cpus import cpu_name
+from gcdtrav.service.backends.cpus import cpu_name
+from gcdtrav.service.backends.timing import interleaved_ms
 from gcdtrav.service.runtime.outputs import PREVIEW_JPEG_QUALITY, preview_panel
-from gcdtrav.service.timing import interleaved_ms
 
 
 def preview_before(image: np.ndarray, t: np.ndarray, u: np.ndarray, max_width: int) -> bytes:

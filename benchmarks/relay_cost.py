@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 from gcdtrav.schemas.messages import ImageEnvelope
-from gcdtrav.service.cpus import cpu_name
+from gcdtrav.service.backends.cpus import cpu_name
 
 from tools.loopback import free_port
 from tools.random_clipseg import save_random_clipseg
@@ -71,7 +71,7 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=20.0)
     parser.add_argument("--fps", type=float, default=15.0)
     args = parser.parse_args()
-    gcdtrav = [sys.executable, "-m", "gcdtrav.service.cli"]
+    gcdtrav = [sys.executable, "-m", "gcdtrav.service.commands.cli"]
     with tempfile.TemporaryDirectory() as scratch:
         model = save_random_clipseg(Path(scratch) / "tiny", preset="tiny", input_size=96)
         link_port, robot_port = free_port(), free_port()

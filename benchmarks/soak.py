@@ -33,7 +33,7 @@ import numpy as np
 import zenoh
 from gcdtrav.client import ServiceError, TraversabilityClient, zenoh_config
 from gcdtrav.schemas.images import encode_jpeg
-from gcdtrav.service.bench import bench_image, rss_mb
+from gcdtrav.service.commands.bench import bench_image, rss_mb
 
 from tools.loopback import SimulatedRobots, free_port, service_processes, wait_for_statuses
 

@@ -9,7 +9,7 @@ from gcdtrav.client.client import (
     ServiceError,
     TraversabilityClient,
 )
-from gcdtrav.client.zenoh_args import add_zenoh_arguments, zenoh_config, zenoh_config_from_args
+from gcdtrav.client.session.zenoh_args import add_zenoh_arguments, zenoh_config, zenoh_config_from_args
 
 __all__ = [
     "AnchorSetRejected",

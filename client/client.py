@@ -6,6 +6,7 @@ No torch: robots and planners install only the base package.
 from __future__ import annotations
 
 import contextlib
+import math
 import queue
 import threading
 import time
@@ -17,7 +18,7 @@ from typing import Any
 import numpy as np
 import zenoh
 from gcdtrav.client.freshness import FreshnessWatch, Staleness
-from gcdtrav.client.source_info import put_identified
+from gcdtrav.client.session.source_info import put_identified
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.images import (
     decode_age_png,
@@ -37,6 +38,7 @@ from gcdtrav.schemas.messages import (
     AnchorSetReply,
     CompactMapsMessage,
     ContextDistribution,
+    CreditGrant,
     ErrorReply,
     GridHeader,
     GridMessage,
@@ -47,6 +49,7 @@ from gcdtrav.schemas.messages import (
     MessageError,
     PathReply,
     PixelEncoding,
+    RelayHealth,
     ServiceStatus,
     peek_fields,
 )
@@ -190,12 +193,21 @@ class Grid:
         return int((y - self.header.origin[1]) // r), int((x - self.header.origin[0]) // r)
 
 
+CLOCK_STEP_BACK_S = 10.0  # over the service's max_frame_age_s (5 s): no fresh frame is stamped this much older
+
+
 class MapsOrder:
     """Per source, the order (``MapsHeader.order``) of the last map let through: a map not above it is older
-    than what was shown, or the same frame again (two instances during a hand-over), and is held back."""
+    than what was shown, or the same frame again (two instances during a hand-over), and is held back.
+
+    The order is the robot's stamp, so a robot clock that is off orders its maps all the same; one that steps
+    back would hold them back until it caught up. A map stamped more than ``CLOCK_STEP_BACK_S`` before the
+    last one shown yet received later by its service is such a step (a frame that much older would have been
+    dropped stale): it is shown, and the source's order starts again from it."""
 
     def __init__(self) -> None:
         self._last: dict[str, tuple[float, float]] = {}
+        self._stepped_at: dict[str, float] = {}  # receipt of the map after the source's last clock step
         self._lock = threading.Lock()
         self.held_back = 0
 
@@ -203,9 +215,13 @@ class MapsOrder:
         order = header.order or (header.stamp, header.received_at)  # a 1.1 service: the same two fields
         with self._lock:
             last = self._last.get(header.source)
-            if last is not None and order <= last:
+            stepped_back = last is not None and order[0] < last[0] - CLOCK_STEP_BACK_S and order[1] > last[1]
+            before_step = order[1] < self._stepped_at.get(header.source, -math.inf)
+            if last is not None and (order <= last or before_step) and not stepped_back:
                 self.held_back += 1
                 return False
+            if stepped_back:
+                self._stepped_at[header.source] = order[1]
             self._last[header.source] = order
             return True
 
@@ -216,11 +232,11 @@ class MapsFreshness:
     def __init__(
         self,
         watch: FreshnessWatch,
-        subscriber: zenoh.Subscriber[None],
+        subscribers: list[zenoh.Subscriber[None]],
         on_change: Callable[[Staleness], None],
         period_s: float,
     ) -> None:
-        self.watch, self._subscriber, self._on_change, self._period_s = watch, subscriber, on_change, period_s
+        self.watch, self._subscribers, self._on_change, self._period_s = watch, subscribers, on_change, period_s
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="gcdtrav-freshness", daemon=True)
         self._thread.start()
@@ -230,10 +246,15 @@ class MapsFreshness:
             for change in self.watch.check():
                 self._on_change(change)
 
+    def reason(self, source: str) -> str | None:
+        """Why the service gives ``source`` no maps, as it last said (a credit, or a relay's health), or None."""
+        return self.watch.reason(source)
+
     def close(self) -> None:
         self._stop.set()
         self._thread.join(5)
-        self._subscriber.undeclare()
+        for subscriber in self._subscribers:
+            subscriber.undeclare()
 
 
 def _optional_map(data: bytes | None) -> NDArray[np.float32] | None:
@@ -380,7 +401,9 @@ class TraversabilityClient:
     ) -> MapsFreshness:
         """Call ``on_change`` when the maps of a source go stale (none newer than ``stale_after_s``, by the
         clock assumption of ``Maps.age_s``; also when none came at all) and when they are fresh again: a robot
-        slows down or stops. ``close()`` the returned watcher to stop."""
+        slows down or stops. A stale change carries the ``reason`` the service gave for the source's frames
+        (e.g. 'stale: captured 3600.0 s ago, ...'), heard from its credits (on the service's bus) or from a
+        relay's health (on the robot's bus). ``close()`` the returned watcher to stop."""
         watch = FreshnessWatch(stale_after_s)
         for source in sources:
             watch.watch(source)
@@ -394,8 +417,24 @@ class TraversabilityClient:
                 except (MessageError, KeyError, TypeError, ValueError):
                     return
 
-        subscriber = self.session.declare_subscriber(self.maps_key("**", compact), observe)
-        return MapsFreshness(watch, subscriber, on_change, period_s)
+        def hear_credit(sample: zenoh.Sample) -> None:
+            source = self.keys.credit_source_of(str(sample.key_expr))
+            if source in sources:
+                with contextlib.suppress(MessageError):
+                    watch.note_reason(source, CreditGrant.unpack(sample.payload.to_bytes()).problem)
+
+        def hear_relay(sample: zenoh.Sample) -> None:
+            with contextlib.suppress(MessageError):
+                health = RelayHealth.unpack(sample.payload.to_bytes())
+                if health.source in sources:
+                    watch.note_reason(health.source, health.problem)
+
+        subscribers = [
+            self.session.declare_subscriber(self.maps_key("**", compact), observe),
+            self.session.declare_subscriber(self.keys.credit("**"), hear_credit),
+            self.session.declare_subscriber(self.keys.relay_health("**"), hear_relay),
+        ]
+        return MapsFreshness(watch, subscribers, on_change, period_s)
 
     def iter_maps(self, selector: str = "**", timeout: float | None = None, limit: int | None = None) -> Iterator[Maps]:
         """Yield decoded maps as they arrive, each newer than the last of its source (``subscribe_maps``); stop

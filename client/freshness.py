@@ -21,6 +21,7 @@ class Staleness:
     source: str
     stale: bool
     age_s: float  # of the newest maps when the change was seen; before any, the time since they were expected
+    reason: str | None = None  # why the service gives no maps, as it last said (a credit's problem), if it did
 
 
 class FreshnessWatch:
@@ -34,6 +35,8 @@ class FreshnessWatch:
         self._newest: dict[str, float] = {}
         self._since: dict[str, float] = {}  # when a watched source began to be expected
         self._stale: dict[str, bool] = {}
+        self._reasons: dict[str, str | None] = {}
+        self._told: dict[str, str | None] = {}  # the reason of each source's last reported change
         self._lock = threading.Lock()
 
     def watch(self, source: str, since: float | None = None) -> None:
@@ -51,6 +54,15 @@ class FreshnessWatch:
         with self._lock:
             self._newest[source] = max(self._newest.get(source, -math.inf), stamp)
             self._stale.setdefault(source, False)
+
+    def note_reason(self, source: str, reason: str | None) -> None:
+        """What the service last said of ``source``'s frames (None: nothing wrong); changes report it."""
+        with self._lock:
+            self._reasons[source] = reason
+
+    def reason(self, source: str) -> str | None:
+        with self._lock:
+            return self._reasons.get(source)
 
     def newest(self, source: str) -> float | None:
         with self._lock:
@@ -70,14 +82,17 @@ class FreshnessWatch:
         return self.age_s(source) > self.stale_after_s
 
     def check(self) -> list[Staleness]:
-        """The sources whose state changed since the last check (stale, or fresh again)."""
+        """The sources whose state changed since the last check (stale, or fresh again), and stale ones whose
+        reason changed (the service named one only after they went stale, or another)."""
         now = self._clock()
         changes = []
         with self._lock:
             for source in self._newest:
                 age = now - self._reference(source)
                 stale = age > self.stale_after_s
-                if stale != self._stale[source]:
+                reason = self._reasons.get(source) if stale else None
+                if stale != self._stale[source] or (stale and reason != self._told.get(source)):
                     self._stale[source] = stale
-                    changes.append(Staleness(source, stale, age))
+                    self._told[source] = reason
+                    changes.append(Staleness(source, stale, age, reason))
         return changes

@@ -7,7 +7,8 @@ cobblestone), a puddle band across the straight route whose cells are split betw
 dirt or grass (0.7, 0.5), and rough but unambiguous ground (sand, moss, gravel) at the puddle's north end.
 The puddle's mean T is middling, as high as the rough ground's, so a planner on the mean crosses it; its
 CVaR is water's, so a planner on the CVaR goes round through the rough ground. Both plans are printed with
-the worst cell they cross by each measure, and drawn over the T and CVaR grids (docs/ambiguity-aware-planning.png).
+the worst cell they cross by each measure, and drawn over the T and CVaR grids into ./ambiguity-aware-planning.png
+or --out (docs/ambiguity-aware-planning.png is the one the README shows).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from numpy.typing import NDArray
 ROWS, COLUMNS, RESOLUTION = 80, 120, 0.1  # cells (row = y, column = x), metres per cell
 START, GOAL = (36, 4), (36, 115)
 NAMES = {"mean": "mean T", "cvar": "CVaR"}
-FIGURE = Path(__file__).resolve().parents[1] / "docs" / "ambiguity-aware-planning.png"
+FIGURE = Path("ambiguity-aware-planning.png")  # in the working directory, never into the checkout's docs/
 # Each region's anchor weights (by concept); a cell mixes regions by how far inside it lies, plus noise.
 FIRM = {"dirt": 0.6, "soil": 0.3, "cobblestone": 0.1}
 PUDDLE = {"water": 0.3, "dirt": 0.45, "grass": 0.25}
@@ -109,7 +110,7 @@ def main() -> None:
     parser.add_argument("--alpha", type=float, default=0.1, help="CVaR's tail probability")
     parser.add_argument("--tau", type=float, default=0.1, help="threshold of P(T < tau)")
     parser.add_argument("--weight", type=float, default=10.0, help="cost weight of the risk")
-    parser.add_argument("--out", type=Path, default=FIGURE, help="where to write the figure")
+    parser.add_argument("--out", type=Path, default=FIGURE, help=f"where to write the figure [./{FIGURE}]")
     args = parser.parse_args()
     anchors = default_anchor_set()
     weights = fused_weights(anchors, np.random.default_rng(25))

@@ -9,7 +9,7 @@ import argparse
 import sys
 
 from gcdtrav.client import ServiceError, TraversabilityClient, add_zenoh_arguments, zenoh_config_from_args
-from gcdtrav.client.operator import describe  # `gcdtrav probe SOURCE X Y` prints the same
+from gcdtrav.client.commands.density_plot import describe  # `gcdtrav probe SOURCE X Y` prints the same
 
 
 def main() -> int:
@@ -35,7 +35,7 @@ def main() -> int:
         except ServiceError as err:
             print(f"error: {err}", file=sys.stderr)
             return 1
-    print(describe(reply))
+    print(describe(reply, None if args.region is not None else (args.x, args.y)))
     return 0
 
 

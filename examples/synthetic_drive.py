@@ -13,7 +13,7 @@ import time
 import numpy as np
 from gcdtrav.client import Grid, TraversabilityClient, add_zenoh_arguments, zenoh_config_from_args
 from gcdtrav.schemas.messages import Pose2D
-from gcdtrav.service.bench import bench_image
+from gcdtrav.service.commands.bench import bench_image
 
 
 def main() -> None:

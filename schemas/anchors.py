@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 from collections.abc import Sequence
 from pathlib import Path
@@ -96,19 +97,7 @@ class AnchorSet(FrozenStrictModel):
 
     @model_validator(mode="after")
     def _ordered_and_unique(self) -> AnchorSet:
-        problems = []
-        for before, after in zip(self.anchors, self.anchors[1:], strict=False):
-            if after.position < before.position:
-                problems.append(
-                    f"anchors must be sorted by position: '{after.concept}' ({after.position}) "
-                    f"comes after '{before.concept}' ({before.position})"
-                )
-        seen: set[str] = set()
-        for anchor in self.anchors:
-            key = anchor.concept.lower()
-            if key in seen:
-                problems.append(f"concept '{anchor.concept}' appears more than once; concepts must be unique")
-            seen.add(key)
+        problems = order_and_uniqueness_problems([(a.concept, a.position) for a in self.anchors])
         if problems:
             raise ValueError("; ".join(problems))
         return self
@@ -146,7 +135,11 @@ class AnchorSet(FrozenStrictModel):
         try:
             return cls.model_validate(data)
         except ValidationError as err:
-            raise AnchorSetError(_readable_errors(err), source) from None
+            messages = _readable_errors(err)
+            # Field errors stop pydantic before the set's own checks: run them on what the anchors say.
+            set_problems = order_and_uniqueness_problems(_raw_anchors(data))
+            messages += [problem for problem in set_problems if not any(problem in m for m in messages)]
+            raise AnchorSetError(messages, source) from None
 
     @classmethod
     def from_text(cls, text: str | bytes, source: str | None = None) -> AnchorSet:
@@ -192,6 +185,27 @@ class AnchorSet(FrozenStrictModel):
             path.write_text(self.to_json() + "\n", "utf-8")
 
 
+def anchor_diff(active: AnchorSet, new: AnchorSet) -> list[str]:
+    """What swapping ``active`` for ``new`` changes, one line per concept: + added, - removed, ~ moved."""
+    old = {a.concept: a for a in active.anchors}
+    lines = [f"- {c} @ {a.position:.2f}" for c, a in old.items() if c not in set(new.concepts)]
+    for anchor in new.anchors:
+        before = old.get(anchor.concept)
+        width = new.widths[new.concepts.index(anchor.concept)]
+        if before is None:
+            lines.append(f"+ {anchor.concept} @ {anchor.position:.2f}")
+        else:
+            old_width = active.widths[active.concepts.index(anchor.concept)]
+            if (before.position, old_width) != (anchor.position, width):
+                lines.append(
+                    f"~ {anchor.concept} @ {before.position:.2f} -> {anchor.position:.2f}"
+                    + (f", width {old_width:g} -> {width:g}" if old_width != width else "")
+                )
+    if active.name != new.name:
+        lines.append(f"~ name {active.name!r} -> {new.name!r}")
+    return lines
+
+
 class DocumentTooDeep(ValueError):
     pass
 
@@ -210,6 +224,37 @@ def _refuse_deep_nesting(text: str) -> None:
                 )
         elif isinstance(event, yaml.CollectionEndEvent):
             depth -= 1
+
+
+def order_and_uniqueness_problems(anchors: Sequence[tuple[str, float | None]]) -> list[str]:
+    """The set's own rules on (concept, position) pairs: sorted by position, concepts unique (any case).
+    A position of None (unreadable) is left out of the order."""
+    problems = []
+    placed = [(concept, position) for concept, position in anchors if position is not None]
+    for (concept_a, a), (concept_b, b) in itertools.pairwise(placed):
+        if b < a:
+            problems.append(f"anchors must be sorted by position: '{concept_b}' ({b}) comes after '{concept_a}' ({a})")
+    seen: set[str] = set()
+    for concept, _ in anchors:
+        key = concept.lower()
+        if key in seen:
+            problems.append(f"concept '{concept}' appears more than once; concepts must be unique")
+        seen.add(key)
+    return problems
+
+
+def _raw_anchors(data: Any) -> list[tuple[str, float | None]]:
+    """(concept, position) of the anchors a mapping gives, as far as they read (a position outside [0, 1] has
+    its own error: None): for the set's own checks when some fields failed."""
+    anchors = data.get("anchors") if isinstance(data, dict) else None
+    found: list[tuple[str, float | None]] = []
+    for anchor in anchors if isinstance(anchors, list) else []:
+        concept = anchor.get("concept") if isinstance(anchor, dict) else None
+        if isinstance(concept, str) and concept.strip():
+            position = anchor.get("position")
+            usable = isinstance(position, (int, float)) and not isinstance(position, bool) and 0 <= position <= 1
+            found.append((concept.strip(), float(position) if usable else None))
+    return found
 
 
 def _readable_errors(err: ValidationError) -> list[str]:

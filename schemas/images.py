@@ -180,6 +180,12 @@ def colorize_uncertainty(u: NDArray[np.floating], vmax: float = UNCERTAINTY_VMAX
     return cv2.cvtColor(cv2.applyColorMap(index, cv2.COLORMAP_INFERNO), cv2.COLOR_BGR2RGB)
 
 
+def overlay(image_rgb: NDArray[np.uint8], colours: NDArray[np.uint8], alpha: float = 0.55) -> NDArray[np.uint8]:
+    """The colours blended over the image (the preview's and `gcdtrav infer`'s overlays)."""
+    blended = cv2.addWeighted(image_rgb, 1 - alpha, colours, alpha, 0.0)
+    return np.asarray(blended, dtype=np.uint8)
+
+
 def encode_count_png(count: NDArray[np.integer]) -> bytes:
     """A grid's observation counts as a 16-bit PNG (saturating at 65535)."""
     return png_bytes(np.clip(count, 0, 65535).astype(np.uint16))

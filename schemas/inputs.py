@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
 from gcdtrav.schemas.images import ImageDecodeError, decode_image
-from gcdtrav.schemas.messages import RAW_CHANNELS, ImageEnvelope, MessageError, PixelEncoding
+from gcdtrav.schemas.messages import MSGPACK_ENCODING, RAW_CHANNELS, ImageEnvelope, MessageError, PixelEncoding
 from numpy.typing import NDArray
 
 
@@ -26,22 +27,63 @@ class DecodedFrame:
     image: NDArray[np.uint8]  # (H, W, 3) RGB
     stamp: float
     frame_id: str
+    original_size: tuple[int, int] | None = None  # (width, height) of the camera's image, if the sender shrank it
+
+    @property
+    def camera_size(self) -> tuple[int, int]:
+        """(width, height) in the camera's pixels: what the maps' geometry and the queries use."""
+        return self.original_size or (int(self.image.shape[1]), int(self.image.shape[0]))
 
 
-def _looks_like_msgpack_map(payload: bytes) -> bool:
-    first = payload[0]
-    return 0x80 <= first <= 0x8F or first in (0xDE, 0xDF)
+InputKind = Literal["envelope", "image"]
+# The first bytes of the image files OpenCV reads. None of them can start a msgpack map (an envelope): JPEG's
+# 0xFF and the ASCII letters are integers in msgpack, and PNG's 0x89 (a map of 9 entries) is followed by 'P',
+# an integer where a map needs a string key. So a signature decides even against a wrong zenoh encoding.
+IMAGE_SIGNATURES = (
+    (b"\x89PNG", "PNG"),
+    (b"\xff\xd8\xff", "JPEG"),
+    (b"BM", "BMP"),
+    (b"GIF87a", "GIF"),
+    (b"GIF89a", "GIF"),
+    (b"II*\x00", "TIFF"),
+    (b"MM\x00*", "TIFF"),
+    (b"RIFF", "WebP"),
+)
+UNSET_ENCODINGS = ("", "zenoh/bytes", "application/octet-stream")  # what a publisher that sets none sends
+
+
+def image_format(payload: bytes) -> str | None:
+    """The image file format ``payload`` starts with (PNG, JPEG, BMP, GIF, TIFF, WebP), or None."""
+    return next((name for signature, name in IMAGE_SIGNATURES if payload.startswith(signature)), None)
+
+
+def _starts_a_msgpack_map(payload: bytes) -> bool:
+    return bool(payload) and (0x80 <= payload[0] <= 0x8F or payload[0] in (0xDE, 0xDF))
+
+
+def input_kind(payload: bytes, encoding: str) -> InputKind:
+    """What an input payload is: a bare image file or an ImageEnvelope (msgpack). The one rule of intake, the
+    age peek (service/runtime/frame_age.py) and the decoder: an image file's signature first (it cannot start
+    an envelope, so it wins over a wrong encoding), then the zenoh encoding when set (``image/*`` or
+    ``application/msgpack``), then a msgpack map's first byte; anything else is taken as an image and the
+    decoder says why it is not one."""
+    if image_format(payload) is not None:
+        return "image"
+    mime = encoding.split(";", 1)[0].strip().lower()
+    if mime.startswith("image/"):
+        return "image"
+    if mime == MSGPACK_ENCODING:
+        return "envelope"
+    return "envelope" if _starts_a_msgpack_map(payload) else "image"
 
 
 def decode_payload(payload: bytes, encoding: str, received_at: float, max_bytes: int, max_pixels: int) -> DecodedFrame:
-    """JPEG/PNG bytes (by zenoh encoding or content) or an ImageEnvelope (msgpack)."""
+    """A bare image file or an ImageEnvelope (msgpack), told apart by ``input_kind``."""
     if len(payload) > max_bytes:
         raise RejectedInput("oversized", f"{len(payload)} bytes exceeds the limit of {max_bytes}")
     if not payload:
         raise RejectedInput("empty", "payload has 0 bytes")
-    if encoding.startswith("application/msgpack") or (
-        not encoding.startswith("image/") and _looks_like_msgpack_map(payload)
-    ):
+    if input_kind(payload, encoding) == "envelope":
         return _decode_envelope(payload, max_bytes, max_pixels)
     try:
         return DecodedFrame(decode_image(payload, max_pixels), stamp=received_at, frame_id="")
@@ -54,10 +96,9 @@ def _decode_envelope(payload: bytes, max_bytes: int, max_pixels: int) -> Decoded
         envelope = ImageEnvelope.unpack(payload, max_bytes)
     except MessageError as err:
         raise RejectedInput("malformed_envelope", str(err)) from None
-    if envelope.width * envelope.height > max_pixels:
-        raise RejectedInput(
-            "too_many_pixels", f"{envelope.width}x{envelope.height} exceeds the limit of {max_pixels} pixels"
-        )
+    for width, height in ((envelope.width, envelope.height), envelope.original_size or (1, 1)):
+        if width * height > max_pixels:  # an original size is a geometry: full-resolution maps are made at it
+            raise RejectedInput("too_many_pixels", f"{width}x{height} exceeds the limit of {max_pixels} pixels")
     if envelope.encoding in RAW_CHANNELS:
         image = _raw_pixels(envelope)
     else:
@@ -65,7 +106,7 @@ def _decode_envelope(payload: bytes, max_bytes: int, max_pixels: int) -> Decoded
             image = decode_image(envelope.data, max_pixels)
         except ImageDecodeError as err:
             raise RejectedInput(err.reason, f"envelope {envelope.encoding.value}: {err}") from None
-    return DecodedFrame(image, stamp=envelope.stamp, frame_id=envelope.frame_id)
+    return DecodedFrame(image, envelope.stamp, envelope.frame_id, envelope.original_size)
 
 
 def _raw_pixels(envelope: ImageEnvelope) -> NDArray[np.uint8]:

@@ -144,6 +144,18 @@ class ImageEnvelope(Message):
         description="When the sender published it, its own clock (a relay sets it): echoed in the credit, so the "
         "sender can estimate the link's round trip and the clock offset.",
     )
+    original_size: tuple[int, int] | None = Field(
+        default=None,
+        description="(width, height) of the camera's image when the sender shrank it (a relay does): the maps' "
+        "geometry and the answers' pixels are in it. None: the image is the camera's. Since 1.2.",
+    )
+
+    @field_validator("original_size")
+    @classmethod
+    def _positive_size(cls, value: tuple[int, int] | None) -> tuple[int, int] | None:
+        if value is not None and min(value) < 1:
+            raise ValueError(f"{value} must be (width, height), each at least 1")
+        return value
 
 
 # ---- maps out --------------------------------------------------------------------------------------
@@ -163,8 +175,11 @@ class MapsHeader(WireModel):
     anchor_set_version: str
     method: Method
     map_shape: tuple[int, int] = Field(description="(height, width) of T and U in this message.")
-    image_size: tuple[int, int] = Field(description="(width, height) of the input image, pixels.")
-    scale: tuple[float, float] = Field(description="(sx, sy): image pixels per patch along x and y.")
+    image_size: tuple[int, int] = Field(
+        description="(width, height) of the camera's image, pixels: the input's, or the original_size a relay sent "
+        "with a shrunk frame. Pixel coordinates of queries are in it."
+    )
+    scale: tuple[float, float] = Field(description="(sx, sy): image_size pixels per patch along x and y.")
     order: tuple[float, float] | None = Field(
         default=None,
         description="The source's order across instances and hand-overs: (stamp, received_at), compared as a "
@@ -216,6 +231,11 @@ class CreditGrant(Message):
     last_maps_stamp: float | None = Field(
         default=None, description="Capture stamp of the newest frame whose maps this instance published."
     )
+    problem: str | None = Field(
+        default=None,
+        description="Why the source's last frame gave no maps, as the service counted it ('reason: detail', e.g. "
+        "'stale: captured 3600.0 s ago, over max_frame_age_s = 5 s ...'); None once maps are published. Since 1.2.",
+    )
 
 
 class RelayHealth(Message):
@@ -240,6 +260,11 @@ class RelayHealth(Message):
         default=None, description="Service clock minus robot clock, estimated from credit round trips."
     )
     round_trip_s: float | None = Field(default=None, description="Link round trip of the best recent estimate.")
+    problem: str | None = Field(
+        default=None,
+        description="Why the service gives no maps, as its last credit said (CreditGrant.problem), or the "
+        "relay's own (camera frames not usable). Since 1.2.",
+    )
 
 
 # ---- queries ---------------------------------------------------------------------------------------
@@ -425,9 +450,33 @@ class SourceStatus(WireModel):
     stale: int = Field(default=0, description="Of the dropped: captured over max_frame_age_s ago.")
     bytes_per_s: float | None = Field(default=None, description="Input payload bytes per second, last 10 s.")
     frame_age_ms: dict[str, float] = Field(
-        default_factory=dict, description="Capture stamp to intake p50/p95 (clocks assumed in step)."
+        default_factory=dict,
+        description="Age at intake p50/p95, as the service's clock setting judges it: the delay beyond the "
+        "source's smallest recent delay (estimated), or receipt minus capture stamp (synced).",
     )
     credits: int = Field(default=0, description="Credits granted to the source (CreditGrant).")
+    dropped_by_reason: dict[str, int] = Field(
+        default_factory=dict, description="Its dropped frames by reason (replaced, stale, ...). Since 1.2."
+    )
+    rejected_by_reason: dict[str, int] = Field(
+        default_factory=dict, description="Its rejected frames by reason (undecodable, oversized, ...). Since 1.2."
+    )
+    problem: str = Field(
+        default="",
+        description="Why its last frame gave no maps ('reason: detail', e.g. 'stale: captured 3600.0 s ago, ...'); "
+        "empty once maps are published. Since 1.2.",
+    )
+    refused: bool = Field(
+        default=False,
+        description="A source refused before it took a slot (every frame stale or undecodable so far, or no slot "
+        "left), listed with its counts and problem (at most 32 such sources). Since 1.2.",
+    )
+    clock_offset_s: float | None = Field(
+        default=None,
+        description="The source's clock as learnt from its stamped frames: the smallest recent receipt minus "
+        "capture stamp, i.e. service minus robot clock plus the link's smallest delay; None before a stamped "
+        "frame. Since 1.2.",
+    )
 
 
 class ServiceStatus(Message):

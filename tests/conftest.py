@@ -74,7 +74,7 @@ def torch_free_gcdtrav(*args: str) -> list[str]:
         import sys
         sys.modules["torch"] = None
         sys.modules["transformers"] = None
-        from gcdtrav.service.cli import main
+        from gcdtrav.service.commands.cli import main
         sys.exit(main({list(args)!r}))
         """
     )

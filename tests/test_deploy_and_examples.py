@@ -33,6 +33,39 @@ def test_service_settings_example_is_valid() -> None:
     assert settings.prefix == "gcdtrav" and settings.inputs == ["gcdtrav/in/**"]
 
 
+def test_service_yaml_lists_every_setting() -> None:
+    """The README says deploy/service.yaml lists every setting (it lacked max_frame_age_s): each field of
+    ServiceSettings is a key there, or a commented one for those configured per camera; the fields of the
+    nested sections it sets are keys under them."""
+    import re
+
+    import yaml
+    from gcdtrav.schemas.settings import ServiceSettings
+
+    text = (ROOT / "deploy" / "service.yaml").read_text("utf-8")
+    listed = set(re.findall(r"^#? ?([a-z_]+):", text, re.MULTILINE))
+    assert set(ServiceSettings.model_fields) - listed == set()
+    values = yaml.safe_load(text)
+    for section, model in ServiceSettings.model_fields.items():
+        if isinstance(values.get(section), dict):
+            nested = model.annotation.model_fields  # type: ignore[union-attr]
+            assert set(nested) - set(values[section]) == set(), section
+
+
+def test_the_planning_example_writes_its_figure_where_it_runs(tmp_path: Path) -> None:
+    """It wrote into the checkout's docs/ by default; now into the working directory, or --out."""
+    pytest.importorskip("matplotlib")
+    shipped = ROOT / "docs" / "ambiguity-aware-planning.png"
+    before = shipped.stat().st_mtime_ns
+    script = str(ROOT / "examples" / "ambiguity_aware_planning.py")
+    ran = subprocess.run([sys.executable, script], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert ran.returncode == 0, ran.stderr
+    assert (tmp_path / "ambiguity-aware-planning.png").stat().st_size > 10_000
+    elsewhere = run_example("ambiguity_aware_planning.py", "--out", str(tmp_path / "plots" / "p.png"))
+    assert elsewhere.returncode == 0 and (tmp_path / "plots" / "p.png").exists()
+    assert shipped.stat().st_mtime_ns == before
+
+
 def test_example_anchor_set_is_valid() -> None:
     from gcdtrav.schemas.anchors import AnchorSet
 
@@ -62,7 +95,7 @@ def test_robot_planner_and_operator_examples(tiny_backend, tmp_path: Path) -> No
         missing = run_example("planner_probe.py", "--source", "nobody", "--x", "1", "--y", "1", *flags)
         assert missing.returncode == 1 and "unknown source 'nobody'" in missing.stderr
         puddles = str(ROOT / "examples" / "anchors" / "puddles.yaml")  # the operator's command replaced the script
-        command = [sys.executable, "-m", "gcdtrav.service.cli", "anchors", "set", puddles, *flags]
+        command = [sys.executable, "-m", "gcdtrav.service.commands.cli", "anchors", "set", puddles, *flags]
         operator = subprocess.run(command, capture_output=True, text=True, timeout=60)
         assert operator.returncode == 0, operator.stderr
         assert len(service.pipeline.anchors) == 8
@@ -127,7 +160,7 @@ def test_container_health_check_finds_its_instance(tiny_backend, tmp_path: Path)
     from tools.loopback import in_process_service
 
     def health(*args: str) -> subprocess.CompletedProcess[str]:
-        command = [sys.executable, "-m", "gcdtrav.client.health", "--timeout", "2", *args]
+        command = [sys.executable, "-m", "gcdtrav.client.commands.health", "--timeout", "2", *args]
         return subprocess.run(command, capture_output=True, text=True, timeout=60)
 
     settings = ServiceSettings(state_dir=tmp_path / "state")  # the default name: {hostname}-{pid}

@@ -1,5 +1,6 @@
-"""No import cycles in gcdtrav: every module imports alone, and the static graph (function-local imports
-included) has no cycle. `python -m tools.import_graph` prints the same summary."""
+"""No import cycles in gcdtrav and no upward import: every module imports alone, and the static graph
+(function-local imports included) has no cycle and no import against the layer table (tools/import_graph.py
+LAYERS, docs/architecture.md#layers). `python -m tools.import_graph` prints the same summary."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import sys
 import textwrap
 from pathlib import Path
 
-from tools.import_graph import build_graph
+from tools.import_graph import LAYERS, build_graph, layer_of
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -32,6 +33,73 @@ def test_the_graph_sees_a_cycle_through_a_function_local_import(tmp_path: Path) 
     assert graph.edges["gcdtrav.service.b"] == {"gcdtrav.service.backends", "gcdtrav.service.backends.a"}
     assert graph.cycles() == [["gcdtrav.service.b", "gcdtrav.service.backends.a"]]
     assert "1 cycles" in graph.summary() and "gcdtrav.service.b -> gcdtrav.service.backends.a" in graph.summary()
+
+
+def test_every_import_follows_the_layer_table() -> None:
+    graph = build_graph(ROOT)
+    assert all(layer_of(module) is not None for module in graph.modules), graph.upward_imports()
+    assert graph.upward_imports() == [], graph.summary()
+
+
+def test_the_layer_table_is_a_hierarchy() -> None:
+    """Each layer imports only layers that exist and never itself, and no two layers import each other, even
+    through others (the table itself has no cycle)."""
+    for layer, allowed in LAYERS.items():
+        assert layer not in allowed and allowed <= set(LAYERS), layer
+    reachable = {layer: set(allowed) for layer, allowed in LAYERS.items()}
+    for _ in LAYERS:
+        for layer in reachable:
+            reachable[layer] |= {far for near in reachable[layer] for far in reachable[near]}
+    assert all(layer not in below for layer, below in reachable.items())
+    assert layer_of("gcdtrav.service.runtime.grids.state") == "gcdtrav.service.runtime"
+    assert layer_of("gcdtrav.service.pipeline") == "gcdtrav.service.pipeline"
+    assert layer_of("gcdtrav.client.commands.view") == "gcdtrav.client"
+    assert layer_of("gcdtrav.elsewhere") is None
+
+
+def _synthetic_tree(root: Path, files: dict[str, str]) -> None:
+    for package in ("schemas", "client", "service", "service/backends", "service/runtime", "service/commands"):
+        (root / package).mkdir(parents=True, exist_ok=True)
+        (root / package / "__init__.py").write_text("")
+    for name, text in files.items():
+        (root / name).write_text(text)
+
+
+def test_a_function_local_upward_import_fails_the_table(tmp_path: Path) -> None:
+    """A backend reaching up into runtime inside a function: no cycle, but an upward import."""
+    _synthetic_tree(
+        tmp_path,
+        {
+            "service/runtime/worker.py": "X = 1\n",
+            "service/backends/model.py": "def build():\n    from gcdtrav.service.runtime.worker import X\n",
+        },
+    )
+    graph = build_graph(tmp_path)
+    assert graph.cycles() == []
+    assert graph.upward_imports() == [
+        "gcdtrav.service.backends.model -> gcdtrav.service.runtime "
+        "(gcdtrav.service.backends may not import gcdtrav.service.runtime)",
+        "gcdtrav.service.backends.model -> gcdtrav.service.runtime.worker "
+        "(gcdtrav.service.backends may not import gcdtrav.service.runtime)",
+    ]
+    assert "1 upward imports" not in graph.summary() and "2 upward imports" in graph.summary()
+
+
+def test_downward_imports_pass_and_the_client_may_not_import_the_service(tmp_path: Path) -> None:
+    _synthetic_tree(
+        tmp_path,
+        {
+            "service/backends/model.py": "X = 1\n",
+            "service/commands/run.py": "def main():\n    from gcdtrav.service.backends.model import X\n",
+            "client/library.py": "def f():\n    from gcdtrav.service.backends import model\n",
+            "service/loose.py": "Y = 2\n",
+        },
+    )
+    problems = build_graph(tmp_path).upward_imports()
+    assert not any(problem.startswith("gcdtrav.service.commands") for problem in problems)
+    upward = "gcdtrav.client.library -> gcdtrav.service.backends.model"
+    assert f"{upward} (gcdtrav.client may not import gcdtrav.service.backends)" in problems
+    assert not any("gcdtrav.service.loose" in problem for problem in problems)  # service/__init__'s layer
 
 
 def test_every_module_imports_alone() -> None:

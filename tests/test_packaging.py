@@ -40,7 +40,7 @@ def test_cli_without_torch_says_what_to_install(tmp_path) -> None:  # type: igno
         import sys, importlib.util
         real = importlib.util.find_spec
         importlib.util.find_spec = lambda name, *a: None if name == "torch" else real(name, *a)
-        from gcdtrav.service.cli import main
+        from gcdtrav.service.commands.cli import main
         sys.exit(main(["infer", "x.jpg", "--out", "o"]))
         """
     )

@@ -37,7 +37,7 @@ def test_the_quick_start_installs_downloads_checks_serves_and_asks() -> None:
 
 
 def test_every_command_uses_the_downloaded_folder_and_parses() -> None:
-    from gcdtrav.service.cli import build_parser
+    from gcdtrav.service.commands.cli import build_parser
 
     script = new_user_script()
     lines = script.quick_start_lines((ROOT / "README.md").read_text("utf-8"))

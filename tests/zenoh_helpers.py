@@ -6,7 +6,7 @@ import time
 from collections.abc import Callable
 
 import zenoh
-from gcdtrav.client.zenoh_args import zenoh_config
+from gcdtrav.client.session.zenoh_args import zenoh_config
 
 from tools.loopback import free_port as free_port  # re-exported: tests take it from here
 from tools.loopback import serve_command

@@ -10,7 +10,7 @@ import sys
 import threading
 
 import zenoh
-from gcdtrav.client.zenoh_args import zenoh_config
+from gcdtrav.client.session.zenoh_args import zenoh_config
 
 
 def main() -> None:

@@ -36,7 +36,7 @@ def fail_writes_under(directory: Path) -> None:
 
     real_write = state.write_atomically
 
-    def write_atomically(path: Path, text: str) -> None:
+    def write_atomically(path: Path, text: str | bytes) -> None:
         if Path(path).resolve().is_relative_to(directory.resolve()):
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
         real_write(path, text)
@@ -50,7 +50,7 @@ def main() -> int:
         hang_while_flagged(Path(flag))
     if full := os.environ.get("FAULTY_SERVE_FULL_DIR"):
         fail_writes_under(Path(full))
-    from gcdtrav.service.cli import main as serve_main
+    from gcdtrav.service.commands.cli import main as serve_main
 
     return serve_main()
 

@@ -1,10 +1,13 @@
-"""The static import graph of the gcdtrav package: modules, edges, cycles.
+"""The static import graph of the gcdtrav package: modules, edges, cycles, imports against the layer table.
 
-    python -m tools.import_graph            # summary: modules, edges, cycles (exit 1 if there is a cycle)
+    python -m tools.import_graph            # summary: modules, edges, cycles, upward imports (exit 1 if any)
     python -m tools.import_graph --edges    # every edge too
 
-Every ``import`` statement counts, function-local ones included (a local import only delays a cycle to the
-first call: the module imported second sees the first half-initialised). ``from a.b import c`` is an edge
+Every module belongs to a layer of ``LAYERS`` (the longest prefix that matches); a layer imports only the
+layers it lists, so an import of any other layer (a layer above it, or a sibling it has no business with) is
+an upward import, reported like a cycle. Every ``import`` statement counts, function-local ones included (a
+local import only delays a cycle to the first call: the module imported second sees the first
+half-initialised; and an upward import hidden in a function is still upward). ``from a.b import c`` is an edge
 to ``a.b.c`` when that is a module, else to ``a.b``. A package is not counted as imported by its own
 submodules: Python initialises the parent first, and a package's ``__init__`` importing its children is
 the normal shape, not a cycle. Only edges inside gcdtrav are kept.
@@ -21,6 +24,39 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE_ROOTS = ("schemas", "client", "service")  # folders mapped to gcdtrav.<name> by setup.py
 
+# The layer table (docs/architecture.md#layers): each layer and the layers it may import. The service's layers
+# stack schemas < engine < backends < pipeline < runtime < experience < bus < commands, with grid, ros and eval
+# beside them; the client stands apart and imports only schemas (it runs on a robot without torch); only the
+# commands, the top, import the client (`gcdtrav` dispatches the client's commands too).
+_SCHEMAS = "gcdtrav.schemas"
+_ENGINE, _BACKENDS, _PIPELINE = "gcdtrav.service.engine", "gcdtrav.service.backends", "gcdtrav.service.pipeline"
+_GRID, _ROS, _EVAL = "gcdtrav.service.grid", "gcdtrav.service.ros", "gcdtrav.service.eval"
+_RUNTIME, _BUS = "gcdtrav.service.runtime", "gcdtrav.service.bus"
+_EXPERIENCE = "gcdtrav.service.experience"
+LAYERS: dict[str, frozenset[str]] = {
+    _SCHEMAS: frozenset(),
+    "gcdtrav.service": frozenset({_SCHEMAS}),  # the package's own __init__
+    _ENGINE: frozenset({_SCHEMAS}),
+    _BACKENDS: frozenset({_SCHEMAS, _ENGINE}),
+    _PIPELINE: frozenset({_SCHEMAS, _ENGINE, _BACKENDS}),
+    _GRID: frozenset({_SCHEMAS, _ENGINE}),
+    _ROS: frozenset({_SCHEMAS, _GRID}),
+    _EVAL: frozenset({_SCHEMAS, _ENGINE, _BACKENDS}),
+    _RUNTIME: frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS}),
+    _EXPERIENCE: frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _GRID, _ROS, _EVAL, _RUNTIME}),
+    _BUS: frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS, _RUNTIME, _EXPERIENCE}),
+    "gcdtrav.service.commands": frozenset(
+        {_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS, _EVAL, _RUNTIME, _EXPERIENCE, _BUS, "gcdtrav.client"}
+    ),
+    "gcdtrav.client": frozenset({_SCHEMAS}),
+}
+
+
+def layer_of(module: str) -> str | None:
+    """The layer of a module: the longest layer name that is the module or one of its packages."""
+    matches = [layer for layer in LAYERS if module == layer or module.startswith(layer + ".")]
+    return max(matches, key=len) if matches else None
+
 
 @dataclass(frozen=True)
 class ImportGraph:
@@ -31,16 +67,34 @@ class ImportGraph:
     def edge_count(self) -> int:
         return sum(len(targets) for targets in self.edges.values())
 
+    def upward_imports(self) -> list[str]:
+        """Every import of a layer the importer's layer does not list, and every module outside the table."""
+        found = []
+        for module in sorted(self.edges):
+            layer = layer_of(module)
+            if layer is None:
+                found.append(f"{module} is in no layer of the table (tools/import_graph.py LAYERS)")
+                continue
+            for target in sorted(self.edges[module]):
+                target_layer = layer_of(target)
+                if target_layer != layer and target_layer not in LAYERS[layer]:
+                    found.append(f"{module} -> {target} ({layer} may not import {target_layer})")
+        return found
+
     def cycles(self) -> list[list[str]]:
         """The strongly connected components of more than one module, sorted."""
         return sorted(sorted(c) for c in strongly_connected(self.edges) if len(c) > 1)
 
     def summary(self, with_edges: bool = False) -> str:
-        cycles = self.cycles()
-        lines = [f"gcdtrav import graph: {len(self.modules)} modules, {self.edge_count} edges, {len(cycles)} cycles"]
+        cycles, upward = self.cycles(), self.upward_imports()
+        lines = [
+            f"gcdtrav import graph: {len(self.modules)} modules, {self.edge_count} edges, {len(cycles)} cycles, "
+            f"{len(upward)} upward imports"
+        ]
         for cycle in cycles:
             inner = [f"{a} -> {b}" for a in cycle for b in sorted(self.edges[a]) if b in cycle]
             lines.append(f"  cycle of {len(cycle)}: " + "; ".join(inner))
+        lines.extend(f"  upward: {problem}" for problem in upward)
         if with_edges:
             for module in sorted(self.edges):
                 for target in sorted(self.edges[module]):
@@ -144,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     graph = build_graph()
     print(graph.summary(with_edges=args.edges))
-    return 1 if graph.cycles() else 0
+    return 1 if graph.cycles() or graph.upward_imports() else 0
 
 
 if __name__ == "__main__":

@@ -39,7 +39,7 @@ def free_port() -> int:
 
 def serve_command(*arguments: str) -> list[str]:
     """The command line of ``gcdtrav serve ARGUMENTS`` with this Python."""
-    return [sys.executable, "-m", "gcdtrav.service.cli", "serve", *arguments]
+    return [sys.executable, "-m", "gcdtrav.service.commands.cli", "serve", *arguments]
 
 
 @contextmanager

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 from gcdtrav.client import TraversabilityClient, zenoh_config
 from gcdtrav.schemas.images import encode_jpeg
-from gcdtrav.service.bench import Bench, Row, RssSampler, bench_image, make_row
+from gcdtrav.service.commands.bench import Bench, Row, RssSampler, bench_image, make_row
 
 from tools.loopback import free_port, loopback_service, robots_throughput, service_processes, wait_for_statuses
 

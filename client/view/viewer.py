@@ -56,7 +56,7 @@ from gcdtrav.client.view.latest import LatestSlots
 from gcdtrav.client.view.recorder import McapRecorder
 from gcdtrav.client.view.replay import LOG_LINES_KEPT, QUESTION_SCHEMA, OpenQuestions, Recent, question_json
 from gcdtrav.schemas.anchors import AnchorSetError
-from gcdtrav.schemas.inputs import decode_payload
+from gcdtrav.schemas.inputs import decode_payload, image_format, input_kind
 from gcdtrav.schemas.keys import Keys, input_key, input_source_of
 from gcdtrav.schemas.messages import AnchorSetReply, ContextDistribution, GridHeader, ServiceStatus, SourceView
 from numpy.typing import NDArray
@@ -64,6 +64,7 @@ from pydantic import BaseModel
 
 log = logging.getLogger(__name__)
 
+MAX_CAMERA_PIXELS = 40_000_000  # the service's default max_pixels: larger camera files are not shown
 KINDS = ("maps", "grid", "costmap", "preview", "camera")  # what arrives per source, each in a latest-only slot
 COSTMAP_KIND = "grid/costmap"  # the key's last levels: {prefix}/out/{source}/grid/costmap
 QUESTION_KIND = "question"  # {prefix}/out/{source}/question: forwarded as they come, not latest-only
@@ -625,7 +626,7 @@ class Viewer:
         return self.client.patch(target.source, target.x, target.y, timeout=timeout)
 
     def show_distribution(self, target: probe.ProbeTarget, distribution: ContextDistribution) -> None:
-        from gcdtrav.client.density_plot import distribution_png
+        from gcdtrav.client.commands.density_plot import distribution_png
 
         channels = self._channels(target.source)
         if channels is None:
@@ -660,14 +661,18 @@ def to_parameter(name: str, value: str | float | None) -> foxglove.Parameter:
     return foxglove.Parameter(name, value=value)
 
 
-def camera_image(payload: bytes) -> tuple[bytes, str, float, str]:
-    """(data, 'jpeg'|'png', stamp, frame id) of an input image: compressed files pass through untouched,
-    raw envelopes are encoded as JPEG."""
+def camera_image(payload: bytes, encoding: str = "") -> tuple[bytes, str, float, str]:
+    """(data, 'jpeg'|'png', stamp, frame id) of an input image, told apart as the service does (``input_kind``):
+    JPEG and PNG files pass through untouched, other files (BMP, ...) and raw envelopes are encoded as JPEG."""
     from gcdtrav.schemas.images import peek_image_size
     from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
 
-    if payload[:4] == b"\x89PNG" or payload[:2] == b"\xff\xd8":
-        return payload, "png" if payload[:4] == b"\x89PNG" else "jpeg", time.time(), ""
+    if input_kind(payload, encoding) == "image":
+        kind = image_format(payload)
+        if kind in ("PNG", "JPEG"):
+            return payload, kind.lower(), time.time(), ""
+        decoded = decode_payload(payload, encoding, time.time(), len(payload), MAX_CAMERA_PIXELS)
+        return pictures.jpeg(decoded.image), "jpeg", decoded.stamp, ""
     envelope = ImageEnvelope.unpack(payload)
     if envelope.encoding in (PixelEncoding.JPEG, PixelEncoding.PNG):
         if peek_image_size(envelope.data) is None:

@@ -303,7 +303,7 @@ class ClipSegBackend:
         """The concrete mode to start with, and why."""
         if precision != AUTO:
             return precision, f"asked for {precision}"
-        from gcdtrav.service import precision_choice
+        from gcdtrav.service.backends import precision_choice
 
         modes = available_precisions()
         choice = precision_choice.cached_choice(self, modes)

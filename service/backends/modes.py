@@ -2,7 +2,7 @@
 
 Each concrete mode says which runtime runs it, the arithmetic of the ViT trunk and of the decoder, and what
 the machine needs for it to be worth running. ``auto`` is not a mode: it picks one of these by measurement
-(``gcdtrav.service.precision_choice``). ``gcdtrav.schemas.settings.Precision`` lists the same names as a
+(``gcdtrav.service.backends.precision_choice``). ``gcdtrav.schemas.settings.Precision`` lists the same names as a
 literal (the schemas cannot import the service); tests/service/backends/test_modes.py checks they agree.
 No torch here: the table is data.
 """

@@ -12,7 +12,7 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
-from gcdtrav.service.timing import interleaved_ms
+from gcdtrav.service.backends.timing import interleaved_ms
 
 LinearReLU = Callable[[torch.Tensor, torch.nn.Linear], torch.Tensor]
 

@@ -29,8 +29,8 @@ from typing import Any
 
 import numpy as np
 import torch
+from gcdtrav.service.backends.cpus import cpu_features
 from gcdtrav.service.backends.decoder import DECODER_CHUNK
-from gcdtrav.service.cpus import cpu_features
 
 log = logging.getLogger(__name__)
 

@@ -31,7 +31,7 @@ class CreditPublisher:
 
     def freed(self, source: str, reason: str, times: FrameTimes | None) -> None:
         """The source's slot is free (called from subscriber callbacks and the worker)."""
-        grant = self.ledger.freed(source, reason, times)
+        grant = self.ledger.freed(source, reason, times, self.stats.problem(source))
         with self._lock:
             if self._closed:
                 return

@@ -354,3 +354,56 @@ def occupancy_values_cdr(header: GridHeader, data: NDArray[np.int8]) -> bytes:
     )
     message = types["nav_msgs/msg/OccupancyGrid"](header=ros_header, info=info, data=data.ravel())
     return bytes(typestore().serialize_cdr(message, "nav_msgs/msg/OccupancyGrid"))
+
+
+# ---- the experience's inputs: velocity commands and odometry (docs/calibration.md) -----------------------
+
+
+def decode_twist(payload: bytes) -> tuple[float, float, float]:
+    """geometry_msgs/msg/Twist CDR -> (vx, vy, wz) in the base frame; MessageError if it does not decode or
+    holds a number that is not finite."""
+    try:
+        twist = typestore().deserialize_cdr(payload, "geometry_msgs/msg/Twist")
+    except Exception as err:  # rosbags raises assorted errors on bad CDR
+        raise MessageError(f"not a geometry_msgs/msg/Twist: {type(err).__name__}: {err}") from None
+    values = (float(twist.linear.x), float(twist.linear.y), float(twist.angular.z))
+    if not all(math.isfinite(v) for v in values):
+        raise MessageError(f"Twist with a number that is not finite: {values}")
+    return values
+
+
+def decode_odometry_motion(payload: bytes) -> tuple[Pose2D, tuple[float, float, float]]:
+    """nav_msgs/msg/Odometry CDR -> its pose (as the grid reads it) and twist (vx, vy, wz) in the child frame."""
+    pose = decode_pose(payload, "odometry")
+    odometry = typestore().deserialize_cdr(payload, "nav_msgs/msg/Odometry")  # decoded once already: cannot fail
+    twist = odometry.twist.twist
+    values = (float(twist.linear.x), float(twist.linear.y), float(twist.angular.z))
+    if not all(math.isfinite(v) for v in values):
+        raise MessageError(f"Odometry twist with a number that is not finite: {values}")
+    return pose, values
+
+
+def twist_cdr(vx: float, vy: float = 0.0, wz: float = 0.0) -> bytes:
+    types = typestore().types
+    vector = types["geometry_msgs/msg/Vector3"]
+    message = types["geometry_msgs/msg/Twist"](linear=vector(x=vx, y=vy, z=0.0), angular=vector(x=0.0, y=0.0, z=wz))
+    return bytes(typestore().serialize_cdr(message, "geometry_msgs/msg/Twist"))
+
+
+def odometry_cdr(stamp: float, x: float, y: float, yaw: float, vx: float, vy: float = 0.0, wz: float = 0.0) -> bytes:
+    """nav_msgs/msg/Odometry in frame 'odom', child 'base_link' (tests, benchmarks and simulated robots)."""
+    types = typestore().types
+    vector, point = types["geometry_msgs/msg/Vector3"], types["geometry_msgs/msg/Point"]
+    quaternion = types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+    pose = types["geometry_msgs/msg/PoseWithCovariance"](
+        pose=types["geometry_msgs/msg/Pose"](position=point(x=x, y=y, z=0.0), orientation=quaternion),
+        covariance=np.zeros(36),
+    )
+    twist = types["geometry_msgs/msg/TwistWithCovariance"](
+        twist=types["geometry_msgs/msg/Twist"](linear=vector(x=vx, y=vy, z=0.0), angular=vector(x=0.0, y=0.0, z=wz)),
+        covariance=np.zeros(36),
+    )
+    message = types["nav_msgs/msg/Odometry"](
+        header=make_header(stamp, "odom"), child_frame_id="base_link", pose=pose, twist=twist
+    )
+    return bytes(typestore().serialize_cdr(message, "nav_msgs/msg/Odometry"))

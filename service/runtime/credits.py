@@ -47,8 +47,11 @@ class CreditLedger:
         self._last_maps: dict[str, float] = {}
         self._lock = threading.Lock()
 
-    def freed(self, source: str, reason: str, frame: FrameTimes | None = None) -> CreditGrant:
-        """The source's slot is free: the grant to publish on ``{prefix}/credit/{source}``."""
+    def freed(
+        self, source: str, reason: str, frame: FrameTimes | None = None, problem: str | None = None
+    ) -> CreditGrant:
+        """The source's slot is free: the grant to publish on ``{prefix}/credit/{source}``; ``problem``: why
+        the source's last frame gave no maps (the stats' count), so that the robot side sees it."""
         with self._lock:
             number = self._granted.get(source, 0)
             self._granted[source] = number + 1
@@ -65,6 +68,7 @@ class CreditLedger:
             frame_sent_at=frame.sent_at if frame else None,
             frame_received_at=frame.received_at if frame else None,
             last_maps_stamp=last_maps,
+            problem=problem or None,
         )
 
     def published(self, source: str, stamp: float) -> None:

@@ -21,7 +21,7 @@ class FrameRecord:
     frame_id: str
     weights: NDArray[np.float16]  # (n, h, w): float16 halves the history's memory; ~1e-3 relative
     anchors: AnchorSet
-    image_size: tuple[int, int]  # (width, height)
+    image_size: tuple[int, int]  # (width, height) in the camera's pixels (a relay's original_size, else the image's)
     match: NDArray[np.float16] | None = None  # (h, w): the best concept's own score per patch
 
     @property

@@ -14,11 +14,18 @@ from typing import Literal
 
 import cv2
 import numpy as np
-from gcdtrav.schemas.images import encode_jpeg, encode_map_png8, encode_maps_png16, resize_map
+from gcdtrav.schemas.images import (
+    colorize_traversability,
+    colorize_uncertainty,
+    encode_jpeg,
+    encode_map_png8,
+    encode_maps_png16,
+    overlay,
+    resize_map,
+)
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import CompactMapsMessage, MapsHeader, MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service import viz
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.frames import ProcessedFrame
 from gcdtrav.service.runtime.grids import GridOutputs
@@ -54,8 +61,8 @@ def preview_panel(
     size = preview_size(width, height, max_width)
     small = image if size == (width, height) else cv2.resize(image, size, interpolation=cv2.INTER_AREA)
     t_small, u_small = resize_map(t, *size), resize_map(u, *size)
-    left = viz.overlay(np.asarray(small, np.uint8), viz.colorize_traversability(t_small))
-    return np.concatenate([left, viz.colorize_uncertainty(u_small)], axis=1)
+    left = overlay(np.asarray(small, np.uint8), colorize_traversability(t_small))
+    return np.concatenate([left, colorize_uncertainty(u_small)], axis=1)
 
 
 class OutputBuilder:

@@ -10,9 +10,9 @@ import pytest
 
 pytest.importorskip("matplotlib")
 
-from gcdtrav.client import density_plot
+from gcdtrav.client.commands import density_plot
 from gcdtrav.schemas.anchors import default_anchor_set
-from gcdtrav.service import viz
+from gcdtrav.service.commands import figures as viz
 from gcdtrav.service.runtime.queries import distribution_of
 
 PAPER = default_anchor_set()

@@ -13,7 +13,7 @@ from zenoh_helpers import connecting_config, first_frame_through, service_reacha
 pytest.importorskip("torch")
 
 from gcdtrav.client import TraversabilityClient
-from gcdtrav.client.operator import anchor_diff
+from gcdtrav.client.commands.operator import anchor_diff
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
@@ -76,7 +76,9 @@ def test_probe_prints_a_pixels_distribution_and_draws_it(service, tmp_path: Path
     from gcdtrav.service.runtime.queries import answer_patch_query
 
     expected = answer_patch_query(running.history, "r1/front", {"x": "20", "y": "10"})
-    assert probe.stdout.startswith(f"r1/front seq={expected.seq} patch {expected.patch}")
+    assert expected.patch is not None
+    i, j = expected.patch  # the answer in the user's terms: the pixel as typed (x, y), the patch named (row, column)
+    assert probe.stdout.startswith(f"r1/front pixel (x=20, y=10) in seq={expected.seq} patch (row i={i}, column j={j})")
     assert "T (mean) =" in probe.stdout and "concrete @ 1.00" in probe.stdout
     assert (
         f"CVaR(alpha=0.1) = {expected.cvar:.3f}" in probe.stdout
@@ -113,7 +115,7 @@ def test_history_and_rollback_survive_a_restart(tiny_backend, tmp_path: Path) ->
         assert too_far.returncode == 1 and "no set 9 step(s) back" in too_far.stderr
     # A restarted service keeps its history (written atomically in the state directory) and clears
     # the temporaries of history writes a crash interrupted.
-    from gcdtrav.service.bus.run import starting_anchor_set
+    from gcdtrav.service.commands.serve import starting_anchor_set
 
     interrupted = settings.state_dir / f".{running.anchor_switch.history_file.name}.x1y2z3.tmp"
     interrupted.write_text('{"instance": "ops-2", "entries": [')

@@ -26,8 +26,8 @@ pytest.importorskip("torch")
 
 from gcdtrav.client import Maps, TraversabilityClient
 from gcdtrav.client.freshness import Staleness
-from gcdtrav.client.relay import Relay
-from gcdtrav.client.zenoh_args import zenoh_config
+from gcdtrav.client.relay.relay import Relay
+from gcdtrav.client.session.zenoh_args import zenoh_config
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding, RelayHealth
 from gcdtrav.schemas.relay import RelaySettings
@@ -140,8 +140,8 @@ def test_relay_sends_only_when_the_service_is_ready(tiny_backend, tmp_path: Path
         assert not forwarders["maps"].active and not forwarders["preview"].active
         first, last = maps[0], maps[-1]
         assert first.compact and first.header.source == SOURCE and first.header.instance == "box-1"
-        assert first.header.image_size == (320, 240)  # the first frame goes before any credit announced the size
-        assert last.header.image_size == (round(320 * TINY_INPUT_SIZE / 240), TINY_INPUT_SIZE)
+        assert first.header.image_size == last.header.image_size == (320, 240)  # the camera's pixels, though
+        assert robot.relay.camera(SOURCE).model_input == (TINY_INPUT_SIZE, TINY_INPUT_SIZE)  # shrunk to 128x96
         assert first.traversability.shape == first.header.map_shape == (TINY_INPUT_SIZE, TINY_INPUT_SIZE)
         assert first.traversability.min() >= 0.0 and first.traversability.max() <= 1.0
         assert first.age_s < 10
@@ -208,7 +208,7 @@ def test_relay_command_is_torch_free_and_checks_its_arguments() -> None:
 
 def test_frames_shrink_to_the_model_and_keep_their_stamp() -> None:
     """The relay's envelope without a bus: a raw frame from a camera key, shrunk, JPEG, stamp kept."""
-    from gcdtrav.client.relay import CameraLink, CapturedFrame
+    from gcdtrav.client.relay.relay import CameraLink, CapturedFrame
     from gcdtrav.schemas.images import decode_image
 
     class FakeRelay:
@@ -223,6 +223,7 @@ def test_frames_shrink_to_the_model_and_keep_their_stamp() -> None:
     envelope = link._envelope(frame, (352, 352))
     assert envelope is not None
     assert (envelope.width, envelope.height, envelope.stamp, envelope.frame_id) == (563, 352, 42.5, "cam_optical")
+    assert envelope.original_size == (1920, 1200)  # the service answers in the camera's pixels
     assert envelope.encoding is PixelEncoding.JPEG and envelope.sent_at is not None
     assert abs(int(decode_image(envelope.data)[100, 100, 0]) - 90) <= 2
     assert link._envelope(CapturedFrame(zenoh.ZBytes(b"junk"), "image/jpeg", "cam", 0.0), (352, 352)) is None

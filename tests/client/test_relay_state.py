@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 from gcdtrav.client.freshness import FreshnessWatch
-from gcdtrav.client.relay_state import (
+from gcdtrav.client.relay.state import (
     MAX_CREDIT_TIMEOUT_S,
     ClockEstimate,
     CreditWindow,

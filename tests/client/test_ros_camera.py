@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from gcdtrav.client import ros_camera as rc
+from gcdtrav.client.relay import ros_camera as rc
 from gcdtrav.schemas.images import encode_jpeg
 
 cdr = pytest.importorskip("gcdtrav.service.ros.cdr")

@@ -119,3 +119,25 @@ def test_load_reports_file_and_problem(tmp_path: Path) -> None:
         AnchorSet.load(tmp_path / "missing.json")
     with pytest.raises(AnchorSetError, match="expected a mapping"):
         AnchorSet.from_text("[1, 2]")
+
+
+def test_a_duplicate_concept_is_reported_beside_field_errors() -> None:
+    """Field errors stop pydantic before the set's own checks; the duplicate went unreported (issue 36)."""
+    data = {
+        "anchors": [
+            {"concept": "grass", "position": 0.5},
+            {"concept": "Grass", "position": 0.6, "colour": "green"},  # a field error in the same file
+            {"concept": "mud", "position": 1.5},
+        ]
+    }
+    with pytest.raises(AnchorSetError) as rejected:
+        AnchorSet.parse(data, "set.yaml")
+    messages = rejected.value.messages
+    assert any(m.startswith("anchors.1.colour: unknown field") for m in messages)
+    assert any(m.startswith("anchors.2.position: position 1.5 is outside [0, 1]") for m in messages)
+    assert "concept 'Grass' appears more than once; concepts must be unique" in messages
+    assert not any("sorted" in m for m in messages)  # 1.5 has its own error: not also out of order
+    only_duplicate = {"anchors": [{"concept": "grass", "position": 0.5}, {"concept": "grass", "position": 0.6}]}
+    with pytest.raises(AnchorSetError) as once:
+        AnchorSet.parse(only_duplicate)
+    assert once.value.messages == ["concept 'grass' appears more than once; concepts must be unique"]  # not twice

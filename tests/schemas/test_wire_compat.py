@@ -8,6 +8,7 @@ from typing import Any
 
 import msgpack
 import pytest
+from gcdtrav.schemas import experience as e
 from gcdtrav.schemas import messages as m
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings
@@ -100,6 +101,41 @@ SAMPLES: dict[type[m.Message], m.Message] = {
         downlink_bytes_per_s=2e4,
     ),
 }
+
+FIGURES = e.CalibrationFigures(
+    pairs=2, mae=0.1, bias=-0.05, coverage={"0.05": 1.0, "0.1": 0.5, "0.2": None}, tau=0.3,
+    reliability=[e.ReliabilityBin(low=0.0, high=0.1, count=2, predicted=0.05, observed=0.0)], ece=0.05,
+    ause=0.01, spearman_u_error=None,
+    anchors=[e.AnchorFigures(concept="grass", position=0.5, width=0.0, weight_mass=1.5, dominant_pairs=2,
+                             dominant_mean_outcome=0.8)],
+)  # fmt: skip
+SAMPLES.update(
+    {
+        e.TraversalOutcome: e.TraversalOutcome(stamp=1.0, x=1.0, y=-2.0, score=0.8, kind="velocity", radius_m=0.3),
+        e.Twist2D: e.Twist2D(stamp=1.0, vx=0.5, wz=0.1),
+        e.Odometry2D: e.Odometry2D(stamp=1.0, x=1.0, y=2.0, yaw=0.1, vx=0.4),
+        e.CalibrationReport: e.CalibrationReport(
+            source="cam", stamp=2.0, anchor_set_version=ANCHORS.version, concepts=ANCHORS.concepts,
+            figures=FIGURES, pairs_by_kind={"velocity": 2}, pairs_by_version={ANCHORS.version: 2},
+            counts={"outcomes": 3, "unknown_cell": 1},
+        ),
+        e.AnchorProposal: e.AnchorProposal(
+            stamp=2.0, source="cam", current=ANCHORS, proposed=ANCHORS, current_version=ANCHORS.version,
+            proposed_version=ANCHORS.version, diff=["~ grass @ 0.50 -> 0.80"],
+            changes=[e.AnchorChange(concept="grass", position_before=0.5, position_after=0.8, width_before=0.0,
+                                    width_after=0.05, pairs=250.0, shrunk=False)],
+            train_pairs=7, held_out_pairs=3, before=FIGURES, after=FIGURES,
+        ),
+        e.OperatorQuestion: e.OperatorQuestion(
+            id="q1", source="cam", stamp=1.0, reason="ambiguous", region=(0.0, 0.0, 1.0, 1.0), cells=[(0.5, 0.5)],
+            concepts=[e.QuestionConcept(concept="grass", position=0.5, weight=0.5),
+                      e.QuestionConcept(concept="bush", position=0.1, weight=0.4)],
+            traversability=0.3, uncertainty=0.2, p_below=0.45, match=0.6, anchor_set_version=ANCHORS.version,
+            crop_jpeg=b"jpeg",
+        ),
+        e.OperatorAnswer: e.OperatorAnswer(id="q1", source="cam", score=1.0, stamp=3.0, operator="ada"),
+    }
+)  # fmt: skip
 
 
 def every_message_type() -> set[type[m.Message]]:

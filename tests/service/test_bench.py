@@ -51,7 +51,7 @@ def test_bench_runs_every_group_and_writes_json(tiny_model_dir: Path, tmp_path: 
 
 
 def test_shipped_bench_times_the_given_checkpoint_without_service_rows(tiny_model_dir: Path, tmp_path: Path) -> None:
-    from gcdtrav.service import bench
+    from gcdtrav.service.commands import bench
 
     out = tmp_path / "bench.json"
     argv = ["--model", str(tiny_model_dir), "--runs", "1", "--naive-runs", "1", "--modes", "int8"]

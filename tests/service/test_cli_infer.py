@@ -11,7 +11,7 @@ from conftest import TINY_INPUT_SIZE, textured_image
 pytest.importorskip("torch")
 
 from gcdtrav.schemas.anchors import default_anchor_set
-from gcdtrav.service.cli import main
+from gcdtrav.service.commands.cli import main
 from gcdtrav.service.engine import gcd
 
 

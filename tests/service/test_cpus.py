@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.cpus import cpu_quota, usable_cpus
+from gcdtrav.service.backends.cpus import cpu_quota, usable_cpus
 
 
 def write(root: Path, relative: str, text: str) -> None:
@@ -48,7 +48,7 @@ def test_usable_cpus_is_the_affinity_capped_by_the_quota_rounded_down(tmp_path: 
 
 def test_service_threads_default_to_the_usable_cpus(tmp_path: Path) -> None:
     torch = pytest.importorskip("torch")
-    from gcdtrav.service.bus.run import with_torch_threads
+    from gcdtrav.service.commands.serve import with_torch_threads
 
     settings = with_torch_threads(ServiceSettings(state_dir=tmp_path))
     assert settings.threads == min(torch.get_num_threads(), usable_cpus())

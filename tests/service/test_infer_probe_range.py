@@ -11,7 +11,7 @@ from conftest import textured_image
 
 pytest.importorskip("torch")
 
-from gcdtrav.service.cli import main
+from gcdtrav.service.commands.cli import main
 
 
 @pytest.mark.parametrize("probe", ["140,10", "10,90", "-1,5"])
@@ -37,3 +37,21 @@ def test_the_last_pixel_is_inside(tmp_path: Path, tiny_model_dir: Path) -> None:
     args = ["infer", str(image), "--out", str(tmp_path / "out"), "--model", str(tiny_model_dir), "--figure"]
     assert main([*args, "--probe", "139,89", "--probe", "0,0"]) == 0
     assert (tmp_path / "out" / "scene" / "figure.png").exists()
+
+
+def test_a_probe_without_figure_prints_its_answer_and_outside_exits_2(
+    tmp_path: Path, tiny_model_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The README's headline `gcdtrav infer ... --probe 320,400`: the answer is printed, pixel and patch named;
+    outside the image it is a usage error as --help says, with or without --figure."""
+    image = tmp_path / "scene.png"
+    cv2.imwrite(str(image), textured_image(480, 640))
+    args = ["infer", str(image), "--out", str(tmp_path / "out"), "--model", str(tiny_model_dir)]
+    assert main([*args, "--probe", "320,400"]) == 0
+    out = capsys.readouterr().out
+    patch = f"patch (row i={int(400 * 96 / 480)}, column j={int(320 * 96 / 640)})"  # the tiny model's 96x96 maps
+    assert out.startswith(f"{image} pixel (x=320, y=400) in {patch} anchors=")
+    assert "T (mean) =" in out and "CVaR(alpha=0.1)" in out and "asphalt @ 0.98" in out
+    assert not (tmp_path / "out" / "scene" / "figure.png").exists()
+    assert main([*args, "--probe", "640,10"]) == 2
+    assert "--probe 640,10 is outside" in capsys.readouterr().err

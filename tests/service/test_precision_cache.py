@@ -14,9 +14,10 @@ from conftest import textured_image
 
 pytest.importorskip("torch")
 
-from gcdtrav.service import doctor, precision_choice
+from gcdtrav.service.backends import precision_choice
 from gcdtrav.service.backends.clipseg import ClipSegBackend, TorchCompute
-from gcdtrav.service.precision_choice import ModeMeasurement
+from gcdtrav.service.backends.precision_choice import ModeMeasurement
+from gcdtrav.service.commands import doctor
 
 CONCEPTS = ["water", "grass", "asphalt"]
 # int8 wins on these figures; no machine's timing decides the test

@@ -90,7 +90,7 @@ def test_serve_rejects_inputs_that_overlap_outputs(tiny_model_dir: Path, tmp_pat
 
 
 def test_serve_listens_on_7447_unless_told_where() -> None:
-    from gcdtrav.service.cli import DEFAULT_SERVE_LISTEN, build_parser, listens_by_choice
+    from gcdtrav.service.commands.cli import DEFAULT_SERVE_LISTEN, build_parser, listens_by_choice
 
     assert DEFAULT_SERVE_LISTEN == "tcp/0.0.0.0:7447"
     parse = build_parser().parse_args
@@ -103,9 +103,9 @@ def test_serve_listens_on_7447_unless_told_where() -> None:
 def test_a_taken_default_port_falls_back_to_zenohs_pick(caplog: pytest.LogCaptureFixture) -> None:
     import socket
 
-    from gcdtrav.client.zenoh_args import zenoh_config
+    from gcdtrav.client.session.zenoh_args import zenoh_config
     from gcdtrav.schemas.settings import SettingsError
-    from gcdtrav.service.bus.run import open_session
+    from gcdtrav.service.commands.serve import open_session
 
     with socket.socket() as taken:
         taken.bind(("0.0.0.0", 0))

@@ -29,8 +29,8 @@ SLOW_MEASUREMENT = textwrap.dedent(
     """
     import sys, time
     from pathlib import Path
-    from gcdtrav.service import precision_choice
-    from gcdtrav.service.precision_choice import ModeMeasurement
+    from gcdtrav.service.backends import precision_choice
+    from gcdtrav.service.backends.precision_choice import ModeMeasurement
 
     def measure_when_released(backend, modes, runs=3, **options):
         while not Path(sys.argv[1]).exists():
@@ -38,7 +38,7 @@ SLOW_MEASUREMENT = textwrap.dedent(
         return [ModeMeasurement("fp32", 100.0, 0.0), ModeMeasurement("int8", 40.0, 0.001)]
 
     precision_choice.measure_modes = measure_when_released
-    from gcdtrav.service.cli import main
+    from gcdtrav.service.commands.cli import main
     sys.exit(main(sys.argv[2:]))
     """
 )

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from gcdtrav.service.timing import interleaved_ms
+from gcdtrav.service.backends.timing import interleaved_ms
 
 
 def test_calls_take_turns_and_warmup_is_not_reported() -> None:

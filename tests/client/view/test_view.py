@@ -245,7 +245,10 @@ def test_gcdtrav_view_records_until_a_signal_and_closes_its_file(service, tmp_pa
 
 
 def test_gcdtrav_view_without_the_extra_says_what_to_install() -> None:
-    code = "import sys; sys.modules['foxglove'] = None; from gcdtrav.service.cli import main; sys.exit(main(['view']))"
+    code = (
+        "import sys; sys.modules['foxglove'] = None; "
+        "from gcdtrav.service.commands.cli import main; sys.exit(main(['view']))"
+    )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert result.returncode == 2
     expected = "gcdtrav view: needs foxglove-sdk; install the view extra: pip install 'gcdtrav[view]'"

@@ -12,9 +12,9 @@ import pytest
 foxglove = pytest.importorskip("foxglove", reason="the view extra: pip install 'gcdtrav[view]'")
 mcap_reader = pytest.importorskip("mcap.reader")
 
-from gcdtrav.client.view.command import RECORD_MAX_MB, megabytes, usage_problem  # noqa: E402
+from gcdtrav.client.commands.view import RECORD_MAX_MB, megabytes, usage_problem  # noqa: E402
 from gcdtrav.client.view.recorder import FILES_UNDER_CAP, McapRecorder  # noqa: E402
-from gcdtrav.service.cli import build_parser  # noqa: E402
+from gcdtrav.service.commands.cli import build_parser  # noqa: E402
 
 CAP = 96 * 1024
 MESSAGE_BYTES = 3000  # random, so zstd cannot shrink it

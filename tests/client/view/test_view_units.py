@@ -102,3 +102,20 @@ def test_maps_get_a_legend_and_small_maps_are_enlarged() -> None:
     picture = map_with_legend(np.linspace(0, 1, 96 * 64, dtype=np.float32).reshape(96, 64), "T")
     assert picture.shape[0] == 288 and picture.shape[1] > 3 * 64
     assert tuple(picture[0, 0]) != tuple(picture[-1, 0])  # the colour follows T
+
+
+def test_camera_images_are_told_apart_as_the_service_does() -> None:
+    """A bare PNG, JPEG or BMP camera is shown (a BMP re-encoded as JPEG), an envelope unwrapped."""
+    import cv2
+    from gcdtrav.client.view.viewer import camera_image
+    from gcdtrav.schemas.images import encode_jpeg, encode_png
+    from gcdtrav.schemas.messages import ImageEnvelope
+
+    image = np.full((20, 30, 3), 120, np.uint8)
+    png, jpeg = encode_png(image), encode_jpeg(image)
+    bmp = cv2.imencode(".bmp", image)[1].tobytes()
+    assert camera_image(png)[:2] == (png, "png") and camera_image(jpeg)[:2] == (jpeg, "jpeg")
+    data, kind, _, _ = camera_image(bmp)
+    assert kind == "jpeg" and cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR).shape == (20, 30, 3)
+    wrapped = ImageEnvelope(stamp=5.0, frame_id="cam", encoding="png", width=30, height=20, data=png).pack()
+    assert camera_image(wrapped) == (png, "png", 5.0, "cam")

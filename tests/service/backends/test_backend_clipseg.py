@@ -93,8 +93,8 @@ def test_unreachable_hub_id_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) ->
 @pytest.mark.parametrize("precision", ["bf16", "bf16-vit", "int8"])
 def test_fast_modes_keep_parity_with_fp32(tiny_model_dir: Path, tiny_backend: ClipSegBackend, precision: str) -> None:
     from gcdtrav.schemas.anchors import default_anchor_set
-    from gcdtrav.service.bench import activation_cosine
-    from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, parity
+    from gcdtrav.service.backends.precision_choice import PARITY_P99_DT_LIMIT, parity
+    from gcdtrav.service.commands.bench import activation_cosine
 
     fast = ClipSegBackend(str(tiny_model_dir), precision=precision)
     assert fast.precision == precision
@@ -113,7 +113,7 @@ def test_fast_modes_keep_parity_with_fp32(tiny_model_dir: Path, tiny_backend: Cl
 
 def test_parity_measure_sees_errors_and_nothing_else(tiny_backend: ClipSegBackend) -> None:
     from gcdtrav.schemas.anchors import default_anchor_set
-    from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, parity
+    from gcdtrav.service.backends.precision_choice import PARITY_P99_DT_LIMIT, parity
 
     cas = default_anchor_set()
     reference = tiny_backend.logits(textured_image(100, 120, seed=7), tiny_backend.prepare(cas.concepts))

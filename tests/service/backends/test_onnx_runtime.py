@@ -14,11 +14,10 @@ pytest.importorskip("torch")
 pytest.importorskip("onnxruntime", reason="the ort-* modes need onnxruntime (in gcdtrav[service])")
 
 from gcdtrav.schemas.anchors import default_anchor_set
-from gcdtrav.service import precision_choice
-from gcdtrav.service.backends import onnx_runtime
+from gcdtrav.service.backends import onnx_runtime, precision_choice
 from gcdtrav.service.backends.clipseg import ClipSegBackend, available_precisions
 from gcdtrav.service.backends.onnx_runtime import TRUNK_INT8, OrtCompute
-from gcdtrav.service.precision_choice import PARITY_P99_DT_LIMIT, ModeMeasurement, parity, pick
+from gcdtrav.service.backends.precision_choice import PARITY_P99_DT_LIMIT, ModeMeasurement, parity, pick
 
 ANCHORS = default_anchor_set()
 IMAGE = textured_image(100, 120, seed=7)

@@ -14,6 +14,7 @@ from gcdtrav.service.runtime.errors import QueryError
 from gcdtrav.service.runtime.history import FrameHistory, FrameRecord
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.runtime.sources import SWEEP_INTERVAL_S, SourceTracker
+from gcdtrav.service.runtime.stats import REFUSED_SOURCES
 from zenoh_helpers import connecting_config, service_reachable, wait_until
 
 
@@ -116,7 +117,7 @@ pytest.importorskip("torch")
 
 from gcdtrav.client import ServiceError, TraversabilityClient  # noqa: E402
 from gcdtrav.schemas.settings import ServiceSettings  # noqa: E402
-from gcdtrav.service.bus.run import starting_anchor_set  # noqa: E402
+from gcdtrav.service.commands.serve import starting_anchor_set  # noqa: E402
 
 from tools.loopback import in_process_service  # noqa: E402
 
@@ -137,7 +138,8 @@ def test_service_caps_sources_reports_them_and_forgets_idle_ones(tiny_backend, t
             status = client.status()
             assert status.tracked_sources == 3 and status.max_sources == 3
             assert status.rejected_by_reason.get("too_many_sources") == 2
-            assert sorted(status.sources) == [f"r1/frame_{k:06d}" for k in range(3)]  # refused ones leave no state
+            tracked = sorted(name for name, source in status.sources.items() if not source.refused)
+            assert tracked == [f"r1/frame_{k:06d}" for k in range(3)]  # refused ones hold no slot
             assert 0 < status.history_bytes <= status.history_budget_bytes == 512_000_000
             assert client.patch("r1/frame_000000", 1, 1).seq == 0
             # Idle for longer than source_idle_s: forgotten, with history, counters and publishers.
@@ -185,6 +187,8 @@ def test_a_flood_of_undecodable_names_is_rejected_by_reason_and_a_robot_still_se
             status = client.status()
             assert sum(status.rejected_by_reason.values()) == 200 and "candidate_evicted" in status.rejected_by_reason
             assert status.dropped_by_reason == {} and status.tracked_sources == 1
-            assert list(status.sources) == ["r1/cam"]
+            assert [name for name, source in status.sources.items() if not source.refused] == ["r1/cam"]
+            refused = [source for source in status.sources.values() if source.refused]
+            assert len(refused) <= REFUSED_SOURCES and all(s.rejected_by_reason == {"undecodable": 1} for s in refused)
         finally:
             client.close()

@@ -19,7 +19,7 @@ from zenoh_helpers import client_config, free_port, start_router, wait_until
 pytest.importorskip("torch")
 
 from gcdtrav.client import Maps, TraversabilityClient
-from gcdtrav.client.health import main as health_main
+from gcdtrav.client.commands.health import main as health_main
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.settings import ServiceSettings

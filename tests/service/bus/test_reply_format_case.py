@@ -9,7 +9,7 @@ from collections.abc import Iterator
 import msgpack
 import pytest
 import zenoh
-from gcdtrav.client.zenoh_args import zenoh_config
+from gcdtrav.client.session.zenoh_args import zenoh_config
 from gcdtrav.schemas.messages import ErrorReply
 from gcdtrav.service.bus import replies
 from gcdtrav.service.runtime.errors import QueryError

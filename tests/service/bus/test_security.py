@@ -16,7 +16,7 @@ from zenoh_helpers import free_port, service_reachable, wait_until
 pytest.importorskip("torch")
 
 from gcdtrav.client import QueryTimeout, TraversabilityClient
-from gcdtrav.client.zenoh_args import zenoh_config
+from gcdtrav.client.session.zenoh_args import zenoh_config
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.settings import ServiceSettings

@@ -19,9 +19,9 @@ pytest.importorskip("torch")
 from gcdtrav.client import AnchorSetRejected, Maps, ServiceError, TraversabilityClient
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.service.backends.cpus import usable_cpus
 from gcdtrav.service.bus.node import TraversabilityService
-from gcdtrav.service.bus.run import starting_anchor_set
-from gcdtrav.service.cpus import usable_cpus
+from gcdtrav.service.commands.serve import starting_anchor_set
 from gcdtrav.service.engine import gcd
 
 from tools.loopback import in_process_service

@@ -15,7 +15,7 @@ from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.sources import SourcesFull, SourceTracker
-from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.runtime.stats import REFUSED_SOURCES, ServiceStats
 from gcdtrav.service.runtime.worker import FrameWorker
 
 PNG = encode_png(image(16, 16))
@@ -90,7 +90,11 @@ def test_a_source_takes_a_slot_only_once_a_frame_decodes() -> None:
     assert service.offer("robot") and service.serve() == ["robot"] and "robot" in service.sources
     snapshot = service.snapshot()
     assert sum(snapshot.rejected_by_reason.values()) == 1 and snapshot.dropped_by_reason == {}
-    assert list(snapshot.sources) == ["robot"] and service.published == ["robot"]  # junk left no state
+    assert service.published == ["robot"]
+    assert [name for name, s in snapshot.sources.items() if not s.refused] == ["robot"]
+    junk = snapshot.sources["junk"]  # shown, with why, but it holds no slot (issue 36: it was invisible)
+    assert junk.refused and junk.received == junk.rejected == 1 and junk.rejected_by_reason == {"undecodable": 1}
+    assert junk.problem.startswith("undecodable: not a decodable image")
 
 
 def test_a_flood_of_undecodable_names_never_keeps_a_robot_out_and_counts_as_rejected() -> None:
@@ -105,7 +109,9 @@ def test_a_flood_of_undecodable_names_never_keeps_a_robot_out_and_counts_as_reje
     assert snapshot.dropped_by_reason == {}
     # The robot's frame evicted one more; the 31 still waiting were decoded and refused with their reason.
     assert snapshot.rejected_by_reason == {"candidate_evicted": 1000 - 32 + 1, "undecodable": 31}
-    assert list(snapshot.sources) == ["robot"]
+    assert [name for name, s in snapshot.sources.items() if not s.refused] == ["robot"]
+    refused = [name for name, s in snapshot.sources.items() if s.refused]
+    assert 0 < len(refused) <= REFUSED_SOURCES  # the invented names shown are bounded
 
 
 def test_a_flood_of_decodable_one_frame_names_gives_way_to_a_streaming_robot() -> None:
@@ -167,7 +173,8 @@ def test_a_candidate_whose_slot_went_is_refused_at_promotion() -> None:
     assert service.serve() == ["a", "b"]
     assert list(service.sources._last_seen) == ["a"] and service.published == ["a"]
     snapshot = service.snapshot()
-    assert snapshot.rejected_by_reason == {"too_many_sources": 1} and list(snapshot.sources) == ["a"]
+    assert snapshot.rejected_by_reason == {"too_many_sources": 1} and list(snapshot.sources) == ["a", "b"]
+    assert snapshot.sources["b"].refused and snapshot.sources["b"].rejected_by_reason == {"too_many_sources": 1}
 
 
 def test_candidates_cap_one_keeps_the_newest() -> None:
@@ -211,4 +218,5 @@ def test_a_candidate_evicted_while_its_frame_is_taken_is_counted_once() -> None:
     service.worker._guarded(pending, service.worker._infer, pending)
     service.serve()
     assert service.snapshot().rejected_by_reason == {"candidate_evicted": 1, "undecodable": 3}
-    assert service.snapshot().sources == {} and len(service.admission.candidates) == 0
+    assert len(service.admission.candidates) == 0 and all(s.refused for s in service.snapshot().sources.values())
+    assert sorted(service.snapshot().sources) == ["b", "c", "d"]  # refused with why; "a" is counted by reason only

@@ -13,7 +13,7 @@ import pytest
 from fakes import pipeline
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.bus.run import starting_anchor_set
+from gcdtrav.service.commands.serve import starting_anchor_set
 from gcdtrav.service.runtime import state
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
 

@@ -7,7 +7,7 @@ import time
 import pytest
 from fakes import pipeline, png_frame
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.cpus import usable_cpus
+from gcdtrav.service.backends.cpus import usable_cpus
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue

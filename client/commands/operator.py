@@ -1,0 +1,293 @@
+"""Operator commands of `gcdtrav`, torch-free: `gcdtrav status`, `gcdtrav anchors get|set`, `gcdtrav probe`.
+
+They run from the base install (`pip install gcdtrav`), with the zenoh flags of `gcdtrav serve`.
+Exit codes: 0 ok, 1 rejected or failed (one line on stderr), 2 usage error.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import zenoh
+from gcdtrav.client.client import AnchorSetRejected, ServiceError, TraversabilityClient
+from gcdtrav.client.commands.density_plot import describe, save_distribution
+from gcdtrav.client.session.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
+from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, anchor_diff
+from gcdtrav.schemas.messages import AnchorHistoryReply, ContextDistribution, ServiceStatus, SourceStatus
+
+COMMANDS = ("status", "anchors", "probe")
+EXIT_OK, EXIT_FAILED = 0, 1
+RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?$")  # zenoh's errors end with the Rust file that raised them
+
+
+def add_operator_commands(commands: argparse._SubParsersAction) -> None:
+    status = commands.add_parser("status", help="instances and sources of the running service (no torch)")
+    status.add_argument("--watch", type=float, metavar="SECONDS", help="refresh every SECONDS, with frames/s")
+    anchors = commands.add_parser("anchors", help="read or hot-swap the service's anchor set (no torch)")
+    actions = anchors.add_subparsers(dest="action", required=True)
+    get = actions.add_parser("get", help="print the active anchor set (YAML) or write it to a file")
+    get.add_argument("-o", "--output", type=Path, help="write it here (.yaml/.yml or .json)")
+    put = actions.add_parser("set", help="validate FILE, show the change, and swap it in on every instance")
+    put.add_argument("file", type=Path, help="anchor set, JSON or YAML")
+    put.add_argument("--dry-run", action="store_true", help="validate and show the change; swap nothing")
+    history = actions.add_parser("history", help="the last accepted anchor sets, newest (active) first")
+    rollback = actions.add_parser("rollback", help="swap back to an earlier set of the history, on every instance")
+    rollback.add_argument("steps", nargs="?", type=int, default=1, help="how far back [1: the set before]")
+    probe = commands.add_parser("probe", help="a pixel's context distribution, printed or drawn (no torch)")
+    probe.add_argument("source", help="the source, e.g. r1/front")
+    probe.add_argument("x", type=float, help="image pixel column")
+    probe.add_argument("y", type=float, help="image pixel row")
+    probe.add_argument("--seq", type=int, help="a kept frame [default: the latest]")
+    probe.add_argument("--alpha", type=float, help="CVaR and quantile level, 0 < alpha <= 1 [the service's risk.alpha]")
+    probe.add_argument("--tau", type=float, help="P(T < tau) threshold, 0 <= tau <= 1 [the service's risk.tau]")
+    probe.add_argument("--png", type=Path, help="also draw the density like the paper's Fig. 2 (needs matplotlib)")
+    for parser in (status, get, put, history, rollback, probe):
+        parser.add_argument("--prefix", default="gcdtrav", help="the service's key prefix [gcdtrav]")
+        parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for replies [5]")
+        add_zenoh_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run an operator command; every failure is one line on stderr."""
+    try:
+        config = zenoh_config_from_args(args)
+        with TraversabilityClient(config=config, prefix=args.prefix, timeout=args.timeout) as client:
+            if args.command == "status":
+                return watch_status(client, args.watch) if args.watch else print_status(client)
+            if args.command == "probe":
+                return probe(client, args)
+            actions = {"get": get_anchors, "set": set_anchors, "history": show_history, "rollback": roll_back}
+            return actions[args.action](client, args)
+    except (AnchorSetError, AnchorSetRejected, ServiceError, OSError, ValueError) as err:
+        print(f"gcdtrav {args.command}: {one_line(err)}", file=sys.stderr)
+        return EXIT_FAILED
+    except zenoh.ZError as err:  # e.g. an endpoint that cannot be reached in client mode
+        print(f"gcdtrav {args.command}: zenoh: {RUST_SOURCE.sub('', one_line(err))}", file=sys.stderr)
+        return EXIT_FAILED
+    except Exception as err:
+        print(f"gcdtrav {args.command}: {type(err).__name__}: {one_line(err)}", file=sys.stderr)
+        return EXIT_FAILED
+
+
+def one_line(err: BaseException) -> str:
+    return " ".join(str(err).split())
+
+
+# ---- status ------------------------------------------------------------------------------------------
+
+
+INSTANCE_ROW = "{:<{w}}  {:>7}  {:<{mw}}  {:>6}  {:>10}  {:>7}"
+SOURCE_ROW = "{:<{w}}  {:<{iw}}  {:>8}  {:>8}  {:>9}  {:>7}  {:>8}  {:>6}  {:>6}  {:>9}  {}"
+
+
+def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] = lambda i, s: "-") -> str:
+    """Instances, then every source that sent anything (also those refused before they took a slot), with its
+    drops and rejects by reason and, below, why its last frame gave no maps. Names are never cut: columns are
+    as wide as the longest (ROS topics are long)."""
+    width = max([len("instance"), *(len(s.instance) for s in statuses)])
+    whats = [f"{s.model[-24:]} / {s.anchor_set_version} / {s.method.value} / {s.precision or '-'}" for s in statuses]
+    what_header = "model / anchors / method / precision"
+    what_width = max([len(what_header), *(len(what) for what in whats)])
+    lines = [INSTANCE_ROW.format("instance", "uptime", what_header, "queued", "history MB", "sources",
+                                 w=width, mw=what_width)]  # fmt: skip
+    for s, what in zip(statuses, whats, strict=True):
+        uptime, history = f"{s.uptime_s:.0f}s", f"{s.history_bytes / 1e6:.1f}"
+        sources = f"{s.tracked_sources}/{s.max_sources}"
+        lines.append(INSTANCE_ROW.format(s.instance, uptime, what, s.queued, history, sources, w=width, mw=what_width))
+    rows = [(name, s.instance, src) for s in statuses for name, src in sorted(s.sources.items())]
+    name_width = max([len("source"), *(len(name) for name, _, _ in rows)])
+    header = ("source", "instance", "frames/s", "received", "processed", "dropped", "rejected", "p50 ms", "p99 ms",
+              "clock s")  # fmt: skip
+    lines += ["", SOURCE_ROW.format(*header, "dropped and rejected by reason", w=name_width, iw=width)]
+    problems = []
+    for name, instance, src in rows:
+        p50, p99 = src.latency_ms.get("p50", "-"), src.latency_ms.get("p99", "-")
+        counts = (src.received, src.processed, src.dropped, src.rejected, p50, p99, clock_offset(src.clock_offset_s))
+        lines.append(
+            SOURCE_ROW.format(name, instance, fps(instance, name), *counts, reasons(src), w=name_width, iw=width)
+        )
+        if src.problem:
+            problems.append(f"{name} ({instance}): {src.problem}")
+    if problems:
+        lines += ["", "why the last frame gave no maps:", *(f"  {line}" for line in problems)]
+    lines += fleet_warnings(statuses)
+    precision = [f"{s.instance}: {s.precision} ({s.precision_reason})" for s in statuses if s.precision_reason]
+    if precision:
+        lines += ["", *(f"precision {line}" for line in precision)]
+    rejected = {reason: n for s in statuses for reason, n in s.rejected_by_reason.items()}
+    if rejected:
+        lines += ["", "rejected: " + ", ".join(f"{reason} {n}" for reason, n in sorted(rejected.items()))]
+    return "\n".join(lines)
+
+
+def clock_offset(offset_s: float | None) -> str:
+    """The source's clock as the service learnt it (service minus robot, plus the link's smallest delay)."""
+    if offset_s is None:
+        return "-"
+    return f"{offset_s:+.2f}" if abs(offset_s) < 1e5 else f"{offset_s:+.3g}"
+
+
+def reasons(source: SourceStatus) -> str:
+    """'stale 3, undecodable 1' (and 'refused: no slot' for a source that never took one)."""
+    counts = {**source.dropped_by_reason, **source.rejected_by_reason}
+    text = ", ".join(f"{reason} {n}" for reason, n in sorted(counts.items()))
+    return text + (" (refused: no slot)" if source.refused else "")
+
+
+def fleet_warnings(statuses: list[ServiceStatus]) -> list[str]:
+    """Unhealthy instances, and instances that disagree on the anchor set or the precision."""
+    lines = [f"UNHEALTHY {s.instance}: {s.reason}" for s in statuses if s.healthy is False]
+    off = {name for s in statuses for name, src in s.sources.items() if abs(src.clock_offset_s or 0.0) > 1.0}
+    if off:
+        lines.append(
+            f"clocks off by more than 1 s: {', '.join(sorted(off))} (served: ages are judged by delay unless "
+            "clock: synced; their maps keep their own stamps)"
+        )
+    versions = {s.instance: s.anchor_set_version for s in statuses}
+    if len(set(versions.values())) > 1:
+        held = ", ".join(f"{instance} has {version}" for instance, version in sorted(versions.items()))
+        lines.append(f"ANCHOR SETS DIFFER: {held} (they converge to the newest accepted set)")
+    precisions = {s.precision for s in statuses if s.precision}
+    if len(precisions) > 1:
+        lines.append(
+            "precision differs: "
+            + ", ".join(f"{s.instance} {s.precision}" for s in statuses)
+            + " (precision: auto measured each machine; set precision explicitly for identical maps)"
+        )
+    return ["", *lines] if lines else []
+
+
+def live_statuses(client: TraversabilityClient) -> list[ServiceStatus]:
+    statuses = client.statuses()
+    if not statuses:
+        raise ServiceError(f"no gcdtrav instance answered on '{client.keys.status}': is the service running?")
+    return statuses
+
+
+def print_status(client: TraversabilityClient) -> int:
+    print(status_table(live_statuses(client)))
+    return EXIT_OK
+
+
+Counts = dict[tuple[str, str], tuple[float, int]]
+
+
+def frames_per_s(before: Counts, now: Counts) -> Callable[[str, str], str]:
+    """Frames/s of each (instance, source) between two refreshes' processed counts."""
+
+    def fps(instance: str, source: str) -> str:
+        old, new = before.get((instance, source)), now[(instance, source)]
+        return f"{(new[1] - old[1]) / (new[0] - old[0]):.2f}" if old and new[0] > old[0] else "-"
+
+    return fps
+
+
+def watch_status(client: TraversabilityClient, every_s: float) -> int:
+    """Refresh until Ctrl-C; frames/s from the processed counts between two refreshes."""
+    before: Counts = {}
+    try:
+        while True:
+            now, statuses = time.monotonic(), live_statuses(client)
+            counts = {(s.instance, n): (now, src.processed) for s in statuses for n, src in s.sources.items()}
+            print(f"\x1b[2J\x1b[H{time.strftime('%H:%M:%S')}  gcdtrav status (Ctrl-C stops)\n")
+            print(status_table(statuses, frames_per_s(before, counts)), flush=True)
+            before = counts
+            time.sleep(every_s)
+    except KeyboardInterrupt:
+        return EXIT_OK
+
+
+# ---- anchors -----------------------------------------------------------------------------------------
+
+
+def get_anchors(client: TraversabilityClient, args: argparse.Namespace) -> int:
+    active, output = client.anchors().anchor_set, args.output
+    if output is None:
+        print(f"# active anchor set {active.version}\n{active_yaml(active)}", end="")
+    else:
+        active.save(output)
+        print(f"anchor set {active.version} ({len(active)} anchors) written to {output}")
+    return EXIT_OK
+
+
+def active_yaml(anchors: AnchorSet) -> str:
+    import yaml
+
+    return yaml.safe_dump(anchors.model_dump(exclude_none=True), sort_keys=False)
+
+
+def set_anchors(client: TraversabilityClient, args: argparse.Namespace) -> int:
+    new = AnchorSet.load(args.file)  # the same pydantic model the service validates with
+    active = client.anchors().anchor_set
+    changes = anchor_diff(active, new)
+    print(f"{active.version} ({len(active)} anchors) -> {new.version} ({len(new)} anchors)")
+    print("\n".join(changes) if changes else "no change")
+    if args.dry_run:
+        print("dry run: nothing swapped")
+        return EXIT_OK
+    version = client.set_anchors(new)  # PartialSwap (exit 1) names which instance holds what
+    print(f"swapped: anchor set {version} active on {fleet_sets(client)}")
+    return EXIT_OK
+
+
+def fleet_sets(client: TraversabilityClient) -> str:
+    """Which instance holds which anchor set now, e.g. 'box-1 (3f2a...), box-2 (3f2a...)'."""
+    statuses = client.statuses()
+    return ", ".join(f"{s.instance} ({s.anchor_set_version})" for s in statuses) or "no instance answered"
+
+
+def show_history(client: TraversabilityClient, args: argparse.Namespace) -> int:
+    print("\n".join(history_lines(client.anchor_history())))
+    return EXIT_OK
+
+
+def history_lines(histories: list[AnchorHistoryReply]) -> list[str]:
+    """Each instance's accepted sets, newest first; the set an instance started with (never accepted in the
+    fleet: ``accepted_at`` 0) reads 'start set', not 1970."""
+    lines = []
+    for history in histories:
+        lines.append(f"instance {history.instance}:")
+        for steps, entry in enumerate(history.entries):
+            when = "start set".ljust(19)
+            if entry.accepted_at > 0:
+                when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(entry.accepted_at))
+            label = "active" if steps == 0 else f"rollback {steps}"
+            anchors = entry.anchor_set
+            lines.append(f"  {label:>11}  {when}  {entry.version}  {anchors.name[:30]:<30} {len(anchors):>2} anchors")
+    return lines
+
+
+def roll_back(client: TraversabilityClient, args: argparse.Namespace) -> int:
+    """A fleet action: the set before the fleet's newest, swapped in on every instance."""
+    head, target = client.rollback_target(args.steps)
+    active = head.anchor_set
+    print(f"{active.version} ({len(active)} anchors) -> {target.version} ({len(target)} anchors)")
+    print("\n".join(anchor_diff(active, target)) or "no change")
+    version = client.set_anchors(target)
+    print(f"rolled back: anchor set {version} active on {fleet_sets(client)}")
+    return EXIT_OK
+
+
+# ---- probe -------------------------------------------------------------------------------------------
+
+
+def probe(client: TraversabilityClient, args: argparse.Namespace) -> int:
+    distribution = client.patch(args.source, args.x, args.y, seq=args.seq, alpha=args.alpha, tau=args.tau)
+    print(describe(distribution, (args.x, args.y)))
+    if args.png is not None:
+        draw_density(distribution, args.png)
+        print(f"density drawn to {args.png}")
+    return EXIT_OK
+
+
+def draw_density(d: ContextDistribution, path: Path) -> None:
+    """The Gaussian context distribution as in the paper's Fig. 2 (the drawing `gcdtrav infer --figure` uses)."""
+    try:
+        save_distribution(d, path)
+    except ImportError:
+        raise ValueError("--png needs matplotlib: pip install matplotlib") from None

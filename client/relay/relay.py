@@ -1,0 +1,423 @@
+"""`gcdtrav relay`: the robot's side of a slow link (Wi-Fi, LTE) to the service. Torch-free.
+
+Two zenoh sessions, so that nothing crosses the link unless the relay sends it:
+
+- the **robot session** (``local_*`` settings; default: a client of the robot's own router, 127.0.0.1:7447)
+  takes the cameras (zenoh keys of JPEG/PNG/ImageEnvelope, or ROS 2 Image/CompressedImage topics) and gives
+  the robot's consumers the service's outputs;
+- the **link session** (the zenoh flags) reaches the service.
+
+Per camera, the newest frame waits in a slot; it goes out only with a credit: the service instance that owns
+the source grants one on ``{prefix}/credit/{source}`` when the source's slot frees, so at most one frame of
+the camera is inferred and one waits at the service. Before sending, the frame is shrunk to what the model
+uses (the credit announces the model's input) and sent as a JPEG ImageEnvelope. A lost credit costs one
+timeout (``credit_timeout_s``). Outputs (maps, maps8, grid, preview) cross the link only while a consumer on
+the robot's bus subscribes to them. Every ``health_period_s`` the relay publishes a RelayHealth per camera on
+the robot's bus (``{prefix}/relay/{source}/health``) and logs when a camera's maps go stale.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
+from typing import Any
+
+import zenoh
+from gcdtrav.client.freshness import FreshnessWatch, Staleness
+from gcdtrav.client.relay.ros_camera import (
+    RosImageError,
+    decode_ros_image,
+    ros_camera_key,
+    ros_type_of_key,
+)
+from gcdtrav.client.relay.state import ClockEstimate, CreditWindow, RateWindow, downsized
+from gcdtrav.client.session.source_info import put_identified
+from gcdtrav.schemas.images import encode_jpeg
+from gcdtrav.schemas.inputs import RejectedInput, decode_payload
+from gcdtrav.schemas.keys import Keys, input_key
+from gcdtrav.schemas.messages import (
+    MSGPACK_ENCODING,
+    CreditGrant,
+    ImageEnvelope,
+    MessageError,
+    PixelEncoding,
+    RelayHealth,
+    peek_fields,
+)
+from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE, RelayCamera, RelaySettings
+
+log = logging.getLogger("gcdtrav.relay")
+MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
+MAX_CAMERA_BYTES = 64_000_000  # a 4K rgb8 frame is 25 MB
+MAX_CAMERA_PIXELS = 40_000_000
+STALE_LOG_EVERY_S = 10.0
+STAMPED_OUTPUTS = ("maps", "maps8", "grid")  # their header's stamp is the capture stamp of the newest frame
+OUTPUT_ENCODINGS = {"maps": MSGPACK, "maps8": MSGPACK, "grid": MSGPACK, "preview": zenoh.Encoding.IMAGE_JPEG}
+
+
+@dataclass(frozen=True)
+class CapturedFrame:
+    payload: zenoh.ZBytes  # kept as zenoh gave it: only the frames sent are copied and decoded
+    encoding: str
+    key: str
+    arrived_at: float
+
+
+class Guarded:
+    """A zenoh entity that one thread uses while another may undeclare it (a zenoh callback's put, the relay's
+    close). zenoh-python's entities are pyo3 objects: ``put`` borrows the publisher while zenoh works with the
+    GIL released, ``undeclare`` borrows it mutably, and the two at once raise ``RuntimeError: Already
+    borrowed``; zenoh's undeclare of a subscriber does not wait for its callbacks under way either. So every
+    use and the undeclare take one lock, and after ``undeclare`` a use is skipped."""
+
+    def __init__(self, entity: Any) -> None:
+        self._entity = entity
+        self._lock = threading.Lock()
+        self._undeclared = False
+
+    def use(self, action: Callable[[Any], object]) -> bool:
+        """``action(entity)`` unless undeclared; False if skipped."""
+        with self._lock:
+            if self._undeclared:
+                return False
+            action(self._entity)
+            return True
+
+    def put(self, payload: Any, **options: Any) -> bool:
+        """A publisher's ``put``, unless undeclared; False if skipped."""
+        return self.use(lambda publisher: publisher.put(payload, **options))
+
+    def undeclare(self) -> None:
+        with self._lock:
+            if self._undeclared:
+                return
+            self._undeclared = True
+            try:
+                self._entity.undeclare()
+            except zenoh.ZError as err:  # the session may be closing
+                log.debug("undeclare failed: %s", err)
+
+
+class CameraLink:
+    """One camera, one source: the newest frame, the credit, the sending thread."""
+
+    def __init__(self, relay: Relay, camera: RelayCamera) -> None:
+        self.relay, self.camera, self.source = relay, camera, camera.source
+        self.window = CreditWindow(relay.settings.credit_timeout_s)
+        self.clock = ClockEstimate()
+        self.uplink = RateWindow()
+        self.model_input = (CLIPSEG_INPUT_SIDE, CLIPSEG_INPUT_SIDE)
+        self.captured = self.sent = self.undecodable = 0
+        self.unusable: str | None = None  # why the last camera frame could not be sent, if it could not
+        self._slot: CapturedFrame | None = None
+        self._cond = threading.Condition()
+        self._publisher: Guarded | None = None
+        self._thread = threading.Thread(target=self._run, name=f"gcdtrav-relay-{self.source}", daemon=True)
+
+    def start(self) -> list[Guarded]:
+        """Declare the camera subscriber (robot), the credit subscriber and frame publisher (link)."""
+        settings = self.relay.settings
+        frames_key = input_key(settings.input_prefix, self.source)
+        self._publisher = Guarded(self.relay.link.declare_publisher(frames_key, encoding=MSGPACK))
+        declared = [
+            Guarded(self.relay.local.declare_subscriber(self.camera_key, self.on_frame)),
+            Guarded(self.relay.link.declare_subscriber(self.relay.keys.credit(self.source), self.on_grant)),
+            self._publisher,
+        ]
+        self._thread.start()
+        return declared
+
+    @property
+    def camera_key(self) -> str:
+        camera = self.camera
+        if not camera.is_ros:
+            return camera.camera
+        return ros_camera_key(camera.camera, camera.ros_layout, camera.ros_domain, camera.zenoh_namespace)
+
+    # ---- zenoh callbacks: keep, never decode ----------------------------------------------------------
+    def on_frame(self, sample: zenoh.Sample) -> None:
+        frame = CapturedFrame(sample.payload, str(sample.encoding), str(sample.key_expr), time.time())
+        with self._cond:
+            self._slot = frame  # an older frame not yet sent is replaced: only the newest matters
+            self.captured += 1
+            self._cond.notify()
+
+    def on_grant(self, sample: zenoh.Sample) -> None:
+        arrived_at = time.time()
+        try:
+            grant = CreditGrant.unpack(sample.payload.to_bytes())
+        except MessageError as err:
+            log.warning("%s: ignoring a credit: %s", self.source, err)
+            return
+        self.clock.add(grant, arrived_at)
+        self.relay.grant_seen(self.source, grant)
+        self.relay.freshness.note_reason(self.source, grant.problem)
+        with self._cond:
+            self.model_input = grant.model_input
+            self.window.grant(grant)
+            self._cond.notify()
+
+    # ---- sending --------------------------------------------------------------------------------------
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self.relay.stopping and not (self._slot is not None and self.window.ready()):
+                    self._cond.wait(self.window.wait_s() or None)
+                if self.relay.stopping:
+                    return
+                frame, self._slot = self._slot, None
+                model_input = self.model_input
+            assert frame is not None
+            envelope = self._envelope(frame, model_input)
+            if envelope is None:
+                continue
+            payload = envelope.pack()
+            with self._cond:
+                self.window.spend()
+                self.sent += 1
+            assert self._publisher is not None
+            try:
+                self._publisher.use(partial(put_identified, payload=payload))
+            except zenoh.ZError as err:  # the session is closing
+                log.debug("%s: send failed: %s", self.source, err)
+            self.uplink.add(len(payload))
+
+    def _envelope(self, frame: CapturedFrame, model_input: tuple[int, int]) -> ImageEnvelope | None:
+        """The frame decoded, shrunk to what the model uses and JPEG-encoded; None (counted) when unusable."""
+        try:
+            image, stamp, frame_id, original_size = self._decode(frame)
+        except (RejectedInput, RosImageError) as err:
+            self.undecodable += 1
+            self.unusable = f"camera frame on {frame.key} not usable: {err}"
+            log.warning("%s: %s", self.source, self.unusable)
+            return None
+        self.unusable = None
+        settings = self.relay.settings
+        small = downsized(image, settings.max_side, model_input)
+        height, width = small.shape[:2]
+        return ImageEnvelope(
+            stamp=stamp,
+            frame_id=frame_id,
+            encoding=PixelEncoding.JPEG,
+            width=width,
+            height=height,
+            data=encode_jpeg(small, settings.jpeg_quality),
+            sent_at=time.time(),
+            original_size=original_size,  # answers and maps in the camera's pixels, not the shrunk frame's
+        )
+
+    def _decode(self, frame: CapturedFrame) -> tuple[Any, float, str, tuple[int, int]]:
+        """The camera's image, stamp, frame id and size in the camera's pixels."""
+        payload = frame.payload.to_bytes()
+        if not self.camera.is_ros:
+            decoded = decode_payload(payload, frame.encoding, frame.arrived_at, MAX_CAMERA_BYTES, MAX_CAMERA_PIXELS)
+            return decoded.image, decoded.stamp, decoded.frame_id, decoded.camera_size
+        configured = self.camera.ros_message_type
+        msgtype = (ros_type_of_key(frame.key) or "") if configured == "auto" else configured
+        image, stamp, frame_id = decode_ros_image(payload, msgtype, MAX_CAMERA_PIXELS)
+        return image, stamp, frame_id, (int(image.shape[1]), int(image.shape[0]))
+
+    def stop(self) -> None:
+        with self._cond:
+            self._cond.notify_all()
+        self._thread.join(5)
+
+    def health(self, freshness: FreshnessWatch, downlink: float, stale_after_s: float) -> RelayHealth:
+        now = time.time()
+        newest = freshness.newest(self.source)
+        best = self.clock.best()
+        return RelayHealth(
+            source=self.source,
+            published_at=now,
+            newest_map_stamp=newest,
+            map_age_s=None if newest is None else now - newest,
+            stale=freshness.is_stale(self.source),
+            stale_after_s=stale_after_s,
+            frames_captured=self.captured,
+            frames_sent=self.sent,
+            credit_timeouts=self.window.timeouts,
+            uplink_bytes_per_s=self.uplink.per_s(),
+            downlink_bytes_per_s=downlink,
+            owner=self.window.owner,
+            clock_offset_s=None if best is None else best[1],
+            round_trip_s=None if best is None else best[0],
+            problem=self.unusable or freshness.reason(self.source),
+        )
+
+
+class OutputForwarder:
+    """One output of one source, brought over the link only while a consumer on the robot's bus wants it."""
+
+    def __init__(self, relay: Relay, source: str, kind: str) -> None:
+        self.relay, self.source, self.kind = relay, source, kind
+        self.key = relay.keys.output(source, kind)
+        self.downlink = RateWindow()
+        self._wanted = False
+        self._subscriber: Guarded | None = None
+        publisher = relay.local.declare_publisher(
+            self.key, encoding=OUTPUT_ENCODINGS[kind], congestion_control=zenoh.CongestionControl.DROP
+        )
+        self._listener = Guarded(publisher.declare_matching_listener(self._on_matching))
+        self._publisher = Guarded(publisher)  # zenoh's callbacks put on it while close() may undeclare it
+
+    @property
+    def active(self) -> bool:
+        return self._subscriber is not None
+
+    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
+        self._wanted = status.matching
+        self.relay.wake()  # (un)declared on the relay's thread, not in zenoh's callback
+
+    def reconcile(self) -> None:
+        if self._wanted and self._subscriber is None:
+            self._subscriber = Guarded(self.relay.link.declare_subscriber(self.key, self._on_output))
+            log.info("forwarding %s: a consumer on the robot subscribes", self.key)
+        elif not self._wanted and self._subscriber is not None:
+            self._subscriber.undeclare()
+            self._subscriber = None
+            log.info("no longer forwarding %s: no consumer on the robot", self.key)
+
+    def _on_output(self, sample: zenoh.Sample) -> None:
+        payload = sample.payload
+        if not self._publisher.put(payload, encoding=sample.encoding):
+            return  # a callback under way when the relay closed
+        self.downlink.add(len(payload))
+        if self.kind in STAMPED_OUTPUTS:
+            try:
+                header = peek_fields(payload.to_bytes(), ("header",)).get("header")
+                stamp = float(header["stamp"]) if isinstance(header, dict) else math.nan
+            except (MessageError, KeyError, TypeError, ValueError):
+                return
+            self.relay.freshness.observe(self.source, stamp)
+
+    def close(self) -> None:
+        for entity in (self._subscriber, self._listener, self._publisher):
+            if entity is not None:
+                entity.undeclare()
+        self._subscriber = None
+
+
+class Relay:
+    """Every camera of one robot; ``start()``, then ``close()``. The sessions stay the caller's."""
+
+    def __init__(
+        self,
+        settings: RelaySettings,
+        link: zenoh.Session,
+        local: zenoh.Session,
+        on_stale: Callable[[Staleness], None] | None = None,
+    ) -> None:
+        self.settings, self.link, self.local = settings, link, local
+        self.keys = Keys(settings.prefix)
+        self.freshness = FreshnessWatch(settings.stale_after_s)
+        self.cameras = [CameraLink(self, camera) for camera in settings.cameras]
+        self.forwarders: list[OutputForwarder] = []
+        self.stopping = False
+        self._on_stale = on_stale
+        self._declared: list[Guarded] = []
+        self._health: dict[str, Guarded] = {}
+        self._wake = threading.Event()
+        self._started_at = time.time()
+        self._last_stale_log: dict[str, float] = {}
+        self._thread = threading.Thread(target=self._control, name="gcdtrav-relay-control", daemon=True)
+
+    def start(self) -> Relay:
+        for camera in self.cameras:
+            self.freshness.watch(camera.source)
+            self._health[camera.source] = Guarded(
+                self.local.declare_publisher(self.keys.relay_health(camera.source), encoding=MSGPACK)
+            )
+            self.forwarders += [OutputForwarder(self, camera.source, kind) for kind in self.settings.forward]
+            self._declared += camera.start()
+        self._thread.start()
+        log.info(
+            "relaying %s to %s (JPEG quality %d, max side %s)",
+            ", ".join(f"{c.camera.camera} as {c.source}" for c in self.cameras),
+            self.settings.input_prefix,
+            self.settings.jpeg_quality,
+            self.settings.max_side,
+        )
+        return self
+
+    def wake(self) -> None:
+        self._wake.set()
+
+    def grant_seen(self, source: str, grant: CreditGrant) -> None:
+        """A credit also says how fresh the owner's maps are; it counts while no maps are forwarded."""
+        if grant.last_maps_stamp is not None and not any(f.active for f in self.forwarders if f.source == source):
+            self.freshness.observe(source, grant.last_maps_stamp)
+
+    def camera(self, source: str) -> CameraLink:
+        return next(camera for camera in self.cameras if camera.source == source)
+
+    def health(self, source: str) -> RelayHealth:
+        downlink = sum(f.downlink.per_s() for f in self.forwarders if f.source == source)
+        return self.camera(source).health(self.freshness, downlink, self.settings.stale_after_s)
+
+    # ---- the control thread: subscriptions on demand, health, staleness ----------------------------
+    def _control(self) -> None:
+        next_health = time.monotonic()
+        while not self.stopping:
+            self._wake.wait(max(0.0, next_health - time.monotonic()))
+            self._wake.clear()
+            if self.stopping:
+                return
+            for forwarder in self.forwarders:
+                forwarder.reconcile()
+            if time.monotonic() >= next_health:
+                next_health += self.settings.health_period_s
+                self._report()
+
+    def _report(self) -> None:
+        for change in self.freshness.check():
+            self._log_change(change)
+            if self._on_stale is not None:
+                self._on_stale(change)
+        now = time.time()
+        for camera in self.cameras:
+            health = self.health(camera.source)
+            self._health[camera.source].put(health.pack())
+            if health.stale and now - self._last_stale_log.get(camera.source, 0.0) >= STALE_LOG_EVERY_S:
+                self._log_stale(camera.source, health)
+
+    def _log_change(self, change: Staleness) -> None:
+        if change.stale:
+            self._log_stale(change.source, self.health(change.source))
+        else:
+            log.info("maps of %s fresh again: %.1f s old", change.source, change.age_s)
+            self._last_stale_log.pop(change.source, None)
+
+    def _log_stale(self, source: str, health: RelayHealth) -> None:
+        self._last_stale_log[source] = time.time()
+        why = f"; why: {health.problem}" if health.problem else ""
+        if health.map_age_s is None:
+            waited = time.time() - self._started_at
+            log.warning("no maps of %s yet, %.1f s after the relay started%s", source, waited, why)
+        else:
+            log.warning(
+                "maps of %s stale for %.1f s (newest %.1f s old; %d frames sent, %d credit timeouts)%s",
+                source,
+                health.map_age_s - self.settings.stale_after_s,
+                health.map_age_s,
+                health.frames_sent,
+                health.credit_timeouts,
+                why,
+            )
+
+    def close(self) -> None:
+        self.stopping = True
+        self._wake.set()
+        for camera in self.cameras:
+            camera.stop()
+        self._thread.join(5)
+        for forwarder in self.forwarders:
+            forwarder.close()
+        for entity in [*self._declared, *self._health.values()]:
+            entity.undeclare()
+        self._declared.clear()
+        self._health.clear()

@@ -1,0 +1,243 @@
+"""Learning from the robot's own driving (issue 33, docs/calibration.md): traversal outcomes in, calibration
+figures, fitted anchor proposals and operator questions out. Wire messages follow the wire rule
+(``WireModel``: unknown fields ignored); the settings sections ``experience:`` and ``ask:`` are in
+``schemas/settings/experience.py``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.limits import MAX_CONCEPT_CHARS, MAX_FRAME_ID_CHARS, MAX_POSITION_M
+from gcdtrav.schemas.messages import Message
+from gcdtrav.schemas.strict import WireModel
+from pydantic import Field, field_validator
+
+OutcomeKind = Literal["velocity", "operator", "contact"]
+OUTCOME_KINDS: tuple[str, ...] = ("velocity", "operator", "contact")
+MAX_OUTCOME_RADIUS_M = 10.0  # a footprint, not a region: larger would pair thousands of cells per outcome
+CALIBRATION_ALPHAS = (0.05, 0.1, 0.2)
+
+
+def _finite(value: float) -> float:
+    if not math.isfinite(value):
+        raise ValueError(f"{value} is not a finite number")
+    return value
+
+
+# ---- outcomes in --------------------------------------------------------------------------------------
+
+
+class TraversalOutcome(Message):
+    """How driving over a place went: {prefix}/in/{source}/outcome, {source} the grid's."""
+
+    stamp: float = Field(description="When the robot was there, s since the epoch (the grid's clock).")
+    x: float = Field(description="Metres in the grid's frame (the pose stream's odometry frame).")
+    y: float
+    score: float = Field(description="1 = drove as commanded, 0 = could not move at all; in [0, 1].")
+    kind: OutcomeKind = Field(description="velocity (tracking), operator (an answer), contact (bumper, stall).")
+    radius_m: float | None = Field(
+        default=None, description="Every cell whose centre lies within this radius, m; None: the cell of (x, y)."
+    )
+
+    @field_validator("stamp", "x", "y", "score")
+    @classmethod
+    def _is_finite(cls, value: float) -> float:
+        return _finite(value)
+
+    @field_validator("stamp")
+    @classmethod
+    def _not_negative(cls, value: float) -> float:
+        if value < 0:
+            raise ValueError(f"stamp {value} is before the epoch")
+        return value
+
+    @field_validator("x", "y")
+    @classmethod
+    def _within_reach(cls, value: float) -> float:
+        if abs(value) > MAX_POSITION_M:
+            raise ValueError(f"{value:g} m is beyond the limit of {MAX_POSITION_M:g} m")
+        return value
+
+    @field_validator("score")
+    @classmethod
+    def _in_unit_interval(cls, value: float) -> float:
+        if not 0.0 <= value <= 1.0:
+            raise ValueError(f"score {value} is outside [0, 1] (1 = drove as commanded)")
+        return value
+
+    @field_validator("radius_m")
+    @classmethod
+    def _radius(cls, value: float | None) -> float | None:
+        if value is not None and not (math.isfinite(value) and 0.0 <= value <= MAX_OUTCOME_RADIUS_M):
+            raise ValueError(f"radius_m {value} must be in [0, {MAX_OUTCOME_RADIUS_M:g}] m")
+        return value
+
+
+class Twist2D(Message):
+    """A velocity command in msgpack or JSON (the zenoh form of geometry_msgs/Twist): base frame, m/s, rad/s."""
+
+    stamp: float | None = Field(default=None, description="Command time; None: when received.")
+    vx: float
+    vy: float = 0.0
+    wz: float = 0.0
+
+    @field_validator("vx", "vy", "wz")
+    @classmethod
+    def _is_finite(cls, value: float) -> float:
+        return _finite(value)
+
+
+class Odometry2D(Message):
+    """Pose and velocity in msgpack or JSON (the zenoh form of nav_msgs/Odometry): velocities in the base frame."""
+
+    stamp: float
+    frame_id: str = Field(default="odom", max_length=MAX_FRAME_ID_CHARS)
+    x: float
+    y: float
+    yaw: float = 0.0
+    vx: float
+    vy: float = 0.0
+    wz: float = 0.0
+
+    @field_validator("stamp", "x", "y", "yaw", "vx", "vy", "wz")
+    @classmethod
+    def _is_finite(cls, value: float) -> float:
+        return _finite(value)
+
+    @field_validator("x", "y")
+    @classmethod
+    def _within_reach(cls, value: float) -> float:
+        if abs(value) > MAX_POSITION_M:
+            raise ValueError(f"{value:g} m is beyond the limit of {MAX_POSITION_M:g} m")
+        return value
+
+
+# ---- calibration ---------------------------------------------------------------------------------------
+
+
+class ReliabilityBin(WireModel):
+    low: float = Field(description="The bin covers predicted P(T < tau) in [low, high).")
+    high: float
+    count: int
+    predicted: float | None = Field(description="Mean predicted P(T < tau) of the bin's pairs; None if empty.")
+    observed: float | None = Field(description="Share of the bin's outcomes below tau; None if empty.")
+
+
+class AnchorFigures(WireModel):
+    concept: str = Field(max_length=MAX_CONCEPT_CHARS)
+    position: float
+    width: float
+    weight_mass: float = Field(description="Sum of this anchor's weight over the pairs (pair-equivalents).")
+    dominant_pairs: int = Field(description="Pairs where this anchor has the largest weight.")
+    dominant_mean_outcome: float | None = Field(description="Mean outcome of those pairs; None if none.")
+
+
+class CalibrationFigures(WireModel):
+    """The figures of docs/calibration.md for one anchor set over one set of pairs; None where undefined."""
+
+    pairs: int
+    mae: float | None = Field(description="Mean |T - outcome|.")
+    bias: float | None = Field(description="Mean (T - outcome): > 0 means T promises more than the robot got.")
+    coverage: dict[str, float | None] = Field(
+        description="Per alpha ('0.05', '0.1', '0.2'): share of outcomes >= q_alpha; calibrated: 1 - alpha."
+    )
+    tau: float
+    reliability: list[ReliabilityBin]
+    ece: float | None = Field(description="Expected calibration error of P(T < tau) over the bins.")
+    ause: float | None = Field(description="Area under the sparsification error of U against |T - outcome|.")
+    spearman_u_error: float | None = Field(description="Spearman's rho of U against |T - outcome|.")
+    anchors: list[AnchorFigures]
+
+
+class CalibrationReport(Message):
+    """{prefix}/out/{source}/calibration: the active anchor set graded by the stored experience."""
+
+    source: str
+    stamp: float = Field(description="When the report was computed, s since the epoch.")
+    anchor_set_version: str
+    concepts: list[str] = Field(description="The concept tuple whose pairs are graded (other tuples are apart).")
+    figures: CalibrationFigures
+    pairs_by_kind: dict[str, int] = Field(default_factory=dict)
+    pairs_by_version: dict[str, int] = Field(
+        default_factory=dict, description="Stored pairs by the anchor-set version that made their prediction."
+    )
+    counts: dict[str, int] = Field(
+        default_factory=dict, description="The store's counters: outcomes, pairs, rejected and ignored by reason."
+    )
+
+
+# ---- anchor proposals -----------------------------------------------------------------------------------
+
+
+class AnchorChange(WireModel):
+    concept: str = Field(max_length=MAX_CONCEPT_CHARS)
+    position_before: float | None = Field(description="None: the concept is new.")
+    position_after: float | None = Field(description="None: the concept is removed.")
+    width_before: float | None
+    width_after: float | None
+    pairs: float = Field(description="The anchor's weight mass in the training pairs (pair-equivalents).")
+    shrunk: bool = Field(description="Held near the current set: too few pairs to move it freely.")
+
+
+class AnchorProposal(Message):
+    """{prefix}/config/anchors/proposal: a fitted anchor set, applied only by an operator."""
+
+    stamp: float
+    source: str = Field(default="", description="Whose experience it was fitted on ('' for offline fits).")
+    current: AnchorSet
+    proposed: AnchorSet
+    current_version: str
+    proposed_version: str
+    diff: list[str] = Field(description="The +/-/~ lines `gcdtrav anchors set --dry-run` prints.")
+    changes: list[AnchorChange]
+    train_pairs: int
+    held_out_pairs: int
+    before: CalibrationFigures = Field(description="The current set on the held-out (later) pairs.")
+    after: CalibrationFigures = Field(description="The proposed set on the same pairs.")
+
+
+# ---- asking the operator -----------------------------------------------------------------------------
+
+
+class QuestionConcept(WireModel):
+    concept: str = Field(max_length=MAX_CONCEPT_CHARS)
+    position: float
+    weight: float = Field(description="Mean weight over the region's cells.")
+
+
+class OperatorQuestion(Message):
+    """{prefix}/out/{source}/question: cells ahead stayed ambiguous or novel for ask.persist_s."""
+
+    id: str = Field(max_length=64)
+    source: str
+    stamp: float = Field(description="Grid stamp when the question was asked.")
+    reason: Literal["ambiguous", "novel"]
+    region: tuple[float, float, float, float] = Field(description="(x0, y0, x1, y1) in the grid's frame, m.")
+    cells: list[tuple[float, float]] = Field(description="Centres of the region's cells, m.")
+    concepts: list[QuestionConcept] = Field(description="The two competing concepts, strongest first.")
+    traversability: float | None = Field(default=None, description="Mean T over the region.")
+    uncertainty: float | None = Field(default=None, description="Mean U over the region.")
+    p_below: float | None = Field(default=None, description="Mean P(T < tau) over the region.")
+    match: float | None = Field(default=None, description="Mean match score over the region.")
+    anchor_set_version: str
+    crop_jpeg: bytes | None = Field(default=None, description="A small JPEG of the region from the last image.")
+
+
+class OperatorAnswer(Message):
+    """An operator's answer to a question: drivable (1), blocked (0) or a score."""
+
+    id: str = Field(max_length=64)
+    source: str
+    score: float
+    stamp: float | None = Field(default=None, description="When answered; None: when received.")
+    operator: str = Field(default="", max_length=MAX_FRAME_ID_CHARS)
+
+    @field_validator("score")
+    @classmethod
+    def _in_unit_interval(cls, value: float) -> float:
+        if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+            raise ValueError(f"score {value} is outside [0, 1] (1 = drivable, 0 = blocked)")
+        return value

@@ -1,0 +1,1 @@
+"""The commands: `gcdtrav` and its subcommands (argument parsing and the entry of each)."""

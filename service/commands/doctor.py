@@ -1,0 +1,122 @@
+"""`gcdtrav doctor`: what to run first on a new box. The CPU and its features, the versions that matter,
+whether the weights are found, every precision mode's time and parity here, the mode auto picks, and
+the frames/s to expect."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+from gcdtrav.service.backends import ModelUnavailableError, default_model
+from gcdtrav.service.backends.cpus import cpu_features, cpu_name, set_torch_threads, usable_cpus
+
+EXIT_OK, EXIT_NO_WEIGHTS = 0, 1
+PACKAGES = ("torch", "transformers", "onnxruntime", "onnx", "eclipse-zenoh", "numpy", "opencv-python-headless")
+
+
+def build_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    parser.add_argument(
+        "--model", default=None, help="CLIPSeg checkpoint directory or hub id [env GCDTRAV_MODEL, else the hub id]"
+    )
+    parser.add_argument("--runs", type=int, default=3, help="timed frames per mode [3]")
+    parser.add_argument(
+        "--cache-dir",
+        type=Path,
+        default=None,
+        help="where ONNX exports and the measurement are kept, shared with infer and serve "
+        "[$XDG_CACHE_HOME/gcdtrav, else ~/.cache/gcdtrav]",
+    )
+    parser.add_argument(
+        "--measure",
+        action="store_true",
+        help="measure the modes again even if figures for this machine are cached (and cache the new ones)",
+    )
+    return parser
+
+
+def version_of(package: str) -> str:
+    try:
+        return importlib.metadata.version(package)
+    except importlib.metadata.PackageNotFoundError:
+        return "not installed"
+
+
+def machine_info() -> dict[str, Any]:
+    """This machine as benchmarks and the doctor report it (the bench JSON's ``machine``)."""
+    import torch
+    from gcdtrav.service.backends.machine import cpu_has_fast_bf16
+
+    return {
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "onnxruntime": version_of("onnxruntime"),
+        "cpu": cpu_name(),
+        "cpu_features": cpu_features(),
+        "cores": os.cpu_count(),
+        "usable_cores": usable_cpus(),
+        "torch_threads": torch.get_num_threads(),
+        "fast_bf16": cpu_has_fast_bf16(),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+    }
+
+
+def machine_lines() -> list[str]:
+    info = machine_info()
+    bf16 = "yes (AVX512-BF16 or AMX)" if info["fast_bf16"] else "no: bf16 modes would be emulated"
+    return [
+        f"CPU          {info['cpu']} ({platform.machine()})",
+        f"cores        {info['usable_cores']} usable by this process; torch threads {info['torch_threads']}",
+        f"features     {' '.join(info['cpu_features']) or 'none of the ones that matter'}",
+        f"native bf16  {bf16}",
+        "versions     " + ", ".join(f"{p} {version_of(p)}" for p in PACKAGES) + f", python {platform.python_version()}",
+    ]
+
+
+def run(args: argparse.Namespace) -> int:
+    from gcdtrav.service.backends.clipseg import ClipSegBackend
+    from gcdtrav.service.backends.machine import available_precisions
+    from gcdtrav.service.backends.precision_choice import PARITY_P99_DT_LIMIT, cached_choice, measure_and_store
+
+    set_torch_threads(None)  # as infer and serve do: the cached figures are keyed by the threads
+    for line in machine_lines():
+        print(line)
+    model = args.model or default_model()
+    try:
+        backend = ClipSegBackend(model, precision="fp32", keep_reference=True, cache_dir=args.cache_dir)
+    except ModelUnavailableError as err:
+        print(f"weights      NOT FOUND: {err}")
+        return EXIT_NO_WEIGHTS
+    print(f"weights      found: {backend.checkpoint_dir or model}")
+    modes = available_precisions()
+    choice = None if args.measure else cached_choice(backend, modes)
+    if choice is None:
+        print(f"\ntiming {', '.join(modes)} ({args.runs} frames each, 13 anchors, {backend.preprocess.size} px) ...")
+        sys.stdout.flush()
+        choice = measure_and_store(backend, modes, runs=args.runs)
+        print(f"(cached in {backend.cache_dir / 'precision'}: infer and serve run the mode picked below)")
+    else:
+        print(f"\nfigures of an earlier measurement on this machine, cached in {backend.cache_dir / 'precision'}")
+        print("(gcdtrav doctor --measure measures again)")
+    measured = choice.measurements
+    print(f"\n| mode | ms per frame | frames/s | p99 abs dT vs fp32 | parity (<= {PARITY_P99_DT_LIMIT}) |")
+    print("|---|---:|---:|---:|---|")
+    for m in measured:
+        if m.ms_per_frame is None or m.p99_dT is None:
+            print(f"| {m.mode} | - | - | - | cannot run here: {m.error} |")
+            continue
+        verdict = "passes" if m.passes else "FAILS"
+        print(f"| {m.mode} | {m.ms_per_frame:.0f} | {1000 / m.ms_per_frame:.2f} | {m.p99_dT:.4f} | {verdict} |")
+    best = next(m for m in measured if m.mode == choice.mode)
+    print(f"\nprecision auto picks {choice.mode} here.")
+    if best.ms_per_frame:
+        print(
+            f"Expect about {1000 / best.ms_per_frame:.1f} frames/s of model time for all sources together "
+            "(the GCD engine, decoding and encoding add a few ms per frame; gcdtrav bench measures them)."
+        )
+    return EXIT_OK

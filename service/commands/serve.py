@@ -1,0 +1,130 @@
+"""`gcdtrav serve`: build the pipeline, open the session, run until SIGINT/SIGTERM."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import sys
+import threading
+from types import FrameType
+from typing import NoReturn
+
+import zenoh
+from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
+from gcdtrav.schemas.settings import ServiceSettings, SettingsError
+from gcdtrav.service.backends.cpus import set_torch_threads, usable_cpus
+from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.runtime.state import load_anchor_state
+
+log = logging.getLogger("gcdtrav.service")
+MEASUREMENT_STOP_S = 5.0  # at shutdown, how long a background measurement may take to reach its next mode
+
+
+def starting_anchor_set(settings: ServiceSettings) -> AnchorSet:
+    """The last set accepted at runtime wins over the configured file, which wins over the paper's set."""
+    persisted = load_anchor_state(settings.state_file)
+    if persisted is not None:
+        log.info(
+            "anchor set %s from the state file %s (delete it to use the configured set)",
+            persisted.version,
+            settings.state_file,
+        )
+        return persisted
+    if settings.anchors_file is not None:
+        return AnchorSet.load(settings.anchors_file)
+    return default_anchor_set()
+
+
+def build_service_pipeline(settings: ServiceSettings) -> Pipeline:
+    """The model in the mode to serve with: ``precision: auto`` with no measurement cached for this machine
+    serves fp32 at once (``run_service`` then measures in the background), unless measure_before_serving."""
+    from gcdtrav.service.pipeline import clipseg_pipeline
+
+    set_torch_threads(settings.threads)
+    anchors = starting_anchor_set(settings)
+    return clipseg_pipeline(
+        settings.model,
+        settings.precision,
+        anchors,
+        settings.engine,
+        settings.cache_dir,
+        measure_now=settings.measure_before_serving,
+    )
+
+
+def with_torch_threads(settings: ServiceSettings) -> ServiceSettings:
+    """``threads`` made explicit: as configured, else torch's default capped by the CPUs really usable."""
+    if settings.threads is not None:
+        return settings
+    threads = set_torch_threads(None)
+    log.info("torch threads: %d (CPUs usable by this process: %d)", threads, usable_cpus())
+    return settings.model_copy(update={"threads": threads})
+
+
+def open_session(config: zenoh.Config, fallback: zenoh.Config | None = None) -> zenoh.Session:
+    """The session; if it cannot open (serve's default port taken), the fallback config's, with a warning."""
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as err:
+        if fallback is None:
+            raise SettingsError(f"cannot open the zenoh session: {err}") from None
+        log.warning(
+            "cannot listen on serve's default endpoint (%s): listening on a port zenoh picks instead; "
+            "give -l ENDPOINT to choose one",
+            str(err).strip().splitlines()[0][:200] if str(err).strip() else type(err).__name__,
+        )
+    try:
+        return zenoh.open(fallback)
+    except zenoh.ZError as err:
+        raise SettingsError(f"cannot open the zenoh session: {err}") from None
+
+
+def run_service(settings: ServiceSettings, config: zenoh.Config, fallback: zenoh.Config | None = None) -> int:
+    """Serve until SIGINT/SIGTERM. ``fallback``: the zenoh config to use if ``config`` cannot open."""
+    from gcdtrav.service.bus.node import TraversabilityService
+
+    settings = with_torch_threads(settings)
+    pipeline = build_service_pipeline(settings)
+    stop = threading.Event()
+
+    def request_stop(signum: int, _frame: FrameType | None) -> None:
+        log.info("%s received: finishing the frame in flight and shutting down", signal.Signals(signum).name)
+        stop.set()
+
+    signal.signal(signal.SIGINT, request_stop)
+    signal.signal(signal.SIGTERM, request_stop)
+    zenoh.init_log_from_env_or("error")
+    session = open_session(config, fallback)
+    try:
+        service = TraversabilityService(session, pipeline, settings)
+    except SettingsError:
+        session.close()
+        raise
+    measurement = None
+    try:
+        service.start()
+        if getattr(pipeline.backend, "needs_measurement", False):  # status answers meanwhile: measuring
+            from gcdtrav.service.backends.precision_choice import measure_in_background
+
+            measurement = measure_in_background(pipeline.backend)
+        while not stop.wait(0.5):
+            pass
+    finally:
+        service.stop()
+        session.close()
+    log.info("stopped")
+    if measurement is not None and not measurement.stop(MEASUREMENT_STOP_S):
+        leave_during_measurement()
+    return 0
+
+
+def leave_during_measurement() -> NoReturn:
+    """Exit now, status 0: the background measurement is inside native code (an ONNX export, a quantisation)
+    that cannot be interrupted, and the interpreter's exit around a thread running it aborts the process
+    ('terminate called without an active exception'). Everything else has been stopped and closed."""
+    log.info("the measurement of the modes is inside an export: not waiting for it (nothing cached)")
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)

@@ -1,0 +1,81 @@
+"""Pairs of a prediction and an outcome: the weights a cell's mixture had (by concept) before the robot drove
+there, and how the drive went. One ``Pairs`` holds one concept tuple's pairs; another tuple is another
+softmax, never mixed in."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.experience import OUTCOME_KINDS
+from numpy.typing import NDArray
+
+
+def concept_key(concepts: Sequence[str]) -> tuple[str, ...]:
+    """The tuple a pair belongs to: the same concepts in another order give the same per-concept weights (the
+    model scores each concept on its own; the softmax does not care about order), so the key is sorted."""
+    return tuple(sorted(concepts))
+
+
+@dataclass(frozen=True)
+class Pairs:
+    concepts: tuple[str, ...]  # the weight columns' order (concept_key order in the store)
+    weights: NDArray[np.float32]  # (m, n)
+    outcomes: NDArray[np.float64]  # (m,) in [0, 1]
+    stamps: NDArray[np.float64]  # (m,) the outcome's stamp
+    kinds: NDArray[np.uint8]  # (m,) index into OUTCOME_KINDS
+    versions: tuple[str, ...]  # (m,) the anchor-set version whose fusion made the prediction
+
+    def __len__(self) -> int:
+        return len(self.outcomes)
+
+    @classmethod
+    def empty(cls, concepts: Sequence[str]) -> Pairs:
+        return cls(
+            tuple(concepts),
+            np.zeros((0, len(concepts)), np.float32),
+            np.zeros(0),
+            np.zeros(0),
+            np.zeros(0, np.uint8),
+            (),
+        )
+
+    def weights_for(self, anchors: AnchorSet) -> NDArray[np.float32]:
+        """The weights with columns in ``anchors``' concept order; ValueError for another concept tuple."""
+        if concept_key(anchors.concepts) != concept_key(self.concepts):
+            raise ValueError(
+                f"pairs of concepts {list(self.concepts)} cannot grade an anchor set of {anchors.concepts}"
+            )
+        column = {concept: k for k, concept in enumerate(self.concepts)}
+        return self.weights[:, [column[c] for c in anchors.concepts]]
+
+    def select(self, mask: NDArray[np.bool_] | NDArray[np.intp]) -> Pairs:
+        chosen = np.arange(len(self))[mask]
+        return Pairs(
+            self.concepts,
+            self.weights[chosen],
+            self.outcomes[chosen],
+            self.stamps[chosen],
+            self.kinds[chosen],
+            tuple(self.versions[i] for i in chosen),
+        )
+
+    def time_split(self, held_out_fraction: float) -> tuple[Pairs, Pairs]:
+        """(train, held out): the held-out pairs are the latest ``held_out_fraction`` by stamp, a block in time,
+        so neighbouring cells of one drive never sit on both sides."""
+        order = np.argsort(self.stamps, kind="stable")
+        held = round(len(self) * held_out_fraction)
+        cut = len(self) - held
+        return self.select(order[:cut]), self.select(order[cut:])
+
+    def count_by_kind(self) -> dict[str, int]:
+        counts = np.bincount(self.kinds, minlength=len(OUTCOME_KINDS))
+        return {kind: int(n) for kind, n in zip(OUTCOME_KINDS, counts, strict=True) if n}
+
+    def count_by_version(self) -> dict[str, int]:
+        found: dict[str, int] = {}
+        for version in self.versions:
+            found[version] = found.get(version, 0) + 1
+        return found

@@ -1,0 +1,131 @@
+"""Everything the bus needs of issue 33 for one service, behind one object, so the wiring stays thin: it
+subscribes to ``inputs()`` and hands payloads over, calls ``on_grid_update`` after each grid fusion, answers
+the calibration query with ``report`` and the proposal with ``proposal``, and calls ``save_if_dirty``
+now and then and at shutdown. No middleware here.
+
+One experience per service: the outcomes of ``experience.grid`` (the first grid when unset). Questions are
+asked per grid that has a pose (``ask.enabled``).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.experience import AnchorProposal, CalibrationReport, OperatorAnswer, OperatorQuestion
+from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.schemas.settings import AskSettings, ExperienceSettings
+from gcdtrav.service.experience.ask import Crop, OperatorAsker
+from gcdtrav.service.experience.fitter import FitOptions
+from gcdtrav.service.experience.snapshots import SnapshotRing
+from gcdtrav.service.experience.store import ExperienceStore
+from gcdtrav.service.experience.velocity import VelocityTracker, decode_command, decode_odometry, is_ros_topic
+from gcdtrav.service.grid.fusion import GroundGrid
+
+log = logging.getLogger("gcdtrav.service")
+SNAPSHOT_SLACK_S = 5.0  # snapshots kept beyond lookahead_s: outcomes arrive a little late
+ExperienceInput = tuple[str, bool, Callable[[bytes, float], None], str]  # key or topic, is ROS, handler, reason
+
+
+def experience_file(state_dir: Path, prefix: str) -> Path:
+    """Named by prefix, as the anchor state: a restarted process must find it."""
+    return state_dir / f"{prefix.replace('/', '_')}.experience.msgpack"
+
+
+class Experience:
+    def __init__(
+        self,
+        settings: ExperienceSettings,
+        ask: AskSettings,
+        grid_source: str,
+        tau: float,
+        path: Path | None,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        self.settings, self.ask_settings, self.source, self.tau, self.clock = settings, ask, grid_source, tau, clock
+        self.ring = SnapshotRing(
+            settings.snapshot_every_s, int(settings.snapshot_budget_mb * 1e6), settings.lookahead_s + SNAPSHOT_SLACK_S
+        )
+        self.store = ExperienceStore(path, settings.max_pairs, settings.max_bytes, settings.lookahead_s, clock)
+        self.tracker = VelocityTracker(settings)
+        self.askers: dict[str, OperatorAsker] = {}
+
+    # ---- inputs --------------------------------------------------------------------------------------
+    def inputs(self) -> list[ExperienceInput]:
+        """The command and odometry streams to subscribe to (zenoh keys or ROS topics), with their handlers
+        and the reason a bad message is counted under. The outcome and answer keys are the bus's."""
+        found: list[ExperienceInput] = []
+        if self.settings.cmd_vel is not None:
+            found.append((self.settings.cmd_vel, is_ros_topic(self.settings.cmd_vel), self.on_command, "bad_cmd_vel"))
+        if self.settings.odometry is not None:
+            found.append(
+                (self.settings.odometry, is_ros_topic(self.settings.odometry), self.on_odometry, "bad_odometry")
+            )
+        return found
+
+    def on_command(self, payload: bytes, received_at: float) -> None:
+        """A velocity command; MessageError for a bad one (the bus counts it)."""
+        assert self.settings.cmd_vel is not None
+        self.tracker.on_command(decode_command(payload, is_ros_topic(self.settings.cmd_vel)), received_at)
+
+    def on_odometry(self, payload: bytes, received_at: float) -> None:
+        """An odometry sample; the outcome it closes is paired at once. MessageError for a bad one."""
+        assert self.settings.odometry is not None
+        outcome = self.tracker.on_odometry(decode_odometry(payload, is_ros_topic(self.settings.odometry)), received_at)
+        if outcome is not None:
+            self.store.add(outcome, self.ring)
+
+    def on_outcome(self, payload: bytes) -> int:
+        """An outcome from the bus ({prefix}/in/{source}/outcome); OutcomeRejected (counted) for a bad one."""
+        return self.store.ingest(payload, self.ring)
+
+    def on_answer(self, payload: bytes, received_at: float) -> int:
+        """An OperatorAnswer; the pairs its outcomes made. MessageError or ValueError (counted) if bad."""
+        answer = OperatorAnswer.unpack(payload)
+        asker = self.askers.get(answer.source)
+        if asker is None:
+            raise ValueError(f"no questions are asked for source '{answer.source}'")
+        answered = asker.answer(answer, received_at)
+        return sum(self.store.add_predicted(answered.weights[k : k + 1], answered.anchors, outcome)
+                   for k, outcome in enumerate(answered.outcomes))  # fmt: skip
+
+    # ---- the grid ------------------------------------------------------------------------------------
+    def on_grid_update(
+        self, source: str, grid: GroundGrid, pose: Pose2D | None, crop: Crop | None = None
+    ) -> OperatorQuestion | None:
+        """After a grid fused a frame (under the grid's lock): snapshot it, track the ground ahead; a question
+        to publish, or None."""
+        if source == self.source:
+            self.ring.capture(grid)
+        if not self.ask_settings.enabled or pose is None:
+            return None
+        asker = self.askers.setdefault(source, OperatorAsker(source, self.ask_settings, self.tau))
+        return asker.update(grid, pose, crop)
+
+    # ---- answers -------------------------------------------------------------------------------------
+    def report(self, anchors: AnchorSet) -> CalibrationReport:
+        return self.store.report(self.source, anchors, self.tau)
+
+    def proposal(self, anchors: AnchorSet) -> AnchorProposal:
+        """ValueError without pairs of the set's concept tuple."""
+        options = FitOptions(
+            tau=self.tau,
+            held_out_fraction=self.settings.held_out_fraction,
+            min_pairs_per_anchor=self.settings.min_pairs_per_anchor,
+        )
+        return self.store.propose(self.source, anchors, options)
+
+    def counts(self) -> dict[str, int]:
+        """Every counter: the store's, the tracker's (velocity_*), the askers' (ask_*)."""
+        found = dict(self.store.counts)
+        found.update({f"velocity_{k}": v for k, v in self.tracker.counts.items()})
+        for asker in self.askers.values():
+            for name, value in asker.counts.items():
+                found[f"ask_{name}"] = found.get(f"ask_{name}", 0) + value
+        return found
+
+    def save_if_dirty(self) -> bool:
+        return self.store.save_if_dirty()

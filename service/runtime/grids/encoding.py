@@ -1,0 +1,89 @@
+"""A grid update's payloads: the GridMessage (16-bit PNG layers) and the enabled ROS CDRs."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from gcdtrav.schemas.images import encode_age_png, encode_count_png, encode_maps_png16
+from gcdtrav.schemas.messages import GridHeader, GridMessage
+from gcdtrav.schemas.settings import GridSettings, RiskSettings
+from gcdtrav.service.grid.layers import GridLayers, nav2_costs
+from gcdtrav.service.ros.cdr import (
+    RosTopic,
+    occupancy_cdr,
+    occupancy_values_cdr,
+)
+from gcdtrav.service.ros.grid_map import grid_map_cdr
+from gcdtrav.service.runtime.grids.state import SourceGrid
+
+GRID_MAP_BASIC_LAYERS = ["traversability"]  # a GridMap cell is valid where T is (grid_map's basic layers)
+
+
+@dataclass(frozen=True)
+class GridUpdate:
+    """One frame's grid outputs, under the grid's ``source``: the message, and the CDRs that are enabled
+    (OccupancyGrids of T and U, the GridMap, the Nav2 costmap); ``ros``: the topic ROS outputs derive from."""
+
+    source: str
+    message: GridMessage
+    occupancy: bytes | None = None
+    uncertainty: bytes | None = None
+    grid_map: bytes | None = None
+    costmap: bytes | None = None
+    ros: RosTopic | None = None
+
+
+def encode_update(config: GridSettings, header: GridHeader, layers: GridLayers, ros: RosTopic | None) -> GridUpdate:
+    """The payloads of one grid update (encoded outside the grid's lock)."""
+    maps = (layers.traversability, layers.uncertainty, layers.cvar, layers.p_below, layers.match)
+    t, u, cvar, p_below, match = encode_maps_png16(*(np.nan_to_num(values) for values in maps))
+    message = GridMessage(
+        header=header,
+        traversability_png=t,
+        uncertainty_png=u,
+        count_png=encode_count_png(layers.count),
+        cvar_png=cvar,
+        p_below_png=p_below,
+        match_png=match,
+        age_png=encode_age_png(layers.age),
+    )
+    known = layers.known
+    occupancy = uncertainty = grid_map = costmap = None
+    if config.occupancy_grid:
+        occupancy = occupancy_cdr(header, 1.0 - layers.traversability, known)
+        uncertainty = occupancy_cdr(header, layers.uncertainty / 0.5, known)
+    if config.grid_map:
+        grid_map = grid_map_cdr(header, layers.float_layers(), GRID_MAP_BASIC_LAYERS)
+    if config.costmap:
+        costs = nav2_costs(layers, config.lethal_probability, config.min_match)
+        costmap = occupancy_values_cdr(header, costs)
+    return GridUpdate(config.source, message, occupancy, uncertainty, grid_map, costmap, ros)
+
+
+def grid_header(
+    grid: SourceGrid, version: str, instance: str, risk: RiskSettings, clock: Callable[[], float]
+) -> GridHeader:
+    """The header of a grid's message (and its ROS messages), as of now."""
+    pose = grid.pose
+    stamp = grid.grid.stamp or 0.0
+    return GridHeader(
+        source=grid.config.source,
+        seq=grid.seq,
+        stamp=stamp,
+        frame_id=grid.frame_id(),
+        origin=grid.grid.origin,
+        resolution=grid.grid.spec.resolution_m,
+        cells=grid.grid.spec.cells,
+        robot=(pose.x, pose.y, pose.yaw) if pose is not None else (0.0, 0.0, 0.0),
+        anchor_set_version=version,
+        resets=grid.grid.resets,
+        last_reset=grid.grid.last_reset,
+        known_cells=int(grid.grid.known.sum()),
+        instance=instance,
+        alpha=risk.alpha,
+        tau=risk.tau,
+        expired_cells=int(grid.grid.expired.sum()),
+        age_s=clock() - stamp if grid.grid.stamp is not None else None,
+    )

@@ -1,0 +1,111 @@
+"""A ground grid's state: its cameras (intrinsics, mount, depth, ROS topic), the robot's pose, the fused
+grid and its sequence number; fusing one frame into it."""
+
+from __future__ import annotations
+
+import math
+import threading
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.schemas.settings import GridCamera, GridSettings
+from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
+from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points, map_cell_pixels
+from gcdtrav.service.ros.cdr import (
+    RosTopic,
+)
+from gcdtrav.service.runtime.errors import QueryError
+from numpy.typing import NDArray
+
+
+@dataclass
+class CameraState:
+    """One camera of a grid: intrinsics (configured or from CameraInfo), mount, latest depth, ROS topic."""
+
+    config: GridCamera
+    max_range_m: float
+    camera: PinholeCamera | None = None
+    depth: NDArray[np.float32] | None = None
+    ros: RosTopic | None = None  # the topic of its last frame, if a ROS camera
+
+    def __post_init__(self) -> None:
+        self.mount = CameraMount(**self.config.mount.model_dump())
+        if self.config.intrinsics is not None and self.camera is None:
+            self.camera = PinholeCamera(**self.config.intrinsics.model_dump())
+        self._ground_cache: dict[tuple[Any, ...], tuple[NDArray[np.float64], NDArray[np.bool_]]] = {}
+
+    def camera_for(self, image_size: tuple[int, int]) -> PinholeCamera:
+        """Intrinsics scaled to the incoming image's size."""
+        camera = self.camera
+        if camera is None:
+            raise QueryError(f"no intrinsics for '{self.config.source}' yet (waiting for CameraInfo)")
+        sx, sy = image_size[0] / camera.width, image_size[1] / camera.height
+        return PinholeCamera(camera.fx * sx, camera.fy * sy, camera.cx * sx, camera.cy * sy, *image_size)
+
+    def base_points(
+        self, map_shape: tuple[int, int], image_size: tuple[int, int]
+    ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+        """Ground (or depth) points in the base frame of every map patch, and which patches have one."""
+        camera = self.camera_for(image_size)
+        u, v = map_cell_pixels(map_shape, image_size)
+        if self.depth is not None:
+            depth = np.asarray(cv2.resize(self.depth, image_size, interpolation=cv2.INTER_NEAREST), np.float32)
+            return depth_points(camera, self.mount, u, v, depth, self.max_range_m)
+        key = (map_shape, image_size, camera)
+        if key not in self._ground_cache:  # a fixed camera: the same rays every frame
+            self._ground_cache = {key: ground_points(camera, self.mount, u, v, self.max_range_m)}
+        return self._ground_cache[key]
+
+
+@dataclass
+class SourceGrid:
+    """One grid, its cameras and the robot's latest pose; published and queried under ``config.source``."""
+
+    config: GridSettings
+    grid: GroundGrid
+    pose: Pose2D | None = None
+    seq: int = -1
+    cameras: dict[str, CameraState] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.lock = threading.Lock()
+        self.cameras = {c.source: CameraState(c, self.config.max_range_m) for c in self.config.camera_list()}
+
+    def fuse(
+        self,
+        camera: CameraState,
+        weights: NDArray[np.floating],
+        image_size: tuple[int, int],
+        stamp: float,
+        anchors: AnchorSet,
+        match: NDArray[np.floating] | None = None,
+    ) -> int:
+        points, valid = camera.base_points((weights.shape[1], weights.shape[2]), image_size)
+        flat = weights.reshape(weights.shape[0], -1)[:, valid].astype(np.float32)
+        scores = None if match is None else np.asarray(match, np.float32).reshape(-1)[valid]
+        ground = points[valid]
+        if self.pose is not None:  # into the odometry frame, and keep the robot at the grid's centre
+            c, s = math.cos(self.pose.yaw), math.sin(self.pose.yaw)
+            ground = ground @ np.array([[c, s], [-s, c]]) + np.array([self.pose.x, self.pose.y])
+            half = self.grid.spec.cells * self.grid.spec.resolution_m / 2
+            self.grid.scroll_to((self.pose.x - half, self.pose.y - half))
+        landed = self.grid.add(ground, flat, stamp, anchors, scores)
+        self.seq += 1
+        return landed
+
+    def frame_id(self) -> str:
+        """The frame the grid is in: the pose's, else the robot's base."""
+        return self.pose.frame_id if self.pose is not None else "base_link"
+
+    def ros_topic(self) -> RosTopic | None:
+        """The ROS topic the grid's ROS outputs derive from: its first camera (in the configured order) that
+        has sent a ROS frame; None if none has."""
+        return next((camera.ros for camera in self.cameras.values() if camera.ros is not None), None)
+
+
+def grid_spec(config: GridSettings) -> GridSpec:
+    return GridSpec(config.size_m, config.resolution_m, config.half_life_s, config.max_age_s)

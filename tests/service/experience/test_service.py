@@ -1,0 +1,77 @@
+"""The Experience facade the bus wiring will call: payloads in, pairs, reports, proposals and questions out."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from gcdtrav.schemas.anchors import Anchor, AnchorSet
+from gcdtrav.schemas.experience import Odometry2D, OperatorAnswer, TraversalOutcome
+from gcdtrav.schemas.messages import MessageError, Pose2D
+from gcdtrav.schemas.settings import AskSettings, ExperienceSettings
+from gcdtrav.service.experience.service import Experience, experience_file
+from gcdtrav.service.experience.store import OutcomeRejected
+from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
+from gcdtrav.service.ros.cdr import twist_cdr
+
+ANCHORS = AnchorSet(anchors=[Anchor(concept="mud", position=0.1), Anchor(concept="grass", position=0.8)])
+SETTINGS = ExperienceSettings(enabled=True, cmd_vel="/cmd_vel", odometry="robot/odom", footprint_m=0.2)
+
+
+def ambiguous_strip(stamp: float) -> GroundGrid:
+    grid = GroundGrid(GridSpec(size_m=10.0, resolution_m=0.1), 2)
+    points = np.array([[x, 0.05] for x in np.arange(0.05, 4.0, 0.1) for _ in range(5)])
+    grid.add(points, np.full((2, len(points)), 0.5, np.float32), stamp, ANCHORS)
+    return grid
+
+
+def test_commands_and_odometry_become_pairs_a_report_and_a_proposal(tmp_path: Path) -> None:
+    path = experience_file(tmp_path, "gcdtrav/site")
+    assert path.name == "gcdtrav_site.experience.msgpack"
+    experience = Experience(SETTINGS, AskSettings(), "cam", tau=0.3, path=path)
+    assert [(key, ros, reason) for key, ros, _, reason in experience.inputs()] == [
+        ("/cmd_vel", True, "bad_cmd_vel"),
+        ("robot/odom", False, "bad_odometry"),
+    ]
+    experience.on_grid_update("cam", ambiguous_strip(0.0), None)
+    for k in range(80):  # 4 s at 0.5 m/s, commanded 1 m/s
+        t = 2.5 + 0.05 * k
+        experience.on_command(twist_cdr(1.0), t)
+        experience.on_odometry(Odometry2D(stamp=t, x=0.5 * (t - 2.5), y=0.05, vx=0.5).pack(), t)
+    report = experience.report(ANCHORS)
+    assert report.figures.pairs > 0 and report.pairs_by_kind == {"velocity": report.figures.pairs}
+    assert report.figures.mae == pytest.approx(abs(0.45 - 0.5), abs=1e-3)  # T 0.45, score 0.5
+    assert experience.counts()["velocity_outcomes"] > 0
+    proposal = experience.proposal(ANCHORS)
+    assert proposal.source == "cam" and proposal.train_pairs > 0
+    with pytest.raises(MessageError):
+        experience.on_command(b"\x00garbage", 1.0)
+    with pytest.raises(OutcomeRejected):
+        experience.on_outcome(b'{"score": 2}')
+    outcome = TraversalOutcome(stamp=3.0, x=1.05, y=0.05, score=0.1, kind="contact")
+    assert experience.on_outcome(outcome.pack()) == 1
+    assert experience.save_if_dirty()
+    again = Experience(SETTINGS, AskSettings(), "cam", tau=0.3, path=path)
+    assert again.report(ANCHORS).figures.pairs == report.figures.pairs + 1
+
+
+def test_questions_and_answers_through_the_facade() -> None:
+    ask = AskSettings(enabled=True, persist_s=1.0, min_cells=3)
+    experience = Experience(ExperienceSettings(enabled=True), ask, "cam", tau=0.3, path=None)
+    pose = Pose2D(stamp=0.0, x=0.0, y=0.0, yaw=0.0)
+    assert experience.on_grid_update("cam", ambiguous_strip(0.0), pose) is None
+    question = experience.on_grid_update("cam", ambiguous_strip(1.5), pose, crop=lambda region: b"jpeg")
+    assert question is not None and question.crop_jpeg == b"jpeg"
+    made = experience.on_answer(OperatorAnswer(id=question.id, source="cam", score=1.0).pack(), 9.0)
+    assert made == len(question.cells)
+    assert experience.report(ANCHORS).pairs_by_kind == {"operator": made}
+    assert experience.counts()["ask_answered"] == 1
+    with pytest.raises(ValueError, match="no questions are asked for source 'other'"):
+        experience.on_answer(OperatorAnswer(id="x", source="other", score=1.0).pack(), 9.0)
+
+
+def test_experience_off_makes_no_inputs() -> None:
+    experience = Experience(ExperienceSettings(), AskSettings(), "cam", tau=0.3, path=None)
+    assert experience.inputs() == []
+    assert experience.on_grid_update("cam", ambiguous_strip(0.0), Pose2D(stamp=0, x=0, y=0, yaw=0)) is None
