@@ -1,5 +1,6 @@
 """What a viewer that connects late still needs to see: the last log lines, and the operator questions still
-open (whatever arrives on ``{prefix}/out/{source}/question``, forwarded as JSON)."""
+open (whatever arrives on ``{prefix}/out/{source}/question``, forwarded as JSON, until an answer with its id
+arrives on ``{prefix}/in/{source}/answer``)."""
 
 from __future__ import annotations
 
@@ -89,6 +90,11 @@ class OpenQuestions:
             kept[key] = question
             while len(kept) > QUESTIONS_KEPT:
                 kept.popitem(last=False)
+
+    def answered(self, source: str, identifier: str) -> bool:
+        """Forget the question ``identifier`` of ``source`` (its answer came); whether it was open."""
+        with self._lock:
+            return self._by_source.get(source, OrderedDict()).pop(identifier, None) is not None
 
     def of(self, source: str) -> list[dict[str, Any]]:
         with self._lock:

@@ -68,6 +68,8 @@ MAX_CAMERA_PIXELS = 40_000_000  # the service's default max_pixels: larger camer
 KINDS = ("maps", "grid", "costmap", "preview", "camera")  # what arrives per source, each in a latest-only slot
 COSTMAP_KIND = "grid/costmap"  # the key's last levels: {prefix}/out/{source}/grid/costmap
 QUESTION_KIND = "question"  # {prefix}/out/{source}/question: forwarded as they come, not latest-only
+ANSWER_KIND = "answer"  # {prefix}/in/{source}/answer: the question with its id is no longer open
+NOT_CAMERAS = {ANSWER_KIND, "outcome"}  # experience inputs beside the images under {prefix}/in/{source}/
 RECORDED = {"gcdtrav": "recorded"}  # metadata of the recording's own camera channel (downsampled)
 ANCHORS_REPEAT_S = 2.0  # the anchor set is sent again this often, so each MCAP file and a seek find it
 NUMERIC_TYPES = {
@@ -242,8 +244,10 @@ class Viewer:
             keys["camera"] = input_key(self.options.input_prefix, sources)
         for kind, key in keys.items():
             self._subscribers.append(self.client.session.declare_subscriber(key, self._keeper(kind)))
-        question_key = f"{prefix}/out/{sources}/{QUESTION_KIND}"  # the kind is another helper's, not in Keys yet
+        question_key = f"{prefix}/out/{sources}/{QUESTION_KIND}"  # OperatorQuestion (schemas/experience.py)
+        answer_key = f"{prefix}/in/{sources}/{ANSWER_KIND}"  # OperatorAnswer
         self._subscribers.append(self.client.session.declare_subscriber(question_key, self._forward_question))
+        self._subscribers.append(self.client.session.declare_subscriber(answer_key, self._close_question))
         for target in (self._work, self._poll, self._probe_loop):
             thread = threading.Thread(target=target, name=f"gcdtrav-view-{target.__name__[1:]}", daemon=True)
             thread.start()
@@ -277,6 +281,8 @@ class Viewer:
 
             def keep_camera(sample: zenoh.Sample) -> None:
                 source = input_source_of(str(sample.key_expr), head)
+                if source.rsplit("/", 1)[-1] in NOT_CAMERAS:
+                    return
                 self._slots.put((source, kind), sample.payload.to_bytes())
 
             return keep_camera
@@ -573,6 +579,18 @@ class Viewer:
             return
         self.questions.add(source, question)
         self.emit(channels.question, question)
+
+    def _close_question(self, sample: zenoh.Sample) -> None:
+        key, head = str(sample.key_expr), f"{self.options.prefix}/in/"
+        if not (key.startswith(head) and key.endswith(f"/{ANSWER_KIND}")):
+            return
+        source = key[len(head) : -len(ANSWER_KIND) - 1]
+        try:
+            identifier = question_json(sample.payload.to_bytes()).get("id")
+        except ValueError:
+            return  # the service counts bad answers; the viewer only listens
+        if isinstance(identifier, str) and self.questions.answered(source, identifier):
+            self.log_message(LogLevel.Info, f"question {identifier} of {source} answered")
 
     def replay_questions(self, topic: str) -> None:
         for source, channels in list(self._sources.items()):

@@ -26,7 +26,9 @@ pytest.importorskip("rosbags")
 
 from foxglove_ws import FoxgloveClient, protobuf_fields
 from gcdtrav.client.view.layout import layout, service_sources
+from gcdtrav.client.view.replay import question_json
 from gcdtrav.client.view.viewer import Viewer, ViewOptions
+from gcdtrav.schemas.experience import OperatorAnswer, OperatorQuestion, QuestionConcept
 from gcdtrav.schemas.messages import GridHeader
 from gcdtrav.service.ros.cdr import occupancy_values_cdr
 from protobuf_decode import decode
@@ -55,6 +57,15 @@ def costmap_payload() -> bytes:
     return occupancy_values_cdr(header, costs)
 
 
+def question(identifier: str) -> bytes:
+    """An OperatorQuestion as the service asks it (with a JPEG crop: bytes travel as base64 in JSON)."""
+    return OperatorQuestion(
+        id=identifier, source="cam", stamp=100.0, reason="ambiguous", region=(0.0, 0.0, 1.0, 1.0),
+        cells=[(0.25, 0.25)], concepts=[QuestionConcept(concept="mud", position=0.3, weight=0.5)],
+        anchor_set_version=PAPER.version, crop_jpeg=b"\xff\xd8jpeg",
+    ).pack()  # fmt: skip
+
+
 def feed(viewer: Viewer, client: FakeClient) -> None:
     """One round of everything of source 'cam': maps, a camera frame, the grid with its layers and robot, the
     costmap (the viewer shows each once it arrives)."""
@@ -80,6 +91,8 @@ def fed(tmp_path: Path) -> Iterator[tuple[Viewer, FakeClient]]:
         put = client.session.put
         put("gcdtrav/out/cam/question", msgpack.packb({"id": "q1", "text": "is this mud?", "patch": [1, 2]}))
         put("gcdtrav/out/cam/question", b"not a question")
+        put("gcdtrav/out/cam/question", question("q0"))
+        put("gcdtrav/in/cam/answer", OperatorAnswer(id="q0", source="cam", score=1.0).pack())  # no longer open
         yield viewer, client
     finally:
         viewer.close()
@@ -148,8 +161,13 @@ def test_a_late_viewer_gets_risk_layers_the_robot_its_camera_questions_and_the_l
     assert decoded(fox, f"{TOPIC}/camera")["frame_id"] == "front"  # images in the camera's frame
 
     replays = fox.replayed  # type: ignore[attr-defined]
-    question = json.loads(replays[f"{TOPIC}/question"][-1])  # replayed: it came before this viewer
-    assert question == {"id": "q1", "text": "is this mud?", "patch": [1, 2]}
+    open_questions = [json.loads(raw) for raw in replays[f"{TOPIC}/question"]]  # they came before this viewer
+    assert open_questions == [{"id": "q1", "text": "is this mud?", "patch": [1, 2]}]  # q0 was answered
+    assert viewer.errors["question"] == 1 and viewer.errors["camera"] == 0  # the answer is not a camera frame
+    assert set(viewer._sources) == {"cam"}
+    as_json = question_json(question("q2"))  # a real OperatorQuestion: its JPEG crop as base64 text
+    assert as_json["id"] == "q2" and as_json["crop_jpeg"] == base64.b64encode(b"\xff\xd8jpeg").decode()
+    assert json.loads(json.dumps(as_json)) == as_json
     lichtblick_datatypes(json.loads(fox.channels[f"{TOPIC}/question"]["schema"]), "gcdtrav.OperatorQuestion")
     lines = [decode_log(fox, raw) for raw in replays["/gcdtrav/log"]]
     assert any("question of cam not shown" in line for line in lines)  # said before it connected
