@@ -41,9 +41,12 @@ from gcdtrav.service.runtime.intake_rate import IntakeRate
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.outputs import FramePublisher, OutputBuilder
 from gcdtrav.service.runtime.progress import ProgressMonitor
+from gcdtrav.service.runtime.reuse import ReuseTracker
+from gcdtrav.service.runtime.share import policy_for
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
+from gcdtrav.service.runtime.triage import Triage
 from gcdtrav.service.runtime.worker import FrameWorker
 
 log = logging.getLogger("gcdtrav.service")
@@ -63,7 +66,6 @@ class TraversabilityService:
         self.settings = settings
         self.prefix = settings.prefix
         self.keys = Keys(settings.prefix)
-        self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(round(settings.pending_budget_mb * 1e6))
         self.history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
         self.stats = ServiceStats(log, settings.source_idle_s)
         self.intake_rate = IntakeRate(
@@ -82,18 +84,34 @@ class TraversabilityService:
             if settings.grids
             else None
         )
+        grids = self.grids
+        self.reuse = ReuseTracker(
+            settings.reuse,
+            settings.schedule,
+            grids.pose_of if grids else lambda source: None,
+            anchors_version=lambda: self.anchor_switch.head().version,
+        )
+        self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
+            round(settings.pending_budget_mb * 1e6),
+            policy=policy_for(settings.schedule, self.reuse.motion),
+            triage=settings.reuse.enabled or settings.schedule.policy == "need",
+        )
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if settings.ros_inputs else None
         self.outputs = FrameOutputs(session, self.keys, self.ros_graph)
         self.freshness = Freshness.from_settings(settings, log)  # the one judge of a frame's age
         ledger = CreditLedger(settings.instance, backend.input_size, self.freshness.max_age_s)
         self.credits = CreditPublisher(session, self.keys, ledger, self.stats)
+        # the one hand-off out: encoded in the runtime, put by self.outputs, the credits told
+        self.publisher = FramePublisher(OutputBuilder(settings, backend.model_id), self.outputs, self.credits.published)
         forget = (
             self.queue.forget,
             self.history.forget,
             self.stats.forget,
             self.outputs.forget,
+            self.publisher.forget,
             self.credits.forget,
             self.freshness.offsets.forget,
+            self.reuse.forget,
         )
         self.sources = SourceTracker(
             settings.max_sources, settings.source_idle_s, forget, reclaim_after_s=settings.reclaim_after_s
@@ -121,12 +139,15 @@ class TraversabilityService:
             self.stats,
             self.sources,
             settings,
-            FramePublisher(OutputBuilder(settings, backend.model_id), self.outputs, self.credits.published),
+            self.publisher,
             self.credits.taken,
             self.progress,
             gate,
             self.admission,
-            self.grids,
+            Triage(self.queue, self.reuse, settings, self.stats, self.publisher.republish, self.credits.answered)
+            if self.queue.triage
+            else None,
+            grids=self.grids,
         )
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()

@@ -13,7 +13,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal, Protocol
+from typing import Any, Literal, Protocol, TypeVar
 
 import cv2
 import numpy as np
@@ -30,7 +30,8 @@ from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import CompactMapsMessage, MapsHeader, MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros import cdr as ros_io
-from gcdtrav.service.runtime.frames import ProcessedFrame
+from gcdtrav.service.runtime.change import Glance
+from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.grids import GridUpdate
 from numpy.typing import NDArray
 
@@ -81,8 +82,9 @@ class OutputSink(Protocol):
 
 
 class FramePublisher:
-    """The worker's one hand-off out: encode a processed frame, give the payloads to the sink and, once they
-    are out, tell ``published(source, stamp)`` (the credits: later grants say how fresh the maps are)."""
+    """The one hand-off out: encode a processed frame (the worker's) or an unchanged one's reused maps (the
+    triage's), give the payloads to the sink and, once they are out, tell ``published(source, stamp)`` (the
+    credits: later grants say how fresh the maps are)."""
 
     def __init__(
         self,
@@ -99,13 +101,31 @@ class FramePublisher:
         self.published(done.source, done.image.stamp)
         return True
 
+    def republish(self, pending: PendingFrame, seen: Glance) -> bool:
+        """The source's last maps again for an unchanged frame (reuse); False (nothing put) once closed or
+        when no maps of the source are kept."""
+        compact = self.sink.wants_compact(pending.source)
+        outputs = self.builder.reused(pending, seen.stamp, seen.frame_id, compact)
+        if not outputs or not self.sink.put(pending.source, outputs):
+            return False
+        self.published(pending.source, seen.stamp)
+        return True
+
+    def forget(self, source: str) -> None:
+        self.builder.forget(source)
+
 
 class OutputBuilder:
-    """The payloads of one frame, by the settings. Encoding only: nothing here changes any state."""
+    """The payloads of one frame, by the settings. Encoding only (the worker fused the grid before); what it
+    keeps is the last maps it encoded per source, to send again for unchanged frames (reuse)."""
 
     def __init__(self, settings: ServiceSettings, model_id: str) -> None:
         self.settings, self.model_id = settings, model_id
         self.keys = Keys(settings.prefix)
+        # Per source, the last inferred frame's maps (and compact maps, if made), to publish again for its
+        # unchanged views (reuse): the PNGs as they went out, never re-encoded. Threads: the output thread
+        # writes, the triage thread reads; one reference each, swapped whole.
+        self._last: dict[str, tuple[MapsMessage, CompactMapsMessage | None]] = {}
 
     def build(self, done: ProcessedFrame, compact: bool = False) -> list[Output]:
         """Every payload of the frame; ``compact``: the 8-bit maps too (only while someone subscribes)."""
@@ -117,8 +137,11 @@ class OutputBuilder:
             full = resize_map(t, width, height), resize_map(u, width, height)
         maps = self.maps(done, full)
         outputs = [Output(self.keys.maps(done.source), maps.pack(), "msgpack")]
-        if compact:
-            outputs.append(Output(self.keys.maps8(done.source), self.compact_maps(done, maps.header).pack(), "msgpack"))
+        compact_maps = self.compact_maps(done, maps.header) if compact else None
+        if compact_maps is not None:
+            outputs.append(Output(self.keys.maps8(done.source), compact_maps.pack(), "msgpack"))
+        if self.settings.reuse.enabled:
+            self._last[done.source] = (maps, compact_maps)
         panel = None
         if self.settings.preview or (ros_out and self.settings.ros_output.preview != "none"):
             panel = preview_panel(done.image.image, t, u, self.settings.preview_max_width)
@@ -130,6 +153,34 @@ class OutputBuilder:
         if done.grid is not None:
             outputs += self._grid(done.grid.encode())
         return outputs
+
+    def reused(self, pending: PendingFrame, stamp: float, frame_id: str, compact: bool = False) -> list[Output]:
+        """The source's last maps again for an unchanged frame: this frame's stamp, key and order, the computed
+        frame's seq and ``computed_from``. The grid, the preview and ROS images follow inferred frames only (a
+        reused frame is no new evidence). Empty if no maps of the source are kept."""
+        last = self._last.get(pending.source)
+        if last is None:
+            return []
+        maps, compact_maps = last
+        computed = maps.header.computed_from or (maps.header.stamp, maps.header.seq)
+        now = time.time()
+        update = {
+            "key": pending.key,
+            "stamp": stamp,
+            "frame_id": frame_id,
+            "received_at": pending.received_at,
+            "published_at": now,
+            "order": (stamp, pending.received_at),
+            "computed_from": computed,
+        }
+        outputs = [Output(self.keys.maps(pending.source), _with_header(maps, update).pack(), "msgpack")]
+        if compact and compact_maps is not None:
+            compact_payload = _with_header(compact_maps, update).pack()
+            outputs.append(Output(self.keys.maps8(pending.source), compact_payload, "msgpack"))
+        return outputs
+
+    def forget(self, source: str) -> None:
+        self._last.pop(source, None)
 
     def maps(self, done: ProcessedFrame, full: tuple[NDArray[np.float32], NDArray[np.float32]] | None) -> MapsMessage:
         record, result = done.record, done.result
@@ -226,3 +277,11 @@ class OutputBuilder:
     def _ros(camera: ros_io.RosTopic, template: str, msgtype: str, payload: bytes, qos: RosQos) -> Output:
         topic = camera.derived(ros_io.output_topic(template, camera.topic), msgtype)
         return Output(ros_io.topic_key(topic), payload, "cdr", topic, qos)
+
+
+_Maps = TypeVar("_Maps", MapsMessage, CompactMapsMessage)
+
+
+def _with_header(message: _Maps, update: dict[str, Any]) -> _Maps:
+    """The message with some header fields replaced; the PNGs are shared, not copied."""
+    return message.model_copy(update={"header": message.header.model_copy(update=update)})

@@ -37,7 +37,7 @@ class StatusParts:
     ) -> ServiceStatus:
         """This instance's status at ``now``; ``live``: the instances of the prefix (None: this one alone);
         ``fleet``: every instance's anchor-set version as this one knows it."""
-        counts = self.stats.snapshot(self.queue.counters(), self.clock_offsets.offsets())
+        counts = self.stats.snapshot(self.queue.counters(), self.clock_offsets.offsets(), self.queue.policy.shares())
         health = self.progress.health()
         head = self.anchors.head()
         backend = self.pipeline.describe()

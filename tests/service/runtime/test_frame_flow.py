@@ -6,9 +6,11 @@ from __future__ import annotations
 import time
 from dataclasses import replace
 
+import numpy as np
 from fakes import pipeline, png_frame, processed
 from gcdtrav.schemas.messages import GridMessage
 from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.service.runtime.change import Glance
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
@@ -103,3 +105,16 @@ def test_the_hand_off_out_puts_then_tells_the_credits_and_refuses_once_closed() 
     assert told == [("r1/front", done.image.stamp)]
     sink.closed = True
     assert not publish(done) and len(told) == 1  # nothing went out: the credits are not told
+
+
+def test_an_unchanged_frame_leaves_through_the_same_hand_off_and_tells_the_credits_its_stamp() -> None:
+    sink, told = Sink(), []
+    publish = FramePublisher(OutputBuilder(ServiceSettings(preview=False), "fake"), sink, lambda *a: told.append(a))
+    later = png_frame("r1/front")
+    seen = Glance(np.zeros((4, 4), np.float32), 99.5, "cam")
+    assert not publish.republish(later, seen) and told == []  # no maps of the source kept yet
+    assert publish(processed("r1/front"))
+    assert publish.republish(later, seen) and told[-1] == ("r1/front", 99.5)
+    assert [o.key for o in sink.put_by_source["r1/front"]] == ["gcdtrav/out/r1/front/maps"]
+    publish.forget("r1/front")
+    assert not publish.republish(later, seen)
