@@ -26,6 +26,7 @@ from gcdtrav.service.bus import replies
 from gcdtrav.service.bus.anchor_sync import AnchorSync
 from gcdtrav.service.bus.credits import CreditPublisher
 from gcdtrav.service.bus.entities import undeclare_all
+from gcdtrav.service.bus.experience import experience_bus
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
@@ -113,6 +114,7 @@ class TraversabilityService:
         )
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
+        self.experience = experience_bus(session, settings, pipeline, self.grids, self.stats, self.owns)
 
     def _check_inputs(self) -> None:
         own = zenoh.KeyExpr(self.keys.outputs)
@@ -142,6 +144,8 @@ class TraversabilityService:
         if self.grids is not None:
             self._declare_grid_inputs(self.grids)
         self._declare_queryables()
+        if self.experience is not None:
+            self._declared += self.experience.start()
         self.worker.start()
         self._watchdog.start()
         log.info(
@@ -169,6 +173,8 @@ class TraversabilityService:
         self.outputs.close()  # before the session's entities: a late frame is refused, not put on a dead key
         self.credits.close()
         undeclare_all(self._declared)
+        if self.experience is not None:
+            self.experience.close()  # after its subscribers: the last outcomes are saved too
         self._declared.clear()
         if self.anchor_sync is not None:
             self.anchor_sync.close()
@@ -191,6 +197,10 @@ class TraversabilityService:
         if self._stopping.is_set():
             return
         key = str(sample.key_expr)
+        if self.keys.input_message(key) is not None:  # an outcome or an answer, never an image
+            if self.experience is None:
+                self.stats.rejected(None, "experience_off", f"{key}: experience is not enabled on this service")
+            return
         self._enqueue(input_source_of(key, head), sample, None)
 
     def _ros_handler(self, ros_input: RosInput) -> Callable[[zenoh.Sample], None]:
@@ -297,6 +307,7 @@ class TraversabilityService:
             reason=health.reason,
             anchor_set_accepted_at=accepted_at or None,  # 0: the set it started with, never swapped
             anchor_sets=self.anchor_sync.fleet.versions() if self.anchor_sync else {},
+            experience=self.experience.status() if self.experience is not None else None,
         )
 
     def _precision(self) -> str:

@@ -173,7 +173,9 @@ class OutputBuilder:
         """The grid the frame's camera feeds, under the grid's source (the camera's own, or the grid's name)."""
         assert self.grids is not None
         maps = done.result.maps
-        update = self.grids.on_frame(done.source, done.record, maps.weights, maps.match, done.pending.ros)
+        update = self.grids.on_frame(
+            done.source, done.record, maps.weights, maps.match, done.pending.ros, done.image.image
+        )
         if update is None:
             return []
         source, names = update.source, self.settings.ros_output
