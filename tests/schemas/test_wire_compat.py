@@ -77,7 +77,11 @@ SAMPLES: dict[type[m.Message], m.Message] = {
             counts={"pairs": 3},
             open_questions=[
                 m.QuestionStatus(
-                    id="q1", source="r1/front", stamp=2.0, reason="ambiguous", concepts=["bush", "grass"],
+                    id="q1",
+                    source="r1/front",
+                    stamp=2.0,
+                    reason="ambiguous",
+                    concepts=["bush", "grass"],
                     region=(0.0, 0.0, 1.0, 1.0),
                 )
             ],
