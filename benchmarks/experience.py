@@ -29,7 +29,6 @@ import argparse
 import json
 import math
 import sys
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -45,45 +44,21 @@ from gcdtrav.service.experience.store import ExperienceStore
 from gcdtrav.service.experience.velocity import VelocityTracker, decode_command, decode_odometry
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 
-from tools.synthetic_scene import TRUTH, SceneBackend, World, default_camera, make_world, start_anchors
+from tools.synthetic_scene import (
+    COMMAND_MPS,
+    TRUTH,
+    Robot,
+    SceneBackend,
+    World,
+    default_camera,
+    make_world,
+    start_anchors,
+)
 
 START_STAMP = 1.7e9
 ODOMETRY_DT, COMMAND_EVERY, CAMERA_EVERY = 0.05, 2, 5  # 20 Hz odometry, 10 Hz commands, 4 Hz camera
-COMMAND_MPS = 1.0
-MIN_PACE = 0.35  # the route's pace never stalls (see the docstring)
-SPEED_NOISE = 0.05  # per odometry sample, on the ratio achieved / commanded
 TAU = 0.3
 MIN_GOAL_PAIRS = 200
-
-
-@dataclass
-class Robot:
-    world: World
-    rng: np.random.Generator
-    x: float = 0.0
-    y: float = 0.0
-    yaw: float = 0.0
-    goal: tuple[float, float] = (0.0, 0.0)
-    turns: list[float] = field(default_factory=list)
-
-    def next_goal(self) -> None:
-        half = self.world.size_m / 2 - 8.0
-        self.goal = (float(self.rng.uniform(-half, half)), float(self.rng.uniform(-half, half)))
-
-    def step(self, dt: float) -> tuple[float, float]:
-        """Move one step toward the goal; (speed odometry reports, yaw rate)."""
-        if math.hypot(self.goal[0] - self.x, self.goal[1] - self.y) < 1.0:
-            self.next_goal()
-        wanted = math.atan2(self.goal[1] - self.y, self.goal[0] - self.x)
-        turn = math.atan2(math.sin(wanted - self.yaw), math.cos(wanted - self.yaw))
-        rate = max(-1.0, min(1.0, 2.0 * turn))
-        truth = self.world.true_traversability(self.x, self.y)
-        ratio = min(max(truth + float(self.rng.normal(0, SPEED_NOISE)), 0.0), 1.0)
-        pace = COMMAND_MPS * max(truth, MIN_PACE)
-        self.yaw += rate * dt
-        self.x += pace * math.cos(self.yaw) * dt
-        self.y += pace * math.sin(self.yaw) * dt
-        return COMMAND_MPS * ratio, rate
 
 
 def fuse(
