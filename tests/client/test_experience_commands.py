@@ -24,13 +24,24 @@ def figures(pairs: int) -> CalibrationFigures:
         bias=None if empty else -0.05,
         coverage={"0.05": None if empty else 0.97, "0.1": None if empty else 0.9, "0.2": None if empty else 0.8},
         tau=0.3,
-        reliability=[ReliabilityBin(low=0.0, high=0.1, count=pairs, predicted=None if empty else 0.02,
-                                    observed=None if empty else 0.05)],  # fmt: skip
+        reliability=[
+            ReliabilityBin(
+                low=0.0, high=0.1, count=pairs, predicted=None if empty else 0.02, observed=None if empty else 0.05
+            )
+        ],
         ece=None if empty else 0.03,
         ause=None,
         spearman_u_error=None,
-        anchors=[AnchorFigures(concept="grass", position=0.5, width=0.0, weight_mass=float(pairs),
-                               dominant_pairs=pairs, dominant_mean_outcome=None if empty else 0.8)],  # fmt: skip
+        anchors=[
+            AnchorFigures(
+                concept="grass",
+                position=0.5,
+                width=0.0,
+                weight_mass=float(pairs),
+                dominant_pairs=pairs,
+                dominant_mean_outcome=None if empty else 0.8,
+            )
+        ],
     )
 
 
@@ -80,5 +91,5 @@ def test_answers_read_as_scores(text: str, score: float) -> None:
 
 @pytest.mark.parametrize("text", ["maybe", "1.5", "-0.1", "nan"])
 def test_other_answers_say_what_is_accepted(text: str) -> None:
-    with pytest.raises(ValueError, match="drivable, blocked or a score|must be in"):
+    with pytest.raises(ValueError, match=r"drivable, blocked or a score|must be in"):
         answer_score(text)
