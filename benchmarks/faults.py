@@ -45,6 +45,7 @@ from tools.loopback import SimulatedRobots, free_port, wait_for_statuses
 MAX_FRAME_AGE_S = 5.0  # the services' default, checked at the consumer
 BLIND_GOAL_S = 3.0  # beyond the frame time, for faults of a single instance
 SWAP_GOAL_S = 2.0
+STEADY_GOAL = 0.9  # issue 32: the steady robots keep this share of their maps/s during a one-process flood
 TINY_INPUT_SIZE = 96  # tests/conftest.py's tiny model
 SINGLE_INSTANCE_FAULTS = {"sigkill", "sigstop", "hang", "full_disk"}
 ALL_FAULTS = ["sigkill", "sigstop", "hang", "router_restart", "full_disk", "flood", "swap_during_hang"]
@@ -233,24 +234,30 @@ def try_swap(client: TraversabilityClient, tag: str) -> dict[str, Any]:
 FLOOD_CODE = """
 import sys, time, zenoh
 from gcdtrav.client import zenoh_config
-port, prefix, seconds, rate = int(sys.argv[1]), sys.argv[2], float(sys.argv[3]), float(sys.argv[4])
+port, prefix, seconds, rate, identified = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4]), sys.argv[5]
 config = zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
-session, sent, end = zenoh.open(config), 0, time.monotonic() + seconds
+session = zenoh.open(config)
+me = session.declare_publisher(f"{prefix}/flood/me").id if identified == "yes" else None
+sent, began = 0, time.monotonic()
+end = began + seconds
 while time.monotonic() < end:
-    session.put(f"{prefix}/flood/n{sent:07d}", b"not an image")
+    info = zenoh.SourceInfo(me, sent + 1) if me is not None else None
+    session.put(f"{prefix}/flood/n{sent:07d}", b"not an image", source_info=info)
     sent += 1
     if rate > 0:
-        time.sleep(max(0.0, end - seconds + sent / rate - time.monotonic()))
-print(sent)
+        time.sleep(max(0.0, began + sent / rate - time.monotonic()))
+print(sent, began, time.monotonic())
 session.close()
 """
 
 
-def flood(port: int, prefix: str, seconds: float, rate: float) -> subprocess.Popen[str]:
+def flood(port: int, prefix: str, seconds: float, rate: float, identified: bool) -> subprocess.Popen[str]:
     """A process putting undecodable frames, each under a new source name, ``rate`` a second (0: as fast as it
-    can) for ``seconds``
-    (a process of its own: in this one it would starve the robots' threads of the interpreter lock)."""
+    can) for ``seconds``, saying who it is in zenoh's source info (as our client does) if ``identified``
+    (a process of its own: in this one it would starve the robots' threads of the interpreter lock). It prints
+    how many it sent and when it began and ended (time.monotonic, the same clock in every process)."""
     command = [sys.executable, "-c", FLOOD_CODE, str(port), prefix, str(seconds), str(rate)]
+    command.append("yes" if identified else "no")
     return subprocess.Popen(command, stdout=subprocess.PIPE, text=True)
 
 
@@ -263,6 +270,7 @@ class Window:
     fault_s: float  # how long the fault lasts (SIGSTOP, hang, flood, router down)
     after_s: float  # watched after the fault ends
     flood_rate: float = 0.0  # new names a second; 0: as fast as one process can
+    flood_identified: bool = True  # the flooder sets source info (its own intake bucket); False: anonymous
 
 
 FaultAction = Callable[["Run"], dict[str, Any]]
@@ -333,23 +341,41 @@ def fault_full_disk(run: Run) -> dict[str, Any]:
 def fault_flood(run: Run) -> dict[str, Any]:
     """A flood of new names for fault_s; a new robot starts 1 s into it (at 1/fps, like the others)."""
     newcomer, lead_s = "newcomer/front", min(1.0, run.window.fault_s / 2)
-    flooder = flood(run.fleet.port, run.client.input_prefix, run.window.fault_s, run.window.flood_rate)
+    window = run.window
+    flooder = flood(run.fleet.port, run.client.input_prefix, window.fault_s, window.flood_rate, window.flood_identified)
     time.sleep(lead_s)
-    first_sent, period, sent = time.monotonic(), 1.0 / run.window.fps, 0
-    while time.monotonic() < first_sent + run.window.fault_s - lead_s:
+    first_sent, period, sent = time.monotonic(), 1.0 / window.fps, 0
+    while time.monotonic() < first_sent + window.fault_s - lead_s:
         run.client.publish_image(newcomer, run.robots.jpeg, stamp=time.time())
         sent += 1
         time.sleep(max(0.0, first_sent + sent * period - time.monotonic()))
     flooded, _ = flooder.communicate(timeout=30)
-    time.sleep(run.window.after_s)
+    time.sleep(window.after_s)
     first = run.consumer.of(newcomer)
+    count, began, ended = [*flooded.split(), "0", "0", "0"][:3]  # 0s: the flooder failed (its stderr says why)
     return {
         "live": ["faults-0", "faults-1"],
-        "flood_frames": int(flooded.strip() or 0),
+        "flood_frames": int(count),
+        "flood_identified": window.flood_identified,
+        "flood_window": (float(began), float(ended)),
         "newcomer_frames": sent,
         "newcomer_maps": len(first),
         "newcomer_first_map_s": round(first[0].at - first_sent, 3) if first else None,
     }
+
+
+def maps_per_s(consumer: Consumer, names: list[str], began: float, ended: float) -> float:
+    """Maps of the robots ``names`` that arrived within [began, ended), per second."""
+    count = sum(1 for name in names for a in consumer.of(name) if began <= a.at < ended)
+    return round(count / max(ended - began, 1e-9), 2)
+
+
+def steady_rates(consumer: Consumer, names: list[str], warmed: float, fault: tuple[float, float]) -> dict[str, Any]:
+    """The steady robots' maps/s before the flood (from ``warmed``) and while it lasts, and their ratio."""
+    before = maps_per_s(consumer, names, warmed, fault[0])
+    during = maps_per_s(consumer, names, fault[0], fault[1])
+    ratio = round(during / before, 3) if before else None
+    return {"steady_maps_per_s_before": before, "steady_maps_per_s_during": during, "steady_kept": ratio}
 
 
 def fault_swap_during_hang(run: Run) -> dict[str, Any]:
@@ -412,6 +438,7 @@ def measure(fault: str, model: str, window: Window, robots: int, threads: int) -
             fleet_robots.start()
             time.sleep(window.warmup_s)
             began = time.monotonic()
+            warmed = began - max(window.warmup_s - 1.0, window.warmup_s / 2)  # the first maps take a moment
             run = Run(fleet, client, window, consumer, fleet_robots)
             details = FAULTS[fault](run)
             ended = time.monotonic()
@@ -438,6 +465,7 @@ def measure(fault: str, model: str, window: Window, robots: int, threads: int) -
         "dropped_by_reason": {name: dict(s.dropped_by_reason) for name, s in statuses.items()},
         "anchor_versions": {name: s.anchor_set_version for name, s in statuses.items()},
         **details,
+        **(steady_rates(consumer, names, warmed, details["flood_window"]) if "flood_window" in details else {}),
     }
 
 
@@ -456,6 +484,8 @@ def goals(result: dict[str, Any], fps: float) -> dict[str, bool]:
     if result["fault"] == "flood":
         first = result["newcomer_first_map_s"]
         checks["newcomer_within_frame_time"] = first is not None and first <= 1.0 / fps
+        kept = result["steady_kept"]
+        checks["steady_keep_90pct"] = kept is not None and kept >= STEADY_GOAL
     return checks
 
 
@@ -476,7 +506,17 @@ def table(results: list[dict[str, Any]]) -> str:
     ]
     for r in results:
         extra: dict[str, Any] = {
-            k: r[k] for k in ("newcomer_first_map_s", "flood_frames", "versions_agree_after_hang_s") if k in r
+            k: r[k]
+            for k in (
+                "newcomer_first_map_s",
+                "flood_frames",
+                "flood_identified",
+                "steady_maps_per_s_before",
+                "steady_maps_per_s_during",
+                "steady_kept",
+                "versions_agree_after_hang_s",
+            )
+            if k in r
         }
         if "swap" in r:
             extra["swap"] = r["swap"]["result"]
@@ -500,6 +540,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fps", type=float, default=4.0)
     parser.add_argument("--model", default=None, help="checkpoint directory [tiny random weights]")
     parser.add_argument("--flood-rate", type=float, default=None, help="new names/s; 0: unbounded [0, quick 1000]")
+    parser.add_argument(
+        "--flood-anonymous", action="store_true", help="the flooder sets no source info (the shared intake bucket)"
+    )
+    parser.add_argument("--warmup-s", type=float, default=None, help="robots streaming before the fault [3, quick 2]")
     parser.add_argument("--threads", type=int, default=1, help="torch threads per instance [1]")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/faults.json"))
     args = parser.parse_args(argv)
@@ -509,6 +553,9 @@ def main(argv: list[str] | None = None) -> int:
     window = Window(args.fps, 2.0, 5.0, 2.0, 1000.0) if args.quick else Window(args.fps, 3.0, 10.0, 5.0)
     if args.flood_rate is not None:
         window.flood_rate = args.flood_rate
+    window.flood_identified = not args.flood_anonymous
+    if args.warmup_s is not None:
+        window.warmup_s = args.warmup_s
 
     from tools.random_clipseg import save_random_clipseg
 

@@ -6,6 +6,7 @@ No torch: robots and planners install only the base package.
 from __future__ import annotations
 
 import contextlib
+import math
 import queue
 import threading
 import time
@@ -200,12 +201,21 @@ class Grid:
         return int((y - self.header.origin[1]) // r), int((x - self.header.origin[0]) // r)
 
 
+CLOCK_STEP_BACK_S = 10.0  # over the service's max_frame_age_s (5 s): no fresh frame is stamped this much older
+
+
 class MapsOrder:
     """Per source, the order (``MapsHeader.order``) of the last map let through: a map not above it is older
-    than what was shown, or the same frame again (two instances during a hand-over), and is held back."""
+    than what was shown, or the same frame again (two instances during a hand-over), and is held back.
+
+    The order is the robot's stamp, so a robot clock that is off orders its maps all the same; one that steps
+    back would hold them back until it caught up. A map stamped more than ``CLOCK_STEP_BACK_S`` before the
+    last one shown yet received later by its service is such a step (a frame that much older would have been
+    dropped stale): it is shown, and the source's order starts again from it."""
 
     def __init__(self) -> None:
         self._last: dict[str, tuple[float, float]] = {}
+        self._stepped_at: dict[str, float] = {}  # receipt of the map after the source's last clock step
         self._lock = threading.Lock()
         self.held_back = 0
 
@@ -213,9 +223,13 @@ class MapsOrder:
         order = header.order or (header.stamp, header.received_at)  # a 1.1 service: the same two fields
         with self._lock:
             last = self._last.get(header.source)
-            if last is not None and order <= last:
+            stepped_back = last is not None and order[0] < last[0] - CLOCK_STEP_BACK_S and order[1] > last[1]
+            before_step = order[1] < self._stepped_at.get(header.source, -math.inf)
+            if last is not None and (order <= last or before_step) and not stepped_back:
                 self.held_back += 1
                 return False
+            if stepped_back:
+                self._stepped_at[header.source] = order[1]
             self._last[header.source] = order
             return True
 

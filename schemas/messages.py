@@ -450,7 +450,9 @@ class SourceStatus(WireModel):
     stale: int = Field(default=0, description="Of the dropped: captured over max_frame_age_s ago.")
     bytes_per_s: float | None = Field(default=None, description="Input payload bytes per second, last 10 s.")
     frame_age_ms: dict[str, float] = Field(
-        default_factory=dict, description="Capture stamp to intake p50/p95 (clocks assumed in step)."
+        default_factory=dict,
+        description="Age at intake p50/p95, as the service's clock setting judges it: the delay beyond the "
+        "source's smallest recent delay (estimated), or receipt minus capture stamp (synced).",
     )
     credits: int = Field(default=0, description="Credits granted to the source (CreditGrant).")
     dropped_by_reason: dict[str, int] = Field(
@@ -468,6 +470,12 @@ class SourceStatus(WireModel):
         default=False,
         description="A source refused before it took a slot (every frame stale or undecodable so far, or no slot "
         "left), listed with its counts and problem (at most 32 such sources). Since 1.2.",
+    )
+    clock_offset_s: float | None = Field(
+        default=None,
+        description="The source's clock as learnt from its stamped frames: the smallest recent receipt minus "
+        "capture stamp, i.e. service minus robot clock plus the link's smallest delay; None before a stamped "
+        "frame. Since 1.2.",
     )
 
 

@@ -95,7 +95,7 @@ def one_line(err: BaseException) -> str:
 
 
 INSTANCE_ROW = "{:<{w}}  {:>7}  {:<{mw}}  {:>6}  {:>10}  {:>7}"
-SOURCE_ROW = "{:<{w}}  {:<{iw}}  {:>8}  {:>8}  {:>9}  {:>7}  {:>8}  {:>6}  {:>6}  {}"
+SOURCE_ROW = "{:<{w}}  {:<{iw}}  {:>8}  {:>8}  {:>9}  {:>7}  {:>8}  {:>6}  {:>6}  {:>9}  {}"
 
 
 def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] = lambda i, s: "-") -> str:
@@ -114,12 +114,13 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
         lines.append(INSTANCE_ROW.format(s.instance, uptime, what, s.queued, history, sources, w=width, mw=what_width))
     rows = [(name, s.instance, src) for s in statuses for name, src in sorted(s.sources.items())]
     name_width = max([len("source"), *(len(name) for name, _, _ in rows)])
-    header = ("source", "instance", "frames/s", "received", "processed", "dropped", "rejected", "p50 ms", "p99 ms")
+    header = ("source", "instance", "frames/s", "received", "processed", "dropped", "rejected", "p50 ms", "p99 ms",
+              "clock s")  # fmt: skip
     lines += ["", SOURCE_ROW.format(*header, "dropped and rejected by reason", w=name_width, iw=width)]
     problems = []
     for name, instance, src in rows:
         p50, p99 = src.latency_ms.get("p50", "-"), src.latency_ms.get("p99", "-")
-        counts = (src.received, src.processed, src.dropped, src.rejected, p50, p99)
+        counts = (src.received, src.processed, src.dropped, src.rejected, p50, p99, clock_offset(src.clock_offset_s))
         lines.append(
             SOURCE_ROW.format(name, instance, fps(instance, name), *counts, reasons(src), w=name_width, iw=width)
         )
@@ -138,6 +139,13 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
     return "\n".join(lines)
 
 
+def clock_offset(offset_s: float | None) -> str:
+    """The source's clock as the service learnt it (service minus robot, plus the link's smallest delay)."""
+    if offset_s is None:
+        return "-"
+    return f"{offset_s:+.2f}" if abs(offset_s) < 1e5 else f"{offset_s:+.3g}"
+
+
 def reasons(source: SourceStatus) -> str:
     """'stale 3, undecodable 1' (and 'refused: no slot' for a source that never took one)."""
     counts = {**source.dropped_by_reason, **source.rejected_by_reason}
@@ -148,6 +156,12 @@ def reasons(source: SourceStatus) -> str:
 def fleet_warnings(statuses: list[ServiceStatus]) -> list[str]:
     """Unhealthy instances, and instances that disagree on the anchor set or the precision."""
     lines = [f"UNHEALTHY {s.instance}: {s.reason}" for s in statuses if s.healthy is False]
+    off = {name for s in statuses for name, src in s.sources.items() if abs(src.clock_offset_s or 0.0) > 1.0}
+    if off:
+        lines.append(
+            f"clocks off by more than 1 s: {', '.join(sorted(off))} (served: ages are judged by delay unless "
+            "clock: synced; their maps keep their own stamps)"
+        )
     versions = {s.instance: s.anchor_set_version for s in statuses}
     if len(set(versions.values())) > 1:
         held = ", ".join(f"{instance} has {version}" for instance, version in sorted(versions.items()))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -14,16 +15,38 @@ from gcdtrav.schemas.settings.base import (
 )
 from gcdtrav.schemas.settings.service import ServiceSettings
 from gcdtrav.schemas.yaml_file import load_mapping
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
+
+log = logging.getLogger("gcdtrav.settings")
+
+
+def unknown_setting(path: list[str], section: type[BaseModel] | None = None) -> str | None:
+    """None if ``path`` (lower-case names, nested) names a setting; else the names that exist where it strays."""
+    model: type[BaseModel] = section or ServiceSettings
+    for depth, part in enumerate(path):
+        field = model.model_fields.get(part)
+        if field is None:
+            return ", ".join(ENV_PREFIX + "__".join([*path[:depth], name]).upper() for name in model.model_fields)
+        nested = field.annotation
+        if depth + 1 < len(path):
+            if not (isinstance(nested, type) and issubclass(nested, BaseModel)):
+                return f"{ENV_PREFIX}{'__'.join(path[: depth + 1]).upper()} (a value, not a section)"
+            model = nested
+    return None
 
 
 def _env_overrides(environ: Mapping[str, str]) -> dict[str, Any]:
-    """GCDTRAV_HISTORY=4, GCDTRAV_INPUTS='["a/**","b/*"]' or 'a/**,b/*', GCDTRAV_ENGINE__METHOD=argmax."""
+    """GCDTRAV_HISTORY=4, GCDTRAV_INPUTS='["a/**","b/*"]' or 'a/**,b/*', GCDTRAV_ENGINE__METHOD=argmax.
+    A GCDTRAV_* variable that names no setting is ignored with a warning (a stray variable in a user's shell
+    must not stop the service); one that names a setting is checked like any other source of it."""
     result: dict[str, Any] = {}
     for name, raw in environ.items():
         if not name.startswith(ENV_PREFIX):
             continue
         path = name[len(ENV_PREFIX) :].lower().split("__")
+        if (settings := unknown_setting(path)) is not None:
+            log.warning("environment variable %s is not a setting and is ignored; the settings: %s", name, settings)
+            continue
         value: Any = raw
         if path == ["inputs"] and not raw.lstrip().startswith("["):
             value = [part.strip() for part in raw.split(",") if part.strip()]

@@ -7,6 +7,7 @@ Sources, later ones winning: defaults < YAML file < ``GCDTRAV_*`` environment va
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.limits import DEFAULT_MAX_ANCHOR_SET_BYTES
@@ -86,9 +87,32 @@ class ServiceSettings(StrictModel):
     max_stamp_skew_s: float | None = Field(
         default=300.0,
         gt=0,
-        description="Frames stamped further than this ahead of their receipt are rejected (skewed_stamp): they "
-        "would order their source's maps ahead of later frames; null: no limit. NaN, inf and negative stamps "
-        "are always rejected (bad_stamp); stamps in the past are max_frame_age_s's to judge.",
+        description="Frames stamped further than this ahead are rejected (skewed_stamp): with clock: estimated, "
+        "ahead of their source's learnt clock (a step forward that holds is learnt again), with clock: synced, "
+        "ahead of their receipt; null: no limit. NaN, inf and negative stamps are always rejected (bad_stamp).",
+    )
+    clock: Literal["estimated", "synced"] = Field(
+        default="estimated",
+        description="How a frame's age is judged. estimated: by its delay beyond its source's smallest recent "
+        "delay, the clock offset learnt per source (robots with wrong clocks are served; status "
+        "clock_offset_s). synced: the service's clock minus the capture stamp, for fleets that guarantee NTP.",
+    )
+    intake_rate_per_publisher: float | None = Field(
+        default=240.0,
+        gt=0,
+        description="Frames a second one publisher (the zenoh session its samples' source info names) may "
+        "hand to the intake, in bursts of intake_burst_s; beyond it frames are rejected rate_limited unread. "
+        "null: no limit.",
+    )
+    intake_rate_anonymous: float | None = Field(
+        default=1000.0,
+        gt=0,
+        description="Frames a second shared by every sample without source info (ROS bridges, plain zenoh "
+        "puts): a fleet behind one bridge shares it, so size it above the fleet's total frame rate. null: no "
+        "limit.",
+    )
+    intake_burst_s: float = Field(
+        default=1.0, gt=0, description="A publisher's bucket holds this many seconds of its rate."
     )
     stall_after_s: float = Field(
         default=2.5,  # issue 26's goal: a hung instance's robots blind at most 3 s beyond their frame time
@@ -106,9 +130,9 @@ class ServiceSettings(StrictModel):
     max_frame_age_s: float | None = Field(
         default=5.0,
         gt=0,
-        description="Frames captured longer ago are dropped (counted stale) at intake and before inference, e.g. "
-        "what a link buffered during an outage. Assumes robot and service clocks in step (NTP, chrony); null: "
-        "never (robots on simulated time).",
+        description="Frames older than this are dropped (counted stale) at intake, before inference and before "
+        "publishing, e.g. what a link buffered during an outage; the age as clock says. null: never (replayed "
+        "bags, simulated time).",
     )
     compact_maps_max_side: int | None = Field(
         default=176,  # half the model's 352: a quarter of the bytes, measured the difference at 2 and 5 Mbit/s

@@ -39,9 +39,10 @@ from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.assignment import Assignment
 from gcdtrav.service.runtime.credits import CreditLedger
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
-from gcdtrav.service.runtime.freshness import FrameGate
+from gcdtrav.service.runtime.freshness import FrameGate, Freshness
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
+from gcdtrav.service.runtime.intake_rate import IntakeRate
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.sources import SourceTracker
@@ -74,6 +75,9 @@ class TraversabilityService:
         self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(round(settings.pending_budget_mb * 1e6))
         self.history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
         self.stats = ServiceStats(log, settings.source_idle_s)
+        self.intake_rate = IntakeRate(
+            settings.intake_rate_per_publisher, settings.intake_rate_anonymous, settings.intake_burst_s
+        )
         self._declared: list[Any] = []
         self._stopping = threading.Event()
         self._started_at = time.time()
@@ -89,16 +93,24 @@ class TraversabilityService:
         self.anchor_switch = AnchorSwitch(
             pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes
         )
-        ledger = CreditLedger(settings.instance, model_input(pipeline), settings.max_frame_age_s)
+        self.freshness = Freshness.from_settings(settings, log)  # the one judge of a frame's age
+        ledger = CreditLedger(settings.instance, model_input(pipeline), self.freshness.max_age_s)
         self.credits = CreditPublisher(session, self.keys, ledger, self.stats)
-        forget = (self.queue.forget, self.history.forget, self.stats.forget, self.outputs.forget, self.credits.forget)
+        forget = (
+            self.queue.forget,
+            self.history.forget,
+            self.stats.forget,
+            self.outputs.forget,
+            self.credits.forget,
+            self.freshness.offsets.forget,
+        )
         self.sources = SourceTracker(
             settings.max_sources, settings.source_idle_s, forget, reclaim_after_s=settings.reclaim_after_s
         )
-        self.admission = Admission(settings, self.sources, self.queue, self.stats, self.credits.freed)
+        self.admission = Admission(settings, self.sources, self.queue, self.stats, self.credits.freed, self.freshness)
         self.assignment = Assignment(idle_s=settings.source_idle_s, max_known=4 * settings.max_sources)
         self.progress = ProgressMonitor(settings.stall_after_s)
-        gate = FrameGate(self.owns, settings.max_frame_age_s, settings.max_stamp_skew_s)
+        gate = FrameGate(self.owns, self.freshness)
         self.worker = FrameWorker(
             self.queue,
             pipeline,
@@ -193,21 +205,30 @@ class TraversabilityService:
         return lambda sample: self._on_image(sample, head)
 
     def _on_image(self, sample: zenoh.Sample, head: str) -> None:
-        """Runs on zenoh's thread: only size-check and enqueue; decoding happens in the worker."""
+        """Runs on zenoh's thread: only rate-check, size-check and enqueue; decoding happens in the worker."""
         if self._stopping.is_set():
             return
         key = str(sample.key_expr)
-        if self.keys.input_message(key) is not None:  # an outcome or an answer, never an image
+        if self.keys.input_message(key) is not None:  # an outcome or an answer: never an image, nor its intake
             if self.experience is None:
                 self.stats.rejected(None, "experience_off", f"{key}: experience is not enabled on this service")
             return
-        self._enqueue(input_source_of(key, head), sample, None)
+        if not self._admitted(publisher := publisher_of(sample)):
+            return
+        self._enqueue(input_source_of(key, head), sample, None, publisher)
+
+    def _admitted(self, publisher: str | None) -> bool:
+        """The publisher is within its intake rate: checked before anything else of the sample is read."""
+        if self.intake_rate.admit(publisher):
+            return True
+        self.stats.rejected_unread("rate_limited", lambda: f"publisher {publisher or '(no source info)'}")
+        return False
 
     def _ros_handler(self, ros_input: RosInput) -> Callable[[zenoh.Sample], None]:
         return lambda sample: self._on_ros_image(sample, ros_input)
 
     def _on_ros_image(self, sample: zenoh.Sample, ros_input: RosInput) -> None:
-        if self._stopping.is_set():
+        if self._stopping.is_set() or not self._admitted(publisher := publisher_of(sample)):
             return
         key = str(sample.key_expr)
         try:
@@ -219,7 +240,7 @@ class TraversabilityService:
             return  # ROS outputs of a gcdtrav service, matched by a wide input expression
         if ros_input.message_type != "auto":
             topic = replace(topic, msgtype=ros_input.message_type)
-        self._enqueue(topic.source, sample, topic)
+        self._enqueue(topic.source, sample, topic, publisher)
 
     def owns(self, source: str) -> bool:
         """Instances of one prefix share the sources; before start() this instance owns them all."""
@@ -238,12 +259,11 @@ class TraversabilityService:
                 log.error("worker %s: withdrawing from the fleet (its sources fail over)", change.health.reason)
                 self.membership.withdraw()
 
-    def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None) -> None:
+    def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None, publisher: str | None) -> None:
         if self.membership is not None:
             self.membership.note(source)
         if self.owns(source):  # else another live instance serves this source
-            key, size = str(sample.key_expr), len(sample.payload)
-            encoding, publisher = str(sample.encoding), publisher_of(sample)
+            key, size, encoding = str(sample.key_expr), len(sample.payload), str(sample.encoding)
             self.admission.offer(source, key, size, sample.payload.to_bytes, encoding, ros, publisher)
 
     def _declare_queryables(self) -> None:
@@ -280,7 +300,7 @@ class TraversabilityService:
         return handle
 
     def status(self) -> ServiceStatus:
-        counts = self.stats.snapshot(self.queue.counters())
+        counts = self.stats.snapshot(self.queue.counters(), self.freshness.offsets.offsets())
         health = self.progress.health()
         accepted_at = self.anchor_switch.head().accepted_at
         return ServiceStatus(

@@ -1,8 +1,8 @@
 """What the subscriber callback checks before a frame takes any state, in order: the source's name, for a
 new source the candidates' caps (service/runtime/candidates.py), the payload's size (refused unread: never
-copied out of the middleware's buffer), the frame's age (its capture stamp, read without decoding:
-service/runtime/frame_age.py) and the pending frames' byte budget. No middleware here: the bus hands over
-the source, the size and a way to read.
+copied out of the middleware's buffer), the frame's age (its capture stamp, read without decoding by
+service/runtime/frame_age.py, judged by service/runtime/freshness.py) and the pending frames' byte budget.
+No middleware here: the bus hands over the source, the size and a way to read.
 
 A tracked source's frame that is refused frees its slot at once: ``on_freed`` (the credits) hears of it.
 
@@ -21,8 +21,9 @@ from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros.cdr import RosTopic
 from gcdtrav.service.runtime.candidates import CandidatePool, over_publisher_cap
 from gcdtrav.service.runtime.credits import REFUSED, STALE, FrameTimes
-from gcdtrav.service.runtime.frame_age import FrameAgeLimit, input_times
+from gcdtrav.service.runtime.frame_age import input_times
 from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.service.runtime.freshness import Dropped, Freshness
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.runtime.sources import SourcesFull, SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
@@ -36,9 +37,10 @@ class Admission:
         queue: LatestFrameQueue[PendingFrame],
         stats: ServiceStats,
         on_freed: Callable[[str, str, FrameTimes | None], None] = lambda source, reason, times: None,
+        freshness: Freshness | None = None,
     ) -> None:
         self.settings, self.sources, self.queue, self.stats = settings, sources, queue, stats
-        self.age_limit = FrameAgeLimit(settings.max_frame_age_s)
+        self.freshness = freshness or Freshness.from_settings(settings)
         self.on_freed = on_freed
         self.candidates = CandidatePool(settings.max_candidates)
 
@@ -59,11 +61,11 @@ class Admission:
             )
             return False
         if self.sources.note(source):
-            return self._offer_frame(source, key, size, read, encoding, ros)
+            return self._offer_frame(source, key, size, read, encoding, ros, tracked=True)
         waiting = source in self.candidates
         if not waiting and not self._may_wait(source, publisher):
             return False
-        queued = self._offer_frame(source, key, size, read, encoding, ros)
+        queued = self._offer_frame(source, key, size, read, encoding, ros, tracked=False)
         if queued:
             self._forget_evicted(self.candidates.add(source, publisher))
         elif not waiting:
@@ -112,7 +114,14 @@ class Admission:
         return was_candidate or source in self.sources
 
     def _offer_frame(
-        self, source: str, key: str, size: int, read: Callable[[], bytes], encoding: str, ros: RosTopic | None
+        self,
+        source: str,
+        key: str,
+        size: int,
+        read: Callable[[], bytes],
+        encoding: str,
+        ros: RosTopic | None,
+        tracked: bool,
     ) -> bool:
         received_at = time.time()
         if size > self.settings.max_payload_bytes:
@@ -125,14 +134,18 @@ class Admission:
             return False
         payload = read()
         times = input_times(payload, encoding, ros is not None)
-        self.stats.intake(source, size, self.age_limit.age_s(times.stamp, received_at))
+        age = self.freshness.at_intake(source, times.stamp, received_at)
+        self.stats.intake(source, size, age.lag_s)
         frame_times = FrameTimes(times.stamp, times.sent_at, received_at)
-        if self.age_limit.is_stale(times.stamp, received_at):
+        if age.refusal is not None:
             self.queue.count_unqueued(source)
-            self.stats.stale(source, self.age_limit.explain(times.stamp, received_at))
-            self.on_freed(source, STALE, frame_times)
+            if isinstance(age.refusal, Dropped):
+                self.stats.stale(source, age.refusal.detail)
+            else:
+                self.stats.rejected(source, age.refusal.reason, age.refusal.detail, tracked=tracked)
+            self.on_freed(source, STALE if isinstance(age.refusal, Dropped) else REFUSED, frame_times)
             return False
-        pending = PendingFrame(source, key, payload, encoding, received_at, ros, times.stamp, times.sent_at)
+        pending = PendingFrame(source, key, payload, encoding, received_at, ros, times.stamp, times.sent_at, age.lag_s)
         try:
             self.queue.put(source, pending, size)
         except PendingBudgetExceeded as err:

@@ -1,19 +1,12 @@
-"""How old a frame is when it reaches the service, read without decoding it; which frames are too old.
+"""A frame's capture stamp and send time, read without decoding it (no pixels are touched).
 
-After an outage a link delivers what it buffered: frames seconds old, whose maps describe where the robot
-was. The service drops a frame captured more than ``max_frame_age_s`` ago, at intake and again before
-inference, and counts it as ``stale``.
-
-Clocks: the age is the service's clock minus the capture stamp, which the robot's clock wrote (an envelope's
-``stamp``, a ROS header). It assumes both clocks in step (NTP, chrony) to well within ``max_frame_age_s``; a
-robot ahead shows negative ages, one behind by more than the limit has every frame dropped (the status's
-``frame_age_ms`` shows either). Robots on simulated time: ``max_frame_age_s: null``. Bare JPEG/PNG inputs
-carry no stamp: their age is 0 at intake.
+The stamp is the robot's clock (an envelope's ``stamp``, a ROS header's); how old that makes the frame is
+service/runtime/freshness.py's to judge. Bare JPEG/PNG inputs carry no stamp: their age is the time since
+their receipt.
 """
 
 from __future__ import annotations
 
-import math
 import struct
 from dataclasses import dataclass
 
@@ -53,27 +46,3 @@ def input_times(payload: bytes, encoding: str, ros: bool) -> InputTimes:
     if ros:
         return InputTimes(ros_header_stamp(payload), None)
     return envelope_times(payload) if input_kind(payload, encoding) == "envelope" else InputTimes(None, None)
-
-
-class FrameAgeLimit:
-    """``max_frame_age_s`` (None: no limit). A frame exactly at the limit is kept; an unknown or non-finite
-    stamp never makes a frame stale (the decoder rejects what is unreadable)."""
-
-    def __init__(self, max_age_s: float | None) -> None:
-        if max_age_s is not None and not max_age_s > 0:
-            raise ValueError(f"max_frame_age_s must be positive or None, got {max_age_s}")
-        self.max_age_s = max_age_s
-
-    def age_s(self, stamp: float | None, now: float) -> float | None:
-        return now - stamp if stamp is not None and math.isfinite(stamp) else None
-
-    def is_stale(self, stamp: float | None, now: float) -> bool:
-        age = self.age_s(stamp, now)
-        return self.max_age_s is not None and age is not None and age > self.max_age_s
-
-    def explain(self, stamp: float | None, now: float) -> str:
-        """Why a frame is stale, with what to check."""
-        return (
-            f"captured {self.age_s(stamp, now) or 0:.1f} s ago, over max_frame_age_s = {self.max_age_s:g} s "
-            "(robot and service clocks out of step, or replayed data? max_frame_age_s: null turns the limit off)"
-        )

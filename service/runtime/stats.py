@@ -6,7 +6,7 @@ import logging
 import threading
 import time
 from collections import Counter, OrderedDict, deque
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -38,7 +38,7 @@ class SourceStats:
     inference_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
     stale: int = 0  # of the dropped: captured over max_frame_age_s ago
     credits: int = 0
-    age_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))  # capture to intake
+    age_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))  # lag at intake
     arrivals: deque[tuple[float, int]] = field(default_factory=deque)  # (monotonic time, bytes), last 10 s
     dropped_by: Counter[str] = field(default_factory=Counter)  # what the queue does not count (replaced)
     rejected_by: Counter[str] = field(default_factory=Counter)
@@ -122,7 +122,8 @@ class ServiceStats:
             self.dropped_by_reason[reason] += count
 
     def intake(self, name: str, nbytes: int, age_s: float | None) -> None:
-        """A frame of ``name`` reached the service: its bytes and, when stamped, its capture-to-intake age."""
+        """A frame of ``name`` reached the service: its bytes and, when stamped, its age at intake (its lag,
+        service/runtime/freshness.py)."""
         with self._lock:
             stats = self.sources.setdefault(name, SourceStats())
             stats.arrivals.append((time.monotonic(), nbytes))
@@ -193,6 +194,18 @@ class ServiceStats:
             self.last_errors.append(f"{time.strftime('%H:%M:%S')} {message}")
         self._log_limited(reason, f"rejected {message}", error)
 
+    def rejected_unread(self, reason: str, detail: Callable[[], str]) -> None:
+        """Count a frame refused before anything of it was read, by reason only (a flood's cost stays a
+        counter); ``detail`` is built only when it is logged."""
+        with self._lock:
+            self.rejected_by_reason[reason] += 1
+            if time.monotonic() - self._last_logged.get(reason, -1e9) < ERROR_LOG_INTERVAL_S:
+                self._suppressed[reason] += 1
+                return
+            message = f"-: {reason}: {detail()}"
+            self.last_errors.append(f"{time.strftime('%H:%M:%S')} {message}")
+        self._log_limited(reason, f"rejected {message}")
+
     def _log_limited(self, reason: str, message: str, error: BaseException | None = None) -> None:
         """Log at most once per reason every ERROR_LOG_INTERVAL_S, saying how many were suppressed."""
         with self._lock:
@@ -205,11 +218,16 @@ class ServiceStats:
         extra = f" (+{suppressed} similar since last report)" if suppressed else ""
         self._log.warning("%s%s", message, extra, exc_info=error)
 
-    def snapshot(self, queued: Mapping[str, QueueCounters]) -> StatsSnapshot:
-        """Per source: the queue's counts (received, dropped) with this object's (processed, rejected, latency)."""
+    def snapshot(
+        self, queued: Mapping[str, QueueCounters], clock_offsets: Mapping[str, float] | None = None
+    ) -> StatsSnapshot:
+        """Per source: the queue's counts (received, dropped) with this object's (processed, rejected, latency)
+        and its clock's offset as learnt (service/runtime/clock_offset.py)."""
+        offsets = clock_offsets or {}
         with self._lock:
             sources = {
-                name: self._source_status(queued.get(name), name) for name in sorted(set(queued) | set(self.sources))
+                name: self._source_status(queued.get(name), name, offsets.get(name))
+                for name in sorted(set(queued) | set(self.sources))
             }
             self._expire_refused()
             for name, refused in self.refused.items():
@@ -220,7 +238,7 @@ class ServiceStats:
             dropped = {**({"replaced": replaced} if replaced else {}), **self.dropped_by_reason}
             return StatsSnapshot(sources, dict(self.rejected_by_reason), dropped, list(self.last_errors))
 
-    def _source_status(self, queued: QueueCounters | None, name: str) -> SourceStatus:
+    def _source_status(self, queued: QueueCounters | None, name: str, clock_offset_s: float | None) -> SourceStatus:
         stats = self.sources.get(name, SourceStats())
         return SourceStatus(
             received=queued.received if queued else 0,
@@ -234,6 +252,7 @@ class ServiceStats:
             bytes_per_s=stats.bytes_per_s(time.monotonic()),
             frame_age_ms=age_percentiles(stats.age_ms),
             credits=stats.credits,
+            clock_offset_s=None if clock_offset_s is None else round(clock_offset_s, 3),
             dropped_by_reason=self._dropped_by(stats, queued),
             rejected_by_reason=dict(stats.rejected_by),
             problem=stats.problem,

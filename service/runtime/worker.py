@@ -17,9 +17,8 @@ from gcdtrav.service.backends.cpus import usable_cpus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.admission import Admission
-from gcdtrav.service.runtime.frame_age import FrameAgeLimit
 from gcdtrav.service.runtime.frames import InferredFrame, PendingFrame, ProcessedFrame
-from gcdtrav.service.runtime.freshness import Dropped, FrameGate
+from gcdtrav.service.runtime.freshness import Dropped, FrameGate, Freshness
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
@@ -48,10 +47,10 @@ class FrameWorker:
         self.frames, self.pipeline, self.history, self.stats = frames, pipeline, history, stats
         self.sources, self.settings, self.publish = sources, settings, publish
         self.on_taken = on_taken  # the source's slot is free: its sender may send the next frame (credits)
-        self.age_limit = FrameAgeLimit(settings.max_frame_age_s)
         self.progress = progress or ProgressMonitor(float("inf"))  # beaten round every loop and after every step
         self.admission = admission  # a new source takes a slot once its frame decodes; None: every source has one
-        self.gate = gate  # stamps and ownership before inference; ownership and age again before publishing
+        # stamps, ownership and age before inference and again before publishing
+        self.gate = gate or FrameGate(lambda source: True, Freshness.from_settings(settings))
         # With a CPU left over by torch (threads below the CPUs this process may use), a second thread
         # runs the last frame's engine work, encoding and publishing while the next frame is decoded and
         # inferred: +9 % frames/s with 1 torch thread on 2 cores (benchmarks/README.md). When torch has every
@@ -125,17 +124,12 @@ class FrameWorker:
         return self.admission is None or source in self.sources
 
     def _infer(self, pending: PendingFrame) -> InferredFrame | None:
-        """Decoded and inferred; None (counted stale) if it waited past max_frame_age_s: not worth computing."""
+        """Decoded and inferred; the gate raises (counted) for a frame not worth computing."""
         decoded = self._decode_admitted(pending)
         if decoded is None:
             return None
         image, ros_header = decoded
-        if self.gate is not None:
-            self.gate.before_inference(pending, image)
-        now = time.time()
-        if self.age_limit.is_stale(image.stamp, now):
-            self.stats.stale(pending.source, self.age_limit.explain(image.stamp, now))
-            return None
+        self.gate.before_inference(pending, image)
         return InferredFrame(pending, image, ros_header, self.pipeline.infer(image.image))
 
     def _decode_admitted(self, pending: PendingFrame) -> tuple[DecodedFrame, Any] | None:
@@ -163,20 +157,16 @@ class FrameWorker:
         ros_frame = ros_io.decode_ros_image(pending.payload, pending.ros.msgtype, self.settings.max_pixels)
         return DecodedFrame(ros_frame.image, ros_frame.stamp, ros_frame.frame_id), ros_frame.header
 
-    def _check_gate(self, inferred: InferredFrame) -> None:
-        if self.gate is not None:
-            self.gate.before_publish(inferred.pending, inferred.image.stamp)
-
     def _finish(self, inferred: InferredFrame) -> None:
         """Engine, numbering and history, outputs, counters."""
         source, image = inferred.pending.source, inferred.image
-        self._check_gate(inferred)
+        self.gate.before_publish(inferred.pending)
         result = self.pipeline.finish(inferred.inference)
         maps = result.maps
         record = self.history.record(
             source, maps.weights, result.anchors, image.stamp, image.frame_id, image.camera_size, maps.match
         )
-        self._check_gate(inferred)  # the engine took time too
+        self.gate.before_publish(inferred.pending)  # the engine took time too
         if not self.publish(ProcessedFrame(inferred, result, record)):
             self.stats.dropped(source, "shutdown")  # finished after the outputs closed
             return

@@ -53,3 +53,14 @@ def test_an_equal_order_is_the_same_frame_again() -> None:
     order = MapsOrder()
     assert order.is_newer(header("r1", 5.0, 5.0, "a"))
     assert not order.is_newer(header("r1", 5.0, 5.0, "a"))
+
+
+def test_a_robot_clock_stepped_back_starts_its_order_again_but_a_late_map_does_not() -> None:
+    order = MapsOrder()
+    assert order.is_newer(header("r1", 5000.0, 100.0, "a"))  # a robot clock an hour ahead
+    assert not order.is_newer(header("r1", 4995.0, 99.0, "b"))  # a previous owner's late map: received earlier
+    assert not order.is_newer(header("r1", 4991.0, 100.5, "a"))  # 9 s older, received later: held back
+    assert order.is_newer(header("r1", 1400.0, 101.0, "a"))  # the clock set right: shown, and ordered from it
+    assert order.is_newer(header("r1", 1400.25, 101.25, "a"))
+    assert not order.is_newer(header("r1", 4999.0, 100.2, "b"))  # a late map of before the step
+    assert order.held_back == 3

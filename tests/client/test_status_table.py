@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 
-from gcdtrav.client.commands.operator import status_table
+from gcdtrav.client.commands.operator import clock_offset, status_table
 from gcdtrav.schemas.config import Method
 from gcdtrav.schemas.messages import ServiceStatus, SourceStatus
 
@@ -50,7 +50,7 @@ def test_every_source_in_full_under_aligned_headers_with_reasons_and_why() -> No
     for row in rows:
         fields = columns(row)
         assert fields[1][0] == spans[1][0]  # instance: left-aligned, starts under its header
-        assert [end for _, end in fields[2:9]] == [end for _, end in spans[2:9]]  # numbers: right-aligned
+        assert [end for _, end in fields[2:10]] == [end for _, end in spans[2:10]]  # numbers: right-aligned
     assert "stale 3 (refused: no slot)" in rows[0] and "replaced 2" in rows[1] and "undecodable 6" in rows[2]
     why = "  r9/stale (a-rather-long-instance-name): stale: captured 3600.0 s ago, over max_frame_age_s = 5 s"
     assert why in lines
@@ -71,3 +71,26 @@ def test_history_names_the_start_set_instead_of_1970() -> None:
     assert lines[0] == "instance box-1:" and "1970" not in "\n".join(lines)
     assert lines[2].startswith("   rollback 1  start set           ") and lines[1].split()[1].startswith("2026-")
     assert lines[1].index(paper.version) == lines[2].index(paper.version)  # columns still aligned
+
+
+def test_each_source_shows_its_clock_offset_and_clocks_off_by_a_second_are_named() -> None:
+    sources = {
+        "behind/front": SourceStatus(clock_offset_s=3600.021),
+        "synced/front": SourceStatus(clock_offset_s=0.012),
+        "bare/cam": SourceStatus(),
+        "bag/cam": SourceStatus(clock_offset_s=1.1e8),
+    }
+    lines = status_table([a_status("box-1", sources)]).splitlines()
+    header = next(line for line in lines if line.startswith("source "))
+    clock = columns(header)[9]
+    assert header[clock[0] : clock[1]] == "clock s"
+    rows = [line for line in lines if line.split()[:1] and line.split()[0] in sources]
+    shown = {row.split()[0]: row[: clock[1]].split()[-1] for row in rows}  # right-aligned under its header
+    assert shown["behind/front"] == "+3600.02" and shown["synced/front"] == "+0.01"
+    assert shown["bare/cam"] == "-" and shown["bag/cam"] == "+1.1e+08"
+    warning = next(line for line in lines if line.startswith("clocks off"))
+    assert "bag/cam, behind/front (" in warning and "synced/front" not in warning
+
+
+def test_offsets_at_their_edges() -> None:
+    assert clock_offset(None) == "-" and clock_offset(0.0) == "+0.00" and clock_offset(-3600.0) == "-3600.00"

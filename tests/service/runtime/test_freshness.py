@@ -12,7 +12,7 @@ from gcdtrav.schemas.inputs import DecodedFrame, RejectedInput
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
-from gcdtrav.service.runtime.freshness import Dropped, FrameGate, check_stamp
+from gcdtrav.service.runtime.freshness import ClockMode, Dropped, FrameGate, Freshness, check_stamp
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
@@ -24,36 +24,43 @@ LOG = __import__("logging").getLogger("test")
 
 
 @pytest.mark.parametrize("stamp", [float("nan"), float("inf"), float("-inf"), -1.0])
-def test_a_stamp_that_is_not_a_time_is_rejected_whatever_the_skew_setting(stamp: float) -> None:
-    for skew in (None, 1e9):
-        with pytest.raises(RejectedInput) as err:
-            check_stamp(stamp, 1000.0, skew)
-        assert err.value.reason == "bad_stamp"
-
-
-def test_a_stamp_ahead_of_its_receipt_beyond_the_skew_is_rejected_and_none_accepts_any() -> None:
-    check_stamp(1000.0 + 5.0, 1000.0, 5.0)  # at the limit
-    check_stamp(0.0, 1000.0, 5.0)  # the past is max_frame_age_s's to judge (simulated time starts at 0)
+def test_a_stamp_that_is_not_a_time_is_rejected(stamp: float) -> None:
     with pytest.raises(RejectedInput) as err:
-        check_stamp(1005.01, 1000.0, 5.0)
-    assert err.value.reason == "skewed_stamp" and "max_stamp_skew_s" in err.value.detail
-    check_stamp(1e12, 1000.0, None)
+        check_stamp(stamp)
+    assert err.value.reason == "bad_stamp"
+    check_stamp(0.0)  # simulated time starts at 0
+
+
+@pytest.mark.parametrize("clock", ["estimated", "synced"])
+def test_a_stamp_ahead_beyond_the_skew_is_rejected_at_intake_and_none_accepts_any(clock: ClockMode) -> None:
+    at_limit, limited, unlimited = (
+        Freshness(None, 5.0, clock),
+        Freshness(None, 5.0, clock),
+        Freshness(None, None, clock),
+    )
+    for rule in (at_limit, limited, unlimited):
+        assert rule.at_intake("r", 1000.0, 1000.0).refusal is None  # learns offset 0
+    assert at_limit.at_intake("r", 1005.1, 1000.1).refusal is None  # at the limit
+    refusal = limited.at_intake("r", 1005.2, 1000.1).refusal
+    assert isinstance(refusal, RejectedInput) and refusal.reason == "skewed_stamp"
+    assert "max_stamp_skew_s" in refusal.detail
+    assert unlimited.at_intake("r", 1e12, 1000.2).refusal is None
 
 
 def test_gate_drops_frames_of_other_instances_and_frames_too_old() -> None:
     owned = {"mine"}
     now = [1000.0]
-    gate = FrameGate(lambda source: source in owned, 5.0, None, clock=lambda: now[0])
+    gate = FrameGate(lambda source: source in owned, Freshness(5.0, None), clock=lambda: now[0])
     frame = replace(png_frame("mine"), received_at=1000.0)
-    gate.before_publish(frame, 1000.0)
+    gate.before_publish(frame)
     now[0] = 1005.0
-    gate.before_publish(frame, 1000.0)  # at the limit
+    gate.before_publish(frame)  # at the limit
     now[0] = 1005.1
     with pytest.raises(Dropped) as stale:
-        gate.before_publish(frame, 1000.0)
-    assert stale.value.reason == "stale"
+        gate.before_publish(frame)
+    assert stale.value.reason == "stale" and "when its maps were ready" in stale.value.detail
     with pytest.raises(Dropped) as moved:
-        gate.before_publish(replace(frame, source="theirs"), 1000.0)
+        gate.before_publish(replace(frame, source="theirs"))
     assert moved.value.reason == "not_owner"
     with pytest.raises(RejectedInput):
         gate.before_inference(frame, DecodedFrame(image(), float("nan"), ""))
@@ -80,7 +87,7 @@ def test_worker_counts_each_gated_frame_and_publishes_only_the_good_one() -> Non
     queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue()
     stats, outputs = ServiceStats(LOG), Outputs()
     settings = ServiceSettings(max_frame_age_s=2.0, max_stamp_skew_s=60.0)
-    gate = FrameGate(lambda source: source != "moved", settings.max_frame_age_s, settings.max_stamp_skew_s)
+    gate = FrameGate(lambda source: source != "moved", Freshness.from_settings(settings))
     progress = ProgressMonitor(settings.stall_after_s)
     frames = FrameWorker(
         queue,
@@ -96,8 +103,8 @@ def test_worker_counts_each_gated_frame_and_publishes_only_the_good_one() -> Non
     now = time.time()
     queue.put("good", envelope_frame("good", now, now))
     queue.put("old", envelope_frame("old", now - 30, now - 30))  # e.g. queued before a SIGSTOP
+    queue.put("slow", replace(envelope_frame("slow", now - 3, now), lag_s=2.5))  # judged at intake, waited
     queue.put("nan", envelope_frame("nan", float("nan"), now))
-    queue.put("skewed", envelope_frame("skewed", now + 3600, now))
     queue.put("moved", envelope_frame("moved", now, now))
     frames.start()
     deadline = time.monotonic() + 10
@@ -107,20 +114,25 @@ def test_worker_counts_each_gated_frame_and_publishes_only_the_good_one() -> Non
     assert frames.stop(time.monotonic() + 10)
     snapshot = stats.snapshot(queue.counters())
     assert [done.source for done in outputs.published] == ["good"]
-    assert snapshot.dropped_by_reason == {"stale": 1, "not_owner": 1}
-    assert snapshot.rejected_by_reason == {"bad_stamp": 1, "skewed_stamp": 1}
+    assert snapshot.dropped_by_reason == {"stale": 2, "not_owner": 1}
+    assert snapshot.rejected_by_reason == {"bad_stamp": 1}
     assert outputs.published[0].image.stamp == now
 
 
-def test_age_before_publishing_counts_from_the_older_of_stamp_and_receipt_and_none_turns_it_off() -> None:
+@pytest.mark.parametrize("clock", ["estimated", "synced"])
+def test_age_before_publishing_is_the_lag_at_intake_plus_the_wait_and_none_turns_it_off(clock: ClockMode) -> None:
     now = [1010.0]
-    frame = replace(png_frame("mine"), received_at=1009.0)
-    gate = FrameGate(lambda source: True, 5.0, None, clock=lambda: now[0])
-    gate.before_publish(frame, 1009.5)  # a robot clock slightly ahead: the receipt ages it (1 s)
+    rule = Freshness(5.0, None, clock)
+    gate = FrameGate(lambda source: True, rule, clock=lambda: now[0])
+    received = replace(png_frame("mine"), received_at=1009.0)
+    rule.at_intake("mine", 1008.9, 1008.0)  # its clock learnt: robot ahead by 0.9 s
+    ahead = replace(received, lag_s=rule.at_intake("mine", 1009.5, 1009.0).lag_s)
+    gate.before_publish(ahead)  # a robot clock slightly ahead: the receipt still ages it (1 s)
+    buffered = replace(received, lag_s=rule.at_intake("mine", 1004.9, 1009.0).lag_s)
     with pytest.raises(Dropped):
-        gate.before_publish(frame, 1004.0)  # captured 6 s ago, received 1 s ago (a link's buffer)
+        gate.before_publish(buffered)  # 4.5 s slower than the fastest (estimated) / 6 s by the clock (synced)
     now[0] = 1014.5
     with pytest.raises(Dropped):
-        gate.before_publish(frame, 1100.0)  # a clock far ahead does not keep a frame young
-    unlimited = FrameGate(lambda source: True, None, None, clock=lambda: now[0])
-    unlimited.before_publish(frame, 0.0)
+        gate.before_publish(ahead)  # a clock ahead does not keep a frame young
+    unlimited = FrameGate(lambda source: True, Freshness(None, None, clock), clock=lambda: now[0])
+    unlimited.before_publish(replace(received, lag_s=1e9))

@@ -46,7 +46,7 @@ def offer(gate: Admission, payload: bytes, source: str = "r1") -> bool:
 
 
 def test_a_stale_frame_is_dropped_at_intake_and_frees_the_slot() -> None:
-    gate, queue, stats, freed = admission(max_frame_age_s=2.0)
+    gate, queue, stats, freed = admission(max_frame_age_s=2.0, clock="synced")  # a new source: by the clock
     assert not offer(gate, envelope(age_s=10.0, sent_at=5.0))
     [(source, reason, times)] = freed
     assert (source, reason) == ("r1", "stale") and times is not None and times.sent_at == 5.0
@@ -83,9 +83,9 @@ def test_the_worker_grants_at_take_and_drops_what_waited_too_long() -> None:
     worker = FrameWorker(
         queue, pipeline(), FrameHistory(2), stats, SourceTracker(8, 60), settings, publish, taken.append
     )
-    # Admitted fresh, but it waited in the queue (its capture stamp is what counts): stale at take.
-    old = PendingFrame("r1", "gcdtrav/in/r1", envelope(age_s=3.0), "application/msgpack", time.time())
-    queue.put("r1", old)
+    # Admitted fresh (lag 0.5 s), but it waited in the queue for 3 s: stale at take.
+    waited = PendingFrame("r1", "gcdtrav/in/r1", envelope(0.0), "application/msgpack", time.time() - 3.0, lag_s=0.5)
+    queue.put("r1", waited)
     worker.start()
     try:
         deadline = time.monotonic() + 10

@@ -1,0 +1,119 @@
+"""Robots as they are in the field, end to end on loopback: clocks an hour off, one publisher flooding."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+from conftest import textured_image
+from zenoh_helpers import connecting_config, service_reachable, wait_until
+
+pytest.importorskip("torch")
+
+from gcdtrav.client import Maps, TraversabilityClient
+from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.service.bus.node import TraversabilityService
+from gcdtrav.service.commands.serve import starting_anchor_set
+
+from tools.loopback import in_process_service
+
+HOUR = 3600.0
+FRAMES = 6
+
+
+@dataclass
+class Serving:
+    service: TraversabilityService
+    port: int
+    client: TraversabilityClient
+    received: list[Maps]
+
+
+@contextmanager
+def serving(backend, state_dir: Path, **settings_kw: object) -> Iterator[Serving]:  # type: ignore[no-untyped-def]
+    settings = ServiceSettings(state_dir=state_dir, instance="clocks-1", preview=False, **settings_kw)  # type: ignore[arg-type]
+    with in_process_service(backend, settings, starting_anchor_set(settings)) as (service, port):
+        client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
+        received: list[Maps] = []
+        subscriber = client.subscribe_maps("**", received.append)
+        try:
+            assert wait_until(lambda: service_reachable(client), 10)
+            time.sleep(0.3)  # let the maps subscription reach the service
+            yield Serving(service, port, client, received)
+        finally:
+            subscriber.undeclare()
+            client.close()
+
+
+def stream(client: TraversabilityClient, offsets: dict[str, float]) -> None:
+    """FRAMES frames per robot, stamped now by its clock, 5 rounds a second."""
+    image = textured_image(64, 80)
+    for _ in range(FRAMES):
+        for source, offset in offsets.items():
+            client.publish_image(source, image, stamp=time.time() + offset)
+        time.sleep(0.2)
+
+
+def maps_of(received: list[Maps], source: str) -> list[Maps]:
+    return [m for m in received if m.header.source == source]
+
+
+def test_robots_an_hour_behind_and_ahead_get_maps_with_their_own_stamps(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    offsets = {"behind/front": -HOUR, "ahead/front": HOUR, "synced/front": 0.0}
+    with serving(tiny_backend, tmp_path) as run:  # the defaults: clock estimated
+        stream(run.client, offsets)
+        received = run.received
+        assert wait_until(lambda: all(len(maps_of(received, s)) >= FRAMES - 1 for s in offsets), 30)
+        status = run.client.status()
+    for source, offset in offsets.items():
+        for maps in maps_of(received, source):  # stamped by the robot's clock
+            assert abs(maps.header.stamp - offset - maps.header.received_at) < 5
+        learnt = status.sources[source].clock_offset_s
+        assert learnt is not None and abs(learnt + offset) < 1.0
+    assert status.rejected_by_reason == {} and "stale" not in status.dropped_by_reason
+
+
+def test_with_clock_synced_the_same_robots_get_nothing_as_the_issue_reported(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    offsets = {"behind/front": -HOUR, "ahead/front": HOUR, "synced/front": 0.0}
+    with serving(tiny_backend, tmp_path, clock="synced") as run:
+        stream(run.client, offsets)
+        received = run.received
+
+        def counted() -> bool:
+            status = run.client.status()
+            return (
+                status.dropped_by_reason.get("stale", 0) >= FRAMES
+                and status.rejected_by_reason.get("skewed_stamp", 0) >= FRAMES
+            )
+
+        assert wait_until(counted, 30)
+        assert wait_until(lambda: len(maps_of(received, "synced/front")) >= FRAMES - 1, 30)
+    assert not maps_of(received, "behind/front") and not maps_of(received, "ahead/front")
+
+
+def test_a_flooding_publisher_is_rate_limited_while_another_publishers_frames_are_all_admitted(
+    tiny_backend, tmp_path: Path
+) -> None:  # type: ignore[no-untyped-def]
+    with serving(tiny_backend, tmp_path, intake_rate_per_publisher=20.0, max_frame_age_s=None) as run:
+        robot = TraversabilityClient(config=connecting_config(run.port), timeout=5.0)
+        try:
+            image = textured_image(32, 32)
+            for k in range(300):  # one publisher: far beyond 20 a second plus its 1 s burst
+                run.client.publish_image(f"flood/n{k}", image)
+            for _ in range(10):
+                robot.publish_image("robot/front", image)
+                time.sleep(0.05)
+
+            def robot_received() -> int:
+                source = run.client.status().sources.get("robot/front")
+                return 0 if source is None else source.received
+
+            assert wait_until(lambda: robot_received() == 10, 15)
+            status = run.client.status()
+        finally:
+            robot.close()
+    assert 300 - 20 - 20 <= status.rejected_by_reason["rate_limited"] < 300  # its burst and what refilled
