@@ -179,3 +179,17 @@ def test_experience_off_declares_nothing_and_changes_nothing(tmp_path: Path) -> 
         with pytest.raises(QueryTimeout):
             client.anchor_proposal(timeout=0.5)
     assert not experience_file(tmp_path, "gcdtrav").exists()
+
+
+def test_settings_that_cannot_work_are_refused_at_start(tmp_path: Path) -> None:
+    from gcdtrav.schemas.settings import SettingsError, load_settings
+
+    with pytest.raises(SettingsError, match="experience: enabled needs a ground grid"):
+        load_settings(None, {"experience": {"enabled": True}}, environ={})
+    with pytest.raises(SettingsError, match="ask: enabled needs experience"):
+        load_settings(None, {"ask": {"enabled": True}}, environ={})
+    with (
+        pytest.raises(SettingsError, match="grid 'nope' is not one of the grids"),
+        running(settings(tmp_path, experience_settings(grid="nope"))),
+    ):
+        pass
