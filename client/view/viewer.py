@@ -46,6 +46,7 @@ from gcdtrav.client.view.json_schema import model_schema
 from gcdtrav.client.view.latest import LatestSlots
 from gcdtrav.client.view.recorder import McapRecorder
 from gcdtrav.schemas.anchors import AnchorSetError
+from gcdtrav.schemas.experience import OperatorQuestion
 from gcdtrav.schemas.inputs import decode_payload, image_format, input_kind
 from gcdtrav.schemas.keys import Keys, input_key, input_source_of
 from gcdtrav.schemas.messages import AnchorSetReply, ServiceStatus, SourceView
@@ -169,7 +170,7 @@ class Viewer:
     # ---- life cycle ------------------------------------------------------------------------------------
     def start(self) -> Viewer:
         prefix, sources = self.options.prefix, self.options.sources
-        keys = {kind: Keys(prefix).output(sources, kind) for kind in ("maps", "grid", "preview")}
+        keys = {kind: Keys(prefix).output(sources, kind) for kind in ("maps", "grid", "preview", "question")}
         if self.options.input_prefix:
             keys["camera"] = input_key(self.options.input_prefix, sources)
         for kind, key in keys.items():
@@ -201,15 +202,17 @@ class Viewer:
 
     # ---- zenoh in: latest-only -------------------------------------------------------------------------
     def _keeper(self, kind: str) -> Callable[[zenoh.Sample], None]:
+        keys = Keys(self.options.prefix)
         if kind == "camera":
             head = self.options.input_prefix.rstrip("/")
 
             def keep_camera(sample: zenoh.Sample) -> None:
+                if keys.input_message(str(sample.key_expr)) is not None:
+                    return  # an outcome or an answer (experience), not a camera image
                 source = input_source_of(str(sample.key_expr), head)
                 self._slots.put((source, kind), sample.payload.to_bytes())
 
             return keep_camera
-        keys = Keys(self.options.prefix)
 
         def keep(sample: zenoh.Sample) -> None:
             source = keys.source_of(str(sample.key_expr), kind)
@@ -221,7 +224,7 @@ class Viewer:
     # ---- worker: slots -> Foxglove ---------------------------------------------------------------------
     def _work(self) -> None:
         handlers = {"maps": self._show_maps, "grid": self._show_grid, "preview": self._show_preview}
-        handlers["camera"] = self._show_camera
+        handlers |= {"camera": self._show_camera, "question": self._show_question}
         while not self._stop.is_set():
             for (source, kind), payload in self._slots.take_all(timeout=0.5).items():
                 channels = self._channels(source)
@@ -298,6 +301,19 @@ class Viewer:
 
     def _show_preview(self, channels: SourceChannels, payload: bytes) -> None:
         self.emit(channels.image("preview"), CompressedImage(timestamp=stamp(time.time()), data=payload, format="jpeg"))
+
+    def _show_question(self, channels: SourceChannels, payload: bytes) -> None:
+        """An operator question: its crop on ``{topic}/question``, its text on the log channel."""
+        question = OperatorQuestion.unpack(payload)
+        if question.crop_jpeg:
+            image = CompressedImage(timestamp=stamp(time.time()), data=question.crop_jpeg, format="jpeg")
+            self.emit(channels.image("question"), image)
+        concepts = " vs ".join(c.concept for c in question.concepts)
+        self.log_message(
+            LogLevel.Warning,
+            f"question {question.id}: {question.reason} ground ahead of {question.source} ({concepts}); "
+            f"gcdtrav answer {question.source} drivable|blocked|SCORE",
+        )
 
     def _show_camera(self, channels: SourceChannels, payload: bytes) -> None:
         data, kind, when, frame_id = camera_image(payload)
