@@ -193,3 +193,27 @@ def test_settings_that_cannot_work_are_refused_at_start(tmp_path: Path) -> None:
         running(settings(tmp_path, experience_settings(grid="nope"))),
     ):
         pass
+
+
+def test_ros_topics_are_read_as_cdr_on_rmw_zenoh_keys(tmp_path: Path) -> None:
+    from gcdtrav.service.bus.experience import ros_key
+    from gcdtrav.service.ros.cdr import RosTopic, odometry_cdr, topic_key, twist_cdr
+
+    ros = experience_settings(cmd_vel="/robot/cmd_vel", odometry="/robot/odom")
+    expression = "*/robot/cmd_vel/geometry_msgs::msg::dds_::Twist_/*"
+    assert ros_key("/robot/cmd_vel", "geometry_msgs/msg/Twist", []) == expression
+    with running(settings(tmp_path, ros, AskSettings())) as (_, client, _flags):
+        twist = topic_key(RosTopic("/robot/cmd_vel", "geometry_msgs/msg/Twist", "rmw_zenoh", domain=7))
+        odometry = topic_key(RosTopic("/robot/odom", "nav_msgs/msg/Odometry", "rmw_zenoh", domain=7))
+        for k in range(40):  # 2 s at 0.5 m/s, commanded 1 m/s: outcomes every 0.3 m (no grid: no pairs)
+            client.session.put(twist, twist_cdr(1.0))
+            client.session.put(odometry, odometry_cdr(START_STAMP + 0.05 * k, 0.025 * k, 0.0, 0.0, 0.5))
+        client.session.put(twist, b"\x00\x01garbage")
+        client.session.put(odometry, b"\x00\x01garbage")
+
+        def seen() -> bool:
+            status = client.status()
+            rejected, counts = status.rejected_by_reason, status.experience.counts  # type: ignore[union-attr]
+            return rejected.get("bad_cmd_vel") == 1 and rejected.get("bad_odometry") == 1 and "outcomes" in counts
+
+        assert wait_until(seen, timeout=5), client.status()
