@@ -40,7 +40,7 @@ from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.service.commands.bench import bench_image
 
-from tools.loopback import SimulatedRobots, free_port, wait_for_statuses
+from tools.loopback import INFER_EVERY_FRAME, SimulatedRobots, free_port, wait_for_statuses
 
 MAX_FRAME_AGE_S = 5.0  # the services' default, checked at the consumer
 BLIND_GOAL_S = 3.0  # beyond the frame time, for faults of a single instance
@@ -95,7 +95,7 @@ class Fleet:
         self.router: zenoh.Session | None = None
         self.start_router()
         settings = scratch / "faults.yaml"
-        settings.write_text(f"max_frame_age_s: {MAX_FRAME_AGE_S}\n")
+        settings.write_text(f"max_frame_age_s: {MAX_FRAME_AGE_S}\n{INFER_EVERY_FRAME}")
         self.common = ["--model", model, "-m", "client", "-e", f"tcp/127.0.0.1:{self.port}"]
         self.common += [
             "--no-multicast-scouting",

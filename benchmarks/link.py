@@ -49,7 +49,7 @@ from gcdtrav.schemas.messages import peek_fields
 from gcdtrav.schemas.relay import RelaySettings
 from gcdtrav.service.commands.bench import bench_image
 
-from tools.loopback import free_port, service_processes, wait_for_statuses
+from tools.loopback import INFER_EVERY_FRAME, free_port, service_processes, wait_for_statuses
 from tools.shaping_proxy import LinkShape, ShapingProxy
 
 WAYS = ("raw", "compressed", "relay")
@@ -302,7 +302,7 @@ def main() -> int:
         settings = scratch / "service.yaml"
         settings.write_text(
             f"max_frame_age_s: {args.max_frame_age_s}\npreview: false\n"
-            "ros_inputs:\n  - {key: '0/**', layout: rmw_zenoh}\n"
+            "ros_inputs:\n  - {key: '0/**', layout: rmw_zenoh}\n" + INFER_EVERY_FRAME
         )
         command = ["--model", model_for(args, scratch), "--precision", args.precision, "--instance", "link-bench"]
         command += ["-l", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting", "--settings", str(settings)]

@@ -35,7 +35,7 @@ from gcdtrav.client import ServiceError, TraversabilityClient, zenoh_config
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.service.commands.bench import bench_image, rss_mb
 
-from tools.loopback import SimulatedRobots, free_port, service_processes, wait_for_statuses
+from tools.loopback import INFER_EVERY_FRAME, SimulatedRobots, free_port, service_processes, wait_for_statuses
 
 
 class ChurningSources:
@@ -163,6 +163,7 @@ def main() -> int:
     settings.write_text(
         f"max_sources: {args.max_sources}\nsource_idle_s: {args.source_idle_s}\nmax_sources_per_publisher: null\n"
         f"history_budget_mb: {args.history_budget_mb}\npending_budget_mb: {args.pending_budget_mb}\n"
+        + INFER_EVERY_FRAME
     )
     common += ["--settings", str(settings)]
     arguments = [

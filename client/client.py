@@ -130,6 +130,18 @@ class Maps:
         return cls(header=message.header, traversability=t, uncertainty=u, compact=True)
 
     @property
+    def reused(self) -> bool:
+        """Computed from an earlier frame whose view had not changed since (``header.computed_from``): the
+        service published that frame's maps again for this one instead of inferring it."""
+        return self.header.computed_from is not None
+
+    @property
+    def computed_stamp(self) -> float:
+        """The capture stamp of the frame these maps were computed from: this frame's, unless reused."""
+        computed = self.header.computed_from
+        return self.header.stamp if computed is None else computed[0]
+
+    @property
     def age_s(self) -> float:
         """Now minus the capture stamp. Exact on the robot that stamped the image (its own clock); elsewhere
         it assumes clocks in step (NTP, chrony). A bare JPEG/PNG input has the service's receive time as its

@@ -25,7 +25,7 @@ MSGPACK_ENCODING = "application/msgpack"
 # 1.0 was the integer 1 in MapsHeader only; 1.1 puts the version in every message and adds risk fields;
 # 1.2 adds ServiceStatus.measuring, MapsHeader.order, the status's health and anchor-set fleet fields, and the
 # grid's planner layers (GridMessage, GridHeader).
-SCHEMA_VERSION = "1.2"
+SCHEMA_VERSION = "1.3"
 _VERSION = re.compile(r"^(\d+)(?:\.\d+)?$")
 
 
@@ -186,6 +186,12 @@ class MapsHeader(WireModel):
         "tuple; a map whose order is not above the last one shown of its source is older (or the same frame "
         "again) and is dropped by the client. seq counts per instance and does not order. Since 1.2.",
     )
+    computed_from: tuple[float, int] | None = Field(
+        default=None,
+        description="(stamp, seq) of the frame these maps were computed from when it is not this one: this "
+        "frame's view had not changed since, so it was not inferred and that frame's maps were published again "
+        "(seq is then that frame's; stamp and order are this frame's). None: computed from this frame. Since 1.3.",
+    )
 
 
 class MapsMessage(Message):
@@ -217,8 +223,10 @@ class CreditGrant(Message):
     instance: str = Field(description="The instance that owns the source and granted this credit.")
     grant: int = Field(description="Credits this instance granted the source so far, from 0.")
     reason: str = Field(
-        description="What freed the slot: 'taken' (the frame went to inference), 'stale' (older than "
-        "max_frame_age_s) or 'refused' (rejected at intake).",
+        description="What freed the slot: 'taken' (the frame went to inference), 'unchanged' (not inferred, its "
+        "view had not changed: the last maps went out again), 'refresh' (an unchanged view past max_reuse_s waits "
+        "for inference; later unchanged frames are answered meanwhile), 'stale' (older than max_frame_age_s) or "
+        "'refused' (rejected at intake).",
     )
     granted_at: float = Field(description="The service's clock, s since epoch.")
     model_input: tuple[int, int] = Field(
@@ -476,6 +484,18 @@ class SourceStatus(WireModel):
         description="The source's clock as learnt from its stamped frames: the smallest recent receipt minus "
         "capture stamp, i.e. service minus robot clock plus the link's smallest delay; None before a stamped "
         "frame. Since 1.2.",
+    )
+    unchanged: int = Field(
+        default=0,
+        description="Frames not inferred because the view had not changed: the last maps were published again "
+        "(MapsHeader.computed_from). received = processed + unchanged + dropped + rejected, plus the frames "
+        "waiting or in flight. Since 1.3.",
+    )
+    weight: float | None = Field(
+        default=None, description="The scheduler's weight of the source (schedule.policy need; None: round-robin)."
+    )
+    share: float | None = Field(
+        default=None, description="The source's share of this instance's inferences over the last 10 s."
     )
 
 

@@ -31,6 +31,11 @@ if TYPE_CHECKING:
     from gcdtrav.service.bus.node import TraversabilityService
 
 
+# These tools stream one image again and again to measure inference: reuse (issue 34) would answer all but
+# the first frame of each robot without inferring. benchmarks/fleet_mix.py measures reuse itself.
+INFER_EVERY_FRAME = "reuse: {enabled: false}\n"
+
+
 def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
@@ -115,7 +120,9 @@ def loopback_service(model_dir: Path, precision: str, instance: str = "bench") -
 
     backend = ClipSegBackend(str(model_dir), precision=precision)
     with tempfile.TemporaryDirectory() as state:
-        settings = ServiceSettings(state_dir=Path(state), instance=instance, preview=False)
+        settings = ServiceSettings.model_validate(
+            {"state_dir": state, "instance": instance, "preview": False, "reuse": {"enabled": False}}
+        )
         with in_process_service(backend, settings) as (_, port):
             config = zenoh_config(mode="peer", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
             with TraversabilityClient(config=config) as client:

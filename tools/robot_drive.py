@@ -3,8 +3,9 @@ drives a synthetic world (tools/synthetic_scene.py) and publishes what a real ro
 service whose grid is ``grid_settings()`` and whose experience reads ``experience_settings()``'s keys:
 
 - its pose (Pose2D) and camera images (PNG: the scene backend reads colours) at 4 Hz of simulated time, each
-  image only after the service published the grid of the last one, so that every frame is fused with the pose
-  it was taken at (the service fuses with the latest pose it has);
+  image only after the service published the maps of the last one (inferred and fused into the grid, or
+  reused for an unchanged view), so that every frame is fused with the pose it was taken at (the service
+  fuses with the latest pose it has);
 - velocity commands (Twist2D, 1 m/s) at 10 Hz and odometry (Odometry2D) at 20 Hz.
 
 Simulated time runs faster than the wall clock, from a fixed stamp in the past like a replayed bag (the
@@ -13,11 +14,12 @@ settings turn off the age and skew checks made for live robots).
 
 from __future__ import annotations
 
+import math
 import threading
 from dataclasses import dataclass
 
 import numpy as np
-from gcdtrav.client import Grid, TraversabilityClient
+from gcdtrav.client import Maps, TraversabilityClient
 from gcdtrav.schemas.experience import Odometry2D, Twist2D
 from gcdtrav.schemas.messages import MSGPACK_ENCODING, Pose2D
 from gcdtrav.schemas.settings import CameraIntrinsics, CameraMountSettings, ExperienceSettings, GridSettings
@@ -54,22 +56,22 @@ def experience_settings(**overrides: object) -> ExperienceSettings:
     return ExperienceSettings.model_validate(fields | overrides)
 
 
-class GridCounter:
-    """Counts the grids the service publishes for the camera's source."""
+class MapsClock:
+    """The stamp of the newest maps the service published for the camera's source."""
 
     def __init__(self) -> None:
-        self.count = 0
+        self.stamp = -math.inf
         self.changed = threading.Condition()
 
-    def __call__(self, grid: Grid) -> None:
+    def __call__(self, maps: Maps) -> None:
         with self.changed:
-            self.count += 1
+            self.stamp = max(self.stamp, maps.header.stamp)
             self.changed.notify_all()
 
-    def wait_beyond(self, seen: int, timeout_s: float) -> None:
+    def wait_for(self, stamp: float, timeout_s: float) -> None:
         with self.changed:
-            if not self.changed.wait_for(lambda: self.count > seen, timeout_s):
-                raise TimeoutError(f"no grid from the service within {timeout_s:g} s (frame rejected or dropped?)")
+            if not self.changed.wait_for(lambda: self.stamp >= stamp, timeout_s):
+                raise TimeoutError(f"no maps of {stamp} within {timeout_s:g} s (frame rejected or dropped?)")
 
 
 @dataclass
@@ -79,8 +81,8 @@ class BusRobot:
     timeout_s: float = 20.0
 
     def __post_init__(self) -> None:
-        self.grids = GridCounter()
-        self._subscriber = self.client.subscribe_grid(CAMERA_SOURCE, self.grids)
+        self.maps = MapsClock()
+        self._subscriber = self.client.subscribe_maps(CAMERA_SOURCE, self.maps, in_order=False)
         self.encoding = MSGPACK_ENCODING
 
     def close(self) -> None:
@@ -100,9 +102,8 @@ class BusRobot:
             if step % CAMERA_EVERY == 0:
                 image, _ = camera.render(self.world, robot.x, robot.y, robot.yaw)
                 self._put(POSE_KEY, Pose2D(stamp=stamp, x=robot.x, y=robot.y, yaw=robot.yaw).pack())
-                seen = self.grids.count
                 self.client.publish_image(CAMERA_SOURCE, image, stamp=stamp, compression="png")
-                self.grids.wait_beyond(seen, self.timeout_s)
+                self.maps.wait_for(stamp, self.timeout_s)
             if step % COMMAND_EVERY == 0:
                 self._put(CMD_VEL_KEY, Twist2D(vx=COMMAND_MPS).pack())
             speed, rate = robot.step(ODOMETRY_DT)

@@ -16,7 +16,14 @@ from gcdtrav.client import TraversabilityClient, zenoh_config
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.service.commands.bench import Bench, Row, RssSampler, bench_image, make_row
 
-from tools.loopback import free_port, loopback_service, robots_throughput, service_processes, wait_for_statuses
+from tools.loopback import (
+    INFER_EVERY_FRAME,
+    free_port,
+    loopback_service,
+    robots_throughput,
+    service_processes,
+    wait_for_statuses,
+)
 
 
 def run_zenoh(bench: Bench, precision: str, frames: int) -> None:
@@ -48,6 +55,9 @@ def run_robots(bench: Bench, precision: str, counts: list[int], fps: float, seco
     with tempfile.TemporaryDirectory() as state:
         serve = ["--model", str(bench.model_dir), "--precision", precision, "-l", f"tcp/127.0.0.1:{port}"]
         serve += ["--no-multicast-scouting", "--instance", "bench-robots", "--state-dir", state, "--no-preview"]
+        settings = Path(state) / "service.yaml"
+        settings.write_text(INFER_EVERY_FRAME)
+        serve += ["--settings", str(settings)]
         with service_processes([serve]) as (process,):
             endpoint = [f"tcp/127.0.0.1:{port}"]
             client = TraversabilityClient(config=zenoh_config(mode="peer", connect=endpoint, multicast_scouting=False))

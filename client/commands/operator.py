@@ -95,7 +95,7 @@ def one_line(err: BaseException) -> str:
 
 
 INSTANCE_ROW = "{:<{w}}  {:>7}  {:<{mw}}  {:>6}  {:>10}  {:>7}"
-SOURCE_ROW = "{:<{w}}  {:<{iw}}  {:>8}  {:>8}  {:>9}  {:>7}  {:>8}  {:>6}  {:>6}  {:>9}  {}"
+SOURCE_ROW = "{:<{w}}  {:<{iw}}  {:>8}  {:>8}  {:>9}  {:>9}  {:>7}  {:>8}  {:>6}  {:>6}  {:>9}  {:>6}  {:>5}  {}"
 
 
 def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] = lambda i, s: "-") -> str:
@@ -114,13 +114,16 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
         lines.append(INSTANCE_ROW.format(s.instance, uptime, what, s.queued, history, sources, w=width, mw=what_width))
     rows = [(name, s.instance, src) for s in statuses for name, src in sorted(s.sources.items())]
     name_width = max([len("source"), *(len(name) for name, _, _ in rows)])
-    header = ("source", "instance", "frames/s", "received", "processed", "dropped", "rejected", "p50 ms", "p99 ms",
-              "clock s")  # fmt: skip
+    header = ("source", "instance", "frames/s", "received", "processed", "unchanged", "dropped", "rejected", "p50 ms",
+              "p99 ms", "clock s", "weight", "share")  # fmt: skip
     lines += ["", SOURCE_ROW.format(*header, "dropped and rejected by reason", w=name_width, iw=width)]
     problems = []
     for name, instance, src in rows:
         p50, p99 = src.latency_ms.get("p50", "-"), src.latency_ms.get("p99", "-")
-        counts = (src.received, src.processed, src.dropped, src.rejected, p50, p99, clock_offset(src.clock_offset_s))
+        weight = "-" if src.weight is None else f"{src.weight:.2f}"
+        share = "-" if src.share is None else f"{src.share:.0%}"
+        counts = (src.received, src.processed, src.unchanged, src.dropped, src.rejected, p50, p99,
+                  clock_offset(src.clock_offset_s), weight, share)  # fmt: skip
         lines.append(
             SOURCE_ROW.format(name, instance, fps(instance, name), *counts, reasons(src), w=name_width, iw=width)
         )

@@ -1,7 +1,7 @@
 """Service settings, one module per section (like Frigate's config/ package): `base` (the error, the
-precision modes), `ros`, `grids`, `risk`, `experience` (`experience:` and `ask:`), `service`
-(`ServiceSettings`, the tree of every section) and `env`
-(the loader: YAML file < ``GCDTRAV_*`` environment variables < command-line flags). Import from here."""
+precision modes), `ros`, `grids`, `risk`, `share` (reuse and scheduling), `experience` (`experience:` and
+`ask:`), `service` (`ServiceSettings`, the tree of every section) and `env` (the loader: YAML file <
+``GCDTRAV_*`` environment variables < command-line flags). Import from here."""
 
 from gcdtrav.schemas.settings.base import (
     ENV_PREFIX,
@@ -23,6 +23,7 @@ from gcdtrav.schemas.settings.grids import (
 from gcdtrav.schemas.settings.risk import RiskSettings
 from gcdtrav.schemas.settings.ros import IMAGE_TYPES, RosInput, RosNode, RosOutput
 from gcdtrav.schemas.settings.service import ServiceSettings
+from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
 
 __all__ = [
     "ENV_PREFIX",
@@ -37,10 +38,12 @@ __all__ = [
     "GridCamera",
     "GridSettings",
     "Precision",
+    "ReuseSettings",
     "RiskSettings",
     "RosInput",
     "RosNode",
     "RosOutput",
+    "ScheduleSettings",
     "ServiceSettings",
     "SettingsError",
     "default_instance_name",

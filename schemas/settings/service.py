@@ -21,6 +21,7 @@ from gcdtrav.schemas.settings.experience import AskSettings, ExperienceSettings
 from gcdtrav.schemas.settings.grids import GridSettings, one_grid_per_camera
 from gcdtrav.schemas.settings.risk import RiskSettings
 from gcdtrav.schemas.settings.ros import RosInput, RosNode, RosOutput
+from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
 from gcdtrav.schemas.strict import StrictModel
 from pydantic import Field, field_validator, model_validator
 
@@ -46,6 +47,8 @@ class ServiceSettings(StrictModel):
     )
     engine: EngineSettings = Field(default_factory=EngineSettings)
     risk: RiskSettings = Field(default_factory=RiskSettings)
+    reuse: ReuseSettings = Field(default_factory=ReuseSettings)
+    schedule: ScheduleSettings = Field(default_factory=ScheduleSettings)
     experience: ExperienceSettings = Field(default_factory=ExperienceSettings)
     ask: AskSettings = Field(default_factory=AskSettings)
     history: int = Field(default=8, ge=1, le=256, description="Frames per source kept for patch queries.")
@@ -57,7 +60,8 @@ class ServiceSettings(StrictModel):
     pending_budget_mb: float = Field(
         default=256,
         gt=0,
-        description="Bytes of frames waiting for inference (one per source), in MB; further frames are rejected.",
+        description="Bytes of frames waiting for a glance or inference (at most two per source), in MB; further "
+        "frames are rejected.",
     )
     max_sources: int = Field(
         default=256, ge=1, description="Sources tracked at once; frames from further new sources are rejected."

@@ -51,6 +51,11 @@ class CreditPublisher:
     def taken(self, pending: PendingFrame) -> None:
         self.freed(pending.source, TAKEN, FrameTimes(pending.stamp, pending.sent_at, pending.received_at))
 
+    def answered(self, pending: PendingFrame, reason: str) -> None:
+        """The frame freed its slot without being taken: answered with the last maps (``unchanged``), or
+        waiting for its refresh (``refresh``)."""
+        self.freed(pending.source, reason, FrameTimes(pending.stamp, pending.sent_at, pending.received_at))
+
     def forget(self, source: str) -> None:
         self.ledger.forget(source)
         with self._lock:

@@ -37,6 +37,7 @@ from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.admission import Admission
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.assignment import Assignment
+from gcdtrav.service.runtime.change import Glance
 from gcdtrav.service.runtime.credits import CreditLedger
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.freshness import FrameGate, Freshness
@@ -45,8 +46,11 @@ from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.intake_rate import IntakeRate
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
+from gcdtrav.service.runtime.reuse import ReuseTracker
+from gcdtrav.service.runtime.share import policy_for
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.runtime.triage import Triage
 from gcdtrav.service.runtime.worker import FrameWorker
 
 log = logging.getLogger("gcdtrav.service")
@@ -72,7 +76,6 @@ class TraversabilityService:
         self.settings = settings
         self.prefix = settings.prefix
         self.keys = Keys(settings.prefix)
-        self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(round(settings.pending_budget_mb * 1e6))
         self.history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
         self.stats = ServiceStats(log, settings.source_idle_s)
         self.intake_rate = IntakeRate(
@@ -87,6 +90,18 @@ class TraversabilityService:
             GridOutputs(settings.grids, len(pipeline.anchors), settings.instance, settings.risk)
             if settings.grids
             else None
+        )
+        grids = self.grids
+        self.reuse = ReuseTracker(
+            settings.reuse,
+            settings.schedule,
+            grids.pose_of if grids else lambda source: None,
+            anchors_version=lambda: pipeline.anchors.version,
+        )
+        self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
+            round(settings.pending_budget_mb * 1e6),
+            policy=policy_for(settings.schedule, self.reuse.motion),
+            triage=settings.reuse.enabled or settings.schedule.policy == "need",
         )
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if settings.ros_inputs else None
         self.outputs = FrameOutputs(session, settings, pipeline.backend.model_id, self.grids, self.ros_graph)
@@ -103,6 +118,7 @@ class TraversabilityService:
             self.outputs.forget,
             self.credits.forget,
             self.freshness.offsets.forget,
+            self.reuse.forget,
         )
         self.sources = SourceTracker(
             settings.max_sources, settings.source_idle_s, forget, reclaim_after_s=settings.reclaim_after_s
@@ -123,6 +139,9 @@ class TraversabilityService:
             self.progress,
             gate,
             self.admission,
+            Triage(self.queue, self.reuse, settings, self.stats, self._republish, self.credits.answered)
+            if self.queue.triage
+            else None,
         )
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
@@ -198,6 +217,12 @@ class TraversabilityService:
         published = self.outputs.publish(done)
         if published:  # later credits say how fresh the maps are
             self.credits.ledger.published(done.source, done.image.stamp)
+        return published
+
+    def _republish(self, pending: PendingFrame, seen: Glance) -> bool:
+        published = self.outputs.republish(pending, seen)
+        if published:
+            self.credits.ledger.published(pending.source, seen.stamp)
         return published
 
     # ---- input ---------------------------------------------------------------------------------------
@@ -300,7 +325,9 @@ class TraversabilityService:
         return handle
 
     def status(self) -> ServiceStatus:
-        counts = self.stats.snapshot(self.queue.counters(), self.freshness.offsets.offsets())
+        counts = self.stats.snapshot(
+            self.queue.counters(), self.freshness.offsets.offsets(), self.queue.policy.shares()
+        )
         health = self.progress.health()
         accepted_at = self.anchor_switch.head().accepted_at
         return ServiceStatus(

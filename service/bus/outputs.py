@@ -15,7 +15,8 @@ from gcdtrav.schemas.messages import MSGPACK_ENCODING
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.entities import undeclare_all
 from gcdtrav.service.bus.ros_graph import GRID_QOS, IMAGE_QOS, RosGraph
-from gcdtrav.service.runtime.frames import ProcessedFrame
+from gcdtrav.service.runtime.change import Glance
+from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.outputs import Output, OutputBuilder
 
@@ -55,6 +56,17 @@ class FrameOutputs:
                 self._put(done.source, output)
             return True
 
+    def republish(self, pending: PendingFrame, seen: Glance) -> bool:
+        """The source's last maps again for an unchanged frame (reuse); False (nothing put) once closed or
+        when no maps of the source are kept."""
+        outputs = self.builder.reused(pending, seen.stamp, seen.frame_id, self._compact_wanted(pending.source))
+        with self._lock:
+            if self._closed or not outputs:
+                return False
+            for output in outputs:
+                self._put(pending.source, output)
+            return True
+
     def _put(self, source: str, output: Output) -> None:
         topic = output.topic
         if topic is not None and topic.layout == "rmw_zenoh" and self.ros_graph is not None:
@@ -91,6 +103,7 @@ class FrameOutputs:
     def forget(self, source: str) -> None:
         """Undeclare the publishers of a source the service no longer tracks."""
         with self._lock:  # the sweep runs on the worker, publishing maybe on the output thread
+            self.builder.forget(source)
             keys = self._keys_of_source.pop(source, set())
             publishers = [self._publishers.pop(key) for key in keys]
             ros_keys = self._ros_keys_of_source.pop(source, set())

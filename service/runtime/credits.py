@@ -6,6 +6,13 @@ takes the source's frames) grants a credit whenever the source's slot frees: its
 was refused at intake (stale, over a limit). The sender (``gcdtrav relay``) then sends its newest frame, so
 at most one frame of the source is inferred and one waits. Lost credits are the sender's to recover (it sends
 after a timeout); the ledger only numbers and describes the grants.
+
+Credits follow the scheduler's shares (service/runtime/share.py): a frame to infer frees its slot when the
+worker takes it, so a source's credits come at its share of the inference, a low-weight source's less often.
+A frame whose view had not changed frees it as soon as it is answered with the last maps (``unchanged``): a
+parked robot sends at its camera's rate, and a change is seen at its next frame. A view unchanged past
+``max_reuse_s`` waits for its refresh (the scheduler's lowest need) and frees the slot at once
+(``refresh``), so the robot's next unchanged frames are still answered meanwhile.
 """
 
 from __future__ import annotations
@@ -17,7 +24,7 @@ from dataclasses import dataclass
 
 from gcdtrav.schemas.messages import CreditGrant
 
-TAKEN, STALE, REFUSED = "taken", "stale", "refused"
+TAKEN, STALE, REFUSED, UNCHANGED, REFRESH = "taken", "stale", "refused", "unchanged", "refresh"
 
 
 @dataclass(frozen=True)

@@ -1,4 +1,4 @@
-"""Latest-only, round-robin frame queue: one pending slot per source.
+"""Latest-only frame queue: one pending frame per source (two with the glance), served by a policy.
 
 A robot publishes faster than a CPU infers. Keeping only the newest unprocessed frame per source bounds
 memory (sources x one payload) whatever the input rate, and serving sources in turn keeps one fast
@@ -7,14 +7,23 @@ robot from starving the others.
 Sources whose first frame is waiting take at most every other turn while a returning source waits: a
 flood of new names (a frame counter in the key, a hostile peer) then gets at most half of the inference,
 and the robots that keep streaming the other half, instead of one turn in (flood + robots).
+
+Which waiting source goes next is the ``policy``'s (service/runtime/share.py): round-robin (the source
+waiting longest), or a weighted share by need. With ``triage`` on, a frame first arrives in the source's
+*arrival* slot, is glanced at (``take_untriaged``) and settled: reused (it leaves the queue, never
+inferred) or moved to the source's *ready* slot, replacing an older ready frame. A source then holds at
+most two frames: the newest arrival and the newest ready one. Without triage a frame is ready at once.
 """
 
 from __future__ import annotations
 
 import threading
-from collections import OrderedDict
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
+
+from gcdtrav.service.runtime.share import RoundRobin, SharePolicy, Waiting
 
 T = TypeVar("T")
 
@@ -30,9 +39,30 @@ class PendingBudgetExceeded(Exception):
 
 
 @dataclass
+class _Entry(Generic[T]):
+    item: T
+    nbytes: int
+
+
+@dataclass
+class _Slot(Generic[T]):
+    arrived: _Entry[T] | None = None  # to be glanced at (triage only)
+    glancing: bool = False  # the arrival is being glanced at
+    ready: _Entry[T] | None = None  # to be inferred
+    since: float = 0.0  # monotonic: when the ready frame began waiting (kept when a newer one replaces it)
+
+    @property
+    def empty(self) -> bool:
+        return self.arrived is None and self.ready is None
+
+
+@dataclass
 class LatestFrameQueue(Generic[T]):
     max_bytes: int | None = None  # all pending frames together; None: one frame per source is the only bound
-    _pending: OrderedDict[str, tuple[T, int]] = field(default_factory=OrderedDict)
+    policy: SharePolicy = field(default_factory=RoundRobin)
+    triage: bool = False  # frames are glanced at (take_untriaged, settle) before they may be inferred
+    clock: Callable[[], float] = time.monotonic
+    _pending: dict[str, _Slot[T]] = field(default_factory=dict)
     _counters: dict[str, QueueCounters] = field(default_factory=dict)
     _cond: threading.Condition = field(default_factory=threading.Condition)
     _closed: bool = False
@@ -47,16 +77,22 @@ class LatestFrameQueue(Generic[T]):
         with self._cond:
             counters = self._counters.setdefault(source, QueueCounters())
             counters.received += 1
-            older = self._pending.get(source)
-            freed = older[1] if older is not None else 0
+            slot = self._pending.get(source) or _Slot()
+            older = slot.arrived if self.triage else slot.ready
+            freed = older.nbytes if older is not None else 0
             if self.max_bytes is not None and self._bytes - freed + nbytes > self.max_bytes:
                 raise PendingBudgetExceeded(f"{nbytes} bytes would take the pending frames over {self.max_bytes} bytes")
             if older is not None:
                 counters.dropped += 1
-            # A replaced item keeps the source's place in the rotation; a new one joins at the back.
-            self._pending[source] = (item, nbytes)
+            entry = _Entry(item, nbytes)
+            if self.triage:
+                slot.arrived, slot.glancing = entry, False
+            else:
+                slot.since = slot.since if slot.ready is not None else self.clock()
+                slot.ready = entry
+            self._pending[source] = slot
             self._bytes += nbytes - freed
-            self._cond.notify()
+            self._cond.notify_all()
             return older is None
 
     def count_unqueued(self, source: str) -> None:
@@ -65,35 +101,95 @@ class LatestFrameQueue(Generic[T]):
             self._counters.setdefault(source, QueueCounters()).received += 1
 
     def take(self, timeout: float | None = None) -> tuple[str, T] | None:
-        """The oldest-waiting source's newest frame; None on timeout or after close()."""
+        """The next source's newest ready frame, by the policy; None on timeout or after close()."""
         with self._cond:
-            if not self._cond.wait_for(lambda: self._pending or self._closed, timeout):
+            if not self._cond.wait_for(lambda: self._any_ready() or self._closed, timeout):
                 return None
-            if not self._pending:
+            waiting = [Waiting(source, slot.since) for source, slot in self._pending.items() if slot.ready]
+            if not waiting:
                 return None
-            source = next(iter(self._pending))  # the oldest waiting
-            if self._last_took_new and self._is_new(source):
-                source = next((s for s in self._pending if not self._is_new(s)), source)
+            if self._last_took_new:  # a new source's first frame takes at most every other turn
+                waiting = [w for w in waiting if not self._is_new(w.source)] or waiting
+            now = self.clock()
+            source = self.policy.choose(waiting, now)
+            self.policy.taken(source, now)
             self._last_took_new = self._is_new(source)
-            item, nbytes = self._pending.pop(source)
-            self._bytes -= nbytes
-            return source, item
+            slot = self._pending[source]
+            entry, slot.ready = slot.ready, None
+            assert entry is not None
+            self._bytes -= entry.nbytes
+            if slot.empty:
+                del self._pending[source]
+            return source, entry.item
+
+    def _any_ready(self) -> bool:
+        return any(slot.ready is not None for slot in self._pending.values())
+
+    def take_untriaged(self, timeout: float | None = None) -> tuple[str, T] | None:
+        """The next arrival to glance at (it stays queued until ``settle``); None on timeout or after close()."""
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._unglanced() is not None or self._closed, timeout):
+                return None
+            source = self._unglanced()
+            if source is None:
+                return None
+            slot = self._pending.pop(source)  # to the back: glances go round the sources
+            self._pending[source] = slot
+            assert slot.arrived is not None
+            slot.glancing = True
+            return source, slot.arrived.item
+
+    def _unglanced(self) -> str | None:
+        return next((s for s, slot in self._pending.items() if slot.arrived is not None and not slot.glancing), None)
+
+    def settle(self, source: str, item: T, reused: bool) -> bool:
+        """The glance's verdict on the arrival ``item``: reused (it leaves the queue) or ready for inference
+        (replacing an older ready frame, counted dropped). False if ``item`` is no longer the source's arrival
+        (replaced by a newer frame, or its source forgotten): nothing changed."""
+        with self._cond:
+            slot = self._pending.get(source)
+            if slot is None or slot.arrived is None or slot.arrived.item is not item:
+                return False
+            entry, slot.arrived, slot.glancing = slot.arrived, None, False
+            if reused:
+                self._bytes -= entry.nbytes
+            else:
+                if slot.ready is not None:
+                    self._bytes -= slot.ready.nbytes
+                    self._counters.setdefault(source, QueueCounters()).dropped += 1
+                else:
+                    slot.since = self.clock()
+                slot.ready = entry
+                self._cond.notify_all()
+            if slot.empty:
+                del self._pending[source]
+            return True
+
+    def has_ready(self, source: str) -> bool:
+        """Whether a frame of ``source`` waits for inference."""
+        with self._cond:
+            slot = self._pending.get(source)
+            return slot is not None and slot.ready is not None
 
     def _is_new(self, source: str) -> bool:
         """Its first frame: nothing received from it before (forgotten sources start again)."""
         return self._counters[source].received == 1
 
     def forget(self, source: str) -> None:
-        """Drop the source's pending frame and counters (a source the service no longer tracks)."""
+        """Drop the source's pending frames and counters (a source the service no longer tracks)."""
         with self._cond:
-            _, nbytes = self._pending.pop(source, (None, 0))
-            self._bytes -= nbytes
+            slot = self._pending.pop(source, None)
+            if slot is not None:
+                self._bytes -= sum(entry.nbytes for entry in (slot.arrived, slot.ready) if entry is not None)
             self._counters.pop(source, None)
+        self.policy.forget(source)
 
     def discard_pending(self) -> dict[str, int]:
         """Drop every pending frame (shutdown); returns how many per source, for the caller to count by reason."""
         with self._cond:
-            discarded = {source: 1 for source in self._pending}
+            discarded = {
+                source: (slot.arrived is not None) + (slot.ready is not None) for source, slot in self._pending.items()
+            }
             self._pending.clear()
             self._bytes = 0
             return discarded
@@ -109,8 +205,9 @@ class LatestFrameQueue(Generic[T]):
             return self._bytes
 
     def __len__(self) -> int:
+        """Frames waiting: to be glanced at or to be inferred."""
         with self._cond:
-            return len(self._pending)
+            return sum((slot.arrived is not None) + (slot.ready is not None) for slot in self._pending.values())
 
     def counters(self) -> dict[str, QueueCounters]:
         with self._cond:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal, TypeVar
 
 import cv2
 import numpy as np
@@ -27,7 +27,7 @@ from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import CompactMapsMessage, MapsHeader, MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros import cdr as ros_io
-from gcdtrav.service.runtime.frames import ProcessedFrame
+from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.grids import GridOutputs
 from numpy.typing import NDArray
 
@@ -71,6 +71,10 @@ class OutputBuilder:
     def __init__(self, settings: ServiceSettings, model_id: str, grids: GridOutputs | None) -> None:
         self.settings, self.model_id, self.grids = settings, model_id, grids
         self.keys = Keys(settings.prefix)
+        # Per source, the last inferred frame's maps (and compact maps, if made), to publish again for its
+        # unchanged views (reuse): the PNGs as they went out, never re-encoded. Threads: the output thread
+        # writes, the triage thread reads; one reference each, swapped whole.
+        self._last: dict[str, tuple[MapsMessage, CompactMapsMessage | None]] = {}
 
     def build(self, done: ProcessedFrame, compact: bool = False) -> list[Output]:
         """Every payload of the frame; ``compact``: the 8-bit maps too (only while someone subscribes)."""
@@ -82,8 +86,11 @@ class OutputBuilder:
             full = resize_map(t, width, height), resize_map(u, width, height)
         maps = self.maps(done, full)
         outputs = [Output(self.keys.maps(done.source), maps.pack(), "msgpack")]
-        if compact:
-            outputs.append(Output(self.keys.maps8(done.source), self.compact_maps(done, maps.header).pack(), "msgpack"))
+        compact_maps = self.compact_maps(done, maps.header) if compact else None
+        if compact_maps is not None:
+            outputs.append(Output(self.keys.maps8(done.source), compact_maps.pack(), "msgpack"))
+        if self.settings.reuse.enabled:
+            self._last[done.source] = (maps, compact_maps)
         panel = None
         if self.settings.preview or (ros_out and self.settings.ros_output.preview != "none"):
             panel = preview_panel(done.image.image, t, u, self.settings.preview_max_width)
@@ -95,6 +102,34 @@ class OutputBuilder:
         if self.grids is not None:
             outputs += self._grid(done)
         return outputs
+
+    def reused(self, pending: PendingFrame, stamp: float, frame_id: str, compact: bool = False) -> list[Output]:
+        """The source's last maps again for an unchanged frame: this frame's stamp, key and order, the computed
+        frame's seq and ``computed_from``. The grid, the preview and ROS images follow inferred frames only (a
+        reused frame is no new evidence). Empty if no maps of the source are kept."""
+        last = self._last.get(pending.source)
+        if last is None:
+            return []
+        maps, compact_maps = last
+        computed = maps.header.computed_from or (maps.header.stamp, maps.header.seq)
+        now = time.time()
+        update = {
+            "key": pending.key,
+            "stamp": stamp,
+            "frame_id": frame_id,
+            "received_at": pending.received_at,
+            "published_at": now,
+            "order": (stamp, pending.received_at),
+            "computed_from": computed,
+        }
+        outputs = [Output(self.keys.maps(pending.source), _with_header(maps, update).pack(), "msgpack")]
+        if compact and compact_maps is not None:
+            compact_payload = _with_header(compact_maps, update).pack()
+            outputs.append(Output(self.keys.maps8(pending.source), compact_payload, "msgpack"))
+        return outputs
+
+    def forget(self, source: str) -> None:
+        self._last.pop(source, None)
 
     def maps(self, done: ProcessedFrame, full: tuple[NDArray[np.float32], NDArray[np.float32]] | None) -> MapsMessage:
         record, result = done.record, done.result
@@ -198,3 +233,11 @@ class OutputBuilder:
     def _ros(camera: ros_io.RosTopic, template: str, msgtype: str, payload: bytes, qos: RosQos) -> Output:
         topic = camera.derived(ros_io.output_topic(template, camera.topic), msgtype)
         return Output(ros_io.topic_key(topic), payload, "cdr", topic, qos)
+
+
+_Maps = TypeVar("_Maps", MapsMessage, CompactMapsMessage)
+
+
+def _with_header(message: _Maps, update: dict[str, Any]) -> _Maps:
+    """The message with some header fields replaced; the PNGs are shared, not copied."""
+    return message.model_copy(update={"header": message.header.model_copy(update=update)})

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from gcdtrav.schemas.messages import SourceStatus
 from gcdtrav.service.runtime.latest_queue import QueueCounters
+from gcdtrav.service.runtime.share import Share
 
 LATENCY_WINDOW = 1000
 RATE_WINDOW_S = 10.0
@@ -38,6 +39,7 @@ class SourceStats:
     inference_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))
     stale: int = 0  # of the dropped: captured over max_frame_age_s ago
     credits: int = 0
+    unchanged: int = 0  # not inferred: the view had not changed, the last maps were published again
     age_ms: deque[float] = field(default_factory=lambda: deque(maxlen=LATENCY_WINDOW))  # lag at intake
     arrivals: deque[tuple[float, int]] = field(default_factory=deque)  # (monotonic time, bytes), last 10 s
     dropped_by: Counter[str] = field(default_factory=Counter)  # what the queue does not count (replaced)
@@ -111,6 +113,13 @@ class ServiceStats:
             self.refused.pop(name, None)  # served now: its refused stretch is history
             stats.latency_ms.append(latency_ms)
             stats.inference_ms.append(inference_ms)
+
+    def unchanged(self, name: str) -> None:
+        """A frame whose view had not changed: not inferred, the source's last maps published again."""
+        with self._lock:
+            stats = self.sources.setdefault(name, SourceStats())
+            stats.unchanged += 1
+            stats.problem = ""
 
     def dropped(self, name: str, reason: str, count: int = 1) -> None:
         """Count good frames that will never be published, by reason."""
@@ -219,14 +228,17 @@ class ServiceStats:
         self._log.warning("%s%s", message, extra, exc_info=error)
 
     def snapshot(
-        self, queued: Mapping[str, QueueCounters], clock_offsets: Mapping[str, float] | None = None
+        self,
+        queued: Mapping[str, QueueCounters],
+        clock_offsets: Mapping[str, float] | None = None,
+        shares: Mapping[str, Share] | None = None,
     ) -> StatsSnapshot:
-        """Per source: the queue's counts (received, dropped) with this object's (processed, rejected, latency)
-        and its clock's offset as learnt (service/runtime/clock_offset.py)."""
-        offsets = clock_offsets or {}
+        """Per source: the queue's counts (received, dropped) with this object's (processed, rejected, latency),
+        its clock's offset as learnt (service/runtime/clock_offset.py) and the scheduler's weight and share."""
+        offsets, shares = clock_offsets or {}, shares or {}
         with self._lock:
             sources = {
-                name: self._source_status(queued.get(name), name, offsets.get(name))
+                name: self._source_status(queued.get(name), name, offsets.get(name), shares.get(name))
                 for name in sorted(set(queued) | set(self.sources))
             }
             self._expire_refused()
@@ -238,7 +250,9 @@ class ServiceStats:
             dropped = {**({"replaced": replaced} if replaced else {}), **self.dropped_by_reason}
             return StatsSnapshot(sources, dict(self.rejected_by_reason), dropped, list(self.last_errors))
 
-    def _source_status(self, queued: QueueCounters | None, name: str, clock_offset_s: float | None) -> SourceStatus:
+    def _source_status(
+        self, queued: QueueCounters | None, name: str, clock_offset_s: float | None, share: Share | None
+    ) -> SourceStatus:
         stats = self.sources.get(name, SourceStats())
         return SourceStatus(
             received=queued.received if queued else 0,
@@ -256,6 +270,9 @@ class ServiceStats:
             dropped_by_reason=self._dropped_by(stats, queued),
             rejected_by_reason=dict(stats.rejected_by),
             problem=stats.problem,
+            unchanged=stats.unchanged,
+            weight=share.weight if share is not None else None,
+            share=share.share if share is not None else None,
         )
 
     @staticmethod

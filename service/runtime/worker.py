@@ -17,13 +17,15 @@ from gcdtrav.service.backends.cpus import usable_cpus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.admission import Admission
+from gcdtrav.service.runtime.change import Glance
 from gcdtrav.service.runtime.frames import InferredFrame, PendingFrame, ProcessedFrame
-from gcdtrav.service.runtime.freshness import Dropped, FrameGate, Freshness
+from gcdtrav.service.runtime.freshness import Dropped, FrameGate, Freshness, check_stamp
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.runtime.triage import Triage
 
 log = logging.getLogger("gcdtrav.service")
 _R = TypeVar("_R")
@@ -43,6 +45,7 @@ class FrameWorker:
         progress: ProgressMonitor | None = None,
         gate: FrameGate | None = None,
         admission: Admission | None = None,
+        triage: Triage | None = None,
     ) -> None:
         self.frames, self.pipeline, self.history, self.stats = frames, pipeline, history, stats
         self.sources, self.settings, self.publish = sources, settings, publish
@@ -51,6 +54,7 @@ class FrameWorker:
         self.admission = admission  # a new source takes a slot once its frame decodes; None: every source has one
         # stamps, ownership and age before inference and again before publishing
         self.gate = gate or FrameGate(lambda source: True, Freshness.from_settings(settings))
+        self.triage = triage  # frames glanced at on their own thread first: unchanged views reuse the last maps
         # With a CPU left over by torch (threads below the CPUs this process may use), a second thread
         # runs the last frame's engine work, encoding and publishing while the next frame is decoded and
         # inferred: +9 % frames/s with 1 torch thread on 2 cores (benchmarks/README.md). When torch has every
@@ -62,6 +66,8 @@ class FrameWorker:
         self._threads = [threading.Thread(target=self._infer_loop, name="gcdtrav-infer", daemon=True)]
         if self.overlap_outputs:
             self._threads.append(threading.Thread(target=self._output_loop, name="gcdtrav-output", daemon=True))
+        if triage is not None:
+            self._threads.append(threading.Thread(target=self._triage_loop, name="gcdtrav-triage", daemon=True))
 
     def start(self) -> None:
         for thread in self._threads:
@@ -95,6 +101,20 @@ class FrameWorker:
             else:
                 self._guarded(pending, self._finish, inferred)
         self._inferred.put(None)  # after the frame already handed on
+
+    def _triage_loop(self) -> None:
+        assert self.triage is not None
+        while not self._stopping.is_set():
+            reusable = self.triage.next_reusable(timeout=0.25)
+            if reusable is not None:
+                self._guarded(reusable[0], self._reuse, *reusable)
+
+    def _reuse(self, pending: PendingFrame, seen: Glance) -> None:
+        """The source's last maps again, for an unchanged frame: checked like a frame about to be published."""
+        assert self.triage is not None
+        check_stamp(seen.stamp)
+        self.gate.before_publish(pending)
+        self.triage.reuse(pending, seen)
 
     def _output_loop(self) -> None:
         while (item := self._inferred.get()) is not None:
@@ -167,8 +187,11 @@ class FrameWorker:
             source, maps.weights, result.anchors, image.stamp, image.frame_id, image.camera_size, maps.match
         )
         self.gate.before_publish(inferred.pending)  # the engine took time too
-        if not self.publish(ProcessedFrame(inferred, result, record)):
+        done = ProcessedFrame(inferred, result, record)
+        if not self.publish(done):
             self.stats.dropped(source, "shutdown")  # finished after the outputs closed
             return
         latency_ms = (time.time() - inferred.pending.received_at) * 1e3
         self.stats.processed(source, record.seq, latency_ms, result.inference_ms)
+        if self.triage is not None:
+            self.triage.inferred(done)

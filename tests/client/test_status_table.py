@@ -82,7 +82,7 @@ def test_each_source_shows_its_clock_offset_and_clocks_off_by_a_second_are_named
     }
     lines = status_table([a_status("box-1", sources)]).splitlines()
     header = next(line for line in lines if line.startswith("source "))
-    clock = columns(header)[9]
+    clock = columns(header)[10]  # after unchanged (issue 34)
     assert header[clock[0] : clock[1]] == "clock s"
     rows = [line for line in lines if line.split()[:1] and line.split()[0] in sources]
     shown = {row.split()[0]: row[: clock[1]].split()[-1] for row in rows}  # right-aligned under its header

@@ -18,7 +18,7 @@ ANCHORS = default_anchor_set()
 MAPS_HEADER = m.MapsHeader(
     source="r1/front", key="gcdtrav/in/r1/front", seq=3, stamp=1.5, received_at=1.6, published_at=2.0,
     inference_ms=400.0, model="tiny", instance="box-1", anchor_set_version=ANCHORS.version, method="gcd",
-    map_shape=(2, 2), image_size=(4, 4), scale=(2.0, 2.0),
+    map_shape=(2, 2), image_size=(4, 4), scale=(2.0, 2.0), computed_from=(1.0, 2),
 )  # fmt: skip
 DISTRIBUTION = m.ContextDistribution(
     source="r1/front", seq=3, stamp=1.5, anchor_set_version=ANCHORS.version,
@@ -68,7 +68,7 @@ SAMPLES: dict[type[m.Message], m.Message] = {
         anchor_set_version=ANCHORS.version,
         method="gcd",
         queued=0,
-        sources={"r1/front": m.SourceStatus(received=2)},
+        sources={"r1/front": m.SourceStatus(received=2, unchanged=1, weight=0.7, share=0.25)},
         rejected_by_reason={},
         last_errors=[],
         experience=m.ExperienceStatus(

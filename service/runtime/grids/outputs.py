@@ -18,7 +18,7 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-from gcdtrav.schemas.messages import ContextDistribution, GridHeader, PathReply
+from gcdtrav.schemas.messages import ContextDistribution, GridHeader, PathReply, Pose2D
 from gcdtrav.schemas.settings import GridSettings, RiskSettings
 from gcdtrav.service.grid.fusion import GroundGrid
 from gcdtrav.service.grid.layers import GridLayers, grid_layers
@@ -82,6 +82,14 @@ class GridOutputs:
         pose = decode_pose(payload, grid.config.pose_format)
         with grid.lock:
             grid.pose = pose
+
+    def pose_of(self, camera: str) -> Pose2D | None:
+        """The latest pose of the robot carrying camera ``camera`` (its grid's pose stream); None: unknown."""
+        grid = self.camera_grids.get(camera)
+        if grid is None:
+            return None
+        with grid.lock:
+            return grid.pose
 
     def set_camera_info(self, camera: str, payload: bytes) -> None:
         intrinsics = decode_camera_info(payload)

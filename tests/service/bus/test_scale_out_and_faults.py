@@ -153,7 +153,8 @@ def test_service_and_client_resume_after_a_router_restart(tiny_backend, tmp_path
                 break
         assert resumed is not None and resumed < 5.0, resumed
         print(f"\nmaps again {resumed:.2f} s after the router came back")
-        assert received[-1].header.seq >= 1  # the same service process, still counting
+        # The same service process, still counting (or answering the unchanged view with its kept maps).
+        assert received[-1].header.seq >= 1 or received[-1].reused
         assert client.status().instance == "box-r"
     finally:
         subscriber.undeclare()

@@ -1,0 +1,174 @@
+"""Unchanged views are not inferred again (issue 34). No zenoh here.
+
+Per source, every frame is glanced at (service/runtime/change.py) and compared with the source's last
+*inferred* frame (the reference: never with the last reused one, so a slow drift adds up until it counts).
+The frame is **reused** (not inferred: that frame's maps are published again under this frame's stamp,
+counted ``unchanged``) when all of these hold:
+
+- reuse is enabled and the source has a reference (a frame inferred and published) made with the active
+  anchor set (after a swap every source's next frame is inferred);
+- the frame has the reference's size (the maps' scale is for that size);
+- at most ``changed_fraction`` of the thumbnail's blocks moved beyond ``block_threshold``;
+- with a pose (a grid's pose stream), the robot neither moved ``translation_m`` nor turned ``rotation_deg``
+  since the reference (turning in place in front of a blank wall counts as a change);
+- the reference is younger than ``max_reuse_s``: after that the next frame is inferred, changed or not.
+  While that refresh waits for its turn, later unchanged frames are still answered with the last maps, up
+  to ``max_reuse_s + max_wait_s`` (the scheduler's floor): a worker that long without serving is hung.
+
+Otherwise the frame goes to the scheduler; **urgent** when it changed while the source's consumers hold
+reused maps (they show a view that is gone: a person walked in), which the scheduler serves first within
+its limits (service/runtime/share.py). The glances also give the scheduler each source's motion: the pose's
+speed where a pose is known, else the fraction of blocks that moved per second between consecutive frames.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
+from gcdtrav.service.runtime.change import (
+    Glance,
+    Thumbnail,
+    moved_fraction,
+    pose_moved,
+    pose_speeds,
+    thumbnail_of_rgb,
+)
+from gcdtrav.service.runtime.frames import PendingFrame
+from numpy.typing import NDArray
+
+GLANCES_KEPT = 2
+MOTION_TIME_CONSTANT_S = 1.0  # the motion estimate follows the glances with this time constant
+
+UNCHANGED, CHANGED, POSE, FIRST, MAX_REUSE, OFF = "unchanged", "changed", "pose", "first", "max_reuse", "off"
+ANCHORS, SIZE = "anchors", "size"
+
+
+@dataclass(frozen=True)
+class Verdict:
+    reuse: bool
+    reason: str  # UNCHANGED (reused), or why inferred: CHANGED, POSE, SIZE, ANCHORS, FIRST, MAX_REUSE, OFF
+    moved: float  # fraction of blocks moved since the reference (1.0 without one)
+    urgent: bool = False  # changed while the source's consumers hold reused maps
+
+
+@dataclass
+class _View:
+    reference: Thumbnail | None = None
+    reference_pose: Pose2D | None = None
+    reference_anchors: str = ""  # the anchor set version its maps were computed with
+    reference_size: tuple[int, int] | None = None  # (width, height): the maps' scale is for this size
+    inferred_at: float = -math.inf
+    reusing: bool = False  # the source's last published maps were reused
+    previous: Thumbnail | None = None
+    previous_at: float = -math.inf
+    previous_pose: Pose2D | None = None
+    motion: float = 0.0  # 0..1
+    # The last frames glanced at, for the reference: the one inferred is the newest ready one, maybe one
+    # arrival behind the newest glance.
+    glanced: deque[tuple[PendingFrame, Thumbnail]] = field(default_factory=lambda: deque(maxlen=GLANCES_KEPT))
+
+
+class ReuseTracker:
+    """Thread-safe: glances on the triage thread, references set by the worker after publishing."""
+
+    def __init__(
+        self,
+        settings: ReuseSettings,
+        schedule: ScheduleSettings | None = None,
+        pose_of: Callable[[str], Pose2D | None] = lambda source: None,
+        clock: Callable[[], float] = time.monotonic,
+        anchors_version: Callable[[], str] = lambda: "",
+    ) -> None:
+        self.settings, self.schedule = settings, schedule or ScheduleSettings()
+        self.pose_of, self.clock = pose_of, clock
+        self.anchors_version = anchors_version  # the active set's: maps of another set are never reused
+        self._refresh_limit_s = self.settings.max_reuse_s + self.schedule.max_wait_s
+        self._views: dict[str, _View] = {}
+        self._lock = threading.Lock()
+
+    def judge(self, source: str, pending: PendingFrame, glance: Glance, refresh_waiting: bool = False) -> Verdict:
+        """Reuse the source's last maps for this frame, or infer it (and how urgently). ``refresh_waiting``: a
+        frame of the source already waits for inference; an unchanged view past ``max_reuse_s`` is then
+        reused while that frame waits, instead of replacing it."""
+        now, pose = self.clock(), self.pose_of(source)
+        with self._lock:
+            view = self._views.setdefault(source, _View())
+            self._follow_motion(view, glance.thumbnail, pose, now)
+            view.glanced.append((pending, glance.thumbnail))
+            verdict = self._verdict(view, glance, pose, now, refresh_waiting)
+            if verdict.reuse:
+                view.reusing = True
+            return verdict
+
+    def _verdict(self, view: _View, glance: Glance, pose: Pose2D | None, now: float, refresh_waiting: bool) -> Verdict:
+        if view.reference is None:
+            return Verdict(False, FIRST, 1.0)
+        if view.reference_anchors != self.anchors_version():
+            return Verdict(False, ANCHORS, 1.0)
+        if glance.size != view.reference_size:  # the maps' scale would not fit (e.g. a relay shrank the frames)
+            return Verdict(False, SIZE, 1.0, urgent=view.reusing)
+        moved = moved_fraction(view.reference, glance.thumbnail, self.settings.block_threshold)
+        changed = moved > self.settings.changed_fraction
+        reference_pose = view.reference_pose
+        # A pose known now but not at the reference: the maps were never placed there (the grid needs a frame).
+        turned = pose is not None and (reference_pose is None or pose_moved(reference_pose, pose, self.settings))
+        if changed or turned:
+            return Verdict(False, CHANGED if changed else POSE, moved, urgent=view.reusing)
+        if not self.settings.enabled:
+            return Verdict(False, OFF, moved)
+        age = now - view.inferred_at
+        # While a refresh waits its turn, its maps still answer, up to the scheduler's floor: beyond it the
+        # worker is not serving (hung): frames then queue, and the watchdog sees it.
+        if age >= self.settings.max_reuse_s and not (refresh_waiting and age < self._refresh_limit_s):
+            return Verdict(False, MAX_REUSE, moved)
+        return Verdict(True, UNCHANGED, moved)
+
+    def _follow_motion(self, view: _View, thumbnail: Thumbnail, pose: Pose2D | None, now: float) -> None:
+        """The motion estimate: pose speed if known, else the image's change per second since the last glance."""
+        dt = now - view.previous_at
+        instant: float | None = None
+        if pose is not None and view.previous_pose is not None:
+            speeds = pose_speeds(view.previous_pose, pose)
+            if speeds is not None:
+                schedule = self.schedule
+                instant = max(speeds[0] / schedule.full_speed_mps, speeds[1] / schedule.full_turn_dps)
+        elif pose is None and view.previous is not None and 0 < dt < math.inf:
+            moved = moved_fraction(view.previous, thumbnail, self.settings.block_threshold)
+            instant = moved / dt / self.schedule.full_change_per_s
+        if instant is not None:
+            alpha = 1.0 - math.exp(-max(dt, 0.0) / MOTION_TIME_CONSTANT_S) if dt < math.inf else 1.0
+            view.motion += alpha * (min(1.0, instant) - view.motion)
+        view.previous, view.previous_at = thumbnail, now
+        if pose is not None and (view.previous_pose is None or pose.stamp > view.previous_pose.stamp):
+            view.previous_pose = pose
+
+    def inferred(self, source: str, pending: PendingFrame, image: NDArray[np.uint8], anchors: str = "") -> None:
+        """The source's frame was inferred (with the anchor set of version ``anchors``) and its maps published:
+        the new reference."""
+        now, pose = self.clock(), self.pose_of(source)
+        with self._lock:
+            view = self._views.setdefault(source, _View())
+            kept = next((thumbnail for frame, thumbnail in view.glanced if frame is pending), None)
+            # Not glanced at (no triage for it, or its glance forgotten): from the decoded image, the same means.
+            thumbnail = kept if kept is not None else thumbnail_of_rgb(image, self.settings.blocks)
+            view.reference, view.reference_pose, view.inferred_at = thumbnail, pose, now
+            view.reference_anchors = anchors
+            view.reference_size = (int(image.shape[1]), int(image.shape[0]))
+            view.reusing = False
+
+    def motion(self, source: str) -> float:
+        with self._lock:
+            view = self._views.get(source)
+            return view.motion if view is not None else 0.0
+
+    def forget(self, source: str) -> None:
+        with self._lock:
+            self._views.pop(source, None)

@@ -1,0 +1,151 @@
+"""When a frame is reused instead of inferred: the edges of ReuseTracker's verdicts, on a fake clock."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from gcdtrav.schemas.images import decode_image
+from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
+from gcdtrav.service.runtime.change import glance
+from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.service.runtime.reuse import (
+    ANCHORS,
+    CHANGED,
+    FIRST,
+    MAX_REUSE,
+    OFF,
+    POSE,
+    UNCHANGED,
+    ReuseTracker,
+    Verdict,
+)
+from scenes import flicker, jpeg_frame, noisy, scene, with_person
+
+LIMITS = (20_000_000, 40_000_000)
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class Robot:
+    """One source's frames through a tracker: judge each, and 'infer' those not reused."""
+
+    def __init__(self, settings: ReuseSettings | None = None, with_pose: bool = False) -> None:
+        self.clock = Clock()
+        self.pose: Pose2D | None = Pose2D(stamp=0.0, x=0.0, y=0.0, yaw=0.0) if with_pose else None
+        self.anchors = "v1"
+        self.tracker = ReuseTracker(
+            settings or ReuseSettings(), ScheduleSettings(), lambda s: self.pose, self.clock, lambda: self.anchors
+        )
+        self.settings = self.tracker.settings
+
+    def frame(self, image: np.ndarray, after_s: float = 0.2, refresh_waiting: bool = False) -> Verdict:
+        self.clock.now += after_s
+        pending = jpeg_frame(image)
+        seen = glance(pending, *LIMITS, self.settings.blocks)
+        verdict = self.tracker.judge("r1", pending, seen, refresh_waiting)
+        if not verdict.reuse:
+            self.infer(pending)
+        return verdict
+
+    def infer(self, pending: PendingFrame) -> None:
+        self.tracker.inferred("r1", pending, decode_image(pending.payload), self.anchors)
+
+
+def test_the_first_frame_is_inferred_then_the_same_view_is_reused() -> None:
+    robot, view = Robot(), scene()
+    assert robot.frame(view).reason == FIRST
+    verdict = robot.frame(noisy(view, 6.0, 1))
+    assert verdict.reuse and verdict.reason == UNCHANGED and not verdict.urgent
+
+
+def test_noise_and_flicker_only_are_reused_for_up_to_max_reuse_s() -> None:
+    robot, view = Robot(ReuseSettings(max_reuse_s=2.0)), scene()
+    robot.frame(view)
+    reasons = [robot.frame(flicker(noisy(view, 6.0, k), 1 + 0.05 * (k % 3), 3 * (k % 2))).reason for k in range(12)]
+    # 0.2 s apart: reused until the reference is 2 s old, then one refresh, then reused again.
+    assert reasons == [UNCHANGED] * 9 + [MAX_REUSE] + [UNCHANGED] * 2
+
+
+def test_max_reuse_s_reached_with_a_refresh_already_waiting_keeps_answering_with_the_last_maps() -> None:
+    robot, view = Robot(ReuseSettings(max_reuse_s=1.0)), scene()
+    robot.frame(view)
+    robot.clock.now += 1.0
+    assert robot.frame(view, refresh_waiting=True).reuse
+    robot.clock.now += ScheduleSettings().max_wait_s  # the refresh never served: a hung worker
+    assert robot.frame(view, refresh_waiting=True).reason == MAX_REUSE
+
+
+def test_a_person_walking_in_is_inferred_at_the_next_frame_and_is_urgent_after_reuse() -> None:
+    robot, view = Robot(), scene()
+    robot.frame(view)
+    robot.frame(view)  # reused: the source's consumers hold reused maps
+    verdict = robot.frame(with_person(view))
+    assert not verdict.reuse and verdict.reason == CHANGED and verdict.urgent
+    assert robot.frame(with_person(view)).reason == UNCHANGED  # the new reference has the person
+
+
+def test_a_change_right_after_an_inference_is_not_urgent() -> None:
+    robot, view = Robot(), scene()
+    robot.frame(view)
+    verdict = robot.frame(with_person(view))
+    assert verdict.reason == CHANGED and not verdict.urgent
+
+
+def test_turning_in_place_before_a_blank_wall_is_a_change() -> None:
+    robot, wall = Robot(with_pose=True), np.full((480, 640, 3), 128, np.uint8)
+    robot.frame(wall)
+    assert robot.frame(wall).reason == UNCHANGED
+    robot.pose = Pose2D(stamp=1.0, x=0.0, y=0.0, yaw=math.radians(10))
+    assert robot.frame(wall).reason == POSE
+    assert robot.frame(wall).reason == UNCHANGED  # the new reference has the new heading
+
+
+def test_a_pose_that_appears_after_the_reference_is_a_change() -> None:
+    robot, view = Robot(), scene()
+    robot.frame(view)
+    robot.pose = Pose2D(stamp=1.0, x=2.0, y=0.0, yaw=0.0)
+    assert robot.frame(view).reason == POSE
+    assert robot.frame(view).reason == UNCHANGED
+
+
+def test_reuse_off_infers_every_frame() -> None:
+    robot, view = Robot(ReuseSettings(enabled=False)), scene()
+    reasons = [robot.frame(view).reason for _ in range(4)]
+    assert reasons == [FIRST, OFF, OFF, OFF]
+
+
+def test_motion_follows_the_view_or_the_pose() -> None:
+    still, moving = Robot(), Robot()
+    for k in range(10):
+        still.frame(noisy(scene(), 5.0, k))
+        moving.frame(scene(shift=8 * k))
+    assert still.tracker.motion("r1") == 0.0
+    assert moving.tracker.motion("r1") > 0.5
+    driving = Robot(with_pose=True)
+    for k in range(10):
+        driving.pose = Pose2D(stamp=0.2 * (k + 1), x=0.1 * (k + 1), y=0.0, yaw=0.0)  # 0.5 m/s
+        driving.frame(scene())
+    assert driving.tracker.motion("r1") > 0.5  # from the pose, though the view never changes
+
+
+def test_forget_starts_the_source_again() -> None:
+    robot, view = Robot(), scene()
+    robot.frame(view)
+    robot.tracker.forget("r1")
+    assert robot.frame(view).reason == FIRST
+
+
+def test_an_anchor_swap_infers_the_next_frame_of_an_unchanged_view() -> None:
+    robot, view = Robot(), scene()
+    robot.frame(view)
+    robot.anchors = "v2"
+    assert robot.frame(view).reason == ANCHORS
+    assert robot.frame(view).reason == UNCHANGED

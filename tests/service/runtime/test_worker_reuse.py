@@ -1,0 +1,177 @@
+"""The worker with its glance: unchanged views publish the last maps again, changes are inferred, every
+frame is accounted for (received = processed + unchanged + dropped + rejected), and reuse can be off."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+import numpy as np
+import pytest
+from fakes import pipeline, processed
+from gcdtrav.schemas.messages import MapsMessage
+from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.service.runtime.change import Glance
+from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
+from gcdtrav.service.runtime.grids import GridOutputs
+from gcdtrav.service.runtime.history import FrameHistory
+from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.outputs import OutputBuilder
+from gcdtrav.service.runtime.reuse import ReuseTracker
+from gcdtrav.service.runtime.share import policy_for
+from gcdtrav.service.runtime.sources import SourceTracker
+from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.runtime.triage import Triage
+from gcdtrav.service.runtime.worker import FrameWorker
+from scenes import jpeg_frame, noisy, scene, with_person
+
+LOG = __import__("logging").getLogger("test")
+
+
+class Outputs:
+    def __init__(self) -> None:
+        self.inferred: list[ProcessedFrame] = []
+        self.reused: list[tuple[PendingFrame, Glance]] = []
+        self.freed: list[str] = []
+
+    def publish(self, done: ProcessedFrame) -> bool:
+        self.inferred.append(done)
+        return True
+
+    def republish(self, pending: PendingFrame, seen: Glance) -> bool:
+        self.reused.append((pending, seen))
+        return True
+
+
+def serving(**settings: object):  # type: ignore[no-untyped-def]
+    config = ServiceSettings.model_validate(settings)
+    stats, outputs = ServiceStats(LOG), Outputs()
+    run = pipeline()
+    tracker = ReuseTracker(config.reuse, config.schedule, anchors_version=lambda: run.anchors.version)
+    queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
+        policy=policy_for(config.schedule, tracker.motion), triage=True
+    )
+    triage = Triage(queue, tracker, config, stats, outputs.republish, lambda p, reason: outputs.freed.append(reason))
+    worker = FrameWorker(
+        queue, run, FrameHistory(2), stats, SourceTracker(8, 60), config, outputs.publish, triage=triage
+    )
+    return worker, queue, stats, outputs
+
+
+def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert condition()
+
+
+def feed(queue: LatestFrameQueue[PendingFrame], outputs: Outputs, frames: list[np.ndarray], source: str = "r1") -> None:
+    """One frame at a time, each answered (inferred or reused) before the next: a robot on credits."""
+
+    def answered() -> int:
+        return len(outputs.inferred) + len(outputs.reused)
+
+    for image in frames:
+        before = answered()
+        queue.put(source, jpeg_frame(image, source))
+        until(lambda before=before: answered() > before)
+
+
+def accounted(stats: ServiceStats, queue: LatestFrameQueue[PendingFrame]) -> dict[str, tuple[int, int]]:
+    snapshot = stats.snapshot(queue.counters())
+    return {
+        name: (s.received, s.processed + s.unchanged + s.dropped + s.rejected) for name, s in snapshot.sources.items()
+    }
+
+
+@pytest.mark.parametrize("threads", [None, 1])
+def test_a_parked_view_is_inferred_once_then_reused_and_a_change_is_inferred(threads: int | None) -> None:
+    worker, queue, stats, outputs = serving(threads=threads)
+    worker.start()
+    view = scene()
+    try:
+        feed(queue, outputs, [noisy(view, 5.0, k) for k in range(5)] + [with_person(view), with_person(view)])
+    finally:
+        assert worker.stop(time.monotonic() + 10)
+    assert len(outputs.inferred) == 2  # the first view, the person
+    assert len(outputs.reused) == 5 and outputs.freed.count("unchanged") == 5
+    snapshot = stats.snapshot(queue.counters())
+    assert snapshot.sources["r1"].unchanged == 5 and snapshot.sources["r1"].processed == 2
+    assert all(received == done for received, done in accounted(stats, queue).values())
+
+
+def test_reuse_off_infers_every_frame() -> None:
+    worker, queue, stats, outputs = serving(reuse={"enabled": False})
+    worker.start()
+    try:
+        feed(queue, outputs, [scene()] * 4)
+    finally:
+        assert worker.stop(time.monotonic() + 10)
+    assert len(outputs.inferred) == 4 and not outputs.reused
+    assert all(received == done for received, done in accounted(stats, queue).values())
+
+
+@pytest.mark.parametrize(
+    "kinds", [("parked",), ("moving",), ("parked", "moving")], ids=["all parked", "all moving", "mixed"]
+)
+def test_fleets_under_load_are_accounted_for(kinds: tuple[str, ...]) -> None:
+    """Several sources streaming faster than the answers: replaced frames are dropped, none lost; a parked
+    source is inferred once (well within max_reuse_s), a moving one at every turn it gets."""
+    worker, queue, stats, _ = serving()
+    worker.start()
+    try:
+        for k in range(30):
+            for robot in range(3):
+                if "parked" in kinds:
+                    queue.put(f"parked{robot}", jpeg_frame(noisy(scene(robot), 4.0, k), f"parked{robot}"))
+                if "moving" in kinds:
+                    queue.put(f"moving{robot}", jpeg_frame(scene(robot, shift=12 * k), f"moving{robot}"))
+            time.sleep(0.01)
+        until(lambda: len(queue) == 0)
+    finally:
+        assert worker.stop(time.monotonic() + 10)
+    snapshot = stats.snapshot(queue.counters())
+    for robot in range(3):
+        if "parked" in kinds:
+            parked = snapshot.sources[f"parked{robot}"]
+            assert parked.unchanged > 0 and parked.processed == 1
+        if "moving" in kinds:
+            moving = snapshot.sources[f"moving{robot}"]
+            assert moving.processed > 1 and moving.unchanged == 0
+    assert all(received == done for received, done in accounted(stats, queue).values())
+
+
+def test_a_reused_frame_republishes_the_maps_without_feeding_the_grid() -> None:
+    grid = {
+        "source": "r1/front",
+        "intrinsics": {"fx": 40, "fy": 40, "cx": 32, "cy": 24, "width": 64, "height": 48},
+        "mount": {"z": 1.0, "pitch": 0.5},
+        "size_m": 6.0,
+        "resolution_m": 0.5,
+    }
+    settings = ServiceSettings.model_validate({"grids": [grid], "instance": "box"})
+    grids = GridOutputs(settings.grids, 13, "box", settings.risk)
+    builder = OutputBuilder(settings, "fake", grids)
+    done = processed()
+    first = {o.key: o for o in builder.build(done, compact=True)}
+    assert "gcdtrav/out/r1/front/grid" in first and grids.sources["r1/front"].seq == 0
+    later = jpeg_frame(scene(), "r1/front", received_at=20.0)
+    reused = {o.key: o for o in builder.reused(later, 19.5, "cam", compact=True)}
+    assert set(reused) == {"gcdtrav/out/r1/front/maps", "gcdtrav/out/r1/front/maps8"}
+    assert grids.sources["r1/front"].seq == 0  # no new evidence
+    header = MapsMessage.unpack(reused["gcdtrav/out/r1/front/maps"].payload).header
+    original = MapsMessage.unpack(first["gcdtrav/out/r1/front/maps"].payload)
+    assert (header.stamp, header.order, header.seq) == (19.5, (19.5, 20.0), 0)
+    assert header.computed_from == (12.5, 0) and header.key == later.key
+    again = MapsMessage.unpack(reused["gcdtrav/out/r1/front/maps"].payload)
+    assert again.traversability_png == original.traversability_png
+    chained = MapsMessage.unpack(builder.reused(later, 21.0, "cam")[0].payload).header
+    assert chained.computed_from == (12.5, 0)  # always the inferred frame, never a reused one
+    builder.forget("r1/front")
+    assert builder.reused(later, 22.0, "cam") == []
+
+
+def test_nothing_is_kept_for_reuse_when_reuse_is_off() -> None:
+    builder = OutputBuilder(ServiceSettings(reuse={"enabled": False}), "fake", None)  # type: ignore[arg-type]
+    builder.build(processed())
+    assert builder.reused(jpeg_frame(scene(), "r1/front"), 1.0, "") == []
