@@ -5,8 +5,9 @@ matplotlib to draw (imported on use: the client stays light)."""
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 from gcdtrav.schemas.messages import ContextDistribution
 
@@ -63,6 +64,10 @@ def draw_distribution(
     axis.axvspan(d.mean - d.std, d.mean + d.std, color=accent, alpha=0.15, label=band)
     axis.plot(d.density_x, d.density, color=colour, label="context distribution")
     axis.axvline(d.mean, color=accent, linestyle="--", label="T (mean)")
+    if d.alpha is not None and d.quantile is not None:  # the risk measures, from 1.1 writers
+        axis.axvline(d.quantile, color="tab:red", linestyle=":", label=f"{d.alpha:g}-quantile = {d.quantile:.2f}")
+    if d.alpha is not None and d.cvar is not None:
+        axis.axvline(d.cvar, color="tab:red", linestyle="-.", label=f"CVaR {d.alpha:g} = {d.cvar:.2f}")
     weights = axis.twinx()
     positions = [a.position for a in d.anchors]
     weights.bar(positions, d.weights, width=0.012, color="tab:gray", alpha=0.8, label="anchor weights")
@@ -80,11 +85,18 @@ def draw_distribution(
     weights.legend(handles + bar_handles, labels + bar_labels, loc="upper right", fontsize=7)  # above the bars
 
 
-def save_distribution(d: ContextDistribution, path: Path) -> None:
-    """``d`` alone in a PNG, titled with its source, frame and cell."""
+def save_distribution(d: ContextDistribution, path: Path | BinaryIO) -> None:
+    """``d`` alone in a PNG (a file or a binary stream), titled with its source, frame and cell."""
     plt = pyplot()
     figure, axis = plt.subplots(figsize=(6.4, 3.2), dpi=120)
     draw_distribution(axis, d, f"{d.source} {where(d)}")
     figure.tight_layout()
-    figure.savefig(path)
+    figure.savefig(path, format="png")
     plt.close(figure)
+
+
+def distribution_png(d: ContextDistribution) -> bytes:
+    """``d`` drawn as by ``save_distribution``, as PNG bytes."""
+    stream = io.BytesIO()
+    save_distribution(d, stream)
+    return stream.getvalue()

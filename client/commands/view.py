@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
+import json
 import signal
 import sys
 import threading
@@ -17,6 +18,7 @@ from types import FrameType
 from gcdtrav.client.session.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+RECORD_MAX_MB = 4096  # by default: about an hour of one source at full rate, and never more than this
 INSTALL = "pip install 'gcdtrav[view]'"
 
 
@@ -47,9 +49,29 @@ def add_view_command(commands: argparse._SubParsersAction) -> None:
     view.add_argument(
         "--record-max-mb",
         type=float,
-        default=0,
+        default=RECORD_MAX_MB,
         help="total size of the recording: the oldest files are deleted to stay under it, and files are at most "
-        "a quarter of it [0: no limit]",
+        f"a quarter of it [{RECORD_MAX_MB}: a day of recording fits a small disk; 0: no limit]",
+    )
+    view.add_argument(
+        "--record-camera-every",
+        type=int,
+        default=1,
+        metavar="N",
+        help="record one camera frame in N (the live view keeps every frame) [1; 0: leave the camera out]",
+    )
+    view.add_argument(
+        "--settings",
+        type=Path,
+        metavar="FILE",
+        help="the service's settings file: its grid cameras' mounts and intrinsics place the cameras and their "
+        "frustums in the 3D panel",
+    )
+    view.add_argument(
+        "--layout",
+        type=Path,
+        metavar="FILE",
+        help="write a Lichtblick/Foxglove layout for the sources the service has (one tab per source) and exit",
     )
     view.add_argument("--max-sources", type=int, default=32, help="sources shown at most [32]")
     view.add_argument("--status-period", type=float, default=1.0, help="seconds between status queries [1]")
@@ -69,6 +91,9 @@ def run(args: argparse.Namespace) -> int:
     from gcdtrav.client.client import TraversabilityClient
     from gcdtrav.client.view.viewer import Viewer, ViewOptions
 
+    if args.layout is not None:
+        return write_layout(args)
+
     options = ViewOptions(
         host=args.host,
         port=args.port,
@@ -81,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
         record=args.record,
         record_file_bytes=megabytes(args.record_file_mb),
         record_max_bytes=megabytes(args.record_max_mb) if args.record_max_mb else None,
+        record_camera_every=args.record_camera_every,
+        settings=args.settings,
     )
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
@@ -111,7 +138,31 @@ def usage_problem(args: argparse.Namespace) -> str | None:
         return "--record-file-mb, --max-sources and --status-period must be positive, and --port 0..65535"
     if args.record_max_mb < 0:
         return "--record-max-mb must be positive (or 0: no limit)"
+    if args.record_camera_every < 0:
+        return "--record-camera-every must be 1 or more (or 0: no camera in recordings)"
     return None
+
+
+def write_layout(args: argparse.Namespace) -> int:
+    """Ask the service which sources it has and write a layout with one tab per source."""
+    from gcdtrav.client.client import TraversabilityClient
+    from gcdtrav.client.view.layout import layout, service_sources
+    from gcdtrav.schemas.settings import load_settings
+
+    try:
+        grids = load_settings(args.settings).grids if args.settings else []
+        config = zenoh_config_from_args(args)
+        with TraversabilityClient(config=config, prefix=args.prefix, timeout=args.timeout) as client:
+            sources = service_sources(client.statuses(timeout=args.timeout), [grid.source for grid in grids])
+        if not sources:
+            print("gcdtrav view: the service has no sources yet: send it images first", file=sys.stderr)
+            return EXIT_FAILED
+        args.layout.write_text(json.dumps(layout(sources, args.prefix), indent=1) + "\n")
+    except Exception as err:  # no answer, an unwritable file: one line
+        print(f"gcdtrav view: {type(err).__name__}: {' '.join(str(err).split())}", file=sys.stderr)
+        return EXIT_FAILED
+    print(f"gcdtrav view: layout for {', '.join(sources)} written to {args.layout}")
+    return EXIT_OK
 
 
 def megabytes(value: float) -> int:

@@ -6,7 +6,7 @@ Parameters (a flat name -> value map, so Foxglove's Parameters panel edits each 
     anchors/default_width   float   sigma of anchors without their own width
     anchors/NN/concept      str     anchor NN's text prompt (NN = 00, 01, ... in position order)
     anchors/NN/position     float   its place on the traversability scale [0, 1]
-    anchors/NN/width        float   its effective width (its own, else default_width); setting it gives it its own
+    anchors/NN/width        float   its own width, or null (None) where it follows default_width; null sets it back
     anchors/json            str     the whole set as JSON: paste a set here to add or remove anchors
 
 An edit is applied to a copy of the active set and the result validated as a whole with the same pydantic
@@ -28,7 +28,7 @@ ANCHOR_FIELDS = {"concept": str, "position": float, "width": float}
 _ANCHOR_NAME = re.compile(rf"^{PREFIX}/(\d+)/(\w+)$")
 _MESSAGE_FIELD = re.compile(r"^anchors\.(\d+)\.(\w+)")
 
-ParameterValue = str | float
+ParameterValue = str | float | None
 
 
 def anchor_parameter(index: int, field: str) -> str:
@@ -39,10 +39,10 @@ def anchor_parameters(anchors: AnchorSet) -> dict[str, ParameterValue]:
     """Every parameter of ``anchors``, in the order the Parameters panel lists them."""
     values: dict[str, ParameterValue] = {f"{PREFIX}/name": anchors.name}
     values[f"{PREFIX}/default_width"] = anchors.default_width
-    for index, (anchor, width) in enumerate(zip(anchors.anchors, anchors.widths, strict=True)):
+    for index, anchor in enumerate(anchors.anchors):
         values[anchor_parameter(index, "concept")] = anchor.concept
         values[anchor_parameter(index, "position")] = anchor.position
-        values[anchor_parameter(index, "width")] = width
+        values[anchor_parameter(index, "width")] = anchor.width  # null as the set says: it follows default_width
     values[JSON_PARAMETER] = anchors.model_dump_json(exclude_none=True)
     return values
 
@@ -87,8 +87,9 @@ def _apply(document: dict[str, Any], active: AnchorSet, name: str, value: object
             last = anchor_parameter(len(active) - 1, "width")
             return f"no such parameter; the set has {anchor_parameter(0, 'concept')} .. {last}"
         kind, target = ANCHOR_FIELDS[field], document["anchors"][index]
-        if field == "width" and value == active.widths[index]:
-            return None  # the effective width shown, unchanged: the anchor keeps following default_width
+        if field == "width" and value is None:
+            target[field] = None  # follow default_width again
+            return None
     elif name.startswith(f"{PREFIX}/") and field in SET_FIELDS:
         kind = SET_FIELDS[field]
     else:

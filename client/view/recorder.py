@@ -32,8 +32,10 @@ class McapRecorder:
         file_bytes: int,
         total_bytes: int | None = None,
         stem: str = "gcdtrav",
+        channel_filter: foxglove.SinkChannelFilter | None = None,
     ) -> None:
         self.directory, self.context, self.stem, self.total_bytes = directory, context, stem, total_bytes
+        self.channel_filter = channel_filter  # which channels the files get (None: all)
         self.file_bytes = file_bytes if total_bytes is None else min(file_bytes, total_bytes // FILES_UNDER_CAP)
         self.files: list[Path] = []  # on disk, oldest first; the last is being written
         self.deleted: list[Path] = []
@@ -46,7 +48,9 @@ class McapRecorder:
 
     def _open_next(self) -> None:
         path = self.directory / f"{self.stem}-{time.strftime('%Y%m%d-%H%M%S')}-{self._opened:03d}.mcap"
-        self._writer = foxglove.open_mcap(path, context=self.context, writer_options=self._options)
+        self._writer = foxglove.open_mcap(
+            path, context=self.context, writer_options=self._options, channel_filter=self.channel_filter
+        )
         self._opened += 1
         self.files.append(path)
         log.info("recording to %s", path)

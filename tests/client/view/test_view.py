@@ -100,6 +100,7 @@ async def watch_and_steer(url: str, client: TraversabilityClient, running: Trave
     drive(client, 0)
     topics = ["/gcdtrav/cam/traversability", "/gcdtrav/cam/grid", "/gcdtrav/log"]
     await fox.until(lambda: all(topic in fox.channels for topic in topics))
+    await asyncio.sleep(0.3)  # foxglove-sdk 0.30.3 may refuse a subscription sent the instant a channel appears
     await fox.subscribe(*topics)
     await asyncio.sleep(0.3)
     for step in (1, 2):
@@ -252,3 +253,26 @@ def test_gcdtrav_view_without_the_extra_says_what_to_install() -> None:
     assert result.returncode == 2
     expected = "gcdtrav view: needs foxglove-sdk; install the view extra: pip install 'gcdtrav[view]'"
     assert result.stderr.strip() == expected
+
+
+def test_gcdtrav_view_layout_writes_a_tab_per_source_of_the_service(service, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    _, port = service
+    flags = ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
+    layout = tmp_path / "layout.json"
+    empty = subprocess.run(torch_free_gcdtrav("view", "--layout", str(layout), *flags), capture_output=True,
+                           text=True, timeout=60)  # fmt: skip
+    assert empty.returncode == 1 and "no sources yet" in empty.stderr and not layout.exists()
+    with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
+        maps: list[object] = []
+        subscriber = client.subscribe_maps("cam", maps.append)
+        time.sleep(0.5)
+        drive(client, 0)
+        assert wait_until(lambda: bool(maps), 15)
+        subscriber.undeclare()
+    done = subprocess.run(torch_free_gcdtrav("view", "--layout", str(layout), *flags), capture_output=True,
+                          text=True, timeout=60)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == f"gcdtrav view: layout for cam written to {layout}"
+    document = json.loads(layout.read_text())
+    tabs = document["configById"][document["layout"]]["tabs"]
+    assert [tab["title"] for tab in tabs] == ["cam"]

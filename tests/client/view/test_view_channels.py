@@ -110,21 +110,3 @@ def test_nothing_is_sent_before_the_anchor_set_is_known(fake: FakeClient) -> Non
         assert idle.logged[ANCHORS] == 0
     finally:
         idle.close()
-
-
-def test_an_operator_question_shows_its_crop_and_a_log_line(viewer: Viewer, fake: FakeClient) -> None:
-    from gcdtrav.schemas.experience import OperatorQuestion, QuestionConcept
-    from gcdtrav.schemas.images import encode_jpeg
-
-    crop = encode_jpeg(np.full((20, 30, 3), 90, np.uint8))
-    question = OperatorQuestion(
-        id="cam-1", source="cam", stamp=5.0, reason="ambiguous", region=(1.0, 0.0, 2.0, 0.5), cells=[(1.5, 0.25)],
-        concepts=[QuestionConcept(concept="bush", position=0.45, weight=0.5),
-                  QuestionConcept(concept="grass", position=0.5, weight=0.4)],
-        anchor_set_version=PAPER.version, crop_jpeg=crop,
-    )  # fmt: skip
-    fake.session.put("gcdtrav/out/cam/question", question.pack())
-    assert wait_until(lambda: viewer.logged["/gcdtrav/cam/question"] == 1, 10)
-    assert viewer.logged["/gcdtrav/log"] >= 1 and viewer.errors["question"] == 0
-    fake.session.put("gcdtrav/out/cam/question", b"\x00")  # a bad one is counted, the viewer goes on
-    assert wait_until(lambda: viewer.errors["question"] == 1, 10)

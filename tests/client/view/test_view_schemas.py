@@ -10,7 +10,9 @@ is dropped.
 from __future__ import annotations
 
 import asyncio
+import base64
 import json
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -164,3 +166,42 @@ def test_every_json_channel_the_viewer_advertises_parses_in_lichtblick() -> None
     for topic, (name, schema) in advertised.items():
         lichtblick_datatypes(schema, name)  # raises LichtblickRejects naming the field
         print(topic, name, "ok")
+
+
+async def every_channel(url: str) -> dict[str, dict[str, Any]]:
+    fox = await FoxgloveClient.connect(url)
+    await fox.until(lambda: "/gcdtrav/cam/question" in fox.channels and "/gcdtrav/cam/grid/costmap" in fox.channels)
+    await fox.close()
+    return fox.channels
+
+
+def test_every_channel_of_a_source_with_everything_has_a_schema_lichtblick_reads(tmp_path: Path) -> None:
+    """JSON channels through the port of Lichtblick's parser; protobuf channels' schemas are FileDescriptorSets
+    holding the message they name (what Lichtblick hands protobufjs)."""
+    pytest.importorskip("google.protobuf")
+    pytest.importorskip("rosbags")
+    import msgpack
+    from google.protobuf import descriptor_pb2, descriptor_pool
+    from test_view_operator import SETTINGS, feed
+
+    settings = tmp_path / "gcdtrav.yaml"
+    settings.write_text(SETTINGS)
+    client = FakeClient()
+    with Viewer(client, ViewOptions(port=0, settings=settings)) as viewer:  # type: ignore[arg-type]
+        feed(viewer, client)
+        client.session.put("gcdtrav/out/cam/question", msgpack.packb({"id": "q", "text": "mud?"}))
+        viewer.set_probe({"probe/source": "cam"})
+        channels = asyncio.run(every_channel(viewer.url))
+    new = {"grid/cvar", "grid/p_below", "grid/match", "grid/costmap", "grid/cvar/image", "tf", "robot",
+           "camera_info", "distribution", "question"}  # fmt: skip
+    assert {f"/gcdtrav/cam/{name}" for name in new} <= set(channels)
+    for topic, channel in channels.items():
+        if channel["encoding"] == "json":
+            lichtblick_datatypes(json.loads(channel["schema"]), channel["schemaName"])
+            continue
+        assert (channel["encoding"], channel["schemaEncoding"]) == ("protobuf", "protobuf"), topic
+        files = descriptor_pb2.FileDescriptorSet.FromString(base64.b64decode(channel["schema"]))
+        pool = descriptor_pool.DescriptorPool()
+        for file in files.file:
+            pool.Add(file)
+        assert pool.FindMessageTypeByName(channel["schemaName"]).full_name == channel["schemaName"], topic

@@ -25,7 +25,7 @@ def rejected(changes: dict[str, object]) -> list[str]:
 def test_parameters_round_trip_the_set() -> None:
     values = anchor_parameters(PAPER)
     assert values["anchors/name"] == "paper" and values["anchors/12/concept"] == "concrete"
-    assert values["anchors/12/position"] == 1.0 and values["anchors/12/width"] == 0.0
+    assert values["anchors/12/position"] == 1.0 and values["anchors/12/width"] is None  # null, as the set says
     assert AnchorSet.from_text(str(values[JSON_PARAMETER])) == PAPER
     assert apply_parameters(PAPER, {name: values[name] for name in values if name != JSON_PARAMETER}) == PAPER
 
@@ -37,11 +37,14 @@ def test_one_edit_changes_one_field_and_keeps_the_rest() -> None:
     assert apply_parameters(PAPER, {"anchors/11/position": 1}).anchors[11].position == 1.0  # JSON ints are numbers
 
 
-def test_a_width_follows_default_width_until_set() -> None:
-    assert apply_parameters(PAPER, {"anchors/04/width": 0.0}).anchors[4].width is None  # the shown value: no change
-    assert apply_parameters(PAPER, {"anchors/04/width": 0.05}).anchors[4].width == 0.05
+def test_a_width_is_null_until_set_and_null_sets_it_back() -> None:
+    assert apply_parameters(PAPER, {"anchors/04/width": None}).anchors[4].width is None  # the shown value
+    own = apply_parameters(PAPER, {"anchors/04/width": 0.05})
+    assert own.anchors[4].width == 0.05 and anchor_parameters(own)["anchors/04/width"] == 0.05
+    assert apply_parameters(own, {"anchors/04/width": None}).anchors[4].width is None
+    assert apply_parameters(PAPER, {"anchors/04/width": 0.0}).anchors[4].width == 0.0  # 0 is a width, not null
     wider = apply_parameters(PAPER, {"anchors/default_width": 0.02})
-    assert anchor_parameters(wider)["anchors/04/width"] == 0.02
+    assert anchor_parameters(wider)["anchors/04/width"] is None and wider.widths[4] == 0.02
 
 
 def test_problems_name_the_parameters() -> None:
