@@ -569,7 +569,7 @@ class ServiceStatus(Message):
         "than one distinct version is a divergence. Since 1.2.",
     )
     experience: ExperienceStatus | None = Field(
-        default=None, description="Experience counts and open questions; None: experience off (docs/calibration.md)."
+        default=None, description="Experience counts and open questions; None: experience off. Since 1.3."
     )
 
 
