@@ -3,6 +3,7 @@
     python -m benchmarks.experience                          # the full run; prints a Markdown table
     python -m benchmarks.experience --out benchmarks/experience-mine.json
     python -m benchmarks.experience --quick                  # a short drive: a smoke check of the plumbing
+    python -m benchmarks.experience --bus                    # the same drive through the service on loopback
 
 A synthetic world (tools/synthetic_scene.py) whose terrains' true traversability differs from the starting
 anchors (grass 0.8 instead of 0.5, sand 0.15 instead of 0.4, bush 0.25 instead of 0.45), a camera rendering
@@ -29,13 +30,12 @@ import argparse
 import json
 import math
 import sys
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.experience import Odometry2D, TraversalOutcome, Twist2D
+from gcdtrav.schemas.experience import AnchorProposal, Odometry2D, TraversalOutcome, Twist2D
 from gcdtrav.schemas.settings import ExperienceSettings
 from gcdtrav.service.engine import gcd
 from gcdtrav.service.experience.calibration import calibration_figures
@@ -45,45 +45,21 @@ from gcdtrav.service.experience.store import ExperienceStore
 from gcdtrav.service.experience.velocity import VelocityTracker, decode_command, decode_odometry
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 
-from tools.synthetic_scene import TRUTH, SceneBackend, World, default_camera, make_world, start_anchors
+from tools.synthetic_scene import (
+    COMMAND_MPS,
+    TRUTH,
+    Robot,
+    SceneBackend,
+    World,
+    default_camera,
+    make_world,
+    start_anchors,
+)
 
 START_STAMP = 1.7e9
 ODOMETRY_DT, COMMAND_EVERY, CAMERA_EVERY = 0.05, 2, 5  # 20 Hz odometry, 10 Hz commands, 4 Hz camera
-COMMAND_MPS = 1.0
-MIN_PACE = 0.35  # the route's pace never stalls (see the docstring)
-SPEED_NOISE = 0.05  # per odometry sample, on the ratio achieved / commanded
 TAU = 0.3
 MIN_GOAL_PAIRS = 200
-
-
-@dataclass
-class Robot:
-    world: World
-    rng: np.random.Generator
-    x: float = 0.0
-    y: float = 0.0
-    yaw: float = 0.0
-    goal: tuple[float, float] = (0.0, 0.0)
-    turns: list[float] = field(default_factory=list)
-
-    def next_goal(self) -> None:
-        half = self.world.size_m / 2 - 8.0
-        self.goal = (float(self.rng.uniform(-half, half)), float(self.rng.uniform(-half, half)))
-
-    def step(self, dt: float) -> tuple[float, float]:
-        """Move one step toward the goal; (speed odometry reports, yaw rate)."""
-        if math.hypot(self.goal[0] - self.x, self.goal[1] - self.y) < 1.0:
-            self.next_goal()
-        wanted = math.atan2(self.goal[1] - self.y, self.goal[0] - self.x)
-        turn = math.atan2(math.sin(wanted - self.yaw), math.cos(wanted - self.yaw))
-        rate = max(-1.0, min(1.0, 2.0 * turn))
-        truth = self.world.true_traversability(self.x, self.y)
-        ratio = min(max(truth + float(self.rng.normal(0, SPEED_NOISE)), 0.0), 1.0)
-        pace = COMMAND_MPS * max(truth, MIN_PACE)
-        self.yaw += rate * dt
-        self.x += pace * math.cos(self.yaw) * dt
-        self.y += pace * math.sin(self.yaw) * dt
-        return COMMAND_MPS * ratio, rate
 
 
 def fuse(
@@ -146,15 +122,64 @@ def figures_row(figures: Any) -> dict[str, Any]:
     }
 
 
+STORE_LIMITS: dict[str, Any] = {"max_pairs": 200_000, "max_bytes": 64_000_000}
+
+
 def run(drive_s: float, after_s: float, seed: int) -> dict[str, Any]:
     world = make_world(seed=seed)
     start = start_anchors()
-    settings = ExperienceSettings(enabled=True, footprint_m=0.6, max_pairs=200_000, max_bytes=64_000_000)
+    settings = ExperienceSettings(enabled=True, footprint_m=0.6, **STORE_LIMITS)
     store = ExperienceStore(None, settings.max_pairs, settings.max_bytes, settings.lookahead_s)
     end = drive(world, start, store, settings, drive_s, seed + 1, START_STAMP)
     proposal = propose(store.pairs(start.concepts), start, FitOptions(tau=TAU), "benchmark", end)
+    drive(world, proposal.proposed, store, settings, after_s, seed + 2, end + 10.0)
+    return graded(store, start, proposal, drive_s, after_s, seed)
+
+
+def run_bus(drive_s: float, after_s: float, seed: int) -> dict[str, Any]:
+    """The same drive through the real service on loopback: the robot publishes images, its pose, commands and
+    odometry over zenoh (tools/robot_drive.py); the proposal comes from {prefix}/config/anchors/proposal and is
+    applied with the fleet-wide swap, as `gcdtrav anchors propose --apply` does. The pairs are graded from the
+    service's store (in this process) with the same code as the zenoh-free run."""
+    import tempfile
+
+    from gcdtrav.client import TraversabilityClient
+    from gcdtrav.client.session.zenoh_args import zenoh_config
+    from gcdtrav.schemas.settings import RiskSettings, ServiceSettings
+
+    from tools.loopback import in_process_service
+    from tools.robot_drive import BusRobot, experience_settings, grid_settings
+
+    world, start = make_world(seed=seed), start_anchors()
+    with tempfile.TemporaryDirectory() as state:
+        settings = ServiceSettings(
+            state_dir=Path(state),
+            instance="bench",
+            preview=False,
+            max_frame_age_s=None,  # simulated time, like a replayed bag
+            max_stamp_skew_s=None,
+            grids=[grid_settings()],
+            experience=experience_settings(**STORE_LIMITS),
+            risk=RiskSettings(tau=TAU),
+        )
+        with in_process_service(SceneBackend(seed=seed + 1), settings, start) as (service, port):
+            config = zenoh_config(mode="peer", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+            with TraversabilityClient(config=config, timeout=60.0) as client:
+                robot = BusRobot(client, world)
+                end = robot.drive(drive_s, seed + 1)
+                proposal = client.anchor_proposal()
+                client.set_anchors(proposal.proposed)
+                robot.drive(after_s, seed + 2, start_stamp=end + 10.0)
+                robot.close()
+                assert service.experience is not None
+                return graded(service.experience.experience.store, start, proposal, drive_s, after_s, seed)
+
+
+def graded(
+    store: ExperienceStore, start: AnchorSet, proposal: AnchorProposal, drive_s: float, after_s: float, seed: int
+) -> dict[str, Any]:
+    """Both sets on the pairs of the drive after applying; the fitted positions against the truth."""
     proposed = proposal.proposed
-    drive(world, proposed, store, settings, after_s, seed + 2, end + 10.0)
     pairs = store.pairs(start.concepts)
     after_pairs = pairs.select(np.array([v == proposed.version for v in pairs.versions], bool))
     before = calibration_figures(after_pairs.weights_for(start), after_pairs.outcomes, start, TAU)
@@ -185,7 +210,7 @@ def run(drive_s: float, after_s: float, seed: int) -> dict[str, Any]:
         "drive_s": drive_s,
         "after_s": after_s,
         "seed": seed,
-        "counts": store.counts,
+        "counts": dict(store.counts),
         "proposal_diff": proposal.diff,
         "train_pairs": proposal.train_pairs,
         "held_out_pairs": proposal.held_out_pairs,
@@ -244,9 +269,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--quick", action="store_true", help="120 s + 60 s: a smoke check, goals not expected")
     parser.add_argument("--out", type=Path, help="also write the result as JSON")
+    parser.add_argument("--bus", action="store_true", help="through the real service on loopback (zenoh)")
     args = parser.parse_args(argv)
     drive_s, after_s = (120.0, 60.0) if args.quick else (args.drive_s, args.after_s)
-    result = run(drive_s, after_s, args.seed)
+    result = (run_bus if args.bus else run)(drive_s, after_s, args.seed)
+    result["path"] = "bus" if args.bus else "in-process"
     print(table(result))
     if args.out:
         args.out.write_text(json.dumps(result, indent=2) + "\n", "utf-8")

@@ -20,6 +20,14 @@ import zenoh
 from gcdtrav.client.freshness import FreshnessWatch, Staleness
 from gcdtrav.client.session.source_info import put_identified
 from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.experience import (
+    AnchorProposal,
+    AnswerReply,
+    CalibrationReport,
+    OperatorAnswer,
+    OperatorQuestion,
+    TraversalOutcome,
+)
 from gcdtrav.schemas.images import (
     decode_age_png,
     decode_count_png,
@@ -732,3 +740,33 @@ class TraversabilityClient:
         if not answers and errors:
             raise errors[0]
         return sorted(answers, key=lambda status: status.instance)
+
+    # ---- experience (docs/calibration.md) ------------------------------------------------------------
+    def publish_outcome(self, source: str, outcome: TraversalOutcome) -> None:
+        """How driving over a place went, for the grid ``source`` (a service with experience enabled)."""
+        self.session.put(self.keys.outcome(source), outcome.pack(), encoding=MSGPACK)
+
+    def calibration(self, source: str, timeout: float | None = None) -> CalibrationReport:
+        """The active anchor set graded by the outcomes stored for the grid ``source``."""
+        return self._query(self.keys.calibration(source), CalibrationReport, timeout=timeout)
+
+    def anchor_proposal(self, source: str | None = None, timeout: float | None = None) -> AnchorProposal:
+        """An anchor set fitted on the experience (of ``source``'s grid; default the service's), never applied:
+        ``set_anchors(proposal.proposed)`` applies it."""
+        params = {"source": source} if source else None
+        return self._query(self.keys.anchor_proposal, AnchorProposal, params, timeout=timeout)
+
+    def answer(
+        self, source: str, question_id: str, score: float, operator: str = "", timeout: float | None = None
+    ) -> AnswerReply:
+        """Answer an OperatorQuestion: ``score`` 1 drivable, 0 blocked; its cells become operator outcomes."""
+        answer = OperatorAnswer(id=question_id, source=source, score=score, operator=operator)
+        return self._query(self.keys.answer(source), AnswerReply, payload=answer.pack(), timeout=timeout)
+
+    def subscribe_questions(
+        self, selector: str, callback: Callable[[OperatorQuestion], None]
+    ) -> zenoh.Subscriber[None]:
+        """Call ``callback`` with every OperatorQuestion of the matching sources."""
+        return self.session.declare_subscriber(
+            self.keys.question(selector), lambda sample: callback(OperatorQuestion.unpack(sample.payload.to_bytes()))
+        )

@@ -241,3 +241,28 @@ class OperatorAnswer(Message):
         if not (math.isfinite(value) and 0.0 <= value <= 1.0):
             raise ValueError(f"score {value} is outside [0, 1] (1 = drivable, 0 = blocked)")
         return value
+
+
+class AnswerReply(Message):
+    """The reply to an answer sent as a query on {prefix}/in/{source}/answer."""
+
+    id: str = Field(max_length=64)
+    source: str
+    score: float
+    pairs: int = Field(description="Pairs the answer's operator outcomes made (one per cell of the question).")
+
+
+ANSWER_WORDS: dict[str, float] = {"drivable": 1.0, "blocked": 0.0}
+
+
+def answer_score(text: str) -> float:
+    """`gcdtrav answer SOURCE drivable|blocked|SCORE` -> the score; ValueError with the accepted forms."""
+    if text in ANSWER_WORDS:
+        return ANSWER_WORDS[text]
+    try:
+        score = float(text)
+    except ValueError:
+        raise ValueError(f"answer '{text}': give drivable, blocked or a score in [0, 1]") from None
+    if not 0.0 <= score <= 1.0:
+        raise ValueError(f"answer {score}: a score must be in [0, 1]")
+    return score

@@ -9,14 +9,22 @@ A service with prefix ``gcdtrav`` (the default) answers and publishes on:
   {prefix}/out/{source}/grid                 GridMessage (ground grid); .../grid/occupancy, .../grid/uncertainty,
                                              .../grid/gridmap (grid_map_msgs/GridMap), .../grid/costmap (Nav2)
   {prefix}/out/{source}/cell                 queryable: a ground cell's ContextDistribution, or a path
+  {prefix}/out/{source}/calibration          queryable: CalibrationReport of the grid's experience (issue 33)
+  {prefix}/out/{source}/question             OperatorQuestion: cells ahead stayed ambiguous or novel
   {prefix}/config/anchors                    queryable: the active anchor set, or a swap (payload = new set)
   {prefix}/config/anchors/history            queryable: the last accepted sets
   {prefix}/config/anchors/rollback           queryable: go back N sets
+  {prefix}/config/anchors/proposal           queryable: AnchorProposal fitted on the experience (never applied)
   {prefix}/status                            queryable: ServiceStatus
   {prefix}/alive/{instance}                  liveliness token
   {prefix}/active/{instance}/{millis}/{version}  liveliness token: the instance's active anchor set, accepted at
                                              {millis} (ms since epoch); the fleet converges to the newest
   {prefix}/credit/{source}                   CreditGrant: the source's owner is ready for its next frame
+
+Robots and operators send on (experience enabled; docs/calibration.md):
+
+  {prefix}/in/{source}/outcome               TraversalOutcome: how driving over a place went
+  {prefix}/in/{source}/answer                OperatorAnswer (put), or a query with it as payload (AnswerReply)
 
 A relay on a robot (``gcdtrav relay``) publishes on the robot's own bus:
 
@@ -30,7 +38,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-OUTPUT_KINDS = ("maps", "maps8", "preview", "patch", "grid", "cell")
+OUTPUT_KINDS = ("maps", "maps8", "preview", "patch", "grid", "cell", "calibration", "question")
+# The last chunk of {prefix}/in/{source}/<kind> keys that carry messages, not images: never a camera source.
+INPUT_MESSAGE_KINDS = ("outcome", "answer")
 GRID_LAYERS = ("occupancy", "uncertainty", "gridmap", "costmap")  # the grid's CDR messages, under .../grid/
 
 
@@ -70,6 +80,29 @@ class Keys:
     def cell(self, source: str) -> str:
         return self.output(source, "cell")
 
+    def calibration(self, source: str) -> str:
+        return self.output(source, "calibration")
+
+    def question(self, source: str) -> str:
+        return self.output(source, "question")
+
+    def outcome(self, source: str) -> str:
+        """Where traversal outcomes of the grid ``source`` arrive (``**`` where subscribing)."""
+        return f"{self.prefix}/in/{source}/outcome"
+
+    def answer(self, source: str) -> str:
+        """Where an operator's answers to ``source``'s questions arrive (put, or a query with the answer)."""
+        return f"{self.prefix}/in/{source}/answer"
+
+    def input_message(self, key: str) -> tuple[str, str] | None:
+        """(source, kind) of ``{prefix}/in/{source}/outcome`` or ``.../answer``; None for any other key (an
+        image's). Such keys are never read as images, whatever the inputs' expressions cover."""
+        head = f"{self.prefix}/in/"
+        source, _, kind = key[len(head) :].rpartition("/") if key.startswith(head) else ("", "", "")
+        if kind not in INPUT_MESSAGE_KINDS or not source or "*" in source or "$" in source:
+            return None
+        return source, kind
+
     @property
     def anchors(self) -> str:
         return f"{self.prefix}/config/anchors"
@@ -81,6 +114,10 @@ class Keys:
     @property
     def anchor_rollback(self) -> str:
         return f"{self.anchors}/rollback"
+
+    @property
+    def anchor_proposal(self) -> str:
+        return f"{self.anchors}/proposal"
 
     @property
     def status(self) -> str:

@@ -499,6 +499,29 @@ class SourceStatus(WireModel):
     )
 
 
+class QuestionStatus(WireModel):
+    """An open OperatorQuestion as the status shows it (the question without its crop)."""
+
+    id: str
+    source: str
+    stamp: float
+    reason: str = Field(description="ambiguous or novel.")
+    concepts: list[str] = Field(description="The two competing concepts, strongest first.")
+    region: tuple[float, float, float, float] = Field(description="(x0, y0, x1, y1) in the grid's frame, m.")
+
+
+class ExperienceStatus(WireModel):
+    """The experience of an instance (docs/calibration.md): its grid, pairs and counters, open questions."""
+
+    source: str = Field(description="The grid the outcomes belong to.")
+    pairs: int = Field(description="Stored pairs, every concept tuple.")
+    stored_bytes: int = 0
+    counts: dict[str, int] = Field(
+        default_factory=dict, description="outcomes, pairs, rejected_* and ignored_* by reason, velocity_*, ask_*."
+    )
+    open_questions: list[QuestionStatus] = Field(default_factory=list)
+
+
 class ServiceStatus(Message):
     instance: str
     instances: list[str] = Field(default_factory=list, description="Live instances of this prefix, as seen here.")
@@ -544,6 +567,9 @@ class ServiceStatus(Message):
         default_factory=dict,
         description="The active anchor set version of every live instance, as this one last learnt it; more "
         "than one distinct version is a divergence. Since 1.2.",
+    )
+    experience: ExperienceStatus | None = Field(
+        default=None, description="Experience counts and open questions; None: experience off. Since 1.3."
     )
 
 

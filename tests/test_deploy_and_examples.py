@@ -123,6 +123,23 @@ def test_grid_example_settings_are_valid() -> None:
     assert settings.grids[0].source == "cam" and settings.grids[0].pose_key == "robot/pose"
 
 
+def test_experience_example_and_the_readme_commands_of_its_section() -> None:
+    """examples/experience.yaml loads; every `gcdtrav` line of "Let the robot's driving tune it" parses with
+    today's CLI (tests/service/bus/test_experience_e2e.py runs them against a live service)."""
+    import shlex
+
+    from gcdtrav.schemas.settings import load_settings
+    from gcdtrav.service.commands.cli import build_parser
+
+    settings = load_settings(ROOT / "examples" / "experience.yaml", environ={})
+    assert settings.experience.enabled and settings.ask.enabled and settings.experience.cmd_vel == "/cmd_vel"
+    readme = (ROOT / "README.md").read_text("utf-8")
+    section = readme.split("## Let the robot's driving tune it", 1)[1].split("\n## ", 1)[0]
+    lines = [line for line in section.splitlines() if line.startswith("gcdtrav ")]
+    commands = {build_parser().parse_args(shlex.split(line, comments=True)[1:]).command for line in lines}
+    assert {"serve", "calibration", "anchors", "status", "answer"} <= commands
+
+
 def test_readme_python_example_runs(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     """The README's client snippet, copied as it is, against a live service (only the zenoh config swapped
     for a loopback one without multicast)."""

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
@@ -161,3 +161,40 @@ class SceneCamera:
 
 def default_camera() -> SceneCamera:
     return SceneCamera(PinholeCamera(50.0, 50.0, 32.0, 24.0, 64, 48), CameraMount(z=1.0, pitch=0.5))
+
+
+# ---- the robot -------------------------------------------------------------------------------------------
+
+COMMAND_MPS = 1.0
+MIN_PACE = 0.35  # the route never stalls, so it visits every terrain; only odometry reports how slow it was
+SPEED_NOISE = 0.05  # per odometry sample, on the ratio achieved / commanded
+
+
+@dataclass
+class Robot:
+    world: World
+    rng: np.random.Generator
+    x: float = 0.0
+    y: float = 0.0
+    yaw: float = 0.0
+    goal: tuple[float, float] = (0.0, 0.0)
+    turns: list[float] = field(default_factory=list)
+
+    def next_goal(self) -> None:
+        half = self.world.size_m / 2 - 8.0
+        self.goal = (float(self.rng.uniform(-half, half)), float(self.rng.uniform(-half, half)))
+
+    def step(self, dt: float) -> tuple[float, float]:
+        """Move one step toward the goal; (speed odometry reports, yaw rate)."""
+        if math.hypot(self.goal[0] - self.x, self.goal[1] - self.y) < 1.0:
+            self.next_goal()
+        wanted = math.atan2(self.goal[1] - self.y, self.goal[0] - self.x)
+        turn = math.atan2(math.sin(wanted - self.yaw), math.cos(wanted - self.yaw))
+        rate = max(-1.0, min(1.0, 2.0 * turn))
+        truth = self.world.true_traversability(self.x, self.y)
+        ratio = min(max(truth + float(self.rng.normal(0, SPEED_NOISE)), 0.0), 1.0)
+        pace = COMMAND_MPS * max(truth, MIN_PACE)
+        self.yaw += rate * dt
+        self.x += pace * math.cos(self.yaw) * dt
+        self.y += pace * math.sin(self.yaw) * dt
+        return COMMAND_MPS * ratio, rate

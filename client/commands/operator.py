@@ -1,4 +1,5 @@
-"""Operator commands of `gcdtrav`, torch-free: `gcdtrav status`, `gcdtrav anchors get|set`, `gcdtrav probe`.
+"""Operator commands of `gcdtrav`, torch-free: `gcdtrav status`, `gcdtrav anchors get|set|history|rollback|
+propose`, `gcdtrav probe`, and the experience's `gcdtrav calibration` and `gcdtrav answer` (experience.py).
 
 They run from the base install (`pip install gcdtrav`), with the zenoh flags of `gcdtrav serve`.
 Exit codes: 0 ok, 1 rejected or failed (one line on stderr), 2 usage error.
@@ -15,12 +16,13 @@ from pathlib import Path
 
 import zenoh
 from gcdtrav.client.client import AnchorSetRejected, ServiceError, TraversabilityClient
+from gcdtrav.client.commands import experience
 from gcdtrav.client.commands.density_plot import describe, save_distribution
 from gcdtrav.client.session.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, anchor_diff
 from gcdtrav.schemas.messages import AnchorHistoryReply, ContextDistribution, ServiceStatus, SourceStatus
 
-COMMANDS = ("status", "anchors", "probe")
+COMMANDS = ("status", "anchors", "probe", *experience.COMMANDS)
 EXIT_OK, EXIT_FAILED = 0, 1
 RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?$")  # zenoh's errors end with the Rust file that raised them
 
@@ -38,6 +40,9 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
     history = actions.add_parser("history", help="the last accepted anchor sets, newest (active) first")
     rollback = actions.add_parser("rollback", help="swap back to an earlier set of the history, on every instance")
     rollback.add_argument("steps", nargs="?", type=int, default=1, help="how far back [1: the set before]")
+    propose = actions.add_parser("propose", help="the set fitted on the robot's outcomes, as a diff; --apply swaps it")
+    propose.add_argument("--source", help="whose experience [the service's grid]")
+    propose.add_argument("--apply", action="store_true", help="swap it in on every instance (validated, rollback-able)")
     probe = commands.add_parser("probe", help="a pixel's context distribution, printed or drawn (no torch)")
     probe.add_argument("source", help="the source, e.g. r1/front")
     probe.add_argument("x", type=float, help="image pixel column")
@@ -46,7 +51,7 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
     probe.add_argument("--alpha", type=float, help="CVaR and quantile level, 0 < alpha <= 1 [the service's risk.alpha]")
     probe.add_argument("--tau", type=float, help="P(T < tau) threshold, 0 <= tau <= 1 [the service's risk.tau]")
     probe.add_argument("--png", type=Path, help="also draw the density like the paper's Fig. 2 (needs matplotlib)")
-    for parser in (status, get, put, history, rollback, probe):
+    for parser in (status, get, put, history, rollback, propose, probe, *experience.add_experience_commands(commands)):
         parser.add_argument("--prefix", default="gcdtrav", help="the service's key prefix [gcdtrav]")
         parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for replies [5]")
         add_zenoh_arguments(parser)
@@ -61,7 +66,15 @@ def run(args: argparse.Namespace) -> int:
                 return watch_status(client, args.watch) if args.watch else print_status(client)
             if args.command == "probe":
                 return probe(client, args)
-            actions = {"get": get_anchors, "set": set_anchors, "history": show_history, "rollback": roll_back}
+            if args.command in experience.COMMANDS:
+                return experience.run_command(client, args)
+            actions = {
+                "get": get_anchors,
+                "set": set_anchors,
+                "history": show_history,
+                "rollback": roll_back,
+                "propose": propose_anchors,
+            }
             return actions[args.action](client, args)
     except (AnchorSetError, AnchorSetRejected, ServiceError, OSError, ValueError) as err:
         print(f"gcdtrav {args.command}: {one_line(err)}", file=sys.stderr)
@@ -119,6 +132,7 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
     if problems:
         lines += ["", "why the last frame gave no maps:", *(f"  {line}" for line in problems)]
     lines += fleet_warnings(statuses)
+    lines += experience.status_lines(statuses)
     precision = [f"{s.instance}: {s.precision} ({s.precision_reason})" for s in statuses if s.precision_reason]
     if precision:
         lines += ["", *(f"precision {line}" for line in precision)]
@@ -272,6 +286,19 @@ def roll_back(client: TraversabilityClient, args: argparse.Namespace) -> int:
     print(f"{active.version} ({len(active)} anchors) -> {target.version} ({len(target)} anchors)")
     print("\n".join(anchor_diff(active, target)) or "no change")
     print(f"rolled back: anchor set {reply.version} active on {fleet_sets(client)}")
+    return EXIT_OK
+
+
+def propose_anchors(client: TraversabilityClient, args: argparse.Namespace) -> int:
+    """The fitted set as a diff with the held-out figures before and after; swapped in only with --apply, as
+    `anchors set` swaps (validated by every instance, fleet-wide, in the history for a rollback)."""
+    proposal = client.anchor_proposal(args.source)
+    print("\n".join(experience.proposal_lines(proposal)))
+    if not args.apply:
+        print("not applied: gcdtrav anchors propose --apply swaps it in")
+        return EXIT_OK
+    version = client.set_anchors(proposal.proposed)
+    print(f"swapped: anchor set {version} active on {fleet_sets(client)} (gcdtrav anchors rollback undoes it)")
     return EXIT_OK
 
 

@@ -187,6 +187,10 @@ class ServiceSettings(StrictModel):
         if not self.inputs and not self.ros_inputs:
             raise ValueError("at least one input is needed: inputs (e.g. gcdtrav/in/**) or ros_inputs")
         one_grid_per_camera(self.grids)
+        if self.experience.enabled and not self.grids:
+            raise ValueError("experience: enabled needs a ground grid (grids:): outcomes pair with its cells")
+        if self.ask.enabled and not self.experience.enabled:
+            raise ValueError("ask: enabled needs experience: enabled (an answer becomes outcomes of the experience)")
         return self
 
     @property

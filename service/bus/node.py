@@ -22,6 +22,7 @@ from gcdtrav.service.bus import replies
 from gcdtrav.service.bus.anchor_sync import AnchorSync
 from gcdtrav.service.bus.credits import CreditPublisher
 from gcdtrav.service.bus.entities import undeclare_all
+from gcdtrav.service.bus.experience import experience_bus
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
@@ -151,6 +152,7 @@ class TraversabilityService:
         )
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
+        self.experience = experience_bus(session, settings, pipeline, self.grids, self.stats, self.owns)
 
     def _check_inputs(self) -> None:
         own = zenoh.KeyExpr(self.keys.outputs)
@@ -180,6 +182,8 @@ class TraversabilityService:
         if self.grids is not None:
             self._declare_grid_inputs(self.grids)
         self._declare_queryables()
+        if self.experience is not None:
+            self._declared += self.experience.start()
         self.worker.start()
         self._watchdog.start()
         backend, active = self.pipeline.describe(), self.anchor_switch.head().anchor_set
@@ -208,6 +212,8 @@ class TraversabilityService:
         self.outputs.close()  # before the session's entities: a late frame is refused, not put on a dead key
         self.credits.close()
         undeclare_all(self._declared)
+        if self.experience is not None:
+            self.experience.close()  # after its subscribers: the last outcomes are saved too
         self._declared.clear()
         if self.anchor_sync is not None:
             self.anchor_sync.close()
@@ -221,9 +227,15 @@ class TraversabilityService:
 
     def _on_image(self, sample: zenoh.Sample, head: str) -> None:
         """Runs on zenoh's thread: only rate-check, size-check and enqueue; decoding happens in the worker."""
-        if self._stopping.is_set() or not self._admitted(publisher := publisher_of(sample)):
+        if self._stopping.is_set():
             return
         key = str(sample.key_expr)
+        if self.keys.input_message(key) is not None:  # an outcome or an answer: never an image, nor its intake
+            if self.experience is None:
+                self.stats.rejected(None, "experience_off", f"{key}: experience is not enabled on this service")
+            return
+        if not self._admitted(publisher := publisher_of(sample)):
+            return
         self._enqueue(input_source_of(key, head), sample, None, publisher)
 
     def _admitted(self, publisher: str | None) -> bool:
@@ -311,7 +323,8 @@ class TraversabilityService:
     def status(self) -> ServiceStatus:
         live = sorted(self.membership.live()) if self.membership else None
         fleet = self.anchor_sync.fleet.versions() if self.anchor_sync else {}
-        return self.status_parts.status(time.time(), live, fleet)
+        experience = self.experience.status() if self.experience is not None else None
+        return self.status_parts.status(time.time(), live, fleet, experience)
 
     def _on_status_query(self, query: zenoh.Query) -> None:
         replies.check_no_parameters(query)

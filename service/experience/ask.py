@@ -20,7 +20,13 @@ from dataclasses import dataclass
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.experience import OperatorAnswer, OperatorQuestion, QuestionConcept, TraversalOutcome
+from gcdtrav.schemas.experience import (
+    OperatorAnswer,
+    OperatorQuestion,
+    QuestionConcept,
+    TraversalOutcome,
+    answer_score,
+)
 from gcdtrav.schemas.messages import Pose2D
 from gcdtrav.schemas.settings import AskSettings
 from gcdtrav.service.engine import gcd, risk
@@ -210,15 +216,4 @@ class OperatorAsker:
         return Answered(outcomes, question.weights, question.anchors)
 
 
-def parse_answer(text: str) -> float:
-    """`gcdtrav answer SOURCE drivable|blocked|SCORE` -> the score."""
-    words = {"drivable": 1.0, "blocked": 0.0}
-    if text in words:
-        return words[text]
-    try:
-        score = float(text)
-    except ValueError:
-        raise ValueError(f"answer '{text}': give drivable, blocked or a score in [0, 1]") from None
-    if not 0.0 <= score <= 1.0:
-        raise ValueError(f"answer {score}: a score must be in [0, 1]")
-    return score
+parse_answer = answer_score  # the one parser lives with the messages: the client needs it too

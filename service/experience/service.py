@@ -16,18 +16,29 @@ from pathlib import Path
 
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.experience import AnchorProposal, CalibrationReport, OperatorAnswer, OperatorQuestion
-from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.schemas.messages import ExperienceStatus, Pose2D, QuestionStatus
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings
 from gcdtrav.service.experience.ask import Crop, OperatorAsker
 from gcdtrav.service.experience.fitter import FitOptions
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore
-from gcdtrav.service.experience.velocity import VelocityTracker, decode_command, decode_odometry, is_ros_topic
+from gcdtrav.service.experience.velocity import (
+    VelocityTracker,
+    decode_command,
+    decode_message,
+    decode_odometry,
+    is_ros_topic,
+)
 from gcdtrav.service.grid.fusion import GroundGrid
 
 log = logging.getLogger("gcdtrav.service")
 SNAPSHOT_SLACK_S = 5.0  # snapshots kept beyond lookahead_s: outcomes arrive a little late
 ExperienceInput = tuple[str, bool, Callable[[bytes, float], None], str]  # key or topic, is ROS, handler, reason
+
+
+def decode_answer(payload: bytes) -> OperatorAnswer:
+    """An OperatorAnswer in msgpack or JSON; MessageError if it is neither."""
+    return decode_message(OperatorAnswer, payload)
 
 
 def experience_file(state_dir: Path, prefix: str) -> Path:
@@ -82,9 +93,10 @@ class Experience:
         """An outcome from the bus ({prefix}/in/{source}/outcome); OutcomeRejected (counted) for a bad one."""
         return self.store.ingest(payload, self.ring)
 
-    def on_answer(self, payload: bytes, received_at: float) -> int:
-        """An OperatorAnswer; the pairs its outcomes made. MessageError or ValueError (counted) if bad."""
-        answer = OperatorAnswer.unpack(payload)
+    def on_answer(self, payload: bytes | OperatorAnswer, received_at: float) -> int:
+        """An OperatorAnswer (msgpack or JSON, or decoded); the pairs its outcomes made. MessageError or ValueError
+        (counted) if bad."""
+        answer = payload if isinstance(payload, OperatorAnswer) else decode_answer(payload)
         asker = self.askers.get(answer.source)
         if asker is None:
             raise ValueError(f"no questions are asked for source '{answer.source}'")
@@ -126,6 +138,26 @@ class Experience:
             for name, value in asker.counts.items():
                 found[f"ask_{name}"] = found.get(f"ask_{name}", 0) + value
         return found
+
+    def open_questions(self) -> list[OperatorQuestion]:
+        return [q for q in (asker.open_question for asker in list(self.askers.values())) if q is not None]
+
+    def status(self) -> ExperienceStatus:
+        """What ``gcdtrav status`` shows: the grid, the pairs, every counter, the open questions."""
+        questions = [
+            QuestionStatus(
+                id=q.id, source=q.source, stamp=q.stamp, reason=q.reason, concepts=[c.concept for c in q.concepts],
+                region=q.region,
+            )
+            for q in self.open_questions()
+        ]  # fmt: skip
+        return ExperienceStatus(
+            source=self.source,
+            pairs=self.store.size,
+            stored_bytes=self.store.nbytes,
+            counts=self.counts(),
+            open_questions=questions,
+        )
 
     def save_if_dirty(self) -> bool:
         return self.store.save_if_dirty()

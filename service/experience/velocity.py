@@ -39,7 +39,8 @@ def is_ros_topic(name: str) -> bool:
     return name.startswith("/")
 
 
-def _decode_message(kind: type[M], payload: bytes) -> M:
+def decode_message(kind: type[M], payload: bytes) -> M:
+    """A message in msgpack or JSON (a payload starting with '{'); MessageError naming what is wrong."""
     if len(payload) > MAX_INPUT_BYTES:
         raise MessageError(f"{kind.__name__} of {len(payload)} bytes is over {MAX_INPUT_BYTES}")
     if payload.lstrip()[:1] == b"{":
@@ -59,7 +60,7 @@ def decode_command(payload: bytes, ros: bool) -> Twist2D:
     if ros:
         vx, vy, wz = decode_twist(payload)
         return Twist2D(vx=vx, vy=vy, wz=wz)
-    return _decode_message(Twist2D, payload)
+    return decode_message(Twist2D, payload)
 
 
 def decode_odometry(payload: bytes, ros: bool) -> Odometry2D:
@@ -70,7 +71,7 @@ def decode_odometry(payload: bytes, ros: bool) -> Odometry2D:
         return Odometry2D(
             stamp=pose.stamp, frame_id=pose.frame_id, x=pose.x, y=pose.y, yaw=pose.yaw, vx=vx, vy=vy, wz=wz
         )
-    return _decode_message(Odometry2D, payload)
+    return decode_message(Odometry2D, payload)
 
 
 @dataclass

@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from gcdtrav.schemas.messages import ServiceStatus
+from gcdtrav.schemas.messages import ExperienceStatus, ServiceStatus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.clock_offset import ClockOffsets
@@ -33,10 +33,15 @@ class StatusParts:
     clock_offsets: ClockOffsets  # each source's clock against this instance's, as estimated
 
     def status(
-        self, now: float, live: list[str] | None = None, fleet: Mapping[str, str] | None = None
+        self,
+        now: float,
+        live: list[str] | None = None,
+        fleet: Mapping[str, str] | None = None,
+        experience: ExperienceStatus | None = None,
     ) -> ServiceStatus:
         """This instance's status at ``now``; ``live``: the instances of the prefix (None: this one alone);
-        ``fleet``: every instance's anchor-set version as this one knows it."""
+        ``fleet``: every instance's anchor-set version as this one knows it; ``experience``: its own status
+        (service/experience, a layer above the runtime), None when off."""
         counts = self.stats.snapshot(self.queue.counters(), self.clock_offsets.offsets(), self.queue.policy.shares())
         health = self.progress.health()
         head = self.anchors.head()
@@ -65,4 +70,5 @@ class StatusParts:
             reason=health.reason,
             anchor_set_accepted_at=head.accepted_at or None,  # 0: the set it started with, never swapped
             anchor_sets=dict(fleet or {}),
+            experience=experience,
         )

@@ -191,7 +191,7 @@ class FrameWorker:
             source, maps.weights, result.anchors, image.stamp, image.frame_id, image.camera_size, maps.match
         )
         self.gate.before_publish(inferred.pending)  # the engine took time too
-        done = ProcessedFrame(inferred, result, record, self._fuse(inferred.pending, result, record))
+        done = ProcessedFrame(inferred, result, record, self._fuse(inferred.pending, inferred.image, result, record))
         if not self.publish(done):
             self.stats.dropped(source, "shutdown")  # finished after the outputs closed
             return
@@ -200,9 +200,12 @@ class FrameWorker:
         if self.triage is not None:
             self.triage.inferred(done)
 
-    def _fuse(self, pending: PendingFrame, result: FrameResult, record: FrameRecord) -> FusedGrid | None:
+    def _fuse(
+        self, pending: PendingFrame, image: DecodedFrame, result: FrameResult, record: FrameRecord
+    ) -> FusedGrid | None:
         """Fuse an inferred frame about to be published into the grid its camera feeds (if any); a reused
         frame (triage) is no new evidence and never reaches here."""
         if self.grids is None:
             return None
-        return self.grids.fuse(pending.source, record, result.maps.weights, result.maps.match, pending.ros)
+        maps = result.maps
+        return self.grids.fuse(pending.source, record, maps.weights, maps.match, pending.ros, image.image)

@@ -232,10 +232,11 @@ def test_a_relayed_png_camera_gets_maps(tiny_backend, tmp_path: Path) -> None:  
 
 
 def test_a_camera_whose_every_frame_is_stale_is_shown_with_why_on_both_sides(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
-    """A robot clock an hour behind: every frame is stale by the clock. The status lists the source with its
-    drops by reason and the detail; the relay's health, its staleness log and watch_freshness (on either bus)
-    name the reason the service gave."""
-    with service_and_robot(tiny_backend, tmp_path, relay={}, max_frame_age_s=2.0) as setup:
+    """A robot clock an hour behind on a fleet that promised synchronised clocks (``clock: synced``; the default
+    learns the robot's clock and serves it): every frame is stale by the service's clock. The status lists the
+    source with its drops by reason and the detail; the relay's health, its staleness log and watch_freshness
+    (on either bus) name the reason the service gave."""
+    with service_and_robot(tiny_backend, tmp_path, relay={}, max_frame_age_s=2.0, clock="synced") as setup:
         camera = Camera(setup.bus, CAMERA_KEY, encode_jpeg(textured_image(240, 320)), None, (320, 240))
         camera.envelope, camera.age_s = PixelEncoding.JPEG, 3600.0
         service_side: list[Staleness] = []

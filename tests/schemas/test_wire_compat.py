@@ -71,6 +71,21 @@ SAMPLES: dict[type[m.Message], m.Message] = {
         sources={"r1/front": m.SourceStatus(received=2, unchanged=1, weight=0.7, share=0.25)},
         rejected_by_reason={},
         last_errors=[],
+        experience=m.ExperienceStatus(
+            source="r1/front",
+            pairs=3,
+            counts={"pairs": 3},
+            open_questions=[
+                m.QuestionStatus(
+                    id="q1",
+                    source="r1/front",
+                    stamp=2.0,
+                    reason="ambiguous",
+                    concepts=["bush", "grass"],
+                    region=(0.0, 0.0, 1.0, 1.0),
+                )
+            ],
+        ),
     ),
     m.SourceView: m.SourceView(source="r1/front", maps=MAPS_HEADER, instances={"box-1": m.SourceStatus()}),
     m.CompactMapsMessage: m.CompactMapsMessage(header=MAPS_HEADER, traversability_png=b"t", uncertainty_png=b"u"),
@@ -134,6 +149,7 @@ SAMPLES.update(
             crop_jpeg=b"jpeg",
         ),
         e.OperatorAnswer: e.OperatorAnswer(id="q1", source="cam", score=1.0, stamp=3.0, operator="ada"),
+        e.AnswerReply: e.AnswerReply(id="q1", source="cam", score=0.0, pairs=4),
     }
 )  # fmt: skip
 

@@ -30,13 +30,15 @@ from gcdtrav.service.ros.cdr import (
 )
 from gcdtrav.service.runtime.grids import answers
 from gcdtrav.service.runtime.grids.encoding import FusedGrid, GridUpdate, encode_update, grid_header
-from gcdtrav.service.runtime.grids.state import SourceGrid, grid_spec
+from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid, grid_spec
 from gcdtrav.service.runtime.history import FrameRecord
 from numpy.typing import NDArray
 
 log = logging.getLogger("gcdtrav.service")
 
 GridInput = tuple[str, str, Callable[[str, bytes], None], str]  # key, grid or camera, setter, rejection reason
+# Called under the grid's lock after each fusion: the grid, the camera that fed it, the frame's image if known.
+AfterFusion = Callable[[SourceGrid, CameraState, NDArray[np.uint8] | None], None]
 
 
 class GridOutputs:
@@ -56,6 +58,7 @@ class GridOutputs:
         self.instance, self.risk, self.clock = instance, risk or RiskSettings(), clock
         self.sources = {c.source: SourceGrid(c, GroundGrid(grid_spec(c), anchor_count)) for c in configs}
         self.camera_grids = {camera: grid for grid in self.sources.values() for camera in grid.cameras}
+        self.after_fusion: AfterFusion | None = None  # the experience's snapshots and questions (service/bus)
 
     def inputs(self) -> list[GridInput]:
         """What the grids subscribe to besides the maps: pose streams (by grid), CameraInfo and depth (by
@@ -107,9 +110,10 @@ class GridOutputs:
         weights: NDArray[np.floating],
         match: NDArray[np.floating] | None = None,
         ros: RosTopic | None = None,
+        image: NDArray[np.uint8] | None = None,
     ) -> GridUpdate | None:
         """``fuse``, then encode: for tools and tests (the service fuses in the worker, encodes in the outputs)."""
-        fused = self.fuse(source, record, weights, match, ros)
+        fused = self.fuse(source, record, weights, match, ros, image)
         return fused.encode() if fused is not None else None
 
     def fuse(
@@ -119,10 +123,11 @@ class GridOutputs:
         weights: NDArray[np.floating],
         match: NDArray[np.floating] | None = None,
         ros: RosTopic | None = None,
+        image: NDArray[np.uint8] | None = None,
     ) -> FusedGrid | None:
         """Fuse a processed frame of camera ``source`` (its weights and match scores per map patch, its ROS
-        topic if a ROS camera) into its grid; the grid's layers to publish, or None (not a grid's camera,
-        or no intrinsics yet)."""
+        topic if a ROS camera, its image for ``after_fusion``) into its grid; the grid's layers to publish, or
+        None (not a grid's camera, or no intrinsics yet)."""
         grid = self.camera_grids.get(source)
         if grid is None:
             return None
@@ -133,6 +138,8 @@ class GridOutputs:
                 log.warning("grid of %s: no intrinsics yet (waiting for CameraInfo), frame not fused", source)
                 return None
             grid.fuse(camera, weights, record.image_size, record.stamp, record.anchors, match)
+            if self.after_fusion is not None:
+                self.after_fusion(grid, camera, image)
             anchors = record.anchors
             positions, widths = np.asarray(anchors.positions), np.asarray(anchors.widths)
             risk = self.risk

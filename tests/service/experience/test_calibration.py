@@ -148,7 +148,7 @@ def test_mismatched_lengths_are_refused() -> None:
 
 def test_the_reliability_diagram_is_a_png(tmp_path: Path) -> None:
     pytest.importorskip("matplotlib")
-    from gcdtrav.service.experience.figures import reliability_diagram
+    from gcdtrav.client.commands.calibration_plot import reliability_diagram
 
     weights, y = pairs(200)
     for name, figures in (

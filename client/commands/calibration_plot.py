@@ -1,6 +1,6 @@
-"""The reliability diagram of a calibration report (docs/calibration.md): predicted P(T < tau) against how
-often the outcome fell below tau, per bin, with the pairs per bin and the figures in the title. Needs
-matplotlib (imported on use, as the other figures)."""
+"""The reliability diagram of a calibration report (docs/calibration.md), for `gcdtrav calibration --png`:
+predicted P(T < tau) against how often the outcome fell below tau, per bin, with the pairs per bin and the
+figures in the title. Needs matplotlib, imported on use (the client's base install has none)."""
 
 from __future__ import annotations
 

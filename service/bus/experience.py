@@ -1,0 +1,252 @@
+"""The experience on the bus (issue 33, docs/calibration.md): only wiring; ``Experience`` does the work.
+
+Declared only with ``experience.enabled`` (off: nothing here runs, nothing changes):
+
+  {prefix}/in/{source}/outcome        subscriber: TraversalOutcome (msgpack or JSON)
+  {prefix}/in/{source}/answer         subscriber (OperatorAnswer put) and queryable (the answer as payload,
+                                      replied with an AnswerReply)
+  experience.cmd_vel, .odometry       subscribers: Twist2D / Odometry2D on a zenoh key, or a ROS topic (CDR)
+  {prefix}/out/{source}/calibration   queryable: CalibrationReport of the active anchor set
+  {prefix}/config/anchors/proposal    queryable: AnchorProposal (``source=`` optional), never applied here
+  {prefix}/out/{source}/question      OperatorQuestion, published after a grid update that asks one
+
+A bad message is rejected with its reason and counted in the service's stats (``bad_outcome``,
+``oversized``, ``bad_cmd_vel``, ``bad_odometry``, ``bad_answer``, ``unknown_answer``, ``unknown_grid``).
+The pairs are saved every ``SAVE_EVERY_S`` and at shutdown.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import zenoh
+from gcdtrav.schemas.experience import AnswerReply
+from gcdtrav.schemas.keys import Keys
+from gcdtrav.schemas.messages import MSGPACK_ENCODING, ExperienceStatus, MessageError
+from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
+from gcdtrav.service.bus import replies
+from gcdtrav.service.bus.guard import answering
+from gcdtrav.service.experience.crop import image_crop
+from gcdtrav.service.experience.service import Experience, decode_answer, experience_file
+from gcdtrav.service.experience.store import OutcomeRejected
+from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.ros.cdr import dds_type_name
+from gcdtrav.service.runtime.errors import QueryError
+from gcdtrav.service.runtime.grids import GridOutputs
+from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid
+from gcdtrav.service.runtime.queries import strict_parameters
+from gcdtrav.service.runtime.stats import ServiceStats
+from numpy.typing import NDArray
+
+log = logging.getLogger("gcdtrav.service")
+SAVE_EVERY_S = 10.0
+MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
+TWIST, ODOMETRY = "geometry_msgs/msg/Twist", "nav_msgs/msg/Odometry"
+
+
+def experience_grid(settings: ServiceSettings, grids: GridOutputs | None) -> str:
+    """The grid the outcomes belong to: ``experience.grid``, else the first; a SettingsError without one."""
+    names = list(grids.sources) if grids is not None else []
+    if not names:
+        raise SettingsError("experience: enabled needs a ground grid (grids:): outcomes pair with its cells")
+    wanted = settings.experience.grid or names[0]
+    if wanted not in names:
+        raise SettingsError(f"experience: grid '{wanted}' is not one of the grids {names}")
+    return wanted
+
+
+def ros_key(topic: str, msgtype: str, ros_inputs: list[RosInput]) -> str:
+    """The key expression of a robot's ROS topic, in the layout and zenoh namespace of the service's first ROS
+    input (rmw_zenoh, no namespace, when there is none): any domain and type hash."""
+    layout, namespace = (ros_inputs[0].layout, ros_inputs[0].zenoh_namespace) if ros_inputs else ("rmw_zenoh", "")
+    name = topic.strip("/")
+    key = name if layout == "bridge" else f"*/{name}/{dds_type_name(msgtype)}/*"
+    return f"{namespace}/{key}" if namespace else key
+
+
+class ExperienceBus:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        settings: ServiceSettings,
+        pipeline: Pipeline,
+        grids: GridOutputs | None,
+        stats: ServiceStats,
+        owns: Callable[[str], bool],
+    ) -> None:
+        self.session, self.settings, self.pipeline, self.stats, self.owns = session, settings, pipeline, stats, owns
+        self.keys = Keys(settings.prefix)
+        self.grids = grids
+        path = experience_file(settings.state_dir, settings.prefix)
+        source = experience_grid(settings, grids)
+        self.experience = Experience(settings.experience, settings.ask, source, settings.risk.tau, path)
+        self._stopping = threading.Event()
+        self._saver = threading.Thread(target=self._save_now_and_then, name="gcdtrav-experience", daemon=True)
+
+    # ---- lifecycle -----------------------------------------------------------------------------------
+    def start(self) -> list[Any]:
+        """Declare the subscribers and queryables (returned, for the node to undeclare), hook the grids."""
+        declared: list[Any] = [
+            self.session.declare_subscriber(self.keys.outcome("**"), self._on_outcome),
+            self.session.declare_subscriber(self.keys.answer("**"), self._on_answer_sample),
+        ]
+        for key, ros, handler, reason in self.experience.inputs():
+            if ros:
+                msgtype = TWIST if key == self.settings.experience.cmd_vel else ODOMETRY
+                key = ros_key(key, msgtype, self.settings.ros_inputs)
+            declared.append(self.session.declare_subscriber(key, self._input_handler(handler, reason)))
+        queryables = (
+            (self.keys.answer("**"), self._on_answer_query, False),
+            (self.keys.calibration("**"), self._on_calibration, False),
+            (self.keys.anchor_proposal, self._on_proposal, False),
+        )
+        for key, respond, complete in queryables:
+            declared.append(self.session.declare_queryable(key, answering(respond, self.stats), complete=complete))
+        if self.grids is not None:
+            self.grids.after_fusion = self._after_fusion
+        self._saver.start()
+        log.info("experience: outcomes of grid %s, stored in %s", self.experience.source, self.experience.store.path)
+        return declared
+
+    def close(self) -> None:
+        """Unhook the grids and save; the node undeclares the entities."""
+        self._stopping.set()
+        if self.grids is not None:
+            self.grids.after_fusion = None
+        if self._saver.is_alive():
+            self._saver.join(timeout=5.0)
+        self.experience.save_if_dirty()
+
+    def _save_now_and_then(self) -> None:
+        while not self._stopping.wait(SAVE_EVERY_S):
+            self.experience.save_if_dirty()  # a failed write is logged and counted by the store
+
+    def status(self) -> ExperienceStatus:
+        return self.experience.status()
+
+    # ---- inputs --------------------------------------------------------------------------------------
+    def _input_handler(self, handler: Callable[[bytes, float], None], reason: str) -> Callable[[zenoh.Sample], None]:
+        def handle(sample: zenoh.Sample) -> None:
+            try:
+                handler(sample.payload.to_bytes(), time.time())
+            except (MessageError, ValueError) as err:
+                self.stats.rejected(None, reason, f"{sample.key_expr}: {err}"[:200])
+
+        return handle
+
+    def _grid_source(self, key: str, kind: str) -> str | None:
+        """The source of an outcome or answer key if this instance collects it; counted when it names a grid
+        this service has no experience of."""
+        parsed = self.keys.input_message(key)
+        if parsed is None or parsed[1] != kind or not self.owns(parsed[0]):
+            return None
+        if parsed[0] != self.experience.source:
+            self.stats.rejected(None, "unknown_grid", f"{key}: this service collects grid '{self.experience.source}'")
+            return None
+        return parsed[0]
+
+    def _on_outcome(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if self._grid_source(key, "outcome") is None:
+            return
+        try:
+            self.experience.on_outcome(sample.payload.to_bytes())
+        except OutcomeRejected as err:
+            self.stats.rejected(None, err.reason, f"{key}: {err}"[:200])
+
+    def _answer(self, key: str, payload: bytes) -> AnswerReply:
+        """An answer's outcomes paired; MessageError or ValueError (counted) for a bad or unknown one."""
+        try:
+            answer = decode_answer(payload)
+        except MessageError as err:
+            self.stats.rejected(None, "bad_answer", f"{key}: {err}"[:200])
+            raise
+        source = self.keys.input_message(key)
+        if source is None or answer.source != source[0]:
+            self.stats.rejected(None, "bad_answer", f"{key}: the answer names source '{answer.source}'")
+            raise ValueError(f"the answer names source '{answer.source}', the key '{key}'")
+        try:
+            pairs = self.experience.on_answer(answer, time.time())
+        except ValueError as err:
+            self.stats.rejected(None, "unknown_answer", f"{key}: {err}"[:200])
+            raise
+        return AnswerReply(id=answer.id, source=answer.source, score=answer.score, pairs=pairs)
+
+    def _on_answer_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if self._grid_source(key, "answer") is not None:
+            with contextlib.suppress(MessageError, ValueError):  # counted in _answer
+                self._answer(key, sample.payload.to_bytes())
+
+    def _on_answer_query(self, query: zenoh.Query) -> None:
+        key = str(query.key_expr)
+        if self._grid_source(key, "answer") is None:
+            return
+        replies.check_no_parameters(query)
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        try:
+            reply = self._answer(key, payload)
+        except (MessageError, ValueError) as err:
+            raise QueryError(str(err)) from None
+        replies.reply(query, key, reply)
+
+    # ---- answers -------------------------------------------------------------------------------------
+    def _on_calibration(self, query: zenoh.Query) -> None:
+        key = str(query.key_expr)
+        source = self.keys.source_of(key, "calibration")
+        if source is None:
+            raise QueryError(f"query one source's calibration, e.g. {self.keys.calibration(self.experience.source)}")
+        if not self.owns(source):
+            return
+        replies.check_no_parameters(query)
+        if source != self.experience.source:
+            raise QueryError(f"no experience of '{source}': this service collects grid '{self.experience.source}'")
+        replies.reply(query, key, self.experience.report(self.pipeline.anchors))
+
+    def _on_proposal(self, query: zenoh.Query) -> None:
+        replies.check_format(query)
+        params = strict_parameters(replies.without_format(query), "source=SOURCE (optional)")
+        if set(params) - {"source"}:
+            raise QueryError(f"unknown parameter(s) {sorted(set(params) - {'source'})}; give source=SOURCE or none")
+        source = params.get("source", self.experience.source)
+        if source != self.experience.source or not self.owns(source):
+            return  # another instance's experience
+        try:
+            proposal = self.experience.proposal(self.pipeline.anchors)
+        except ValueError as err:
+            raise QueryError(str(err)) from None
+        replies.reply(query, self.keys.anchor_proposal, proposal)
+
+    # ---- the grid ------------------------------------------------------------------------------------
+    def _after_fusion(self, grid: SourceGrid, camera: CameraState, image: NDArray[np.uint8] | None) -> None:
+        """Under the grid's lock, on the worker: snapshot the grid, maybe ask; never fail the frame's outputs."""
+        source = grid.config.source
+        try:
+            crop = image_crop(image, grid.pose, camera.mount, camera.camera)
+            question = self.experience.on_grid_update(source, grid.grid, grid.pose, crop)
+        except Exception as err:
+            self.stats.rejected(None, "experience_failed", f"{source}: {type(err).__name__}: {err}"[:200], err)
+            return
+        if question is not None:
+            log.info("question %s to the operator: %s ahead (%s)", question.id, question.reason, source)
+            self.session.put(self.keys.question(source), question.pack(), encoding=MSGPACK)
+
+
+def experience_bus(
+    session: zenoh.Session,
+    settings: ServiceSettings,
+    pipeline: Pipeline,
+    grids: GridOutputs | None,
+    stats: ServiceStats,
+    owns: Callable[[str], bool],
+) -> ExperienceBus | None:
+    """The experience's wiring, or None when ``experience.enabled`` is off."""
+    if not settings.experience.enabled:
+        return None
+    return ExperienceBus(session, settings, pipeline, grids, stats, owns)

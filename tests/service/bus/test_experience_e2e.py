@@ -1,0 +1,219 @@
+"""Issue 33 end to end on loopback: a service with experience on, a ground grid, the synthetic scene's backend,
+a simulated robot publishing images, its pose, velocity commands and odometry over zenoh; the torch-free
+commands an operator runs (`gcdtrav calibration`, `anchors propose [--apply]`, `answer`, `status`)."""
+
+from __future__ import annotations
+
+import subprocess
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+from conftest import torch_free_gcdtrav
+from gcdtrav.client import QueryTimeout, ServiceError, TraversabilityClient
+from gcdtrav.schemas.anchors import Anchor, AnchorSet
+from gcdtrav.schemas.experience import OperatorQuestion, TraversalOutcome
+from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings
+from gcdtrav.service.bus.node import TraversabilityService
+from gcdtrav.service.commands.serve import starting_anchor_set
+from gcdtrav.service.experience.service import experience_file
+from zenoh_helpers import connecting_config, wait_until
+
+from tools.loopback import in_process_service
+from tools.robot_drive import CAMERA_SOURCE, CMD_VEL_KEY, START_STAMP, BusRobot, experience_settings, grid_settings
+from tools.synthetic_scene import SceneBackend, make_world, start_anchors
+
+ASK = AskSettings(enabled=True, u_band=(0.05, 1.0), persist_s=1.0, min_cells=3, min_interval_s=1000)
+
+
+def settings(state: Path, experience: ExperienceSettings | None = None, ask: AskSettings = ASK) -> ServiceSettings:
+    """Simulated time from a stamp in the past, like a replayed bag: no age or skew checks."""
+    return ServiceSettings(
+        state_dir=state,
+        instance="exp-1",
+        preview=False,
+        max_frame_age_s=None,
+        max_stamp_skew_s=None,
+        grids=[grid_settings()],
+        experience=experience or experience_settings(),
+        ask=ask,
+    )
+
+
+@contextmanager
+def running(
+    service_settings: ServiceSettings, anchors: AnchorSet | None = None
+) -> Iterator[tuple[TraversabilityService, TraversabilityClient, list[str]]]:
+    """The service, a client of it, and the flags that point `gcdtrav` at it."""
+    with (
+        in_process_service(SceneBackend(), service_settings, anchors or start_anchors()) as (service, port),
+        TraversabilityClient(config=connecting_config(port), timeout=5.0) as client,
+    ):
+        yield service, client, ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
+
+
+def gcdtrav(*args: str) -> subprocess.CompletedProcess[str]:
+    """`gcdtrav ARGS` in a fresh interpreter where torch cannot be imported: the operator's install."""
+    done = subprocess.run(torch_free_gcdtrav(*args), capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stdout + done.stderr
+    return done
+
+
+def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> None:
+    state = tmp_path / "state"
+    world = make_world(seed=0)
+    with running(settings(state)) as (service, client, flags):
+        questions: list[OperatorQuestion] = []
+        client.subscribe_questions("**", questions.append)
+        robot = BusRobot(client, world)
+        end = robot.drive(90.0, seed=1)
+
+        report = client.calibration(CAMERA_SOURCE)
+        assert report.figures.pairs > 100 and report.pairs_by_kind == {"velocity": report.figures.pairs}
+        assert report.concepts == start_anchors().concepts and report.figures.mae is not None
+        assert report.pairs_by_version == {start_anchors().version: report.figures.pairs}
+        shown = gcdtrav("calibration", "--png", str(tmp_path / "reliability.png"), *flags)  # the source from status
+        assert f"calibration of {CAMERA_SOURCE}: anchor set {start_anchors().version}" in shown.stdout
+        assert (tmp_path / "reliability.png").read_bytes()[:4] == b"\x89PNG"
+
+        # Ambiguity persisted ahead (dirt against gravel, sand against dirt): one question, with its crop.
+        assert wait_until(lambda: questions, timeout=5)
+        question = questions[0]
+        assert question.source == CAMERA_SOURCE and question.crop_jpeg and question.crop_jpeg[:2] == b"\xff\xd8"
+        status = gcdtrav("status", *flags).stdout
+        assert f"QUESTION {question.id} ({CAMERA_SOURCE})" in status and "velocity_outcomes" in status
+        answered = gcdtrav("answer", CAMERA_SOURCE, "blocked", *flags).stdout
+        assert f"answered {question.id} ({CAMERA_SOURCE}): score 0, {len(question.cells)} pairs" in answered
+        experience = client.status().experience
+        assert experience is not None and experience.open_questions == [] and experience.counts["ask_answered"] == 1
+        assert client.calibration(CAMERA_SOURCE).pairs_by_kind["operator"] == len(question.cells)
+        with pytest.raises(ServiceError, match="no open question"):  # answered: closed
+            client.answer(CAMERA_SOURCE, question.id, 1.0)
+
+        before = service.pipeline.anchors
+        dry = gcdtrav("anchors", "propose", *flags).stdout
+        assert f"{before.version} (8 anchors) -> " in dry and "~ sand @ 0.40 -> " in dry and "not applied" in dry
+        assert "before (current set)" in dry and service.pipeline.anchors == before
+        proposal = client.anchor_proposal()
+        applied = gcdtrav("anchors", "propose", "--apply", *flags).stdout
+        assert f"swapped: anchor set {proposal.proposed.version} active on exp-1" in applied
+        assert service.pipeline.anchors.version == proposal.proposed.version
+        assert client.anchor_history()[0].entries[1].anchor_set == before  # rollback-able
+
+        robot.drive(30.0, seed=2, start_stamp=end + 10.0)  # the same concepts: one tuple, two versions
+        report = client.calibration(CAMERA_SOURCE)
+        assert report.anchor_set_version == proposal.proposed.version
+        assert set(report.pairs_by_version) == {before.version, proposal.proposed.version}
+        total = report.figures.pairs
+    assert experience_file(state, "gcdtrav").is_file()
+
+    restarted = settings(state)
+    with running(restarted, starting_anchor_set(restarted)) as (_, client, _flags):  # as `gcdtrav serve` starts
+        report = client.calibration(CAMERA_SOURCE)
+        assert report.figures.pairs == total and report.anchor_set_version == proposal.proposed.version
+
+
+def test_a_swap_to_other_concepts_keeps_their_pairs_apart(tmp_path: Path) -> None:
+    start = start_anchors()
+    fewer = AnchorSet(name="no-water", anchors=[Anchor(concept=c, position=p) for c, p in
+                                                zip(start.concepts[1:], start.positions[1:], strict=True)])  # fmt: skip
+    with running(settings(tmp_path, ask=AskSettings())) as (_, client, _flags):
+        robot = BusRobot(client, make_world(seed=3))
+        end = robot.drive(30.0, seed=4)
+        first = client.calibration(CAMERA_SOURCE)
+        client.set_anchors(fewer)
+        end = robot.drive(30.0, seed=5, start_stamp=end + 10.0)
+        other = client.calibration(CAMERA_SOURCE)
+        assert other.concepts == fewer.concepts and other.pairs_by_version == {fewer.version: other.figures.pairs}
+        assert other.figures.pairs > 0 and [a.concept for a in other.figures.anchors] == fewer.concepts
+        client.set_anchors(start)
+        again = client.calibration(CAMERA_SOURCE)
+        # Back on the first tuple: its pairs, and only its own (outcomes of the first seconds after the swap
+        # paired with the grid as it stood before it, fused with the first set).
+        assert again.concepts == start.concepts and set(again.pairs_by_version) == {start.version}
+        assert again.figures.pairs >= first.figures.pairs
+        assert again.figures.pairs + other.figures.pairs == client.status().experience.pairs  # type: ignore[union-attr]
+
+
+def test_bad_messages_are_rejected_counted_and_never_taken_for_images(tmp_path: Path) -> None:
+    with running(settings(tmp_path, ask=AskSettings())) as (_, client, _flags):
+        session = client.session
+        session.put(client.keys.outcome(CAMERA_SOURCE), b"\x00garbage")
+        session.put(client.keys.outcome(CAMERA_SOURCE), b'{"stamp": 1, "x": 0, "y": 0, "score": 2, "kind": "velocity"}')
+        session.put(client.keys.outcome(CAMERA_SOURCE), b"{" + b" " * 5000 + b"}")
+        session.put(CMD_VEL_KEY, b'{"vx": "fast"}')
+        session.put(client.keys.answer(CAMERA_SOURCE), b"\x01")
+        outcome = TraversalOutcome(stamp=START_STAMP, x=0.0, y=0.0, score=0.5, kind="contact")
+        client.publish_outcome("other/cam", outcome)  # a grid this service has no experience of
+        client.publish_outcome(CAMERA_SOURCE, outcome)  # nothing fused yet: no prediction to pair with
+        expected = {"bad_outcome": 2, "oversized": 1, "bad_cmd_vel": 1, "bad_answer": 1, "unknown_grid": 1}
+
+        def counted() -> bool:
+            rejected = client.status().rejected_by_reason
+            return all(rejected.get(reason) == n for reason, n in expected.items())
+
+        assert wait_until(counted, timeout=5), client.status().rejected_by_reason
+        status = client.status()
+        assert status.sources == {} and status.experience is not None  # no image source 'robot/cam/outcome'
+        assert status.experience.counts["ignored_no_prediction"] == 1 and status.experience.pairs == 0
+        with pytest.raises(ServiceError, match="no questions are asked"):
+            client.answer(CAMERA_SOURCE, "robot/cam-1", 1.0)
+        with pytest.raises(ServiceError, match="no experience of 'other/cam'"):
+            client.calibration("other/cam")
+        with pytest.raises(ServiceError, match="no pairs"):
+            client.anchor_proposal()
+        assert client.calibration(CAMERA_SOURCE).figures.pairs == 0
+
+
+def test_experience_off_declares_nothing_and_changes_nothing(tmp_path: Path) -> None:
+    off = settings(tmp_path, ExperienceSettings(), AskSettings())
+    with running(off) as (service, client, _flags):
+        assert service.experience is None and client.status().experience is None
+        BusRobot(client, make_world(seed=0)).drive(5.0, seed=1)  # images and grids flow as ever
+        client.publish_outcome(CAMERA_SOURCE, TraversalOutcome(stamp=START_STAMP, x=0, y=0, score=1, kind="contact"))
+        assert wait_until(lambda: client.status().rejected_by_reason.get("experience_off") == 1, timeout=5)
+        assert set(client.status().sources) == {CAMERA_SOURCE}
+        with pytest.raises(QueryTimeout):
+            client.calibration(CAMERA_SOURCE, timeout=0.5)
+        with pytest.raises(QueryTimeout):
+            client.anchor_proposal(timeout=0.5)
+    assert not experience_file(tmp_path, "gcdtrav").exists()
+
+
+def test_settings_that_cannot_work_are_refused_at_start(tmp_path: Path) -> None:
+    from gcdtrav.schemas.settings import SettingsError, load_settings
+
+    with pytest.raises(SettingsError, match="experience: enabled needs a ground grid"):
+        load_settings(None, {"experience": {"enabled": True}}, environ={})
+    with pytest.raises(SettingsError, match="ask: enabled needs experience"):
+        load_settings(None, {"ask": {"enabled": True}}, environ={})
+    with (
+        pytest.raises(SettingsError, match="grid 'nope' is not one of the grids"),
+        running(settings(tmp_path, experience_settings(grid="nope"))),
+    ):
+        pass
+
+
+def test_ros_topics_are_read_as_cdr_on_rmw_zenoh_keys(tmp_path: Path) -> None:
+    from gcdtrav.service.bus.experience import ros_key
+    from gcdtrav.service.ros.cdr import RosTopic, odometry_cdr, topic_key, twist_cdr
+
+    ros = experience_settings(cmd_vel="/robot/cmd_vel", odometry="/robot/odom")
+    expression = "*/robot/cmd_vel/geometry_msgs::msg::dds_::Twist_/*"
+    assert ros_key("/robot/cmd_vel", "geometry_msgs/msg/Twist", []) == expression
+    with running(settings(tmp_path, ros, AskSettings())) as (_, client, _flags):
+        twist = topic_key(RosTopic("/robot/cmd_vel", "geometry_msgs/msg/Twist", "rmw_zenoh", domain=7))
+        odometry = topic_key(RosTopic("/robot/odom", "nav_msgs/msg/Odometry", "rmw_zenoh", domain=7))
+        for k in range(40):  # 2 s at 0.5 m/s, commanded 1 m/s: outcomes every 0.3 m (no grid: no pairs)
+            client.session.put(twist, twist_cdr(1.0))
+            client.session.put(odometry, odometry_cdr(START_STAMP + 0.05 * k, 0.025 * k, 0.0, 0.0, 0.5))
+        client.session.put(twist, b"\x00\x01garbage")
+        client.session.put(odometry, b"\x00\x01garbage")
+
+        def seen() -> bool:
+            status = client.status()
+            rejected, counts = status.rejected_by_reason, status.experience.counts  # type: ignore[union-attr]
+            return rejected.get("bad_cmd_vel") == 1 and rejected.get("bad_odometry") == 1 and "outcomes" in counts
+
+        assert wait_until(seen, timeout=5), client.status()
