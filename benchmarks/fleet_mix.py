@@ -397,13 +397,9 @@ def parse_args() -> argparse.Namespace:
 
 
 def model_for(args: argparse.Namespace, scratch: Path) -> str:
-    if args.model is not None:
-        return str(args.model)
-    from tools.random_clipseg import checkpoint_or_random, save_random_clipseg
+    from tools.random_clipseg import benchmark_model
 
-    if args.quick:
-        return str(save_random_clipseg(scratch / "tiny", preset="tiny", input_size=96))
-    return str(checkpoint_or_random(None, scratch))
+    return benchmark_model(args.model, args.quick, scratch)
 
 
 def main() -> int:

@@ -10,7 +10,7 @@ import math
 from typing import Literal
 
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.limits import MAX_CONCEPT_CHARS, MAX_FRAME_ID_CHARS, MAX_POSITION_M
+from gcdtrav.schemas.limits import MAX_CONCEPT_CHARS, MAX_FRAME_ID_CHARS, Coordinate, FiniteFloat
 from gcdtrav.schemas.messages import Message
 from gcdtrav.schemas.strict import WireModel
 from pydantic import Field, field_validator
@@ -21,44 +21,26 @@ MAX_OUTCOME_RADIUS_M = 10.0  # a footprint, not a region: larger would pair thou
 CALIBRATION_ALPHAS = (0.05, 0.1, 0.2)
 
 
-def _finite(value: float) -> float:
-    if not math.isfinite(value):
-        raise ValueError(f"{value} is not a finite number")
-    return value
-
-
 # ---- outcomes in --------------------------------------------------------------------------------------
 
 
 class TraversalOutcome(Message):
     """How driving over a place went: {prefix}/in/{source}/outcome, {source} the grid's."""
 
-    stamp: float = Field(description="When the robot was there, s since the epoch (the grid's clock).")
-    x: float = Field(description="Metres in the grid's frame (the pose stream's odometry frame).")
-    y: float
-    score: float = Field(description="1 = drove as commanded, 0 = could not move at all; in [0, 1].")
+    stamp: FiniteFloat = Field(description="When the robot was there, s since the epoch (the grid's clock).")
+    x: Coordinate = Field(description="Metres in the grid's frame (the pose stream's odometry frame).")
+    y: Coordinate
+    score: FiniteFloat = Field(description="1 = drove as commanded, 0 = could not move at all; in [0, 1].")
     kind: OutcomeKind = Field(description="velocity (tracking), operator (an answer), contact (bumper, stall).")
     radius_m: float | None = Field(
         default=None, description="Every cell whose centre lies within this radius, m; None: the cell of (x, y)."
     )
-
-    @field_validator("stamp", "x", "y", "score")
-    @classmethod
-    def _is_finite(cls, value: float) -> float:
-        return _finite(value)
 
     @field_validator("stamp")
     @classmethod
     def _not_negative(cls, value: float) -> float:
         if value < 0:
             raise ValueError(f"stamp {value} is before the epoch")
-        return value
-
-    @field_validator("x", "y")
-    @classmethod
-    def _within_reach(cls, value: float) -> float:
-        if abs(value) > MAX_POSITION_M:
-            raise ValueError(f"{value:g} m is beyond the limit of {MAX_POSITION_M:g} m")
         return value
 
     @field_validator("score")
@@ -80,39 +62,22 @@ class Twist2D(Message):
     """A velocity command in msgpack or JSON (the zenoh form of geometry_msgs/Twist): base frame, m/s, rad/s."""
 
     stamp: float | None = Field(default=None, description="Command time; None: when received.")
-    vx: float
-    vy: float = 0.0
-    wz: float = 0.0
-
-    @field_validator("vx", "vy", "wz")
-    @classmethod
-    def _is_finite(cls, value: float) -> float:
-        return _finite(value)
+    vx: FiniteFloat
+    vy: FiniteFloat = 0.0
+    wz: FiniteFloat = 0.0
 
 
 class Odometry2D(Message):
     """Pose and velocity in msgpack or JSON (the zenoh form of nav_msgs/Odometry): velocities in the base frame."""
 
-    stamp: float
+    stamp: FiniteFloat
     frame_id: str = Field(default="odom", max_length=MAX_FRAME_ID_CHARS)
-    x: float
-    y: float
-    yaw: float = 0.0
-    vx: float
-    vy: float = 0.0
-    wz: float = 0.0
-
-    @field_validator("stamp", "x", "y", "yaw", "vx", "vy", "wz")
-    @classmethod
-    def _is_finite(cls, value: float) -> float:
-        return _finite(value)
-
-    @field_validator("x", "y")
-    @classmethod
-    def _within_reach(cls, value: float) -> float:
-        if abs(value) > MAX_POSITION_M:
-            raise ValueError(f"{value:g} m is beyond the limit of {MAX_POSITION_M:g} m")
-        return value
+    x: Coordinate
+    y: Coordinate
+    yaw: FiniteFloat = 0.0
+    vx: FiniteFloat
+    vy: FiniteFloat = 0.0
+    wz: FiniteFloat = 0.0
 
 
 # ---- calibration ---------------------------------------------------------------------------------------

@@ -5,7 +5,6 @@ Service and client both import this module, so a field changes in exactly one pl
 
 from __future__ import annotations
 
-import math
 import re
 from enum import Enum
 from typing import Any, TypeVar
@@ -14,7 +13,7 @@ import msgpack
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.config import Method
-from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS, MAX_POSITION_M
+from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS, Coordinate, FiniteFloat
 from gcdtrav.schemas.strict import WireModel
 from numpy.typing import NDArray
 from pydantic import Field, ValidationError, field_validator
@@ -330,25 +329,11 @@ class ContextDistribution(Message):
 class Pose2D(Message):
     """The robot's pose in its odometry frame, as a grid's pose stream (or nav_msgs/Odometry CDR)."""
 
-    stamp: float
+    stamp: FiniteFloat
     frame_id: str = Field(default="odom", max_length=MAX_FRAME_ID_CHARS)
-    x: float = Field(description="Metres in the odometry frame.")
-    y: float
-    yaw: float = Field(description="Heading, radians, counter-clockwise from x.")
-
-    @field_validator("stamp", "x", "y", "yaw")
-    @classmethod
-    def _finite(cls, value: float) -> float:
-        if not math.isfinite(value):
-            raise ValueError(f"{value} is not a finite number")
-        return value
-
-    @field_validator("x", "y")
-    @classmethod
-    def _within_reach(cls, value: float) -> float:
-        if abs(value) > MAX_POSITION_M:
-            raise ValueError(f"{value:g} m is beyond the limit of {MAX_POSITION_M:g} m")
-        return value
+    x: Coordinate = Field(description="Metres in the odometry frame.")
+    y: Coordinate
+    yaw: FiniteFloat = Field(description="Heading, radians, counter-clockwise from x.")
 
 
 class GridHeader(WireModel):

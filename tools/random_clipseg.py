@@ -83,6 +83,14 @@ def checkpoint_or_random(model: str | Path | None, scratch: Path) -> Path:
     return save_random_clipseg(scratch / "model", preset="rd64-refined")
 
 
+def benchmark_model(model: str | Path | None, quick: bool, scratch: Path) -> str:
+    """The checkpoint a benchmark runs: ``model`` if given; ``quick``: a tiny random model (correctness only);
+    else random weights of the real architecture."""
+    if model is None and quick:
+        return str(save_random_clipseg(scratch / "tiny", preset="tiny", input_size=96))
+    return str(checkpoint_or_random(model, scratch))
+
+
 def save_random_clipseg(directory: Path, preset: str = "tiny", input_size: int = 352, seed: int = 0) -> Path:
     """Write config, random weights, tokenizer and preprocessor files to ``directory``."""
     import torch

@@ -91,8 +91,9 @@ def test_serve_answers_at_once_while_auto_measures_then_switches(tiny_model_dir:
             assert wait_until(lambda: not getattr(status_or_none(client), "measuring", True), 60)
             after = status_or_none(client)
             assert after is not None and after.precision == "int8", after
-            client.publish_image("cam", textured_image(64, 64, seed=1))
-            assert next(maps).header.seq >= 1  # and after the switch
+            client.publish_image("cam", textured_image(64, 64, seed=1)[::-1].copy())  # another view: inferred
+            after_switch = next(maps)
+            assert after_switch.header.seq >= 1 and not after_switch.reused  # and after the switch
         process.send_signal(signal.SIGTERM)
         output, _ = process.communicate(timeout=30)
         assert process.returncode == 0, output
