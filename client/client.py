@@ -11,7 +11,7 @@ import queue
 import threading
 import time
 import warnings
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,6 +26,7 @@ from gcdtrav.schemas.experience import (
     CalibrationReport,
     OperatorAnswer,
     OperatorQuestion,
+    PlannedPath,
     TraversalOutcome,
 )
 from gcdtrav.schemas.images import (
@@ -745,6 +746,14 @@ class TraversabilityClient:
     def publish_outcome(self, source: str, outcome: TraversalOutcome) -> None:
         """How driving over a place went, for the grid ``source`` (a service with experience enabled)."""
         self.session.put(self.keys.outcome(source), outcome.pack(), encoding=MSGPACK)
+
+    def publish_planned_path(
+        self, source: str, points: Sequence[tuple[float, float]], stamp: float | None = None, frame_id: str = "odom"
+    ) -> None:
+        """The path ``source`` will drive, (x, y) metres in its grid's frame: the service's questions (``ask:``)
+        look along it instead of the heading while it is renewed within ``ask.path_timeout_s``; [] clears it."""
+        path = PlannedPath(stamp=time.time() if stamp is None else stamp, frame_id=frame_id, points=list(points))
+        self.session.put(self.keys.planned_path(source), path.pack(), encoding=MSGPACK)
 
     def calibration(self, source: str, timeout: float | None = None) -> CalibrationReport:
         """The active anchor set graded by the outcomes stored for the grid ``source``."""

@@ -80,6 +80,21 @@ class Odometry2D(Message):
     wz: FiniteFloat = 0.0
 
 
+MAX_PATH_POINTS = 10_000  # a planner's path: a few hundred points; 10k bounds the corridor's work per update
+
+
+class PlannedPath(Message):
+    """A planner's path ahead on {prefix}/in/{source}/planned_path: where to look for ground worth asking about
+    (``ask.range_m`` of it, ``ask.width_m`` wide) instead of along the heading. Each replaces the last; an empty
+    one, or none for ``ask.path_timeout_s``, means the heading again."""
+
+    stamp: FiniteFloat = Field(description="When planned, s since the epoch (the planner's clock; not compared).")
+    frame_id: str = Field(default="odom", max_length=MAX_FRAME_ID_CHARS, description="The grid's frame.")
+    points: list[tuple[Coordinate, Coordinate]] = Field(
+        max_length=MAX_PATH_POINTS, description="(x, y) of the path's vertices from the robot on, metres."
+    )
+
+
 # ---- calibration ---------------------------------------------------------------------------------------
 
 

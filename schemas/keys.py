@@ -25,6 +25,7 @@ Robots and operators send on (experience enabled; docs/calibration.md):
 
   {prefix}/in/{source}/outcome               TraversalOutcome: how driving over a place went
   {prefix}/in/{source}/answer                OperatorAnswer (put), or a query with it as payload (AnswerReply)
+  {prefix}/in/{source}/planned_path          PlannedPath: a planner's path ahead, where questions look (ask:)
 
 A relay on a robot (``gcdtrav relay``) publishes on the robot's own bus:
 
@@ -40,7 +41,7 @@ from dataclasses import dataclass
 
 OUTPUT_KINDS = ("maps", "maps8", "preview", "patch", "grid", "cell", "calibration", "question")
 # The last chunk of {prefix}/in/{source}/<kind> keys that carry messages, not images: never a camera source.
-INPUT_MESSAGE_KINDS = ("outcome", "answer")
+INPUT_MESSAGE_KINDS = ("outcome", "answer", "planned_path")
 GRID_LAYERS = ("occupancy", "uncertainty", "gridmap", "costmap")  # the grid's CDR messages, under .../grid/
 
 
@@ -94,9 +95,13 @@ class Keys:
         """Where an operator's answers to ``source``'s questions arrive (put, or a query with the answer)."""
         return f"{self.prefix}/in/{source}/answer"
 
+    def planned_path(self, source: str) -> str:
+        """Where a planner puts the path ``source`` will drive: questions look along it (docs/calibration.md)."""
+        return f"{self.prefix}/in/{source}/planned_path"
+
     def input_message(self, key: str) -> tuple[str, str] | None:
-        """(source, kind) of ``{prefix}/in/{source}/outcome`` or ``.../answer``; None for any other key (an
-        image's). Such keys are never read as images, whatever the inputs' expressions cover."""
+        """(source, kind) of ``{prefix}/in/{source}/outcome``, ``.../answer`` or ``.../planned_path``; None for any
+        other key (an image's). Such keys are never read as images, whatever the inputs' expressions cover."""
         head = f"{self.prefix}/in/"
         source, _, kind = key[len(head) :].rpartition("/") if key.startswith(head) else ("", "", "")
         if kind not in INPUT_MESSAGE_KINDS or not source or "*" in source or "$" in source:

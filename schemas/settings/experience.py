@@ -69,6 +69,9 @@ class AskSettings(StrictModel):
     min_cells: int = Field(default=3, ge=1, description="Cells that must persist before asking.")
     min_interval_s: float = Field(default=30.0, ge=0, description="At most one question per source this often.")
     answer_timeout_s: float = Field(default=300.0, gt=0, description="An unanswered question closes after this.")
+    path_timeout_s: float = Field(
+        default=5.0, gt=0, description="A planner's path (planned_path) unrenewed this long: the heading again."
+    )
 
     @field_validator("u_band", "p_below_band")
     @classmethod

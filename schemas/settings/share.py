@@ -64,7 +64,9 @@ class ScheduleSettings(StrictModel):
     )
     base_weight: float = Field(default=0.2, gt=0, description="Weight of a still source with clear ground ahead.")
     motion_weight: float = Field(default=1.0, ge=0, description="Added at full motion (see full_speed_mps).")
-    ambiguity_weight: float = Field(default=0.5, ge=0, description="Added when all ground ahead is ambiguous.")
+    ambiguity_weight: float = Field(
+        default=0.5, ge=0, description="Added at full motion when all ground ahead is ambiguous (times motion)."
+    )
     full_speed_mps: float = Field(default=0.5, gt=0, description="Pose speed counted as full motion.")
     full_turn_dps: float = Field(default=30.0, gt=0, description="Pose turn rate counted as full motion.")
     full_change_per_s: float = Field(

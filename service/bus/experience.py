@@ -95,6 +95,7 @@ class ExperienceBus:
         declared: list[Any] = [
             self.session.declare_subscriber(self.keys.outcome("**"), self._on_outcome),
             self.session.declare_subscriber(self.keys.answer("**"), self._on_answer_sample),
+            self.session.declare_subscriber(self.keys.planned_path("**"), self._on_planned_path),
         ]
         for key, ros, handler, reason in self.experience.inputs():
             if ros:
@@ -159,6 +160,16 @@ class ExperienceBus:
             self.experience.on_outcome(sample.payload.to_bytes())
         except OutcomeRejected as err:
             self.stats.rejected(None, err.reason, f"{key}: {err}"[:200])
+
+    def _on_planned_path(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        parsed = self.keys.input_message(key)
+        if parsed is None or parsed[1] != "planned_path" or not self.owns(parsed[0]):
+            return
+        try:
+            self.experience.on_planned_path(parsed[0], sample.payload.to_bytes(), time.time())
+        except MessageError as err:
+            self.stats.rejected(None, "bad_planned_path", f"{key}: {err}"[:200])
 
     def _answer(self, key: str, payload: bytes) -> AnswerReply:
         """An answer's outcomes paired; MessageError or ValueError (counted) for a bad or unknown one."""

@@ -15,7 +15,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.experience import AnchorProposal, CalibrationReport, OperatorAnswer, OperatorQuestion
+from gcdtrav.schemas.experience import (
+    AnchorProposal,
+    CalibrationReport,
+    OperatorAnswer,
+    OperatorQuestion,
+    PlannedPath,
+)
 from gcdtrav.schemas.messages import ExperienceStatus, Pose2D, QuestionStatus
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings
 from gcdtrav.service.experience.ask import Crop, OperatorAsker
@@ -63,6 +69,9 @@ class Experience:
         self.store = ExperienceStore(path, settings.max_pairs, settings.max_bytes, settings.lookahead_s, clock)
         self.tracker = VelocityTracker(settings)
         self.askers: dict[str, OperatorAsker] = {}
+        # source -> (receipt, vertices): a planner's path ahead. Written by zenoh's callbacks, read by the worker;
+        # each is one dict operation, whole tuples replaced, never mutated.
+        self._paths: dict[str, tuple[float, list[tuple[float, float]]]] = {}
 
     # ---- inputs --------------------------------------------------------------------------------------
     def inputs(self) -> list[ExperienceInput]:
@@ -104,6 +113,22 @@ class Experience:
         return sum(self.store.add_predicted(answered.weights[k : k + 1], answered.anchors, outcome)
                    for k, outcome in enumerate(answered.outcomes))  # fmt: skip
 
+    def on_planned_path(self, source: str, payload: bytes, received_at: float) -> None:
+        """A planner's path ahead of ``source``: questions look along it (an empty one: the heading again).
+        MessageError for a bad one (the bus counts it)."""
+        path = decode_message(PlannedPath, payload)
+        if len(path.points) < 2:
+            self._paths.pop(source, None)
+        else:
+            self._paths[source] = (received_at, [(float(x), float(y)) for x, y in path.points])
+
+    def path_ahead(self, source: str) -> list[tuple[float, float]] | None:
+        """The planner's path of ``source`` if renewed within ``ask.path_timeout_s``; None: look along the heading."""
+        held = self._paths.get(source)
+        if held is None or self.clock() - held[0] > self.ask_settings.path_timeout_s:
+            return None
+        return held[1]
+
     # ---- the grid ------------------------------------------------------------------------------------
     def on_grid_update(
         self, source: str, grid: GroundGrid, pose: Pose2D | None, crop: Crop | None = None
@@ -115,7 +140,7 @@ class Experience:
         if not self.ask_settings.enabled or pose is None:
             return None
         asker = self.askers.setdefault(source, OperatorAsker(source, self.ask_settings, self.tau))
-        return asker.update(grid, pose, crop)
+        return asker.update(grid, pose, crop, self.path_ahead(source))
 
     # ---- answers -------------------------------------------------------------------------------------
     def report(self, anchors: AnchorSet) -> CalibrationReport:

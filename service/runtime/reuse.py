@@ -15,10 +15,12 @@ counted ``unchanged``) when all of these hold:
   While that refresh waits for its turn, later unchanged frames are still answered with the last maps, up
   to ``max_reuse_s + max_wait_s`` (the scheduler's floor): a worker that long without serving is hung.
 
-Otherwise the frame goes to the scheduler; **urgent** when it changed while the source's consumers hold
-reused maps (they show a view that is gone: a person walked in), which the scheduler serves first within
-its limits (service/runtime/share.py). The glances also give the scheduler each source's motion: the pose's
-speed where a pose is known, else the fraction of blocks that moved per second between consecutive frames.
+Otherwise the frame goes to the scheduler; **urgent** when it changed after the view had settled (the
+frames before it unchanged, reused or refreshed: its consumers hold maps of a view that is gone, a person
+walked in), which the scheduler serves first within its limits (service/runtime/share.py). A moving
+robot's views never settle, so its frames are never urgent: its share is its weight's. The glances also
+give the scheduler each source's motion: the pose's speed where a pose is known, else the fraction of
+blocks that moved per second between consecutive frames.
 """
 
 from __future__ import annotations
@@ -56,7 +58,7 @@ class Verdict:
     reuse: bool
     reason: str  # UNCHANGED (reused), or why inferred: CHANGED, POSE, SIZE, ANCHORS, FIRST, MAX_REUSE, OFF
     moved: float  # fraction of blocks moved since the reference (1.0 without one)
-    urgent: bool = False  # changed while the source's consumers hold reused maps
+    urgent: bool = False  # changed after the view had settled
 
 
 @dataclass
@@ -66,7 +68,7 @@ class _View:
     reference_anchors: str = ""  # the anchor set version its maps were computed with
     reference_size: tuple[int, int] | None = None  # (width, height): the maps' scale is for this size
     inferred_at: float = -math.inf
-    reusing: bool = False  # the source's last published maps were reused
+    settled: bool = False  # the last frame judged was unchanged (reused, or its refresh inferred)
     previous: Thumbnail | None = None
     previous_at: float = -math.inf
     previous_pose: Pose2D | None = None
@@ -104,8 +106,8 @@ class ReuseTracker:
             self._follow_motion(view, glance.thumbnail, pose, now)
             view.glanced.append((pending, glance.thumbnail))
             verdict = self._verdict(view, glance, pose, now, refresh_waiting)
-            if verdict.reuse:
-                view.reusing = True
+            if verdict.reason in (UNCHANGED, MAX_REUSE, CHANGED, POSE, SIZE):
+                view.settled = verdict.reason in (UNCHANGED, MAX_REUSE)
             return verdict
 
     def _verdict(self, view: _View, glance: Glance, pose: Pose2D | None, now: float, refresh_waiting: bool) -> Verdict:
@@ -114,14 +116,14 @@ class ReuseTracker:
         if view.reference_anchors != self.anchors_version():
             return Verdict(False, ANCHORS, 1.0)
         if glance.size != view.reference_size:  # the maps' scale would not fit (e.g. a relay shrank the frames)
-            return Verdict(False, SIZE, 1.0, urgent=view.reusing)
+            return Verdict(False, SIZE, 1.0, urgent=view.settled)
         moved = moved_fraction(view.reference, glance.thumbnail, self.settings.block_threshold)
         changed = moved > self.settings.changed_fraction
         reference_pose = view.reference_pose
         # A pose known now but not at the reference: the maps were never placed there (the grid needs a frame).
         turned = pose is not None and (reference_pose is None or pose_moved(reference_pose, pose, self.settings))
         if changed or turned:
-            return Verdict(False, CHANGED if changed else POSE, moved, urgent=view.reusing)
+            return Verdict(False, CHANGED if changed else POSE, moved, urgent=view.settled)
         if not self.settings.enabled:
             return Verdict(False, OFF, moved)
         age = now - view.inferred_at
@@ -162,7 +164,6 @@ class ReuseTracker:
             view.reference, view.reference_pose, view.inferred_at = thumbnail, pose, now
             view.reference_anchors = anchors
             view.reference_size = (int(image.shape[1]), int(image.shape[0]))
-            view.reusing = False
 
     def motion(self, source: str) -> float:
         with self._lock:

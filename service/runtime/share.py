@@ -3,10 +3,13 @@
 ``RoundRobin``: the source waiting longest goes first: one frame per source in turn, whatever it shows.
 
 ``NeedShare``, a weighted fair share over the sources whose frames wait for inference. Each source has a
-weight, ``base_weight + motion_weight * motion + ambiguity_weight * ambiguity``: motion (0..1) from its pose's
-speed, else from how fast its view changes (service/runtime/reuse.py); ambiguity (0..1), the share of
+weight, ``base_weight + motion * (motion_weight + ambiguity_weight * ambiguity)``: motion (0..1) from its
+pose's speed, else from how fast its view changes (service/runtime/reuse.py); ambiguity (0..1), the share of
 ambiguous (U >= ``ambiguous_u``) or novel (match < ``novel_match``) patches in the lower half of its last
-map, the ground ahead of a forward camera. In order:
+map, the ground ahead of a forward camera. Ambiguity ahead counts as far as the robot moves towards it: a
+parked robot's frames are refreshes of a view its maps already describe, and inferring them sooner tells
+nobody anything new (measured: with ambiguity counted alone, random weights' ambiguous maps gave 4 parked
+robots a third of a 2-core box, benchmarks/README.md). In order:
 
 1. **the floor**: a frame that has waited ``max_wait_s`` goes first (the longest waiting first); when every
    source is over it the rule is round-robin, the fairest there is for an overloaded box;
@@ -144,7 +147,7 @@ class NeedShare:
         with self._lock:
             ambiguity = self._ambiguity.get(source, 0.0)
         motion = min(1.0, max(0.0, self.motion_of(source)))
-        return settings.base_weight + settings.motion_weight * motion + settings.ambiguity_weight * ambiguity
+        return settings.base_weight + motion * (settings.motion_weight + settings.ambiguity_weight * ambiguity)
 
     def choose(self, waiting: Sequence[Waiting], now: float) -> str:
         overdue = [w for w in waiting if now - w.since >= self.settings.max_wait_s]

@@ -64,7 +64,7 @@ def test_docs_list_the_same_keys() -> None:
     built |= {keys.anchors, keys.anchor_history, keys.anchor_rollback, keys.status, keys.alive("{instance}")}
     built |= {keys.credit("{source}"), keys.relay_health("{source}")}
     built |= {keys.active_anchors("{instance}", "{millis}", "{version}")}
-    built |= {keys.outcome("{source}"), keys.answer("{source}"), keys.anchor_proposal}
+    built |= {keys.outcome("{source}"), keys.answer("{source}"), keys.planned_path("{source}"), keys.anchor_proposal}
     assert built <= documented, f"missing from docs/messages.md: {sorted(built - documented)}"
 
 
@@ -72,6 +72,7 @@ def test_outcome_and_answer_keys_are_messages_never_image_sources() -> None:
     keys = Keys("site")
     assert keys.input_message(keys.outcome("r1/front")) == ("r1/front", "outcome")
     assert keys.input_message(keys.answer("cam")) == ("cam", "answer")
+    assert keys.input_message(keys.planned_path("r1")) == ("r1", "planned_path")
     assert keys.input_message("site/in/r1/front") is None  # an image
     assert keys.input_message("site/in/outcome") is None  # a camera named 'outcome': no source before it
     assert keys.input_message("gcdtrav/in/cam/outcome") is None  # another prefix's

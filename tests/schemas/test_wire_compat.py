@@ -150,6 +150,7 @@ SAMPLES.update(
         ),
         e.OperatorAnswer: e.OperatorAnswer(id="q1", source="cam", score=1.0, stamp=3.0, operator="ada"),
         e.AnswerReply: e.AnswerReply(id="q1", source="cam", score=0.0, pairs=4),
+        e.PlannedPath: e.PlannedPath(stamp=2.0, frame_id="odom", points=[(0.0, 0.0), (1.5, -0.5)]),
     }
 )  # fmt: skip
 

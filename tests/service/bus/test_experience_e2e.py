@@ -137,8 +137,10 @@ def test_a_swap_to_other_concepts_keeps_their_pairs_apart(tmp_path: Path) -> Non
 
 
 def test_bad_messages_are_rejected_counted_and_never_taken_for_images(tmp_path: Path) -> None:
-    with running(settings(tmp_path, ask=AskSettings())) as (_, client, _flags):
+    with running(settings(tmp_path, ask=AskSettings(path_timeout_s=600))) as (service, client, _flags):
         session = client.session
+        session.put(client.keys.planned_path(CAMERA_SOURCE), b'{"stamp": 0, "points": [[0, 0], ["far", 1]]}')
+        client.publish_planned_path(CAMERA_SOURCE, [(0.0, 0.0), (2.5, 0.5)])
         session.put(client.keys.outcome(CAMERA_SOURCE), b"\x00garbage")
         session.put(client.keys.outcome(CAMERA_SOURCE), b'{"stamp": 1, "x": 0, "y": 0, "score": 2, "kind": "velocity"}')
         session.put(client.keys.outcome(CAMERA_SOURCE), b"{" + b" " * 5000 + b"}")
@@ -148,6 +150,7 @@ def test_bad_messages_are_rejected_counted_and_never_taken_for_images(tmp_path: 
         client.publish_outcome("other/cam", outcome)  # a grid this service has no experience of
         client.publish_outcome(CAMERA_SOURCE, outcome)  # nothing fused yet: no prediction to pair with
         expected = {"bad_outcome": 2, "oversized": 1, "bad_cmd_vel": 1, "bad_answer": 1, "unknown_grid": 1}
+        expected["bad_planned_path"] = 1
 
         def counted() -> bool:
             rejected = client.status().rejected_by_reason
@@ -156,6 +159,8 @@ def test_bad_messages_are_rejected_counted_and_never_taken_for_images(tmp_path: 
         assert wait_until(counted, timeout=5), client.status().rejected_by_reason
         status = client.status()
         assert status.sources == {} and status.experience is not None  # no image source 'robot/cam/outcome'
+        assert service.experience is not None  # the good path reached the experience: questions look along it
+        assert service.experience.experience.path_ahead(CAMERA_SOURCE) == [(0.0, 0.0), (2.5, 0.5)]
         assert status.experience.counts["ignored_no_prediction"] == 1 and status.experience.pairs == 0
         with pytest.raises(ServiceError, match="no questions are asked"):
             client.answer(CAMERA_SOURCE, "robot/cam-1", 1.0)

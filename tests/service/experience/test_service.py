@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
-from gcdtrav.schemas.experience import Odometry2D, OperatorAnswer, TraversalOutcome
+from gcdtrav.schemas.experience import Odometry2D, OperatorAnswer, PlannedPath, TraversalOutcome
 from gcdtrav.schemas.messages import MessageError, Pose2D
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings
 from gcdtrav.service.experience.service import Experience, experience_file
@@ -75,3 +75,34 @@ def test_experience_off_makes_no_inputs() -> None:
     experience = Experience(ExperienceSettings(), AskSettings(), "cam", tau=0.3, path=None)
     assert experience.inputs() == []
     assert experience.on_grid_update("cam", ambiguous_strip(0.0), Pose2D(stamp=0, x=0, y=0, yaw=0)) is None
+
+
+def test_a_planners_path_steers_where_questions_look_until_it_lapses() -> None:
+    """The ambiguous strip lies along +x; the robot faces +y. Along its heading nothing is ahead; along a
+    planner's path over the strip it is asked about; a path not renewed within path_timeout_s, or an empty one,
+    gives the heading back."""
+    now = [0.0]
+    ask = AskSettings(enabled=True, persist_s=1.0, min_cells=3, path_timeout_s=5.0)
+    experience = Experience(ExperienceSettings(enabled=True), ask, "cam", tau=0.3, path=None, clock=lambda: now[0])
+    facing_y = Pose2D(stamp=0.0, x=0.0, y=0.0, yaw=float(np.pi / 2))
+    for stamp in (0.0, 1.5):
+        assert experience.on_grid_update("cam", ambiguous_strip(stamp), facing_y) is None
+
+    along_x = PlannedPath(stamp=0.0, points=[(0.0, 0.0), (1.0, 0.05), (4.0, 0.05)])
+    experience.on_planned_path("cam", along_x.pack(), received_at=now[0])
+    assert experience.path_ahead("cam") == [(0.0, 0.0), (1.0, 0.05), (4.0, 0.05)]
+    assert experience.on_grid_update("cam", ambiguous_strip(2.0), facing_y) is None  # flagged from now on
+    question = experience.on_grid_update("cam", ambiguous_strip(3.5), facing_y)
+    assert question is not None and all(x > 0 and abs(y) < 0.6 for x, y in question.cells)
+
+    now[0] = 5.0
+    assert experience.path_ahead("cam") is not None  # at the timeout, still held
+    now[0] = 5.01
+    assert experience.path_ahead("cam") is None  # lapsed: the heading again
+    experience.on_planned_path("cam", along_x.pack(), received_at=now[0])
+    experience.on_planned_path("cam", PlannedPath(stamp=1.0, points=[]).pack(), received_at=now[0])
+    assert experience.path_ahead("cam") is None  # an empty path clears it
+    with pytest.raises(MessageError):
+        experience.on_planned_path("cam", b'{"stamp": 0, "points": [[1e9, 0], [0, 0]]}', received_at=now[0])
+    with pytest.raises(MessageError):
+        experience.on_planned_path("cam", b"\x00garbage", received_at=now[0])

@@ -99,6 +99,24 @@ def test_a_change_right_after_an_inference_is_not_urgent() -> None:
     assert verdict.reason == CHANGED and not verdict.urgent
 
 
+def test_a_change_right_after_a_refresh_of_a_settled_view_is_urgent() -> None:
+    """A parked robot's refresh is an inference too, but its view had settled: a person walking in on the very
+    next frame is as urgent as after a reuse (else it waits for the parked robot's small share)."""
+    robot, view = Robot(ReuseSettings(max_reuse_s=1.0)), scene()
+    robot.frame(view)
+    reasons = [robot.frame(noisy(view, 6.0, k)).reason for k in range(5)]
+    assert reasons == [UNCHANGED] * 4 + [MAX_REUSE]  # the refresh was inferred: the new reference
+    verdict = robot.frame(with_person(view))
+    assert verdict.reason == CHANGED and verdict.urgent
+
+
+def test_a_moving_view_is_never_urgent() -> None:
+    robot, view = Robot(), scene()
+    robot.frame(view)
+    verdicts = [robot.frame(np.roll(view, 24 * (k + 1), axis=1)) for k in range(4)]  # a pan: every frame changed
+    assert [v.reason for v in verdicts] == [CHANGED] * 4 and not any(v.urgent for v in verdicts)
+
+
 def test_turning_in_place_before_a_blank_wall_is_a_change() -> None:
     robot, wall = Robot(with_pose=True), np.full((480, 640, 3), 128, np.uint8)
     robot.frame(wall)

@@ -57,6 +57,20 @@ def test_need_shares_inference_in_proportion_to_the_weights() -> None:
     assert shares["fast"].share > shares["slow"].share > shares["parked"].share > 0
 
 
+def test_ambiguity_ahead_counts_as_far_as_the_robot_moves() -> None:
+    """A parked robot's ambiguous view keeps the base weight (its refreshes tell nothing new); a moving one's
+    ambiguity ahead adds ambiguity_weight at full motion."""
+    clock = Clock()
+    policy = need(clock, {"moving": 1.0, "half": 0.5, "parked": 0.0})
+    for source in ("moving", "half", "parked"):
+        policy.set_ambiguity(source, 1.0)
+    assert policy.weight("parked") == pytest.approx(0.2)
+    assert policy.weight("half") == pytest.approx(0.2 + 0.5 * (1.0 + 0.5))
+    assert policy.weight("moving") == pytest.approx(0.2 + 1.0 + 0.5)
+    policy.set_ambiguity("moving", 0.0)
+    assert policy.weight("moving") == pytest.approx(1.2)
+
+
 def test_equal_weights_are_round_robin() -> None:
     clock = Clock()
     taken = run(need(clock, {}), clock, ["a", "b", "c"], 9)
