@@ -57,7 +57,7 @@ def test_source_of_refuses_what_is_not_one_source() -> None:
 
 
 def test_docs_list_the_same_keys() -> None:
-    documented = set(re.findall(r"`(\{prefix\}/[a-z0-9/{}]+)", DOCS.read_text("utf-8")))
+    documented = set(re.findall(r"`(\{prefix\}/[a-z0-9_/{}]+)", DOCS.read_text("utf-8")))
     keys = Keys("{prefix}")
     built = {keys.output("{source}", kind) for kind in OUTPUT_KINDS}
     built |= {keys.grid("{source}", layer) for layer in GRID_LAYERS}

@@ -78,13 +78,13 @@ def test_experience_off_makes_no_inputs() -> None:
 
 
 def test_a_planners_path_steers_where_questions_look_until_it_lapses() -> None:
-    """The ambiguous strip lies along +x; the robot faces +y. Along its heading nothing is ahead; along a
+    """The ambiguous strip lies along +x; the robot faces -y. Along its heading nothing is ahead; along a
     planner's path over the strip it is asked about; a path not renewed within path_timeout_s, or an empty one,
     gives the heading back."""
     now = [0.0]
     ask = AskSettings(enabled=True, persist_s=1.0, min_cells=3, path_timeout_s=5.0)
     experience = Experience(ExperienceSettings(enabled=True), ask, "cam", tau=0.3, path=None, clock=lambda: now[0])
-    facing_y = Pose2D(stamp=0.0, x=0.0, y=0.0, yaw=float(np.pi / 2))
+    facing_y = Pose2D(stamp=0.0, x=0.0, y=0.0, yaw=float(-np.pi / 2))
     for stamp in (0.0, 1.5):
         assert experience.on_grid_update("cam", ambiguous_strip(stamp), facing_y) is None
 
