@@ -80,9 +80,10 @@ def add_view_command(commands: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    missing = [package for module, package in (("foxglove", "foxglove-sdk"), ("mcap", "mcap")) if not _has(module)]
+    needed = (("foxglove", "foxglove-sdk"), ("mcap", "mcap"), ("matplotlib", "matplotlib"))
+    missing = [package for module, package in needed if not _has(module)]
     if missing:
-        print(f"gcdtrav view: needs {' and '.join(missing)}; install the view extra: {INSTALL}", file=sys.stderr)
+        print(f"gcdtrav view: needs {', '.join(missing)}; install the view extra: {INSTALL}", file=sys.stderr)
         return EXIT_USAGE
     problem = usage_problem(args)
     if problem:

@@ -255,6 +255,18 @@ def test_gcdtrav_view_without_the_extra_says_what_to_install() -> None:
     assert result.stderr.strip() == expected
 
 
+def test_gcdtrav_view_without_matplotlib_names_it_too() -> None:
+    """The probed distribution is drawn with matplotlib (the view extra's third package)."""
+    code = (
+        "import sys; sys.modules['foxglove'] = None; sys.modules['matplotlib'] = None; "
+        "from gcdtrav.service.commands.cli import main; sys.exit(main(['view']))"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    expected = "gcdtrav view: needs foxglove-sdk, matplotlib; install the view extra: pip install 'gcdtrav[view]'"
+    assert result.stderr.strip() == expected
+
+
 def test_gcdtrav_view_layout_writes_a_tab_per_source_of_the_service(service, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     _, port = service
     flags = ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
