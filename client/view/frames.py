@@ -30,14 +30,13 @@ from foxglove.messages import (
     Vector3,
 )
 from gcdtrav.schemas.settings import CameraIntrinsics, CameraMountSettings, load_settings
+from gcdtrav.schemas.settings.grids import OPTICAL_TO_BODY, rotation_rpy
 from numpy.typing import NDArray
 
 BASE_FRAME = "base_link"
 FRUSTUM_DEPTH_M = 2.0  # the frustum's lines end this far along the optical axis
 FRUSTUM_COLOUR = Color(r=0.2, g=0.8, b=1.0, a=1.0)
 ROBOT_COLOUR = Color(r=1.0, g=1.0, b=1.0, a=1.0)
-# optical (x right, y down, z forward) -> body (x forward, y left, z up)
-OPTICAL_TO_BODY = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
 @dataclass(frozen=True)
@@ -63,16 +62,6 @@ def cameras_from_settings(path: Path) -> dict[str, CameraSetup]:
 def camera_frame(source: str, frame_id: str) -> str:
     """The optical frame of a source's images: the frame id the robot gave them, else '{source}/camera'."""
     return frame_id or f"{source}/camera"
-
-
-def rotation_rpy(roll: float, pitch: float, yaw: float) -> NDArray[np.float64]:
-    """R = Rz(yaw) Ry(pitch) Rx(roll), the ROS convention, as the service's geometry uses it."""
-    cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
-                              math.cos(yaw), math.sin(yaw))  # fmt: skip
-    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    return rz @ ry @ rx
 
 
 def quaternion(rotation: NDArray[np.float64]) -> Quaternion:

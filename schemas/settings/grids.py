@@ -4,8 +4,23 @@ from __future__ import annotations
 
 from typing import Any, Literal
 
+import numpy as np
 from gcdtrav.schemas.strict import StrictModel
+from numpy.typing import NDArray
 from pydantic import Field, model_validator
+
+# optical (x right, y down, z forward) -> body (x forward, y left, z up): the mount's convention, shared by the
+# service's ground geometry and the viewer's camera transform.
+OPTICAL_TO_BODY = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+
+
+def rotation_rpy(roll: float, pitch: float, yaw: float) -> NDArray[np.float64]:
+    """R = Rz(yaw) Ry(pitch) Rx(roll), the ROS convention (radians). Positive pitch tilts x down."""
+    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    return np.asarray(rz @ ry @ rx, dtype=np.float64)
 
 
 class CameraIntrinsics(StrictModel):

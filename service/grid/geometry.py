@@ -10,19 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from gcdtrav.schemas.settings.grids import OPTICAL_TO_BODY, rotation_rpy
 from numpy.typing import NDArray
-
-# optical (x right, y down, z forward) -> body (x forward, y left, z up)
-OPTICAL_TO_BODY = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-
-
-def rotation_rpy(roll: float, pitch: float, yaw: float) -> NDArray[np.float64]:
-    """R = Rz(yaw) Ry(pitch) Rx(roll), the ROS convention (radians). Positive pitch tilts x down."""
-    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    return rz @ ry @ rx
 
 
 @dataclass(frozen=True)
