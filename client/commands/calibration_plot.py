@@ -5,18 +5,9 @@ figures in the title. Needs matplotlib, imported on use (the client's base insta
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
 
+from gcdtrav.client.commands.density_plot import pyplot
 from gcdtrav.schemas.experience import CalibrationFigures
-
-
-def _pyplot() -> Any:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def _text(value: float | None, digits: int = 3) -> str:
@@ -24,7 +15,7 @@ def _text(value: float | None, digits: int = 3) -> str:
 
 
 def reliability_diagram(figures: CalibrationFigures, path: Path, title: str = "") -> None:
-    plt = _pyplot()
+    plt = pyplot()
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(5.5, 6.2), sharex=True, gridspec_kw={"height_ratios": [3, 1]})
     filled = [b for b in figures.reliability if b.count and b.predicted is not None and b.observed is not None]
     top.plot([0, 1], [0, 1], ls="--", color="tab:gray", label="perfectly calibrated")
