@@ -319,7 +319,10 @@ def summary(phases: list[dict[str, Any]], args: argparse.Namespace) -> dict[str,
     inference_s = args.inference_s
     floor = args.max_wait_s if args.max_wait_s is not None else ScheduleSettings().max_wait_s
     reuse_s = args.max_reuse_s if args.max_reuse_s is not None else ReuseSettings().max_reuse_s
-    gap_bound = {n: (reuse_s if kinds[n] == "parked" else 0.0) + floor + 2 * inference_s for n in names}
+    # A parked robot's refresh starts with its first frame after max_reuse_s (one frame interval at most),
+    # then waits at most the floor for its turn, plus the inference in flight and its own.
+    parked_extra = reuse_s + 1 / args.fps
+    gap_bound = {n: (parked_extra if kinds[n] == "parked" else 0.0) + floor + 2 * inference_s for n in names}
     gaps = {r["robot"]: r["inferred_gap_max_s"] for r in need_rows}
     return {
         "inferred_rate_need_over_round_robin": ratios,
@@ -336,10 +339,11 @@ def summary(phases: list[dict[str, Any]], args: argparse.Namespace) -> dict[str,
         },
         "goals": {
             "moving_at_least_1_8x": bool(moving) and all(r is not None and r >= 1.8 for r in moving),
+            # The goal, for every change: from the first changed frame to its map.
             "change_within_frame_interval_plus_one_inference": bool(latencies)
-            and statistics.median(latencies) <= 1 / args.fps + inference_s,
-            # Measured from the first changed frame: the frame in flight must end first (no preemption), so
-            # the reachable worst case is two inferences after it.
+            and max(latencies) <= 1 / args.fps + inference_s,
+            # Stricter: the frame in flight must end first (no preemption), so the reachable worst case is two
+            # inferences after the changed frame arrives (plus its transport and glance).
             "change_max_within_two_inferences": bool(latencies) and max(latencies) <= 2 * inference_s,
             "inferred_gap_within_floor": all(gaps[n] is None or gaps[n] <= gap_bound[n] for n in names),
             "bounds_s": {"inference_s": inference_s, "gap_bound_s": gap_bound},

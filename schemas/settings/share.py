@@ -24,7 +24,7 @@ class ReuseSettings(StrictModel):
         default=5.0,
         gt=0,
         description="At most this long between a source's real inferences: its next frame after that is "
-        "inferred (then scheduled like any other, within max_wait_s), changed or not.",
+        "inferred, changed or not (a refresh: it yields to frames with news, within max_wait_s).",
     )
     blocks: tuple[int, int] = Field(
         default=(24, 18),

@@ -22,6 +22,10 @@ robots a third of a 2-core box, benchmarks/README.md). In order:
    Sources that always wait get turns in proportion to their weights; a source that was not waiting
    (parked, its views reused) comes back at virtual now, neither ahead (no credit banked while idle) nor
    behind. Weights are read at each choice, so a robot that starts moving gets its share at once.
+   **Refreshes** (an unchanged view inferred again because its maps are ``max_reuse_s`` old) yield: they
+   go only when no other frame waits, or at the floor. A refresh tells something new only if the change
+   measure missed a change; every other frame is news. Measured: 4 parked robots refreshing at the base
+   weight took a tenth of a 2-core box from 4 moving ones (benchmarks/README.md, *A mixed fleet*).
 
 The queue keeps its own rule on top: a new source's first frame takes at most every other turn.
 """
@@ -65,6 +69,8 @@ class SharePolicy(Protocol):
     def taken(self, source: str, now: float) -> None: ...
 
     def mark_urgent(self, source: str) -> None: ...
+
+    def mark_refresh(self, source: str, refresh: bool) -> None: ...
 
     def set_ambiguity(self, source: str, ambiguity: float) -> None: ...
 
@@ -113,6 +119,9 @@ class RoundRobin:
     def mark_urgent(self, source: str) -> None:
         pass
 
+    def mark_refresh(self, source: str, refresh: bool) -> None:
+        pass
+
     def set_ambiguity(self, source: str, ambiguity: float) -> None:
         pass
 
@@ -139,6 +148,7 @@ class NeedShare:
         self._virtual_now = 0.0
         self._ambiguity: dict[str, float] = {}
         self._urgent: set[str] = set()
+        self._refresh: set[str] = set()  # sources whose waiting frame is a refresh of an unchanged view
         self._last_took_urgent = False
         self._lock = threading.Lock()
 
@@ -157,9 +167,10 @@ class NeedShare:
             urgent = [w for w in waiting if w.source in self._urgent]
             others = [w for w in waiting if w.source not in self._urgent]
             urgent_turn = bool(urgent) and (not self._last_took_urgent or not others)
+            news = [w for w in others if w.source not in self._refresh]
         if urgent_turn:
             return min(urgent, key=lambda w: w.since).source
-        return min(others, key=lambda w: (self._turn(w.source)[1], w.since)).source
+        return min(news or others, key=lambda w: (self._turn(w.source)[1], w.since)).source
 
     def _turn(self, source: str) -> tuple[float, float]:
         """(start, finish) in virtual time of the source's next turn; its start is fixed when first asked."""
@@ -178,11 +189,21 @@ class NeedShare:
             self._virtual_now = max(self._virtual_now, start)
             self._last_took_urgent = source in self._urgent
             self._urgent.discard(source)
+            self._refresh.discard(source)
         self._log.add(source, now)
 
     def mark_urgent(self, source: str) -> None:
         with self._lock:
             self._urgent.add(source)
+            self._refresh.discard(source)
+
+    def mark_refresh(self, source: str, refresh: bool) -> None:
+        """Whether the source's waiting frame only refreshes an unchanged view (set for each frame sent on)."""
+        with self._lock:
+            if refresh:
+                self._refresh.add(source)
+            else:
+                self._refresh.discard(source)
 
     def set_ambiguity(self, source: str, ambiguity: float) -> None:
         with self._lock:
@@ -203,6 +224,7 @@ class NeedShare:
             self._start.pop(source, None)
             self._ambiguity.pop(source, None)
             self._urgent.discard(source)
+            self._refresh.discard(source)
         self._log.forget(source)
 
 

@@ -55,6 +55,7 @@ class Triage:
             return None
         verdict = self.tracker.judge(source, pending, seen, refresh_waiting=self.frames.has_ready(source))
         if not verdict.reuse:
+            self.policy.mark_refresh(source, verdict.reason == MAX_REUSE)
             if verdict.urgent:
                 self.policy.mark_urgent(source)
             if self.frames.settle(source, pending, reused=False) and verdict.reason == MAX_REUSE:

@@ -116,6 +116,79 @@ def test_urgent_changes_go_next_but_take_at_most_every_other_turn() -> None:
     assert sum(source.startswith("m") for source in taken) == 6
 
 
+def refresh_turns(policy: NeedShare, clock: Clock, movers: list[str], turns: int) -> list[int]:
+    """Movers always wait; a parked source's refresh waits again right after each turn. Its turns' indices."""
+    queue: LatestFrameQueue[str] = LatestFrameQueue(policy=policy, clock=clock)
+    for source in [*movers, "parked", "parked"]:
+        queue.put(source, source)
+    for source in movers:
+        queue.put(source, source)
+    policy.mark_refresh("parked", True)
+    taken = []
+    for k in range(turns):
+        item = queue.take(timeout=0)
+        assert item is not None
+        clock.now += 1.0
+        queue.put(item[0], item[0])
+        if item[0] == "parked":
+            taken.append(k)
+            policy.mark_refresh("parked", True)
+    return taken
+
+
+@pytest.mark.parametrize("movers", [1, 3])
+def test_a_refresh_yields_to_every_other_frame_until_the_floor(movers: int) -> None:
+    clock = Clock()
+    policy = need(clock, {}, max_wait_s=5.0)  # every weight the base one: weighted, the refresh would go in turn
+    turns = refresh_turns(policy, clock, [f"m{k}" for k in range(movers)], 60)
+    waits = np.diff([-1, *turns])  # in inferences of 1 s
+    # Yielding, it goes only once it is overdue: after max_wait_s, and never later than one inference after.
+    assert len(turns) >= 60 / 7 - 1
+    assert waits.min() >= 5 and waits.max() <= 6 + 1
+
+
+def test_a_refresh_alone_goes_at_once_and_one_not_marked_is_weighted() -> None:
+    clock = Clock()
+    policy = need(clock, {}, max_wait_s=5.0)
+    assert refresh_turns(policy, clock, [], 3) == [0, 1, 2]  # nothing else waits: the box has room
+    clock = Clock()
+    policy = need(clock, {"m0": 1.0}, max_wait_s=1000.0)
+    counts = Counter(run(policy, clock, ["m0", "parked"], 70))  # no refresh marked: weights 1.2 and 0.2
+    assert counts["parked"] == pytest.approx(10, abs=1)
+
+
+def test_a_change_ends_a_refresh_and_so_does_its_turn() -> None:
+    clock = Clock()
+    policy = need(clock, {"m0": 1.0}, max_wait_s=1000.0)
+    queue: LatestFrameQueue[str] = LatestFrameQueue(policy=policy, clock=clock)
+    for source in ("m0", "m0", "parked", "parked"):
+        queue.put(source, source)
+    policy.mark_refresh("parked", True)
+    assert queue.take(timeout=0) == ("m0", "m0")
+    queue.put("m0", "m0")
+    policy.mark_urgent("parked")  # the view changed while its refresh waited: it goes next
+    assert queue.take(timeout=0) == ("parked", "parked")
+    # Its turn ended the mark: a frame of it waiting again (not a refresh) is weighted, 0.2 against 1.2.
+    queue.put("parked", "parked")
+    counts = Counter(run_queue(queue, clock, 70))
+    assert counts["parked"] == pytest.approx(10, abs=2)
+    policy.mark_refresh("parked", True)
+    policy.mark_refresh("parked", False)  # a newer frame with news replaced the refresh
+    assert Counter(run_queue(queue, clock, 70))["parked"] == pytest.approx(10, abs=2)
+
+
+def run_queue(queue: LatestFrameQueue[str], clock: Clock, turns: int) -> list[str]:
+    """Like ``run`` on an existing queue: each source taken sends its next frame."""
+    taken = []
+    for _ in range(turns):
+        item = queue.take(timeout=0)
+        assert item is not None
+        taken.append(item[0])
+        clock.now += 1.0
+        queue.put(item[0], item[0])
+    return taken
+
+
 def test_a_new_source_still_takes_at_most_every_other_turn() -> None:
     clock = Clock()
     queue: LatestFrameQueue[str] = LatestFrameQueue(policy=need(clock, {}), clock=clock)

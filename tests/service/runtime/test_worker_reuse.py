@@ -112,6 +112,26 @@ def test_reuse_off_infers_every_frame() -> None:
     assert all(received == done for received, done in accounted(stats, queue).values())
 
 
+def test_a_refresh_is_marked_for_the_scheduler_and_news_is_not(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The scheduler lets a refresh (max_reuse_s reached, the view unchanged) yield; the triage says which."""
+    worker, queue, _, outputs = serving(reuse={"max_reuse_s": 0.2})
+    marks: list[bool] = []
+    mark = queue.policy.mark_refresh
+    monkeypatch.setattr(
+        queue.policy, "mark_refresh", lambda source, refresh: (marks.append(refresh), mark(source, refresh))
+    )
+    worker.start()
+    view = scene()
+    try:
+        feed(queue, outputs, [view])
+        time.sleep(0.3)
+        feed(queue, outputs, [noisy(view, 5.0, 1), with_person(view)])
+    finally:
+        assert worker.stop(time.monotonic() + 10)
+    assert marks == [False, True, False]  # the first view, its refresh, the person
+    assert len(outputs.inferred) == 3 and not outputs.reused
+
+
 @pytest.mark.parametrize(
     "kinds", [("parked",), ("moving",), ("parked", "moving")], ids=["all parked", "all moving", "mixed"]
 )
