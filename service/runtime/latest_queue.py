@@ -165,6 +165,24 @@ class LatestFrameQueue(Generic[T]):
                 del self._pending[source]
             return True
 
+    def settle_in_line(self, source: str, item: T) -> T | None:
+        """The arrival ``item`` takes the place of the source's ready frame, which keeps its place in line
+        (``since``): the frame to answer without inference is returned, the replaced one, or ``item`` itself
+        if no frame is ready any more (taken meanwhile). None if ``item`` is no longer the source's arrival."""
+        with self._cond:
+            slot = self._pending.get(source)
+            if slot is None or slot.arrived is None or slot.arrived.item is not item:
+                return None
+            entry, slot.arrived, slot.glancing = slot.arrived, None, False
+            replaced = slot.ready
+            if replaced is not None:
+                slot.ready = entry
+            answered = replaced if replaced is not None else entry
+            self._bytes -= answered.nbytes
+            if slot.empty:
+                del self._pending[source]
+            return answered.item
+
     def has_ready(self, source: str) -> bool:
         """Whether a frame of ``source`` waits for inference."""
         with self._cond:

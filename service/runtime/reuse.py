@@ -12,8 +12,11 @@ counted ``unchanged``) when all of these hold:
 - with a pose (a grid's pose stream), the robot neither moved ``translation_m`` nor turned ``rotation_deg``
   since the reference (turning in place in front of a blank wall counts as a change);
 - the reference is younger than ``max_reuse_s``: after that the next frame is inferred, changed or not.
-  While that refresh waits for its turn, later unchanged frames are still answered with the last maps, up
-  to ``max_reuse_s + max_wait_s`` (the scheduler's floor): a worker that long without serving is hung.
+  While that refresh waits for its turn (it yields to frames with news up to the scheduler's floor,
+  ``max_wait_s``), each later unchanged frame takes its place in line (the refresh infers a frame of now,
+  not one that waited into staleness) and the frame it replaces is answered with the last maps; so up to
+  ``max_reuse_s + 2 * max_wait_s``: the floor, then as long again for the frames overdue with it; a worker
+  that long without serving is hung.
 
 Otherwise the frame goes to the scheduler; **urgent** when it changed after the view had settled (the
 frames before it unchanged, reused or refreshed: its consumers hold maps of a view that is gone, a person
@@ -59,6 +62,7 @@ class Verdict:
     reason: str  # UNCHANGED (reused), or why inferred: CHANGED, POSE, SIZE, ANCHORS, FIRST, MAX_REUSE, OFF
     moved: float  # fraction of blocks moved since the reference (1.0 without one)
     urgent: bool = False  # changed after the view had settled
+    behind_refresh: bool = False  # reused past max_reuse_s because the source's refresh waits for its turn
 
 
 @dataclass
@@ -92,7 +96,7 @@ class ReuseTracker:
         self.settings, self.schedule = settings, schedule or ScheduleSettings()
         self.pose_of, self.clock = pose_of, clock
         self.anchors_version = anchors_version  # the active set's: maps of another set are never reused
-        self._refresh_limit_s = self.settings.max_reuse_s + self.schedule.max_wait_s
+        self._refresh_limit_s = self.settings.max_reuse_s + 2 * self.schedule.max_wait_s
         self._views: dict[str, _View] = {}
         self._lock = threading.Lock()
 
@@ -129,9 +133,11 @@ class ReuseTracker:
         age = now - view.inferred_at
         # While a refresh waits its turn, its maps still answer, up to the scheduler's floor: beyond it the
         # worker is not serving (hung): frames then queue, and the watchdog sees it.
-        if age >= self.settings.max_reuse_s and not (refresh_waiting and age < self._refresh_limit_s):
-            return Verdict(False, MAX_REUSE, moved)
-        return Verdict(True, UNCHANGED, moved)
+        if age < self.settings.max_reuse_s:
+            return Verdict(True, UNCHANGED, moved)
+        if refresh_waiting and age < self._refresh_limit_s:
+            return Verdict(True, UNCHANGED, moved, behind_refresh=True)
+        return Verdict(False, MAX_REUSE, moved)
 
     def _follow_motion(self, view: _View, thumbnail: Thumbnail, pose: Pose2D | None, now: float) -> None:
         """The motion estimate: pose speed if known, else the image's change per second since the last glance."""

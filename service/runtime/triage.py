@@ -61,9 +61,25 @@ class Triage:
             if self.frames.settle(source, pending, reused=False) and verdict.reason == MAX_REUSE:
                 self.on_freed(pending, REFRESH)
             return None
+        if verdict.behind_refresh:
+            return self._in_line(source, pending, seen)
         if not self.frames.settle(source, pending, reused=True):
             return None  # replaced meanwhile: the newer frame is glanced at next
         return pending, seen
+
+    def _in_line(self, source: str, pending: PendingFrame, seen: Glance) -> tuple[PendingFrame, Glance] | None:
+        """An unchanged frame while the source's refresh waits: it takes the refresh's place in line (so the
+        refresh infers the newest view, never one that waited into staleness); the frame it replaced, older,
+        is answered with the last maps instead."""
+        answered = self.frames.settle_in_line(source, pending)
+        if answered is None or answered is pending:
+            return None if answered is None else (pending, seen)
+        settings = self.settings
+        try:  # glanced once already: the same bytes give the same glance
+            return answered, glance(answered, settings.max_payload_bytes, settings.max_pixels, settings.reuse.blocks)
+        except Exception as err:  # counted, never the triage thread's end
+            self.stats.rejected(source, "processing_failed", repr(err)[:200], err)
+            return None
 
     def reuse(self, pending: PendingFrame, seen: Glance) -> None:
         """Publish the source's last maps for this frame and count it unchanged (a shutdown's: dropped)."""

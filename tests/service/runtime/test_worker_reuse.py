@@ -132,6 +132,63 @@ def test_a_refresh_is_marked_for_the_scheduler_and_news_is_not(monkeypatch: pyte
     assert len(outputs.inferred) == 3 and not outputs.reused
 
 
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_unchanged_frames_take_a_waiting_refresh_s_place_and_the_replaced_one_is_answered() -> None:
+    """A refresh that yields for long must not infer a frame that waited into staleness: each newer unchanged
+    frame takes its place in line, the older one is answered with the last maps, stamps stay in order."""
+    config = ServiceSettings.model_validate({"reuse": {"max_reuse_s": 1.0}})
+    clock, stats, outputs = Clock(), ServiceStats(LOG), Outputs()
+    tracker = ReuseTracker(config.reuse, config.schedule, clock=clock)
+    queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
+        policy=policy_for(config.schedule, tracker.motion), triage=True, clock=clock
+    )
+    triage = Triage(queue, tracker, config, stats, outputs.republish, lambda p, reason: outputs.freed.append(reason))
+    view, answered = scene(), []
+    frames = [jpeg_frame(noisy(view, 4.0, k), "parked", received_at=100.0 + k) for k in range(6)]
+    queue.put("parked", frames[0])
+    assert triage.next_reusable(0) is None  # the first view: to infer
+    taken = queue.take(0)
+    assert taken is not None and taken[1] is frames[0]
+    tracker.inferred("parked", frames[0], view)
+    clock.now += 2.0  # past max_reuse_s: the next frame is a refresh
+    queue.put("parked", frames[1])
+    assert triage.next_reusable(0) is None and queue.has_ready("parked")
+    for frame in frames[2:]:  # the refresh yields (movers elsewhere): unchanged frames keep arriving
+        clock.now += 0.2
+        queue.put("parked", frame)
+        reusable = triage.next_reusable(0)
+        assert reusable is not None
+        answered.append(reusable[0])
+        triage.reuse(*reusable)
+    assert answered == frames[1:5]  # each answered when the next one took its place
+    assert [seen.stamp for _, seen in outputs.reused] == sorted(seen.stamp for _, seen in outputs.reused)
+    taken = queue.take(0)
+    assert taken is not None and taken[1] is frames[5]  # the refresh infers the newest view
+    assert outputs.freed == ["refresh"] + ["unchanged"] * 4
+    counters = queue.counters()["parked"]
+    assert counters.received == 6 and counters.dropped == 0 and len(queue) == 0 and queue.nbytes == 0
+
+
+def test_an_unchanged_frame_behind_a_refresh_taken_meanwhile_is_answered_itself() -> None:
+    queue: LatestFrameQueue[str] = LatestFrameQueue(triage=True)
+    queue.put("a", "refresh")
+    assert queue.take_untriaged(0) == ("a", "refresh") and queue.settle("a", "refresh", reused=False)
+    queue.put("a", "next")
+    assert queue.take_untriaged(0) == ("a", "next")
+    assert queue.take(0) == ("a", "refresh")  # the worker took the refresh between the glance and its verdict
+    assert queue.settle_in_line("a", "next") == "next" and len(queue) == 0
+    queue.put("a", "newer")
+    assert queue.settle_in_line("a", "older") is None  # not the arrival: nothing changes
+    assert len(queue) == 1
+
+
 @pytest.mark.parametrize(
     "kinds", [("parked",), ("moving",), ("parked", "moving")], ids=["all parked", "all moving", "mixed"]
 )
