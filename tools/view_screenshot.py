@@ -40,7 +40,8 @@ from tools.synthetic_scene import SceneBackend, make_world, start_anchors
 
 BROWSER_SCRIPT = Path(__file__).with_name("view_screenshot_browser.py")
 LAYOUT_NAME = "gcdtrav-layout.json"
-WARM_UP_S = 20.0  # simulated seconds driven before the viewer starts: a grid with some cells to show
+WARM_UP_S = 90.0  # simulated seconds driven before the viewer starts: a grid with some cells to show
+DRIVE_S = 3600.0  # the route's length in simulated seconds: longer than any screenshot takes
 
 
 def service_settings(state: Path) -> ServiceSettings:
@@ -61,40 +62,45 @@ def gcdtrav_command(*arguments: str) -> list[str]:
     return [sys.executable, "-m", "gcdtrav.service.commands.cli", *arguments]
 
 
-class Driving:
-    """The robot drives in a thread until stopped, simulated time running on; once ``pace`` is called, at most
-    at the wall clock's rate (the simulation alone runs many times faster: Lichtblick then warns of topics
-    above 60 Hz, foxglove-sdk drops messages, and software WebGL cannot keep up)."""
+class Stopped(Exception):
+    """Raised inside the robot's loop to end its drive."""
 
-    def __init__(self, robot: BusRobot) -> None:
-        self.robot = robot
+
+class Driving:
+    """One robot drives one route in a thread until stopped: first as fast as the service answers (to fill its
+    grid), then, once ``pace`` is called, at the wall clock's rate (the simulation alone runs many times
+    faster: Lichtblick then warns of topics above 60 Hz, foxglove-sdk drops messages, and software WebGL
+    cannot keep up)."""
+
+    def __init__(self, robot: BusRobot, seed: int) -> None:
+        self.robot, self.seed = robot, seed
         self.frame_period_s = 0.0
         self.next_frame = 0.0
+        self.stop = threading.Event()
+        self.error: BaseException | None = None
         publish_image = robot.client.publish_image
 
         def paced(*args: Any, **kwargs: Any) -> Any:
             time.sleep(max(0.0, self.next_frame - time.monotonic()))
+            if self.stop.is_set():
+                raise Stopped
             self.next_frame = time.monotonic() + self.frame_period_s
             return publish_image(*args, **kwargs)
 
         setattr(robot.client, "publish_image", paced)  # noqa: B010 (an instance's method, on purpose)
-        self.stop = threading.Event()
-        self.stamp = START_STAMP
-        self.error: BaseException | None = None
         self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
 
-    def pace(self) -> None:
+    def pace(self, warm_up_s: float, timeout_s: float = 120.0) -> None:
+        """Once ``warm_up_s`` of simulated time has been driven, drive in real time."""
+        self.robot.maps.wait_for(START_STAMP + warm_up_s, timeout_s)
         self.frame_period_s = CAMERA_EVERY * ODOMETRY_DT
 
-    def warm_up(self, seconds: float) -> None:
-        self.stamp = self.robot.drive(seconds, seed=1, start_stamp=self.stamp) + 1.0
-
     def _run(self) -> None:
-        seed = 2
         try:
-            while not self.stop.is_set():
-                self.stamp = self.robot.drive(5.0, seed=seed, start_stamp=self.stamp) + 1.0
-                seed += 1
+            self.robot.drive(DRIVE_S, seed=self.seed)
+        except Stopped:
+            pass
         except BaseException as err:  # reported by the main thread
             self.error = err
 
@@ -146,6 +152,8 @@ def main() -> int:
     parser.add_argument("--chromium", default="/usr/bin/chromium")
     parser.add_argument("--out", type=Path, default=Path("docs/view-3d.png"))
     parser.add_argument("--wait", type=float, default=25.0, help="seconds of live data before the screenshot")
+    parser.add_argument("--seed", type=int, default=3, help="the robot's route [3]")
+    parser.add_argument("--zoom-steps", type=int, default=8, help="mouse-wheel steps towards the robot [8]")
     parser.add_argument("--page-out", type=Path, help="also a screenshot of the whole page (the whole layout)")
     args = parser.parse_args()
 
@@ -161,24 +169,22 @@ def main() -> int:
             ) as client,
         ):
             flags = ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
-            driving = Driving(BusRobot(client, make_world(seed=0)))
-            driving.warm_up(WARM_UP_S)
+            driving = Driving(BusRobot(client, make_world(seed=0)), args.seed)
+            driving.pace(WARM_UP_S)
             subprocess.run(
                 gcdtrav_command("view", "--layout", str(layout), "--settings", str(view_settings), *flags), check=True
             )
-            driving.pace()
-            driving.thread.start()
             ws_port = free_port()
             try:
                 with viewer(flags, view_settings, ws_port), http_server(args.lichtblick, layout) as http_port:
                     base = f"http://127.0.0.1:{http_port}"
                     url = (
-                        f"{base}/?ds=foxglove-websocket&ds.url=ws://127.0.0.1:{ws_port}"
-                        f"&layoutUrl={base}/{LAYOUT_NAME}"
+                        f"{base}/?ds=foxglove-websocket&ds.url=ws://127.0.0.1:{ws_port}&layoutUrl={base}/{LAYOUT_NAME}"
                     )
                     subprocess.run(
                         [args.playwright_python, str(BROWSER_SCRIPT), "--url", url, "--chromium", args.chromium,
                          "--out", str(args.out), "--wait", str(args.wait),
+                         "--zoom-steps", str(args.zoom_steps),
                          *(["--page-out", str(args.page_out)] if args.page_out else [])],
                         check=True,
                     )  # fmt: skip
