@@ -13,6 +13,16 @@ ground grid, the simulated robot of tools/robot_drive.py driving in it (pose and
 Lichtblick build and the layout, and tools/view_screenshot_browser.py, which opens Lichtblick on
 ``?ds=foxglove-websocket&ds.url=...&layoutUrl=...`` (the layout goes through the same validation as
 **Import from file…**) and screenshots the 3D panel.
+
+A Lichtblick web build with only the npm registry at hand (how docs/view-3d.png was made, v1.28.1):
+``git archive v1.28.1`` of lichtblick-suite/lichtblick; in package.json's ``resolutions`` the five packages
+the registry lacked at their pinned versions set to ones it has (``@lichtblick/rosbag2`` and
+``@lichtblick/rosbag2-web`` 1.0.0, ``@lichtblick/eslint-plugin`` 1.0.4, ``@lichtblick/tsconfig`` 1.0.0,
+``flatbuffers_reflection`` 0.0.7: bag files and flatbuffer schemas, not used here); ``YARN_ENABLE_SCRIPTS=false
+corepack yarn install --mode=skip-build``; ``"ignoreDeprecations": "6.0"`` and a ``rootDir`` in
+node_modules/@lichtblick/tsconfig/base.json (TypeScript 6 refuses the older base config); the
+ForkTsCheckerWebpackPlugin taken out of packages/suite-base/webpack.ts (the older pins do not type-check);
+``TS_NODE_TRANSPILE_ONLY=true corepack yarn run web:build:dev``, which writes web/.webpack.
 """
 
 from __future__ import annotations
