@@ -1,6 +1,7 @@
 """The distribution the operator points at: a patch of a source's image maps or a cell of its ground grid,
-chosen with the Parameters panel (``probe/*``) or by a point the 3D panel publishes (its "Publish point"
-tool sends a geometry_msgs/PointStamped as JSON), drawn like `gcdtrav probe --png`.
+chosen with the Parameters panel (``probe/*``) or by a published point (a geometry_msgs/PointStamped as JSON:
+from a Publish panel, or the 3D panel's "Publish point" tool where the viewer offers it; Lichtblick offers it
+for ROS data sources only, see docs/view.md), drawn like `gcdtrav probe --png`.
 
 Parameters:
 

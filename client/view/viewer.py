@@ -216,7 +216,7 @@ class Viewer:
             host=options.host,
             port=options.port,
             capabilities=[Capability.Parameters, Capability.ClientPublish],
-            supported_encodings=["json"],  # the 3D panel's published points
+            supported_encodings=["json"],  # published points (Publish panel, 3D panel tool)
             server_listener=ViewerListener(self),
             context=self.context,
             channel_filter=lambda channel: channel.metadata != RECORDED,
@@ -600,7 +600,7 @@ class Viewer:
 
     # ---- the probed distribution ---------------------------------------------------------------------
     def clicked(self, data: bytes) -> None:
-        """A point the 3D panel published: probe the grid cell there, of the source whose grid it is on."""
+        """A point a client published: probe the grid cell there, of the source whose grid it is on."""
         try:
             point = probe.clicked_point(data)
         except ValueError as err:
@@ -736,5 +736,5 @@ class ViewerListener(ServerListener):
             self.viewer.replay_questions(channel.topic)
 
     def on_message_data(self, client: Client, client_channel_id: int, data: bytes) -> None:
-        """A point published from the 3D panel (any topic: its tool's topic is the operator's choice)."""
+        """A point a client published (any topic: the Publish panel's or 3D tool's topic is the operator's choice)."""
         self.viewer.clicked(data)

@@ -198,11 +198,12 @@ async def probe_by_parameter_and_by_point(url: str) -> dict[str, Any]:
     await asyncio.sleep(0.3)
     await fox.subscribe(f"{TOPIC}/distribution")
     await fox.until(lambda: bool(fox.received(f"{TOPIC}/distribution")))
-    # the 3D panel's "Publish point": a client channel, then the point as JSON, in base_link
+    # a published point, as Lichtblick v1.28.1 advertised and sent it (seen live, from its Publish panel; its 3D
+    # panel's "Publish point" builds the same message in the display frame): a client channel, then JSON
     await fox.send(op="advertise", channels=[{"id": 7, "topic": "/clicked_point", "encoding": "json",
-                                              "schemaName": "geometry_msgs/msg/PointStamped"}])  # fmt: skip
-    point = {"header": {"frame_id": "base_link"}, "point": {"x": 1.0, "y": 0.0, "z": 0.0}}
-    await fox.websocket.send(struct.pack("<BI", 1, 7) + json.dumps(point).encode())
+                                              "schemaName": "geometry_msgs/PointStamped"}])  # fmt: skip
+    point = b'{"header":{"stamp":{"sec":0,"nsec":0},"frame_id":"base_link"},"point":{"x":1,"y":0,"z":0}}'
+    await fox.websocket.send(struct.pack("<BI", 1, 7) + point)
     await fox.until(lambda: any(p.get("value") == "cell" for op in fox.ops_named("parameterValues")
                                 for p in op["parameters"] if p["name"] == "probe/target"))  # fmt: skip
     # a refused anchor edit, sent as the Parameters panel does: the panel is told the active value again
