@@ -6,7 +6,9 @@ Whatever a frame raises is counted against that frame and never stops a thread."
 from __future__ import annotations
 
 import logging
+import os
 import queue
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -108,6 +110,7 @@ class FrameWorker:
 
     def _triage_loop(self) -> None:
         assert self.triage is not None
+        lower_this_thread(self.settings.reuse.glance_nice)
         while not self._stopping.is_set():
             reusable = self.triage.next_reusable(timeout=0.25)
             if reusable is not None:
@@ -209,3 +212,18 @@ class FrameWorker:
             return None
         maps = result.maps
         return self.grids.fuse(pending.source, record, maps.weights, maps.match, pending.ros, image.image)
+
+
+def lower_this_thread(nice: int) -> bool:
+    """Raise the calling thread's niceness by ``nice`` (Linux: priorities are per thread); False where the
+    platform cannot. The glance then runs on what inference leaves idle instead of pre-empting one of its
+    threads, which stalls the whole parallel step (benchmarks/README.md, *A mixed fleet*)."""
+    if nice <= 0 or not sys.platform.startswith("linux"):
+        return False
+    tid = threading.get_native_id()
+    try:
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
+    except OSError as err:
+        log.warning("could not lower the glance thread's priority (%s): it competes with inference", err)
+        return False
+    return True

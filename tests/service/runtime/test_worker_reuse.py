@@ -3,6 +3,9 @@ frame is accounted for (received = processed + unchanged + dropped + rejected), 
 
 from __future__ import annotations
 
+import os
+import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -130,6 +133,27 @@ def test_a_refresh_is_marked_for_the_scheduler_and_news_is_not(monkeypatch: pyte
         assert worker.stop(time.monotonic() + 10)
     assert marks == [False, True, False]  # the first view, its refresh, the person
     assert len(outputs.inferred) == 3 and not outputs.reused
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread niceness is Linux's")
+@pytest.mark.parametrize("nice", [0, 7, 30])
+def test_the_glance_thread_yields_the_cores_to_inference(nice: int) -> None:
+    """Its niceness is the service's plus glance_nice (capped at 19); 0 leaves it alone."""
+    if nice > 19:
+        with pytest.raises(ValueError, match="glance_nice"):
+            serving(reuse={"glance_nice": nice})
+        return
+    own = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+    worker, *_ = serving(reuse={"glance_nice": nice})
+    worker.start()
+    try:
+        triage = next(t for t in threading.enumerate() if t.name == "gcdtrav-triage")
+        assert triage.native_id is not None
+        until(lambda: os.getpriority(os.PRIO_PROCESS, triage.native_id) == min(19, own + nice))  # type: ignore[arg-type]
+        infer = next(t for t in threading.enumerate() if t.name == "gcdtrav-infer")
+        assert os.getpriority(os.PRIO_PROCESS, infer.native_id) == own  # type: ignore[arg-type]
+    finally:
+        assert worker.stop(time.monotonic() + 10)
 
 
 class Clock:
