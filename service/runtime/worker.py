@@ -114,7 +114,9 @@ class FrameWorker:
         while not self._stopping.is_set():
             reusable = self.triage.next_reusable(timeout=0.25)
             if reusable is not None:
-                self._guarded(reusable[0], self._reuse, *reusable)
+                # No beat: answering unchanged views is not inference's progress. A hung inference must
+                # still be seen (and its moving robots failed over) while parked ones are answered.
+                self._guarded(reusable[0], self._reuse, *reusable, beat=False)
 
     def _reuse(self, pending: PendingFrame, seen: Glance) -> None:
         """The source's last maps again, for an unchanged frame: checked like a frame about to be published."""
@@ -127,7 +129,7 @@ class FrameWorker:
         while (item := self._inferred.get()) is not None:
             self._guarded(item.pending, self._finish, item)
 
-    def _guarded(self, pending: PendingFrame, step: Callable[..., _R], *args: Any) -> _R | None:
+    def _guarded(self, pending: PendingFrame, step: Callable[..., _R], *args: Any, beat: bool = True) -> _R | None:
         """One step of one frame; whatever it raises is counted against the frame, never kills the thread."""
         try:
             return step(*args)
@@ -143,7 +145,8 @@ class FrameWorker:
             failure = repr(err)[:200]
             self.stats.rejected(pending.source, "processing_failed", failure, tracked=self._tracked(pending.source))
         finally:
-            self.progress.beat()
+            if beat:
+                self.progress.beat()
         return None
 
     def _tracked(self, source: str) -> bool:

@@ -15,12 +15,14 @@ import pytest
 from fakes import pipeline, processed
 from gcdtrav.schemas.messages import MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.service.pipeline import Inference
 from gcdtrav.service.runtime.change import Glance
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.outputs import OutputBuilder
+from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.reuse import ReuseTracker
 from gcdtrav.service.runtime.share import policy_for
 from gcdtrav.service.runtime.sources import SourceTracker
@@ -47,17 +49,25 @@ class Outputs:
         return True
 
 
-def serving(**settings: object):  # type: ignore[no-untyped-def]
+def serving(progress: ProgressMonitor | None = None, run=None, **settings: object):  # type: ignore[no-untyped-def]
     config = ServiceSettings.model_validate(settings)
     stats, outputs = ServiceStats(LOG), Outputs()
-    run = pipeline()
+    run = run or pipeline()
     tracker = ReuseTracker(config.reuse, config.schedule, anchors_version=lambda: run.anchors.version)
     queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
         policy=policy_for(config.schedule, tracker.motion), triage=True
     )
     triage = Triage(queue, tracker, config, stats, outputs.republish, lambda p, reason: outputs.freed.append(reason))
     worker = FrameWorker(
-        queue, run, FrameHistory(2), stats, SourceTracker(8, 60), config, outputs.publish, triage=triage
+        queue,
+        run,
+        FrameHistory(2),
+        stats,
+        SourceTracker(8, 60),
+        config,
+        outputs.publish,
+        progress=progress,
+        triage=triage,
     )
     return worker, queue, stats, outputs
 
@@ -154,6 +164,43 @@ def test_the_glance_thread_yields_the_cores_to_inference(nice: int) -> None:
         assert os.getpriority(os.PRIO_PROCESS, infer.native_id) == own  # type: ignore[arg-type]
     finally:
         assert worker.stop(time.monotonic() + 10)
+
+
+def test_a_hung_inference_is_seen_while_parked_views_are_still_answered() -> None:
+    """Answering unchanged views is not inference's progress: the moving robot waiting behind a hung
+    inference must fail over (the watchdog's stall) even while a parked robot's frames are reused."""
+    hang, release = threading.Event(), threading.Event()
+    run = pipeline()
+    infer = run.infer
+
+    def hanging_infer(image: np.ndarray) -> Inference:
+        if hang.is_set():
+            release.wait(20)
+        return infer(image)
+
+    run.infer = hanging_infer  # type: ignore[method-assign]
+    progress = ProgressMonitor(stall_after_s=0.3)
+    worker, queue, _, outputs = serving(progress=progress, run=run)
+    worker.start()
+    view, stalled = scene(), []
+    try:
+        feed(queue, outputs, [view], "parked")
+        hang.set()
+        queue.put("moving", jpeg_frame(scene(1), "moving"))  # taken, and its inference hangs
+        until(lambda: not queue.has_ready("moving") and len(queue) == 0)
+        queue.put("moving", jpeg_frame(scene(1, shift=24), "moving"))  # waits behind it
+        deadline = time.monotonic() + 5
+        while not stalled and time.monotonic() < deadline:
+            reused = len(outputs.reused)
+            queue.put("parked", jpeg_frame(noisy(view, 4.0, len(outputs.reused)), "parked"))
+            until(lambda reused=reused: len(outputs.reused) > reused)  # still answered
+            change = progress.check(queued=len(queue))
+            stalled += [change] if change is not None and not change.health.healthy else []
+    finally:
+        release.set()
+        assert worker.stop(time.monotonic() + 10)
+    assert stalled, "a hung inference hidden by reused frames"
+    assert len(outputs.reused) >= 3
 
 
 class Clock:
