@@ -4,8 +4,8 @@ A process whose inference hangs keeps its zenoh session, so its liveliness token
 never failed over. The inference worker beats (``beat``) each time round its loop and after each step of
 a frame, also when idle (the glance answering unchanged views does not: a hung inference must be seen while
 parked robots are still answered); ``check`` calls an instance *stalled* when work is queued or in flight
-and no beat came for ``stall_after_s``. The bus then withdraws the instance's token (its sources fail over) and reports it
-unhealthy; the first beat after that is progress again and the instance rejoins.
+and no beat came for ``stall_after_s``. The bus then withdraws the instance's token (its sources fail
+over) and reports it unhealthy; the first beat after that is progress again and the instance rejoins.
 """
 
 from __future__ import annotations
