@@ -131,8 +131,8 @@ class ReuseTracker:
         if not self.settings.enabled:
             return Verdict(False, OFF, moved)
         age = now - view.inferred_at
-        # While a refresh waits its turn, its maps still answer, up to the scheduler's floor: beyond it the
-        # worker is not serving (hung): frames then queue, and the watchdog sees it.
+        # While a refresh waits its turn (yielding up to the scheduler's floor), the last maps still answer, up
+        # to twice the floor: beyond it the worker is not serving (hung): frames then queue, the watchdog sees it.
         if age < self.settings.max_reuse_s:
             return Verdict(True, UNCHANGED, moved)
         if refresh_waiting and age < self._refresh_limit_s:
