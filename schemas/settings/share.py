@@ -68,9 +68,7 @@ class ScheduleSettings(StrictModel):
     max_wait_s: float = Field(
         default=10.0,
         gt=0,
-        description="A frame waiting for inference longer than this goes before any weighting (oldest first); a "
-        "frame with news already after half of max_frame_age_s when that is shorter (a robot on credits has "
-        "nothing newer to replace it before it is too old to publish).",
+        description="A frame waiting for inference longer than this goes before any weighting (oldest first).",
     )
     base_weight: float = Field(default=0.2, gt=0, description="Weight of a still source with clear ground ahead.")
     motion_weight: float = Field(default=1.0, ge=0, description="Added at full motion (see full_speed_mps).")

@@ -94,7 +94,7 @@ class TraversabilityService:
         )
         self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
             round(settings.pending_budget_mb * 1e6),
-            policy=policy_for(settings.schedule, self.reuse.motion, settings.max_frame_age_s),
+            policy=policy_for(settings.schedule, self.reuse.motion),
             triage=settings.reuse.enabled or settings.schedule.policy == "need",
         )
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if settings.ros_inputs else None

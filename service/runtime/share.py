@@ -12,11 +12,7 @@ nobody anything new (measured: with ambiguity counted alone, random weights' amb
 robots a third of a 2-core box, benchmarks/README.md). In order:
 
 1. **the floor**: a frame that has waited ``max_wait_s`` goes first (the longest waiting first); when every
-   source is over it the rule is round-robin, the fairest there is for an overloaded box. A frame with news
-   goes first sooner, after half of ``max_frame_age_s`` when that is shorter: a robot that sends one frame
-   at a time (the relay on credits) has nothing newer to replace it, and a frame older than that limit is
-   dropped stale when taken: its turn spent, nothing published. A refresh keeps ``max_wait_s``: the frames
-   that take its place in line keep it young (service/runtime/reuse.py);
+   source is over it the rule is round-robin, the fairest there is for an overloaded box;
 2. **a changed view after reuse** (urgent: its consumers hold maps of a view that is gone) goes next, but
    takes at most every other turn while other frames wait, so views that keep flipping cannot starve the
    rest;
@@ -144,10 +140,8 @@ class NeedShare:
         settings: ScheduleSettings,
         motion_of: Callable[[str], float] = lambda source: 0.0,
         clock: Callable[[], float] = time.monotonic,
-        max_frame_age_s: float | None = None,
     ) -> None:
         self.settings, self.motion_of = settings, motion_of
-        self._news_floor_s = min(settings.max_wait_s, max_frame_age_s / 2) if max_frame_age_s else settings.max_wait_s
         self._log = _TakeLog(clock)
         self._finish: dict[str, float] = {}  # virtual time each source's last turn finished
         self._start: dict[str, float] = {}  # virtual start of a waiting source's next turn, fixed when it began
@@ -166,13 +160,7 @@ class NeedShare:
         return settings.base_weight + motion * (settings.motion_weight + settings.ambiguity_weight * ambiguity)
 
     def choose(self, waiting: Sequence[Waiting], now: float) -> str:
-        with self._lock:
-            refresh = set(self._refresh)
-        overdue = [
-            w
-            for w in waiting
-            if now - w.since >= (self.settings.max_wait_s if w.source in refresh else self._news_floor_s)
-        ]
+        overdue = [w for w in waiting if now - w.since >= self.settings.max_wait_s]
         if overdue:
             return min(overdue, key=lambda w: w.since).source
         with self._lock:
@@ -240,14 +228,10 @@ class NeedShare:
         self._log.forget(source)
 
 
-def policy_for(
-    settings: ScheduleSettings,
-    motion_of: Callable[[str], float] = lambda source: 0.0,
-    max_frame_age_s: float | None = None,
-) -> SharePolicy:
+def policy_for(settings: ScheduleSettings, motion_of: Callable[[str], float] = lambda source: 0.0) -> SharePolicy:
     if settings.policy == "round_robin":
         return RoundRobin()
-    return NeedShare(settings, motion_of, max_frame_age_s=max_frame_age_s)
+    return NeedShare(settings, motion_of)
 
 
 def ambiguity_of(

@@ -36,9 +36,8 @@ def run(policy: SharePolicy, clock: Clock, sources: list[str], turns: int, infer
     return taken
 
 
-def need(clock: Clock, motion: dict[str, float], max_frame_age_s: float | None = None, **settings: float) -> NeedShare:
-    schedule = ScheduleSettings(**settings)  # type: ignore[arg-type]
-    return NeedShare(schedule, lambda s: motion.get(s, 0.0), clock, max_frame_age_s=max_frame_age_s)
+def need(clock: Clock, motion: dict[str, float], **settings: float) -> NeedShare:
+    return NeedShare(ScheduleSettings(**settings), lambda s: motion.get(s, 0.0), clock)  # type: ignore[arg-type]
 
 
 def test_round_robin_serves_one_frame_per_source_in_turn() -> None:
@@ -89,27 +88,6 @@ def test_the_floor_no_source_waits_longer_than_max_wait_s_plus_one_inference(max
     waits = np.diff([-1, *turns])  # in inferences of 1 s; the first waits since t = 0
     assert len(turns) >= 200 / (max_wait_s + 2) - 1
     assert waits.max() <= max_wait_s + 1
-
-
-@pytest.mark.parametrize("max_frame_age_s", [None, 5.0, 30.0])
-def test_a_frame_with_news_is_served_before_it_is_too_old_to_publish(max_frame_age_s: float | None) -> None:
-    """A robot sending one frame at a time (credits: its next frame comes when this one is taken) has nothing
-    newer to replace a waiting frame; past max_frame_age_s it would be dropped stale when taken."""
-    clock = Clock()
-    motion = {f"m{k}": 1.0 for k in range(3)}
-    policy = need(clock, motion, max_frame_age_s, max_wait_s=10.0, base_weight=0.01)
-    taken = run(policy, clock, ["m0", "m1", "m2", "creeping"], 120)  # each take frees the slot: credits
-    turns = np.diff([-1, *[k for k, source in enumerate(taken) if source == "creeping"]])  # its wait + its turn
-    floor = 10.0 if max_frame_age_s is None else min(10.0, max_frame_age_s / 2)
-    assert len(turns) >= 120 / (np.ceil(floor) + 1) - 1
-    assert turns.min() >= floor + 1 and turns.max() <= np.ceil(floor) + 1  # served at the first turn past it
-
-
-def test_a_refresh_keeps_the_whole_floor_whatever_the_frame_age_limit() -> None:
-    clock = Clock()
-    policy = need(clock, {}, max_frame_age_s=4.0, max_wait_s=5.0)
-    waits = np.diff([-1, *refresh_turns(policy, clock, ["m0", "m1"], 60)])
-    assert waits.min() >= 5 and waits.max() <= 6 + 1
 
 
 def test_one_source_is_always_served() -> None:
