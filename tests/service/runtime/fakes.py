@@ -20,6 +20,16 @@ from numpy.typing import NDArray
 MAP_SIDE = 8
 
 
+class Clock:
+    """A clock the test moves: it reads ``now`` (seconds)."""
+
+    def __init__(self, now: float = 0.0) -> None:
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
 class FakeBackend:
     """Logits of an (8, 8) map that vary over patches; ``delay_s`` per frame; ``release`` gates each frame."""
 

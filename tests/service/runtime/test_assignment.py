@@ -6,6 +6,7 @@ import itertools
 from collections import Counter
 
 import pytest
+from fakes import Clock
 from gcdtrav.service.runtime.assignment import Assignment, assign, owner_of
 
 README_ROBOTS = [f"r{i}/front" for i in range(8)]
@@ -52,14 +53,6 @@ def test_an_instance_leaving_moves_its_sources_and_balance_holds() -> None:
     after = assign(["a", "b"], README_ROBOTS)
     assert loads(after, ["a", "b"]) == [4, 4]
     assert {s for s, owner in table.items() if owner == "c"} <= {s for s in after if after[s] != table[s]}
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def established(assignment: Assignment, sources: list[str]) -> None:

@@ -8,7 +8,7 @@ import time
 from collections.abc import Callable
 
 import pytest
-from fakes import image, pipeline
+from fakes import Clock, image, pipeline
 from gcdtrav.client.relay.ros_camera import compressed_image_cdr
 from gcdtrav.schemas.images import encode_jpeg, encode_png
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
@@ -169,14 +169,6 @@ def test_an_idle_source_forgets_its_clock() -> None:
 
 
 # ---- intake rate per publisher ---------------------------------------------------------------------
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def test_a_flood_from_one_publisher_is_limited_while_another_is_admitted_in_full() -> None:

@@ -2,19 +2,12 @@
 
 from __future__ import annotations
 
+from fakes import Clock
 from gcdtrav.service.runtime.progress import ProgressMonitor
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now = 100.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
 def test_idle_worker_is_never_stalled_however_long_it_waits() -> None:
-    clock = Clock()
+    clock = Clock(100.0)
     monitor = ProgressMonitor(2.0, clock)
     clock.now += 3600
     assert monitor.check(queued=0) is None
@@ -22,7 +15,7 @@ def test_idle_worker_is_never_stalled_however_long_it_waits() -> None:
 
 
 def test_queued_work_without_a_beat_stalls_then_one_beat_recovers() -> None:
-    clock = Clock()
+    clock = Clock(100.0)
     monitor = ProgressMonitor(2.0, clock)
     clock.now += 2.0
     assert monitor.check(queued=3) is None  # at the bound: not yet
@@ -41,7 +34,7 @@ def test_queued_work_without_a_beat_stalls_then_one_beat_recovers() -> None:
 
 
 def test_beats_keep_a_busy_worker_healthy() -> None:
-    clock = Clock()
+    clock = Clock(100.0)
     monitor = ProgressMonitor(0.5, clock)
     for _ in range(20):
         clock.now += 0.4
@@ -50,7 +43,7 @@ def test_beats_keep_a_busy_worker_healthy() -> None:
 
 
 def test_the_default_never_stalls() -> None:
-    clock = Clock()
+    clock = Clock(100.0)
     monitor = ProgressMonitor(float("inf"), clock)
     clock.now += 1e9
     assert monitor.check(queued=10) is None

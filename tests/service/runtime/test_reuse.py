@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from fakes import Clock
 from gcdtrav.schemas.images import decode_image
 from gcdtrav.schemas.messages import Pose2D
 from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
@@ -26,19 +27,11 @@ from scenes import flicker, jpeg_frame, noisy, scene, with_person
 LIMITS = (20_000_000, 40_000_000)
 
 
-class Clock:
-    def __init__(self) -> None:
-        self.now = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
 class Robot:
     """One source's frames through a tracker: judge each, and 'infer' those not reused."""
 
     def __init__(self, settings: ReuseSettings | None = None, with_pose: bool = False) -> None:
-        self.clock = Clock()
+        self.clock = Clock(1000.0)
         self.pose: Pose2D | None = Pose2D(stamp=0.0, x=0.0, y=0.0, yaw=0.0) if with_pose else None
         self.anchors = "v1"
         self.tracker = ReuseTracker(

@@ -7,17 +7,10 @@ from collections import Counter
 
 import numpy as np
 import pytest
+from fakes import Clock
 from gcdtrav.schemas.settings.share import ScheduleSettings
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.share import NeedShare, RoundRobin, SharePolicy, ambiguity_of
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def run(policy: SharePolicy, clock: Clock, sources: list[str], turns: int, inference_s: float = 1.0) -> list[str]:

@@ -6,7 +6,7 @@ import logging
 from pathlib import Path
 
 import pytest
-from fakes import pipeline
+from fakes import Clock, pipeline
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.config import Method
 from gcdtrav.service.backends.base import BackendDescription
@@ -22,14 +22,6 @@ from gcdtrav.service.runtime.status import StatusParts
 TWO = AnchorSet.parse(
     {"name": "two", "anchors": [{"concept": "lake", "position": 0.0}, {"concept": "road", "position": 1.0}]}
 )
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def parts(tmp_path: Path, clock: Clock) -> StatusParts:

@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from fakes import pipeline, processed
+from fakes import Clock, pipeline, processed
 from gcdtrav.schemas.messages import MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.pipeline import Inference
@@ -201,14 +201,6 @@ def test_a_hung_inference_is_seen_while_parked_views_are_still_answered() -> Non
         assert worker.stop(time.monotonic() + 10)
     assert stalled, "a hung inference hidden by reused frames"
     assert len(outputs.reused) >= 3
-
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
 
 
 def test_unchanged_frames_take_a_waiting_refresh_s_place_and_the_replaced_one_is_answered() -> None:
