@@ -244,26 +244,17 @@ def test_gcdtrav_view_records_until_a_signal_and_closes_its_file(service, tmp_pa
     assert summary[str(files[0])].startswith(f"{sum(counts.values())} messages on ")
 
 
-def test_gcdtrav_view_without_the_extra_says_what_to_install() -> None:
-    code = (
-        "import sys; sys.modules['foxglove'] = None; "
-        "from gcdtrav.service.commands.cli import main; sys.exit(main(['view']))"
-    )
+@pytest.mark.parametrize(
+    ("missing", "named"),
+    [(["foxglove"], "foxglove-sdk"), (["foxglove", "matplotlib"], "foxglove-sdk, matplotlib")],
+    ids=["foxglove-sdk", "and matplotlib"],  # the probed distribution is drawn with matplotlib
+)
+def test_gcdtrav_view_without_the_extra_says_what_to_install(missing: list[str], named: str) -> None:
+    blocked = "".join(f"sys.modules['{module}'] = None; " for module in missing)
+    code = f"import sys; {blocked}from gcdtrav.service.commands.cli import main; sys.exit(main(['view']))"
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert result.returncode == 2
-    expected = "gcdtrav view: needs foxglove-sdk; install the view extra: pip install 'gcdtrav[view]'"
-    assert result.stderr.strip() == expected
-
-
-def test_gcdtrav_view_without_matplotlib_names_it_too() -> None:
-    """The probed distribution is drawn with matplotlib (the view extra's third package)."""
-    code = (
-        "import sys; sys.modules['foxglove'] = None; sys.modules['matplotlib'] = None; "
-        "from gcdtrav.service.commands.cli import main; sys.exit(main(['view']))"
-    )
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
-    assert result.returncode == 2
-    expected = "gcdtrav view: needs foxglove-sdk, matplotlib; install the view extra: pip install 'gcdtrav[view]'"
+    expected = f"gcdtrav view: needs {named}; install the view extra: pip install 'gcdtrav[view]'"
     assert result.stderr.strip() == expected
 
 
