@@ -36,6 +36,7 @@ from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.layers import GridLayers, grid_layers, nav2_costs
 from gcdtrav.service.ros.cdr import occupancy_values_cdr
 from gcdtrav.service.runtime.grids import GridOutputs
+from gcdtrav.service.runtime.grids.encoding import encode_update
 
 ALPHA, TAU, LETHAL_TAU = 0.1, 0.3, 0.1
 GAUSSIAN_WIDTH = 0.05
@@ -88,12 +89,12 @@ def calls(cells: int) -> tuple[dict[str, Callable[[], object]], dict[str, int]]:
     config = source.config
 
     def encode_message(layers: GridLayers) -> bytes:
-        return outputs.encode_update(
+        return encode_update(
             config.model_copy(update={"grid_map": False, "costmap": False}), header, layers, None
         ).message.pack()
 
     def encode_grid_map(layers: GridLayers) -> bytes | None:
-        return outputs.encode_update(config.model_copy(update={"costmap": False}), header, layers, None).grid_map
+        return encode_update(config.model_copy(update={"costmap": False}), header, layers, None).grid_map
 
     def costmap(layers: GridLayers) -> bytes:
         return occupancy_values_cdr(header, nav2_costs(layers, config.lethal_probability, config.min_match))
@@ -101,7 +102,7 @@ def calls(cells: int) -> tuple[dict[str, Callable[[], object]], dict[str, int]]:
     rows["encode GridMessage (6 PNGs)"] = partial(encode_message, layers)
     rows["encode GridMap CDR (7 float32 layers) + GridMessage"] = partial(encode_grid_map, layers)
     rows["Nav2 costmap: grade + OccupancyGrid CDR"] = partial(costmap, layers)
-    update = outputs.encode_update(config, header, layers, None)
+    update = encode_update(config, header, layers, None)
     sizes = {
         "GridMessage (msgpack)": len(update.message.pack()),
         "GridMap CDR": len(update.grid_map or b""),

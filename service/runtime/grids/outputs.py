@@ -21,7 +21,7 @@ import numpy as np
 from gcdtrav.schemas.messages import ContextDistribution, GridHeader, PathReply, Pose2D
 from gcdtrav.schemas.settings import GridSettings, RiskSettings
 from gcdtrav.service.grid.fusion import GroundGrid
-from gcdtrav.service.grid.layers import GridLayers, grid_layers
+from gcdtrav.service.grid.layers import grid_layers
 from gcdtrav.service.ros.cdr import (
     RosTopic,
     decode_camera_info,
@@ -29,7 +29,7 @@ from gcdtrav.service.ros.cdr import (
     decode_pose,
 )
 from gcdtrav.service.runtime.grids import answers
-from gcdtrav.service.runtime.grids.encoding import FusedGrid, GridUpdate, encode_update, grid_header
+from gcdtrav.service.runtime.grids.encoding import FusedGrid, GridUpdate, grid_header
 from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid, grid_spec
 from gcdtrav.service.runtime.history import FrameRecord
 from numpy.typing import NDArray
@@ -147,12 +147,6 @@ class GridOutputs:
             header = self.header(grid, anchors.version)
             ros_topic = grid.ros_topic()
         return FusedGrid(grid.config, header, layers, ros_topic)
-
-    def encode_update(
-        self, config: GridSettings, header: GridHeader, layers: GridLayers, ros: RosTopic | None
-    ) -> GridUpdate:
-        """The payloads of one grid update (encoded outside the grid's lock)."""
-        return encode_update(config, header, layers, ros)
 
     def header(self, grid: SourceGrid, version: str) -> GridHeader:
         return grid_header(grid, version, self.instance, self.risk, self.clock)
