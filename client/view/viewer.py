@@ -57,7 +57,7 @@ from gcdtrav.client.view.recorder import McapRecorder
 from gcdtrav.client.view.replay import LOG_LINES_KEPT, QUESTION_SCHEMA, OpenQuestions, Recent, question_json
 from gcdtrav.schemas.anchors import AnchorSetError
 from gcdtrav.schemas.inputs import decode_payload, image_format, input_kind
-from gcdtrav.schemas.keys import Keys, input_key, input_source_of
+from gcdtrav.schemas.keys import INPUT_MESSAGE_KINDS, Keys, input_key, input_source_of
 from gcdtrav.schemas.messages import AnchorSetReply, ContextDistribution, GridHeader, ServiceStatus, SourceView
 from numpy.typing import NDArray
 from pydantic import BaseModel
@@ -69,7 +69,6 @@ KINDS = ("maps", "grid", "costmap", "preview", "camera")  # what arrives per sou
 COSTMAP_KIND = "grid/costmap"  # the key's last levels: {prefix}/out/{source}/grid/costmap
 QUESTION_KIND = "question"  # {prefix}/out/{source}/question: forwarded as they come, not latest-only
 ANSWER_KIND = "answer"  # {prefix}/in/{source}/answer: the question with its id is no longer open
-NOT_CAMERAS = {ANSWER_KIND, "outcome"}  # experience inputs beside the images under {prefix}/in/{source}/
 RECORDED = {"gcdtrav": "recorded"}  # metadata of the recording's own camera channel (downsampled)
 ANCHORS_REPEAT_S = 2.0  # the anchor set is sent again this often, so each MCAP file and a seek find it
 NUMERIC_TYPES = {
@@ -281,7 +280,7 @@ class Viewer:
 
             def keep_camera(sample: zenoh.Sample) -> None:
                 source = input_source_of(str(sample.key_expr), head)
-                if source.rsplit("/", 1)[-1] in NOT_CAMERAS:
+                if source.rsplit("/", 1)[-1] in INPUT_MESSAGE_KINDS:  # the experience's messages beside images
                     return
                 self._slots.put((source, kind), sample.payload.to_bytes())
 
@@ -581,10 +580,10 @@ class Viewer:
         self.emit(channels.question, question)
 
     def _close_question(self, sample: zenoh.Sample) -> None:
-        key, head = str(sample.key_expr), f"{self.options.prefix}/in/"
-        if not (key.startswith(head) and key.endswith(f"/{ANSWER_KIND}")):
+        parsed = Keys(self.options.prefix).input_message(str(sample.key_expr))
+        if parsed is None or parsed[1] != ANSWER_KIND:
             return
-        source = key[len(head) : -len(ANSWER_KIND) - 1]
+        source = parsed[0]
         try:
             identifier = question_json(sample.payload.to_bytes()).get("id")
         except ValueError:

@@ -29,6 +29,7 @@ from gcdtrav.client.view.layout import layout, service_sources
 from gcdtrav.client.view.replay import question_json
 from gcdtrav.client.view.viewer import Viewer, ViewOptions
 from gcdtrav.schemas.experience import OperatorAnswer, OperatorQuestion, QuestionConcept
+from gcdtrav.schemas.keys import INPUT_MESSAGE_KINDS
 from gcdtrav.schemas.messages import GridHeader
 from gcdtrav.service.ros.cdr import occupancy_values_cdr
 from protobuf_decode import decode
@@ -271,3 +272,15 @@ def test_layout_sources_are_every_instances_plus_named_grids() -> None:
     assert service_sources([], []) == [] and PAPER.name == "paper"
     with pytest.raises(ValueError, match="at least one source"):
         layout([])
+
+
+def test_the_experience_s_messages_beside_the_images_are_not_cameras(fed: tuple[Viewer, FakeClient]) -> None:
+    """Outcomes, answers and planned paths arrive under {prefix}/in/{source}/ too (schemas/keys.py's
+    INPUT_MESSAGE_KINDS): none of them is shown, or counted, as a camera frame."""
+    viewer, client = fed
+    shown, errors = viewer.shown["camera"], viewer.errors["camera"]
+    for kind in INPUT_MESSAGE_KINDS:
+        client.session.put(f"gcdtrav/in/cam/{kind}", msgpack.packb({"source": "cam"}))
+    client.session.put("gcdtrav/in/cam", camera_payload(2))  # after them: once it is shown, they were judged
+    assert wait_until(lambda: viewer.shown["camera"] > shown, 10)
+    assert viewer.errors["camera"] == errors
