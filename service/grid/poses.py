@@ -10,8 +10,9 @@ its ground lands speed x latency too far ahead. ``PoseBuffer`` keeps one pose st
   ``wait`` a bounded time for the stream to catch up);
 - within ``extrapolate_s`` before the oldest pose: the oldest; earlier: none (``BEFORE_POSES``, the frame is
   older than the buffer);
-- inside a gap of more than ``max_gap_s`` between two poses (the stream stopped, then resumed): none
-  (``POSE_GAP``): where the robot went meanwhile is unknown.
+- inside a gap of more than ``max_gap_s`` between two poses (the stream stopped, then resumed): as beyond
+  the poses on either side (within ``extrapolate_s`` of one), else none (``POSE_GAP``): where the robot went
+  meanwhile is unknown.
 
 Poses out of order take their place by stamp; a pose of the same stamp replaces the one held. A pose older
 than the newest by more than ``span_s`` means the stream's clock stepped back (a bag replayed from its
@@ -144,11 +145,18 @@ class PoseBuffer:
             return PoseAt(interpolate(poses[0], poses[0], stamp), extrapolated_s=stamps[0] - stamp)
         if at == len(stamps):
             ahead = stamp - stamps[-1]
-            if ahead > self.extrapolate_s:
-                return PoseAt(None, AFTER_POSES)
-            last = poses[-1]
-            before = poses[-2] if len(poses) > 1 and last.stamp - poses[-2].stamp <= self.max_gap_s else last
-            return PoseAt(interpolate(before, last, stamp), extrapolated_s=ahead)
-        if stamps[at] - stamps[at - 1] > self.max_gap_s:
-            return PoseAt(None, POSE_GAP)
-        return PoseAt(interpolate(poses[at - 1], poses[at], stamp))
+            return self._after(len(stamps) - 1, stamp) if ahead <= self.extrapolate_s else PoseAt(None, AFTER_POSES)
+        if stamps[at] - stamps[at - 1] <= self.max_gap_s:
+            return PoseAt(interpolate(poses[at - 1], poses[at], stamp))
+        # in a gap: as if the later poses had not come yet (or the earlier ones were gone), else none
+        if stamp - stamps[at - 1] <= self.extrapolate_s:
+            return self._after(at - 1, stamp)
+        if stamps[at] - stamp <= self.extrapolate_s:
+            return PoseAt(interpolate(poses[at], poses[at], stamp), extrapolated_s=stamps[at] - stamp)
+        return PoseAt(None, POSE_GAP)
+
+    def _after(self, last: int, stamp: float) -> PoseAt:
+        """Extrapolated from pose ``last`` at the velocity since the one before (held across a gap)."""
+        poses = self._poses
+        before = poses[last - 1] if last > 0 and poses[last].stamp - poses[last - 1].stamp <= self.max_gap_s else None
+        return PoseAt(interpolate(before or poses[last], poses[last], stamp), extrapolated_s=stamp - poses[last].stamp)
