@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 from gcdtrav.client import Grid
 from gcdtrav.schemas.messages import Pose2D
-from gcdtrav.schemas.settings import CameraIntrinsics, CameraMountSettings, GridSettings
+from gcdtrav.schemas.settings import GridSettings
 from gcdtrav.service.backends.cpus import cpu_name
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera
 from gcdtrav.service.runtime.grids import GridOutputs
@@ -56,19 +56,8 @@ def scene_camera() -> SceneCamera:
 
 
 def grid_settings(scene: SceneCamera) -> GridSettings:
-    camera, mount = scene.camera, scene.mount
-    return GridSettings(
-        source=CAMERA,
-        intrinsics=CameraIntrinsics(
-            fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width, height=camera.height
-        ),
-        mount=CameraMountSettings(x=mount.x, y=mount.y, z=mount.z, roll=mount.roll, pitch=mount.pitch, yaw=mount.yaw),
-        pose_key="robot/pose",
-        size_m=20.0,
-        resolution_m=RESOLUTION_M,
-        max_range_m=scene.max_range_m,
-        half_life_s=2.0,
-        max_age_s=None,
+    return scene.grid_settings(
+        source=CAMERA, pose_key="robot/pose", size_m=20.0, resolution_m=RESOLUTION_M, half_life_s=2.0, max_age_s=None
     )
 
 

@@ -22,7 +22,7 @@ import numpy as np
 from gcdtrav.client import Maps, TraversabilityClient
 from gcdtrav.schemas.experience import Odometry2D, Twist2D
 from gcdtrav.schemas.messages import MSGPACK_ENCODING, Pose2D
-from gcdtrav.schemas.settings import CameraIntrinsics, CameraMountSettings, ExperienceSettings, GridSettings
+from gcdtrav.schemas.settings import ExperienceSettings, GridSettings
 
 from tools.synthetic_scene import COMMAND_MPS, Robot, World, default_camera
 
@@ -34,20 +34,8 @@ ODOMETRY_DT, COMMAND_EVERY, CAMERA_EVERY = 0.05, 2, 5  # 20 Hz odometry, 10 Hz c
 
 def grid_settings() -> GridSettings:
     """The grid of the scene's camera, in the pose stream's frame."""
-    scene = default_camera()
-    camera, mount = scene.camera, scene.mount
-    return GridSettings(
-        source=CAMERA_SOURCE,
-        intrinsics=CameraIntrinsics(
-            fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width, height=camera.height
-        ),
-        mount=CameraMountSettings(x=mount.x, y=mount.y, z=mount.z, roll=mount.roll, pitch=mount.pitch, yaw=mount.yaw),
-        pose_key=POSE_KEY,
-        size_m=20.0,
-        resolution_m=0.2,
-        max_range_m=scene.max_range_m,
-        half_life_s=2.0,
-        max_age_s=30.0,
+    return default_camera().grid_settings(
+        source=CAMERA_SOURCE, pose_key=POSE_KEY, size_m=20.0, resolution_m=0.2, half_life_s=2.0, max_age_s=30.0
     )
 
 

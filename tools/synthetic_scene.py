@@ -16,9 +16,11 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
+from gcdtrav.schemas.settings import CameraIntrinsics, CameraMountSettings, GridSettings
 from gcdtrav.service.backends.base import BackendDescription
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, ground_points, map_cell_pixels
 from numpy.typing import NDArray
@@ -157,6 +159,17 @@ class SceneCamera:
         i, j = world.tile_of(np.nan_to_num(world_x), np.nan_to_num(world_y))
         colours = palette()[np.where(valid, world.appearance[i, j], len(APPEARANCES))]
         return colours.reshape(*shape, 3).astype(np.uint8), base
+
+    def grid_settings(self, **fields: Any) -> GridSettings:
+        """A ground grid of this camera (its intrinsics, mount and range) with ``fields`` (source, pose_key, ...)."""
+        camera, mount = self.camera, self.mount
+        intrinsics = CameraIntrinsics(
+            fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width, height=camera.height
+        )
+        mounted = CameraMountSettings(
+            x=mount.x, y=mount.y, z=mount.z, roll=mount.roll, pitch=mount.pitch, yaw=mount.yaw
+        )
+        return GridSettings(intrinsics=intrinsics, mount=mounted, max_range_m=self.max_range_m, **fields)
 
 
 def default_camera() -> SceneCamera:
