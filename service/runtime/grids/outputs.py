@@ -152,8 +152,8 @@ class GridOutputs:
             return None
         camera = grid.cameras[source]
         # The pose at capture, waited for (bounded) outside the grid's lock: the pose stream may lag the frame.
-        wait_s = grid.config.poses.wait_s if camera.camera is not None else 0.0
         stamp = self.capture_stamp(grid, record.stamp, unstamped)
+        wait_s = self._pose_wait_s(grid) if camera.camera is not None else 0.0
         at = grid.poses.wait(stamp, wait_s) if grid.expects_pose() else PoseAt(None)
         with grid.lock:
             camera.ros = ros or camera.ros
@@ -173,6 +173,13 @@ class GridOutputs:
             header = self.header(grid, anchors.version)
             ros_topic = grid.ros_topic()
         return FusedGrid(grid.config, header, layers, ros_topic)
+
+    def _pose_wait_s(self, grid: SourceGrid) -> float:
+        """How long a frame may wait for its pose: ``poses.wait_s`` while the stream is alive (a pose within
+        ``max_gap_s``); a stream that stopped would only stall the worker, every frame."""
+        heard = grid.health.pose_received_at
+        alive = heard is not None and self.clock() - heard <= grid.config.poses.max_gap_s
+        return grid.config.poses.wait_s if alive else 0.0
 
     def capture_stamp(self, grid: SourceGrid, stamp: float, unstamped: bool) -> float:
         """When the frame was taken on the pose stream's clock. A stamped frame: its stamp (the robot's clock,

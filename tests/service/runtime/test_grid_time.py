@@ -172,6 +172,20 @@ def test_fusion_waits_for_a_lagging_pose_stream_without_holding_the_grids_lock()
     assert fused == [True] and grid.fused_at is not None and grid.fused_at.pose.x == pytest.approx(1.5)  # type: ignore[union-attr]
 
 
+def test_a_stopped_pose_stream_does_not_stall_fusion() -> None:
+    clock = Clock()
+    grids = outputs(clock, wait_s=2.0, extrapolate_s=0.0, max_gap_s=0.5)
+    add_poses(grids, 0.0, 1.0)
+    waits: list[float] = []
+    buffer = grids.sources[CAMERA].poses
+    real_wait = buffer.wait
+    buffer.wait = lambda stamp, timeout_s: waits.append(timeout_s) or real_wait(stamp, 0.0)  # type: ignore[method-assign]
+    assert not fuse(grids, 1.5)  # the stream was heard just now: the frame may wait for it
+    clock.now += 0.6  # silent for longer than max_gap_s: stopped
+    assert not fuse(grids, 1.6)
+    assert waits == [2.0, 0.0]
+
+
 def test_after_fusion_sees_the_pose_the_image_was_fused_at_not_the_newest() -> None:
     clock = Clock()
     grids = outputs(clock)
