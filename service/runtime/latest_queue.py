@@ -130,7 +130,7 @@ class LatestFrameQueue(Generic[T]):
             self.policy.taken(chosen, now)
             source = chosen.source
             slot = self._pending[source]
-            entry, slot.ready = slot.ready, None
+            entry, slot.ready, slot.claim = slot.ready, None, NEWS_CLAIM
             assert entry is not None
             self._bytes -= entry.nbytes
             if slot.empty:
