@@ -12,7 +12,13 @@ import argparse
 from pathlib import Path
 
 from gcdtrav.client.client import ServiceError, TraversabilityClient
-from gcdtrav.schemas.experience import AnchorProposal, CalibrationFigures, CalibrationReport, answer_score
+from gcdtrav.schemas.experience import (
+    AnchorProposal,
+    CalibrationFigures,
+    CalibrationReport,
+    ProposalVerdict,
+    answer_score,
+)
 from gcdtrav.schemas.messages import ServiceStatus
 
 COMMANDS = ("calibration", "answer")
@@ -114,20 +120,36 @@ def draw_reliability(report: CalibrationReport, path: Path) -> None:
 
 
 def proposal_lines(proposal: AnchorProposal) -> list[str]:
-    """The +/-/~ diff (as `anchors set --dry-run`), the anchors held near the current set, the figures of both
-    sets on the held-out (later) pairs."""
+    """The one text of a proposal, live (`gcdtrav anchors propose`) and offline (`gcdtrav eval --fit-anchors`):
+    the +/-/~ diff (as `anchors set --dry-run`), the anchors held near the current set, the figures of both sets
+    on the held-out (later) pairs, and the verdict."""
     current, proposed = proposal.current, proposal.proposed
     lines = [f"{current.version} ({len(current)} anchors) -> {proposed.version} ({len(proposed)} anchors)"]
     lines += proposal.diff or ["no change"]
     shrunk = [c.concept for c in proposal.changes if c.shrunk]
     if shrunk:
         lines.append(f"held near the current set (few pairs): {', '.join(shrunk)}")
+    verdict = proposal.judged()
+    judged_here = " (judged here: the service sent no verdict)" if proposal.verdict is None else ""
     lines += [
         "",
         f"fitted on {proposal.train_pairs} pairs; graded on the {proposal.held_out_pairs} later ones:",
         *figures_lines([("before (current set)", proposal.before), ("after (proposed set)", proposal.after)]),
+        "",
+        f"verdict: {verdict.reason()}{judged_here}",
     ]
     return lines
+
+
+def refusal(verdict: ProposalVerdict) -> str | None:
+    """Why a proposal should not be applied (for `--apply` to refuse it), or None when it should."""
+    if verdict.applicable:
+        return None
+    why = f"it is {verdict.verdict} on the held-out pairs" if verdict.verdict != "better" else ""
+    if not verdict.enough_pairs:
+        few = f"only {verdict.held_out_pairs} held-out pairs back it (at least {verdict.min_held_out_pairs})"
+        why = f"{why} and {few}" if why else few
+    return why
 
 
 # ---- answers -------------------------------------------------------------------------------------------

@@ -96,6 +96,8 @@ def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> Non
         assert f"{before.version} (8 anchors) -> " in dry and "~ sand @ 0.40 -> " in dry and "not applied" in dry
         assert "before (current set)" in dry and service.pipeline.anchors == before
         proposal = client.anchor_proposal()
+        assert proposal.verdict is not None and proposal.verdict.applicable  # the fit beats the start set
+        assert "verdict: better on the held-out pairs: mae " in dry
         applied = gcdtrav("anchors", "propose", "--apply", *flags).stdout
         assert f"swapped: anchor set {proposal.proposed.version} active on exp-1" in applied
         assert service.pipeline.anchors.version == proposal.proposed.version
