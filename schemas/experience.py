@@ -13,7 +13,7 @@ from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.limits import MAX_CONCEPT_CHARS, MAX_FRAME_ID_CHARS, Coordinate, FiniteFloat
 from gcdtrav.schemas.messages import Message
 from gcdtrav.schemas.strict import WireModel
-from pydantic import Field, field_validator
+from pydantic import ConfigDict, Field, field_validator
 
 OutcomeKind = Literal["velocity", "operator", "contact"]
 OUTCOME_KINDS: tuple[str, ...] = ("velocity", "operator", "contact")
@@ -276,6 +276,9 @@ class QuestionConcept(WireModel):
 
 class OperatorQuestion(Message):
     """{prefix}/out/{source}/question: cells ahead stayed ambiguous or novel for ask.persist_s."""
+
+    # The crop is binary: base64 in JSON (a query with format=json), raw bytes in msgpack.
+    model_config = ConfigDict(ser_json_bytes="base64", val_json_bytes="base64")
 
     id: str = Field(max_length=64)
     source: str

@@ -8,7 +8,8 @@ Declared only with ``experience.enabled`` (off: nothing here runs, nothing chang
   experience.cmd_vel, .odometry       subscribers: Twist2D / Odometry2D on a zenoh key, or a ROS topic (CDR)
   {prefix}/out/{source}/calibration   queryable: CalibrationReport of the active anchor set
   {prefix}/config/anchors/proposal    queryable: AnchorProposal (``source=`` optional), never applied here
-  {prefix}/out/{source}/question      OperatorQuestion, published after a grid update that asks one
+  {prefix}/out/{source}/question      OperatorQuestion, published after a grid update that asks one, and
+                                      queryable: the open one (`gcdtrav answer` shows its crop before answering)
 
 A bad message is rejected with its reason and counted in the service's stats (``bad_outcome``,
 ``oversized``, ``bad_cmd_vel``, ``bad_odometry``, ``bad_answer``, ``unknown_answer``, ``unknown_grid``).
@@ -106,6 +107,7 @@ class ExperienceBus:
             (self.keys.answer("**"), self._on_answer_query, False),
             (self.keys.calibration("**"), self._on_calibration, False),
             (self.keys.anchor_proposal, self._on_proposal, False),
+            (self.keys.question("**"), self._on_question, False),
         )
         for key, respond, complete in queryables:
             declared.append(self.session.declare_queryable(key, answering(respond, self.stats), complete=complete))
@@ -219,6 +221,18 @@ class ExperienceBus:
         if source != self.experience.source:
             raise QueryError(f"no experience of '{source}': this service collects grid '{self.experience.source}'")
         replies.reply(query, key, self.experience.report(self.pipeline.anchors))
+
+    def _on_question(self, query: zenoh.Query) -> None:
+        key = str(query.key_expr)
+        source = self.keys.source_of(key, "question")
+        if source is None or not self.owns(source):
+            return
+        replies.check_no_parameters(query)
+        try:
+            question = self.experience.open_question(source)
+        except ValueError as err:
+            raise QueryError(str(err)) from None
+        replies.reply(query, key, question)
 
     def _on_proposal(self, query: zenoh.Query) -> None:
         replies.check_format(query)

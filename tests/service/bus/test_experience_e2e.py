@@ -75,6 +75,10 @@ def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> Non
         assert report.pairs_by_version == {start_anchors().version: report.figures.pairs}
         shown = gcdtrav("calibration", "--png", str(tmp_path / "reliability.png"), *flags)  # the source from status
         assert f"calibration of {CAMERA_SOURCE}: anchor set {start_anchors().version}" in shown.stdout
+        verdict, step = shown.stdout.splitlines()[-3:-1]  # the last line says where the diagram went
+        assert verdict.startswith("verdict: over-confident (")  # sand, said 0.4, is 0.15: below tau more often
+        assert "of the outcomes, promised" in verdict and "more often than said" in verdict
+        assert step.startswith("next: gcdtrav anchors propose")
         assert (tmp_path / "reliability.png").read_bytes()[:4] == b"\x89PNG"
 
         # Ambiguity persisted ahead (dirt against gravel, sand against dirt): one question, with its crop.
@@ -83,6 +87,14 @@ def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> Non
         assert question.source == CAMERA_SOURCE and question.crop_jpeg and question.crop_jpeg[:2] == b"\xff\xd8"
         status = gcdtrav("status", *flags).stdout
         assert f"QUESTION {question.id} ({CAMERA_SOURCE})" in status and "velocity_outcomes" in status
+        assert client.question(CAMERA_SOURCE) == question  # the open one, crop included, for a late operator
+        crop = tmp_path / "crop.jpg"
+        shown = gcdtrav("answer", CAMERA_SOURCE, "--save-crop", str(crop), *flags).stdout  # no answer: only shown
+        assert (
+            crop.read_bytes() == question.crop_jpeg and f"an answer makes {len(question.cells)} operator pairs" in shown
+        )
+        assert shown.splitlines()[-1].startswith("nothing recorded: ")
+        assert client.status().experience.open_questions[0].cells == len(question.cells)  # type: ignore[union-attr]
         answered = gcdtrav("answer", CAMERA_SOURCE, "blocked", *flags).stdout
         assert f"answered {question.id} ({CAMERA_SOURCE}): score 0, {len(question.cells)} pairs" in answered
         experience = client.status().experience
