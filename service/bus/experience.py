@@ -99,10 +99,9 @@ class ExperienceBus:
             self.session.declare_subscriber(self.keys.planned_path("**"), self._on_planned_path),
         ]
         for key, ros, handler, reason in self.experience.inputs():
-            if ros:
-                msgtype = TWIST if key == self.settings.experience.cmd_vel else ODOMETRY
-                key = ros_key(key, msgtype, self.settings.ros_inputs)
-            declared.append(self.session.declare_subscriber(key, self._input_handler(handler, reason)))
+            declared.append(
+                self.session.declare_subscriber(self._input_key(key, ros), self._input_handler(handler, reason))
+            )
         queryables = (
             (self.keys.answer("**"), self._on_answer_query, False),
             (self.keys.calibration("**"), self._on_calibration, False),
@@ -116,6 +115,20 @@ class ExperienceBus:
         self._saver.start()
         log.info("experience: outcomes of grid %s, stored in %s", self.experience.source, self.experience.store.path)
         return declared
+
+    def _input_key(self, key: str, ros: bool) -> str:
+        """The key expression commands or odometry are read on: the key itself, or a ROS topic's keys."""
+        if not ros:
+            return key
+        return ros_key(key, TWIST if key == self.settings.experience.cmd_vel else ODOMETRY, self.settings.ros_inputs)
+
+    def reads(self) -> str:
+        """For the `serving` log line: the grid, and where commands and odometry are read."""
+        inputs = [
+            f"{reason.removeprefix('bad_')} on {self._input_key(key, ros)}" + (f" (ROS topic {key})" if ros else "")
+            for key, ros, _, reason in self.experience.inputs()
+        ]
+        return f"grid {self.experience.source}, " + (", ".join(inputs) or "outcomes from the bus only")
 
     def close(self) -> None:
         """Unhook the grids and save; the node undeclares the entities."""

@@ -214,14 +214,21 @@ def test_settings_that_cannot_work_are_refused_at_start(tmp_path: Path) -> None:
         pass
 
 
-def test_ros_topics_are_read_as_cdr_on_rmw_zenoh_keys(tmp_path: Path) -> None:
+def test_ros_topics_are_read_as_cdr_on_rmw_zenoh_keys(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     from gcdtrav.service.bus.experience import ros_key
     from gcdtrav.service.ros.cdr import RosTopic, odometry_cdr, topic_key, twist_cdr
 
     ros = experience_settings(cmd_vel="/robot/cmd_vel", odometry="/robot/odom")
     expression = "*/robot/cmd_vel/geometry_msgs::msg::dds_::Twist_/*"
     assert ros_key("/robot/cmd_vel", "geometry_msgs/msg/Twist", []) == expression
+    caplog.set_level("INFO", logger="gcdtrav.service")
     with running(settings(tmp_path, ros, AskSettings())) as (_, client, _flags):
+        serving = next(r.getMessage() for r in caplog.records if r.getMessage().startswith("serving: "))
+        assert f"grids {CAMERA_SOURCE} (pose on robot/pose (gcdtrav)), " in serving  # where the grid and the
+        assert (  # experience read what they read: the first thing to check when nothing pairs
+            f"experience grid {CAMERA_SOURCE}, cmd_vel on {expression} (ROS topic /robot/cmd_vel), "
+            "odometry on */robot/odom/nav_msgs::msg::dds_::Odometry_/* (ROS topic /robot/odom), model "
+        ) in serving
         twist = topic_key(RosTopic("/robot/cmd_vel", "geometry_msgs/msg/Twist", "rmw_zenoh", domain=7))
         odometry = topic_key(RosTopic("/robot/odom", "nav_msgs/msg/Odometry", "rmw_zenoh", domain=7))
         for k in range(40):  # 2 s at 0.5 m/s, commanded 1 m/s: outcomes every 0.3 m (no grid: no pairs)
