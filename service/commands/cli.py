@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 from gcdtrav.client.commands import operator
 from gcdtrav.client.commands import relay as relay_command
 from gcdtrav.client.commands import view as view_command
+from gcdtrav.client.commands.experience import proposal_lines, refusal
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings, Method
 from gcdtrav.schemas.settings import PRECISIONS, SettingsError
@@ -366,8 +367,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 def print_fit(fit: FitRun) -> None:
     """`gcdtrav eval --fit-anchors`: the proposal as `gcdtrav anchors propose` prints it, then where it is."""
-    from gcdtrav.client.commands.experience import proposal_lines, refusal
-
     for failure in fit.failures:
         print(f"error: {failure}", file=sys.stderr)
     print("\n".join(proposal_lines(fit.proposal)))
