@@ -182,6 +182,8 @@ def test_bad_messages_are_rejected_counted_and_never_taken_for_images(tmp_path: 
             client.calibration("other/cam")
         with pytest.raises(ServiceError, match="no pairs"):
             client.anchor_proposal()
+        with pytest.raises(ServiceError, match=f"no open question for '{CAMERA_SOURCE}'"):
+            client.question(CAMERA_SOURCE)
         assert client.calibration(CAMERA_SOURCE).figures.pairs == 0
 
 
@@ -197,6 +199,8 @@ def test_experience_off_declares_nothing_and_changes_nothing(tmp_path: Path) -> 
             client.calibration(CAMERA_SOURCE, timeout=0.5)
         with pytest.raises(QueryTimeout):
             client.anchor_proposal(timeout=0.5)
+        with pytest.raises(QueryTimeout):
+            client.question(CAMERA_SOURCE, timeout=0.5)
     assert not experience_file(tmp_path, "gcdtrav").exists()
 
 
