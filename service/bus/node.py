@@ -17,7 +17,7 @@ import zenoh
 from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.keys import Keys, input_source_of, literal_head
 from gcdtrav.schemas.messages import MessageError, ServiceStatus
-from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
+from gcdtrav.schemas.settings import GridSettings, RosInput, ServiceSettings, SettingsError
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus.anchor_sync import AnchorSync
 from gcdtrav.service.bus.credits import CreditPublisher
@@ -42,16 +42,26 @@ from gcdtrav.service.runtime.intake_rate import IntakeRate
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.outputs import FramePublisher, OutputBuilder
 from gcdtrav.service.runtime.progress import ProgressMonitor
-from gcdtrav.service.runtime.reuse import ReuseTracker
+from gcdtrav.service.runtime.reuse import ReuseTracker, Triage
 from gcdtrav.service.runtime.share import policy_for
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
-from gcdtrav.service.runtime.triage import Triage
 from gcdtrav.service.runtime.worker import FrameWorker
 
 log = logging.getLogger("gcdtrav.service")
 WATCHDOG_INTERVAL_S = 0.25
+
+
+def grids_described(grids: list[GridSettings]) -> str:
+    """For the `serving` log line: each grid, the cameras it fuses and where its pose is read."""
+    described = []
+    for grid in grids:
+        cameras = [camera.source for camera in grid.camera_list()]
+        fused = f" of cameras {', '.join(cameras)}" if cameras != [grid.source] else ""
+        pose = f"pose on {grid.pose_key} ({grid.pose_format})" if grid.pose_key else "no pose: the robot's frame"
+        described.append(f"{grid.source}{fused} ({pose})")
+    return "; ".join(described) or "none"
 
 
 def publisher_of(sample: zenoh.Sample) -> str | None:
@@ -100,7 +110,7 @@ class TraversabilityService:
         )
         self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
             round(settings.pending_budget_mb * 1e6),
-            policy=policy_for(settings.schedule, self.reuse.motion),
+            policy=policy_for(settings.schedule),
             triage=settings.reuse.enabled or settings.schedule.policy == "need",
         )
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if settings.ros_inputs else None
@@ -195,11 +205,13 @@ class TraversabilityService:
         self._watchdog.start()
         backend, active = self.pipeline.describe(), self.anchor_switch.head().anchor_set
         log.info(
-            "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, model %s (%s), anchor set %s "
-            "(%d anchors), method %s, outputs %s",
+            "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, grids %s, experience %s, model %s (%s), "
+            "anchor set %s (%d anchors), method %s, outputs %s",
             self.settings.inputs,
             [r.key for r in self.settings.ros_inputs],
             self.prefix,
+            grids_described(self.settings.grids),
+            self.experience.reads() if self.experience is not None else "off",
             backend.model_id,
             backend.precision,
             active.version,

@@ -29,9 +29,9 @@ from gcdtrav.service.experience.fitter import FitOptions
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore
 from gcdtrav.service.experience.velocity import (
+    MAX_INPUT_BYTES,
     VelocityTracker,
     decode_command,
-    decode_message,
     decode_odometry,
     is_ros_topic,
 )
@@ -44,7 +44,7 @@ ExperienceInput = tuple[str, bool, Callable[[bytes, float], None], str]  # key o
 
 def decode_answer(payload: bytes) -> OperatorAnswer:
     """An OperatorAnswer in msgpack or JSON; MessageError if it is neither."""
-    return decode_message(OperatorAnswer, payload)
+    return OperatorAnswer.decode(payload, MAX_INPUT_BYTES)
 
 
 def experience_file(state_dir: Path, prefix: str) -> Path:
@@ -116,7 +116,7 @@ class Experience:
     def on_planned_path(self, source: str, payload: bytes, received_at: float) -> None:
         """A planner's path ahead of ``source``: questions look along it (an empty one: the heading again).
         MessageError for a bad one (the bus counts it)."""
-        path = decode_message(PlannedPath, payload)
+        path = PlannedPath.decode(payload, MAX_INPUT_BYTES)
         if len(path.points) < 2:
             self._paths.pop(source, None)
         else:
@@ -167,12 +167,19 @@ class Experience:
     def open_questions(self) -> list[OperatorQuestion]:
         return [q for q in (asker.open_question for asker in list(self.askers.values())) if q is not None]
 
+    def open_question(self, source: str) -> OperatorQuestion:
+        """The open question about ``source``, crop included (for an operator to look before answering)."""
+        for question in self.open_questions():
+            if question.source == source:
+                return question
+        raise ValueError(f"no open question for '{source}' (questions are asked of grids with a pose)")
+
     def status(self) -> ExperienceStatus:
         """What ``gcdtrav status`` shows: the grid, the pairs, every counter, the open questions."""
         questions = [
             QuestionStatus(
                 id=q.id, source=q.source, stamp=q.stamp, reason=q.reason, concepts=[c.concept for c in q.concepts],
-                region=q.region,
+                region=q.region, cells=len(q.cells),
             )
             for q in self.open_questions()
         ]  # fmt: skip
