@@ -216,6 +216,18 @@ def test_an_unstamped_frame_takes_its_receipt_on_the_pose_streams_clock() -> Non
     assert status(estimated, {CAMERA: 500.2}).pose_clock_s == pytest.approx(0.15)  # camera vs pose stream
 
 
+def test_a_pose_stream_on_another_clock_than_the_cameras_fuses_nothing_and_shows_the_difference() -> None:
+    clock = Clock()
+    grids = outputs(clock)
+    for k in range(101):  # the odometry's clock runs 3 s behind the camera's (the service's here)
+        clock.now = 1000.0 + k / 50
+        grids.add_pose(CAMERA, Pose2D(stamp=clock.now - 3.0 - 0.01, x=k / 50, y=0.0, yaw=0.0))
+    assert not fuse(grids, clock.now - 0.5)  # taken 0.5 s ago by the camera's clock: 2.5 s past the newest pose
+    s = status(grids, {CAMERA: 0.5})  # the camera's learnt offset: its frames arrive 0.5 s after capture
+    assert s.not_fused_by_reason == {"pose_too_old": 1}
+    assert s.pose_clock_s == pytest.approx(-2.51)  # the pose clock minus the camera's, plus the links' difference
+
+
 def test_set_mount_drops_the_cached_rays_and_the_status_says_where_the_mount_came_from() -> None:
     clock = Clock()
     grids = outputs(clock)
