@@ -28,7 +28,8 @@ EXPLAINED = {
 
 @dataclass
 class GridHealth:
-    """Counters of one grid, written under its lock."""
+    """Counters of one grid, written under its lock (``pose_received_at`` by ``add_pose`` without it: one
+    assignment, poses never wait for a fusion)."""
 
     fused: int = 0
     not_fused: dict[str, int] = field(default_factory=dict)
