@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 from gcdtrav.schemas.experience import CalibrationFigures
 from gcdtrav.schemas.messages import ServiceStatus, SourceStatus
-from prometheus_client import CollectorRegistry, Histogram
+from prometheus_client import CollectorRegistry, Histogram, disable_created_metrics
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, InfoMetricFamily, Metric
 from prometheus_client.process_collector import ProcessCollector
 from prometheus_client.registry import Collector
@@ -229,6 +229,9 @@ class ServiceMetrics:
     process's own metrics (CPU, memory, start time)."""
 
     def __init__(self, sources: MetricsSources) -> None:
+        # No *_created series (process-wide in prometheus_client): Prometheus would store each as one more
+        # series per histogram and source, for a start time nobody queries.
+        disable_created_metrics()
         self.registry = CollectorRegistry()
         self.timings = FrameTimings(self.registry)
         self.registry.register(StatusCollector(sources))
