@@ -209,7 +209,7 @@ def calibration_families(figures: CalibrationFigures | None) -> Iterator[Metric]
 
 class ThrottledCalibration:
     """The figures go over every stored pair (up to experience.max_pairs): recomputed at most every
-    CALIBRATION_EVERY_S, not at every scrape."""
+    CALIBRATION_EVERY_S, not at every scrape; without pairs yet (nothing to compute), at every scrape."""
 
     def __init__(self, compute: Callable[[], CalibrationFigures | None], clock: Callable[[], float] = time.monotonic):
         self._compute, self._clock = compute, clock
@@ -219,7 +219,8 @@ class ThrottledCalibration:
 
     def figures(self) -> CalibrationFigures | None:
         with self._lock:
-            if self._clock() - self._at >= CALIBRATION_EVERY_S:
+            none_yet = self._figures is None or self._figures.pairs == 0  # cheap: asked again until pairs come
+            if none_yet or self._clock() - self._at >= CALIBRATION_EVERY_S:
                 self._figures, self._at = self._compute(), self._clock()
             return self._figures
 

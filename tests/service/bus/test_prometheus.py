@@ -6,6 +6,7 @@ joins and leaves mid-stream. One Prometheus, one router and the instances are sh
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import signal
 import subprocess
@@ -16,13 +17,14 @@ import urllib.parse
 import urllib.request
 from collections import Counter
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import pytest
 from conftest import textured_image
-from zenoh_helpers import client_config, free_port, serve_args, start_router, wait_until
+from zenoh_helpers import client_config, connecting_config, free_port, serve_args, start_router, wait_until
 
 pytest.importorskip("torch")
 PROMETHEUS = shutil.which("prometheus")
@@ -32,8 +34,9 @@ pytestmark = pytest.mark.skipif(
 )
 
 from gcdtrav.client import Maps, TraversabilityClient  # noqa: E402
+from gcdtrav.schemas.settings import ServiceSettings  # noqa: E402
 
-from tools.loopback import wait_for_statuses  # noqa: E402
+from tools.loopback import in_process_service, wait_for_statuses  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[3]
 DASHBOARD = ROOT / "deploy" / "grafana" / "gcdtrav.json"
@@ -137,16 +140,20 @@ class Fleet:
         return float(result[0]["value"][1]) if result else None
 
 
-def prometheus_config(targets: list[int], storage: Path) -> Path:
+def prometheus_config(ports: dict[str, int], storage: Path) -> Path:
+    """Scrape every second: the fleet's instances (job gcdtrav), the experience instance apart (a fleet of its
+    own, so that the fleet's sums stay the robots')."""
+
+    def job(name: str, instances: list[str]) -> dict[str, Any]:
+        return {"job_name": name, "static_configs": [{"targets": [f"127.0.0.1:{ports[i]}" for i in instances]}]}
+
     config = storage / "prometheus.yml"
     config.write_text(
         json.dumps(  # JSON is YAML
             {
                 "global": {"scrape_interval": "1s", "evaluation_interval": "1s", "scrape_timeout": "900ms"},
                 "rule_files": [str(ROOT / "deploy" / "prometheus" / "alerts.yaml")],
-                "scrape_configs": [
-                    {"job_name": "gcdtrav", "static_configs": [{"targets": [f"127.0.0.1:{p}" for p in targets]}]}
-                ],
+                "scrape_configs": [job("gcdtrav", ["box-a", "box-b", "box-c"]), job("gcdtrav-experience", ["exp-1"])],
             }
         )
     )
@@ -159,14 +166,14 @@ def fleet(tiny_model_dir: Path) -> Iterator[Fleet]:
         tmp_path = Path(tmp)
         router_port, web_port = free_port(), free_port()
         router = start_router(router_port)
-        ports = {name: free_port() for name in ("box-a", "box-b", "box-c")}
+        ports = {name: free_port() for name in ("box-a", "box-b", "box-c", "exp-1")}
         storage = tmp_path / "prometheus"
         storage.mkdir()
         assert PROMETHEUS is not None
         prometheus = subprocess.Popen(
             [
                 PROMETHEUS,
-                f"--config.file={prometheus_config(list(ports.values()), storage)}",
+                f"--config.file={prometheus_config(ports, storage)}",
                 f"--storage.tsdb.path={storage / 'data'}",
                 f"--web.listen-address=127.0.0.1:{web_port}",
                 "--log.level=warn",
@@ -257,25 +264,6 @@ def test_prometheus_counts_agree_with_the_maps_the_robots_received(fleet: Fleet,
     assert set(offsets) == set(ROBOTS) and all(abs(v) < 1 for v in offsets.values()), offsets  # one clock here
 
 
-def dashboard_queries() -> list[tuple[str, str]]:
-    dashboard = json.loads(DASHBOARD.read_text("utf-8"))
-    return [(panel["title"], target["expr"]) for panel in dashboard["panels"] for target in panel["targets"]]
-
-
-def test_every_query_of_the_dashboard_returns_data(fleet: Fleet, robots: Robots) -> None:
-    queries = dashboard_queries()
-    assert len(queries) >= 15
-    # Grafana's rate window: at least four scrape intervals; the test's whole stream fits in a minute.
-    empty = [
-        (title, expr)
-        for title, expr in queries
-        if not fleet.query(expr.replace("$__rate_interval", "1m"))
-        and "calibration" not in expr
-        and "experience" not in expr
-    ]
-    assert not empty, empty
-
-
 def test_an_instance_joins_and_leaves_mid_stream(fleet: Fleet, robots: Robots) -> None:
     robots.start()
     try:
@@ -310,3 +298,64 @@ def test_an_instance_joins_and_leaves_mid_stream(fleet: Fleet, robots: Robots) -
             assert (counted[robot], counted_reused[robot]) == maps, (robot, counted, maps)
     assert all(n >= 2 for n in served.values()), served  # served by box-c and by another instance
     assert Counter(fleet.by("gcdtrav_healthy", "instance").values()) == Counter({1.0: 2})
+
+
+def dashboard_queries() -> list[tuple[str, str]]:
+    dashboard = json.loads(DASHBOARD.read_text("utf-8"))
+    return [(panel["title"], target["expr"]) for panel in dashboard["panels"] for target in panel["targets"]]
+
+
+@contextmanager
+def experience_instance(port: int, state: Path) -> Iterator[None]:
+    """An instance with experience on (its own session: a fleet of one), driven by the synthetic robot until
+    it has pairs to grade, its metrics on ``port``."""
+    from gcdtrav.service.commands.metrics_http import metrics_endpoint
+
+    from tools.robot_drive import BusRobot, experience_settings, grid_settings
+    from tools.synthetic_scene import SceneBackend, make_world, start_anchors
+
+    settings = ServiceSettings(
+        state_dir=state,
+        instance="exp-1",
+        preview=False,
+        max_frame_age_s=None,  # simulated time from a stamp in the past, like a replayed bag
+        max_stamp_skew_s=None,
+        grids=[grid_settings()],
+        experience=experience_settings(),
+        metrics_port=port,
+        metrics_address="127.0.0.1",
+    )
+    with (
+        in_process_service(SceneBackend(), settings, start_anchors()) as (service, zenoh_port),
+        metrics_endpoint(settings, service.metrics.registry),
+        TraversabilityClient(config=connecting_config(zenoh_port), timeout=5.0) as client,
+    ):
+        robot = BusRobot(client, make_world(seed=0))
+        robot.drive(25.0, seed=1)
+        robot.close()
+        yield
+
+
+def test_every_query_of_the_dashboard_returns_data(fleet: Fleet, robots: Robots) -> None:
+    """Each expression of deploy/grafana/gcdtrav.json, with Grafana's rate window filled in, answers a finite
+    value while the robots stream and the experience instance has graded its pairs."""
+    queries = dashboard_queries()
+    assert len(queries) >= 15 and any("calibration" in expr for _, expr in queries)
+    robots.start()
+    try:
+        with experience_instance(fleet.ports["exp-1"], fleet.state / "exp-1"):
+            target = f"127.0.0.1:{fleet.ports['exp-1']}"
+            assert wait_until(lambda: fleet.by("gcdtrav_calibration_ece", "instance").get(target) is not None, 20)
+
+            def empty() -> list[tuple[str, str, list[Any]]]:
+                window = "2m"  # Grafana's $__rate_interval: at least four scrapes
+                answers = [(title, e, fleet.query(e.replace("$__rate_interval", window))) for title, e in queries]
+                return [(t, e, a) for t, e, a in answers if not any(finite(sample) for sample in a)]
+
+            assert wait_until(lambda: not empty(), 20), empty()
+    finally:
+        robots.halt()
+
+
+def finite(sample: dict[str, Any]) -> bool:
+    return math.isfinite(float(sample["value"][1]))
