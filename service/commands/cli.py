@@ -21,7 +21,7 @@ from gcdtrav.schemas.config import EngineSettings, Method
 from gcdtrav.schemas.settings import PRECISIONS, SettingsError
 from gcdtrav.service.backends import default_model
 
-SERVICE_MODULES = ("torch", "transformers", "matplotlib", "tqdm")
+SERVICE_MODULES = ("torch", "transformers", "matplotlib", "tqdm", "prometheus_client")
 EXIT_FAILURES = 1  # some inputs could not be processed
 EXIT_USAGE = 2  # bad configuration: anchor file, model weights, arguments
 CACHE_DIR_HELP = (
