@@ -6,15 +6,19 @@ from __future__ import annotations
 import os
 import socket
 import subprocess
+import time
 import urllib.request
 from pathlib import Path
 
 import pytest
+from conftest import textured_image
 from zenoh_helpers import connecting_config, free_port, serve_args, service_reachable, wait_until
 
 pytest.importorskip("torch")
 
-from gcdtrav.client import TraversabilityClient
+from gcdtrav.client import Maps, TraversabilityClient
+
+ROBOTS = ["r1/front", "r2/front"]
 
 
 def listening_ports(pid: int) -> set[int]:
@@ -36,6 +40,12 @@ def listening_ports(pid: int) -> set[int]:
     return ports
 
 
+def scrape(port: int) -> tuple[str, str]:
+    """GET /metrics: its content type and text."""
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=10) as response:
+        return response.headers["Content-Type"], response.read().decode()
+
+
 def serve(model: Path, state: Path, zenoh_port: int, *extra: str) -> subprocess.Popen[str]:
     args = serve_args(model, "-l", f"tcp/127.0.0.1:{zenoh_port}", "--state-dir", str(state), *extra)
     environ = {k: v for k, v in os.environ.items() if not k.startswith("GCDTRAV_")}  # the defaults, not the shell's
@@ -51,16 +61,30 @@ def test_metrics_are_off_by_default_and_served_where_asked(tiny_model_dir: Path,
         "--metrics-address", "127.0.0.1",
     )  # fmt: skip
     try:
-        for port in (off_port, on_port):
-            with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
-                assert wait_until(lambda c=client: service_reachable(c), 90), "the service did not come up"
+        with TraversabilityClient(config=connecting_config(off_port), timeout=5.0) as client:
+            assert wait_until(lambda: service_reachable(client), 90), "the service did not come up"
+        with TraversabilityClient(config=connecting_config(on_port), timeout=5.0) as client:
+            assert wait_until(lambda: service_reachable(client), 90), "the service did not come up"
+            maps: list[Maps] = []
+            client.subscribe_maps("**", maps.append)
+            time.sleep(0.3)
+            for k in range(2):  # two robots, two frames each: established, so the fleet's table holds them
+                for robot in ROBOTS:
+                    client.publish_image(robot, textured_image(48, 64, seed=k))
+                time.sleep(0.5)
+            assert wait_until(lambda: len(maps) == 4, 20), len(maps)
+            assert wait_until(lambda: "gcdtrav_frames_processed_total" in scrape(metrics_port)[1], 5)
         assert wait_until(lambda: listening_ports(on.pid) == {on_port, metrics_port}, 10), listening_ports(on.pid)
         assert listening_ports(off.pid) == {off_port}  # metrics_port 0: nothing listens but zenoh
-        with urllib.request.urlopen(f"http://127.0.0.1:{metrics_port}/metrics", timeout=10) as response:
-            content_type, text = response.headers["Content-Type"], response.read().decode()
+        content_type, text = scrape(metrics_port)
         assert content_type.startswith("text/plain") and "version=" in content_type
         assert "gcdtrav_healthy 1.0" in text and 'gcdtrav_service_info{anchor_set_version="' in text
         assert 'name="on"' in text and "gcdtrav_instances_live 1.0" in text
+        assert "gcdtrav_sources_owned 2.0" in text  # one instance: every robot is its own
+        for robot in ROBOTS:  # processed or reused, one map each
+            mine = sum(m.header.source == robot for m in maps)
+            counted = [f'gcdtrav_frames_{kind}_total{{source="{robot}"}}' for kind in ("processed", "reused")]
+            assert mine == sum(float(line.split()[-1]) for line in text.splitlines() if line.startswith(tuple(counted)))
     finally:
         for process in (off, on):
             process.terminate()

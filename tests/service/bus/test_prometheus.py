@@ -45,25 +45,6 @@ FPS = 2.0
 IMAGES = [textured_image(48, 64, seed=k) for k in range(3)]  # changing views: most frames are inferred
 
 
-def listening_ports(pid: int) -> set[int]:
-    """The TCP ports process ``pid`` listens on (its socket inodes in /proc/net/tcp*, state LISTEN)."""
-    inodes = set()
-    for fd in Path(f"/proc/{pid}/fd").iterdir():
-        try:
-            target = fd.readlink().as_posix()
-        except OSError:
-            continue
-        if target.startswith("socket:["):
-            inodes.add(target[8:-1])
-    ports = set()
-    for table in ("/proc/net/tcp", "/proc/net/tcp6"):
-        for line in Path(table).read_text().splitlines()[1:]:
-            fields = line.split()
-            if fields[3] == "0A" and fields[9] in inodes:  # 0A: LISTEN
-                ports.add(int(fields[1].rsplit(":", 1)[1], 16))
-    return ports
-
-
 @dataclass
 class Robots:
     """Robots streaming changing views at FPS; the maps they receive, by source."""
@@ -170,6 +151,7 @@ def fleet(tiny_model_dir: Path) -> Iterator[Fleet]:
         storage = tmp_path / "prometheus"
         storage.mkdir()
         assert PROMETHEUS is not None
+        log = (storage / "prometheus.log").open("w")  # a file: an unread pipe would fill and block it
         prometheus = subprocess.Popen(
             [
                 PROMETHEUS,
@@ -179,7 +161,7 @@ def fleet(tiny_model_dir: Path) -> Iterator[Fleet]:
                 "--log.level=warn",
             ],
             stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
+            stderr=log,
             text=True,
         )
         fleet = Fleet(tiny_model_dir, tmp_path, router_port, ports, f"http://127.0.0.1:{web_port}")
@@ -197,6 +179,7 @@ def fleet(tiny_model_dir: Path) -> Iterator[Fleet]:
                     process.wait(timeout=20)
                 except subprocess.TimeoutExpired:
                     process.kill()
+            log.close()
 
 
 def ready(url: str) -> bool:
