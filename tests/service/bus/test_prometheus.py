@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import pytest
 from conftest import textured_image
 from zenoh_helpers import client_config, connecting_config, free_port, serve_args, start_router, wait_until
@@ -36,24 +37,23 @@ pytestmark = pytest.mark.skipif(
 from gcdtrav.client import Maps, TraversabilityClient  # noqa: E402
 from gcdtrav.schemas.settings import ServiceSettings  # noqa: E402
 
-from tools.loopback import in_process_service, wait_for_statuses  # noqa: E402
+from tools.loopback import SimulatedRobots, in_process_service, wait_for_statuses  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[3]
 DASHBOARD = ROOT / "deploy" / "grafana" / "gcdtrav.json"
 ROBOTS = [f"r{k}/front" for k in range(4)]
 FPS = 2.0
-IMAGES = [textured_image(48, 64, seed=k) for k in range(3)]  # changing views: most frames are inferred
+IMAGE = textured_image(48, 64)
+JPEG = cv2.imencode(".jpg", IMAGE)[1].tobytes()  # one view: after the first, maps are reused (and refreshed)
 
 
-@dataclass
-class Robots:
-    """Robots streaming changing views at FPS; the maps they receive, by source."""
+class Robots(SimulatedRobots):
+    """The robots streaming at FPS (tools/loopback.py); the maps they receive, whole (inferred or reused)."""
 
-    client: TraversabilityClient
-    maps: list[Maps] = field(default_factory=list)
-    lock: threading.Lock = field(default_factory=threading.Lock)
-    stop: threading.Event = field(default_factory=threading.Event)
-    threads: list[threading.Thread] = field(default_factory=list)
+    def __init__(self, client: TraversabilityClient) -> None:
+        super().__init__(client, ROBOTS, FPS, JPEG)
+        self.maps: list[Maps] = []
+        self.lock = threading.Lock()
 
     def on_maps(self, maps: Maps) -> None:
         with self.lock:
@@ -66,23 +66,6 @@ class Robots:
     def instances_serving(self, source: str) -> set[str]:
         with self.lock:
             return {m.header.instance for m in self.maps if m.header.source == source}
-
-    def start(self) -> None:
-        self.stop.clear()
-        self.threads = [threading.Thread(target=self._run, args=(name,), daemon=True) for name in ROBOTS]
-        for thread in self.threads:
-            thread.start()
-
-    def halt(self) -> None:
-        self.stop.set()
-        for thread in self.threads:
-            thread.join(5)
-
-    def _run(self, name: str) -> None:
-        k = 0
-        while not self.stop.wait(1 / FPS):
-            self.client.publish_image(name, IMAGES[k % len(IMAGES)], stamp=time.time())
-            k += 1
 
 
 @dataclass
@@ -202,12 +185,12 @@ def robots(fleet: Fleet) -> Iterator[Robots]:
         assert wait_until(lambda: fleet.scalar("sum(gcdtrav_instances_live)") == 4, 30), "both see both"
         fleet_robots.start()
         assert wait_until(lambda: all(fleet_robots.received(r, False) for r in ROBOTS), 30), "maps for every robot"
-        client.publish_image(ROBOTS[0], IMAGES[0], stamp=time.time() - 60)  # dropped stale at intake
+        client.publish_image(ROBOTS[0], IMAGE, stamp=time.time() - 60)  # dropped stale at intake
         client.session.put("gcdtrav/in/junk/cam", b"\x00 not an image")  # rejected
         time.sleep(4)
         yield fleet_robots
     finally:
-        fleet_robots.halt()
+        fleet_robots.stop()
         subscriber.undeclare()
         client.close()
 
@@ -221,7 +204,7 @@ def settled(fleet: Fleet, robots: Robots, processed: str, reused: str) -> tuple[
 
 
 def test_prometheus_counts_agree_with_the_maps_the_robots_received(fleet: Fleet, robots: Robots) -> None:
-    robots.halt()
+    robots.stop()
     processed = "sum by (source) (gcdtrav_frames_processed_total)"
     reused = "sum by (source) (gcdtrav_frames_reused_total)"
     assert wait_until(lambda: settled(fleet, robots, processed, reused)[0], 20), settled(
@@ -265,7 +248,7 @@ def test_an_instance_joins_and_leaves_mid_stream(fleet: Fleet, robots: Robots) -
         served = {r: len(robots.instances_serving(r)) for r in moved}
         time.sleep(2)
     finally:
-        robots.halt()
+        robots.stop()
     # Every count the instances made, box-c's last scrape included, against the maps received: exact for the
     # robots box-c never served; for those it did, its last frames may have gone out after its last scrape.
     processed = "sum by (source) (max_over_time(gcdtrav_frames_processed_total[10m]))"
@@ -337,7 +320,7 @@ def test_every_query_of_the_dashboard_returns_data(fleet: Fleet, robots: Robots)
 
             assert wait_until(lambda: not empty(), 20), empty()
     finally:
-        robots.halt()
+        robots.stop()
 
 
 def finite(sample: dict[str, Any]) -> bool:
