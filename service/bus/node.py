@@ -43,12 +43,11 @@ from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.metrics import MetricsSources, ServiceMetrics
 from gcdtrav.service.runtime.outputs import FramePublisher, OutputBuilder
 from gcdtrav.service.runtime.progress import ProgressMonitor
-from gcdtrav.service.runtime.reuse import ReuseTracker
+from gcdtrav.service.runtime.reuse import ReuseTracker, Triage
 from gcdtrav.service.runtime.share import policy_for
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
-from gcdtrav.service.runtime.triage import Triage
 from gcdtrav.service.runtime.worker import FrameWorker
 
 log = logging.getLogger("gcdtrav.service")
@@ -106,7 +105,7 @@ class TraversabilityService:
         )
         self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
             round(settings.pending_budget_mb * 1e6),
-            policy=policy_for(settings.schedule, self.reuse.motion),
+            policy=policy_for(settings.schedule),
             triage=settings.reuse.enabled or settings.schedule.policy == "need",
         )
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if settings.ros_inputs else None

@@ -27,9 +27,9 @@ from gcdtrav.service.runtime.grids import FusedGrid, GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory, FrameRecord
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
+from gcdtrav.service.runtime.reuse import Triage
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
-from gcdtrav.service.runtime.triage import Triage
 
 log = logging.getLogger("gcdtrav.service")
 _R = TypeVar("_R")
