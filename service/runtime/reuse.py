@@ -265,12 +265,13 @@ class Triage:
             self.stats.rejected(source, "processing_failed", repr(err)[:200], err)
             return None
 
-    def reuse(self, pending: PendingFrame, seen: Glance) -> None:
-        """Publish the source's last maps for this frame and count it unchanged (a shutdown's: dropped)."""
+    def reuse(self, pending: PendingFrame, seen: Glance, map_age_s: float | None = None) -> None:
+        """Publish the source's last maps for this frame and count it unchanged (a shutdown's: dropped);
+        ``map_age_s``: the frame's age as judged before publishing."""
         if not self.republish(pending, seen):
             self.stats.dropped(pending.source, "shutdown")
             return
-        self.stats.unchanged(pending.source)
+        self.stats.unchanged(pending.source, map_age_s)
         self.on_freed(pending, credits.UNCHANGED)
 
     def inferred(self, done: ProcessedFrame) -> None:
