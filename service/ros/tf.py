@@ -1,6 +1,6 @@
 """tf2_msgs/msg/TFMessage over Zenoh: the CDR codec, rigid transforms, and the checks tf2 applies on input.
 
-The topics, their QoS and keys (read from ros2/geometry2 and ros2/rmw_zenoh; docs/grid.md#camera-mount-and-pose-from-tf):
+The topics, their QoS and keys (read from ros2/geometry2 and ros2/rmw_zenoh; docs/grid.md, "Mount and pose from tf"):
 
   /tf_static   TRANSIENT_LOCAL + RELIABLE, KEEP_LAST 1 per publisher (tf2_ros StaticBroadcasterQoS): each
                static broadcaster republishes every transform it ever sent in one message, so the last message

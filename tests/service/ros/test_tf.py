@@ -70,7 +70,9 @@ def test_a_tfmessage_from_rosbags_decodes_to_its_transforms_and_keys_are_rmw_zen
     payload = bytes(ros.typestore().serialize_cdr(types[TF_MESSAGE](transforms=stamped), TF_MESSAGE))
     kept, refused = decode_tf_message(payload)
     assert refused == []
-    assert [(t.parent, t.child, t.stamp) for t in kept] == [("base_link", f"cam{k}_optical_frame", 3.25) for k in range(3)]
+    assert [(t.parent, t.child, t.stamp) for t in kept] == [
+        ("base_link", f"cam{k}_optical_frame", 3.25) for k in range(3)
+    ]
     assert kept[2].transform.translation == pytest.approx((0.2, -0.2, 1.5))
     assert ros.type_hash(TF_MESSAGE) == TF_HASH
     for topic in ("/tf", "/tf_static"):
