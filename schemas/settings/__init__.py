@@ -19,6 +19,7 @@ from gcdtrav.schemas.settings.grids import (
     CameraMountSettings,
     GridCamera,
     GridSettings,
+    GridTfSettings,
 )
 from gcdtrav.schemas.settings.risk import RiskSettings
 from gcdtrav.schemas.settings.ros import IMAGE_TYPES, RosInput, RosNode, RosOutput
@@ -37,6 +38,7 @@ __all__ = [
     "ExperienceSettings",
     "GridCamera",
     "GridSettings",
+    "GridTfSettings",
     "Precision",
     "ReuseSettings",
     "RiskSettings",
