@@ -22,7 +22,7 @@ INTRINSICS = {"fx": 40, "fy": 40, "cx": 32, "cy": 24, "width": 64, "height": 48}
 
 def st(parent: str, child: str, stamp: float, xyz=(0.0, 0.0, 0.0), yaw: float = 0.0, q=None) -> StampedTransform:  # type: ignore[no-untyped-def]
     rotation = q if q is not None else (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))
-    return StampedTransform(parent, child, stamp, Transform(tuple(xyz), rotation))  # type: ignore[arg-type]
+    return StampedTransform(parent, child, stamp, Transform(tuple(xyz), rotation))
 
 
 def static_tf(pitch: float = 0.3) -> bytes:
@@ -125,7 +125,7 @@ def test_a_static_pose_chain_is_not_a_pose_stream() -> None:
 def test_the_camera_frame_is_configured_else_the_images_else_camera_infos(
     configured: str | None, seen: list[tuple[str, str]], expected: str
 ) -> None:
-    grid = Grid(pose=False, **({"frame_id": configured} if configured else {}))
+    grid = Grid(pose=False, frame_id=configured) if configured else Grid(pose=False)
     grid.tf.on_message(static_tf(), static=True)
     for frame, origin in seen:
         grid.tf.camera_frame("cam", frame, origin)
