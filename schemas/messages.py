@@ -360,6 +360,17 @@ class GridHeader(WireModel):
         description="Publication time minus stamp (the last fused frame's), s: the grid's own age, clock skew "
         "included. Since 1.2.",
     )
+    capture_stamp: float | None = Field(
+        default=None,
+        description="Capture stamp of the frame this update fused (stamp is the newest fused; a frame of "
+        "another camera may be older). None: an older writer.",
+    )
+    capture_pose: tuple[float, float, float] | None = Field(
+        default=None,
+        description="(x, y, yaw) in the grid frame the frame was projected from: the robot's pose at "
+        "capture_stamp, interpolated from the pose stream (robot is the newest pose). None: no pose stream "
+        "(the grid is in base_link), or an older writer.",
+    )
 
 
 class GridMessage(Message):

@@ -20,6 +20,7 @@ from gcdtrav.schemas.settings.grids import (
     GridCamera,
     GridSettings,
     GridTfSettings,
+    PoseBufferSettings,
 )
 from gcdtrav.schemas.settings.risk import RiskSettings
 from gcdtrav.schemas.settings.ros import IMAGE_TYPES, RosInput, RosNode, RosOutput
@@ -39,6 +40,7 @@ __all__ = [
     "GridCamera",
     "GridSettings",
     "GridTfSettings",
+    "PoseBufferSettings",
     "Precision",
     "ReuseSettings",
     "RiskSettings",

@@ -126,6 +126,37 @@ class GridCamera(StrictModel):
         return self
 
 
+class PoseBufferSettings(StrictModel):
+    """How a grid looks up the robot's pose at a frame's capture stamp (docs/grid.md, *Which pose*)."""
+
+    span_s: float = Field(
+        default=10.0,
+        gt=0,
+        description="Poses kept this long (by their stamps): a frame older than the oldest pose is not fused "
+        "(before_poses); keep it above the slowest frame's capture-to-fusion time (max_frame_age_s).",
+    )
+    max_poses: int = Field(default=2000, ge=2, description="Poses kept at most (the oldest go first).")
+    extrapolate_s: float = Field(
+        default=0.1,
+        ge=0,
+        description="A frame up to this much newer than the newest pose (or older than the oldest) takes the "
+        "pose extrapolated at the last velocity; beyond, the grid waits for the pose.",
+    )
+    wait_s: float = Field(
+        default=0.2,
+        ge=0,
+        le=2.0,
+        description="How long fusion waits for a pose stream that has not yet reached a frame's stamp; then "
+        "the frame is not fused (pose_too_old). The worker waits, outside the grid's lock.",
+    )
+    max_gap_s: float = Field(
+        default=0.5,
+        gt=0,
+        description="Two poses further apart are not interpolated between: a frame taken in the gap (the "
+        "stream stopped) is not fused (pose_gap).",
+    )
+
+
 # The single-camera form's own fields: with ``cameras`` they belong to each camera instead.
 SINGLE_CAMERA_FIELDS = ("intrinsics", "camera_info_key", "mount", "depth_key", "frame_id", "frame_axes")
 
@@ -167,6 +198,9 @@ class GridSettings(StrictModel):
     frame_axes: FRAME_AXES = GridCamera.model_fields["frame_axes"]
     pose_format: Literal["gcdtrav", "odometry"] = Field(
         default="gcdtrav", description="gcdtrav: msgpack Pose2D; odometry: nav_msgs/msg/Odometry CDR."
+    )
+    poses: PoseBufferSettings = Field(
+        default_factory=PoseBufferSettings, description="The pose stream's buffer: each frame is fused at its pose."
     )
     depth_key: str | None = Field(default=None, description="Depth image (32FC1 m or 16UC1 mm, CDR) for 3-D points.")
     occupancy_grid: bool = Field(default=False, description="Also publish nav_msgs/OccupancyGrid CDR (T and U).")

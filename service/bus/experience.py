@@ -238,9 +238,10 @@ class ExperienceBus:
     def _after_fusion(self, grid: SourceGrid, camera: CameraState, image: NDArray[np.uint8] | None) -> None:
         """Under the grid's lock, on the worker: snapshot the grid, maybe ask; never fail the frame's outputs."""
         source = grid.config.source
+        pose = grid.fused_at.pose if grid.fused_at is not None else None  # the image's pose, not the newest
         try:
-            crop = image_crop(image, grid.pose, camera.mount, camera.camera)
-            question = self.experience.on_grid_update(source, grid.grid, grid.pose, crop)
+            crop = image_crop(image, pose, camera.mount, camera.camera)
+            question = self.experience.on_grid_update(source, grid.grid, pose, crop)
         except Exception as err:
             self.stats.rejected(None, "experience_failed", f"{source}: {type(err).__name__}: {err}"[:200], err)
             return

@@ -81,6 +81,7 @@ def grid_header(
 ) -> GridHeader:
     """The header of a grid's message (and its ROS messages), as of now."""
     pose = grid.pose
+    at = grid.fused_at.pose if grid.fused_at is not None else None
     stamp = grid.grid.stamp or 0.0
     return GridHeader(
         source=grid.config.source,
@@ -100,4 +101,6 @@ def grid_header(
         tau=risk.tau,
         expired_cells=int(grid.grid.expired.sum()),
         age_s=clock() - stamp if grid.grid.stamp is not None else None,
+        capture_stamp=grid.fused_stamp,
+        capture_pose=(at.x, at.y, at.yaw) if at is not None else None,
     )

@@ -21,7 +21,9 @@ import numpy as np
 from gcdtrav.schemas.messages import ContextDistribution, GridHeader, PathReply, Pose2D
 from gcdtrav.schemas.settings import GridSettings, RiskSettings
 from gcdtrav.service.grid.fusion import GroundGrid
+from gcdtrav.service.grid.geometry import CameraMount
 from gcdtrav.service.grid.layers import grid_layers
+from gcdtrav.service.grid.poses import PoseAt
 from gcdtrav.service.ros.cdr import (
     RosTopic,
     decode_camera_info,
@@ -30,6 +32,7 @@ from gcdtrav.service.ros.cdr import (
 )
 from gcdtrav.service.runtime.grids import answers
 from gcdtrav.service.runtime.grids.encoding import FusedGrid, GridUpdate, grid_header
+from gcdtrav.service.runtime.grids.health import NO_INTRINSICS
 from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid, grid_spec
 from gcdtrav.service.runtime.history import FrameRecord
 from numpy.typing import NDArray
@@ -77,25 +80,34 @@ class GridOutputs:
         return found
 
     def set_pose(self, source: str, payload: bytes) -> None:
-        """The pose of the grid published under ``source``."""
-        grid = self.sources[source]
-        pose = decode_pose(payload, grid.config.pose_format)
-        with grid.lock:
-            grid.pose = pose
+        """A pose of the grid published under ``source`` (its pose stream's payload); MessageError if bad."""
+        self.add_pose(source, decode_pose(payload, self.sources[source].config.pose_format))
+
+    def add_pose(self, grid_source: str, pose: Pose2D) -> None:
+        """A decoded pose of the grid published under ``grid_source`` (its pose stream, or tf): into its buffer,
+        waking a frame waiting for it. Takes only the buffer's lock, never the grid's."""
+        grid = self.sources[grid_source]
+        grid.poses.add(pose)
+        grid.health.pose_received_at = self.clock()
 
     def pose_of(self, camera: str) -> Pose2D | None:
-        """The latest pose of the robot carrying camera ``camera`` (its grid's pose stream); None: unknown."""
+        """The newest pose of the robot carrying camera ``camera`` (its grid's pose stream); None: unknown."""
         grid = self.camera_grids.get(camera)
-        if grid is None:
-            return None
+        return None if grid is None else grid.pose
+
+    def set_mount(self, camera_source: str, mount: CameraMount, origin: str) -> None:
+        """Camera ``camera_source``'s mount in the base frame, from ``origin`` ("settings" or "tf"); the next
+        frame's ground rays are computed afresh."""
+        grid = self.camera_grids[camera_source]
         with grid.lock:
-            return grid.pose
+            grid.cameras[camera_source].set_mount(mount, origin)
 
     def set_camera_info(self, camera: str, payload: bytes) -> None:
         intrinsics = decode_camera_info(payload)
         grid = self.camera_grids[camera]
         with grid.lock:
-            grid.cameras[camera].camera = intrinsics
+            state = grid.cameras[camera]
+            state.camera, state.intrinsics_origin = intrinsics, "camera_info"
 
     def set_depth(self, camera: str, payload: bytes) -> None:
         depth = decode_depth(payload)
@@ -126,18 +138,25 @@ class GridOutputs:
         image: NDArray[np.uint8] | None = None,
     ) -> FusedGrid | None:
         """Fuse a processed frame of camera ``source`` (its weights and match scores per map patch, its ROS
-        topic if a ROS camera, its image for ``after_fusion``) into its grid; the grid's layers to publish, or
-        None (not a grid's camera, or no intrinsics yet)."""
+        topic if a ROS camera, its image for ``after_fusion``) into its grid, projected from the robot's pose at
+        the frame's capture stamp; the grid's layers to publish, or None (not a grid's camera, or not fused:
+        counted by reason in the grid's health)."""
         grid = self.camera_grids.get(source)
         if grid is None:
             return None
         camera = grid.cameras[source]
+        # The pose at capture, waited for (bounded) outside the grid's lock: the pose stream may lag the frame.
+        wait_s = grid.config.poses.wait_s if camera.camera is not None else 0.0
+        at = grid.poses.wait(record.stamp, wait_s) if grid.expects_pose() else PoseAt(None)
         with grid.lock:
             camera.ros = ros or camera.ros
-            if camera.camera is None:
-                log.warning("grid of %s: no intrinsics yet (waiting for CameraInfo), frame not fused", source)
+            reason = NO_INTRINSICS if camera.camera is None else at.reason
+            if reason is not None:
+                self._not_fused(grid, source, record.stamp, reason)
                 return None
-            grid.fuse(camera, weights, record.image_size, record.stamp, record.anchors, match)
+            grid.fuse(camera, weights, record.image_size, record.stamp, record.anchors, match, at.pose)
+            grid.fused_at, grid.fused_stamp = at, record.stamp
+            grid.health.fused_frame(source, record.stamp, self.clock(), grid.config.costmap)
             if self.after_fusion is not None:
                 self.after_fusion(grid, camera, image)
             anchors = record.anchors
@@ -147,6 +166,11 @@ class GridOutputs:
             header = self.header(grid, anchors.version)
             ros_topic = grid.ros_topic()
         return FusedGrid(grid.config, header, layers, ros_topic)
+
+    def _not_fused(self, grid: SourceGrid, camera: str, stamp: float, reason: str) -> None:
+        """Count a frame the grid could not fuse; logged once per camera and reason in a row."""
+        if grid.health.not_fused_frame(camera, reason, self.clock()):
+            log.warning("grid %s: frame of %s (stamp %.3f) not fused: %s", grid.config.source, camera, stamp, reason)
 
     def header(self, grid: SourceGrid, version: str) -> GridHeader:
         return grid_header(grid, version, self.instance, self.risk, self.clock)

@@ -1,5 +1,5 @@
-"""A ground grid's state: its cameras (intrinsics, mount, depth, ROS topic), the robot's pose, the fused
-grid and its sequence number; fusing one frame into it."""
+"""A ground grid's state: its cameras (intrinsics, mount, depth, ROS topic), the robot's recent poses, the
+fused grid and its sequence number, how it is doing; fusing one frame into it at the pose of its capture."""
 
 from __future__ import annotations
 
@@ -15,10 +15,12 @@ from gcdtrav.schemas.messages import Pose2D
 from gcdtrav.schemas.settings import GridCamera, GridSettings
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points, map_cell_pixels
+from gcdtrav.service.grid.poses import PoseAt, PoseBuffer
 from gcdtrav.service.ros.cdr import (
     RosTopic,
 )
 from gcdtrav.service.runtime.errors import QueryError
+from gcdtrav.service.runtime.grids.health import GridHealth
 from numpy.typing import NDArray
 
 
@@ -34,9 +36,17 @@ class CameraState:
 
     def __post_init__(self) -> None:
         self.mount = CameraMount(**self.config.mount.model_dump())
+        self.mount_origin = "settings"  # or "tf" (GridOutputs.set_mount)
+        self.intrinsics_origin: str | None = None  # "settings" or "camera_info"; None: not known yet
         if self.config.intrinsics is not None and self.camera is None:
             self.camera = PinholeCamera(**self.config.intrinsics.model_dump())
+            self.intrinsics_origin = "settings"
         self._ground_cache: dict[tuple[Any, ...], tuple[NDArray[np.float64], NDArray[np.bool_]]] = {}
+
+    def set_mount(self, mount: CameraMount, origin: str) -> None:
+        """A new mount (from the settings or tf): the cached ground rays were the old mount's."""
+        self.mount, self.mount_origin = mount, origin
+        self._ground_cache = {}
 
     def camera_for(self, image_size: tuple[int, int]) -> PinholeCamera:
         """Intrinsics scaled to the incoming image's size."""
@@ -63,17 +73,31 @@ class CameraState:
 
 @dataclass
 class SourceGrid:
-    """One grid, its cameras and the robot's latest pose; published and queried under ``config.source``."""
+    """One grid, its cameras and the robot's recent poses; published and queried under ``config.source``."""
 
     config: GridSettings
     grid: GroundGrid
-    pose: Pose2D | None = None
     seq: int = -1
     cameras: dict[str, CameraState] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         self.lock = threading.Lock()
         self.cameras = {c.source: CameraState(c, self.config.max_range_m) for c in self.config.camera_list()}
+        p = self.config.poses
+        self.poses = PoseBuffer(p.span_s, p.max_poses, p.extrapolate_s, p.max_gap_s)  # its own lock
+        self.health = GridHealth()
+        self.fused_at: PoseAt | None = None  # the pose the last fused frame was projected with
+        self.fused_stamp: float | None = None  # that frame's capture stamp
+
+    @property
+    def pose(self) -> Pose2D | None:
+        """The robot's newest pose (by stamp); None before the first."""
+        return self.poses.newest
+
+    def expects_pose(self) -> bool:
+        """Whether frames need a pose to be fused: a pose stream is configured, or poses came (from tf). A grid
+        without one lives in the robot's base frame."""
+        return self.config.pose_key is not None or self.poses.received > 0
 
     def fuse(
         self,
@@ -83,16 +107,18 @@ class SourceGrid:
         stamp: float,
         anchors: AnchorSet,
         match: NDArray[np.floating] | None = None,
+        pose: Pose2D | None = None,
     ) -> int:
+        """Fuse a frame taken at ``stamp`` from ``pose`` (the robot's then; None: the grid is in the base frame)."""
         points, valid = camera.base_points((weights.shape[1], weights.shape[2]), image_size)
         flat = weights.reshape(weights.shape[0], -1)[:, valid].astype(np.float32)
         scores = None if match is None else np.asarray(match, np.float32).reshape(-1)[valid]
         ground = points[valid]
-        if self.pose is not None:  # into the odometry frame, and keep the robot at the grid's centre
-            c, s = math.cos(self.pose.yaw), math.sin(self.pose.yaw)
-            ground = ground @ np.array([[c, s], [-s, c]]) + np.array([self.pose.x, self.pose.y])
+        if pose is not None:  # into the odometry frame, and keep the robot at the grid's centre
+            c, s = math.cos(pose.yaw), math.sin(pose.yaw)
+            ground = ground @ np.array([[c, s], [-s, c]]) + np.array([pose.x, pose.y])
             half = self.grid.spec.cells * self.grid.spec.resolution_m / 2
-            self.grid.scroll_to((self.pose.x - half, self.pose.y - half))
+            self.grid.scroll_to((pose.x - half, pose.y - half))
         landed = self.grid.add(ground, flat, stamp, anchors, scores)
         self.seq += 1
         return landed
