@@ -36,7 +36,7 @@ class CameraState:
 
     def __post_init__(self) -> None:
         self.mount = CameraMount(**self.config.mount.model_dump())
-        self.mount_origin = "settings"  # or "tf" (GridOutputs.set_mount)
+        self.mount_origin: str | None = "settings"  # or "tf" (GridOutputs.set_mount); None: waiting for tf
         self.intrinsics_origin: str | None = None  # "settings" or "camera_info"; None: not known yet
         if self.config.intrinsics is not None and self.camera is None:
             self.camera = PinholeCamera(**self.config.intrinsics.model_dump())
@@ -83,6 +83,9 @@ class SourceGrid:
     def __post_init__(self) -> None:
         self.lock = threading.Lock()
         self.cameras = {c.source: CameraState(c, self.config.max_range_m) for c in self.config.camera_list()}
+        if self.config.tf is not None and self.config.tf.mount:
+            for camera in self.cameras.values():
+                camera.mount_origin = None  # unknown until tf links the base frame to the camera's frame
         p = self.config.poses
         self.poses = PoseBuffer(p.span_s, p.max_poses, p.extrapolate_s, p.max_gap_s)  # its own lock
         self.health = GridHealth()
@@ -95,9 +98,10 @@ class SourceGrid:
         return self.poses.newest
 
     def expects_pose(self) -> bool:
-        """Whether frames need a pose to be fused: a pose stream is configured, or poses came (from tf). A grid
-        without one lives in the robot's base frame."""
-        return self.config.pose_key is not None or self.poses.received > 0
+        """Whether frames need a pose to be fused: a pose stream is configured (pose_key or tf.pose), or poses
+        came. A grid without one lives in the robot's base frame."""
+        from_tf = self.config.tf is not None and self.config.tf.pose
+        return self.config.pose_key is not None or from_tf or self.poses.received > 0
 
     def fuse(
         self,
