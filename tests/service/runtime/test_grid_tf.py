@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 
 pytest.importorskip("rosbags")
@@ -139,3 +140,28 @@ def test_frame_axes_overrides_the_name() -> None:
     grid.tf.on_message(static_tf(), static=True)
     mount = grid.mounts[-1][1]
     assert (mount.roll, mount.yaw) != pytest.approx((0.0, 0.0))  # optical axes read as body ones: a wrong mount
+
+
+def test_a_grid_with_tf_fuses_nothing_until_tf_gives_its_mount_and_pose_and_counts_why() -> None:
+    from gcdtrav.schemas.anchors import default_anchor_set
+    from gcdtrav.schemas.settings import GridSettings
+    from gcdtrav.service.runtime.grids import GridOutputs
+    from gcdtrav.service.runtime.history import FrameRecord
+
+    config = {"source": "cam", "intrinsics": INTRINSICS, "tf": {"mount": True, "pose": True}, "poses": {"wait_s": 0}}
+    anchors = default_anchor_set()
+    grids = GridOutputs([GridSettings.model_validate(config)], len(anchors), "test")
+    weights = np.full((len(anchors), 6, 8), 1 / len(anchors), np.float32)
+
+    def frame(stamp: float) -> object:
+        record = FrameRecord(0, stamp, "camera_optical_frame", weights.astype(np.float16), anchors, (64, 48))
+        return grids.fuse("cam", record, weights)
+
+    grid = grids.sources["cam"]
+    assert frame(1.0) is None and grid.health.not_fused == {"no_mount": 1}  # nothing from tf yet
+    grids.tf["cam"].on_message(static_tf(), static=True)
+    assert frame(1.0) is None and grid.health.not_fused["no_pose"] == 1  # the mount, but no pose: not base_link
+    for stamp in (0.9, 1.1):
+        grids.tf["cam"].on_message(tf_message_cdr([st("odom", "base_link", stamp, (stamp, 0.0, 0.0))]), False)
+    assert frame(1.0) is not None and grid.health.fused == 1 and grid.frame_id() == "odom"
+    assert grid.fused_at is not None and grid.fused_at.pose is not None and grid.fused_at.pose.x == pytest.approx(1.0)
