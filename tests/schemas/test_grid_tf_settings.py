@@ -11,7 +11,7 @@ from pydantic import ValidationError
 
 INTRINSICS = {"fx": 40, "fy": 40, "cx": 32, "cy": 24, "width": 64, "height": 48}
 ONE = {"source": "cam", "intrinsics": INTRINSICS}
-TWO = {
+TWO: dict[str, Any] = {
     "source": "robot",
     "cameras": [{"source": "front", "intrinsics": INTRINSICS}, {"source": "back", "intrinsics": INTRINSICS}],
 }
