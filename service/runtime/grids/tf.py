@@ -41,8 +41,10 @@ def _stronger(known: str, new: str) -> bool:
 class GridTf:
     """One grid's tf tree; thread-safe (payloads from zenoh's threads, camera frames from the worker).
 
-    ``add_pose`` and ``set_mount`` are called outside the lock, after the tree changed: a pose at each newer stamp
-    the chain odom_frame -> base_frame reaches, a mount whenever a camera's transform is first known or changes.
+    ``add_pose`` and ``set_mount`` are called after the tree changed, still under its lock so that two messages'
+    mounts arrive in the order they were computed (the lock order is this lock, then the grid's or the pose
+    buffer's; nothing holding those calls in here): a pose at each newer stamp the chain odom_frame -> base_frame
+    reaches, a mount whenever a camera's transform is first known or changes.
     ``waiting`` says, per pose or camera, why tf does not give it yet (a lookup error), for status and logs.
     """
 
@@ -74,8 +76,7 @@ class GridTf:
                 except RejectedInput as err:
                     refused.append(err)
             pose = self._pose() if self.config.pose else None
-            mounts = self._mounts() if kept else []
-        self._hand_over(pose, mounts)
+            self._hand_over(pose, self._mounts() if kept else [])
         return refused
 
     def camera_frame(self, camera: str, frame_id: str, origin: str) -> None:
@@ -90,8 +91,7 @@ class GridTf:
             if known is not None and known[1] == origin:
                 log.warning("grid %s: camera %s's frame changed from %s to %s", self.grid, camera, known[0], frame_id)
             self.frames[camera] = (frame_id, origin)
-            mounts = self._mounts()
-        self._hand_over(None, mounts)
+            self._hand_over(None, self._mounts())
 
     # ---- under the lock ------------------------------------------------------------------------------
     def _pose(self) -> Pose2D | None:
@@ -139,7 +139,6 @@ class GridTf:
             log.info("grid %s: tf does not give the %s yet: %s", self.grid, thing, err)
         self.waiting[what] = str(err)
 
-    # ---- outside the lock ----------------------------------------------------------------------------
     def _hand_over(self, pose: Pose2D | None, mounts: list[tuple[str, CameraMount]]) -> None:
         if pose is not None:
             self.add_pose(self.grid, pose)
