@@ -21,7 +21,7 @@ QUIET_S = 10.0  # a grid whose cameras send frames but that fused none for this 
 # What each reason means, for the status's "why" section.
 EXPLAINED = {
     NO_INTRINSICS: "no intrinsics (waiting for CameraInfo on camera_info_key)",
-    NO_MOUNT: "no camera mount from tf yet: no transform links tf.base_frame to the camera's frame (the log says which)",
+    NO_MOUNT: "no camera mount from tf yet: nothing links tf.base_frame to the camera's frame (the log says which)",
     NO_POSE: "no pose received on its pose stream yet",
     BEFORE_POSES: "frames older than every pose held (raise poses.span_s, or the pose stream restarted)",
     AFTER_POSES: "the pose stream lags or stopped: no pose at the frames' capture (poses.extrapolate_s, wait_s)",
