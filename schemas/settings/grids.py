@@ -248,13 +248,13 @@ class GridSettings(StrictModel):
             raise ValueError(f"grid '{self.source}': the pose comes from pose_key or from tf (tf.pose), not both")
         mount_from_tf = tf is not None and tf.mount
         for camera in self.camera_list():
-            given = (camera if self.cameras is not None else self).model_fields_set  # what the YAML wrote
-            if mount_from_tf and "mount" in given:
+            # judged by value, not by what the YAML spelt: a dumped config validates again unchanged
+            if mount_from_tf and camera.mount != CameraMountSettings():
                 raise ValueError(
                     f"grid '{self.source}', camera '{camera.source}': the mount comes from mount: or from tf "
                     "(tf.mount), not both"
                 )
-            if not mount_from_tf and given & {"frame_id", "frame_axes"}:
+            if not mount_from_tf and (camera.frame_id is not None or camera.frame_axes != "auto"):
                 raise ValueError(
                     f"grid '{self.source}', camera '{camera.source}': frame_id and frame_axes are read only with "
                     "tf: {mount: true}"

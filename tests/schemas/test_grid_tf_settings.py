@@ -32,7 +32,8 @@ def test_the_defaults_are_tf2s_and_rmw_zenohs() -> None:
 @pytest.mark.parametrize(
     ("fields", "message"),
     [
-        ({"tf": {"mount": True}, "mount": {"z": 1.0}}, "the mount comes from mount: or from tf"),  # even the default
+        ({"tf": {"mount": True}, "mount": {"z": 1.5}}, "the mount comes from mount: or from tf"),
+        ({"tf": {"mount": True}, "mount": {"pitch": 0.2}}, "the mount comes from mount: or from tf"),
         ({"tf": {"pose": True}, "pose_key": "r/pose"}, "the pose comes from pose_key or from tf"),
         ({"tf": {}}, "set mount, pose or both"),
         ({"tf": {"mount": False, "pose": False}}, "set mount, pose or both"),
@@ -51,6 +52,11 @@ def test_the_defaults_are_tf2s_and_rmw_zenohs() -> None:
 def test_geometry_given_twice_or_half_is_an_error(fields: dict[str, Any], message: str) -> None:
     with pytest.raises(ValidationError, match=message.replace("(", r"\(").replace("{", r"\{")):
         grid(**fields)
+
+
+def test_a_dumped_tf_grid_validates_again_unchanged() -> None:
+    config = grid(tf={"mount": True, "pose": True}, frame_id="cam_optical_frame", frame_axes="optical")
+    assert GridSettings.model_validate(config.model_dump()) == config
 
 
 def test_pose_from_tf_and_mounts_typed_are_fine_and_so_is_the_reverse() -> None:
