@@ -137,3 +137,61 @@ def test_a_grid_from_tf_fuses_the_same_cells_as_the_same_mount_and_poses_in_yaml
         assert (mount.x, mount.y, mount.z, mount.pitch) == pytest.approx((0.3, 0.05, 0.9, PITCH))
     finally:
         undeclare_all(declared)
+
+
+def test_the_service_fuses_a_grid_whose_mount_and_pose_come_from_the_robots_tf(tiny_backend, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """The whole service: /tf_static latched on the robot before the frame, /tf streaming, a bare JPEG (no frame
+    id: the camera's tf frame is configured) fused at the pose from tf, the bad message counted in the status."""
+    pytest.importorskip("torch")
+    import threading
+    import time
+
+    from conftest import camera_grid, textured_image
+    from gcdtrav.client import TraversabilityClient
+    from gcdtrav.schemas.settings import ServiceSettings
+
+    from tools.loopback import in_process_service
+
+    grid = {k: v for k, v in camera_grid().items() if k not in ("mount", "pose_key")}
+    grid |= {"tf": {"mount": True, "pose": True, "base_frame": "base_footprint"}, "frame_id": "camera_optical_frame"}
+    settings = ServiceSettings.model_validate(
+        {"state_dir": str(tmp_path), "instance": "tf", "preview": False, "grids": [grid]}
+    )
+    with in_process_service(tiny_backend, settings) as (service, port):
+        robot = zenoh.open(connecting_config(port))
+        client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
+        stop = threading.Event()
+
+        def odometry() -> None:  # the robot's /tf at 20 Hz, stamped by its clock (the frame's too: receipt time)
+            publisher = robot.declare_publisher(key("/tf", "rmw_zenoh"))
+            while not stop.wait(0.05):
+                now = time.time()
+                odom = StampedTransform("odom", "base_footprint", now, Transform((2.0, 1.0, 0.0), yaw_q(0.3)))
+                publisher.put(tf_message_cdr([odom]))
+            publisher.put(b"garbage")
+            publisher.undeclare()
+
+        static = ext.declare_advanced_publisher(
+            robot, key("/tf_static", "rmw_zenoh"), cache=ext.CacheConfig(max_samples=1), publisher_detection=True,
+            sample_miss_detection=ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=0.5),
+        )  # fmt: skip
+        static.put(robot_static())
+        streaming = threading.Thread(target=odometry, daemon=True)
+        streaming.start()
+        try:
+            state = service.grids.sources["cam"]
+            assert wait_until(lambda: state.poses.received > 0, 10), "no pose from /tf"
+            client.publish_image("cam", textured_image(60, 80))
+            assert wait_until(lambda: state.health.fused == 1, 15), state.health
+            camera = state.cameras["cam"]
+            assert camera.mount_origin == "tf" and camera.mount.z == pytest.approx(0.9)
+            assert state.frame_id() == "odom" and state.fused_at is not None and state.fused_at.pose is not None
+            assert (state.fused_at.pose.x, state.fused_at.pose.y) == pytest.approx((2.0, 1.0))
+            stop.set()
+            streaming.join(5)
+            assert wait_until(lambda: client.status().rejected_by_reason.get("bad_tf") == 1, 10)
+        finally:
+            stop.set()
+            static.undeclare()
+            client.close()
+            robot.close()
