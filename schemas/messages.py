@@ -440,6 +440,46 @@ class ErrorReply(Message):
     error: str
 
 
+class GridCameraStatus(WireModel):
+    """What a grid knows of one of its cameras."""
+
+    intrinsics: str | None = Field(
+        default=None, description="Where its intrinsics come from: 'settings' or 'camera_info'; None: not yet."
+    )
+    mount: str = Field(default="settings", description="Where its mount comes from: 'settings' or 'tf'.")
+    not_fused: str = Field(default="", description="Why its last frame was not fused; '': it was (or none came).")
+
+
+class GridStatus(WireModel):
+    """How one ground grid is doing (docs/grid.md, *The grid in the status*)."""
+
+    source: str = Field(description="The name it is published under.")
+    frame_id: str = Field(description="Its frame: the pose stream's, or 'base_link' without one.")
+    fused: int = Field(default=0, description="Frames fused so far.")
+    not_fused_by_reason: dict[str, int] = Field(
+        default_factory=dict,
+        description="Frames of its cameras not fused: no_intrinsics, no_pose, before_poses, pose_too_old, "
+        "pose_gap (docs/grid.md).",
+    )
+    newest_fused_stamp: float | None = Field(default=None, description="Capture stamp of the newest fused frame.")
+    fused_ago_s: float | None = Field(default=None, description="Service seconds since the last fusion.")
+    pose_age_s: float | None = Field(
+        default=None, description="Service seconds since its pose stream's last pose; None: none received."
+    )
+    pose_clock_s: float | None = Field(
+        default=None,
+        description="Its first camera's learnt clock minus the pose stream's (service/runtime/clock_offset.py): "
+        "near 0 when both run on the robot's clock (the link delays' difference); far from 0, frames find no "
+        "pose at their stamp. None: not known.",
+    )
+    poses_held: int = Field(default=0, description="Poses in its buffer.")
+    cameras: dict[str, GridCameraStatus] = Field(default_factory=dict)
+    costmap_ago_s: float | None = Field(
+        default=None, description="Service seconds since the last costmap went out; None: none (or costmap off)."
+    )
+    problem: str = Field(default="", description="Why it fuses nothing, when frames come and none fused for a while.")
+
+
 class SourceStatus(WireModel):
     received: int = 0
     processed: int = 0
@@ -566,6 +606,9 @@ class ServiceStatus(Message):
     )
     experience: ExperienceStatus | None = Field(
         default=None, description="Experience counts and open questions; None: experience off. Since 1.3."
+    )
+    grids: list[GridStatus] | None = Field(
+        default=None, description="Each ground grid's health; None: no grids (or an older writer). Issue 40."
     )
 
 

@@ -18,6 +18,7 @@ import zenoh
 from gcdtrav.client.client import AnchorSetRejected, ServiceError, TraversabilityClient
 from gcdtrav.client.commands import experience
 from gcdtrav.client.commands.density_plot import describe, save_distribution
+from gcdtrav.client.commands.grid_status import grid_lines
 from gcdtrav.client.session.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, anchor_diff
 from gcdtrav.schemas.messages import AnchorHistoryReply, ContextDistribution, ServiceStatus, SourceStatus
@@ -131,6 +132,7 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
             problems.append(f"{name} ({instance}): {src.problem}")
     if problems:
         lines += ["", "why the last frame gave no maps:", *(f"  {line}" for line in problems)]
+    lines += grid_lines(statuses)
     lines += fleet_warnings(statuses)
     lines += experience.status_lines(statuses)
     precision = [f"{s.instance}: {s.precision} ({s.precision_reason})" for s in statuses if s.precision_reason]

@@ -82,7 +82,13 @@ class TraversabilityService:
         )
         backend = pipeline.describe()
         self.grids = (
-            GridOutputs(settings.grids, len(self.anchor_switch.head().anchor_set), settings.instance, settings.risk)
+            GridOutputs(
+                settings.grids,
+                len(self.anchor_switch.head().anchor_set),
+                settings.instance,
+                settings.risk,
+                clock_mode=settings.clock,
+            )
             if settings.grids
             else None
         )
@@ -132,6 +138,7 @@ class TraversabilityService:
             self.sources,
             self.progress,
             self.freshness.offsets,
+            grids,
         )
         gate = FrameGate(self.owns, self.freshness)
         self.worker = FrameWorker(

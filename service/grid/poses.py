@@ -10,14 +10,17 @@ its ground lands speed x latency too far ahead. ``PoseBuffer`` keeps one pose st
   ``wait`` a bounded time for the stream to catch up);
 - within ``extrapolate_s`` before the oldest pose: the oldest; earlier: none (``BEFORE_POSES``, the frame is
   older than the buffer);
-- inside a gap of more than ``max_gap_s`` between two poses (the stream stopped, then resumed): none
-  (``POSE_GAP``): where the robot went meanwhile is unknown.
+- inside a gap of more than ``max_gap_s`` between two poses (the stream stopped, then resumed): as beyond
+  the poses on either side (within ``extrapolate_s`` of one), else none (``POSE_GAP``): where the robot went
+  meanwhile is unknown.
 
 Poses out of order take their place by stamp; a pose of the same stamp replaces the one held. A pose older
 than the newest by more than ``span_s`` means the stream's clock stepped back (a bag replayed from its
 start, a simulator reset): the buffer restarts from it. So does a pose in another frame than the buffer's
 (the odometry frame changed; poses of two frames do not interpolate). Stamps are the pose stream's clock,
-which the lookups assume is the frames' (both the robot's, docs/grid.md).
+which the lookups assume is the frames' (both the robot's, docs/grid.md). With each pose's receipt on the
+service's clock, ``offset_s`` is the stream's clock as service/runtime/clock_offset.py learns a source's:
+the smallest delay (receipt minus stamp) of the poses held, the clock offset plus the link's smallest delay.
 """
 
 from __future__ import annotations
@@ -65,27 +68,28 @@ class PoseBuffer:
         self.span_s, self.max_poses, self.extrapolate_s, self.max_gap_s = span_s, max_poses, extrapolate_s, max_gap_s
         self._poses: list[Pose2D] = []
         self._stamps: list[float] = []
+        self._delays: list[float] = []  # receipt minus stamp of each pose held (inf: receipt unknown)
         self._changed = threading.Condition()
         self.received = self.out_of_order = self.restarts = 0
-        self.latest: Pose2D | None = None  # the last pose received (not the newest stamp: that is ``newest``)
 
-    def add(self, pose: Pose2D) -> None:
-        """Hold a pose; wakes the lookups waiting for it."""
+    def add(self, pose: Pose2D, received_at: float | None = None) -> None:
+        """Hold a pose (received at ``received_at`` on the service's clock, if known); wakes the lookups
+        waiting for it."""
         with self._changed:
             self.received += 1
-            self.latest = pose
-            newest = self._stamps[-1] if self._stamps else None
-            if newest is not None and (pose.frame_id != self._poses[-1].frame_id or pose.stamp < newest - self.span_s):
+            stepped_back = bool(self._stamps) and pose.stamp < self._stamps[-1] - self.span_s
+            if stepped_back or (bool(self._poses) and pose.frame_id != self._poses[-1].frame_id):
                 self.restarts += 1  # the frame changed, or the clock stepped back: the old poses mean nothing now
-                self._poses, self._stamps = [], []
-                newest = None
+                self._poses, self._stamps, self._delays = [], [], []
+            delay = math.inf if received_at is None else received_at - pose.stamp
             at = bisect.bisect_left(self._stamps, pose.stamp)
             if at < len(self._stamps) and self._stamps[at] == pose.stamp:
-                self._poses[at] = pose
+                self._poses[at], self._delays[at] = pose, delay
             else:
                 self.out_of_order += at < len(self._stamps)
                 self._poses.insert(at, pose)
                 self._stamps.insert(at, pose.stamp)
+                self._delays.insert(at, delay)
             self._trim()
             self._changed.notify_all()
 
@@ -93,7 +97,15 @@ class PoseBuffer:
         oldest = self._stamps[-1] - self.span_s
         drop = max(bisect.bisect_left(self._stamps, oldest), len(self._stamps) - self.max_poses)
         if drop > 0:
-            del self._poses[:drop], self._stamps[:drop]
+            del self._poses[:drop], self._stamps[:drop], self._delays[:drop]
+
+    @property
+    def offset_s(self) -> float | None:
+        """The stream's clock: service minus pose clock plus the link's smallest delay, over the poses held;
+        None without a pose whose receipt is known."""
+        with self._changed:
+            smallest = min(self._delays, default=math.inf)
+            return smallest if math.isfinite(smallest) else None
 
     @property
     def newest(self) -> Pose2D | None:
@@ -133,11 +145,18 @@ class PoseBuffer:
             return PoseAt(interpolate(poses[0], poses[0], stamp), extrapolated_s=stamps[0] - stamp)
         if at == len(stamps):
             ahead = stamp - stamps[-1]
-            if ahead > self.extrapolate_s:
-                return PoseAt(None, AFTER_POSES)
-            last = poses[-1]
-            before = poses[-2] if len(poses) > 1 and last.stamp - poses[-2].stamp <= self.max_gap_s else last
-            return PoseAt(interpolate(before, last, stamp), extrapolated_s=ahead)
-        if stamps[at] - stamps[at - 1] > self.max_gap_s:
-            return PoseAt(None, POSE_GAP)
-        return PoseAt(interpolate(poses[at - 1], poses[at], stamp))
+            return self._after(len(stamps) - 1, stamp) if ahead <= self.extrapolate_s else PoseAt(None, AFTER_POSES)
+        if stamps[at] - stamps[at - 1] <= self.max_gap_s:
+            return PoseAt(interpolate(poses[at - 1], poses[at], stamp))
+        # in a gap: as if the later poses had not come yet (or the earlier ones were gone), else none
+        if stamp - stamps[at - 1] <= self.extrapolate_s:
+            return self._after(at - 1, stamp)
+        if stamps[at] - stamp <= self.extrapolate_s:
+            return PoseAt(interpolate(poses[at], poses[at], stamp), extrapolated_s=stamps[at] - stamp)
+        return PoseAt(None, POSE_GAP)
+
+    def _after(self, last: int, stamp: float) -> PoseAt:
+        """Extrapolated from pose ``last`` at the velocity since the one before (held across a gap)."""
+        poses = self._poses
+        before = poses[last - 1] if last > 0 and poses[last].stamp - poses[last - 1].stamp <= self.max_gap_s else None
+        return PoseAt(interpolate(before or poses[last], poses[last], stamp), extrapolated_s=stamp - poses[last].stamp)

@@ -10,6 +10,7 @@ from gcdtrav.schemas.messages import ExperienceStatus, ServiceStatus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.clock_offset import ClockOffsets
+from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
@@ -31,6 +32,7 @@ class StatusParts:
     sources: SourceTracker
     progress: ProgressMonitor
     clock_offsets: ClockOffsets  # each source's clock against this instance's, as estimated
+    grids: GridOutputs | None = None  # the ground grids, if any: their health
 
     def status(
         self,
@@ -71,4 +73,5 @@ class StatusParts:
             anchor_set_accepted_at=head.accepted_at or None,  # 0: the set it started with, never swapped
             anchor_sets=dict(fleet or {}),
             experience=experience,
+            grids=self.grids.statuses(self.clock_offsets.offsets()) if self.grids is not None else None,
         )

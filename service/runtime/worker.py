@@ -214,7 +214,8 @@ class FrameWorker:
         if self.grids is None:
             return None
         maps = result.maps
-        return self.grids.fuse(pending.source, record, maps.weights, maps.match, pending.ros, image.image)
+        unstamped = pending.stamp is None  # a bare image: stamped with its receipt
+        return self.grids.fuse(pending.source, record, maps.weights, maps.match, pending.ros, image.image, unstamped)
 
 
 def lower_this_thread(nice: int) -> bool:

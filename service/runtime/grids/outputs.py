@@ -15,12 +15,12 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from functools import partial
 
 import numpy as np
 from gcdtrav.schemas.inputs import RejectedInput
-from gcdtrav.schemas.messages import ContextDistribution, GridHeader, PathReply, Pose2D
+from gcdtrav.schemas.messages import ContextDistribution, GridHeader, GridStatus, PathReply, Pose2D
 from gcdtrav.schemas.settings import GridSettings, RiskSettings
 from gcdtrav.service.grid.fusion import GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount
@@ -35,7 +35,7 @@ from gcdtrav.service.ros.cdr import (
 from gcdtrav.service.runtime.grids import answers
 from gcdtrav.service.runtime.grids.encoding import FusedGrid, GridUpdate, grid_header
 from gcdtrav.service.runtime.grids.health import NO_INTRINSICS, NO_MOUNT
-from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid, grid_spec
+from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid, grid_spec, grid_status
 from gcdtrav.service.runtime.grids.tf import GridTf
 from gcdtrav.service.runtime.history import FrameRecord
 from numpy.typing import NDArray
@@ -62,8 +62,11 @@ class GridOutputs:
         instance: str,
         risk: RiskSettings | None = None,
         clock: Callable[[], float] = time.time,
+        clock_mode: str = "estimated",
     ) -> None:
-        self.instance, self.risk, self.clock = instance, risk or RiskSettings(), clock
+        """``clock_mode``: the service's ``clock`` setting ("estimated" or "synced"), how an unstamped frame's
+        receipt becomes a stamp on the pose stream's clock (``capture_stamp``)."""
+        self.instance, self.risk, self.clock, self.clock_mode = instance, risk or RiskSettings(), clock, clock_mode
         self.sources = {c.source: SourceGrid(c, GroundGrid(grid_spec(c), anchor_count)) for c in configs}
         self.camera_grids = {camera: grid for grid in self.sources.values() for camera in grid.cameras}
         self.after_fusion: AfterFusion | None = None  # the experience's snapshots and questions (service/bus)
@@ -106,8 +109,9 @@ class GridOutputs:
         """A decoded pose of the grid published under ``grid_source`` (its pose stream, or tf): into its buffer,
         waking a frame waiting for it. Takes only the buffer's lock, never the grid's."""
         grid = self.sources[grid_source]
-        grid.poses.add(pose)
-        grid.health.pose_received_at = self.clock()
+        now = self.clock()
+        grid.poses.add(pose, now)
+        grid.health.pose_received_at = now
 
     def pose_of(self, camera: str) -> Pose2D | None:
         """The newest pose of the robot carrying camera ``camera`` (its grid's pose stream); None: unknown."""
@@ -163,11 +167,13 @@ class GridOutputs:
         match: NDArray[np.floating] | None = None,
         ros: RosTopic | None = None,
         image: NDArray[np.uint8] | None = None,
+        unstamped: bool = False,
     ) -> FusedGrid | None:
         """Fuse a processed frame of camera ``source`` (its weights and match scores per map patch, its ROS
         topic if a ROS camera, its image for ``after_fusion``) into its grid, projected from the robot's pose at
-        the frame's capture stamp; the grid's layers to publish, or None (not a grid's camera, or not fused:
-        counted by reason in the grid's health)."""
+        the frame's capture stamp (``unstamped``: a bare image, stamped with its receipt; see
+        ``capture_stamp``); the grid's layers to publish, or None (not a grid's camera, or not fused: counted
+        by reason in the grid's health)."""
         grid = self.camera_grids.get(source)
         if grid is None:
             return None
@@ -175,16 +181,17 @@ class GridOutputs:
         self._camera_frame(grid, source, record.frame_id, "image")
         # The pose at capture, waited for (bounded) outside the grid's lock: the pose stream may lag the frame.
         wait_s = grid.config.poses.wait_s if camera.camera is not None else 0.0
-        at = grid.poses.wait(record.stamp, wait_s) if grid.expects_pose() else PoseAt(None)
+        stamp = self.capture_stamp(grid, record.stamp, unstamped)
+        at = grid.poses.wait(stamp, wait_s) if grid.expects_pose() else PoseAt(None)
         with grid.lock:
             camera.ros = ros or camera.ros
             reason = NO_INTRINSICS if camera.camera is None else NO_MOUNT if camera.mount_origin is None else at.reason
             if reason is not None:
-                self._not_fused(grid, source, record.stamp, reason)
+                self._not_fused(grid, source, stamp, reason)
                 return None
             grid.fuse(camera, weights, record.image_size, record.stamp, record.anchors, match, at.pose)
-            grid.fused_at, grid.fused_stamp = at, record.stamp
-            grid.health.fused_frame(source, record.stamp, self.clock(), grid.config.costmap)
+            grid.fused_at, grid.fused_stamp = at, stamp
+            grid.health.fused_frame(source, stamp, self.clock(), grid.config.costmap)
             if self.after_fusion is not None:
                 self.after_fusion(grid, camera, image)
             anchors = record.anchors
@@ -195,10 +202,28 @@ class GridOutputs:
             ros_topic = grid.ros_topic()
         return FusedGrid(grid.config, header, layers, ros_topic)
 
+    def capture_stamp(self, grid: SourceGrid, stamp: float, unstamped: bool) -> float:
+        """When the frame was taken on the pose stream's clock. A stamped frame: its stamp (the robot's clock,
+        as the poses'). A bare image carries only its receipt on the service's clock: with ``clock: synced``
+        that is the robot's; with ``estimated``, the receipt less the pose stream's learnt offset (service
+        minus robot plus the pose link's smallest delay), as a source's clock is learnt."""
+        if not unstamped or self.clock_mode == "synced":
+            return stamp
+        offset = grid.poses.offset_s
+        return stamp if offset is None else stamp - offset
+
     def _not_fused(self, grid: SourceGrid, camera: str, stamp: float, reason: str) -> None:
         """Count a frame the grid could not fuse; logged once per camera and reason in a row."""
         if grid.health.not_fused_frame(camera, reason, self.clock()):
             log.warning("grid %s: frame of %s (stamp %.3f) not fused: %s", grid.config.source, camera, stamp, reason)
+
+    def statuses(self, clock_offsets: Mapping[str, float]) -> list[GridStatus]:
+        """Every grid's health now (``clock_offsets``: each source's learnt clock, for the pose stream's)."""
+        found = []
+        for grid in self.sources.values():
+            with grid.lock:
+                found.append(grid_status(grid, self.clock(), clock_offsets))
+        return found
 
     def header(self, grid: SourceGrid, version: str) -> GridHeader:
         return grid_header(grid, version, self.instance, self.risk, self.clock)

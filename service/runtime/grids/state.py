@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.schemas.messages import GridCameraStatus, GridStatus, Pose2D
 from gcdtrav.schemas.settings import GridCamera, GridSettings
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points, map_cell_pixels
@@ -139,3 +140,38 @@ class SourceGrid:
 
 def grid_spec(config: GridSettings) -> GridSpec:
     return GridSpec(config.size_m, config.resolution_m, config.half_life_s, config.max_age_s)
+
+
+def _ago(now: float, then: float | None) -> float | None:
+    return None if then is None else round(now - then, 3)
+
+
+def grid_status(grid: SourceGrid, now: float, clock_offsets: Mapping[str, float]) -> GridStatus:
+    """One grid's status at ``now`` (service clock); ``clock_offsets``: each source's learnt clock. Under the
+    grid's lock."""
+    health = grid.health
+    cameras = {
+        source: GridCameraStatus(
+            intrinsics=camera.intrinsics_origin if camera.camera is not None else None,
+            mount=camera.mount_origin,
+            not_fused=health.last_reason.get(source, ""),
+        )
+        for source, camera in grid.cameras.items()
+    }
+    pose_offset = grid.poses.offset_s
+    camera_offset = next((clock_offsets[c] for c in grid.cameras if c in clock_offsets), None)
+    pose_clock = None if pose_offset is None or camera_offset is None else round(camera_offset - pose_offset, 3)
+    return GridStatus(
+        source=grid.config.source,
+        frame_id=grid.frame_id(),
+        fused=health.fused,
+        not_fused_by_reason=dict(health.not_fused),
+        newest_fused_stamp=health.newest_fused_stamp,
+        fused_ago_s=_ago(now, health.fused_at),
+        pose_age_s=_ago(now, health.pose_received_at),
+        pose_clock_s=pose_clock,
+        poses_held=len(grid.poses),
+        cameras=cameras,
+        costmap_ago_s=_ago(now, health.costmap_at),
+        problem=health.problem(now),
+    )
