@@ -76,6 +76,8 @@ class GridOutputs:
             for c in configs
             if c.tf is not None
         }
+        for source, tf in self.tf.items():
+            self.sources[source].tf_waiting = tf.waiting
 
     def tf_inputs(self) -> list[TfInput]:
         """The /tf and /tf_static subscriptions of the grids that take geometry from tf."""

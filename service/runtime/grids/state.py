@@ -90,6 +90,7 @@ class SourceGrid:
         p = self.config.poses
         self.poses = PoseBuffer(p.span_s, p.max_poses, p.extrapolate_s, p.max_gap_s)  # its own lock
         self.health = GridHealth()
+        self.tf_waiting: Mapping[str, str] = {}  # with tf: GridTf.waiting, what tf does not give yet and why
         self.fused_at: PoseAt | None = None  # the pose the last fused frame was projected with
         self.fused_stamp: float | None = None  # that frame's capture stamp
 
@@ -150,6 +151,7 @@ def grid_status(grid: SourceGrid, now: float, clock_offsets: Mapping[str, float]
     """One grid's status at ``now`` (service clock); ``clock_offsets``: each source's learnt clock. Under the
     grid's lock."""
     health = grid.health
+    waiting = dict(grid.tf_waiting)  # a copy: GridTf writes it under its own lock
     cameras = {
         source: GridCameraStatus(
             intrinsics=camera.intrinsics_origin if camera.camera is not None else None,
@@ -173,5 +175,13 @@ def grid_status(grid: SourceGrid, now: float, clock_offsets: Mapping[str, float]
         poses_held=len(grid.poses),
         cameras=cameras,
         costmap_ago_s=_ago(now, health.costmap_at),
-        problem=health.problem(now),
+        problem=_with_tf(health.problem(now), waiting),
+        tf_waiting=waiting,
     )
+
+
+def _with_tf(problem: str, waiting: dict[str, str]) -> str:
+    """A grid that fuses nothing and waits for tf: the problem names what tf lacks (the missing link)."""
+    if not problem or not waiting:
+        return problem
+    return problem + "; tf: " + "; ".join(f"{what}: {why}" for what, why in sorted(waiting.items()))

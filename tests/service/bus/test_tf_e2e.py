@@ -108,7 +108,8 @@ def test_a_grid_from_tf_fuses_the_same_cells_as_the_same_mount_and_poses_in_yaml
         tf_camera, tree = tf_grids.sources["cam"].cameras["cam"], tf_grids.tf["cam"].tree
         assert wait_until(lambda: "camera_optical_frame" in tree, 10), "the latched /tf_static never arrived"
         assert tf_camera.mount_origin is None  # the camera's frame comes with its first image
-        dynamic = robot.declare_publisher(key("/tf", layout))
+        dynamic = robot.declare_publisher(key("/tf", layout), congestion_control=zenoh.CongestionControl.BLOCK)
+        assert wait_until(lambda: dynamic.matching_status.matching, 10), "the service's /tf subscriber is unseen"
         stamps = [10.0 + 0.05 * k for k in range(61)]
         for stamp in stamps:
             x, y, yaw = drive(stamp)
@@ -118,7 +119,11 @@ def test_a_grid_from_tf_fuses_the_same_cells_as_the_same_mount_and_poses_in_yaml
             dynamic.put(tf_message_cdr([odom]))
         dynamic.put(b"\x00\x01\x00\x00not a TFMessage")  # counted, nothing stops
         tf_poses = tf_grids.sources["cam"].poses
-        assert wait_until(lambda: tf_poses.received == len(stamps) and stats.rejected_by_reason["bad_tf"] == 1, 10)
+        assert wait_until(lambda: tf_poses.received == len(stamps) and stats.rejected_by_reason["bad_tf"] == 1, 10), (
+            tf_poses.received,
+            dict(stats.rejected_by_reason),
+            tf_grids.tf["cam"].waiting,
+        )
         dynamic.undeclare()
 
         anchors = default_anchor_set()
@@ -140,8 +145,8 @@ def test_a_grid_from_tf_fuses_the_same_cells_as_the_same_mount_and_poses_in_yaml
 
 
 def test_the_service_fuses_a_grid_whose_mount_and_pose_come_from_the_robots_tf(tiny_backend, tmp_path) -> None:  # type: ignore[no-untyped-def]
-    """The whole service: /tf_static latched on the robot before the frame, /tf streaming, a bare JPEG (no frame
-    id: the camera's tf frame is configured) fused at the pose from tf, the bad message counted in the status."""
+    """The whole service: /tf streaming, a bare image (no frame id: the camera's tf frame is configured) not fused
+    before /tf_static and the status saying why, fused at the pose from tf once it came, a bad message counted."""
     pytest.importorskip("torch")
     import threading
     import time
@@ -155,7 +160,7 @@ def test_the_service_fuses_a_grid_whose_mount_and_pose_come_from_the_robots_tf(t
     grid = {k: v for k, v in camera_grid().items() if k not in ("mount", "pose_key")}
     grid |= {"tf": {"mount": True, "pose": True, "base_frame": "base_footprint"}, "frame_id": "camera_optical_frame"}
     settings = ServiceSettings.model_validate(
-        {"state_dir": str(tmp_path), "instance": "tf", "preview": False, "grids": [grid]}
+        {"state_dir": str(tmp_path), "instance": "tf", "preview": False, "grids": [grid], "reuse": {"enabled": False}}
     )
     with in_process_service(tiny_backend, settings) as (service, port):
         robot = zenoh.open(connecting_config(port))
@@ -171,17 +176,24 @@ def test_the_service_fuses_a_grid_whose_mount_and_pose_come_from_the_robots_tf(t
             publisher.put(b"garbage")
             publisher.undeclare()
 
-        static = ext.declare_advanced_publisher(
-            robot, key("/tf_static", "rmw_zenoh"), cache=ext.CacheConfig(max_samples=1), publisher_detection=True,
-            sample_miss_detection=ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=0.5),
-        )  # fmt: skip
-        static.put(robot_static())
         streaming = threading.Thread(target=odometry, daemon=True)
         streaming.start()
+        static = None
         try:
             state = service.grids.sources["cam"]
             assert wait_until(lambda: state.poses.received > 0, 10), "no pose from /tf"
-            client.publish_image("cam", textured_image(60, 80))
+            client.publish_image("cam", textured_image(60, 80))  # before /tf_static: no mount, and the status says why
+            assert wait_until(lambda: state.health.not_fused.get("no_mount") == 1, 15), state.health
+            (grid,) = client.status().grids or []
+            assert grid.cameras["cam"].mount is None and grid.not_fused_by_reason == {"no_mount": 1}
+            assert grid.tf_waiting["cam"].startswith("tf_unknown_frame") and "'camera_optical_frame'" in grid.problem
+            static = ext.declare_advanced_publisher(
+                robot, key("/tf_static", "rmw_zenoh"), cache=ext.CacheConfig(max_samples=1), publisher_detection=True,
+                sample_miss_detection=ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=0.5),
+            )  # fmt: skip
+            static.put(robot_static())
+            assert wait_until(lambda: "camera_optical_frame" in service.grids.tf["cam"].tree, 10)
+            client.publish_image("cam", textured_image(60, 80, seed=1))
             assert wait_until(lambda: state.health.fused == 1, 15), state.health
             camera = state.cameras["cam"]
             assert camera.mount_origin == "tf" and camera.mount.z == pytest.approx(0.9)
@@ -192,6 +204,7 @@ def test_the_service_fuses_a_grid_whose_mount_and_pose_come_from_the_robots_tf(t
             assert wait_until(lambda: client.status().rejected_by_reason.get("bad_tf") == 1, 10)
         finally:
             stop.set()
-            static.undeclare()
+            if static is not None:
+                static.undeclare()
             client.close()
             robot.close()
