@@ -4,8 +4,8 @@ service whose grid is ``grid_settings()`` and whose experience reads ``experienc
 
 - its pose (Pose2D) and camera images (PNG: the scene backend reads colours) at 4 Hz of simulated time, each
   image only after the service published the maps of the last one (inferred and fused into the grid, or
-  reused for an unchanged view), so that every frame is fused with the pose it was taken at (the service
-  fuses with the latest pose it has);
+  reused for an unchanged view), so that the pose stream is ahead of every frame (the service fuses each
+  frame at the pose of its capture stamp, docs/grid.md);
 - velocity commands (Twist2D, 1 m/s) at 10 Hz and odometry (Odometry2D) at 20 Hz.
 
 Simulated time runs faster than the wall clock, from a fixed stamp in the past like a replayed bag (the
