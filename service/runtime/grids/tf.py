@@ -26,6 +26,7 @@ log = logging.getLogger("gcdtrav.service")
 AddPose = Callable[[str, Pose2D], None]  # (grid source, pose)
 SetMount = Callable[[str, CameraMount, str], None]  # (camera source, mount, origin "tf")
 FRAME_SOURCES = ("settings", "image", "camera_info")  # where a camera's frame came from, strongest first
+NO_FRAME = "its tf frame is not known: no frame_id set, and no image or CameraInfo with a header frame_id yet"
 
 
 def is_optical(frame: str, axes: str) -> bool:
@@ -63,7 +64,8 @@ class GridTf:
         self.mounts: dict[str, Transform] = {}  # the transform each camera's mount was last set from
         self.pose_stamp = -math.inf  # the newest pose handed over
         self.waiting: dict[str, str] = {"pose": "no tf yet"} if config.pose else {}
-        self.waiting |= {camera: "no tf yet" for camera in self.axes}
+        self.waiting |= {camera: NO_FRAME for camera in self.axes if camera not in self.frames}
+        self.waiting |= {camera: "no tf yet" for camera in self.frames}
 
     def on_message(self, payload: bytes, static: bool) -> list[RejectedInput]:
         """A /tf (or /tf_static) TFMessage: its transforms into the tree, then the pose and mounts it changes.

@@ -52,6 +52,7 @@ class Grid:
 
 def test_poses_flow_before_the_static_tree_arrives_and_the_mount_once_it_does() -> None:
     grid = Grid()
+    assert grid.tf.waiting["cam"].startswith("its tf frame is not known")  # a bare JPEG camera would stay so
     grid.tf.camera_frame("cam", "camera_optical_frame", "image")
     assert grid.tf.on_message(tf_message_cdr([st("odom", "base_link", 5.0, (1.0, 2.0, 0.0), yaw=0.5)]), False) == []
     assert [(p.stamp, p.x, p.y, p.frame_id) for p in grid.poses] == [(5.0, 1.0, 2.0, "odom")]
