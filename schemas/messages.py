@@ -471,7 +471,10 @@ class GridCameraStatus(WireModel):
     intrinsics: str | None = Field(
         default=None, description="Where its intrinsics come from: 'settings' or 'camera_info'; None: not yet."
     )
-    mount: str = Field(default="settings", description="Where its mount comes from: 'settings' or 'tf'.")
+    mount: str | None = Field(
+        default="settings",
+        description="Where its mount comes from: 'settings' or 'tf'; None: not yet (tf.mount, no transform yet).",
+    )
     not_fused: str = Field(default="", description="Why its last frame was not fused; '': it was (or none came).")
 
 
@@ -483,7 +486,7 @@ class GridStatus(WireModel):
     fused: int = Field(default=0, description="Frames fused so far.")
     not_fused_by_reason: dict[str, int] = Field(
         default_factory=dict,
-        description="Frames of its cameras not fused: no_intrinsics, no_pose, before_poses, pose_too_old, "
+        description="Frames of its cameras not fused: no_intrinsics, no_mount, no_pose, before_poses, pose_too_old, "
         "pose_gap (docs/grid.md).",
     )
     newest_fused_stamp: float | None = Field(default=None, description="Capture stamp of the newest fused frame.")
@@ -503,6 +506,11 @@ class GridStatus(WireModel):
         default=None, description="Service seconds since the last costmap went out; None: none (or costmap off)."
     )
     problem: str = Field(default="", description="Why it fuses nothing, when frames come and none fused for a while.")
+    tf_waiting: dict[str, str] = Field(
+        default_factory=dict,
+        description="A grid with tf: what tf does not give yet ('pose', or a camera for its mount) and why (the "
+        "lookup's error: tf_unknown_frame, tf_no_chain, ...).",
+    )
 
 
 class SourceStatus(WireModel):

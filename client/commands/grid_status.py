@@ -18,7 +18,7 @@ def _seconds(value: float | None, signed: bool = False) -> str:
 def _cameras(grid: GridStatus) -> str:
     """'r1/front intrinsics camera_info, mount tf' per camera."""
     return "; ".join(
-        f"{name} intrinsics {camera.intrinsics or 'MISSING'}, mount {camera.mount}"
+        f"{name} intrinsics {camera.intrinsics or 'MISSING'}, mount {camera.mount or 'MISSING'}"
         for name, camera in sorted(grid.cameras.items())
     )
 

@@ -19,6 +19,7 @@ from gcdtrav.schemas.settings.grids import (
     CameraMountSettings,
     GridCamera,
     GridSettings,
+    GridTfSettings,
     PoseBufferSettings,
 )
 from gcdtrav.schemas.settings.risk import RiskSettings
@@ -38,6 +39,7 @@ __all__ = [
     "ExperienceSettings",
     "GridCamera",
     "GridSettings",
+    "GridTfSettings",
     "PoseBufferSettings",
     "Precision",
     "ReuseSettings",

@@ -28,6 +28,7 @@ from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
 from gcdtrav.service.bus.queryables import AnchorQueries, SourceQueries
 from gcdtrav.service.bus.ros_graph import RosGraph
+from gcdtrav.service.bus.tf import declare_tf_inputs
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.admission import Admission
@@ -341,6 +342,7 @@ class TraversabilityService:
         for key, source, setter, reason in grids.inputs():  # poses by grid, CameraInfo and depth by camera
             handler = self._grid_input_handler(source, setter, reason)
             self._declared.append(self.session.declare_subscriber(key, handler))
+        self._declared += declare_tf_inputs(self.session, grids, self.stats)  # mounts and poses from tf
 
     def _grid_input_handler(
         self, source: str, setter: Callable[[str, bytes], None], reason: str

@@ -228,6 +228,11 @@ def decode_pose(payload: bytes, fmt: str) -> Pose2D:
 
 
 def decode_camera_info(payload: bytes) -> PinholeCamera:
+    return decode_camera_info_frame(payload)[0]
+
+
+def decode_camera_info_frame(payload: bytes) -> tuple[PinholeCamera, str]:
+    """sensor_msgs/CameraInfo CDR -> the intrinsics and its header's frame_id (the camera's optical frame)."""
     try:
         info = typestore().deserialize_cdr(payload, "sensor_msgs/msg/CameraInfo")
     except Exception as err:  # rosbags raises assorted errors on bad CDR
@@ -235,7 +240,9 @@ def decode_camera_info(payload: bytes) -> PinholeCamera:
     k = np.asarray(info.k, dtype=np.float64)
     if not (np.isfinite(k).all() and k[0] > 0 and k[4] > 0 and info.width > 0 and info.height > 0):
         raise MessageError(f"CameraInfo needs finite intrinsics, positive focal lengths and a size; k={k.tolist()}")
-    return PinholeCamera(fx=k[0], fy=k[4], cx=k[2], cy=k[5], width=int(info.width), height=int(info.height))
+    camera = PinholeCamera(fx=k[0], fy=k[4], cx=k[2], cy=k[5], width=int(info.width), height=int(info.height))
+    frame_id = str(info.header.frame_id)
+    return camera, frame_id if len(frame_id) <= MAX_FRAME_ID_CHARS else ""
 
 
 def decode_depth(payload: bytes) -> NDArray[np.float32]:

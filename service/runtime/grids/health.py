@@ -2,7 +2,8 @@
 stamp, the pose stream's age, the last costmap; a grid that fused nothing for a while is a problem.
 
 Reasons a frame is not fused (``not_fused_by_reason``): ``no_intrinsics`` (no intrinsics configured and no
-CameraInfo yet), and those of service/grid/poses.py: ``no_pose`` (the pose stream sent nothing yet),
+CameraInfo yet), ``no_mount`` (tf.mount: tf has not linked the base frame to the camera's frame yet), and those
+of service/grid/poses.py: ``no_pose`` (the pose stream sent nothing yet),
 ``before_poses`` (the frame is older than the oldest pose held), ``pose_too_old`` (the newest pose is older
 than the frame, beyond the extrapolation, after waiting), ``pose_gap`` (taken while the pose stream stopped).
 """
@@ -14,11 +15,13 @@ from dataclasses import dataclass, field
 from gcdtrav.service.grid.poses import AFTER_POSES, BEFORE_POSES, NO_POSE, POSE_GAP
 
 NO_INTRINSICS = "no_intrinsics"
+NO_MOUNT = "no_mount"  # tf.mount: the camera's transform from the base frame is not known yet
 QUIET_S = 10.0  # a grid whose cameras send frames but that fused none for this long is a problem
 
 # What each reason means, for the status's "why" section.
 EXPLAINED = {
     NO_INTRINSICS: "no intrinsics (waiting for CameraInfo on camera_info_key)",
+    NO_MOUNT: "no camera mount from tf yet: nothing links tf.base_frame to the camera's frame (the log says which)",
     NO_POSE: "no pose received on its pose stream yet",
     BEFORE_POSES: "frames older than every pose held (raise poses.span_s, or the pose stream restarted)",
     AFTER_POSES: "the pose stream lags or stopped: no pose at the frames' capture (poses.extrapolate_s, wait_s)",

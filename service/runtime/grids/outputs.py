@@ -16,8 +16,10 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Mapping
+from functools import partial
 
 import numpy as np
+from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.messages import ContextDistribution, GridHeader, GridStatus, PathReply, Pose2D
 from gcdtrav.schemas.settings import GridSettings, RiskSettings
 from gcdtrav.service.grid.fusion import GroundGrid
@@ -26,20 +28,23 @@ from gcdtrav.service.grid.layers import grid_layers
 from gcdtrav.service.grid.poses import PoseAt
 from gcdtrav.service.ros.cdr import (
     RosTopic,
-    decode_camera_info,
+    decode_camera_info_frame,
     decode_depth,
     decode_pose,
 )
 from gcdtrav.service.runtime.grids import answers
 from gcdtrav.service.runtime.grids.encoding import FusedGrid, GridUpdate, grid_header
-from gcdtrav.service.runtime.grids.health import NO_INTRINSICS
+from gcdtrav.service.runtime.grids.health import NO_INTRINSICS, NO_MOUNT
 from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid, grid_spec, grid_status
+from gcdtrav.service.runtime.grids.tf import GridTf
 from gcdtrav.service.runtime.history import FrameRecord
 from numpy.typing import NDArray
 
 log = logging.getLogger("gcdtrav.service")
 
 GridInput = tuple[str, str, Callable[[str, bytes], None], str]  # key, grid or camera, setter, rejection reason
+# key, grid, static (/tf_static: transient local), handler: a TFMessage's payload -> the transforms it refused
+TfInput = tuple[str, str, bool, Callable[[bytes], list[RejectedInput]]]
 # Called under the grid's lock after each fusion: the grid, the camera that fed it, the frame's image if known.
 AfterFusion = Callable[[SourceGrid, CameraState, NDArray[np.uint8] | None], None]
 
@@ -65,6 +70,22 @@ class GridOutputs:
         self.sources = {c.source: SourceGrid(c, GroundGrid(grid_spec(c), anchor_count)) for c in configs}
         self.camera_grids = {camera: grid for grid in self.sources.values() for camera in grid.cameras}
         self.after_fusion: AfterFusion | None = None  # the experience's snapshots and questions (service/bus)
+        # grids whose mounts or pose come from tf: their trees hand over poses and mounts as they learn them
+        self.tf = {
+            c.source: GridTf(c.source, c.tf, c.camera_list(), self.add_pose, self.set_mount)
+            for c in configs
+            if c.tf is not None
+        }
+        for source, tf in self.tf.items():
+            self.sources[source].tf_waiting = tf.waiting
+
+    def tf_inputs(self) -> list[TfInput]:
+        """The /tf and /tf_static subscriptions of the grids that take geometry from tf."""
+        found: list[TfInput] = []
+        for source, tf in self.tf.items():
+            found.append((tf.config.tf_static_key, source, True, partial(tf.on_message, static=True)))
+            found.append((tf.config.tf_key, source, False, partial(tf.on_message, static=False)))
+        return found
 
     def inputs(self) -> list[GridInput]:
         """What the grids subscribe to besides the maps: pose streams (by grid), CameraInfo and depth (by
@@ -107,11 +128,19 @@ class GridOutputs:
             grid.cameras[camera_source].set_mount(mount, origin)
 
     def set_camera_info(self, camera: str, payload: bytes) -> None:
-        intrinsics = decode_camera_info(payload)
+        intrinsics, frame_id = decode_camera_info_frame(payload)
         grid = self.camera_grids[camera]
         with grid.lock:
             state = grid.cameras[camera]
             state.camera, state.intrinsics_origin = intrinsics, "camera_info"
+        self._camera_frame(grid, camera, frame_id, "camera_info")
+
+    def _camera_frame(self, grid: SourceGrid, camera: str, frame_id: str, origin: str) -> None:
+        """A frame id the camera's images or CameraInfo carry: its tf frame, for a grid with tf.mount. Outside the
+        grid's lock: a mount it makes known is set under it."""
+        tf = self.tf.get(grid.config.source)
+        if tf is not None:
+            tf.camera_frame(camera, frame_id, origin)
 
     def set_depth(self, camera: str, payload: bytes) -> None:
         depth = decode_depth(payload)
@@ -151,13 +180,14 @@ class GridOutputs:
         if grid is None:
             return None
         camera = grid.cameras[source]
+        self._camera_frame(grid, source, record.frame_id, "image")
         # The pose at capture, waited for (bounded) outside the grid's lock: the pose stream may lag the frame.
         stamp = self.capture_stamp(grid, record.stamp, unstamped)
         wait_s = self._pose_wait_s(grid) if camera.camera is not None else 0.0
         at = grid.poses.wait(stamp, wait_s) if grid.expects_pose() else PoseAt(None)
         with grid.lock:
             camera.ros = ros or camera.ros
-            reason = NO_INTRINSICS if camera.camera is None else at.reason
+            reason = NO_INTRINSICS if camera.camera is None else NO_MOUNT if camera.mount_origin is None else at.reason
             if reason is not None:
                 self._not_fused(grid, source, stamp, reason)
                 return None

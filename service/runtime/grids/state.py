@@ -37,7 +37,7 @@ class CameraState:
 
     def __post_init__(self) -> None:
         self.mount = CameraMount(**self.config.mount.model_dump())
-        self.mount_origin = "settings"  # or "tf" (GridOutputs.set_mount)
+        self.mount_origin: str | None = "settings"  # or "tf" (GridOutputs.set_mount); None: waiting for tf
         self.intrinsics_origin: str | None = None  # "settings" or "camera_info"; None: not known yet
         if self.config.intrinsics is not None and self.camera is None:
             self.camera = PinholeCamera(**self.config.intrinsics.model_dump())
@@ -84,9 +84,13 @@ class SourceGrid:
     def __post_init__(self) -> None:
         self.lock = threading.Lock()
         self.cameras = {c.source: CameraState(c, self.config.max_range_m) for c in self.config.camera_list()}
+        if self.config.tf is not None and self.config.tf.mount:
+            for camera in self.cameras.values():
+                camera.mount_origin = None  # unknown until tf links the base frame to the camera's frame
         p = self.config.poses
         self.poses = PoseBuffer(p.span_s, p.max_poses, p.extrapolate_s, p.max_gap_s)  # its own lock
         self.health = GridHealth()
+        self.tf_waiting: Mapping[str, str] = {}  # with tf: GridTf.waiting, what tf does not give yet and why
         self.fused_at: PoseAt | None = None  # the pose the last fused frame was projected with
         self.fused_stamp: float | None = None  # that frame's capture stamp
 
@@ -96,9 +100,10 @@ class SourceGrid:
         return self.poses.newest
 
     def expects_pose(self) -> bool:
-        """Whether frames need a pose to be fused: a pose stream is configured, or poses came (from tf). A grid
-        without one lives in the robot's base frame."""
-        return self.config.pose_key is not None or self.poses.received > 0
+        """Whether frames need a pose to be fused: a pose stream is configured (pose_key or tf.pose), or poses
+        came. A grid without one lives in the robot's base frame."""
+        from_tf = self.config.tf is not None and self.config.tf.pose
+        return self.config.pose_key is not None or from_tf or self.poses.received > 0
 
     def fuse(
         self,
@@ -146,6 +151,7 @@ def grid_status(grid: SourceGrid, now: float, clock_offsets: Mapping[str, float]
     """One grid's status at ``now`` (service clock); ``clock_offsets``: each source's learnt clock. Under the
     grid's lock."""
     health = grid.health
+    waiting = dict(grid.tf_waiting)  # a copy: GridTf writes it under its own lock
     cameras = {
         source: GridCameraStatus(
             intrinsics=camera.intrinsics_origin if camera.camera is not None else None,
@@ -169,5 +175,13 @@ def grid_status(grid: SourceGrid, now: float, clock_offsets: Mapping[str, float]
         poses_held=len(grid.poses),
         cameras=cameras,
         costmap_ago_s=_ago(now, health.costmap_at),
-        problem=health.problem(now),
+        problem=_with_tf(health.problem(now), waiting),
+        tf_waiting=waiting,
     )
+
+
+def _with_tf(problem: str, waiting: dict[str, str]) -> str:
+    """A grid that fuses nothing and waits for tf: the problem names what tf lacks (the missing link)."""
+    if not problem or not waiting:
+        return problem
+    return problem + "; tf: " + "; ".join(f"{what}: {why}" for what, why in sorted(waiting.items()))
