@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 from gcdtrav.schemas import ros_image
 from gcdtrav.schemas.inputs import RejectedInput
+from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
 from gcdtrav.schemas.messages import GridHeader, MessageError, Pose2D
 from gcdtrav.schemas.ros_image import COMPRESSED_IMAGE as COMPRESSED_IMAGE  # re-exported: the ROS types in one place
 from gcdtrav.schemas.ros_image import IMAGE as IMAGE
