@@ -556,6 +556,19 @@ class ServiceStatus(Message):
     experience: ExperienceStatus | None = Field(
         default=None, description="Experience counts and open questions; None: experience off. Since 1.3."
     )
+    model_fingerprint: str = Field(
+        default="", description="A hash of the checkpoint's config and weight files; empty: unknown. Since 1.4."
+    )
+    model_refused: str = Field(
+        default="",
+        description="Why this instance takes no sources: its model differs from the fleet's (allow_mixed_models "
+        "off). Empty: it takes its share. Since 1.4.",
+    )
+    instance_models: dict[str, str] = Field(
+        default_factory=dict,
+        description="The model fingerprint of every live instance that advertises one, as this one knows it. "
+        "Since 1.4.",
+    )
 
 
 class SourceView(Message):

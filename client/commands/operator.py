@@ -157,8 +157,14 @@ def reasons(source: SourceStatus) -> str:
 
 
 def fleet_warnings(statuses: list[ServiceStatus]) -> list[str]:
-    """Unhealthy instances, and instances that disagree on the anchor set or the precision."""
+    """Unhealthy instances, instances refused for their model, and instances that disagree on the model, the
+    anchor set or the precision."""
     lines = [f"UNHEALTHY {s.instance}: {s.reason}" for s in statuses if s.healthy is False]
+    lines += [f"TAKES NO SOURCES {s.instance}: {s.model_refused}" for s in statuses if s.model_refused]
+    models = {s.instance: s.model_fingerprint for s in statuses if s.model_fingerprint}
+    if len(set(models.values())) > 1:
+        held = ", ".join(f"{instance} {fingerprint}" for instance, fingerprint in sorted(models.items()))
+        lines.append(f"MODELS DIFFER: {held} (checkpoint fingerprints; maps differ between instances)")
     off = {name for s in statuses for name, src in s.sources.items() if abs(src.clock_offset_s or 0.0) > 1.0}
     if off:
         lines.append(

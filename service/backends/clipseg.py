@@ -43,6 +43,7 @@ from gcdtrav.service.backends.onnx_runtime import (
     ExportError,
     OrtCompute,
     exported_model,
+    model_fingerprint,
 )
 from numpy.typing import NDArray
 
@@ -286,6 +287,7 @@ class ClipSegBackend:
             ) from None
         config_file = _locate(model, "config.json")
         self.checkpoint_dir = config_file.parent if config_file is not None else None
+        self.fingerprint = model_fingerprint(self.checkpoint_dir)  # once: the weights do not change under us
         self.preprocess = Preprocessing.from_config_file(_locate(model, "preprocessor_config.json"))
         self.extract_layers = list(self.model.config.extract_layers)
         self._prepared: OrderedDict[tuple[str, ...], torch.Tensor] = OrderedDict()
@@ -357,6 +359,7 @@ class ClipSegBackend:
             precision_reason=running.reason,
             measuring=self.measuring,
             needs_measurement=self.needs_measurement,
+            fingerprint=self.fingerprint,
         )
 
     def use_compute(self, compute: Compute, precision: str, reason: str | None = None) -> None:
