@@ -272,6 +272,11 @@ class RelayHealth(Message):
         description="Why the service gives no maps, as its last credit said (CreditGrant.problem), or the "
         "relay's own (camera frames not usable). Since 1.2.",
     )
+    causes: dict[str, str] = Field(
+        default_factory=dict,
+        description="What may keep this camera's maps stale, by cause: camera_silent, no_instance, service_refuses, "
+        "camera_unusable, camera_clock (client/relay/causes.py), each with a sentence; empty: none known. Since 1.4.",
+    )
 
 
 # ---- queries ---------------------------------------------------------------------------------------
