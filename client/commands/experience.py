@@ -26,10 +26,19 @@ def add_experience_commands(commands: argparse._SubParsersAction) -> list[argpar
     calibration.add_argument("--png", type=Path, help="also draw the reliability diagram (needs matplotlib)")
     answer = commands.add_parser("answer", help="answer the question a service asked about the ground ahead")
     answer.add_argument("source", help="the grid's source the question is about")
-    answer.add_argument("answer", help="drivable, blocked, or a score in [0, 1] (1 = drivable)")
+    answer.add_argument("answer", type=answer_argument, help="drivable, blocked, or a score in [0, 1] (1 = drivable)")
     answer.add_argument("--question", help="the question's id [the source's open question]")
     answer.add_argument("--operator", default="", help="who answers (kept with the answer)")
     return [calibration, answer]
+
+
+def answer_argument(text: str) -> str:
+    """The answer as typed, checked while parsing: a bad one is a usage error (exit 2) before any connection."""
+    try:
+        answer_score(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return text
 
 
 def run_command(client: TraversabilityClient, args: argparse.Namespace) -> int:

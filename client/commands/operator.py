@@ -23,7 +23,7 @@ from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, anchor_diff
 from gcdtrav.schemas.messages import AnchorHistoryReply, ContextDistribution, ServiceStatus, SourceStatus
 
 COMMANDS = ("status", "anchors", "probe", *experience.COMMANDS)
-EXIT_OK, EXIT_FAILED = 0, 1
+EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?$")  # zenoh's errors end with the Rust file that raised them
 
 
@@ -39,7 +39,7 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
     put.add_argument("--dry-run", action="store_true", help="validate and show the change; swap nothing")
     history = actions.add_parser("history", help="the last accepted anchor sets, newest (active) first")
     rollback = actions.add_parser("rollback", help="swap back to an earlier set of the history, on every instance")
-    rollback.add_argument("steps", nargs="?", type=int, default=1, help="how far back [1: the set before]")
+    rollback.add_argument("steps", nargs="?", type=positive_int, default=1, help="how far back [1: the set before]")
     propose = actions.add_parser("propose", help="the set fitted on the robot's outcomes, as a diff; --apply swaps it")
     propose.add_argument("--source", help="whose experience [the service's grid]")
     propose.add_argument("--apply", action="store_true", help="swap it in on every instance (validated, rollback-able)")
@@ -55,6 +55,16 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
         parser.add_argument("--prefix", default="gcdtrav", help="the service's key prefix [gcdtrav]")
         parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for replies [5]")
         add_zenoh_arguments(parser)
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value}: give 1 or more")
+    return value
 
 
 def run(args: argparse.Namespace) -> int:
@@ -76,7 +86,10 @@ def run(args: argparse.Namespace) -> int:
                 "propose": propose_anchors,
             }
             return actions[args.action](client, args)
-    except (AnchorSetError, AnchorSetRejected, ServiceError, OSError, ValueError) as err:
+    except AnchorSetError as err:  # the operator's own file (anchors set): the service's refusals are ServiceErrors
+        print(f"gcdtrav {args.command}: {one_line(err)}", file=sys.stderr)
+        return EXIT_USAGE
+    except (AnchorSetRejected, ServiceError, OSError, ValueError) as err:
         print(f"gcdtrav {args.command}: {one_line(err)}", file=sys.stderr)
         return EXIT_FAILED
     except zenoh.ZError as err:  # e.g. an endpoint that cannot be reached in client mode
