@@ -163,10 +163,14 @@ def clock_offset(offset_s: float | None) -> str:
 
 
 def reasons(source: SourceStatus) -> str:
-    """'stale 3, undecodable 1' (and 'refused: no slot' for a source that never took one)."""
+    """'stale 3, undecodable 1', and for a source that never took a slot why not: no slot left (max_sources), or
+    no frame of it was usable (an undecodable or stale frame is no capacity problem)."""
     counts = {**source.dropped_by_reason, **source.rejected_by_reason}
     text = ", ".join(f"{reason} {n}" for reason, n in sorted(counts.items()))
-    return text + (" (refused: no slot)" if source.refused else "")
+    if not source.refused:
+        return text
+    no_slot = any(reason.startswith("too_many_sources") for reason in counts)
+    return text + (" (not tracked: no source slot left)" if no_slot else " (not tracked: every frame refused)")
 
 
 def fleet_warnings(statuses: list[ServiceStatus]) -> list[str]:
