@@ -215,7 +215,19 @@ class Grid:
         return int((y - self.header.origin[1]) // r), int((x - self.header.origin[0]) // r)
 
 
+EARLY_END = 0.9  # a query that ended before this share of its timeout was ended by zenoh: nothing to ask
 CLOCK_STEP_BACK_S = 10.0  # over the service's max_frame_age_s (5 s): no fresh frame is stamped this much older
+
+
+def no_reply_message(key: str, timeout: float, waited: float) -> str:
+    """Why a query got nothing. Zenoh ends a query at once when nothing it can reach serves the key: then
+    saying 'within 5 s' after a second would send the user looking for a slow service."""
+    if waited < EARLY_END * timeout:
+        return (
+            f"nothing reachable answers on '{key}' (the query ended after {waited:.1f} s): is the gcdtrav service "
+            "running, with this prefix, and reachable (zenoh flags -e/-m)?"
+        )
+    return f"no reply on '{key}' within {timeout:g} s: is the gcdtrav service running and reachable?"
 
 
 class MapsOrder:
@@ -513,6 +525,7 @@ class TraversabilityClient:
         options: dict[str, Any] = {}
         if every_instance:  # all queryables, and no merging of replies that share a key
             options = {"target": zenoh.QueryTarget.ALL, "consolidation": zenoh.ConsolidationMode.NONE}
+        started = time.monotonic()
         replies = self.session.get(_selector(key, params or {}), payload=payload, timeout=timeout, **options)
         answers: list[M] = []
         errors: list[ServiceError] = []
@@ -524,9 +537,7 @@ class TraversabilityClient:
             else:
                 errors.append(self._error_from(reply.err.payload.to_bytes() if reply.err is not None else b"", key))
         if not answers and not errors:
-            raise QueryTimeout(
-                f"no reply on '{key}' within {timeout:g} s: is the gcdtrav service running and reachable?"
-            )
+            raise QueryTimeout(no_reply_message(key, timeout, time.monotonic() - started))
         return answers, errors
 
     def _query(
