@@ -35,6 +35,7 @@ import torch
 from gcdtrav.schemas.paths import default_cache_dir, expanded
 from gcdtrav.service.backends.base import BackendDescription, ModelUnavailableError
 from gcdtrav.service.backends.decoder import DECODER_CHUNK, FastDecoder
+from gcdtrav.service.backends.expected_warnings import expected_torch_warnings
 from gcdtrav.service.backends.hub import cached_in_hub_cache, hub_offline
 from gcdtrav.service.backends.machine import available_precisions, machine_has
 from gcdtrav.service.backends.modes import AUTO, RuntimeMode, missing_requirement, runtime_mode
@@ -132,9 +133,10 @@ class VisionTrunk(torch.nn.Module):
             bf16_layers = torch.nn.ModuleList(copy.deepcopy(layer).to(torch.bfloat16) for layer in layers)
             trunk = cls(copies[0], copies[1], bf16_layers, torch.bfloat16)
         elif arithmetic == "int8":
-            quantized = torch.ao.quantization.quantize_dynamic(
-                copy.deepcopy(trunk), {torch.nn.Linear}, dtype=torch.qint8
-            )
+            with expected_torch_warnings():  # torch deprecates what int8 uses: said once in the docs, not per run
+                quantized = torch.ao.quantization.quantize_dynamic(
+                    copy.deepcopy(trunk), {torch.nn.Linear}, dtype=torch.qint8
+                )
             assert isinstance(quantized, VisionTrunk)
             trunk = quantized
         # Quick-GELU as a fused oneDNN post-op where it applies (not on int8's quantised linears) and is
