@@ -7,8 +7,9 @@ from pathlib import Path
 
 import pytest
 
-torch = pytest.importorskip("torch")
+pytest.importorskip("torch")
 
+import torch
 from gcdtrav.service.backends.clipseg import ClipSegBackend
 from gcdtrav.service.backends.expected_warnings import expected_torch_warnings
 from gcdtrav.service.backends.machine import available_precisions
