@@ -113,11 +113,13 @@ class Maps:
     traversability_full: NDArray[np.float32] | None = None
     uncertainty_full: NDArray[np.float32] | None = None
     compact: bool = False
+    arrived_at: float | None = None  # this machine's clock when decoded (at receipt, in subscribe_maps)
 
     @classmethod
     def from_payload(cls, payload: bytes) -> Maps:
         message = MapsMessage.unpack(payload)
         return cls(
+            arrived_at=time.time(),
             header=message.header,
             traversability=decode_map_png16(message.traversability_png),
             uncertainty=decode_map_png16(message.uncertainty_png),
@@ -129,7 +131,7 @@ class Maps:
     def from_compact_payload(cls, payload: bytes) -> Maps:
         message = CompactMapsMessage.unpack(payload)
         t, u = decode_map_png8(message.traversability_png), decode_map_png8(message.uncertainty_png)
-        return cls(header=message.header, traversability=t, uncertainty=u, compact=True)
+        return cls(header=message.header, traversability=t, uncertainty=u, compact=True, arrived_at=time.time())
 
     @property
     def reused(self) -> bool:
@@ -145,10 +147,18 @@ class Maps:
 
     @property
     def age_s(self) -> float:
-        """Now minus the capture stamp. Exact on the robot that stamped the image (its own clock); elsewhere
-        it assumes clocks in step (NTP, chrony). A bare JPEG/PNG input has the service's receive time as its
-        stamp, the service's clock."""
-        return time.time() - self.header.stamp
+        """How old the frame behind these maps is now, whatever the robot's, the service's and this machine's
+        clocks read: its age when the service received it (``header.age_at_receipt_s``, judged by delay as the
+        service judges frames), plus its time in the service (``published_at - received_at``, the service's
+        clock), plus the time since these maps were decoded here (this clock). It leaves out the link's
+        smallest delay and the maps' way here, tens of milliseconds on a LAN.
+
+        From a service before 1.4 (no ``age_at_receipt_s``), or maps built by hand: now minus the capture
+        stamp, exact on the robot that stamped the image and elsewhere only with clocks in step."""
+        header = self.header
+        if header.age_at_receipt_s is None or self.arrived_at is None:
+            return time.time() - header.stamp
+        return header.age_at_receipt_s + (header.published_at - header.received_at) + time.time() - self.arrived_at
 
 
 @dataclass(frozen=True)

@@ -191,6 +191,13 @@ class MapsHeader(WireModel):
         "frame's view had not changed since, so it was not inferred and that frame's maps were published again "
         "(seq is then that frame's; stamp and order are this frame's). None: computed from this frame. Since 1.3.",
     )
+    age_at_receipt_s: float | None = Field(
+        default=None,
+        description="How old the frame was when the service received it, as the service judged it (never "
+        "negative): its delay beyond its source's smallest recent one (clock: estimated, whatever the robot's "
+        "clock reads), or the service's clock minus the stamp (clock: synced). None: no usable stamp, or a "
+        "writer before 1.4. Maps.age_s adds the time since on clocks that need not agree. Since 1.4.",
+    )
 
 
 class MapsMessage(Message):
