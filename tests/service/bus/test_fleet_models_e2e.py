@@ -88,3 +88,40 @@ def test_another_checkpoint_takes_no_robot_says_why_and_shares_them_when_mixed_m
         stop(a)
         router.kill()
         router.communicate(timeout=10)
+
+
+def test_two_instances_of_different_models_started_at_once_agree_on_the_one_that_serves(
+    tiny_backend: Any, tmp_path: Path
+) -> None:
+    import threading
+
+    other = ClipSegBackend(str(build_tiny_clipseg(tmp_path / "other", seed=2)))
+    port = free_port()
+    router = start_router(port)
+    started: dict[str, TraversabilityService] = {}
+    threads = [
+        threading.Thread(target=lambda n=name, b=backend: started.update({n: start(b, port, n, tmp_path / n)}))
+        for name, backend in (("box-a", tiny_backend), ("box-b", other))
+    ]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(60)
+    a, b = started["box-a"], started["box-b"]
+    client = TraversabilityClient(config=client_config(port), timeout=3.0)
+    try:
+        assert wait_until(lambda: a.membership and b.membership and len(b.membership.live()) == 2, 10)
+        for _ in range(3):
+            for source in SOURCES:
+                client.publish_image(source, IMAGE)
+        one_serves = lambda: len(set(owners(a).values())) == 1 and owners(a) == owners(b)  # noqa: E731
+        assert wait_until(one_serves, 10), (owners(a), owners(b))
+        serving = next(iter(set(owners(a).values())))
+        refused = [s.instance for s in (a.status(), b.status()) if s.model_refused]
+        assert refused == [name for name in ("box-a", "box-b") if name != serving]
+    finally:
+        client.close()
+        for service in (a, b):
+            stop(service)
+        router.kill()
+        router.communicate(timeout=10)
