@@ -5,6 +5,7 @@ Service and client both import this module, so a field changes in exactly one pl
 
 from __future__ import annotations
 
+import json
 import re
 from enum import Enum
 from typing import Any, TypeVar
@@ -30,6 +31,16 @@ _VERSION = re.compile(r"^(\d+)(?:\.\d+)?$")
 
 class MessageError(ValueError):
     """A payload that is not a valid message of the expected type."""
+
+
+class MessageTooLarge(MessageError):
+    """A payload over the size its reader accepts: refused unread."""
+
+
+def check_size(name: str, payload: bytes, max_bytes: int | None) -> None:
+    """Refuse a payload of ``name`` over ``max_bytes`` before reading it (None: no limit)."""
+    if max_bytes is not None and len(payload) > max_bytes:
+        raise MessageTooLarge(f"{name} of {len(payload)} bytes exceeds the limit of {max_bytes}")
 
 
 class SchemaVersionError(MessageError):
@@ -64,14 +75,28 @@ class Message(WireModel):
 
     @classmethod
     def unpack(cls: type[M], payload: bytes, max_bytes: int | None = None) -> M:
-        if max_bytes is not None and len(payload) > max_bytes:
-            raise MessageError(f"{cls.__name__} of {len(payload)} bytes exceeds the limit of {max_bytes}")
+        check_size(cls.__name__, payload, max_bytes)
         try:
             data = msgpack.unpackb(payload, raw=False, strict_map_key=True)
         except (ValueError, msgpack.UnpackException, TypeError) as err:
             raise MessageError(f"not a msgpack {cls.__name__}: {err}") from None
         if not isinstance(data, dict):
             raise MessageError(f"a {cls.__name__} must be a msgpack map, got {type(data).__name__}")
+        return cls.validated(data)
+
+    @classmethod
+    def decode(cls: type[M], payload: bytes, max_bytes: int | None = None) -> M:
+        """The message in msgpack, or in JSON (a payload starting with '{'), as a person or a script without
+        msgpack sends it; MessageTooLarge over ``max_bytes``, MessageError naming what else is wrong."""
+        check_size(cls.__name__, payload, max_bytes)
+        if payload.lstrip()[:1] != b"{":
+            return cls.unpack(payload)
+        try:
+            data = json.loads(payload)
+        except (ValueError, UnicodeDecodeError) as err:
+            raise MessageError(f"not a JSON {cls.__name__}: {err}") from None
+        if not isinstance(data, dict):
+            raise MessageError(f"a {cls.__name__} must be a JSON object")
         return cls.validated(data)
 
     @classmethod

@@ -35,12 +35,7 @@ from typing import Any
 import zenoh
 from gcdtrav.client.freshness import FreshnessWatch, Staleness
 from gcdtrav.client.relay.causes import CameraFacts, causes, change_key
-from gcdtrav.client.relay.ros_camera import (
-    RosImageError,
-    decode_ros_image,
-    ros_camera_key,
-    ros_type_of_key,
-)
+from gcdtrav.client.relay.ros_camera import ros_camera_key, ros_type_of_key
 from gcdtrav.client.relay.state import CameraClock, ClockEstimate, CreditWindow, RateWindow, downsized
 from gcdtrav.client.session.source_info import put_identified
 from gcdtrav.schemas.images import encode_jpeg
@@ -56,6 +51,7 @@ from gcdtrav.schemas.messages import (
     peek_fields,
 )
 from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE, RelayCamera, RelaySettings
+from gcdtrav.schemas.ros_image import decode_ros_image
 
 log = logging.getLogger("gcdtrav.relay")
 MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
@@ -199,7 +195,7 @@ class CameraLink:
         """The frame decoded, shrunk to what the model uses and JPEG-encoded; None (counted) when unusable."""
         try:
             image, stamp, frame_id, original_size = self._decode(frame)
-        except (RejectedInput, RosImageError) as err:
+        except RejectedInput as err:
             self.undecodable += 1
             self.unusable = f"camera frame on {frame.key} not usable: {err}"
             log.warning("%s: %s", self.source, self.unusable)
@@ -228,8 +224,8 @@ class CameraLink:
             return decoded.image, decoded.stamp, decoded.frame_id, decoded.camera_size
         configured = self.camera.ros_message_type
         msgtype = (ros_type_of_key(frame.key) or "") if configured == "auto" else configured
-        image, stamp, frame_id = decode_ros_image(payload, msgtype, MAX_CAMERA_PIXELS)
-        return image, stamp, frame_id, (int(image.shape[1]), int(image.shape[0]))
+        ros = decode_ros_image(payload, msgtype, MAX_CAMERA_PIXELS)
+        return ros.image, ros.stamp, ros.frame_id, (int(ros.image.shape[1]), int(ros.image.shape[0]))
 
     def stop(self) -> None:
         with self._cond:

@@ -169,6 +169,20 @@ class ServiceSettings(StrictModel):
         description="precision auto with nothing cached: measure the modes before serving. Default: serve in "
         "fp32 at once, measure in the background, then switch between frames (status says measuring).",
     )
+    metrics_port: int = Field(
+        default=0,
+        ge=0,
+        le=65535,
+        description="TCP port of the Prometheus metrics (HTTP GET /metrics, docs/metrics.md) [env "
+        "GCDTRAV_METRICS_PORT]; 0: off, nothing listens. Off by default: the endpoint has no authentication (the "
+        "zenoh side has ACL and TLS) and names the fleet's sources, so it opens only where asked for.",
+    )
+    metrics_address: str = Field(
+        default="0.0.0.0",
+        min_length=1,
+        description="Address the metrics port listens on. All interfaces by default: a port set is meant for a "
+        "Prometheus elsewhere (a pod's IP in Kubernetes); 127.0.0.1 keeps it on the box.",
+    )
     threads: int | None = Field(
         default=None,
         ge=1,

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from gcdtrav.schemas.experience import AnswerReply
+from gcdtrav.schemas.experience import AnswerReply, CalibrationFigures
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import MSGPACK_ENCODING, ExperienceStatus, MessageError
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
@@ -145,6 +145,10 @@ class ExperienceBus:
 
     def status(self) -> ExperienceStatus:
         return self.experience.status()
+
+    def calibration(self) -> CalibrationFigures:
+        """The active anchor set graded by the stored pairs (the metrics' ECE and coverage)."""
+        return self.experience.report(self.pipeline.anchors).figures
 
     # ---- inputs --------------------------------------------------------------------------------------
     def _input_handler(self, handler: Callable[[bytes, float], None], reason: str) -> Callable[[zenoh.Sample], None]:

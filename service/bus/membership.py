@@ -124,6 +124,13 @@ class Membership:
     def owns(self, source: str) -> bool:
         return not self.withdrawn and self.owner(source) == self.instance
 
+    def owned(self) -> int:
+        """The established sources the table gives this instance (none while withdrawn): across the live
+        instances these counts sum to the fleet's established sources."""
+        if self.withdrawn:
+            return 0
+        return sum(owner == self.instance for owner in self.assignment.table().values())
+
     def close(self) -> None:
         with self._lock:
             token, self._token = self._token, None

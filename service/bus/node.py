@@ -41,15 +41,15 @@ from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.intake_rate import IntakeRate
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.metrics import MetricsSources, ServiceMetrics
 from gcdtrav.service.runtime.outputs import FramePublisher, OutputBuilder
 from gcdtrav.service.runtime.progress import ProgressMonitor
-from gcdtrav.service.runtime.reuse import ReuseTracker
+from gcdtrav.service.runtime.reuse import ReuseTracker, Triage
 from gcdtrav.service.runtime.share import policy_for
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.state_lock import StateLock
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
-from gcdtrav.service.runtime.triage import Triage
 from gcdtrav.service.runtime.worker import FrameWorker
 
 log = logging.getLogger("gcdtrav.service")
@@ -108,7 +108,7 @@ class TraversabilityService:
         )
         self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
             round(settings.pending_budget_mb * 1e6),
-            policy=policy_for(settings.schedule, self.reuse.motion),
+            policy=policy_for(settings.schedule),
             triage=settings.reuse.enabled or settings.schedule.policy == "need",
         )
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if settings.ros_inputs else None
@@ -167,6 +167,15 @@ class TraversabilityService:
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
         self.experience = experience_bus(session, settings, pipeline, self.grids, self.stats, self.owns)
+        self.metrics = ServiceMetrics(
+            MetricsSources(
+                self.status,
+                self._owned,
+                settings.max_frame_age_s,
+                self.experience.calibration if self.experience is not None else None,
+            )
+        )
+        self.stats.events = self.metrics.timings  # histograms see every frame; `serve` serves the registry
 
     def _check_inputs(self) -> None:
         own = zenoh.KeyExpr(self.keys.outputs)
@@ -295,6 +304,10 @@ class TraversabilityService:
         if ros_input.message_type != "auto":
             topic = replace(topic, msgtype=ros_input.message_type)
         self._enqueue(topic.source, sample, topic, publisher)
+
+    def _owned(self) -> int:
+        """Sources the fleet's table gives this instance; before start() it owns what it tracks."""
+        return self.membership.owned() if self.membership is not None else len(self.sources)
 
     def owns(self, source: str) -> bool:
         """Instances of one prefix share the sources; before start() this instance owns them all."""

@@ -26,7 +26,7 @@ from gcdtrav.service.backends import default_model
 if TYPE_CHECKING:
     from gcdtrav.service.experience.dataset_fit import FitRun
 
-SERVICE_MODULES = ("torch", "transformers", "matplotlib", "tqdm")
+SERVICE_MODULES = ("torch", "transformers", "matplotlib", "tqdm", "prometheus_client")
 EXIT_FAILURES = 1  # some inputs could not be processed
 EXIT_USAGE = 2  # bad configuration: anchor file, model weights, arguments
 CACHE_DIR_HELP = (
@@ -178,6 +178,16 @@ def build_parser() -> argparse.ArgumentParser:
         help=PRECISION_HELP + " [auto]",
     )
     group.add_argument(
+        "--metrics-port",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="serve Prometheus metrics on http://ADDRESS:PORT/metrics (docs/metrics.md); 0: off [0]",
+    )
+    group.add_argument(
+        "--metrics-address", default=None, metavar="ADDRESS", help="address of the metrics port [0.0.0.0]"
+    )
+    group.add_argument(
         "--measure-first",
         dest="measure_before_serving",
         action="store_true",
@@ -284,6 +294,8 @@ def serve_settings(args: argparse.Namespace):  # type: ignore[no-untyped-def]
             "threads",
             "precision",
             "measure_before_serving",
+            "metrics_port",
+            "metrics_address",
         )
     }
     if args.method is not None:

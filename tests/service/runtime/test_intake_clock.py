@@ -9,9 +9,9 @@ from collections.abc import Callable
 
 import pytest
 from fakes import Clock, image, pipeline
-from gcdtrav.client.relay.ros_camera import compressed_image_cdr
 from gcdtrav.schemas.images import encode_jpeg, encode_png
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
+from gcdtrav.schemas.ros_image import compressed_image_cdr
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros.cdr import RosTopic
 from gcdtrav.service.runtime.admission import Admission

@@ -23,11 +23,10 @@ from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.outputs import OutputBuilder
 from gcdtrav.service.runtime.progress import ProgressMonitor
-from gcdtrav.service.runtime.reuse import ReuseTracker
-from gcdtrav.service.runtime.share import policy_for
+from gcdtrav.service.runtime.reuse import ReuseTracker, Triage
+from gcdtrav.service.runtime.share import Claim, FrameClass, policy_for
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
-from gcdtrav.service.runtime.triage import Triage
 from gcdtrav.service.runtime.worker import FrameWorker
 from scenes import jpeg_frame, noisy, scene, with_person
 
@@ -54,9 +53,7 @@ def serving(progress: ProgressMonitor | None = None, run=None, **settings: objec
     stats, outputs = ServiceStats(LOG), Outputs()
     run = run or pipeline()
     tracker = ReuseTracker(config.reuse, config.schedule, anchors_version=lambda: run.anchors.version)
-    queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
-        policy=policy_for(config.schedule, tracker.motion), triage=True
-    )
+    queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(policy=policy_for(config.schedule), triage=True)
     triage = Triage(queue, tracker, config, stats, outputs.republish, lambda p, reason: outputs.freed.append(reason))
     worker = FrameWorker(
         queue,
@@ -126,13 +123,17 @@ def test_reuse_off_infers_every_frame() -> None:
 
 
 def test_a_refresh_is_marked_for_the_scheduler_and_news_is_not(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The scheduler lets a refresh (max_reuse_s reached, the view unchanged) yield; the triage says which."""
+    """The scheduler lets a refresh (max_reuse_s reached, the view unchanged) yield; the triage's claim says
+    which."""
     worker, queue, _, outputs = serving(reuse={"max_reuse_s": 0.2})
     marks: list[bool] = []
-    mark = queue.policy.mark_refresh
-    monkeypatch.setattr(
-        queue.policy, "mark_refresh", lambda source, refresh: (marks.append(refresh), mark(source, refresh))
-    )
+    settle = queue.settle
+
+    def marking(source: str, item: PendingFrame, claim: Claim | None) -> bool:
+        marks.extend([] if claim is None else [claim.kind is FrameClass.REFRESH])
+        return settle(source, item, claim)
+
+    monkeypatch.setattr(queue, "settle", marking)
     worker.start()
     view = scene()
     try:
@@ -210,7 +211,7 @@ def test_unchanged_frames_take_a_waiting_refresh_s_place_and_the_replaced_one_is
     clock, stats, outputs = Clock(), ServiceStats(LOG), Outputs()
     tracker = ReuseTracker(config.reuse, config.schedule, clock=clock)
     queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
-        policy=policy_for(config.schedule, tracker.motion), triage=True, clock=clock
+        policy=policy_for(config.schedule), triage=True, clock=clock
     )
     triage = Triage(queue, tracker, config, stats, outputs.republish, lambda p, reason: outputs.freed.append(reason))
     view, answered = scene(), []
@@ -242,7 +243,7 @@ def test_unchanged_frames_take_a_waiting_refresh_s_place_and_the_replaced_one_is
 def test_an_unchanged_frame_behind_a_refresh_taken_meanwhile_is_answered_itself() -> None:
     queue: LatestFrameQueue[str] = LatestFrameQueue(triage=True)
     queue.put("a", "refresh")
-    assert queue.take_untriaged(0) == ("a", "refresh") and queue.settle("a", "refresh", reused=False)
+    assert queue.take_untriaged(0) == ("a", "refresh") and queue.settle("a", "refresh", Claim(FrameClass.REFRESH))
     queue.put("a", "next")
     assert queue.take_untriaged(0) == ("a", "next")
     assert queue.take(0) == ("a", "refresh")  # the worker took the refresh between the glance and its verdict
@@ -257,8 +258,9 @@ def test_an_unchanged_frame_behind_a_refresh_taken_meanwhile_is_answered_itself(
 )
 def test_fleets_under_load_are_accounted_for(kinds: tuple[str, ...]) -> None:
     """Several sources streaming faster than the answers: replaced frames are dropped, none lost; a parked
-    source is inferred once (well within max_reuse_s), a moving one at every turn it gets."""
-    worker, queue, stats, _ = serving()
+    source is inferred once (well within max_reuse_s, however slow the host), a moving one at every turn it
+    gets."""
+    worker, queue, stats, _ = serving(reuse={"max_reuse_s": 3600.0})
     worker.start()
     try:
         for k in range(30):
