@@ -25,7 +25,7 @@ MSGPACK_ENCODING = "application/msgpack"
 # 1.0 was the integer 1 in MapsHeader only; 1.1 puts the version in every message and adds risk fields;
 # 1.2 adds ServiceStatus.measuring, MapsHeader.order, the status's health and anchor-set fleet fields, and the
 # grid's planner layers (GridMessage, GridHeader).
-SCHEMA_VERSION = "1.3"
+SCHEMA_VERSION = "1.4"
 _VERSION = re.compile(r"^(\d+)(?:\.\d+)?$")
 
 
@@ -216,6 +216,13 @@ class MapsHeader(WireModel):
         "frame's view had not changed since, so it was not inferred and that frame's maps were published again "
         "(seq is then that frame's; stamp and order are this frame's). None: computed from this frame. Since 1.3.",
     )
+    age_at_receipt_s: float | None = Field(
+        default=None,
+        description="How old the frame was when the service received it, as the service judged it (never "
+        "negative): its delay beyond its source's smallest recent one (clock: estimated, whatever the robot's "
+        "clock reads), or the service's clock minus the stamp (clock: synced). None: no usable stamp, or a "
+        "writer before 1.4. Maps.age_s adds the time since on clocks that need not agree. Since 1.4.",
+    )
 
 
 class MapsMessage(Message):
@@ -296,6 +303,11 @@ class RelayHealth(Message):
         default=None,
         description="Why the service gives no maps, as its last credit said (CreditGrant.problem), or the "
         "relay's own (camera frames not usable). Since 1.2.",
+    )
+    causes: dict[str, str] = Field(
+        default_factory=dict,
+        description="What may keep this camera's maps stale, by cause: camera_silent, no_instance, service_refuses, "
+        "camera_unusable, camera_clock (client/relay/causes.py), each with a sentence; empty: none known. Since 1.4.",
     )
 
 
@@ -644,7 +656,20 @@ class ServiceStatus(Message):
         default=None, description="Experience counts and open questions; None: experience off. Since 1.3."
     )
     grids: list[GridStatus] | None = Field(
-        default=None, description="Each ground grid's health; None: no grids (or an older writer). Issue 40."
+        default=None, description="Each ground grid's health; None: no grids (or an older writer). Since 1.4."
+    )
+    model_fingerprint: str = Field(
+        default="", description="A hash of the checkpoint's config and weight files; empty: unknown. Since 1.4."
+    )
+    model_refused: str = Field(
+        default="",
+        description="Why this instance takes no sources: its model differs from the fleet's (allow_mixed_models "
+        "off). Empty: it takes its share. Since 1.4.",
+    )
+    instance_models: dict[str, str] = Field(
+        default_factory=dict,
+        description="The model fingerprint of every live instance that advertises one, as this one knows it. "
+        "Since 1.4.",
     )
 
 

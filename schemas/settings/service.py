@@ -147,6 +147,12 @@ class ServiceSettings(StrictModel):
     preview: bool = Field(default=True, description="Publish a colourised JPEG on {prefix}/out/{source}/preview.")
     preview_max_width: int = Field(default=640, ge=64)
     instance: str = Field(default_factory=default_instance_name, description="Name in results and liveliness.")
+    allow_mixed_models: bool = Field(
+        default=False,
+        description="Take sources even when this instance's model (checkpoint fingerprint) differs from the fleet's "
+        "(the model of the instance serving longest). Off: such an instance takes no sources and says why. On for "
+        "the new instances of a rolling model upgrade (deploy/README.md).",
+    )
     grids: list[GridSettings] = Field(
         default_factory=list, description="Ground grids: one per source, or fusing several cameras."
     )

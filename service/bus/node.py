@@ -23,6 +23,7 @@ from gcdtrav.service.bus.anchor_sync import AnchorSync
 from gcdtrav.service.bus.credits import CreditPublisher
 from gcdtrav.service.bus.entities import undeclare_all
 from gcdtrav.service.bus.experience import experience_bus
+from gcdtrav.service.bus.fleet_models import FleetModels
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
@@ -47,6 +48,7 @@ from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.reuse import ReuseTracker, Triage
 from gcdtrav.service.runtime.share import policy_for
 from gcdtrav.service.runtime.sources import SourceTracker
+from gcdtrav.service.runtime.state_lock import StateLock
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
 from gcdtrav.service.runtime.worker import FrameWorker
@@ -88,6 +90,7 @@ class TraversabilityService:
         self._stopping = threading.Event()
         self.membership: Membership | None = None
         self.anchor_sync: AnchorSync | None = None
+        self.state_lock = StateLock(settings.state_file, settings.instance)  # one service per state file
         self.anchor_switch = AnchorSwitch(
             pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes
         )
@@ -197,9 +200,25 @@ class TraversabilityService:
 
     # ---- lifecycle -----------------------------------------------------------------------------------
     def start(self) -> None:
-        # Membership first: a frame arriving during start-up must already go to its owner only.
-        self.membership = Membership(self.session, self.prefix, self.settings.instance, assignment=self.assignment)
+        # Membership before the inputs: a frame arriving during start-up must already go to its owner only.
+        # The anchor set's token before the alive token: a join is logged with it (membership.describe).
         self.anchor_sync = AnchorSync(self.session, self.keys, self.settings.instance, self.anchor_switch)
+        models = FleetModels(
+            self.session,
+            self.keys,
+            self.settings.instance,
+            self.pipeline.describe().fingerprint,
+            self.settings.allow_mixed_models,
+        )
+        fleet = self.anchor_sync.fleet
+        self.membership = Membership(
+            self.session,
+            self.prefix,
+            self.settings.instance,
+            assignment=self.assignment,
+            models=models,
+            anchor_set_of=lambda instance: fleet.versions().get(instance),
+        )
         for expression in self.settings.inputs:
             head = literal_head(expression)
             self._declared.append(self.session.declare_subscriber(expression, self._image_handler(head)))
@@ -248,6 +267,7 @@ class TraversabilityService:
         if self.anchor_sync is not None:
             self.anchor_sync.close()
         self.anchor_switch.close()
+        self.state_lock.release()
         if self.ros_graph is not None:
             self.ros_graph.close()
 
@@ -359,7 +379,9 @@ class TraversabilityService:
         live = sorted(self.membership.live()) if self.membership else None
         fleet = self.anchor_sync.fleet.versions() if self.anchor_sync else {}
         experience = self.experience.status() if self.experience is not None else None
-        return self.status_parts.status(time.time(), live, fleet, experience)
+        models = self.membership.models if self.membership else None
+        models_status = models.status(live or []) if models is not None else None
+        return self.status_parts.status(time.time(), live, fleet, experience, models_status)
 
     def _on_status_query(self, query: zenoh.Query) -> None:
         replies.check_no_parameters(query)

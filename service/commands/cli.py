@@ -83,8 +83,15 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cache-dir", type=Path, default=None, help=CACHE_DIR_HELP)
 
 
+DESCRIPTION = (
+    "Traversability T and uncertainty U of every image patch. Start with `gcdtrav doctor --model DIR` on a new "
+    "box, then `gcdtrav serve`; `infer` works on image files offline. status, anchors, probe, calibration, answer, "
+    "view and relay need no torch (the operator's laptop, the robot). `gcdtrav COMMAND --help` for each."
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="gcdtrav", description=__doc__)
+    parser = argparse.ArgumentParser(prog="gcdtrav", description=DESCRIPTION)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     commands = parser.add_subparsers(dest="command", required=True)
 

@@ -137,17 +137,21 @@ def test_failures_are_one_line_with_the_right_exit_code(service, tmp_path: Path)
     bad = tmp_path / "bad.yaml"
     bad.write_text("anchors:\n  - {concept: mud, position: 1.5}\n")
     rejected = gcdtrav("anchors", "set", str(bad), *flags)
-    assert rejected.returncode == 1 and len(rejected.stderr.strip().splitlines()) == 1
+    assert rejected.returncode == 2 and len(rejected.stderr.strip().splitlines()) == 1  # a usage error (README)
     assert "position 1.5 is outside [0, 1]" in rejected.stderr
     assert running.pipeline.anchors.version == default_anchor_set().version
     missing = gcdtrav("anchors", "set", str(tmp_path / "nope.yaml"), *flags)
-    assert missing.returncode == 1 and "cannot read the file" in missing.stderr
+    assert missing.returncode == 2 and "cannot read the file" in missing.stderr
     unreachable = gcdtrav("status", "-m", "client", "-e", "tcp/127.0.0.1:9", "--no-multicast-scouting")
     assert unreachable.returncode == 1 and len(unreachable.stderr.strip().splitlines()) == 1
     assert unreachable.stderr.startswith("gcdtrav status: zenoh: Unable to connect to any of [")
     assert "tcp/127.0.0.1:9" in unreachable.stderr and ".rs:" not in unreachable.stderr
     usage = gcdtrav("anchors", "swap", "x.yaml")
     assert usage.returncode == 2
+    for args in (("answer", "cam", "1.5"), ("answer", "cam", "maybe"), ("anchors", "rollback", "0")):
+        usage = gcdtrav(*args, *flags)
+        assert usage.returncode == 2 and "Traceback" not in usage.stderr, (args, usage.stderr)
+    assert "a score must be in [0, 1]" in gcdtrav("answer", "cam", "1.5", *flags).stderr
 
 
 def test_diff_names_added_removed_and_moved_concepts() -> None:

@@ -175,9 +175,11 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
             assert cell.cell == (i, j) and cell.observations == grid.count[i, j]
             assert cell.patch is None and cell.seq is None and cell.grid_updates == header.seq  # no names that lie
             assert cell.mean == pytest.approx(grid.traversability[i, j], abs=2 / 65535)
+            assert grid.match is not None and cell.match == pytest.approx(grid.match[i, j], abs=2 / 65535)
             path = client.path("cam", [(0.0, 0.0), (4.5, 0.0)])
             assert path.unknown_cells > 0 and path.cells and path.lowest_t is not None
             assert path.cells[path.lowest_t].mean == min(c.mean for c in path.cells)
+            assert all(c.match is not None for c in path.cells)  # fused cells carry the grid's match layer
             with pytest.raises(Exception, match="unknown: never observed"):
                 client.cell("cam", -2.0, 0.0)
             with pytest.raises(Exception, match="outside the grid"):
