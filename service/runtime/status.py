@@ -10,8 +10,8 @@ from gcdtrav.schemas.messages import ExperienceStatus, ServiceStatus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.clock_offset import ClockOffsets
-from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.fleet_models import FleetModelsStatus
+from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
