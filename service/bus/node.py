@@ -28,7 +28,7 @@ from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
 from gcdtrav.service.bus.queryables import AnchorQueries, SourceQueries
-from gcdtrav.service.bus.ros_graph import RosGraph
+from gcdtrav.service.bus.ros_graph import RosGraph, graph_inputs
 from gcdtrav.service.bus.tf import declare_tf_inputs
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
@@ -118,7 +118,7 @@ class TraversabilityService:
             policy=policy_for(settings.schedule),
             triage=settings.reuse.enabled or settings.schedule.policy == "need",
         )
-        self.ros_graph = RosGraph(session, settings, self.stats.rejected) if settings.ros_inputs else None
+        self.ros_graph = RosGraph(session, settings, self.stats.rejected) if graph_inputs(settings) else None
         self.outputs = FrameOutputs(session, self.keys, self.ros_graph)
         self.freshness = Freshness.from_settings(settings, log)  # the one judge of a frame's age
         ledger = CreditLedger(settings.instance, backend.input_size, self.freshness.max_age_s)

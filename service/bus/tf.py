@@ -6,7 +6,8 @@ publisher; StaticListenerQoS, depth 100): rmw_zenoh (rmw_publisher_data.cpp) and
 subscriber started after the robot gets each static broadcaster's last message by querying those caches. This
 subscriber is declared as rmw_zenoh declares a transient-local one (rmw_subscription_data.cpp): history with
 late-publisher detection up to the listener's depth, recovery on the publishers' heartbeats, and detectable.
-No graph token is declared: tf publishers send whether or not they count subscribers.
+Their graph tokens (rmw_zenoh layout only) come from ros_graph.py, as the cameras' do: tf publishers send
+whether or not they count subscribers, but ``ros2 topic info`` should list the service among them.
 """
 
 from __future__ import annotations
