@@ -477,6 +477,18 @@ class ErrorReply(Message):
     error: str
 
 
+class CameraPlacement(WireModel):
+    """Where a camera's body frame (x forward, y left, z up) sits in the robot's base frame: metres and radians,
+    R = Rz(yaw) Ry(pitch) Rx(roll), as the settings' mount: (docs/grid.md)."""
+
+    x: float
+    y: float
+    z: float
+    roll: float
+    pitch: float
+    yaw: float
+
+
 class GridCameraStatus(WireModel):
     """What a grid knows of one of its cameras."""
 
@@ -488,6 +500,11 @@ class GridCameraStatus(WireModel):
         description="Where its mount comes from: 'settings' or 'tf'; None: not yet (tf.mount, no transform yet).",
     )
     not_fused: str = Field(default="", description="Why its last frame was not fused; '': it was (or none came).")
+    placement: CameraPlacement | None = Field(
+        default=None,
+        description="The mount the grid projects its frames with, from wherever mount says (a viewer draws the "
+        "camera there). None: not known yet, or an older writer. Since 1.4.",
+    )
 
 
 class GridStatus(WireModel):

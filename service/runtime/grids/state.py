@@ -12,7 +12,7 @@ from typing import Any
 import cv2
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.messages import GridCameraStatus, GridStatus, Pose2D
+from gcdtrav.schemas.messages import CameraPlacement, GridCameraStatus, GridStatus, Pose2D
 from gcdtrav.schemas.settings import GridCamera, GridSettings
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points, map_cell_pixels
@@ -157,6 +157,7 @@ def grid_status(grid: SourceGrid, now: float, clock_offsets: Mapping[str, float]
             intrinsics=camera.intrinsics_origin if camera.camera is not None else None,
             mount=camera.mount_origin,
             not_fused=health.last_reason.get(source, ""),
+            placement=None if camera.mount_origin is None else _placement(camera.mount),
         )
         for source, camera in grid.cameras.items()
     }
@@ -178,6 +179,10 @@ def grid_status(grid: SourceGrid, now: float, clock_offsets: Mapping[str, float]
         problem=_with_tf(health.problem(now), waiting),
         tf_waiting=waiting,
     )
+
+
+def _placement(mount: CameraMount) -> CameraPlacement:
+    return CameraPlacement(x=mount.x, y=mount.y, z=mount.z, roll=mount.roll, pitch=mount.pitch, yaw=mount.yaw)
 
 
 def _with_tf(problem: str, waiting: dict[str, str]) -> str:

@@ -441,7 +441,9 @@ def test_tf_keys_join_the_graph_only_in_rmw_zenohs_layout(tmp_path: Path) -> Non
         GraphInput(f"*/tf/{TF_TYPE}/*", "", TF_QOS),
     ]
     assert graph_inputs(tf_settings(tmp_path, tf_key="tf", tf_static_key="tf_static")) == []  # the bridge's keys
-    assert tf_graph_input(f"robot1/*/tf/{TF_TYPE}/*", TF_QOS) == GraphInput(f"robot1/*/tf/{TF_TYPE}/*", "robot1", TF_QOS)
+    assert tf_graph_input(f"robot1/*/tf/{TF_TYPE}/*", TF_QOS) == GraphInput(
+        f"robot1/*/tf/{TF_TYPE}/*", "robot1", TF_QOS
+    )
     assert tf_graph_input(f"0/robot1/tf/{TF_TYPE}/*", TF_QOS) == GraphInput(f"0/robot1/tf/{TF_TYPE}/*", "", TF_QOS)
     assert tf_graph_input(f"robot1/tf/{TF_TYPE}/*", TF_QOS) is None  # no domain chunk: not rmw_zenoh's layout
     assert tf_graph_input("tf/bad", TF_QOS) is None

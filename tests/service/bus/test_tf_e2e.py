@@ -186,6 +186,7 @@ def test_the_service_fuses_a_grid_whose_mount_and_pose_come_from_the_robots_tf(t
             assert wait_until(lambda: state.health.not_fused.get("no_mount") == 1, 15), state.health
             (grid,) = client.status().grids or []
             assert grid.cameras["cam"].mount is None and grid.not_fused_by_reason == {"no_mount": 1}
+            assert grid.cameras["cam"].placement is None  # a viewer draws no camera yet
             assert grid.tf_waiting["cam"].startswith("tf_unknown_frame") and "'camera_optical_frame'" in grid.problem
             static = ext.declare_advanced_publisher(
                 robot, key("/tf_static", "rmw_zenoh"), cache=ext.CacheConfig(max_samples=1), publisher_detection=True,
@@ -197,6 +198,9 @@ def test_the_service_fuses_a_grid_whose_mount_and_pose_come_from_the_robots_tf(t
             assert wait_until(lambda: state.health.fused == 1, 15), state.health
             camera = state.cameras["cam"]
             assert camera.mount_origin == "tf" and camera.mount.z == pytest.approx(0.9)
+            placement = (client.status().grids or [])[0].cameras["cam"].placement  # what a viewer draws
+            assert placement is not None and (placement.x, placement.y, placement.z) == pytest.approx((0.3, 0.05, 0.9))
+            assert placement.pitch == pytest.approx(PITCH) and placement.roll == pytest.approx(0.0, abs=1e-9)
             assert state.frame_id() == "odom" and state.fused_at is not None and state.fused_at.pose is not None
             assert (state.fused_at.pose.x, state.fused_at.pose.y) == pytest.approx((2.0, 1.0))
             stop.set()
