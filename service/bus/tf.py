@@ -17,11 +17,12 @@ from typing import Any
 
 import zenoh
 from gcdtrav.schemas.inputs import RejectedInput
+from gcdtrav.service.bus.ros_graph import TF_STATIC_QOS
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.stats import ServiceStats
 from zenoh import ext
 
-STATIC_LISTENER_DEPTH = 100  # tf2_ros StaticListenerQoS: the samples asked of each publisher's cache
+STATIC_LISTENER_DEPTH = TF_STATIC_QOS.depth  # tf2_ros StaticListenerQoS: the samples asked of each publisher's cache
 
 
 def declare_tf_inputs(session: zenoh.Session, grids: GridOutputs, stats: ServiceStats) -> list[Any]:
