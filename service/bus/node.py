@@ -30,6 +30,7 @@ from gcdtrav.service.bus.outputs import FrameOutputs
 from gcdtrav.service.bus.queryables import AnchorQueries, SourceQueries
 from gcdtrav.service.bus.ros_graph import RosGraph, graph_inputs
 from gcdtrav.service.bus.tf import declare_tf_inputs
+from gcdtrav.service.experience.service import service_experience
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.admission import Admission
@@ -95,6 +96,7 @@ class TraversabilityService:
             pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes
         )
         backend = pipeline.describe()
+        experience = service_experience(settings, self.stats.rejected)  # None when off; asks at the grids' fusion
         self.grids = (
             GridOutputs(
                 settings.grids,
@@ -102,6 +104,7 @@ class TraversabilityService:
                 settings.instance,
                 settings.risk,
                 clock_mode=settings.clock,
+                after_fusion=experience.after_fusion if experience is not None else None,
             )
             if settings.grids
             else None
@@ -174,7 +177,7 @@ class TraversabilityService:
         )
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
-        self.experience = experience_bus(session, settings, pipeline, self.grids, self.stats, self.owns)
+        self.experience = experience_bus(session, settings, pipeline, experience, self.stats, self.owns)
         self.metrics = ServiceMetrics(
             MetricsSources(
                 self.status,
