@@ -77,9 +77,11 @@ class Runtime:
         owns: Callable[[str], bool],
         stats: ServiceStats | None = None,
         started_at: float | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> Runtime:
         """The runtime of ``settings``; ``stats``: shared with the bus (its refusals are counted there too);
-        ``started_at``: wall-clock seconds, for the status's uptime (None: now)."""
+        ``started_at``: wall-clock seconds, for the status's uptime (None: now); ``clock``: the sources'
+        idleness is timed by it (monotonic seconds)."""
         stats = stats or ServiceStats(log, settings.source_idle_s)
         history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
         switch = AnchorSwitch(pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes)
@@ -105,7 +107,7 @@ class Runtime:
             reuse.forget,
         )
         sources = SourceTracker(
-            settings.max_sources, settings.source_idle_s, forget, reclaim_after_s=settings.reclaim_after_s
+            settings.max_sources, settings.source_idle_s, forget, clock, reclaim_after_s=settings.reclaim_after_s
         )
         admission = Admission(settings, sources, queue, stats, credits.freed, freshness)
         progress = ProgressMonitor(settings.stall_after_s)
