@@ -91,11 +91,14 @@ class RecordingSink:
         self.keys = Keys(prefix)
         self.put_by_source: list[tuple[str, list[Output]]] = []
         self.forgotten: list[str] = []
+        self.closed = False  # then it refuses, as the bus's outputs do after shutdown
 
     def wants_compact(self, source: str) -> bool:
         return False
 
     def put(self, source: str, outputs: list[Output]) -> bool:
+        if self.closed:
+            return False
         self.put_by_source.append((source, outputs))
         return True
 
@@ -143,3 +146,13 @@ def assembled(
         settings = settings.model_copy(update={"state_dir": Path(tempfile.mkdtemp(prefix="gcdtrav-test-state-"))})
     sink, credits = RecordingSink(settings.prefix), RecordingCredits()
     return Runtime.build(settings, run or pipeline(), sink, credits, owns, clock=clock), sink, credits
+
+
+def offer(runtime: Runtime, pending: PendingFrame, publisher: str | None = None) -> bool:
+    """``pending`` offered as the bus's subscriber offers a sample: the rate check, then admission."""
+    if not runtime.admission.admit(publisher):
+        return False
+    payload = pending.payload
+    return runtime.admission.offer(
+        pending.source, pending.key, len(payload), lambda: payload, pending.encoding, pending.ros, publisher
+    )
