@@ -61,7 +61,7 @@ def test_a_forgotten_source_leaves_the_bus_sinks_too() -> None:
     settings = ServiceSettings(reuse={"enabled": False}, schedule={"policy": "round_robin"}, max_frame_age_s=None)
     runtime, sink, _ = assembled(settings, clock=clock)
     assert offer(runtime, "r1")
-    _, pending = runtime.queue.take(0)  # type: ignore[misc]
+    _, pending = runtime.queue.take(0)
     inferred = runtime.worker._guarded(pending, runtime.worker._infer, pending)
     runtime.worker._guarded(pending, runtime.worker._finish, inferred)
     assert sink.sources == ["r1"]
