@@ -315,8 +315,9 @@ def test_no_zenoh_call_runs_under_a_grid_lock_questions_included(tmp_path: Path)
         session = WatchedSession(real)
         pipeline = Pipeline(SceneBackend(), start_anchors(), ServiceSettings().engine)
         service = TraversabilityService(session, pipeline, settings(tmp_path))  # type: ignore[arg-type]
-        assert service.grids is not None
-        for grid in service.grids.sources.values():
+        grids = service.runtime.grids
+        assert grids is not None
+        for grid in grids.sources.values():
             grid.lock = OwnedLock()  # type: ignore[assignment]
             session.locks.append(grid.lock)  # type: ignore[arg-type]
         service.start()
