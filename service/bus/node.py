@@ -110,7 +110,7 @@ class TraversabilityService:
         self.reuse = ReuseTracker(
             settings.reuse,
             settings.schedule,
-            grids.pose_of if grids else lambda source: None,
+            grids.pose_of if grids else lambda source, stamp: None,
             anchors_version=lambda: self.anchor_switch.head().version,
         )
         self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
