@@ -29,9 +29,8 @@ from gcdtrav.schemas.experience import (
     PlannedPath,
     TraversalOutcome,
 )
+from gcdtrav.schemas.grid_layers import decode_layers
 from gcdtrav.schemas.images import (
-    decode_age_png,
-    decode_count_png,
     decode_map_png8,
     decode_map_png16,
     encode_jpeg,
@@ -163,8 +162,9 @@ class Maps:
 
 @dataclass(frozen=True)
 class Grid:
-    """A decoded GridMessage: T and U per cell (NaN where unknown: never observed, or expired) and observation
-    counts (0 where unknown); from 1.2 writers also the planner's layers, None from older ones:
+    """A decoded GridMessage: its ``layers`` by name (the table in schemas/grid_layers.py), those the writer
+    sent. T and U per cell (NaN where unknown: never observed, or expired) and observation counts (0 where
+    unknown) always; from 1.2 writers also the planner's layers, None from older ones:
 
     - ``cvar``: CVaR of T at ``header.alpha`` (the mean of its worst alpha), NaN where unknown;
     - ``p_below``: P(T < ``header.tau``), NaN where unknown;
@@ -174,40 +174,40 @@ class Grid:
     """
 
     header: GridHeader
-    traversability: NDArray[np.float32]
-    uncertainty: NDArray[np.float32]
-    count: NDArray[np.int64]
-    cvar: NDArray[np.float32] | None = None
-    p_below: NDArray[np.float32] | None = None
-    match: NDArray[np.float32] | None = None
-    age: NDArray[np.float32] | None = None
+    layers: Mapping[str, NDArray[Any]]
 
     @classmethod
     def from_payload(cls, payload: bytes) -> Grid:
         message = GridMessage.unpack(payload)
-        count = decode_count_png(message.count_png)
-        unknown = count == 0
+        return cls(message.header, decode_layers(message))
 
-        def layer(data: bytes | None) -> NDArray[np.float32] | None:
-            if data is None:
-                return None
-            values = decode_map_png16(data)
-            values[unknown] = np.nan
-            return values
+    @property
+    def traversability(self) -> NDArray[np.float32]:
+        return self.layers["traversability"]
 
-        t, u = layer(message.traversability_png), layer(message.uncertainty_png)
-        assert t is not None and u is not None
-        age = decode_age_png(message.age_png) if message.age_png is not None else None
-        return cls(
-            header=message.header,
-            traversability=t,
-            uncertainty=u,
-            count=count,
-            cvar=layer(message.cvar_png),
-            p_below=layer(message.p_below_png),
-            match=layer(message.match_png),
-            age=age,
-        )
+    @property
+    def uncertainty(self) -> NDArray[np.float32]:
+        return self.layers["uncertainty"]
+
+    @property
+    def count(self) -> NDArray[np.int64]:
+        return self.layers["count"]
+
+    @property
+    def cvar(self) -> NDArray[np.float32] | None:
+        return self.layers.get("cvar")
+
+    @property
+    def p_below(self) -> NDArray[np.float32] | None:
+        return self.layers.get("p_below")
+
+    @property
+    def match(self) -> NDArray[np.float32] | None:
+        return self.layers.get("match")
+
+    @property
+    def age(self) -> NDArray[np.float32] | None:
+        return self.layers.get("age")
 
     def planning_layers(self) -> dict[str, NDArray[np.float32]]:
         """The layers ``client.planning.plan`` reads (traversability, cvar, p_below), those the grid has."""

@@ -75,7 +75,7 @@ def test_probe_prints_a_pixels_distribution_and_draws_it(service, tmp_path: Path
     assert probe.returncode == 0, probe.stderr
     from gcdtrav.service.runtime.queries import answer_patch_query
 
-    expected = answer_patch_query(running.history, "r1/front", {"x": "20", "y": "10"})
+    expected = answer_patch_query(running.runtime.history, "r1/front", {"x": "20", "y": "10"})
     assert expected.patch is not None
     i, j = expected.patch  # the answer in the user's terms: the pixel as typed (x, y), the patch named (row, column)
     assert probe.stdout.startswith(f"r1/front pixel (x=20, y=10) in seq={expected.seq} patch (row i={i}, column j={j})")
@@ -117,13 +117,13 @@ def test_history_and_rollback_survive_a_restart(tiny_backend, tmp_path: Path) ->
     # the temporaries of history writes a crash interrupted.
     from gcdtrav.service.commands.serve import starting_anchor_set
 
-    interrupted = settings.state_dir / f".{running.anchor_switch.history_file.name}.x1y2z3.tmp"
+    interrupted = settings.state_dir / f".{running.runtime.anchor_switch.history_file.name}.x1y2z3.tmp"
     interrupted.write_text('{"instance": "ops-2", "entries": [')
 
     with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (running, port):
         assert running.pipeline.anchors.version == puddles.version
         assert not interrupted.exists()
-        versions = [e.version for e in running.anchor_switch.history().entries]
+        versions = [e.version for e in running.runtime.anchor_switch.history().entries]
         assert versions == [
             puddles.version,
             AnchorSet.parse(two).version,

@@ -226,7 +226,7 @@ def test_bad_poses_and_intrinsics_are_rejected_and_the_grid_keeps_the_last_good_
     assert grids[-1].header.robot == (2.0, 0.0, 0.0) and grids[-1].header.known_cells > 0  # the last good pose
     assert "processing_failed" not in rejected()
     assert (
-        service.grids is not None and service.grids.sources["cam"].cameras["cam"].camera.fx == 60
+        service.runtime.grids is not None and service.runtime.grids.sources["cam"].cameras["cam"].camera.fx == 60
     )  # the configured intrinsics
 
 
@@ -250,7 +250,8 @@ def test_a_handler_that_raises_still_answers_and_the_service_goes_on(  # type: i
 ) -> None:
     service, client = served
     owner, name = target
-    owner = {"grids": service.grids, "service": service, "switch": service.anchor_switch}.get(owner, owner)  # type: ignore[call-overload]
+    runtime = service.runtime
+    owner = {"grids": runtime.grids, "service": service, "switch": runtime.anchor_switch}.get(owner, owner)  # type: ignore[call-overload]
     with monkeypatch.context() as patch:
         patch.setattr(owner, name, boom)
         assert raw_get(client, selector, payload) == (False, "internal error: RuntimeError; see the service log")

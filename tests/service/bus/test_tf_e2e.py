@@ -180,7 +180,7 @@ def test_the_service_fuses_a_grid_whose_mount_and_pose_come_from_the_robots_tf(t
         streaming.start()
         static = None
         try:
-            state = service.grids.sources["cam"]
+            state = service.runtime.grids.sources["cam"]
             assert service.ros_graph is not None  # no ros_inputs, but rmw_zenoh tf keys: the graph lists them
             assert wait_until(lambda: state.poses.received > 0, 10), "no pose from /tf"
             client.publish_image("cam", textured_image(60, 80))  # before /tf_static: no mount, and the status says why
@@ -194,7 +194,7 @@ def test_the_service_fuses_a_grid_whose_mount_and_pose_come_from_the_robots_tf(t
                 sample_miss_detection=ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=0.5),
             )  # fmt: skip
             static.put(robot_static())
-            assert wait_until(lambda: "camera_optical_frame" in service.grids.tf["cam"].tree, 10)
+            assert wait_until(lambda: "camera_optical_frame" in service.runtime.grids.tf["cam"].tree, 10)
             client.publish_image("cam", textured_image(60, 80, seed=1))
             assert wait_until(lambda: state.health.fused == 1, 15), state.health
             camera = state.cameras["cam"]

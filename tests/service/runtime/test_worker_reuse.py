@@ -12,61 +12,59 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from fakes import Clock, pipeline, processed
+from fakes import Clock, RecordingCredits, RecordingSink, assembled, pipeline, processed
 from gcdtrav.schemas.messages import MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.pipeline import Inference
+from gcdtrav.service.pipeline import Inference, Pipeline
 from gcdtrav.service.runtime.change import Glance
-from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
+from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.grids import GridOutputs
-from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.outputs import OutputBuilder
-from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.reuse import ReuseTracker, Triage
 from gcdtrav.service.runtime.share import Claim, FrameClass, policy_for
-from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
-from gcdtrav.service.runtime.worker import FrameWorker
 from scenes import jpeg_frame, noisy, scene, with_person
 
 LOG = __import__("logging").getLogger("test")
 
 
 class Outputs:
+    """The triage's hand-off and credits, recorded (for the triage driven by hand)."""
+
     def __init__(self) -> None:
-        self.inferred: list[ProcessedFrame] = []
         self.reused: list[tuple[PendingFrame, Glance]] = []
         self.freed: list[str] = []
-
-    def publish(self, done: ProcessedFrame) -> bool:
-        self.inferred.append(done)
-        return True
 
     def republish(self, pending: PendingFrame, seen: Glance) -> bool:
         self.reused.append((pending, seen))
         return True
 
 
-def serving(progress: ProgressMonitor | None = None, run=None, **settings: object):  # type: ignore[no-untyped-def]
-    config = ServiceSettings.model_validate(settings)
-    stats, outputs = ServiceStats(LOG), Outputs()
-    run = run or pipeline()
-    tracker = ReuseTracker(config.reuse, config.schedule, anchors_version=lambda: run.anchors.version)
-    queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(policy=policy_for(config.schedule), triage=True)
-    triage = Triage(queue, tracker, config, stats, outputs.republish, lambda p, reason: outputs.freed.append(reason))
-    worker = FrameWorker(
-        queue,
-        run,
-        FrameHistory(2),
-        stats,
-        SourceTracker(8, 60),
-        config,
-        outputs.publish,
-        progress=progress,
-        triage=triage,
-    )
-    return worker, queue, stats, outputs
+class Answers:
+    """What the assembled runtime's sinks were given: maps inferred, maps reused (``computed_from`` set) and the
+    reasons of the credits granted without taking the frame (unchanged, refresh)."""
+
+    def __init__(self, sink: RecordingSink, credits: RecordingCredits) -> None:
+        self.sink, self.credits = sink, credits
+
+    @property
+    def inferred(self) -> list[MapsMessage]:
+        return [maps for maps in self.sink.maps() if maps.header.computed_from is None]
+
+    @property
+    def reused(self) -> list[MapsMessage]:
+        return [maps for maps in self.sink.maps() if maps.header.computed_from is not None]
+
+    @property
+    def freed(self) -> list[str]:
+        return [grant.reason for grant in self.credits.grants if grant.reason != "taken"]
+
+
+def serving(run: Pipeline | None = None, **settings: object):  # type: ignore[no-untyped-def]
+    """The runtime as the service assembles it (the glance, the need share, the worker, the hand-off out)."""
+    runtime, sink, credits = assembled(ServiceSettings.model_validate(settings), run)
+    return runtime.worker, runtime.queue, runtime.stats, Answers(sink, credits)
 
 
 def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
@@ -76,7 +74,7 @@ def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
     assert condition()
 
 
-def feed(queue: LatestFrameQueue[PendingFrame], outputs: Outputs, frames: list[np.ndarray], source: str = "r1") -> None:
+def feed(queue: LatestFrameQueue[PendingFrame], outputs: Answers, frames: list[np.ndarray], source: str = "r1") -> None:
     """One frame at a time, each answered (inferred or reused) before the next: a robot on credits."""
 
     def answered() -> int:
@@ -180,8 +178,8 @@ def test_a_hung_inference_is_seen_while_parked_views_are_still_answered() -> Non
         return infer(image)
 
     run.infer = hanging_infer  # type: ignore[method-assign]
-    progress = ProgressMonitor(stall_after_s=0.3)
-    worker, queue, _, outputs = serving(progress=progress, run=run)
+    worker, queue, _, outputs = serving(run=run, stall_after_s=0.3)
+    progress = worker.progress
     worker.start()
     view, stalled = scene(), []
     try:
