@@ -7,7 +7,9 @@ wall clock, publishing its pose at 50 Hz and a PNG frame at 5 Hz, each frame sta
 held 0.8 s in a delay queue before it is published (a slow link): poses keep flowing meanwhile, so every frame
 reaches fusion at least 0.8 s after its capture, with the robot 0.8 m further on. A 1 m square of water lies on
 paved ground at known coordinates; the grids the client receives must put it there (centroid of the cells
-with T < 0.5 within 0.3 m), not ``speed x latency`` ahead, as fusing at the newest pose did.
+with T < 0.5 within 0.3 m), not ``speed x latency`` ahead, as fusing at the newest pose did. Also with every
+other frame 0.3 s later (frames out of order), and with the pose stream 0.2 s behind the frames (each frame
+waits for its pose, ``poses.wait_s``).
 
 Placement is asserted, not timing: a loaded machine adds latency (the capture pose still holds) and may drop
 frames (the queue keeps the newest).
@@ -38,7 +40,7 @@ from tools.synthetic_scene import Hazard, SceneBackend, SceneCamera, hazard_imag
 CAMERA, POSE_KEY = "robot/cam", "robot/pose"
 SPEED_MPS, POSE_HZ, FRAME_HZ, LATENCY_S = 1.0, 50.0, 5.0, 0.8
 DRIVE_S = 3.0  # frames are captured for this long, from the start
-AHEAD_M = 1.6  # the hazard's centre ahead of where the captures end: every frame sees all of it
+AHEAD_M = 1.6  # the hazard's centre ahead of where the captures end: the last frames see all of it
 TOLERANCE_M = 0.3
 Path2D = Callable[[float], tuple[float, float, float]]
 
