@@ -42,6 +42,7 @@ SPEED_MPS, POSE_HZ, FRAME_HZ, LATENCY_S = 1.0, 50.0, 5.0, 0.8
 DRIVE_S = 3.0  # frames are captured for this long, from the start
 AHEAD_M = 1.6  # the hazard's centre ahead of where the captures end: the last frames see all of it
 TOLERANCE_M = 0.3
+QUIET_S = 1.5  # no grid for this long after the last frame's link: the service has done
 Path2D = Callable[[float], tuple[float, float, float]]
 
 
@@ -170,8 +171,11 @@ def drive_past(
         assert wait_until(lambda: robot.poses.matching_status.matching, 10), "the service's pose subscriber is unseen"
         robot.run()
         time.sleep(DRIVE_S + max(link.frame(len(robot.captured)), link.pose_s))  # the captures, the last's link
-        # Its grid, or a bounded wait: on a loaded machine the service may have dropped it for a newer frame.
-        wait_until(lambda: any(r.grid.header.capture_stamp == robot.captured[-1] for r in received), 10.0, 0.1)
+        # Its grid, or until the grids stop coming: on a loaded machine the service may have dropped it (the
+        # queue keeps the newest frame).
+        last = robot.captured[-1]
+        quiet = lambda: bool(received) and time.time() - received[-1].at > QUIET_S  # noqa: E731
+        wait_until(lambda: any(r.grid.header.capture_stamp == last for r in received) or quiet(), 10.0, 0.1)
     finally:
         robot.stop()
         subscriber.undeclare()
