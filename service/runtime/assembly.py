@@ -179,7 +179,7 @@ def _schedule(
     reuse = ReuseTracker(
         settings.reuse,
         settings.schedule,
-        grids.pose_of if grids else lambda source: None,
+        grids.pose_of if grids else lambda source, stamp: None,
         anchors_version=lambda: switch.head().version,
     )
     queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(

@@ -120,10 +120,15 @@ class GridOutputs:
         grid.poses.add(pose, now)
         grid.health.pose_received_at = now
 
-    def pose_of(self, camera: str) -> Pose2D | None:
-        """The newest pose of the robot carrying camera ``camera`` (its grid's pose stream); None: unknown."""
+    def pose_of(self, camera: str, stamp: float | None = None) -> Pose2D | None:
+        """The pose of the robot carrying camera ``camera`` (its grid's pose stream) when its frame stamped
+        ``stamp`` was taken (looked up, never waited for); the newest where the stream has none there (it lags,
+        or a bare image: ``stamp`` None); None: unknown."""
         grid = self.camera_grids.get(camera)
-        return None if grid is None else grid.pose
+        if grid is None:
+            return None
+        at = grid.poses.at(stamp).pose if stamp is not None else None
+        return at if at is not None else grid.pose
 
     def set_mount(self, camera_source: str, mount: CameraMount, origin: str) -> None:
         """Camera ``camera_source``'s mount in the base frame, from ``origin`` ("settings" or "tf"); the next
