@@ -63,7 +63,7 @@ def _starts_a_msgpack_map(payload: bytes) -> bool:
 
 def input_kind(payload: bytes, encoding: str) -> InputKind:
     """What an input payload is: a bare image file or an ImageEnvelope (msgpack). The one rule of intake, the
-    age peek (service/runtime/frame_age.py) and the decoder: an image file's signature first (it cannot start
+    age peek (service/runtime/intake/frame_age.py) and the decoder: an image file's signature first (it cannot start
     an envelope, so it wins over a wrong encoding), then the zenoh encoding when set (``image/*`` or
     ``application/msgpack``), then a msgpack map's first byte; anything else is taken as an image and the
     decoder says why it is not one."""

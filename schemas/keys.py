@@ -18,7 +18,7 @@ A service with prefix ``gcdtrav`` (the default) answers and publishes on:
   {prefix}/status                            queryable: ServiceStatus
   {prefix}/alive/{instance}                  liveliness token
   {prefix}/member/{instance}/{fingerprint}/{state}/{millis}  liveliness token: the instance's model fingerprint and
-                                             whether it serves (service/runtime/fleet_models.py); since 1.4
+                                             whether it serves (service/runtime/fleet/fleet_models.py); since 1.4
   {prefix}/active/{instance}/{millis}/{version}  liveliness token: the instance's active anchor set, accepted at
                                              {millis} (ms since epoch); the fleet converges to the newest
   {prefix}/credit/{source}                   CreditGrant: the source's owner is ready for its next frame

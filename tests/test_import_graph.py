@@ -51,7 +51,8 @@ def test_the_layer_table_is_a_hierarchy() -> None:
         for layer in reachable:
             reachable[layer] |= {far for near in reachable[layer] for far in reachable[near]}
     assert all(layer not in below for layer, below in reachable.items())
-    assert layer_of("gcdtrav.service.runtime.grids.state") == "gcdtrav.service.runtime"
+    assert layer_of("gcdtrav.service.runtime.grids.state") == "gcdtrav.service.runtime.grids"
+    assert layer_of("gcdtrav.service.runtime.worker") == "gcdtrav.service.runtime"
     assert layer_of("gcdtrav.service.pipeline") == "gcdtrav.service.pipeline"
     assert layer_of("gcdtrav.client.commands.view") == "gcdtrav.client"
     assert layer_of("gcdtrav.elsewhere") is None

@@ -32,7 +32,7 @@ def hang_while_flagged(flag: Path) -> None:
 
 
 def fail_writes_under(directory: Path) -> None:
-    from gcdtrav.service.runtime import anchor_switch, state
+    from gcdtrav.service.runtime.fleet import anchor_switch, state
 
     real_write = state.write_atomically
 

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 MAX_CREDIT_TIMEOUT_S = 30.0
 TIMEOUT_STRETCH = 3.0  # times the usual wait for a credit before it counts as lost
 RATE_WINDOW_S = 10.0
-CAMERA_CLOCK_WINDOW_S = 30.0  # the service's clock window (service/runtime/clock_offset.py WINDOW_S)
+CAMERA_CLOCK_WINDOW_S = 30.0  # the service's clock window (service/runtime/intake/clock_offset.py WINDOW_S)
 
 
 class CreditWindow:

@@ -86,7 +86,7 @@ def checkpoint_digests(checkpoint: Path) -> dict[str, str]:
 
 def model_fingerprint(checkpoint: Path | None) -> str:
     """16 hex digits that differ between checkpoints: a hash over the config and the weight files' hashes.
-    Instances compare it (service/runtime/fleet_models.py); "" when the checkpoint's files are not found."""
+    Instances compare it (service/runtime/fleet/fleet_models.py); "" when the checkpoint's files are not found."""
     digests = checkpoint_digests(checkpoint) if checkpoint is not None else {}
     return hashlib.sha256(json.dumps(digests, sort_keys=True).encode()).hexdigest()[:16] if digests else ""
 

@@ -2,7 +2,7 @@
 
 Each instance holds one liveliness token ``{prefix}/active/{instance}/{millis}/{version}`` for its active
 set (re-declared after every swap) and watches everyone's (with history: a new or rejoining instance sees
-the current sets at once). When another instance announces a newer set (``service/runtime/fleet_anchors.py``
+the current sets at once). When another instance announces a newer set (``service/runtime/fleet/fleet_anchors.py``
 decides), this one fetches it from that instance's ``config/anchors/history`` reply and swaps to it on the
 AnchorSwitch's worker, keeping its accepted_at. No consensus of our own: zenoh's liveliness and queries.
 """
@@ -17,8 +17,8 @@ from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply, MessageError
 from gcdtrav.service.bus.entities import undeclare_all
-from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
-from gcdtrav.service.runtime.fleet_anchors import ActiveSet, FleetAnchors
+from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
+from gcdtrav.service.runtime.fleet.fleet_anchors import ActiveSet, FleetAnchors
 
 log = logging.getLogger("gcdtrav.service")
 FETCH_TIMEOUT_S = 5.0

@@ -1,4 +1,4 @@
-"""Puts the credit ledger's grants (service/runtime/credits.py, ``Credits``) on ``{prefix}/credit/{source}``.
+"""Puts the credit ledger's grants (service/runtime/fleet/credits.py, ``Credits``) on ``{prefix}/credit/{source}``.
 
 A grant is tiny and worth more than a map: it goes with priority INTERACTIVE_HIGH, ahead of the maps waiting
 in the same link's queue, and express (not batched). It is published whether or not a relay listens: a
@@ -20,7 +20,7 @@ log = logging.getLogger("gcdtrav.service")
 
 
 class CreditPublisher:
-    """The runtime's ``CreditSink`` (service/runtime/credits.py): one express publisher per source."""
+    """The runtime's ``CreditSink`` (service/runtime/fleet/credits.py): one express publisher per source."""
 
     def __init__(self, session: zenoh.Session, keys: Keys) -> None:
         self.session, self.keys = session, keys

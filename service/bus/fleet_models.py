@@ -1,7 +1,7 @@
 """The model each instance runs, on the bus: advertise this one's, learn the others', refuse a stray model.
 
 Each instance holds one liveliness token ``{prefix}/member/{instance}/{fingerprint}/{state}/{millis}``
-(re-declared when its state changes) and watches everyone's, with history. ``service/runtime/fleet_models.py``
+(re-declared when its state changes) and watches everyone's, with history. ``service/runtime/fleet/fleet_models.py``
 decides from them who takes no sources; ``Membership`` leaves those out of the assignment table.
 """
 
@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterable
 import zenoh
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.service.bus.entities import undeclare_all
-from gcdtrav.service.runtime.fleet_models import (
+from gcdtrav.service.runtime.fleet.fleet_models import (
     HELD,
     MIXED,
     FleetModelsStatus,

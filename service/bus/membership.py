@@ -1,4 +1,4 @@
-"""Which live instance serves which source: liveliness tokens in, ``service/runtime/assignment.py`` decides.
+"""Which live instance serves which source: liveliness tokens in, ``service/runtime/fleet/assignment.py`` decides.
 
 Every instance declares ``{prefix}/alive/{instance}`` and watches the others' tokens; each computes the same
 bounded-load table from the live instances and the sources it sees on the inputs, with no coordinator.
@@ -18,7 +18,7 @@ import zenoh
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.service.bus.entities import undeclare_all
 from gcdtrav.service.bus.fleet_models import FleetModels
-from gcdtrav.service.runtime.assignment import Assignment, owner_of, weight
+from gcdtrav.service.runtime.fleet.assignment import Assignment, owner_of, weight
 
 log = logging.getLogger("gcdtrav.service")
 __all__ = ["Membership", "owner_of", "weight"]

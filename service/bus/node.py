@@ -34,9 +34,9 @@ from gcdtrav.service.experience.service import service_experience
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.assembly import Runtime
+from gcdtrav.service.runtime.fleet.state_lock import StateLock
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.metrics import MetricsSources, ServiceMetrics
-from gcdtrav.service.runtime.state_lock import StateLock
 from gcdtrav.service.runtime.stats import ServiceStats
 
 log = logging.getLogger("gcdtrav.service")

@@ -13,8 +13,8 @@ from gcdtrav.schemas.messages import AnchorSetRejection, AnchorSetReply
 from gcdtrav.schemas.settings import RiskSettings
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus.guard import guarded
-from gcdtrav.service.runtime.anchor_switch import AnchorSwitch, SwapDone
 from gcdtrav.service.runtime.errors import QueryError
+from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch, SwapDone
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.queries import PATCH_FORMS, answer_patch_query, parse_number, strict_parameters

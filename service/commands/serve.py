@@ -16,7 +16,7 @@ from gcdtrav.schemas.settings import ServiceSettings, SettingsError
 from gcdtrav.service.backends.cpus import set_torch_threads, usable_cpus
 from gcdtrav.service.commands.metrics_http import metrics_endpoint
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.runtime.state import load_anchor_state
+from gcdtrav.service.runtime.fleet.state import load_anchor_state
 
 log = logging.getLogger("gcdtrav.service")
 MEASUREMENT_STOP_S = 5.0  # at shutdown, how long a background measurement may take to reach its next mode

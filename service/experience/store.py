@@ -33,7 +33,7 @@ from gcdtrav.service.experience.calibration import calibration_figures
 from gcdtrav.service.experience.fitter import FitOptions, propose
 from gcdtrav.service.experience.pairs import Pairs, concept_key
 from gcdtrav.service.experience.snapshots import SnapshotRing
-from gcdtrav.service.runtime.state import remove_stale_temporaries, write_atomically
+from gcdtrav.service.runtime.fleet.state import remove_stale_temporaries, write_atomically
 
 log = logging.getLogger("gcdtrav.service")
 

@@ -19,7 +19,7 @@ than the newest by more than ``span_s`` means the stream's clock stepped back (a
 start, a simulator reset): the buffer restarts from it. So does a pose in another frame than the buffer's
 (the odometry frame changed; poses of two frames do not interpolate). Stamps are the pose stream's clock,
 which the lookups assume is the frames' (both the robot's, docs/grid.md). With each pose's receipt on the
-service's clock, ``offset_s`` is the stream's clock as service/runtime/clock_offset.py learns a source's:
+service's clock, ``offset_s`` is the stream's clock as service/runtime/intake/clock_offset.py learns a source's:
 the smallest delay (receipt minus stamp) of the poses held, the clock offset plus the link's smallest delay.
 """
 

@@ -18,23 +18,23 @@ from typing import Protocol
 
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.runtime.admission import Admission
-from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
-from gcdtrav.service.runtime.assignment import Assignment
-from gcdtrav.service.runtime.credits import CreditLedger, Credits, CreditSink
+from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
+from gcdtrav.service.runtime.fleet.assignment import Assignment
+from gcdtrav.service.runtime.fleet.credits import CreditLedger, Credits, CreditSink
 from gcdtrav.service.runtime.frames import PendingFrame
-from gcdtrav.service.runtime.freshness import FrameGate, Freshness
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.grids.outputs import AfterFusion
 from gcdtrav.service.runtime.history import FrameHistory
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.intake.admission import Admission
+from gcdtrav.service.runtime.intake.freshness import FrameGate, Freshness
+from gcdtrav.service.runtime.intake.sources import SourceTracker
 from gcdtrav.service.runtime.outputs import FramePublisher, OutputBuilder, OutputSink
 from gcdtrav.service.runtime.progress import ProgressMonitor
-from gcdtrav.service.runtime.reuse import ReuseTracker, Triage
-from gcdtrav.service.runtime.share import policy_for
-from gcdtrav.service.runtime.sources import SourceTracker
+from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.schedule.share import policy_for
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
+from gcdtrav.service.runtime.triage.reuse import ReuseTracker, Triage
 from gcdtrav.service.runtime.worker import FrameWorker
 
 log = logging.getLogger("gcdtrav.service")

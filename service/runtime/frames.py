@@ -25,7 +25,7 @@ class PendingFrame:
     ros: RosTopic | None = None  # set for CDR payloads from ROS 2 inputs
     stamp: float | None = None  # capture, read at intake without decoding (None: a bare image, or unreadable)
     sent_at: float | None = None  # the envelope's sent_at (a relay's clock), echoed in the credit
-    lag_s: float | None = None  # judged at intake (service/runtime/freshness.py); None: no usable stamp
+    lag_s: float | None = None  # judged at intake (service/runtime/intake/freshness.py); None: no usable stamp
 
 
 @dataclass(frozen=True)

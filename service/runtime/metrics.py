@@ -81,7 +81,7 @@ class MetricsSources:
     """What the collector reads at scrape time, each from its owner."""
 
     status: Callable[[], ServiceStatus]  # the status query's answer (service/runtime/status.py)
-    owned: Callable[[], int]  # sources this instance serves in the fleet's table (service/runtime/assignment.py)
+    owned: Callable[[], int]  # sources this instance serves in the fleet's table (service/runtime/fleet/assignment.py)
     max_frame_age_s: float | None  # the freshness limit the map-age alert compares with
     calibration: Callable[[], CalibrationFigures | None] | None = None  # None: experience off
 

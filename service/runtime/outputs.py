@@ -31,9 +31,9 @@ from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import CompactMapsMessage, MapsHeader, MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros import cdr as ros_io
-from gcdtrav.service.runtime.change import Glance
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.grids import FusedGrid, GridUpdate
+from gcdtrav.service.runtime.triage.change import Glance
 from numpy.typing import NDArray
 
 Encoding = Literal["msgpack", "jpeg", "cdr"]

@@ -12,8 +12,8 @@ from typing import Protocol
 
 import numpy as np
 from gcdtrav.schemas.messages import SourceStatus
-from gcdtrav.service.runtime.latest_queue import QueueCounters
-from gcdtrav.service.runtime.share import Share
+from gcdtrav.service.runtime.schedule.latest_queue import QueueCounters
+from gcdtrav.service.runtime.schedule.share import Share
 
 LATENCY_WINDOW = 1000
 RATE_WINDOW_S = 10.0
@@ -175,7 +175,7 @@ class ServiceStats:
 
     def intake(self, name: str, nbytes: int, age_s: float | None) -> None:
         """A frame of ``name`` reached the service: its bytes and, when stamped, its age at intake (its lag,
-        service/runtime/freshness.py)."""
+        service/runtime/intake/freshness.py)."""
         with self._lock:
             stats = self.sources.setdefault(name, SourceStats())
             stats.arrivals.append((time.monotonic(), nbytes))
@@ -282,7 +282,7 @@ class ServiceStats:
         shares: Mapping[str, Share] | None = None,
     ) -> StatsSnapshot:
         """Per source: the queue's counts (received, dropped) with this object's (processed, rejected, latency),
-        its clock's offset as learnt (service/runtime/clock_offset.py) and the scheduler's weight and share."""
+        its clock's offset as learnt (service/runtime/intake/clock_offset.py) and the scheduler's weight and share."""
         offsets, shares = clock_offsets or {}, shares or {}
         with self._lock:
             sources = {

@@ -8,14 +8,14 @@ from typing import Any
 
 from gcdtrav.schemas.messages import ExperienceStatus, ServiceStatus
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
-from gcdtrav.service.runtime.clock_offset import ClockOffsets
-from gcdtrav.service.runtime.fleet_models import FleetModelsStatus
+from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
+from gcdtrav.service.runtime.fleet.fleet_models import FleetModelsStatus
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.intake.clock_offset import ClockOffsets
+from gcdtrav.service.runtime.intake.sources import SourceTracker
 from gcdtrav.service.runtime.progress import ProgressMonitor
-from gcdtrav.service.runtime.sources import SourceTracker
+from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.stats import ServiceStats
 
 

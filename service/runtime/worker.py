@@ -19,17 +19,17 @@ from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.backends.cpus import usable_cpus
 from gcdtrav.service.pipeline import FrameResult, Pipeline
 from gcdtrav.service.ros import cdr as ros_io
-from gcdtrav.service.runtime.admission import Admission
-from gcdtrav.service.runtime.change import Glance
 from gcdtrav.service.runtime.frames import InferredFrame, PendingFrame, ProcessedFrame
-from gcdtrav.service.runtime.freshness import Dropped, FrameGate, Freshness, check_stamp
 from gcdtrav.service.runtime.grids import FusedGrid, GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory, FrameRecord
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.intake.admission import Admission
+from gcdtrav.service.runtime.intake.freshness import Dropped, FrameGate, Freshness, check_stamp
+from gcdtrav.service.runtime.intake.sources import SourceTracker
 from gcdtrav.service.runtime.progress import ProgressMonitor
-from gcdtrav.service.runtime.reuse import Triage
-from gcdtrav.service.runtime.sources import SourceTracker
+from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.runtime.triage.change import Glance
+from gcdtrav.service.runtime.triage.reuse import Triage
 
 log = logging.getLogger("gcdtrav.service")
 _R = TypeVar("_R")

@@ -76,7 +76,7 @@ def test_every_input_form_is_told_apart_under_every_encoding(
     """Decoder and age peek agree, and each form decodes to its pixels, whatever the encoding says, as long
     as it does not contradict a form that has no signature (see the next test)."""
     from gcdtrav.schemas.inputs import input_kind
-    from gcdtrav.service.runtime.frame_age import input_times
+    from gcdtrav.service.runtime.intake.frame_age import input_times
 
     encoding = {"set": right, "wrong": wrong}.get(encoding_case, encoding_case)
     kind = "envelope" if name.startswith("envelope") else "image"

@@ -12,8 +12,8 @@ from conftest import textured_image
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.service.runtime.errors import QueryError
 from gcdtrav.service.runtime.history import FrameHistory, FrameRecord
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue, PendingBudgetExceeded
-from gcdtrav.service.runtime.sources import SWEEP_INTERVAL_S, SourceTracker
+from gcdtrav.service.runtime.intake.sources import SWEEP_INTERVAL_S, SourceTracker
+from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.runtime.stats import REFUSED_SOURCES
 from zenoh_helpers import connecting_config, service_reachable, wait_until
 

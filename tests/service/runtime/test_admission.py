@@ -7,8 +7,8 @@ import pytest
 from fakes import assembled, image
 from gcdtrav.schemas.images import encode_png
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.runtime.candidates import CandidatePool, over_publisher_cap
-from gcdtrav.service.runtime.sources import SourcesFull, SourceTracker
+from gcdtrav.service.runtime.intake.candidates import CandidatePool, over_publisher_cap
+from gcdtrav.service.runtime.intake.sources import SourcesFull, SourceTracker
 from gcdtrav.service.runtime.stats import REFUSED_SOURCES
 
 PNG = encode_png(image(16, 16))

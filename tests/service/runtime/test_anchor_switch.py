@@ -14,8 +14,8 @@ from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_se
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.service.backends.base import BackendDescription
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
-from gcdtrav.service.runtime.state import load_anchor_state
+from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
+from gcdtrav.service.runtime.fleet.state import load_anchor_state
 from numpy.typing import NDArray
 
 TWO = AnchorSet.model_validate(
@@ -125,7 +125,7 @@ def test_a_crash_between_the_history_and_the_state_file_restarts_consistent(swit
     def killed(*_: object) -> None:
         raise Killed
 
-    monkeypatch.setattr("gcdtrav.service.runtime.anchor_switch.save_anchor_state", killed)
+    monkeypatch.setattr("gcdtrav.service.runtime.fleet.anchor_switch.save_anchor_state", killed)
     with pytest.raises(Killed):
         switch.swap(TWO)
     monkeypatch.undo()
@@ -141,15 +141,15 @@ def test_a_refused_write_refuses_the_swap_and_survives_a_restart(switch, monkeyp
     set, and a restart serves the set that was active, never the refused one."""
     switch, pipeline, _ = switch
     before = pipeline.anchors
-    real_write = __import__("gcdtrav.service.runtime.state", fromlist=["x"]).write_atomically
+    real_write = __import__("gcdtrav.service.runtime.fleet.state", fromlist=["x"]).write_atomically
 
     def full_disk(path: Path, text: str) -> None:
         if (failing == "history") == (path == switch.history_file):
             raise OSError(28, "No space left on device")
         real_write(path, text)
 
-    monkeypatch.setattr("gcdtrav.service.runtime.anchor_switch.write_atomically", full_disk)
-    monkeypatch.setattr("gcdtrav.service.runtime.state.write_atomically", full_disk)
+    monkeypatch.setattr("gcdtrav.service.runtime.fleet.anchor_switch.write_atomically", full_disk)
+    monkeypatch.setattr("gcdtrav.service.runtime.fleet.state.write_atomically", full_disk)
     anchors, error, _ = swap_and_wait(switch.submit, TWO.model_dump_json().encode())
     monkeypatch.undo()
     assert anchors is None and isinstance(error, OSError)

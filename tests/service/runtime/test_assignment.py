@@ -7,7 +7,7 @@ from collections import Counter
 
 import pytest
 from fakes import Clock
-from gcdtrav.service.runtime.assignment import Assignment, assign, owner_of
+from gcdtrav.service.runtime.fleet.assignment import Assignment, assign, owner_of
 
 README_ROBOTS = [f"r{i}/front" for i in range(8)]
 

@@ -9,8 +9,8 @@ import pytest
 from gcdtrav.schemas.images import decode_image
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding, Pose2D
 from gcdtrav.schemas.settings.share import ReuseSettings
-from gcdtrav.service.runtime.change import glance, moved_fraction, pose_moved, pose_speeds, thumbnail_of_rgb
 from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.service.runtime.triage.change import glance, moved_fraction, pose_moved, pose_speeds, thumbnail_of_rgb
 from scenes import flicker, jpeg_frame, noisy, scene, with_person
 
 SETTINGS = ReuseSettings()

@@ -10,8 +10,8 @@ from dataclasses import dataclass
 
 import pytest
 from gcdtrav.schemas.inputs import RejectedInput
-from gcdtrav.service.runtime.clock_offset import STEP_HOLD_S, WINDOW_S, ClockOffsets
-from gcdtrav.service.runtime.freshness import Dropped, Freshness
+from gcdtrav.service.runtime.intake.clock_offset import STEP_HOLD_S, WINDOW_S, ClockOffsets
+from gcdtrav.service.runtime.intake.freshness import Dropped, Freshness
 
 HOUR = 3600.0
 FPS = 15.0

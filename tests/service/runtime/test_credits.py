@@ -6,8 +6,8 @@ import msgpack
 import pytest
 from gcdtrav.schemas.messages import CreditGrant, ImageEnvelope
 from gcdtrav.schemas.ros_image import compressed_image_cdr, peek_stamp
-from gcdtrav.service.runtime.credits import REFUSED, STALE, TAKEN, CreditLedger, FrameTimes
-from gcdtrav.service.runtime.frame_age import input_times
+from gcdtrav.service.runtime.fleet.credits import REFUSED, STALE, TAKEN, CreditLedger, FrameTimes
+from gcdtrav.service.runtime.intake.frame_age import input_times
 
 
 def ledger(**kw: object) -> CreditLedger:

@@ -14,8 +14,8 @@ from fakes import pipeline
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.commands.serve import starting_anchor_set
-from gcdtrav.service.runtime import state
-from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
+from gcdtrav.service.runtime.fleet import state
+from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
 
 TWO = AnchorSet.model_validate(
     {"anchors": [{"concept": "water", "position": 0.0}, {"concept": "road", "position": 1.0}]}

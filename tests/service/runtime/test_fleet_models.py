@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 from gcdtrav.schemas.settings import SettingsError
-from gcdtrav.service.runtime.fleet_models import HELD, MIXED, SERVING, Member, decide, own_state, reference_of
-from gcdtrav.service.runtime.state_lock import StateLock
+from gcdtrav.service.runtime.fleet.fleet_models import HELD, MIXED, SERVING, Member, decide, own_state, reference_of
+from gcdtrav.service.runtime.fleet.state_lock import StateLock
 
 
 def members(*items: Member) -> dict[str, Member]:

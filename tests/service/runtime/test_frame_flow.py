@@ -10,9 +10,9 @@ import numpy as np
 from fakes import assembled, png_frame, processed
 from gcdtrav.schemas.messages import GridMessage
 from gcdtrav.schemas.settings import ReuseSettings, ServiceSettings
-from gcdtrav.service.runtime.change import Glance
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.outputs import FramePublisher, Output, OutputBuilder
+from gcdtrav.service.runtime.triage.change import Glance
 
 LOG = __import__("logging").getLogger("test")
 GRID = {

@@ -12,7 +12,7 @@ from gcdtrav.schemas.inputs import DecodedFrame, RejectedInput
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.runtime.frames import PendingFrame
-from gcdtrav.service.runtime.freshness import ClockMode, Dropped, FrameGate, Freshness, check_stamp
+from gcdtrav.service.runtime.intake.freshness import ClockMode, Dropped, FrameGate, Freshness, check_stamp
 
 LOG = __import__("logging").getLogger("test")
 

@@ -13,8 +13,8 @@ from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
 from gcdtrav.schemas.ros_image import compressed_image_cdr
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros.cdr import RosTopic
-from gcdtrav.service.runtime.credits import REFUSED, STALE
-from gcdtrav.service.runtime.intake_rate import MAX_PUBLISHERS, IntakeRate
+from gcdtrav.service.runtime.fleet.credits import REFUSED, STALE
+from gcdtrav.service.runtime.intake.intake_rate import MAX_PUBLISHERS, IntakeRate
 
 HOUR = 3600.0
 RGB = image(16, 16)

@@ -11,10 +11,10 @@ import pytest
 from fakes import Clock, pipeline
 from gcdtrav.schemas.experience import CalibrationFigures
 from gcdtrav.schemas.settings import SettingsError, load_settings
-from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
-from gcdtrav.service.runtime.clock_offset import ClockOffsets
+from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.history import FrameHistory
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.intake.clock_offset import ClockOffsets
+from gcdtrav.service.runtime.intake.sources import SourceTracker
 from gcdtrav.service.runtime.metrics import (
     CALIBRATION_EVERY_S,
     HELP,
@@ -23,7 +23,7 @@ from gcdtrav.service.runtime.metrics import (
     ThrottledCalibration,
 )
 from gcdtrav.service.runtime.progress import ProgressMonitor
-from gcdtrav.service.runtime.sources import SourceTracker
+from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.stats import REFUSED_SOURCES, ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
 from prometheus_client import generate_latest

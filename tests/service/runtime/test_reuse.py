@@ -10,10 +10,11 @@ from fakes import Clock
 from gcdtrav.schemas.images import decode_image
 from gcdtrav.schemas.messages import Pose2D
 from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
-from gcdtrav.service.runtime.change import glance
 from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.grids import GridOutputs
-from gcdtrav.service.runtime.reuse import (
+from gcdtrav.service.runtime.schedule.share import Claim, FrameClass, Need
+from gcdtrav.service.runtime.triage.change import glance
+from gcdtrav.service.runtime.triage.reuse import (
     ANCHORS,
     CHANGED,
     FIRST,
@@ -24,7 +25,6 @@ from gcdtrav.service.runtime.reuse import (
     ReuseTracker,
     Verdict,
 )
-from gcdtrav.service.runtime.share import Claim, FrameClass, Need
 from scenes import flicker, jpeg_frame, noisy, scene, with_person
 
 from benchmarks.placement import CAMERA, grid_settings, scene_camera

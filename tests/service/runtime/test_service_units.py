@@ -15,8 +15,8 @@ from gcdtrav.schemas.inputs import RejectedInput, decode_payload
 from gcdtrav.schemas.keys import input_source_of, literal_head
 from gcdtrav.schemas.messages import ImageEnvelope, MapsMessage, MessageError, PixelEncoding
 from gcdtrav.schemas.settings import SettingsError, load_settings
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
-from gcdtrav.service.runtime.state import load_anchor_state, save_anchor_state, write_atomically
+from gcdtrav.service.runtime.fleet.state import load_anchor_state, save_anchor_state, write_atomically
+from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 
 LIMITS = {"received_at": 1.0, "max_bytes": 10_000_000, "max_pixels": 10_000_000}
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from fakes import Clock
 from gcdtrav.schemas.settings.share import ScheduleSettings
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
-from gcdtrav.service.runtime.share import (
+from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.schedule.share import (
     Claim,
     FrameClass,
     Need,

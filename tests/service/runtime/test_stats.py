@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 
 import pytest
-from gcdtrav.service.runtime.freshness import Freshness
+from gcdtrav.service.runtime.intake.freshness import Freshness
 from gcdtrav.service.runtime.stats import ServiceStats
 
 

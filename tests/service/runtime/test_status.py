@@ -10,12 +10,12 @@ from fakes import Clock, pipeline
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.config import Method
 from gcdtrav.service.backends.base import BackendDescription
-from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
-from gcdtrav.service.runtime.clock_offset import ClockOffsets
+from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.history import FrameHistory
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.intake.clock_offset import ClockOffsets
+from gcdtrav.service.runtime.intake.sources import SourceTracker
 from gcdtrav.service.runtime.progress import ProgressMonitor
-from gcdtrav.service.runtime.sources import SourceTracker
+from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
 

@@ -9,7 +9,7 @@ from fakes import assembled, offer, pipeline, png_frame
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.backends.cpus import usable_cpus
 from gcdtrav.service.runtime.frames import PendingFrame
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.stats import ServiceStats
 
 LOG = __import__("logging").getLogger("test")

@@ -16,14 +16,14 @@ from fakes import Clock, RecordingCredits, RecordingSink, assembled, pipeline, p
 from gcdtrav.schemas.messages import MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.pipeline import Inference, Pipeline
-from gcdtrav.service.runtime.change import Glance
 from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.grids import GridOutputs
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.outputs import OutputBuilder
-from gcdtrav.service.runtime.reuse import ReuseTracker, Triage
-from gcdtrav.service.runtime.share import Claim, FrameClass, policy_for
+from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.schedule.share import Claim, FrameClass, policy_for
 from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.runtime.triage.change import Glance
+from gcdtrav.service.runtime.triage.reuse import ReuseTracker, Triage
 from scenes import jpeg_frame, noisy, scene, with_person
 
 LOG = __import__("logging").getLogger("test")

@@ -4,7 +4,7 @@ A source is a name taken from an input key, so any peer can invent new ones (a r
 under a new name, a hostile host on the LAN). Everything the service keeps per source (pending frame,
 history, counters, publishers) is kept only for admitted sources: at most ``max_sources`` at once, each
 forgotten after ``idle_s`` without a frame. A source is admitted (``promote``) only once one of its frames
-decoded (service/runtime/candidates.py holds it until then). When the set is full, the slot of a source
+decoded (service/runtime/intake/candidates.py holds it until then). When the set is full, the slot of a source
 that sent a single frame and has been idle for ``reclaim_after_s`` is reclaimed, the idlest first (a flood
 of one-frame names that did decode); a source with two frames or more is never evicted to make room.
 """

@@ -1,7 +1,7 @@
 """New sources waiting for a frame that decodes: *candidates*. No middleware here.
 
 A source name costs nothing to invent, so a new name takes no slot of the SourceTracker until one of its
-frames decodes (service/runtime/sources.py). Until then its first frame waits in the queue like any other,
+frames decodes (service/runtime/intake/sources.py). Until then its first frame waits in the queue like any other,
 but candidates have their own small cap: a new one evicts the oldest, so a flood of invented names holds at
 most ``max_candidates`` pending frames and never blocks a real robot's first frame for long.
 

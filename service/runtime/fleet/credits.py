@@ -7,7 +7,7 @@ was refused at intake (stale, over a limit). The sender (``gcdtrav relay``) then
 at most one frame of the source is inferred and one waits. Lost credits are the sender's to recover (it sends
 after a timeout); the ledger only numbers and describes the grants.
 
-Credits follow the scheduler's shares (service/runtime/share.py): a frame to infer frees its slot when the
+Credits follow the scheduler's shares (service/runtime/schedule/share.py): a frame to infer frees its slot when the
 worker takes it, so a source's credits come at its share of the inference, a low-weight source's less often.
 A frame whose view had not changed frees it as soon as it is answered with the last maps (``unchanged``): a
 parked robot sends at its camera's rate, and a change is seen at its next frame. A view unchanged past

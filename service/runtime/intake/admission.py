@@ -1,9 +1,9 @@
 """What the subscriber callback checks before a frame takes any state, in order: the publisher's intake
-rate (``admit``, service/runtime/intake_rate.py: before anything of the sample is read, its key included),
-then (``offer``) the source's name, for a new source the candidates' caps (service/runtime/candidates.py),
+rate (``admit``, service/runtime/intake/intake_rate.py: before anything of the sample is read, its key included),
+then (``offer``) the source's name, for a new source the candidates' caps (service/runtime/intake/candidates.py),
 the payload's size (refused unread: never copied out of the middleware's buffer), the frame's age (its
-capture stamp, read without decoding by service/runtime/frame_age.py, judged by
-service/runtime/freshness.py) and the pending frames' byte budget. No middleware here: the bus hands over
+capture stamp, read without decoding by service/runtime/intake/frame_age.py, judged by
+service/runtime/intake/freshness.py) and the pending frames' byte budget. No middleware here: the bus hands over
 the publisher, the source, the size and a way to read.
 
 A tracked source's frame that is refused frees its slot at once: ``on_freed`` (the credits) hears of it.
@@ -21,14 +21,14 @@ from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.limits import MAX_SOURCE_CHARS
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros.cdr import RosTopic
-from gcdtrav.service.runtime.candidates import CandidatePool, over_publisher_cap
-from gcdtrav.service.runtime.credits import REFUSED, STALE, FrameTimes
-from gcdtrav.service.runtime.frame_age import input_times
+from gcdtrav.service.runtime.fleet.credits import REFUSED, STALE, FrameTimes
 from gcdtrav.service.runtime.frames import PendingFrame
-from gcdtrav.service.runtime.freshness import Dropped, Freshness
-from gcdtrav.service.runtime.intake_rate import IntakeRate
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue, PendingBudgetExceeded
-from gcdtrav.service.runtime.sources import SourcesFull, SourceTracker
+from gcdtrav.service.runtime.intake.candidates import CandidatePool, over_publisher_cap
+from gcdtrav.service.runtime.intake.frame_age import input_times
+from gcdtrav.service.runtime.intake.freshness import Dropped, Freshness
+from gcdtrav.service.runtime.intake.intake_rate import IntakeRate
+from gcdtrav.service.runtime.intake.sources import SourcesFull, SourceTracker
+from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.runtime.stats import ServiceStats
 
 

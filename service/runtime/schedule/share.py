@@ -1,6 +1,6 @@
 """Which source's frame is inferred next (issue 34). No zenoh here; the queue asks, under its lock.
 
-Every frame waiting for inference carries its claim (``Claim``), set by the glance (service/runtime/reuse.py)
+Every frame waiting for inference carries its claim (``Claim``), set by the glance (service/runtime/triage/reuse.py)
 or the queue: its class and its source's need at that glance. The classes:
 
 - **first**: a source's first frame (nothing received from it before; the queue says);

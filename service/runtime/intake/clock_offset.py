@@ -4,7 +4,7 @@ A frame's *delay* is its receipt here minus its capture stamp (the robot's clock
 minus robot) plus the time it took to get here. The smallest delay of a source's recent frames is
 offset + the link's smallest delay, so a frame's *lag*, its delay beyond that smallest one, is how much
 longer than the fastest frame it took: the age ``max_frame_age_s`` judges under ``clock: estimated``, whatever
-the two clocks read (service/runtime/freshness.py). Learnt per source:
+the two clocks read (service/runtime/intake/freshness.py). Learnt per source:
 
 - The smallest delay of the fresh frames of the last ``WINDOW_S`` of streaming: a new smallest one at once (a
   faster frame, or the robot's clock stepped forward), a larger one as older frames leave the window (drift, a

@@ -4,7 +4,7 @@ The one place ``max_frame_age_s``, ``max_stamp_skew_s`` and ``clock`` are judged
 A frame's age is its *lag* at intake plus the time since its receipt here:
 
 - ``clock: estimated`` (default): the lag is its delay beyond its source's smallest recent delay
-  (service/runtime/clock_offset.py), whatever the robot's clock reads; a robot whose clock is off by seconds
+  (service/runtime/intake/clock_offset.py), whatever the robot's clock reads; a robot whose clock is off by seconds
   or years is served, a link's backlog after an outage is still dropped.
 - ``clock: synced``: the lag is the service's clock minus the capture stamp, for fleets that guarantee NTP;
   a robot whose clock is off has its frames dropped ``stale`` (behind) or rejected ``skewed_stamp`` (ahead).
@@ -28,8 +28,8 @@ from typing import Literal
 
 from gcdtrav.schemas.inputs import DecodedFrame, RejectedInput
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.runtime.clock_offset import ClockOffsets, Reading, usable_stamp
 from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.service.runtime.intake.clock_offset import ClockOffsets, Reading, usable_stamp
 
 ClockMode = Literal["estimated", "synced"]
 WARN_INTERVAL_S = 5.0

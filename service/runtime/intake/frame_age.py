@@ -1,7 +1,7 @@
 """A frame's capture stamp and send time, read without decoding it (no pixels are touched).
 
 The stamp is the robot's clock (an envelope's ``stamp``, a ROS header's); how old that makes the frame is
-service/runtime/freshness.py's to judge. Bare JPEG/PNG inputs carry no stamp: their age is the time since
+service/runtime/intake/freshness.py's to judge. Bare JPEG/PNG inputs carry no stamp: their age is the time since
 their receipt.
 """
 

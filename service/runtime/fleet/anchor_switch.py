@@ -24,7 +24,7 @@ from pathlib import Path
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply, MessageError
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.runtime.state import (
+from gcdtrav.service.runtime.fleet.state import (
     remove_stale_temporaries,
     save_anchor_state,
     write_atomically,
@@ -53,7 +53,7 @@ class AnchorSwitch:
         self._history = load_history(self.history_file)
         if not self._history or self._history[0].version != pipeline.anchors.version:
             # The set it started with (rollback can return to it), never accepted in the fleet: accepted_at 0
-            # makes it lose to any accepted set another instance announces (service/runtime/fleet_anchors.py).
+            # makes it lose to any accepted set another instance announces (service/runtime/fleet/fleet_anchors.py).
             try:
                 self._remember(pipeline.anchors, accepted_at=0.0)
             except OSError as err:  # a full or read-only state dir: serve anyway, say so once

@@ -4,7 +4,7 @@ A robot publishes faster than a CPU infers. Keeping only the newest unprocessed 
 memory (sources x one payload) whatever the input rate, and serving sources in turn keeps one fast
 robot from starving the others.
 
-Which waiting source goes next is the ``policy``'s (service/runtime/share.py): round-robin (the source
+Which waiting source goes next is the ``policy``'s (service/runtime/schedule/share.py): round-robin (the source
 waiting longest), or a weighted share by need. It reads each ready frame's claim: its class (first, urgent,
 news, refresh) and its source's need. With ``triage`` on, a frame first arrives in the source's *arrival*
 slot, is glanced at (``take_untriaged``) and settled: reused (it leaves the queue, never inferred) or moved
@@ -23,7 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
-from gcdtrav.service.runtime.share import NEWS_CLAIM, Claim, FrameClass, RoundRobin, SharePolicy, Waiting
+from gcdtrav.service.runtime.schedule.share import NEWS_CLAIM, Claim, FrameClass, RoundRobin, SharePolicy, Waiting
 
 T = TypeVar("T")
 

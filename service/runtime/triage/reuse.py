@@ -3,7 +3,7 @@ that applies them (``Triage``). No zenoh here: reused maps leave through ``repub
 
 Each queued frame is looked at on the triage's own thread, so a parked robot's unchanged frames are answered
 at their own rate while inference runs, and a change is known to the scheduler the moment its frame arrives.
-Per source, every frame is glanced at (service/runtime/change.py) and compared with the source's last
+Per source, every frame is glanced at (service/runtime/triage/change.py) and compared with the source's last
 *inferred* frame (the reference: never with the last reused one, so a slow drift adds up until it counts).
 The frame is **reused** (not inferred: that frame's maps are published again under this frame's stamp,
 counted ``unchanged``) when all of these hold:
@@ -24,7 +24,7 @@ counted ``unchanged``) when all of these hold:
   that long without serving is hung. Such a refresh frees the source's credit when it settles (``refresh``),
   so the robot's next unchanged frames are answered meanwhile.
 
-Otherwise the frame goes to the scheduler with its claim (service/runtime/share.py): **refresh** when only
+Otherwise the frame goes to the scheduler with its claim (service/runtime/schedule/share.py): **refresh** when only
 ``max_reuse_s`` sent it; **urgent** when it changed after the view had settled (the frames before it
 unchanged, reused or refreshed: its consumers hold maps of a view that is gone, a person walked in), which
 the scheduler serves first within its limits; else **news**. A moving robot's views never settle, so its
@@ -49,8 +49,12 @@ import numpy as np
 from gcdtrav.schemas.messages import Pose2D
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
-from gcdtrav.service.runtime import credits
-from gcdtrav.service.runtime.change import (
+from gcdtrav.service.runtime.fleet import credits
+from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
+from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.schedule.share import NO_NEED, Claim, FrameClass, Need, ambiguity_of
+from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.runtime.triage.change import (
     Glance,
     Thumbnail,
     glance,
@@ -59,10 +63,6 @@ from gcdtrav.service.runtime.change import (
     pose_speeds,
     thumbnail_of_rgb,
 )
-from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
-from gcdtrav.service.runtime.share import NO_NEED, Claim, FrameClass, Need, ambiguity_of
-from gcdtrav.service.runtime.stats import ServiceStats
 from numpy.typing import NDArray
 
 GLANCES_KEPT = 2
@@ -102,7 +102,7 @@ class _View:
     previous_at: float = -math.inf
     previous_pose: Pose2D | None = None
     motion: float = 0.0  # 0..1
-    ambiguity: float = 0.0  # 0..1, ahead in the reference's maps (service/runtime/share.py, ambiguity_of)
+    ambiguity: float = 0.0  # 0..1, ahead in the reference's maps (service/runtime/schedule/share.py, ambiguity_of)
     # The last frames glanced at, for the reference: the one inferred is the newest ready one, maybe one
     # arrival behind the newest glance.
     glanced: deque[tuple[PendingFrame, Thumbnail]] = field(default_factory=lambda: deque(maxlen=GLANCES_KEPT))
@@ -227,7 +227,7 @@ class Triage:
     ) -> None:
         self.frames, self.tracker, self.settings, self.stats = frames, tracker, settings, stats
         self.republish = republish
-        self.on_freed = on_freed  # the credits: the source may send its next frame (service/runtime/credits.py)
+        self.on_freed = on_freed  # the credits: the source may send its next frame (service/runtime/fleet/credits.py)
 
     def next_reusable(self, timeout: float) -> tuple[PendingFrame, Glance] | None:
         """Glance at the next queued frame; the frame and its glance if it is to be reused (it has left the
