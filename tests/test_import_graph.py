@@ -58,6 +58,20 @@ def test_the_layer_table_is_a_hierarchy() -> None:
     assert layer_of("gcdtrav.elsewhere") is None
 
 
+def test_runtime_shows_its_rooms_in_the_frames_order() -> None:
+    """runtime/ keeps at most 12 loose modules; each room is a layer; the schedule knows nothing of the intake
+    that feeds it or the triage after it, and no room imports runtime/'s top (the worker, outputs, assembly)."""
+    runtime = ROOT / "service" / "runtime"
+    loose = [path.stem for path in runtime.glob("*.py") if path.stem != "__init__"]
+    rooms = [path.name for path in runtime.iterdir() if (path / "__init__.py").exists()]
+    assert len(loose) <= 12, sorted(loose)
+    assert {"intake", "schedule", "triage", "fleet", "grids"} <= set(rooms)
+    layer = {room: f"gcdtrav.service.runtime.{room}" for room in rooms}
+    assert all(name in LAYERS and "gcdtrav.service.runtime" not in LAYERS[name] for name in layer.values())
+    assert layer["schedule"] in LAYERS[layer["intake"]] and layer["schedule"] in LAYERS[layer["triage"]]
+    assert not {layer["intake"], layer["triage"]} & LAYERS[layer["schedule"]]
+
+
 def _synthetic_tree(root: Path, files: dict[str, str]) -> None:
     for package in ("schemas", "client", "service", "service/backends", "service/runtime", "service/commands"):
         (root / package).mkdir(parents=True, exist_ok=True)
