@@ -4,6 +4,10 @@ Every instance declares ``{prefix}/alive/{instance}`` and watches the others' to
 bounded-load table from the live instances and the sources it sees on the inputs, with no coordinator.
 An instance that stalls (``service/runtime/progress.py``) withdraws its token: the others take its sources
 within their liveliness delay, and it serves nothing until it rejoins (declares the token again).
+
+Scaling robots do not feel: a starting instance watches the others and notes the sources before it joins
+(``join=False``, then ``rejoin`` once it serves), so it takes sources only when it can serve them; a leaving
+one withdraws its token first (``leave``) and finishes the frames already in its hands.
 """
 
 from __future__ import annotations
@@ -31,6 +35,7 @@ class Membership:
         instance: str,
         on_change: Callable[[set[str]], None] | None = None,
         assignment: Assignment | None = None,
+        join: bool = True,
     ) -> None:
         self.instance = instance
         self.session = session
@@ -39,7 +44,9 @@ class Membership:
         self._others: set[str] = set()
         self._lock = threading.Lock()
         self._on_change = on_change
-        self._token: zenoh.LivelinessToken | None = session.liveliness().declare_token(self._keys.alive(instance))
+        self._token: zenoh.LivelinessToken | None = (
+            session.liveliness().declare_token(self._keys.alive(instance)) if join else None
+        )
         self.assignment.set_instances(self.live())
         self._subscriber = session.liveliness().declare_subscriber(self._keys.alive("*"), self._on_sample, history=True)
 
@@ -76,6 +83,15 @@ class Membership:
         if token is not None:
             undeclare_all([token])
             self._changed()
+
+    def leave(self) -> Callable[[str], bool]:
+        """Leave the fleet for good (shutdown): the token goes first, so the others take the sources now.
+        Returns whether this instance owned a source just before: the frames it already holds are finished."""
+        if self.withdrawn:  # a stalled instance had left already: it owns nothing to finish
+            return lambda source: False
+        owner = self.assignment.frozen()
+        self.withdraw()
+        return lambda source: owner(source) == self.instance
 
     def rejoin(self) -> None:
         with self._lock:

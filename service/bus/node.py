@@ -41,7 +41,8 @@ from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.intake_rate import IntakeRate
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.outputs import FramePublisher, OutputBuilder
-from gcdtrav.service.runtime.progress import ProgressMonitor
+from gcdtrav.service.runtime.probes import Probes
+from gcdtrav.service.runtime.progress import Health, ProgressMonitor
 from gcdtrav.service.runtime.reuse import ReuseTracker
 from gcdtrav.service.runtime.share import policy_for
 from gcdtrav.service.runtime.sources import SourceTracker
@@ -75,6 +76,8 @@ class TraversabilityService:
         self._declared: list[Any] = []
         self._stopping = threading.Event()
         self.membership: Membership | None = None
+        self._leaving: Callable[[str], bool] | None = None  # after stop(): what it owned when it left
+        self.probes: Probes | None = None
         self.anchor_sync: AnchorSync | None = None
         self.anchor_switch = AnchorSwitch(
             pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes
@@ -168,9 +171,18 @@ class TraversabilityService:
                 )
 
     # ---- lifecycle -----------------------------------------------------------------------------------
-    def start(self) -> None:
-        # Membership first: a frame arriving during start-up must already go to its owner only.
-        self.membership = Membership(self.session, self.prefix, self.settings.instance, assignment=self.assignment)
+    def start(self, observe_s: float = 0.0) -> None:
+        """Serve. The instance watches the others and notes the sources on the inputs from the start, but
+        joins the fleet (declares its token, so sources move to it) only once it serves: subscribers,
+        queryables and worker up, and after ``observe_s`` of watching, so that its table already holds the
+        robots the others serve (a robot it has not seen twice yet would be claimed by neither)."""
+        began = time.monotonic()
+        if self.settings.health_port:  # first: a supervisor sees it starting
+            self.probes = Probes(self.liveness, self.readiness, self.settings.health_address, self.settings.health_port)
+            self.probes.start()
+        self.membership = Membership(
+            self.session, self.prefix, self.settings.instance, assignment=self.assignment, join=False
+        )
         self.anchor_sync = AnchorSync(self.session, self.keys, self.settings.instance, self.anchor_switch)
         for expression in self.settings.inputs:
             head = literal_head(expression)
@@ -186,6 +198,8 @@ class TraversabilityService:
             self._declared += self.experience.start()
         self.worker.start()
         self._watchdog.start()
+        self._stopping.wait(max(0.0, began + observe_s - time.monotonic()))
+        self.membership.rejoin()
         backend, active = self.pipeline.describe(), self.anchor_switch.head().anchor_set
         log.info(
             "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, model %s (%s), anchor set %s "
@@ -201,14 +215,23 @@ class TraversabilityService:
             "overlapping inference" if self.worker.overlap_outputs else "after inference, same thread",
         )
 
-    def stop(self, timeout: float = 10.0) -> None:
-        """Stop taking frames, let those in flight finish, undeclare everything."""
+    def stop(self, timeout: float | None = None) -> None:
+        """Leave the fleet first (the token goes: the others take this instance's sources on their next frame),
+        stop taking frames, finish and publish the frame in flight, undeclare everything; within ``timeout``
+        (default ``shutdown_grace_s``). The frames still queued are counted dropped (``shutdown``): their
+        robots' next frames go to the new owners."""
+        timeout = self.settings.shutdown_grace_s if timeout is None else timeout
+        deadline = time.monotonic() + timeout
         self._stopping.set()
+        if self.membership is not None:
+            self._leaving = self.membership.leave()
         self.queue.close()
+        if not self.worker.stop(deadline):
+            log.warning("the frame in flight did not finish within %.1f s; its outputs are dropped", timeout)
         if self.membership is not None:
             self.membership.close()
-        if not self.worker.stop(time.monotonic() + timeout):
-            log.warning("the frame in flight did not finish within %.0f s; its outputs are dropped", timeout)
+        if self.probes is not None:
+            self.probes.close()
         self.outputs.close()  # before the session's entities: a late frame is refused, not put on a dead key
         self.credits.close()
         undeclare_all(self._declared)
@@ -264,8 +287,26 @@ class TraversabilityService:
         self._enqueue(topic.source, sample, topic, publisher)
 
     def owns(self, source: str) -> bool:
-        """Instances of one prefix share the sources; before start() this instance owns them all."""
+        """Instances of one prefix share the sources; before start() this instance owns them all; leaving,
+        those it owned when it left (only the frames already in its hands are finished)."""
+        if self._leaving is not None:
+            return self._leaving(source)
         return self.membership is None or self.membership.owns(source)
+
+    def liveness(self) -> Health:
+        """The worker progresses (the /livez probe)."""
+        return self.progress.health()
+
+    def readiness(self) -> Health:
+        """In the fleet and serving (the /readyz probe)."""
+        if self._stopping.is_set():
+            return Health(False, "draining: left the fleet, finishing the frame in flight")
+        health = self.progress.health()
+        if not health.healthy:
+            return health
+        if self.membership is None or self.membership.withdrawn:
+            return Health(False, "starting: not in the fleet yet")
+        return health
 
     def _watch_progress(self) -> None:
         """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again."""

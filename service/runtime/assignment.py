@@ -105,6 +105,12 @@ class Assignment:
         with self._lock:
             return dict(self._table)
 
+    def frozen(self) -> Callable[[str], str | None]:
+        """``owner`` as it answers now, unchanged by later changes (an instance leaving finishes with it)."""
+        with self._lock:
+            table, instances = dict(self._table), self._instances
+        return lambda source: (table.get(source) or owner_of(source, instances)) if instances else None
+
     def _forget_a_newcomer(self) -> bool:
         """Room for a new name when full: the longest-known name with a single frame goes (a flood's)."""
         newcomer = next((source for source, count in self._frames.items() if count < self.established_after), None)
