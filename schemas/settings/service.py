@@ -140,9 +140,9 @@ class ServiceSettings(StrictModel):
         "0: off. For Kubernetes' liveness and readiness probes; answered from memory, no zenoh.",
     )
     health_address: str = Field(
-        default="127.0.0.1",
-        description="Address the probes listen on: loopback by default (a box's supervisor); 0.0.0.0 in a pod, "
-        "where the kubelet probes the pod's IP.",
+        default="0.0.0.0",
+        description="Address the probes listen on once health_port is set: every interface, as a pod's kubelet "
+        "probes the pod's IP; 127.0.0.1 keeps them on the box (a local supervisor). They tell only ok or why not.",
     )
     max_anchor_set_bytes: int = Field(
         default=DEFAULT_MAX_ANCHOR_SET_BYTES,
