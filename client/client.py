@@ -772,6 +772,10 @@ class TraversabilityClient:
         answer = OperatorAnswer(id=question_id, source=source, score=score, operator=operator)
         return self._query(self.keys.answer(source), AnswerReply, payload=answer.pack(), timeout=timeout)
 
+    def question(self, source: str, timeout: float | None = None) -> OperatorQuestion:
+        """The open OperatorQuestion about the grid ``source``, crop included; ServiceError when none is open."""
+        return self._query(self.keys.question(source), OperatorQuestion, timeout=timeout)
+
     def subscribe_questions(
         self, selector: str, callback: Callable[[OperatorQuestion], None]
     ) -> zenoh.Subscriber[None]:

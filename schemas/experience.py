@@ -13,7 +13,7 @@ from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.limits import MAX_CONCEPT_CHARS, MAX_FRAME_ID_CHARS, Coordinate, FiniteFloat
 from gcdtrav.schemas.messages import Message
 from gcdtrav.schemas.strict import WireModel
-from pydantic import Field, field_validator
+from pydantic import ConfigDict, Field, field_validator
 
 OutcomeKind = Literal["velocity", "operator", "contact"]
 OUTCOME_KINDS: tuple[str, ...] = ("velocity", "operator", "contact")
@@ -162,6 +162,84 @@ class AnchorChange(WireModel):
     shrunk: bool = Field(description="Held near the current set: too few pairs to move it freely.")
 
 
+FigureJudgement = Literal["better", "same", "worse", "undefined"]
+Verdict = Literal["better", "no better", "worse"]
+MIN_HELD_OUT_PAIRS = 200  # below this, a difference of the figures is noise (docs/calibration.md, "Verdicts")
+# A figure moves "better" or "worse" only by more than its tolerance: smaller moves are noise on a few hundred
+# correlated pairs (one outcome pairs every cell of the robot's footprint).
+TOLERANCES: dict[str, float] = {"mae": 0.01, "coverage shortfall": 0.02, "ece": 0.01}
+
+
+def coverage_shortfall(figures: CalibrationFigures) -> float | None:
+    """How far the worst q_alpha covers below its promise 1 - alpha (0: every quantile kept its promise; a set
+    that covers more than promised is not penalised: its atoms count whole). None without coverage."""
+    gaps = [(1 - float(alpha)) - cover for alpha, cover in figures.coverage.items() if cover is not None]
+    return max(0.0, *gaps) if gaps else None
+
+
+class FigureVerdict(WireModel):
+    figure: str = Field(description="mae, coverage shortfall or ece: smaller is better for each.")
+    before: float | None
+    after: float | None
+    judgement: FigureJudgement
+
+
+class ProposalVerdict(WireModel):
+    """A proposal judged on its held-out pairs: better only if no judged figure is worse and one is better."""
+
+    verdict: Verdict
+    figures: list[FigureVerdict]
+    held_out_pairs: int
+    min_held_out_pairs: int = MIN_HELD_OUT_PAIRS
+    enough_pairs: bool
+
+    @property
+    def applicable(self) -> bool:
+        """What `gcdtrav anchors propose --apply` swaps in without --force."""
+        return self.verdict == "better" and self.enough_pairs
+
+    def reason(self) -> str:
+        """One line: the verdict, the figures behind it, the pairs."""
+        shown = [f for f in self.figures if f.judgement == "worse"] if self.verdict == "worse" else self.figures
+        figures = ", ".join(f"{f.figure} {_figure(f.before)} -> {_figure(f.after)} ({f.judgement})" for f in shown)
+        pairs = f"{self.held_out_pairs} held-out pairs"
+        if not self.enough_pairs:
+            pairs += f", fewer than the {self.min_held_out_pairs} a verdict needs"
+        return f"{self.verdict} on the held-out pairs: {figures or 'no figure defined'}; {pairs}"
+
+
+def _figure(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f}"
+
+
+def _judge(figure: str, before: float | None, after: float | None) -> FigureVerdict:
+    judgement: FigureJudgement = "undefined"
+    if before is not None and after is not None:
+        change, tolerance = after - before, TOLERANCES[figure]
+        judgement = "better" if change < -tolerance else "worse" if change > tolerance else "same"
+    return FigureVerdict(figure=figure, before=before, after=after, judgement=judgement)
+
+
+def judge_proposal(
+    before: CalibrationFigures, after: CalibrationFigures, held_out_pairs: int, min_pairs: int = MIN_HELD_OUT_PAIRS
+) -> ProposalVerdict:
+    """The current set's held-out figures against the proposed set's, on MAE, coverage and ECE."""
+    figures = [
+        _judge("mae", before.mae, after.mae),
+        _judge("coverage shortfall", coverage_shortfall(before), coverage_shortfall(after)),
+        _judge("ece", before.ece, after.ece),
+    ]
+    judgements = {f.judgement for f in figures}
+    verdict: Verdict = "worse" if "worse" in judgements else "better" if "better" in judgements else "no better"
+    return ProposalVerdict(
+        verdict=verdict,
+        figures=figures,
+        held_out_pairs=held_out_pairs,
+        min_held_out_pairs=min_pairs,
+        enough_pairs=held_out_pairs >= min_pairs,
+    )
+
+
 class AnchorProposal(Message):
     """{prefix}/config/anchors/proposal: a fitted anchor set, applied only by an operator."""
 
@@ -177,6 +255,14 @@ class AnchorProposal(Message):
     held_out_pairs: int
     before: CalibrationFigures = Field(description="The current set on the held-out (later) pairs.")
     after: CalibrationFigures = Field(description="The proposed set on the same pairs.")
+    verdict: ProposalVerdict | None = Field(
+        default=None, description="judge_proposal of before and after; None from a service older than verdicts."
+    )
+
+    def judged(self) -> ProposalVerdict:
+        """The service's verdict, or (an older service sent none) the same judgement made here from the figures,
+        which every version sends."""
+        return self.verdict or judge_proposal(self.before, self.after, self.held_out_pairs)
 
 
 # ---- asking the operator -----------------------------------------------------------------------------
@@ -190,6 +276,9 @@ class QuestionConcept(WireModel):
 
 class OperatorQuestion(Message):
     """{prefix}/out/{source}/question: cells ahead stayed ambiguous or novel for ask.persist_s."""
+
+    # The crop is binary: base64 in JSON (a query with format=json), raw bytes in msgpack.
+    model_config = ConfigDict(ser_json_bytes="base64", val_json_bytes="base64")
 
     id: str = Field(max_length=64)
     source: str

@@ -493,6 +493,9 @@ class QuestionStatus(WireModel):
     reason: str = Field(description="ambiguous or novel.")
     concepts: list[str] = Field(description="The two competing concepts, strongest first.")
     region: tuple[float, float, float, float] = Field(description="(x0, y0, x1, y1) in the grid's frame, m.")
+    cells: int | None = Field(
+        default=None, description="The region's cells: an answer makes one operator pair per cell; None: older."
+    )
 
 
 class ExperienceStatus(WireModel):

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -79,6 +80,9 @@ class BusRobot:
     client: TraversabilityClient
     world: World
     timeout_s: float = 20.0
+    # Called after every odometry sample with the robot and its stamp: where examples/experience_drive.py adds
+    # a bumper's outcomes and prints its progress.
+    after_step: Callable[[Robot, float], None] | None = None
 
     def __post_init__(self) -> None:
         self.maps = MapsClock()
@@ -109,4 +113,6 @@ class BusRobot:
             speed, rate = robot.step(ODOMETRY_DT)
             odometry = Odometry2D(stamp=stamp, x=robot.x, y=robot.y, yaw=robot.yaw, vx=speed, wz=rate)
             self._put(ODOMETRY_KEY, odometry.pack())
+            if self.after_step is not None:
+                self.after_step(robot, stamp)
         return stamp

@@ -1,7 +1,8 @@
 """The experience's operator commands (docs/calibration.md), torch-free like the rest of operator.py:
 
   gcdtrav calibration [SOURCE] [--png FILE]         the active set graded by the robot's outcomes
-  gcdtrav answer SOURCE drivable|blocked|SCORE      answer the open question of SOURCE (or --question ID)
+  gcdtrav answer SOURCE [drivable|blocked|SCORE]    show the open question of SOURCE (or --question ID), its
+                                                    crop (--save-crop FILE, --show), then answer it
 
 and the text both they and `gcdtrav anchors propose` and `gcdtrav status` print.
 """
@@ -11,12 +12,28 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import cv2
+import numpy as np
 from gcdtrav.client.client import ServiceError, TraversabilityClient
-from gcdtrav.schemas.experience import AnchorProposal, CalibrationFigures, CalibrationReport, answer_score
+from gcdtrav.schemas.experience import (
+    MIN_HELD_OUT_PAIRS,
+    AnchorProposal,
+    CalibrationFigures,
+    CalibrationReport,
+    OperatorQuestion,
+    ProposalVerdict,
+    answer_score,
+    coverage_shortfall,
+)
 from gcdtrav.schemas.messages import ServiceStatus
 
 COMMANDS = ("calibration", "answer")
 FIGURES_ROW = "{:<22} {:>6} {:>7} {:>7} {:>20} {:>6} {:>7} {:>8}"
+# `gcdtrav calibration`'s verdict (docs/calibration.md, "For operators"): how far a figure may stray before the
+# set is called over- or under-confident.
+COVERAGE_SLACK = 0.05  # a q_alpha holding for 0.90 of the outcomes where it promised 0.95 is still fine
+ECE_LIMIT = 0.05  # P(T < tau) off by more than 5 points on average
+BIAS_LIMIT = 0.1  # T off by more than a tenth of the scale on average
 
 
 def add_experience_commands(commands: argparse._SubParsersAction) -> list[argparse.ArgumentParser]:
@@ -26,8 +43,12 @@ def add_experience_commands(commands: argparse._SubParsersAction) -> list[argpar
     calibration.add_argument("--png", type=Path, help="also draw the reliability diagram (needs matplotlib)")
     answer = commands.add_parser("answer", help="answer the question a service asked about the ground ahead")
     answer.add_argument("source", help="the grid's source the question is about")
-    answer.add_argument("answer", help="drivable, blocked, or a score in [0, 1] (1 = drivable)")
+    answer.add_argument(
+        "answer", nargs="?", help="drivable, blocked, or a score in [0, 1] (1 = drivable) [none: show the question]"
+    )
     answer.add_argument("--question", help="the question's id [the source's open question]")
+    answer.add_argument("--save-crop", type=Path, metavar="FILE", help="first save the question's crop (JPEG) here")
+    answer.add_argument("--show", action="store_true", help="first draw the crop in the terminal (24-bit colour)")
     answer.add_argument("--operator", default="", help="who answers (kept with the answer)")
     return [calibration, answer]
 
@@ -35,7 +56,7 @@ def add_experience_commands(commands: argparse._SubParsersAction) -> list[argpar
 def run_command(client: TraversabilityClient, args: argparse.Namespace) -> int:
     if args.command == "calibration":
         return calibration(client, args.source, args.png)
-    return answer(client, args.source, args.answer, args.question, args.operator)
+    return answer(client, args)
 
 
 def experience_source(client: TraversabilityClient) -> str:
@@ -51,7 +72,7 @@ def experience_source(client: TraversabilityClient) -> str:
 
 def calibration(client: TraversabilityClient, source: str | None, png: Path | None) -> int:
     report = client.calibration(source or experience_source(client))
-    print("\n".join(report_lines(report)))
+    print("\n".join([*report_lines(report), "", *verdict_lines(report.figures)]))
     if png is not None:
         draw_reliability(report, png)
         print(f"reliability diagram drawn to {png}")
@@ -104,6 +125,63 @@ def report_lines(report: CalibrationReport) -> list[str]:
     return lines
 
 
+def reliability_gap(f: CalibrationFigures) -> float | None:
+    """Pair-weighted mean of (observed - predicted) P(T < tau) over the bins: > 0, the ground was below tau more
+    often than predicted (over-confident); < 0, less often (under-confident). None without pairs."""
+    total, gap = 0, 0.0
+    for b in f.reliability:
+        if b.count and b.observed is not None and b.predicted is not None:
+            total, gap = total + b.count, gap + b.count * (b.observed - b.predicted)
+    return gap / total if total else None
+
+
+def calibration_verdict(f: CalibrationFigures) -> tuple[str, list[str], str]:
+    """(verdict, the figures behind it, the next step) for `gcdtrav calibration`; docs/calibration.md, "For
+    operators". Over-confidence is checked first: it is the one that drives a robot into bad ground."""
+    if f.pairs < MIN_HELD_OUT_PAIRS:
+        return (
+            "too few pairs",
+            [f"{f.pairs} pairs, a verdict needs {MIN_HELD_OUT_PAIRS}"],
+            "drive on over varied ground, and answer the service's questions (gcdtrav status lists them)",
+        )
+    shortfall, gap = coverage_shortfall(f), reliability_gap(f)
+    over: list[str] = []
+    under: list[str] = []
+    if shortfall is not None and shortfall > COVERAGE_SLACK:
+        kept = {alpha: cover for alpha, cover in f.coverage.items() if cover is not None}
+        alpha = min(kept, key=lambda a: kept[a] - (1 - float(a)))
+        over.append(f"q_{alpha} held for {kept[alpha]:.2f} of the outcomes, promised {1 - float(alpha):.2f}")
+    if f.ece is not None and f.ece > ECE_LIMIT and gap is not None:
+        often = "more" if gap > 0 else "less"
+        says = f"P(T < {f.tau:g}) off by {f.ece:.2f} (ECE): the ground was below {f.tau:g} {often} often than said"
+        (over if gap > 0 else under).append(says)
+    if f.bias is not None and abs(f.bias) > BIAS_LIMIT:
+        side = "above" if f.bias > 0 else "below"
+        (over if f.bias > 0 else under).append(f"T {side} the outcomes by {abs(f.bias):.2f} on average")
+    if over:
+        return (
+            "over-confident",
+            over,
+            "gcdtrav anchors propose, and --apply it if judged better; until then plan on cvar or p_below, not T",
+        )
+    if under:
+        return (
+            "under-confident",
+            under,
+            "gcdtrav anchors propose, and --apply it if judged better; until then the planner avoids drivable ground",
+        )
+    return (
+        "calibrated",
+        [f"MAE {_f(f.mae)}, ECE {_f(f.ece)}, coverage kept"],
+        "nothing to change; look again after new terrain, a new anchor set or a new model",
+    )
+
+
+def verdict_lines(f: CalibrationFigures) -> list[str]:
+    verdict, because, step = calibration_verdict(f)
+    return [f"verdict: {verdict} ({'; '.join(because)})", f"next: {step}"]
+
+
 def draw_reliability(report: CalibrationReport, path: Path) -> None:
     from gcdtrav.client.commands.calibration_plot import reliability_diagram
 
@@ -114,20 +192,36 @@ def draw_reliability(report: CalibrationReport, path: Path) -> None:
 
 
 def proposal_lines(proposal: AnchorProposal) -> list[str]:
-    """The +/-/~ diff (as `anchors set --dry-run`), the anchors held near the current set, the figures of both
-    sets on the held-out (later) pairs."""
+    """The one text of a proposal, live (`gcdtrav anchors propose`) and offline (`gcdtrav eval --fit-anchors`):
+    the +/-/~ diff (as `anchors set --dry-run`), the anchors held near the current set, the figures of both sets
+    on the held-out (later) pairs, and the verdict."""
     current, proposed = proposal.current, proposal.proposed
     lines = [f"{current.version} ({len(current)} anchors) -> {proposed.version} ({len(proposed)} anchors)"]
     lines += proposal.diff or ["no change"]
     shrunk = [c.concept for c in proposal.changes if c.shrunk]
     if shrunk:
         lines.append(f"held near the current set (few pairs): {', '.join(shrunk)}")
+    verdict = proposal.judged()
+    judged_here = " (judged here: the service sent no verdict)" if proposal.verdict is None else ""
     lines += [
         "",
         f"fitted on {proposal.train_pairs} pairs; graded on the {proposal.held_out_pairs} later ones:",
         *figures_lines([("before (current set)", proposal.before), ("after (proposed set)", proposal.after)]),
+        "",
+        f"verdict: {verdict.reason()}{judged_here}",
     ]
     return lines
+
+
+def refusal(verdict: ProposalVerdict) -> str | None:
+    """Why a proposal should not be applied (for `--apply` to refuse it), or None when it should."""
+    if verdict.applicable:
+        return None
+    why = f"it is {verdict.verdict} on the held-out pairs" if verdict.verdict != "better" else ""
+    if not verdict.enough_pairs:
+        few = f"only {verdict.held_out_pairs} held-out pairs back it (at least {verdict.min_held_out_pairs})"
+        why = f"{why} and {few}" if why else few
+    return why
 
 
 # ---- answers -------------------------------------------------------------------------------------------
@@ -141,12 +235,61 @@ def open_question(statuses: list[ServiceStatus], source: str) -> str:
     raise ServiceError(f"no open question for '{source}' (gcdtrav status lists them)")
 
 
-def answer(client: TraversabilityClient, source: str, text: str, question: str | None, operator: str) -> int:
-    score = answer_score(text)
-    question_id = question or open_question(client.statuses(), source)
-    reply = client.answer(source, question_id, score, operator)
-    print(f"answered {reply.id} ({source}): score {reply.score:g}, {reply.pairs} pairs")
+def answer(client: TraversabilityClient, args: argparse.Namespace) -> int:
+    """Show the question (its region, concepts, crop and the pairs an answer makes) when asked to, or when no
+    answer is given, and only then record the answer."""
+    score = None if args.answer is None else answer_score(args.answer)
+    question_id = args.question or open_question(client.statuses(), args.source)
+    if score is None or args.save_crop is not None or args.show:
+        question = client.question(args.source)
+        if question.id != question_id:
+            raise ServiceError(f"question {question_id} is not open; the open one is {question.id}")
+        print("\n".join(question_lines(question)))
+        if (args.save_crop is not None or args.show) and not question.crop_jpeg:
+            raise ServiceError(f"question {question.id} has no crop (no camera image of its region); nothing recorded")
+        if args.save_crop is not None:
+            args.save_crop.write_bytes(question.crop_jpeg or b"")
+            print(f"crop saved to {args.save_crop}")
+        if args.show:
+            print("\n".join(crop_ansi(question.crop_jpeg or b"")))
+        if score is None:
+            print(f"nothing recorded: gcdtrav answer {args.source} drivable|blocked|SCORE answers it")
+            return 0
+    reply = client.answer(args.source, question_id, score, args.operator)
+    print(f"answered {reply.id} ({args.source}): score {reply.score:g}, {reply.pairs} pairs")
     return 0
+
+
+def question_lines(q: OperatorQuestion) -> list[str]:
+    """A question as an operator reads it in a terminal: where, what competes there, what an answer makes."""
+    x0, y0, x1, y1 = q.region
+    concepts = " vs ".join(f"{c.concept} (at {c.position:.2f}, weight {c.weight:.2f})" for c in q.concepts)
+    figures = (("T", q.traversability), ("U", q.uncertainty), ("P(T < tau)", q.p_below), ("match", q.match))
+    means = ", ".join(f"{name} {value:.2f}" for name, value in figures if value is not None)
+    crop = f"crop {len(q.crop_jpeg)} bytes of JPEG" if q.crop_jpeg else "no crop"
+    return [
+        f"question {q.id} ({q.source}): {q.reason} ground in x {x0:.1f}..{x1:.1f} m, y {y0:.1f}..{y1:.1f} m "
+        f"(the grid's frame), {len(q.cells)} cells; {crop}",
+        f"  {concepts}; mean {means or '-'}",
+        f"  an answer makes {len(q.cells)} operator pairs, one per cell: drivable (1), blocked (0) or a score",
+    ]
+
+
+def crop_ansi(jpeg: bytes, columns: int = 48) -> list[str]:
+    """The crop in a terminal: one character per pixel column and two pixel rows per line (the upper half
+    block in the upper pixel's colour on the lower one's), in 24-bit colour."""
+    image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+    if image is None:
+        raise ServiceError("the question's crop is not an image")
+    height, width = image.shape[:2]
+    cols = min(columns, width)
+    rows = max(2, round(height * cols / width / 2) * 2)
+    rgb = cv2.resize(image, (cols, rows), interpolation=cv2.INTER_AREA)[:, :, ::-1]
+    cell = "\x1b[38;2;{};{};{}m\x1b[48;2;{};{};{}m\u2580"  # foreground: the upper pixel; background: the lower
+    return [
+        "".join(cell.format(*top, *bottom) for top, bottom in zip(up, down, strict=True)) + "\x1b[0m"
+        for up, down in zip(rgb[0::2], rgb[1::2], strict=True)
+    ]
 
 
 def status_lines(statuses: list[ServiceStatus]) -> list[str]:
@@ -160,8 +303,9 @@ def status_lines(statuses: list[ServiceStatus]) -> list[str]:
         lines.append(f"experience {s.instance}: grid {e.source}, {e.pairs} pairs; {counts or 'nothing yet'}")
         for q in e.open_questions:
             region = ", ".join(f"{v:.1f}" for v in q.region)
+            makes = f"; an answer makes {q.cells} pairs" if q.cells is not None else ""
             lines.append(
-                f"  QUESTION {q.id} ({q.source}): {q.reason} ahead, {' vs '.join(q.concepts)} in ({region}); "
-                f"gcdtrav answer {q.source} drivable|blocked|SCORE"
+                f"  QUESTION {q.id} ({q.source}): {q.reason} ahead, {' vs '.join(q.concepts)} in ({region}){makes}; "
+                f"gcdtrav answer {q.source} drivable|blocked|SCORE (alone: shows it)"
             )
     return ["", *lines] if lines else []

@@ -23,7 +23,7 @@ from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, anchor_diff
 from gcdtrav.schemas.messages import AnchorHistoryReply, ContextDistribution, ServiceStatus, SourceStatus
 
 COMMANDS = ("status", "anchors", "probe", *experience.COMMANDS)
-EXIT_OK, EXIT_FAILED = 0, 1
+EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 RUST_SOURCE = re.compile(r"\s+at \S+\.rs:\d+\.?$")  # zenoh's errors end with the Rust file that raised them
 
 
@@ -42,7 +42,10 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
     rollback.add_argument("steps", nargs="?", type=int, default=1, help="how far back [1: the set before]")
     propose = actions.add_parser("propose", help="the set fitted on the robot's outcomes, as a diff; --apply swaps it")
     propose.add_argument("--source", help="whose experience [the service's grid]")
-    propose.add_argument("--apply", action="store_true", help="swap it in on every instance (validated, rollback-able)")
+    propose.add_argument(
+        "--apply", action="store_true", help="swap it in on every instance if judged better (validated, rollback-able)"
+    )
+    propose.add_argument("--force", action="store_true", help="with --apply: swap it in even if not judged better")
     probe = commands.add_parser("probe", help="a pixel's context distribution, printed or drawn (no torch)")
     probe.add_argument("source", help="the source, e.g. r1/front")
     probe.add_argument("x", type=float, help="image pixel column")
@@ -290,15 +293,25 @@ def roll_back(client: TraversabilityClient, args: argparse.Namespace) -> int:
 
 
 def propose_anchors(client: TraversabilityClient, args: argparse.Namespace) -> int:
-    """The fitted set as a diff with the held-out figures before and after; swapped in only with --apply, as
-    `anchors set` swaps (validated by every instance, fleet-wide, in the history for a rollback)."""
+    """The fitted set as a diff with the held-out figures before and after and the verdict; swapped in only with
+    --apply, as `anchors set` swaps (validated by every instance, fleet-wide, in the history for a rollback),
+    and only if judged better on enough pairs, unless --force."""
+    if args.force and not args.apply:
+        print("gcdtrav anchors: --force goes with --apply (gcdtrav anchors propose --apply --force)", file=sys.stderr)
+        return EXIT_USAGE
     proposal = client.anchor_proposal(args.source)
     print("\n".join(experience.proposal_lines(proposal)))
+    refused = experience.refusal(proposal.judged())
+    forcing = f"not applied: {refused}; gcdtrav anchors propose --apply --force swaps it in anyway"
     if not args.apply:
-        print("not applied: gcdtrav anchors propose --apply swaps it in")
+        print(forcing if refused else "not applied: gcdtrav anchors propose --apply swaps it in")
         return EXIT_OK
+    if refused and not args.force:
+        print(f"gcdtrav anchors: {forcing}", file=sys.stderr)
+        return EXIT_FAILED
     version = client.set_anchors(proposal.proposed)
-    print(f"swapped: anchor set {version} active on {fleet_sets(client)} (gcdtrav anchors rollback undoes it)")
+    forced = " (forced)" if refused else ""
+    print(f"swapped{forced}: anchor set {version} active on {fleet_sets(client)} (gcdtrav anchors rollback undoes it)")
     return EXIT_OK
 
 

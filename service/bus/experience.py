@@ -8,7 +8,8 @@ Declared only with ``experience.enabled`` (off: nothing here runs, nothing chang
   experience.cmd_vel, .odometry       subscribers: Twist2D / Odometry2D on a zenoh key, or a ROS topic (CDR)
   {prefix}/out/{source}/calibration   queryable: CalibrationReport of the active anchor set
   {prefix}/config/anchors/proposal    queryable: AnchorProposal (``source=`` optional), never applied here
-  {prefix}/out/{source}/question      OperatorQuestion, published after a grid update that asks one
+  {prefix}/out/{source}/question      OperatorQuestion, published after a grid update that asks one, and
+                                      queryable: the open one (`gcdtrav answer` shows its crop before answering)
 
 A bad message is rejected with its reason and counted in the service's stats (``bad_outcome``,
 ``oversized``, ``bad_cmd_vel``, ``bad_odometry``, ``bad_answer``, ``unknown_answer``, ``unknown_grid``).
@@ -98,14 +99,14 @@ class ExperienceBus:
             self.session.declare_subscriber(self.keys.planned_path("**"), self._on_planned_path),
         ]
         for key, ros, handler, reason in self.experience.inputs():
-            if ros:
-                msgtype = TWIST if key == self.settings.experience.cmd_vel else ODOMETRY
-                key = ros_key(key, msgtype, self.settings.ros_inputs)
-            declared.append(self.session.declare_subscriber(key, self._input_handler(handler, reason)))
+            declared.append(
+                self.session.declare_subscriber(self._input_key(key, ros), self._input_handler(handler, reason))
+            )
         queryables = (
             (self.keys.answer("**"), self._on_answer_query, False),
             (self.keys.calibration("**"), self._on_calibration, False),
             (self.keys.anchor_proposal, self._on_proposal, False),
+            (self.keys.question("**"), self._on_question, False),
         )
         for key, respond, complete in queryables:
             declared.append(self.session.declare_queryable(key, answering(respond, self.stats), complete=complete))
@@ -114,6 +115,20 @@ class ExperienceBus:
         self._saver.start()
         log.info("experience: outcomes of grid %s, stored in %s", self.experience.source, self.experience.store.path)
         return declared
+
+    def _input_key(self, key: str, ros: bool) -> str:
+        """The key expression commands or odometry are read on: the key itself, or a ROS topic's keys."""
+        if not ros:
+            return key
+        return ros_key(key, TWIST if key == self.settings.experience.cmd_vel else ODOMETRY, self.settings.ros_inputs)
+
+    def reads(self) -> str:
+        """For the `serving` log line: the grid, and where commands and odometry are read."""
+        inputs = [
+            f"{reason.removeprefix('bad_')} on {self._input_key(key, ros)}" + (f" (ROS topic {key})" if ros else "")
+            for key, ros, _, reason in self.experience.inputs()
+        ]
+        return f"grid {self.experience.source}, " + (", ".join(inputs) or "outcomes from the bus only")
 
     def close(self) -> None:
         """Unhook the grids and save; the node undeclares the entities."""
@@ -219,6 +234,18 @@ class ExperienceBus:
         if source != self.experience.source:
             raise QueryError(f"no experience of '{source}': this service collects grid '{self.experience.source}'")
         replies.reply(query, key, self.experience.report(self.pipeline.anchors))
+
+    def _on_question(self, query: zenoh.Query) -> None:
+        key = str(query.key_expr)
+        source = self.keys.source_of(key, "question")
+        if source is None or not self.owns(source):
+            return
+        replies.check_no_parameters(query)
+        try:
+            question = self.experience.open_question(source)
+        except ValueError as err:
+            raise QueryError(str(err)) from None
+        replies.reply(query, key, question)
 
     def _on_proposal(self, query: zenoh.Query) -> None:
         replies.check_format(query)

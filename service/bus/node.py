@@ -17,7 +17,7 @@ import zenoh
 from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.keys import Keys, input_source_of, literal_head
 from gcdtrav.schemas.messages import MessageError, ServiceStatus
-from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
+from gcdtrav.schemas.settings import GridSettings, RosInput, ServiceSettings, SettingsError
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus.anchor_sync import AnchorSync
 from gcdtrav.service.bus.credits import CreditPublisher
@@ -53,6 +53,17 @@ from gcdtrav.service.runtime.worker import FrameWorker
 
 log = logging.getLogger("gcdtrav.service")
 WATCHDOG_INTERVAL_S = 0.25
+
+
+def grids_described(grids: list[GridSettings]) -> str:
+    """For the `serving` log line: each grid, the cameras it fuses and where its pose is read."""
+    described = []
+    for grid in grids:
+        cameras = [camera.source for camera in grid.camera_list()]
+        fused = f" of cameras {', '.join(cameras)}" if cameras != [grid.source] else ""
+        pose = f"pose on {grid.pose_key} ({grid.pose_format})" if grid.pose_key else "no pose: the robot's frame"
+        described.append(f"{grid.source}{fused} ({pose})")
+    return "; ".join(described) or "none"
 
 
 def publisher_of(sample: zenoh.Sample) -> str | None:
@@ -202,11 +213,13 @@ class TraversabilityService:
         self.membership.rejoin()
         backend, active = self.pipeline.describe(), self.anchor_switch.head().anchor_set
         log.info(
-            "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, model %s (%s), anchor set %s "
-            "(%d anchors), method %s, outputs %s",
+            "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, grids %s, experience %s, model %s (%s), "
+            "anchor set %s (%d anchors), method %s, outputs %s",
             self.settings.inputs,
             [r.key for r in self.settings.ros_inputs],
             self.prefix,
+            grids_described(self.settings.grids),
+            self.experience.reads() if self.experience is not None else "off",
             backend.model_id,
             backend.precision,
             active.version,

@@ -12,14 +12,19 @@ import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from gcdtrav.client.commands import operator
 from gcdtrav.client.commands import relay as relay_command
 from gcdtrav.client.commands import view as view_command
+from gcdtrav.client.commands.experience import proposal_lines, refusal
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings, Method
 from gcdtrav.schemas.settings import PRECISIONS, SettingsError
 from gcdtrav.service.backends import default_model
+
+if TYPE_CHECKING:
+    from gcdtrav.service.experience.dataset_fit import FitRun
 
 SERVICE_MODULES = ("torch", "transformers", "matplotlib", "tqdm")
 EXIT_FAILURES = 1  # some inputs could not be processed
@@ -337,7 +342,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         figures=not args.no_figures,
     )
     if args.fit_anchors:
-        from gcdtrav.service.experience.dataset_fit import fit_on_dataset, print_summary
+        from gcdtrav.service.experience.dataset_fit import fit_on_dataset
         from gcdtrav.service.experience.fitter import FitOptions
 
         try:
@@ -346,7 +351,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         except (DatasetError, ValueError) as err:
             print(f"gcdtrav: {err}", file=sys.stderr)
             return EXIT_FAILURES
-        print_summary(fit)
+        print_fit(fit)
         return EXIT_FAILURES if fit.failures else 0
     try:
         report = run_eval(backend, anchors, dataset, table, options)
@@ -358,6 +363,16 @@ def cmd_eval(args: argparse.Namespace) -> int:
     print(report["summary_table"])
     print(f"{report['images']} images evaluated; results in {args.out}", file=sys.stderr)
     return EXIT_FAILURES if report["failures"] else 0
+
+
+def print_fit(fit: FitRun) -> None:
+    """`gcdtrav eval --fit-anchors`: the proposal as `gcdtrav anchors propose` prints it, then where it is."""
+    for failure in fit.failures:
+        print(f"error: {failure}", file=sys.stderr)
+    print("\n".join(proposal_lines(fit.proposal)))
+    refused = refusal(fit.proposal.judged())
+    advice = f"not recommended: {refused}" if refused else "judged better"
+    print(f"\nproposed set: {fit.proposed_file} ({advice}); gcdtrav anchors set {fit.proposed_file} --dry-run")
 
 
 def cmd_bench(args: argparse.Namespace) -> int:

@@ -4,12 +4,12 @@ Every sampled pixel of the split (the grid of `gcdtrav eval`) is a pair: its anc
 model's logits there) and the traversability its label maps to. The pairs are ordered by image, the last
 ``held_out_fraction`` of the images held out (a block, as the robot's later drive would be), the fit made on
 the rest, and both sets graded on the held-out pixels. The proposed set is written as YAML that `gcdtrav
-anchors set` accepts, beside ``proposal.json`` (the AnchorProposal, diff and figures included).
+anchors set` accepts, beside ``proposal.json`` (the AnchorProposal: diff, figures and verdict); `gcdtrav eval`
+prints it as `gcdtrav anchors propose` does (client/commands/experience.py, proposal_lines).
 """
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -98,30 +98,3 @@ def fit_on_dataset(
     proposal.proposed.save(proposed_file)
     (out_dir / PROPOSAL_FILE).write_text(proposal.model_dump_json(indent=2) + "\n", "utf-8")
     return FitRun(proposal, proposed_file, failures)
-
-
-def summary(run: FitRun) -> str:
-    """The diff and the held-out figures before and after, for the terminal."""
-    p = run.proposal
-    lines = [f"{p.current_version} ({len(p.current)} anchors) -> {p.proposed_version} ({len(p.proposed)} anchors)"]
-    lines += p.diff or ["no change"]
-    lines += [
-        "",
-        f"held-out pixels: {p.held_out_pairs} (fitted on {p.train_pairs})",
-        "| set | MAE | bias | coverage q0.05 / q0.1 / q0.2 | ECE |",
-        "|---|---|---|---|---|",
-    ]
-    for name, figures in (("current", p.before), ("proposed", p.after)):
-        coverage = " / ".join("-" if v is None else f"{v:.3f}" for v in figures.coverage.values())
-        mae = "-" if figures.mae is None else f"{figures.mae:.4f}"
-        bias = "-" if figures.bias is None else f"{figures.bias:+.4f}"
-        ece = "-" if figures.ece is None else f"{figures.ece:.4f}"
-        lines.append(f"| {name} | {mae} | {bias} | {coverage} | {ece} |")
-    lines += ["", f"proposed set: {run.proposed_file} (gcdtrav anchors set {run.proposed_file} --dry-run)"]
-    return "\n".join(lines)
-
-
-def print_summary(run: FitRun) -> None:
-    for failure in run.failures:
-        print(f"error: {failure}", file=sys.stderr)
-    print(summary(run))

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from gcdtrav.schemas.anchors import Anchor, AnchorSet, anchor_diff
-from gcdtrav.schemas.experience import AnchorChange, AnchorProposal
+from gcdtrav.schemas.experience import AnchorChange, AnchorProposal, judge_proposal
 from gcdtrav.service.engine.risk import normal_cdf
 from gcdtrav.service.experience.calibration import calibration_figures
 from gcdtrav.service.experience.pairs import Pairs
@@ -180,7 +180,7 @@ def fitted_set(current: AnchorSet, positions: NDArray[np.float64], widths: NDArr
 def propose(
     pairs: Pairs, current: AnchorSet, options: FitOptions, source: str = "", stamp: float = 0.0
 ) -> AnchorProposal:
-    """Fit on the earlier pairs, grade current and proposed sets on the later ones."""
+    """Fit on the earlier pairs, grade current and proposed sets on the later ones and judge the change."""
     train, held = pairs.time_split(options.held_out_fraction)
     if len(train) == 0:
         raise ValueError("no pairs to fit: drive first (or lower held_out_fraction)")
@@ -203,6 +203,8 @@ def propose(
         )
         for k, concept in enumerate(current.concepts)
     ]
+    before = calibration_figures(held.weights_for(current), held.outcomes, current, options.tau)
+    after = calibration_figures(held.weights_for(proposed), held.outcomes, proposed, options.tau)
     return AnchorProposal(
         stamp=stamp,
         source=source,
@@ -214,6 +216,7 @@ def propose(
         changes=changes,
         train_pairs=len(train),
         held_out_pairs=len(held),
-        before=calibration_figures(held.weights_for(current), held.outcomes, current, options.tau),
-        after=calibration_figures(held.weights_for(proposed), held.outcomes, proposed, options.tau),
+        before=before,
+        after=after,
+        verdict=judge_proposal(before, after, len(held)),
     )

@@ -167,12 +167,19 @@ class Experience:
     def open_questions(self) -> list[OperatorQuestion]:
         return [q for q in (asker.open_question for asker in list(self.askers.values())) if q is not None]
 
+    def open_question(self, source: str) -> OperatorQuestion:
+        """The open question about ``source``, crop included (for an operator to look before answering)."""
+        for question in self.open_questions():
+            if question.source == source:
+                return question
+        raise ValueError(f"no open question for '{source}' (questions are asked of grids with a pose)")
+
     def status(self) -> ExperienceStatus:
         """What ``gcdtrav status`` shows: the grid, the pairs, every counter, the open questions."""
         questions = [
             QuestionStatus(
                 id=q.id, source=q.source, stamp=q.stamp, reason=q.reason, concepts=[c.concept for c in q.concepts],
-                region=q.region,
+                region=q.region, cells=len(q.cells),
             )
             for q in self.open_questions()
         ]  # fmt: skip

@@ -3,13 +3,29 @@ service sends them (the commands against a live service: tests/service/bus/test_
 
 from __future__ import annotations
 
+import cv2
+import numpy as np
 import pytest
 from gcdtrav.client.client import ServiceError
-from gcdtrav.client.commands.experience import open_question, report_lines, status_lines
+from gcdtrav.client.commands.experience import (
+    BIAS_LIMIT,
+    COVERAGE_SLACK,
+    ECE_LIMIT,
+    calibration_verdict,
+    crop_ansi,
+    open_question,
+    question_lines,
+    report_lines,
+    status_lines,
+    verdict_lines,
+)
 from gcdtrav.schemas.experience import (
+    MIN_HELD_OUT_PAIRS,
     AnchorFigures,
     CalibrationFigures,
     CalibrationReport,
+    OperatorQuestion,
+    QuestionConcept,
     ReliabilityBin,
     answer_score,
 )
@@ -93,3 +109,88 @@ def test_answers_read_as_scores(text: str, score: float) -> None:
 def test_other_answers_say_what_is_accepted(text: str) -> None:
     with pytest.raises(ValueError, match=r"drivable, blocked or a score|must be in"):
         answer_score(text)
+
+
+# ---- issue 41 item 4: a verdict and the next step; questions shown before they are answered ---------------
+
+
+def graded(
+    pairs: int = 300,
+    cover: float = 0.95,
+    ece: float = 0.02,
+    gap: float = 0.0,
+    bias: float = 0.0,
+) -> CalibrationFigures:
+    """Figures whose q_0.05 covers ``cover`` (the others keep their promise), and whose one filled bin says
+    the outcomes fell below tau ``gap`` more often than predicted."""
+    f = figures(pairs)
+    coverage = {"0.05": cover, "0.1": 0.9, "0.2": 0.8}  # only q_0.05 strays
+    bins = [ReliabilityBin(low=0.2, high=0.3, count=pairs, predicted=0.25, observed=0.25 + gap)]
+    return f.model_copy(update={"coverage": coverage, "ece": ece, "reliability": bins, "bias": bias})
+
+
+@pytest.mark.parametrize(
+    ("figures_", "verdict", "because"),
+    [
+        (graded(pairs=MIN_HELD_OUT_PAIRS - 1), "too few pairs", f"{MIN_HELD_OUT_PAIRS - 1} pairs, a verdict needs"),
+        (graded(pairs=MIN_HELD_OUT_PAIRS), "calibrated", "coverage kept"),
+        (graded(cover=0.95 - COVERAGE_SLACK + 0.001), "calibrated", "coverage kept"),  # just within the slack
+        (
+            graded(cover=0.95 - COVERAGE_SLACK - 0.01),
+            "over-confident",
+            "held for 0.89 of the outcomes, promised 0.95",
+        ),
+        (graded(ece=ECE_LIMIT), "calibrated", "coverage kept"),
+        (graded(ece=0.2, gap=0.2), "over-confident", "the ground was below 0.3 more often than said"),
+        (graded(ece=0.2, gap=-0.2), "under-confident", "the ground was below 0.3 less often than said"),
+        (graded(bias=BIAS_LIMIT + 0.01), "over-confident", "T above the outcomes by 0.11 on average"),
+        (graded(bias=-BIAS_LIMIT - 0.01), "under-confident", "T below the outcomes by 0.11 on average"),
+        (graded(cover=0.5, ece=0.2, gap=-0.2), "over-confident", "held for 0.50 of the"),  # the unsafe side wins
+    ],
+)
+def test_the_calibration_verdict_names_its_figures_and_the_next_step(
+    figures_: CalibrationFigures, verdict: str, because: str
+) -> None:
+    said, reasons, step = calibration_verdict(figures_)
+    assert said == verdict and because in "; ".join(reasons)
+    lines = verdict_lines(figures_)
+    assert lines[0].startswith(f"verdict: {verdict} (") and lines[1].startswith("next: ")
+    assert ("gcdtrav anchors propose" in step) == (verdict in ("over-confident", "under-confident"))
+
+
+def question(crop: bytes | None) -> OperatorQuestion:
+    return OperatorQuestion(
+        id="r1/cam-2", source="r1/cam", stamp=5.0, reason="ambiguous", region=(1.0, 2.0, 1.5, 2.5),
+        cells=[(1.05, 2.05), (1.15, 2.05), (1.25, 2.05)], anchor_set_version="v1", crop_jpeg=crop,
+        concepts=[QuestionConcept(concept="bush", position=0.45, weight=0.52),
+                  QuestionConcept(concept="grass", position=0.5, weight=0.31)],
+        traversability=0.47, uncertainty=0.21, p_below=0.4, match=None,
+    )  # fmt: skip
+
+
+def test_a_question_reads_in_a_terminal_with_the_pairs_an_answer_makes() -> None:
+    image = np.zeros((40, 60, 3), np.uint8)
+    image[:20] = (255, 0, 0)  # BGR: blue above, black below
+    jpeg = cv2.imencode(".jpg", image)[1].tobytes()
+    lines = question_lines(question(jpeg))
+    assert lines[0] == (
+        f"question r1/cam-2 (r1/cam): ambiguous ground in x 1.0..1.5 m, y 2.0..2.5 m (the grid's frame), 3 cells; "
+        f"crop {len(jpeg)} bytes of JPEG"
+    )
+    assert (
+        lines[1]
+        == "  bush (at 0.45, weight 0.52) vs grass (at 0.50, weight 0.31); mean T 0.47, U 0.21, P(T < tau) 0.40"
+    )
+    assert "an answer makes 3 operator pairs" in lines[2]
+    drawn = crop_ansi(jpeg, columns=30)
+    assert len(drawn) == 10 and all(line.count("\u2580") == 30 and line.endswith("\x1b[0m") for line in drawn)
+    assert drawn[0].startswith("\x1b[38;2;0;0;25") and drawn[-1].startswith("\x1b[38;2;0;0;0m")  # RGB: blue, black
+    assert "no crop" in question_lines(question(None))[0]
+
+
+def test_the_status_line_says_how_many_pairs_an_answer_makes() -> None:
+    listed = QuestionStatus(id="r1/cam-2", source="r1/cam", stamp=5.0, reason="ambiguous",
+                            concepts=["bush", "grass"], region=(1.0, 2.0, 1.5, 2.5), cells=12)  # fmt: skip
+    assert "in (1.0, 2.0, 1.5, 2.5); an answer makes 12 pairs; gcdtrav answer r1/cam" in "\n".join(
+        status_lines([status([listed])])
+    )

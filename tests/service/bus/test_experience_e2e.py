@@ -75,6 +75,10 @@ def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> Non
         assert report.pairs_by_version == {start_anchors().version: report.figures.pairs}
         shown = gcdtrav("calibration", "--png", str(tmp_path / "reliability.png"), *flags)  # the source from status
         assert f"calibration of {CAMERA_SOURCE}: anchor set {start_anchors().version}" in shown.stdout
+        verdict, step = shown.stdout.splitlines()[-3:-1]  # the last line says where the diagram went
+        assert verdict.startswith("verdict: over-confident (")  # sand, said 0.4, is 0.15: below tau more often
+        assert "of the outcomes, promised" in verdict and "more often than said" in verdict
+        assert step.startswith("next: gcdtrav anchors propose")
         assert (tmp_path / "reliability.png").read_bytes()[:4] == b"\x89PNG"
 
         # Ambiguity persisted ahead (dirt against gravel, sand against dirt): one question, with its crop.
@@ -83,6 +87,14 @@ def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> Non
         assert question.source == CAMERA_SOURCE and question.crop_jpeg and question.crop_jpeg[:2] == b"\xff\xd8"
         status = gcdtrav("status", *flags).stdout
         assert f"QUESTION {question.id} ({CAMERA_SOURCE})" in status and "velocity_outcomes" in status
+        assert client.question(CAMERA_SOURCE) == question  # the open one, crop included, for a late operator
+        crop = tmp_path / "crop.jpg"
+        shown = gcdtrav("answer", CAMERA_SOURCE, "--save-crop", str(crop), *flags).stdout  # no answer: only shown
+        assert (
+            crop.read_bytes() == question.crop_jpeg and f"an answer makes {len(question.cells)} operator pairs" in shown
+        )
+        assert shown.splitlines()[-1].startswith("nothing recorded: ")
+        assert client.status().experience.open_questions[0].cells == len(question.cells)  # type: ignore[union-attr]
         answered = gcdtrav("answer", CAMERA_SOURCE, "blocked", *flags).stdout
         assert f"answered {question.id} ({CAMERA_SOURCE}): score 0, {len(question.cells)} pairs" in answered
         experience = client.status().experience
@@ -96,6 +108,8 @@ def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> Non
         assert f"{before.version} (8 anchors) -> " in dry and "~ sand @ 0.40 -> " in dry and "not applied" in dry
         assert "before (current set)" in dry and service.pipeline.anchors == before
         proposal = client.anchor_proposal()
+        assert proposal.verdict is not None and proposal.verdict.applicable  # the fit beats the start set
+        assert "verdict: better on the held-out pairs: mae " in dry
         applied = gcdtrav("anchors", "propose", "--apply", *flags).stdout
         assert f"swapped: anchor set {proposal.proposed.version} active on exp-1" in applied
         assert service.pipeline.anchors.version == proposal.proposed.version
@@ -168,6 +182,8 @@ def test_bad_messages_are_rejected_counted_and_never_taken_for_images(tmp_path: 
             client.calibration("other/cam")
         with pytest.raises(ServiceError, match="no pairs"):
             client.anchor_proposal()
+        with pytest.raises(ServiceError, match=f"no open question for '{CAMERA_SOURCE}'"):
+            client.question(CAMERA_SOURCE)
         assert client.calibration(CAMERA_SOURCE).figures.pairs == 0
 
 
@@ -183,6 +199,8 @@ def test_experience_off_declares_nothing_and_changes_nothing(tmp_path: Path) -> 
             client.calibration(CAMERA_SOURCE, timeout=0.5)
         with pytest.raises(QueryTimeout):
             client.anchor_proposal(timeout=0.5)
+        with pytest.raises(QueryTimeout):
+            client.question(CAMERA_SOURCE, timeout=0.5)
     assert not experience_file(tmp_path, "gcdtrav").exists()
 
 
@@ -200,14 +218,21 @@ def test_settings_that_cannot_work_are_refused_at_start(tmp_path: Path) -> None:
         pass
 
 
-def test_ros_topics_are_read_as_cdr_on_rmw_zenoh_keys(tmp_path: Path) -> None:
+def test_ros_topics_are_read_as_cdr_on_rmw_zenoh_keys(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     from gcdtrav.service.bus.experience import ros_key
     from gcdtrav.service.ros.cdr import RosTopic, odometry_cdr, topic_key, twist_cdr
 
     ros = experience_settings(cmd_vel="/robot/cmd_vel", odometry="/robot/odom")
     expression = "*/robot/cmd_vel/geometry_msgs::msg::dds_::Twist_/*"
     assert ros_key("/robot/cmd_vel", "geometry_msgs/msg/Twist", []) == expression
+    caplog.set_level("INFO", logger="gcdtrav.service")
     with running(settings(tmp_path, ros, AskSettings())) as (_, client, _flags):
+        serving = next(r.getMessage() for r in caplog.records if r.getMessage().startswith("serving: "))
+        assert f"grids {CAMERA_SOURCE} (pose on robot/pose (gcdtrav)), " in serving  # where the grid and the
+        assert (  # experience read what they read: the first thing to check when nothing pairs
+            f"experience grid {CAMERA_SOURCE}, cmd_vel on {expression} (ROS topic /robot/cmd_vel), "
+            "odometry on */robot/odom/nav_msgs::msg::dds_::Odometry_/* (ROS topic /robot/odom), model "
+        ) in serving
         twist = topic_key(RosTopic("/robot/cmd_vel", "geometry_msgs/msg/Twist", "rmw_zenoh", domain=7))
         odometry = topic_key(RosTopic("/robot/odom", "nav_msgs/msg/Odometry", "rmw_zenoh", domain=7))
         for k in range(40):  # 2 s at 0.5 m/s, commanded 1 m/s: outcomes every 0.3 m (no grid: no pairs)

@@ -10,11 +10,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from gcdtrav.client.commands.experience import proposal_lines
 from gcdtrav.schemas.anchors import Anchor, AnchorSet, anchor_diff
 from gcdtrav.service.backends.base import BackendDescription
 from gcdtrav.service.eval.datasets import load_dataset
 from gcdtrav.service.eval.mapping import load_mapping
-from gcdtrav.service.experience.dataset_fit import PROPOSED_FILE, fit_on_dataset, summary
+from gcdtrav.service.experience.dataset_fit import PROPOSED_FILE, fit_on_dataset
 from gcdtrav.service.experience.fitter import FitOptions
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -78,12 +79,14 @@ def test_the_fit_recovers_the_label_values_and_writes_a_set_anchors_set_accepts(
     assert p.train_pairs + p.held_out_pairs == 6 * (3 * 8 // 8) * (48 // 8)  # 3 bands x 6 columns, sky ignored
     assert p.after.mae is not None and p.before.mae is not None and p.after.mae < p.before.mae / 10
     assert p.diff == anchor_diff(START, proposed)
-    text = summary(run)
-    assert "~ water @ 0.30 -> 0.02" in text and "held-out pixels" in text and PROPOSED_FILE in text
+    text = "\n".join(proposal_lines(p))  # the text `gcdtrav anchors propose` prints
+    assert "~ water @ 0.30 -> 0.02" in text and f"graded on the {p.held_out_pairs} later ones" in text
+    assert p.verdict is not None and p.verdict.verdict == "better" and not p.verdict.enough_pairs  # a tiny set
+    assert text.endswith(f"; {p.held_out_pairs} held-out pairs, fewer than the 200 a verdict needs")
     assert json.loads((tmp_path / "out" / "proposal.json").read_text())["proposed_version"] == proposed.version
 
 
-def test_the_cli_on_synthetic_goose_with_the_tiny_model(tmp_path: Path, tiny_model_dir: Path) -> None:
+def test_the_cli_on_synthetic_goose_with_the_tiny_model(tmp_path: Path, tiny_model_dir: Path, capsys) -> None:  # type: ignore[no-untyped-def]
     subprocess.run(
         [sys.executable, str(ROOT / "examples" / "make_synthetic_goose.py"), str(tmp_path / "goose"), "--frames", "4"],
         check=True,
@@ -97,6 +100,9 @@ def test_the_cli_on_synthetic_goose_with_the_tiny_model(tmp_path: Path, tiny_mod
     )  # fmt: skip
     assert code == 0
     proposed = AnchorSet.load(tmp_path / "out" / PROPOSED_FILE)  # what `gcdtrav anchors set` reads
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[-3].startswith("verdict: ") and printed[-1].startswith(f"proposed set: {tmp_path / 'out'}")
+    assert "(not recommended: " in printed[-1] or "(judged better)" in printed[-1]
     report = json.loads((tmp_path / "out" / "proposal.json").read_text())
     assert report["held_out_pairs"] > 0 and report["train_pairs"] > report["held_out_pairs"]
     assert sorted(proposed.concepts) == sorted(AnchorSet.model_validate(report["current"]).concepts)
