@@ -4,11 +4,13 @@ A zenoh router on 127.0.0.1, `gcdtrav serve` instances started and stopped (SIGT
 Prometheus (Debian's /usr/bin/prometheus) scraping each instance's /metrics every second, and a controller
 loop applying the HPA formula of deploy/kubernetes to what Prometheus answers:
 
-    metric  = histogram_quantile(0.95, sum by (le) (rate(gcdtrav_map_age_seconds_bucket[W])))
+    busy    = sum(rate(gcdtrav_inference_seconds_sum[W])) / current   (--signal busy, the manifests' signal)
+    age     = histogram_quantile(0.95, sum by (le) (rate(gcdtrav_map_age_seconds_bucket[W])))   (--signal age)
     desired = ceil(current x metric / target)   (within 10 % of the target: no change; HPA's tolerance)
 
-clamped to [min, max]; up at once (at most +2 a period), down by one instance a period and only to the highest
-recommendation of the last --down-window s (HPA's scale-down stabilisation). Robots ramp 2 -> 8 -> 2 at --fps.
+clamped to [min, max]; up at once but at most +2 per 20 s, down by one instance per 10 s and only to the highest
+recommendation of the last --down-window s (HPA's scale-down stabilisation): deploy/kubernetes's behaviour (+4 per
+60 s, -1 per 60 s, 300 s) at a benchmark's time scale. Robots ramp 2 -> 8 -> 2 at --fps.
 
 TEST BACKEND: every instance runs tools/faulty_serve.py with FAULTY_SERVE_FRAME_COST_S (--frame-cost): each
 inference takes that long, slept, on a tiny random model, so one instance serves 1/cost frames/s and capacity
@@ -17,7 +19,7 @@ is. Per phase: instances, map age p50/p95 as the robots saw it (receipt minus ca
 any robot saw around each scale event, stale maps (older than max_frame_age_s: none allowed), whether the
 count settled without flapping.
 
-    python benchmarks/autoscale.py [--quick] [--out benchmarks/autoscale-DATE.json]
+    python -m benchmarks.autoscale [--quick] [--out benchmarks/autoscale-DATE.json]
 """
 
 from __future__ import annotations
@@ -48,7 +50,12 @@ from gcdtrav.service.commands.bench import bench_image
 from tools.loopback import INFER_EVERY_FRAME, SimulatedRobots, free_port
 
 MAX_FRAME_AGE_S = 5.0
-QUERY = "histogram_quantile(0.95, sum by (le) (rate(gcdtrav_map_age_seconds_bucket[{window}s])))"
+SETTLED_S = 30.0  # a phase settled if the count did not change in its last this many seconds
+QUERIES = {
+    "busy": "sum(rate(gcdtrav_inference_seconds_sum[{window}s]))",  # divided by the instances: per instance
+    "age": "histogram_quantile(0.95, sum by (le) (rate(gcdtrav_map_age_seconds_bucket[{window}s])))",
+}
+TARGETS = {"busy": 0.7, "age": 0.8}
 
 
 @dataclass
@@ -163,9 +170,11 @@ class Controller:
     minimum: int
     maximum: int
     down_window_s: float
-    max_up: int = 2
+    up: tuple[int, float] = (2, 20.0)  # at most this many instances more per this many seconds
+    down: tuple[int, float] = (1, 10.0)  # at most this many fewer per this many seconds
     tolerance: float = 0.1
     recommendations: list[tuple[float, int]] = field(default_factory=list)
+    changes: list[tuple[float, int]] = field(default_factory=list)  # (when, +n or -n)
 
     def desired(self, now: float, current: int, metric: float | None) -> int:
         if metric is None:  # no maps in the window: KEDA's ignoreNullValues reads 0
@@ -176,8 +185,15 @@ class Controller:
         self.recommendations = [(t, r) for t, r in self.recommendations if now - t <= self.down_window_s]
         self.recommendations.append((now, raw))
         if raw > current:
-            return min(raw, current + self.max_up)
-        return max(min(current, max(r for _, r in self.recommendations)), current - 1)
+            room = self.up[0] - sum(n for t, n in self.changes if n > 0 and now - t < self.up[1])
+            desired = current + max(0, min(raw - current, room))
+        else:
+            stable = min(current, max(r for _, r in self.recommendations))
+            room = self.down[0] + sum(n for t, n in self.changes if n < 0 and now - t < self.down[1])
+            desired = current - max(0, min(current - stable, room))
+        if desired != current:
+            self.changes.append((now, desired - current))
+        return desired
 
 
 def longest_gap(robots: list[SimulatedRobots], began: float, ended: float) -> float:
@@ -204,10 +220,11 @@ def parse_args() -> argparse.Namespace:
     parser.add_argument("--model", help="checkpoint (default: a tiny random one: the backend's cost is slept)")
     parser.add_argument("--frame-cost", type=float, default=0.2, help="test backend: seconds per inference [0.2]")
     parser.add_argument("--fps", type=float, default=2.0, help="each robot's frame rate [2]")
-    parser.add_argument("--target", type=float, default=0.6, help="map age p95 target, s [0.6]")
+    parser.add_argument("--signal", choices=sorted(QUERIES), default="busy", help="what to scale on [busy]")
+    parser.add_argument("--target", type=float, help="busy: inference s/s per instance [0.7]; age: p95 s [0.8]")
     parser.add_argument("--period", type=float, default=5.0, help="controller period, s [5]")
     parser.add_argument("--down-window", type=float, default=30.0, help="scale-down stabilisation, s [30]")
-    parser.add_argument("--window", type=int, default=15, help="PromQL rate window, s [15]")
+    parser.add_argument("--window", type=int, default=10, help="PromQL rate window, s [10]")
     parser.add_argument("--min", type=int, default=1, dest="minimum")
     parser.add_argument("--max", type=int, default=6, dest="maximum")
     parser.add_argument("--phases", default="2:60,8:120,2:120", help="robots:seconds,... [2:60,8:120,2:120]")
@@ -242,11 +259,12 @@ def phase_result(
                 "instance": e.instance,
                 "instances_after": e.instances_after,
                 "longest_gap_s": round(longest_gap(live, e.at, min(e.at + 10.0, ended)), 2),
+                "longest_gap_before_s": round(longest_gap(live, max(began, e.at - 10.0), e.at), 2),
             }
             for e in mine
         ],
         "reversals": sum(a != b for a, b in itertools.pairwise(kinds)),  # up then down, or down then up
-        "settled": not [e for e in mine if e.at >= began + seconds / 2],  # no change in the phase's second half
+        "settled": not [e for e in mine if e.at >= ended - SETTLED_S],  # no change in the phase's last 30 s
     }
 
 
@@ -256,7 +274,8 @@ def run(args: argparse.Namespace, scratch: Path) -> dict[str, Any]:
     ramp = "2:20,6:40,2:40" if args.quick else args.phases
     phases = [(int(robots), int(seconds)) for robots, seconds in (p.split(":") for p in ramp.split(","))]
     fleet = Fleet(benchmark_model(args.model, True, scratch), scratch, args.frame_cost)
-    controller = Controller(args.target, args.minimum, args.maximum, args.down_window)
+    target = args.target if args.target is not None else TARGETS[args.signal]
+    controller = Controller(target, args.minimum, args.maximum, args.down_window)
     jpeg = encode_jpeg(bench_image(), 85)
     client = TraversabilityClient(config=fleet.client_config(), timeout=5.0)
     live: list[SimulatedRobots] = []
@@ -283,7 +302,9 @@ def run(args: argparse.Namespace, scratch: Path) -> dict[str, Any]:
             while time.monotonic() - began < seconds:
                 time.sleep(args.period)
                 now, current = time.monotonic(), len(fleet.processes)
-                metric = fleet.query(QUERY.format(window=args.window))
+                metric = fleet.query(QUERIES[args.signal].format(window=args.window))
+                if metric is not None and args.signal == "busy":
+                    metric /= current
                 desired = controller.desired(now, current, metric)
                 counts.append(current)
                 samples.append(
@@ -318,11 +339,17 @@ def main() -> int:
         report = run(args, Path(scratch))
     report["cpu"], report["cpus"] = cpu_name(), os.cpu_count()
     print(f"CPU: {report['cpu']} ({report['cpus']} CPUs)")
-    print("| robots | instances | map age p50 / p95 | longest gap at each scale event | stale | settled (reversals) |")
+    print(
+        "| robots | instances | map age p50 / p95 | longest gap 10 s after each scale event (10 s before) "
+        "| stale maps | settled (reversals) |"
+    )
     print("|---|---|---|---|---|---|")
     for p in report["phases"]:
         events = p["scale_events"]
-        gaps = ", ".join(f"{e['kind']} to {e['instances_after']}: {e['longest_gap_s']:.2f} s" for e in events)
+        gaps = ", ".join(
+            f"{e['kind']} to {e['instances_after']}: {e['longest_gap_s']:.2f} s ({e['longest_gap_before_s']:.2f})"
+            for e in events
+        )
         counts = p["instances"]
         print(
             f"| {p['robots']} | {counts[0]} → {counts[-1]} | {p['map_age_p50_s']:.2f} / {p['map_age_p95_s']:.2f} s "

@@ -32,7 +32,7 @@ from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.admission import Admission
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
-from gcdtrav.service.runtime.assignment import Assignment
+from gcdtrav.service.runtime.assignment import TABLE_IDLE_S, Assignment
 from gcdtrav.service.runtime.credits import CreditLedger
 from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.freshness import FrameGate, Freshness
@@ -132,7 +132,8 @@ class TraversabilityService:
             settings.max_sources, settings.source_idle_s, forget, reclaim_after_s=settings.reclaim_after_s
         )
         self.admission = Admission(settings, self.sources, self.queue, self.stats, self.credits.freed, self.freshness)
-        self.assignment = Assignment(idle_s=settings.source_idle_s, max_known=4 * settings.max_sources)
+        idle = min(settings.source_idle_s, TABLE_IDLE_S)  # the table's memory, not the source's state
+        self.assignment = Assignment(idle_s=idle, max_known=4 * settings.max_sources)
         self.progress = ProgressMonitor(settings.stall_after_s)
         self.status_parts = StatusParts(
             settings.instance,

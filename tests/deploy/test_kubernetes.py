@@ -200,22 +200,21 @@ def test_the_service_pods_settings_probes_and_grace(keda_tree: list[dict[str, An
 def test_keda_and_the_hpa_scale_on_the_same_signal(
     keda_tree: list[dict[str, Any]], hpa_tree: list[dict[str, Any]]
 ) -> None:
-    """desired = ceil(current x p95 / 1.5 s) either way: a Value target (not an average), the same bounds."""
+    """desired = ceil(inference seconds per second / 0.7) either way: an average per pod, the same bounds."""
     scaled = one(keda_tree, "ScaledObject", "gcdtrav")["spec"]
     hpa = one(hpa_tree, "HorizontalPodAutoscaler", "gcdtrav")["spec"]
     trigger = scaled["triggers"][0]
-    assert trigger["type"] == "prometheus" and trigger["metricType"] == "Value"
+    assert trigger["type"] == "prometheus" and trigger["metricType"] == "AverageValue"
     external = hpa["metrics"][0]["external"]
-    assert external["target"] == {"type": "Value", "value": "1500m"}
-    assert float(trigger["metadata"]["threshold"]) == 1.5
+    assert external["target"] == {"type": "AverageValue", "averageValue": "700m"}
+    assert float(trigger["metadata"]["threshold"]) == 0.7
     assert (scaled["minReplicaCount"], scaled["maxReplicaCount"]) == (hpa["minReplicas"], hpa["maxReplicas"])
     assert scaled["advanced"]["horizontalPodAutoscalerConfig"]["behavior"] == hpa["behavior"]
     assert scaled["scaleTargetRef"]["name"] == hpa["scaleTargetRef"]["name"] == "gcdtrav"
     adapter = yaml.safe_load((TREE / "hpa" / "prometheus-adapter-rules.yaml").read_text("utf-8"))
     rule = adapter["rules"]["external"][0]
     assert rule["name"]["as"] == external["metric"]["name"]
-    assert "gcdtrav_map_age_seconds_bucket" in rule["seriesQuery"]
-    assert "gcdtrav_map_age_seconds_bucket" in trigger["metadata"]["query"]
-    assert (
-        "histogram_quantile(0.95" in trigger["metadata"]["query"] and "histogram_quantile(0.95" in rule["metricsQuery"]
-    )
+    assert "gcdtrav_inference_seconds_sum" in rule["seriesQuery"]
+    for query in (trigger["metadata"]["query"], rule["metricsQuery"]):
+        assert query.startswith("sum(rate(") and "[2m]))" in query
+    assert "gcdtrav_inference_seconds_sum" in trigger["metadata"]["query"]
