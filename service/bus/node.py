@@ -185,9 +185,10 @@ class TraversabilityService:
     # ---- lifecycle -----------------------------------------------------------------------------------
     def start(self, observe_s: float = 0.0) -> None:
         """Serve. The instance watches the others and notes the sources on the inputs from the start, but
-        joins the fleet (declares its token, so sources move to it) only once it serves: subscribers,
-        queryables and worker up, and after ``observe_s`` of watching, so that its table already holds the
-        robots the others serve (a robot it has not seen twice yet would be claimed by neither)."""
+        joins the fleet (declares its token, so sources move to it) only once it serves: subscribers and
+        worker up, and after ``observe_s`` of watching, so that its table already holds the robots the others
+        serve (a robot it has not seen twice yet would be claimed by neither). Its queryables come last: an
+        instance that answers status serves."""
         began = time.monotonic()
         if self.settings.health_port:  # first: a supervisor sees it starting
             self.probes = Probes(self.liveness, self.readiness, self.settings.health_address, self.settings.health_port)
@@ -205,13 +206,13 @@ class TraversabilityService:
             self.ros_graph.start()
         if self.grids is not None:
             self._declare_grid_inputs(self.grids)
-        self._declare_queryables()
         if self.experience is not None:
             self._declared += self.experience.start()
         self.worker.start()
         self._watchdog.start()
         self._stopping.wait(max(0.0, began + observe_s - time.monotonic()))
         self.membership.rejoin()
+        self._declare_queryables()  # answering status means serving: callers wait for it
         backend, active = self.pipeline.describe(), self.anchor_switch.head().anchor_set
         log.info(
             "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, grids %s, experience %s, model %s (%s), "
