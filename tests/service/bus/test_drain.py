@@ -67,6 +67,28 @@ def close(*services: TraversabilityService) -> None:
         running.session.close()
 
 
+class Robots:
+    """Robots streaming IMAGE every ``period_s`` from a thread, until ``stop``."""
+
+    def __init__(self, client: TraversabilityClient, sources: list[str], period_s: float) -> None:
+        self.done = threading.Event()
+
+        def stream() -> None:
+            while not self.done.wait(period_s):
+                for source in sources:
+                    client.publish_image(source, IMAGE)
+
+        self.thread = threading.Thread(target=stream, daemon=True)
+
+    def start(self) -> None:
+        self.thread.start()
+
+    def stop(self) -> None:
+        self.done.set()
+        if self.thread.is_alive():
+            self.thread.join(5)
+
+
 def probe(port: int, path: str) -> tuple[int, str]:
     """The HTTP status and body; 0 and why when nothing listens."""
     try:
@@ -167,18 +189,11 @@ def test_a_starting_instance_joins_only_after_watching_the_inputs(tiny_backend: 
     new = service(tiny_backend, router_port, "box-new", tmp_path / "new", health_port=health_port)
     client = TraversabilityClient(config=client_config(router_port), timeout=3.0)
     sources = [f"r{i}/front" for i in range(6)]
-    publishing = threading.Event()
-
-    def robots() -> None:
-        while not publishing.wait(0.1):
-            for source in sources:
-                client.publish_image(source, IMAGE)
-
-    robot_thread = threading.Thread(target=robots, daemon=True)
+    robots = Robots(client, sources, 0.1)
     starting = threading.Thread(target=new.start, kwargs={"observe_s": 1.5})
     try:
         old.start()
-        robot_thread.start()
+        robots.start()
         time.sleep(0.5)
         starting.start()
         assert wait_until(lambda: probe(health_port, "/readyz")[0] == 503, 5)
@@ -191,8 +206,7 @@ def test_a_starting_instance_joins_only_after_watching_the_inputs(tiny_backend: 
         assert new.assignment.table() == old.assignment.table()
         assert set(new.assignment.table()) == set(sources)
     finally:
-        publishing.set()
-        robot_thread.join(5)
+        robots.stop()
         client.close()
         if starting.is_alive():
             starting.join(10)
@@ -222,17 +236,10 @@ def test_sigterm_to_an_instance_serving_robots_leaves_no_robot_without_maps(
     sources = [f"r{i}/front" for i in range(4)]
     arrivals: dict[str, list[tuple[float, Maps]]] = defaultdict(list)
     subscriber = client.subscribe_maps("**", lambda m: arrivals[m.header.source].append((time.monotonic(), m)))
-    done = threading.Event()
-
-    def robots() -> None:
-        while not done.wait(0.2):
-            for source in sources:
-                client.publish_image(source, IMAGE)
-
-    robot_thread = threading.Thread(target=robots, daemon=True)
+    robots = Robots(client, sources, 0.2)
     try:
         assert wait_until(lambda: instances_joined(client) == {"box-a", "box-b"}, 90)
-        robot_thread.start()
+        robots.start()
         assert wait_until(lambda: all(len(arrivals[s]) >= 3 for s in sources), 30), "every robot served"
         instances = {m.header.instance for source in sources for _, m in arrivals[source][-3:]}
         assert instances == {"box-a", "box-b"}, instances  # both serve robots
@@ -243,8 +250,7 @@ def test_sigterm_to_an_instance_serving_robots_leaves_no_robot_without_maps(
         assert processes[1].returncode == 0, output[-2000:]
         exit_s = time.monotonic() - terminated_at
         time.sleep(3.0)
-        done.set()
-        robot_thread.join(5)
+        robots.stop()
         gaps = {}
         for source in sources:
             times = [terminated_at - 1.0, *(at for at, _ in arrivals[source] if at >= terminated_at - 1.0)]
@@ -257,7 +263,7 @@ def test_sigterm_to_an_instance_serving_robots_leaves_no_robot_without_maps(
             for _, maps in arrivals[source]:
                 assert maps.header.published_at - maps.header.stamp <= max_age_s, maps.header
     finally:
-        done.set()
+        robots.stop()
         subscriber.undeclare()
         client.close()
         for process in processes:
