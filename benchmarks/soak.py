@@ -119,6 +119,11 @@ def churn_verdict(
             "levelled": max(values[-third:]) <= min(bound, 1.05 * max(middle)),
         }
     maps = [c["maps_delivered"] for c in per_robot.values()]
+    # Evenness that does not depend on the host's speed: the share of the frames the service took in (received,
+    # not refused) that came back as maps. A fair scheduler serves the same share of each steady robot's
+    # frames (all of them on a fast box, fewer of each on a slow one), whatever each robot's thread managed to
+    # send and however late a robot took its slot; counts over wall time differ by both.
+    served = [c["maps_delivered"] / max(c["received"] - c["rejected"], 1) for c in per_robot.values()]
     refused = sum(series[-1]["too_many_sources"] for series in bounds.values() if series)
     return {
         "churn_frames_sent": churn_sent,
@@ -128,6 +133,7 @@ def churn_verdict(
         "max_tracked_sources": max((b["tracked_sources"] for s in bounds.values() for b in s), default=0),
         "max_history_mb": max((b["history_mb"] for s in bounds.values() for b in s), default=0),
         "steady_maps_min_max": [min(maps, default=0), max(maps, default=0)],
+        "steady_served_min_max": [round(min(served, default=0), 3), round(max(served, default=0), 3)],
     }
 
 

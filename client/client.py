@@ -29,9 +29,8 @@ from gcdtrav.schemas.experience import (
     PlannedPath,
     TraversalOutcome,
 )
+from gcdtrav.schemas.grid_layers import decode_layers
 from gcdtrav.schemas.images import (
-    decode_age_png,
-    decode_count_png,
     decode_map_png8,
     decode_map_png16,
     encode_jpeg,
@@ -113,11 +112,13 @@ class Maps:
     traversability_full: NDArray[np.float32] | None = None
     uncertainty_full: NDArray[np.float32] | None = None
     compact: bool = False
+    arrived_at: float | None = None  # this machine's clock when decoded (at receipt, in subscribe_maps)
 
     @classmethod
     def from_payload(cls, payload: bytes) -> Maps:
         message = MapsMessage.unpack(payload)
         return cls(
+            arrived_at=time.time(),
             header=message.header,
             traversability=decode_map_png16(message.traversability_png),
             uncertainty=decode_map_png16(message.uncertainty_png),
@@ -129,7 +130,7 @@ class Maps:
     def from_compact_payload(cls, payload: bytes) -> Maps:
         message = CompactMapsMessage.unpack(payload)
         t, u = decode_map_png8(message.traversability_png), decode_map_png8(message.uncertainty_png)
-        return cls(header=message.header, traversability=t, uncertainty=u, compact=True)
+        return cls(header=message.header, traversability=t, uncertainty=u, compact=True, arrived_at=time.time())
 
     @property
     def reused(self) -> bool:
@@ -145,16 +146,25 @@ class Maps:
 
     @property
     def age_s(self) -> float:
-        """Now minus the capture stamp. Exact on the robot that stamped the image (its own clock); elsewhere
-        it assumes clocks in step (NTP, chrony). A bare JPEG/PNG input has the service's receive time as its
-        stamp, the service's clock."""
-        return time.time() - self.header.stamp
+        """How old the frame behind these maps is now, whatever the robot's, the service's and this machine's
+        clocks read: its age when the service received it (``header.age_at_receipt_s``, judged by delay as the
+        service judges frames), plus its time in the service (``published_at - received_at``, the service's
+        clock), plus the time since these maps were decoded here (this clock). It leaves out the link's
+        smallest delay and the maps' way here, tens of milliseconds on a LAN.
+
+        From a service before 1.4 (no ``age_at_receipt_s``), or maps built by hand: now minus the capture
+        stamp, exact on the robot that stamped the image and elsewhere only with clocks in step."""
+        header = self.header
+        if header.age_at_receipt_s is None or self.arrived_at is None:
+            return time.time() - header.stamp
+        return header.age_at_receipt_s + (header.published_at - header.received_at) + time.time() - self.arrived_at
 
 
 @dataclass(frozen=True)
 class Grid:
-    """A decoded GridMessage: T and U per cell (NaN where unknown: never observed, or expired) and observation
-    counts (0 where unknown); from 1.2 writers also the planner's layers, None from older ones:
+    """A decoded GridMessage: its ``layers`` by name (the table in schemas/grid_layers.py), those the writer
+    sent. T and U per cell (NaN where unknown: never observed, or expired) and observation counts (0 where
+    unknown) always; from 1.2 writers also the planner's layers, None from older ones:
 
     - ``cvar``: CVaR of T at ``header.alpha`` (the mean of its worst alpha), NaN where unknown;
     - ``p_below``: P(T < ``header.tau``), NaN where unknown;
@@ -164,40 +174,40 @@ class Grid:
     """
 
     header: GridHeader
-    traversability: NDArray[np.float32]
-    uncertainty: NDArray[np.float32]
-    count: NDArray[np.int64]
-    cvar: NDArray[np.float32] | None = None
-    p_below: NDArray[np.float32] | None = None
-    match: NDArray[np.float32] | None = None
-    age: NDArray[np.float32] | None = None
+    layers: Mapping[str, NDArray[Any]]
 
     @classmethod
     def from_payload(cls, payload: bytes) -> Grid:
         message = GridMessage.unpack(payload)
-        count = decode_count_png(message.count_png)
-        unknown = count == 0
+        return cls(message.header, decode_layers(message))
 
-        def layer(data: bytes | None) -> NDArray[np.float32] | None:
-            if data is None:
-                return None
-            values = decode_map_png16(data)
-            values[unknown] = np.nan
-            return values
+    @property
+    def traversability(self) -> NDArray[np.float32]:
+        return self.layers["traversability"]
 
-        t, u = layer(message.traversability_png), layer(message.uncertainty_png)
-        assert t is not None and u is not None
-        age = decode_age_png(message.age_png) if message.age_png is not None else None
-        return cls(
-            header=message.header,
-            traversability=t,
-            uncertainty=u,
-            count=count,
-            cvar=layer(message.cvar_png),
-            p_below=layer(message.p_below_png),
-            match=layer(message.match_png),
-            age=age,
-        )
+    @property
+    def uncertainty(self) -> NDArray[np.float32]:
+        return self.layers["uncertainty"]
+
+    @property
+    def count(self) -> NDArray[np.int64]:
+        return self.layers["count"]
+
+    @property
+    def cvar(self) -> NDArray[np.float32] | None:
+        return self.layers.get("cvar")
+
+    @property
+    def p_below(self) -> NDArray[np.float32] | None:
+        return self.layers.get("p_below")
+
+    @property
+    def match(self) -> NDArray[np.float32] | None:
+        return self.layers.get("match")
+
+    @property
+    def age(self) -> NDArray[np.float32] | None:
+        return self.layers.get("age")
 
     def planning_layers(self) -> dict[str, NDArray[np.float32]]:
         """The layers ``client.planning.plan`` reads (traversability, cvar, p_below), those the grid has."""
@@ -215,7 +225,19 @@ class Grid:
         return int((y - self.header.origin[1]) // r), int((x - self.header.origin[0]) // r)
 
 
+EARLY_END = 0.9  # a query that ended before this share of its timeout was ended by zenoh: nothing to ask
 CLOCK_STEP_BACK_S = 10.0  # over the service's max_frame_age_s (5 s): no fresh frame is stamped this much older
+
+
+def no_reply_message(key: str, timeout: float, waited: float) -> str:
+    """Why a query got nothing. Zenoh ends a query at once when nothing it can reach serves the key: then
+    saying 'within 5 s' after a second would send the user looking for a slow service."""
+    if waited < EARLY_END * timeout:
+        return (
+            f"nothing reachable answers on '{key}' (the query ended after {waited:.1f} s): is the gcdtrav service "
+            "running, with this prefix, and reachable (zenoh flags -e/-m)?"
+        )
+    return f"no reply on '{key}' within {timeout:g} s: is the gcdtrav service running and reachable?"
 
 
 class MapsOrder:
@@ -513,6 +535,7 @@ class TraversabilityClient:
         options: dict[str, Any] = {}
         if every_instance:  # all queryables, and no merging of replies that share a key
             options = {"target": zenoh.QueryTarget.ALL, "consolidation": zenoh.ConsolidationMode.NONE}
+        started = time.monotonic()
         replies = self.session.get(_selector(key, params or {}), payload=payload, timeout=timeout, **options)
         answers: list[M] = []
         errors: list[ServiceError] = []
@@ -524,9 +547,7 @@ class TraversabilityClient:
             else:
                 errors.append(self._error_from(reply.err.payload.to_bytes() if reply.err is not None else b"", key))
         if not answers and not errors:
-            raise QueryTimeout(
-                f"no reply on '{key}' within {timeout:g} s: is the gcdtrav service running and reachable?"
-            )
+            raise QueryTimeout(no_reply_message(key, timeout, time.monotonic() - started))
         return answers, errors
 
     def _query(

@@ -2,7 +2,8 @@
 
 Ages compare the maps' capture stamp with this machine's clock. On the robot that captured the image both
 are the robot's clock, so the age is exact; elsewhere it assumes clocks in step (NTP, chrony), and is off by
-their offset otherwise.
+their offset otherwise. A caller that knows the offset passes stamps on its own clock: the relay adds the
+camera's learnt offset (client/relay/state.py CameraClock).
 """
 
 from __future__ import annotations

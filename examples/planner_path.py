@@ -11,6 +11,9 @@ import argparse
 import sys
 
 from gcdtrav.client import ServiceError, TraversabilityClient, add_zenoh_arguments, zenoh_config_from_args
+from gcdtrav.schemas.messages import ContextDistribution
+
+MOSTLY = 0.5  # "mostly X" only when X holds at least half of the cell's weight
 
 
 def parse_path(text: str) -> list[tuple[float, float]]:
@@ -19,6 +22,18 @@ def parse_path(text: str) -> list[tuple[float, float]]:
         x, y = (float(v) for v in part.split(","))
         points.append((x, y))
     return points
+
+
+def ground_of(cell: ContextDistribution) -> str:
+    """The ground of a cell: "mostly 'grass' (71%)" when one anchor holds half its weight or more, else the
+    leading anchors with theirs (a cell of a dozen anchors at 8% each is not "mostly" anything)."""
+    top = cell.top_anchors[:3]
+    if not top:
+        return "no anchors"
+    first = top[0]
+    if cell.weights[first] >= MOSTLY:
+        return f"mostly '{cell.anchors[first].concept}' ({cell.weights[first]:.0%})"
+    return "mixed: " + ", ".join(f"'{cell.anchors[k].concept}' {cell.weights[k]:.0%}" for k in top)
 
 
 def main() -> int:
@@ -43,9 +58,8 @@ def main() -> int:
         print("no known cell on this path: nothing seen there yet")
         return 0
     worst, doubt = reply.cells[reply.lowest_t], reply.cells[reply.highest_u]
-    top = worst.anchors[worst.top_anchors[0]].concept
     print(
-        f"worst cell   {worst.cell_xy}: T {worst.mean:.2f} (mostly '{top}'), U {worst.std:.2f}, "
+        f"worst cell   {worst.cell_xy}: T {worst.mean:.2f} ({ground_of(worst)}), U {worst.std:.2f}, "
         f"{worst.observations} pixels"
     )
     print(f"most unsure  {doubt.cell_xy}: T {doubt.mean:.2f}, U {doubt.std:.2f}")

@@ -181,13 +181,15 @@ class FigureVerdict(WireModel):
     figure: str = Field(description="mae, coverage shortfall or ece: smaller is better for each.")
     before: float | None
     after: float | None
-    judgement: FigureJudgement
+    # A plain string on the wire (FigureJudgement's words today): a word a newer service adds must not make
+    # this reader refuse the whole proposal.
+    judgement: str
 
 
 class ProposalVerdict(WireModel):
     """A proposal judged on its held-out pairs: better only if no judged figure is worse and one is better."""
 
-    verdict: Verdict
+    verdict: str = Field(description="Verdict's words today; any other word (a newer service) is never applied.")
     figures: list[FigureVerdict]
     held_out_pairs: int
     min_held_out_pairs: int = MIN_HELD_OUT_PAIRS

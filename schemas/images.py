@@ -4,7 +4,7 @@ client."""
 from __future__ import annotations
 
 import struct
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
@@ -130,6 +130,11 @@ _ENCODERS = ThreadPoolExecutor(max_workers=2, thread_name_prefix="png")
 def encode_maps_png16(*maps: NDArray[np.floating]) -> list[bytes]:
     """Several maps encoded concurrently (OpenCV releases the GIL while compressing)."""
     return list(_ENCODERS.map(encode_map_png16, maps))
+
+
+def encode_all(jobs: Sequence[tuple[Callable[[NDArray[Any]], bytes], NDArray[Any]]]) -> list[bytes]:
+    """Each (encoder, values) encoded concurrently, in order (a grid's layers, schemas/grid_layers.py)."""
+    return list(_ENCODERS.map(lambda job: job[0](job[1]), jobs))
 
 
 def decode_map_png16(data: bytes) -> NDArray[np.float32]:

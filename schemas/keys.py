@@ -17,6 +17,8 @@ A service with prefix ``gcdtrav`` (the default) answers and publishes on:
   {prefix}/config/anchors/proposal           queryable: AnchorProposal fitted on the experience (never applied)
   {prefix}/status                            queryable: ServiceStatus
   {prefix}/alive/{instance}                  liveliness token
+  {prefix}/member/{instance}/{fingerprint}/{state}/{millis}  liveliness token: the instance's model fingerprint and
+                                             whether it serves (service/runtime/fleet_models.py); since 1.4
   {prefix}/active/{instance}/{millis}/{version}  liveliness token: the instance's active anchor set, accepted at
                                              {millis} (ms since epoch); the fleet converges to the newest
   {prefix}/credit/{source}                   CreditGrant: the source's owner is ready for its next frame
@@ -42,6 +44,7 @@ from dataclasses import dataclass
 OUTPUT_KINDS = ("maps", "maps8", "preview", "patch", "grid", "cell", "calibration", "question")
 # The last chunk of {prefix}/in/{source}/<kind> keys that carry messages, not images: never a camera source.
 INPUT_MESSAGE_KINDS = ("outcome", "answer", "planned_path")
+NO_FINGERPRINT = "-"  # a member token's fingerprint chunk when the backend has none (key chunks cannot be empty)
 GRID_LAYERS = ("occupancy", "uncertainty", "gridmap", "costmap")  # the grid's CDR messages, under .../grid/
 
 
@@ -167,6 +170,22 @@ class Keys:
         if len(parts) < 3 or not parts[-2].isdigit():
             return None
         return "/".join(parts[:-2]), int(parts[-2]), parts[-1]
+
+    def member(self, instance: str = "**", fingerprint: str = "", state: str = "", millis: int = 0) -> str:
+        """The liveliness token saying which model an instance runs and whether it serves (``**``: all)."""
+        if instance == "**":
+            return f"{self.prefix}/member/**"
+        return f"{self.prefix}/member/{instance}/{fingerprint or NO_FINGERPRINT}/{state}/{millis}"
+
+    def parse_member(self, key: str) -> tuple[str, str, str, int] | None:
+        """(instance, fingerprint, state, since in ms) of a member token key; "" for no fingerprint; None for
+        another key."""
+        head = f"{self.prefix}/member/"
+        parts = key[len(head) :].split("/") if key.startswith(head) else []
+        if len(parts) < 4 or not parts[-1].isdigit():
+            return None
+        fingerprint = "" if parts[-3] == NO_FINGERPRINT else parts[-3]
+        return "/".join(parts[:-3]), fingerprint, parts[-2], int(parts[-1])
 
     def instance_of(self, alive_key: str) -> str | None:
         head = f"{self.prefix}/alive/"

@@ -5,6 +5,7 @@ Service and client both import this module, so a field changes in exactly one pl
 
 from __future__ import annotations
 
+import json
 import re
 from enum import Enum
 from typing import Any, TypeVar
@@ -24,12 +25,22 @@ MSGPACK_ENCODING = "application/msgpack"
 # 1.0 was the integer 1 in MapsHeader only; 1.1 puts the version in every message and adds risk fields;
 # 1.2 adds ServiceStatus.measuring, MapsHeader.order, the status's health and anchor-set fleet fields, and the
 # grid's planner layers (GridMessage, GridHeader).
-SCHEMA_VERSION = "1.3"
+SCHEMA_VERSION = "1.4"
 _VERSION = re.compile(r"^(\d+)(?:\.\d+)?$")
 
 
 class MessageError(ValueError):
     """A payload that is not a valid message of the expected type."""
+
+
+class MessageTooLarge(MessageError):
+    """A payload over the size its reader accepts: refused unread."""
+
+
+def check_size(name: str, payload: bytes, max_bytes: int | None) -> None:
+    """Refuse a payload of ``name`` over ``max_bytes`` before reading it (None: no limit)."""
+    if max_bytes is not None and len(payload) > max_bytes:
+        raise MessageTooLarge(f"{name} of {len(payload)} bytes exceeds the limit of {max_bytes}")
 
 
 class SchemaVersionError(MessageError):
@@ -64,14 +75,28 @@ class Message(WireModel):
 
     @classmethod
     def unpack(cls: type[M], payload: bytes, max_bytes: int | None = None) -> M:
-        if max_bytes is not None and len(payload) > max_bytes:
-            raise MessageError(f"{cls.__name__} of {len(payload)} bytes exceeds the limit of {max_bytes}")
+        check_size(cls.__name__, payload, max_bytes)
         try:
             data = msgpack.unpackb(payload, raw=False, strict_map_key=True)
         except (ValueError, msgpack.UnpackException, TypeError) as err:
             raise MessageError(f"not a msgpack {cls.__name__}: {err}") from None
         if not isinstance(data, dict):
             raise MessageError(f"a {cls.__name__} must be a msgpack map, got {type(data).__name__}")
+        return cls.validated(data)
+
+    @classmethod
+    def decode(cls: type[M], payload: bytes, max_bytes: int | None = None) -> M:
+        """The message in msgpack, or in JSON (a payload starting with '{'), as a person or a script without
+        msgpack sends it; MessageTooLarge over ``max_bytes``, MessageError naming what else is wrong."""
+        check_size(cls.__name__, payload, max_bytes)
+        if payload.lstrip()[:1] != b"{":
+            return cls.unpack(payload)
+        try:
+            data = json.loads(payload)
+        except (ValueError, UnicodeDecodeError) as err:
+            raise MessageError(f"not a JSON {cls.__name__}: {err}") from None
+        if not isinstance(data, dict):
+            raise MessageError(f"a {cls.__name__} must be a JSON object")
         return cls.validated(data)
 
     @classmethod
@@ -191,6 +216,13 @@ class MapsHeader(WireModel):
         "frame's view had not changed since, so it was not inferred and that frame's maps were published again "
         "(seq is then that frame's; stamp and order are this frame's). None: computed from this frame. Since 1.3.",
     )
+    age_at_receipt_s: float | None = Field(
+        default=None,
+        description="How old the frame was when the service received it, as the service judged it (never "
+        "negative): its delay beyond its source's smallest recent one (clock: estimated, whatever the robot's "
+        "clock reads), or the service's clock minus the stamp (clock: synced). None: no usable stamp, or a "
+        "writer before 1.4. Maps.age_s adds the time since on clocks that need not agree. Since 1.4.",
+    )
 
 
 class MapsMessage(Message):
@@ -271,6 +303,11 @@ class RelayHealth(Message):
         default=None,
         description="Why the service gives no maps, as its last credit said (CreditGrant.problem), or the "
         "relay's own (camera frames not usable). Since 1.2.",
+    )
+    causes: dict[str, str] = Field(
+        default_factory=dict,
+        description="What may keep this camera's maps stale, by cause: camera_silent, no_instance, service_refuses, "
+        "camera_unusable, camera_clock (client/relay/causes.py), each with a sentence; empty: none known. Since 1.4.",
     )
 
 
@@ -360,6 +397,17 @@ class GridHeader(WireModel):
         description="Publication time minus stamp (the last fused frame's), s: the grid's own age, clock skew "
         "included. Since 1.2.",
     )
+    capture_stamp: float | None = Field(
+        default=None,
+        description="Capture stamp of the frame this update fused (stamp is the newest fused; a frame of "
+        "another camera may be older). None: an older writer.",
+    )
+    capture_pose: tuple[float, float, float] | None = Field(
+        default=None,
+        description="(x, y, yaw) in the grid frame the frame was projected from: the robot's pose at "
+        "capture_stamp, interpolated from the pose stream (robot is the newest pose). None: no pose stream "
+        "(the grid is in base_link), or an older writer.",
+    )
 
 
 class GridMessage(Message):
@@ -427,6 +475,71 @@ class AnchorSetRejection(Message):
 
 class ErrorReply(Message):
     error: str
+
+
+class CameraPlacement(WireModel):
+    """Where a camera's body frame (x forward, y left, z up) sits in the robot's base frame: metres and radians,
+    R = Rz(yaw) Ry(pitch) Rx(roll), as the settings' mount: (docs/grid.md)."""
+
+    x: float
+    y: float
+    z: float
+    roll: float
+    pitch: float
+    yaw: float
+
+
+class GridCameraStatus(WireModel):
+    """What a grid knows of one of its cameras."""
+
+    intrinsics: str | None = Field(
+        default=None, description="Where its intrinsics come from: 'settings' or 'camera_info'; None: not yet."
+    )
+    mount: str | None = Field(
+        default="settings",
+        description="Where its mount comes from: 'settings' or 'tf'; None: not yet (tf.mount, no transform yet).",
+    )
+    not_fused: str = Field(default="", description="Why its last frame was not fused; '': it was (or none came).")
+    placement: CameraPlacement | None = Field(
+        default=None,
+        description="The mount the grid projects its frames with, from wherever mount says (a viewer draws the "
+        "camera there). None: not known yet, or an older writer. Since 1.4.",
+    )
+
+
+class GridStatus(WireModel):
+    """How one ground grid is doing (docs/grid.md, *The grid in the status*)."""
+
+    source: str = Field(description="The name it is published under.")
+    frame_id: str = Field(description="Its frame: the pose stream's, or 'base_link' without one.")
+    fused: int = Field(default=0, description="Frames fused so far.")
+    not_fused_by_reason: dict[str, int] = Field(
+        default_factory=dict,
+        description="Frames of its cameras not fused: no_intrinsics, no_mount, no_pose, before_poses, pose_too_old, "
+        "pose_gap (docs/grid.md).",
+    )
+    newest_fused_stamp: float | None = Field(default=None, description="Capture stamp of the newest fused frame.")
+    fused_ago_s: float | None = Field(default=None, description="Service seconds since the last fusion.")
+    pose_age_s: float | None = Field(
+        default=None, description="Service seconds since its pose stream's last pose; None: none received."
+    )
+    pose_clock_s: float | None = Field(
+        default=None,
+        description="Its first camera's learnt clock offset minus the pose stream's (service/runtime/"
+        "clock_offset.py): the pose clock minus the camera's plus the links' smallest delays' difference; near 0 "
+        "when both run on the robot's clock, far from 0 frames find no pose at their stamp. None: not known.",
+    )
+    poses_held: int = Field(default=0, description="Poses in its buffer.")
+    cameras: dict[str, GridCameraStatus] = Field(default_factory=dict)
+    costmap_ago_s: float | None = Field(
+        default=None, description="Service seconds since the last costmap went out; None: none (or costmap off)."
+    )
+    problem: str = Field(default="", description="Why it fuses nothing, when frames come and none fused for a while.")
+    tf_waiting: dict[str, str] = Field(
+        default_factory=dict,
+        description="A grid with tf: what tf does not give yet ('pose', or a camera for its mount) and why (the "
+        "lookup's error: tf_unknown_frame, tf_no_chain, ...).",
+    )
 
 
 class SourceStatus(WireModel):
@@ -558,6 +671,22 @@ class ServiceStatus(Message):
     )
     experience: ExperienceStatus | None = Field(
         default=None, description="Experience counts and open questions; None: experience off. Since 1.3."
+    )
+    grids: list[GridStatus] | None = Field(
+        default=None, description="Each ground grid's health; None: no grids (or an older writer). Since 1.4."
+    )
+    model_fingerprint: str = Field(
+        default="", description="A hash of the checkpoint's config and weight files; empty: unknown. Since 1.4."
+    )
+    model_refused: str = Field(
+        default="",
+        description="Why this instance takes no sources: its model differs from the fleet's (allow_mixed_models "
+        "off). Empty: it takes its share. Since 1.4.",
+    )
+    instance_models: dict[str, str] = Field(
+        default_factory=dict,
+        description="The model fingerprint of every live instance that advertises one, as this one knows it. "
+        "Since 1.4.",
     )
 
 

@@ -85,6 +85,9 @@ class RelaySettings(StrictModel):
     stale_after_s: float = Field(
         default=3.0, gt=0, description="Maps of a camera older than this are reported stale (log, health key)."
     )
+    camera_silent_after_s: float = Field(
+        default=2.0, gt=0, description="A camera with no frame for this long is named as a cause (camera_silent)."
+    )
     forward: list[Output] = Field(
         default_factory=lambda: list(FORWARDABLE),
         description="Outputs brought to the robot's bus, each only while a robot-side consumer subscribes.",

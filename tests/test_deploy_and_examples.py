@@ -193,3 +193,21 @@ def test_container_health_check_finds_its_instance(tiny_backend, tmp_path: Path)
         )
     gone = health("-m", "peer", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting")
     assert gone.returncode == 1 and gone.stderr.startswith("unhealthy:")
+
+
+def test_planner_path_calls_a_cell_mostly_one_anchor_only_when_it_is() -> None:
+    import runpy
+
+    from gcdtrav.schemas.messages import AnchorPoint, ContextDistribution
+
+    ground_of = runpy.run_path(str(ROOT / "examples" / "planner_path.py"))["ground_of"]
+    concepts = [f"c{k}" for k in range(11)] + ["water"]
+    spread = [0.08] * 11 + [0.12]  # the run's cell: 'water' on top at a few per cent
+    cell = ContextDistribution.model_construct(
+        anchors=[AnchorPoint(concept=c, position=k / 12, width=0.05) for k, c in enumerate(concepts)],
+        weights=spread,
+        top_anchors=[11, 0, 1],
+    )
+    assert ground_of(cell) == "mixed: 'water' 12%, 'c0' 8%, 'c1' 8%"
+    dominant = cell.model_copy(update={"weights": [0.02] * 11 + [0.78]})
+    assert ground_of(dominant) == "mostly 'water' (78%)"

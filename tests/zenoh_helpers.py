@@ -63,13 +63,16 @@ def service_reachable(client: object, timeout: float = 1.0) -> bool:
         return False
 
 
-def first_frame_through(client: object, source: str, image: object, timeout: float = 15.0) -> None:
-    """Wait for the service, send one image as ``source``, wait for its maps: the service has a frame."""
+def first_frame_through(
+    client: object, source: str, image: object, timeout: float = 15.0, stamp: float | None = None
+) -> None:
+    """Wait for the service, send one image as ``source`` (stamped ``stamp``, else bare), wait for its maps: the
+    service has a frame."""
     assert wait_until(lambda: service_reachable(client), 10), "the service did not answer"
     received: list[object] = []
     subscriber = client.subscribe_maps(source, received.append)  # type: ignore[attr-defined]
     time.sleep(0.3)  # let the subscription reach the service
-    client.publish_image(source, image)  # type: ignore[attr-defined]
+    client.publish_image(source, image, stamp=stamp)  # type: ignore[attr-defined]
     assert wait_until(lambda: bool(received), timeout), "no maps received"
     subscriber.undeclare()
     # The maps go out just before the frame is counted: wait for the count too, so that

@@ -171,6 +171,8 @@ class SimulatedRobots:
             self._stop.wait(max(0.0, next_at - time.monotonic()))
 
     def start(self) -> None:
+        """Start streaming (again, after ``stop``)."""
+        self._stop.clear()
         self._threads = [threading.Thread(target=self._run, args=(name,), daemon=True) for name in self.names]
         for thread in self._threads:
             thread.start()

@@ -4,8 +4,8 @@ service whose grid is ``grid_settings()`` and whose experience reads ``experienc
 
 - its pose (Pose2D) and camera images (PNG: the scene backend reads colours) at 4 Hz of simulated time, each
   image only after the service published the maps of the last one (inferred and fused into the grid, or
-  reused for an unchanged view), so that every frame is fused with the pose it was taken at (the service
-  fuses with the latest pose it has);
+  reused for an unchanged view), so that the pose stream is ahead of every frame (the service fuses each
+  frame at the pose of its capture stamp, docs/grid.md);
 - velocity commands (Twist2D, 1 m/s) at 10 Hz and odometry (Odometry2D) at 20 Hz.
 
 Simulated time runs faster than the wall clock, from a fixed stamp in the past like a replayed bag (the
@@ -23,7 +23,7 @@ import numpy as np
 from gcdtrav.client import Maps, TraversabilityClient
 from gcdtrav.schemas.experience import Odometry2D, Twist2D
 from gcdtrav.schemas.messages import MSGPACK_ENCODING, Pose2D
-from gcdtrav.schemas.settings import CameraIntrinsics, CameraMountSettings, ExperienceSettings, GridSettings
+from gcdtrav.schemas.settings import ExperienceSettings, GridSettings
 
 from tools.synthetic_scene import COMMAND_MPS, Robot, World, default_camera
 
@@ -35,20 +35,8 @@ ODOMETRY_DT, COMMAND_EVERY, CAMERA_EVERY = 0.05, 2, 5  # 20 Hz odometry, 10 Hz c
 
 def grid_settings() -> GridSettings:
     """The grid of the scene's camera, in the pose stream's frame."""
-    scene = default_camera()
-    camera, mount = scene.camera, scene.mount
-    return GridSettings(
-        source=CAMERA_SOURCE,
-        intrinsics=CameraIntrinsics(
-            fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width, height=camera.height
-        ),
-        mount=CameraMountSettings(x=mount.x, y=mount.y, z=mount.z, roll=mount.roll, pitch=mount.pitch, yaw=mount.yaw),
-        pose_key=POSE_KEY,
-        size_m=20.0,
-        resolution_m=0.2,
-        max_range_m=scene.max_range_m,
-        half_life_s=2.0,
-        max_age_s=30.0,
+    return default_camera().grid_settings(
+        source=CAMERA_SOURCE, pose_key=POSE_KEY, size_m=20.0, resolution_m=0.2, half_life_s=2.0, max_age_s=30.0
     )
 
 

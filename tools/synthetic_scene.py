@@ -16,9 +16,11 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
+from gcdtrav.schemas.settings import CameraIntrinsics, CameraMountSettings, GridSettings
 from gcdtrav.service.backends.base import BackendDescription
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, ground_points, map_cell_pixels
 from numpy.typing import NDArray
@@ -158,6 +160,17 @@ class SceneCamera:
         colours = palette()[np.where(valid, world.appearance[i, j], len(APPEARANCES))]
         return colours.reshape(*shape, 3).astype(np.uint8), base
 
+    def grid_settings(self, **fields: Any) -> GridSettings:
+        """A ground grid of this camera (its intrinsics, mount and range) with ``fields`` (source, pose_key, ...)."""
+        camera, mount = self.camera, self.mount
+        intrinsics = CameraIntrinsics(
+            fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy, width=camera.width, height=camera.height
+        )
+        mounted = CameraMountSettings(
+            x=mount.x, y=mount.y, z=mount.z, roll=mount.roll, pitch=mount.pitch, yaw=mount.yaw
+        )
+        return GridSettings(intrinsics=intrinsics, mount=mounted, max_range_m=self.max_range_m, **fields)
+
 
 def default_camera() -> SceneCamera:
     return SceneCamera(PinholeCamera(50.0, 50.0, 32.0, 24.0, 64, 48), CameraMount(z=1.0, pitch=0.5))
@@ -198,3 +211,44 @@ class Robot:
         self.x += pace * math.cos(self.yaw) * dt
         self.y += pace * math.sin(self.yaw) * dt
         return COMMAND_MPS * ratio, rate
+
+
+# ---- a hazard at known coordinates (benchmarks/placement.py) ---------------------------------------------
+
+HAZARD_ROW = {"water": 0.95, "mud": 0.05}  # what the backend would say of the hazard's patches
+GROUND_ROW = {"asphalt": 0.98, "gravel": 0.02}  # ... and of the paved ground around it
+
+
+@dataclass(frozen=True)
+class Hazard:
+    """A square of water on paved ground, centred at (x, y) in the world (the odometry frame), axis-aligned."""
+
+    x: float
+    y: float
+    side_m: float = 1.0
+
+    def covers(self, x: NDArray[np.floating], y: NDArray[np.floating]) -> NDArray[np.bool_]:
+        half = self.side_m / 2
+        return (np.abs(np.asarray(x) - self.x) <= half) & (np.abs(np.asarray(y) - self.y) <= half)
+
+
+def hazard_view(
+    scene: SceneCamera, hazard: Hazard, pose: tuple[float, float, float], concepts: Sequence[str]
+) -> NDArray[np.float32]:
+    """The softmax weights (n, height, width) over ``concepts`` of what the camera sees from ``pose`` (x, y, yaw):
+    one patch per pixel, the hazard's row where its ground point falls in the hazard, the ground's elsewhere,
+    uniform where the ray meets no ground (sky, beyond range)."""
+    shape = (scene.camera.height, scene.camera.width)
+    u, v = map_cell_pixels(shape, (scene.camera.width, scene.camera.height))
+    base, valid = ground_points(scene.camera, scene.mount, u, v, scene.max_range_m)
+    x, y, yaw = pose
+    c, s = math.cos(yaw), math.sin(yaw)
+    inside = hazard.covers(x + c * base[:, 0] - s * base[:, 1], y + s * base[:, 0] + c * base[:, 1])
+    rows = {
+        name: np.array([table.get(concept, FLOOR_PROBABILITY) for concept in concepts], np.float32)
+        for name, table in (("hazard", HAZARD_ROW), ("ground", GROUND_ROW))
+    }
+    weights = np.where(inside[:, None], rows["hazard"], rows["ground"])
+    weights[~valid] = 1.0
+    weights /= weights.sum(axis=1, keepdims=True)
+    return np.ascontiguousarray(weights.T.reshape(len(concepts), *shape))

@@ -44,13 +44,25 @@ def add_experience_commands(commands: argparse._SubParsersAction) -> list[argpar
     answer = commands.add_parser("answer", help="answer the question a service asked about the ground ahead")
     answer.add_argument("source", help="the grid's source the question is about")
     answer.add_argument(
-        "answer", nargs="?", help="drivable, blocked, or a score in [0, 1] (1 = drivable) [none: show the question]"
+        "answer",
+        nargs="?",
+        type=answer_argument,
+        help="drivable, blocked, or a score in [0, 1] (1 = drivable) [none: show the question]",
     )
     answer.add_argument("--question", help="the question's id [the source's open question]")
     answer.add_argument("--save-crop", type=Path, metavar="FILE", help="first save the question's crop (JPEG) here")
     answer.add_argument("--show", action="store_true", help="first draw the crop in the terminal (24-bit colour)")
     answer.add_argument("--operator", default="", help="who answers (kept with the answer)")
     return [calibration, answer]
+
+
+def answer_argument(text: str) -> str:
+    """The answer as typed, checked while parsing: a bad one is a usage error (exit 2) before any connection."""
+    try:
+        answer_score(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return text
 
 
 def run_command(client: TraversabilityClient, args: argparse.Namespace) -> int:

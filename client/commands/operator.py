@@ -18,6 +18,7 @@ import zenoh
 from gcdtrav.client.client import AnchorSetRejected, ServiceError, TraversabilityClient
 from gcdtrav.client.commands import experience
 from gcdtrav.client.commands.density_plot import describe, save_distribution
+from gcdtrav.client.commands.grid_status import grid_lines
 from gcdtrav.client.session.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, anchor_diff
 from gcdtrav.schemas.messages import AnchorHistoryReply, ContextDistribution, ServiceStatus, SourceStatus
@@ -39,7 +40,7 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
     put.add_argument("--dry-run", action="store_true", help="validate and show the change; swap nothing")
     history = actions.add_parser("history", help="the last accepted anchor sets, newest (active) first")
     rollback = actions.add_parser("rollback", help="swap back to an earlier set of the history, on every instance")
-    rollback.add_argument("steps", nargs="?", type=int, default=1, help="how far back [1: the set before]")
+    rollback.add_argument("steps", nargs="?", type=positive_int, default=1, help="how far back [1: the set before]")
     propose = actions.add_parser("propose", help="the set fitted on the robot's outcomes, as a diff; --apply swaps it")
     propose.add_argument("--source", help="whose experience [the service's grid]")
     propose.add_argument(
@@ -58,6 +59,16 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
         parser.add_argument("--prefix", default="gcdtrav", help="the service's key prefix [gcdtrav]")
         parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for replies [5]")
         add_zenoh_arguments(parser)
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value}: give 1 or more")
+    return value
 
 
 def run(args: argparse.Namespace) -> int:
@@ -79,7 +90,10 @@ def run(args: argparse.Namespace) -> int:
                 "propose": propose_anchors,
             }
             return actions[args.action](client, args)
-    except (AnchorSetError, AnchorSetRejected, ServiceError, OSError, ValueError) as err:
+    except AnchorSetError as err:  # the operator's own file (anchors set): the service's refusals are ServiceErrors
+        print(f"gcdtrav {args.command}: {one_line(err)}", file=sys.stderr)
+        return EXIT_USAGE
+    except (AnchorSetRejected, ServiceError, OSError, ValueError) as err:
         print(f"gcdtrav {args.command}: {one_line(err)}", file=sys.stderr)
         return EXIT_FAILED
     except zenoh.ZError as err:  # e.g. an endpoint that cannot be reached in client mode
@@ -134,6 +148,7 @@ def status_table(statuses: list[ServiceStatus], fps: Callable[[str, str], str] =
             problems.append(f"{name} ({instance}): {src.problem}")
     if problems:
         lines += ["", "why the last frame gave no maps:", *(f"  {line}" for line in problems)]
+    lines += grid_lines(statuses)
     lines += fleet_warnings(statuses)
     lines += experience.status_lines(statuses)
     precision = [f"{s.instance}: {s.precision} ({s.precision_reason})" for s in statuses if s.precision_reason]
@@ -153,15 +168,25 @@ def clock_offset(offset_s: float | None) -> str:
 
 
 def reasons(source: SourceStatus) -> str:
-    """'stale 3, undecodable 1' (and 'refused: no slot' for a source that never took one)."""
+    """'stale 3, undecodable 1', and for a source that never took a slot why not: no slot left (max_sources), or
+    no frame of it was usable (an undecodable or stale frame is no capacity problem)."""
     counts = {**source.dropped_by_reason, **source.rejected_by_reason}
     text = ", ".join(f"{reason} {n}" for reason, n in sorted(counts.items()))
-    return text + (" (refused: no slot)" if source.refused else "")
+    if not source.refused:
+        return text
+    no_slot = any(reason.startswith("too_many_sources") for reason in counts)
+    return text + (" (not tracked: no source slot left)" if no_slot else " (not tracked: every frame refused)")
 
 
 def fleet_warnings(statuses: list[ServiceStatus]) -> list[str]:
-    """Unhealthy instances, and instances that disagree on the anchor set or the precision."""
+    """Unhealthy instances, instances refused for their model, and instances that disagree on the model, the
+    anchor set or the precision."""
     lines = [f"UNHEALTHY {s.instance}: {s.reason}" for s in statuses if s.healthy is False]
+    lines += [f"TAKES NO SOURCES {s.instance}: {s.model_refused}" for s in statuses if s.model_refused]
+    models = {s.instance: s.model_fingerprint for s in statuses if s.model_fingerprint}
+    if len(set(models.values())) > 1:
+        held = ", ".join(f"{instance} {fingerprint}" for instance, fingerprint in sorted(models.items()))
+        lines.append(f"MODELS DIFFER: {held} (checkpoint fingerprints; maps differ between instances)")
     off = {name for s in statuses for name, src in s.sources.items() if abs(src.clock_offset_s or 0.0) > 1.0}
     if off:
         lines.append(

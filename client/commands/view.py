@@ -27,8 +27,9 @@ def add_view_command(commands: argparse._SubParsersAction) -> None:
         "view",
         help="live view in Foxglove: images, T, U, grid, status; anchor set as parameters; MCAP recording",
         description="Serve the service's outputs to Foxglove (WebSocket, default ws://localhost:8765) and, with "
-        "--record, into MCAP files. Open Foxglove, 'Open connection', 'Foxglove WebSocket', that URL; the layout "
-        "in examples/foxglove/gcdtrav-layout.json shows every channel. Torch-free; needs " + INSTALL + ".",
+        "--record, into MCAP files. Open Foxglove, 'Open connection', 'Foxglove WebSocket', that URL, then import "
+        "the layout that `gcdtrav view --layout my-layout.json` writes for the service's sources (one tab per "
+        "source, docs/view.md). Torch-free; needs " + INSTALL + ".",
     )
     view.add_argument("--port", type=int, default=8765, help="WebSocket port [8765; 0 = any free port]")
     view.add_argument(

@@ -13,7 +13,12 @@ the camera is inferred and one waits at the service. Before sending, the frame i
 uses (the credit announces the model's input) and sent as a JPEG ImageEnvelope. A lost credit costs one
 timeout (``credit_timeout_s``). Outputs (maps, maps8, grid, preview) cross the link only while a consumer on
 the robot's bus subscribes to them. Every ``health_period_s`` the relay publishes a RelayHealth per camera on
-the robot's bus (``{prefix}/relay/{source}/health``) and logs when a camera's maps go stale.
+the robot's bus (``{prefix}/relay/{source}/health``) with what may keep its maps stale (``causes.py``: a
+silent camera, no instance answering, the service refusing, an unusable frame, a camera clock off this host's),
+and logs each change once: stale, fresh again, a cause found or gone.
+Maps' ages are judged on this host's clock from the camera's stamps plus the camera's learnt clock offset
+(``state.CameraClock``), as the service judges frames by delay: a camera stamping from another clock is
+not stale forever.
 """
 
 from __future__ import annotations
@@ -29,13 +34,9 @@ from typing import Any
 
 import zenoh
 from gcdtrav.client.freshness import FreshnessWatch, Staleness
-from gcdtrav.client.relay.ros_camera import (
-    RosImageError,
-    decode_ros_image,
-    ros_camera_key,
-    ros_type_of_key,
-)
-from gcdtrav.client.relay.state import ClockEstimate, CreditWindow, RateWindow, downsized
+from gcdtrav.client.relay.causes import CameraFacts, causes, change_key
+from gcdtrav.client.relay.ros_camera import ros_camera_key, ros_type_of_key
+from gcdtrav.client.relay.state import CameraClock, ClockEstimate, CreditWindow, RateWindow, downsized
 from gcdtrav.client.session.source_info import put_identified
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.inputs import RejectedInput, decode_payload
@@ -50,12 +51,12 @@ from gcdtrav.schemas.messages import (
     peek_fields,
 )
 from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE, RelayCamera, RelaySettings
+from gcdtrav.schemas.ros_image import decode_ros_image
 
 log = logging.getLogger("gcdtrav.relay")
 MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
 MAX_CAMERA_BYTES = 64_000_000  # a 4K rgb8 frame is 25 MB
 MAX_CAMERA_PIXELS = 40_000_000
-STALE_LOG_EVERY_S = 10.0
 STAMPED_OUTPUTS = ("maps", "maps8", "grid")  # their header's stamp is the capture stamp of the newest frame
 OUTPUT_ENCODINGS = {"maps": MSGPACK, "maps8": MSGPACK, "grid": MSGPACK, "preview": zenoh.Encoding.IMAGE_JPEG}
 
@@ -110,6 +111,8 @@ class CameraLink:
         self.relay, self.camera, self.source = relay, camera, camera.source
         self.window = CreditWindow(relay.settings.credit_timeout_s)
         self.clock = ClockEstimate()
+        self.camera_clock = CameraClock()  # this host's clock minus the camera's
+        self.last_frame_at: float | None = None  # this host's clock
         self.uplink = RateWindow()
         self.model_input = (CLIPSEG_INPUT_SIDE, CLIPSEG_INPUT_SIDE)
         self.captured = self.sent = self.undecodable = 0
@@ -145,6 +148,7 @@ class CameraLink:
         with self._cond:
             self._slot = frame  # an older frame not yet sent is replaced: only the newest matters
             self.captured += 1
+            self.last_frame_at = frame.arrived_at
             self._cond.notify()
 
     def on_grant(self, sample: zenoh.Sample) -> None:
@@ -191,12 +195,13 @@ class CameraLink:
         """The frame decoded, shrunk to what the model uses and JPEG-encoded; None (counted) when unusable."""
         try:
             image, stamp, frame_id, original_size = self._decode(frame)
-        except (RejectedInput, RosImageError) as err:
+        except RejectedInput as err:
             self.undecodable += 1
             self.unusable = f"camera frame on {frame.key} not usable: {err}"
             log.warning("%s: %s", self.source, self.unusable)
             return None
         self.unusable = None
+        self.camera_clock.add(stamp, frame.arrived_at)
         settings = self.relay.settings
         small = downsized(image, settings.max_side, model_input)
         height, width = small.shape[:2]
@@ -219,18 +224,32 @@ class CameraLink:
             return decoded.image, decoded.stamp, decoded.frame_id, decoded.camera_size
         configured = self.camera.ros_message_type
         msgtype = (ros_type_of_key(frame.key) or "") if configured == "auto" else configured
-        image, stamp, frame_id = decode_ros_image(payload, msgtype, MAX_CAMERA_PIXELS)
-        return image, stamp, frame_id, (int(image.shape[1]), int(image.shape[0]))
+        ros = decode_ros_image(payload, msgtype, MAX_CAMERA_PIXELS)
+        return ros.image, ros.stamp, ros.frame_id, (int(ros.image.shape[1]), int(ros.image.shape[0]))
 
     def stop(self) -> None:
         with self._cond:
             self._cond.notify_all()
         self._thread.join(5)
 
+    def facts(self, now: float, refusal: str | None) -> CameraFacts:
+        silent_since = self.last_frame_at if self.last_frame_at is not None else self.relay.started_at
+        return CameraFacts(
+            self.camera_key,
+            now - silent_since,
+            self.captured,
+            self.window.unanswered,
+            refusal,
+            self.unusable,
+            self.camera_clock.offset_s(),
+        )
+
     def health(self, freshness: FreshnessWatch, downlink: float, stale_after_s: float) -> RelayHealth:
         now = time.time()
         newest = freshness.newest(self.source)
         best = self.clock.best()
+        settings = self.relay.settings
+        found = causes(self.facts(now, freshness.reason(self.source)), settings.camera_silent_after_s, settings.prefix)
         return RelayHealth(
             source=self.source,
             published_at=now,
@@ -247,6 +266,7 @@ class CameraLink:
             clock_offset_s=None if best is None else best[1],
             round_trip_s=None if best is None else best[0],
             problem=self.unusable or freshness.reason(self.source),
+            causes=found,
         )
 
 
@@ -293,7 +313,7 @@ class OutputForwarder:
                 stamp = float(header["stamp"]) if isinstance(header, dict) else math.nan
             except (MessageError, KeyError, TypeError, ValueError):
                 return
-            self.relay.freshness.observe(self.source, stamp)
+            self.relay.freshness.observe(self.source, self.relay.camera(self.source).camera_clock.on_host_clock(stamp))
 
     def close(self) -> None:
         for entity in (self._subscriber, self._listener, self._publisher):
@@ -322,8 +342,8 @@ class Relay:
         self._declared: list[Guarded] = []
         self._health: dict[str, Guarded] = {}
         self._wake = threading.Event()
-        self._started_at = time.time()
-        self._last_stale_log: dict[str, float] = {}
+        self.started_at = time.time()
+        self._told_causes: dict[str, dict[str, str]] = {}  # per source, change_key of the causes last logged
         self._thread = threading.Thread(target=self._control, name="gcdtrav-relay-control", daemon=True)
 
     def start(self) -> Relay:
@@ -350,7 +370,7 @@ class Relay:
     def grant_seen(self, source: str, grant: CreditGrant) -> None:
         """A credit also says how fresh the owner's maps are; it counts while no maps are forwarded."""
         if grant.last_maps_stamp is not None and not any(f.active for f in self.forwarders if f.source == source):
-            self.freshness.observe(source, grant.last_maps_stamp)
+            self.freshness.observe(source, self.camera(source).camera_clock.on_host_clock(grant.last_maps_stamp))
 
     def camera(self, source: str) -> CameraLink:
         return next(camera for camera in self.cameras if camera.source == source)
@@ -378,25 +398,32 @@ class Relay:
             self._log_change(change)
             if self._on_stale is not None:
                 self._on_stale(change)
-        now = time.time()
         for camera in self.cameras:
             health = self.health(camera.source)
             self._health[camera.source].put(health.pack())
-            if health.stale and now - self._last_stale_log.get(camera.source, 0.0) >= STALE_LOG_EVERY_S:
-                self._log_stale(camera.source, health)
+            self._log_causes(camera.source, health.causes)
+
+    def _log_causes(self, source: str, found: dict[str, str]) -> None:
+        """Once per change of the causes, not at every report."""
+        key, told = change_key(found), self._told_causes.get(source, {})
+        if key == told:
+            return
+        self._told_causes[source] = key
+        if found:
+            log.warning("%s: %s", source, "; ".join(f"{code}: {text}" for code, text in found.items()))
+        else:
+            log.info("%s: no cause of staleness known any more (was %s)", source, ", ".join(told))
 
     def _log_change(self, change: Staleness) -> None:
         if change.stale:
             self._log_stale(change.source, self.health(change.source))
         else:
             log.info("maps of %s fresh again: %.1f s old", change.source, change.age_s)
-            self._last_stale_log.pop(change.source, None)
 
     def _log_stale(self, source: str, health: RelayHealth) -> None:
-        self._last_stale_log[source] = time.time()
         why = f"; why: {health.problem}" if health.problem else ""
         if health.map_age_s is None:
-            waited = time.time() - self._started_at
+            waited = time.time() - self.started_at
             log.warning("no maps of %s yet, %.1f s after the relay started%s", source, waited, why)
         else:
             log.warning(

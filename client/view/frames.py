@@ -1,6 +1,7 @@
 """Where things are, for Foxglove's 3D panel: the robot's pose (grid frame, e.g. odom -> base_link) from the
-grid's header, each camera's mount (base_link -> its optical frame) and intrinsics from the service's settings
-file, the camera's frustum and a marker of the robot.
+grid's header and the pose its last frame was fused at, each camera's mount (base_link -> its optical frame)
+as the grid's status reports it (else the service's settings file, unless they take it from tf), intrinsics from
+that settings file, the camera's frustum and a marker of the robot.
 
 Frames as the service uses them (docs/grid.md): base_link is x forward, y left, z up, ground at z = 0; a
 camera's mount places its body frame (axes of the base) by x, y, z, roll, pitch, yaw (R = Rz Ry Rx); images
@@ -29,6 +30,7 @@ from foxglove.messages import (
     Timestamp,
     Vector3,
 )
+from gcdtrav.schemas.messages import GridCameraStatus
 from gcdtrav.schemas.settings import CameraIntrinsics, CameraMountSettings, load_settings
 from gcdtrav.schemas.settings.grids import OPTICAL_TO_BODY, rotation_rpy
 from numpy.typing import NDArray
@@ -37,26 +39,42 @@ BASE_FRAME = "base_link"
 FRUSTUM_DEPTH_M = 2.0  # the frustum's lines end this far along the optical axis
 FRUSTUM_COLOUR = Color(r=0.2, g=0.8, b=1.0, a=1.0)
 ROBOT_COLOUR = Color(r=1.0, g=1.0, b=1.0, a=1.0)
+CAPTURE_COLOUR = Color(r=1.0, g=0.6, b=0.1, a=0.6)  # where the last fused frame was taken from
 
 
 @dataclass(frozen=True)
 class CameraSetup:
-    """One camera as the service's settings describe it: where it sits, and its intrinsics if given (a
-    camera_info_key's intrinsics stay on the robot: no frustum then)."""
+    """One camera as the service's settings describe it: where it sits (unless its grid takes the mount from tf),
+    and its intrinsics if given (a camera_info_key's intrinsics stay on the robot: no frustum then)."""
 
     source: str
     mount: CameraMountSettings
     intrinsics: CameraIntrinsics | None
+    mount_from_tf: bool = False
 
 
 def cameras_from_settings(path: Path) -> dict[str, CameraSetup]:
     """Every grid camera of the service's settings file, by source (the same file `gcdtrav serve` reads)."""
     settings = load_settings(path)
     return {
-        camera.source: CameraSetup(camera.source, camera.mount, camera.intrinsics)
+        camera.source: CameraSetup(
+            camera.source, camera.mount, camera.intrinsics, grid.tf is not None and grid.tf.mount
+        )
         for grid in settings.grids
         for camera in grid.camera_list()
     }
+
+
+def camera_mount(setup: CameraSetup | None, status: GridCameraStatus | None) -> CameraMountSettings | None:
+    """Where to draw a camera: the mount its grid projects with, as the grid's status reports it (from tf or the
+    settings); before a status (or from a service before 1.4), the settings file's mount, unless the grid takes
+    it from tf. None: not known (tf has not given it yet): the camera is not drawn rather than drawn wrong."""
+    if status is not None and status.placement is not None:
+        p = status.placement
+        return CameraMountSettings(x=p.x, y=p.y, z=p.z, roll=p.roll, pitch=p.pitch, yaw=p.yaw)
+    if setup is None or setup.mount_from_tf or (status is not None and status.mount != "settings"):
+        return None
+    return setup.mount
 
 
 def camera_frame(source: str, frame_id: str) -> str:
@@ -167,3 +185,21 @@ def robot_entity(when: Timestamp, source: str) -> SceneEntity:
         color=ROBOT_COLOUR,
     )
     return SceneEntity(timestamp=when, frame_id=BASE_FRAME, id=f"{source}/robot", frame_locked=True, arrows=[arrow])
+
+
+def capture_entity(when: Timestamp, source: str, grid_frame: str, pose: tuple[float, float, float]) -> SceneEntity:
+    """A faint arrow in the grid frame where the robot was when the last fused frame was taken (GridHeader.
+    capture_pose): its distance behind the robot's marker is speed x the frame's latency."""
+    x, y, yaw = pose
+    arrow = ArrowPrimitive(
+        pose=Pose(
+            position=Vector3(x=x, y=y, z=0.02),
+            orientation=Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)),
+        ),
+        shaft_length=0.45,
+        shaft_diameter=0.05,
+        head_length=0.2,
+        head_diameter=0.15,
+        color=CAPTURE_COLOUR,
+    )
+    return SceneEntity(timestamp=when, frame_id=grid_frame, id=f"{source}/capture", arrows=[arrow])

@@ -7,24 +7,21 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from typing import cast
 
 import cv2
 import numpy as np
 from gcdtrav.client.client import Grid as GridMaps
 from gcdtrav.client.view import pictures
 from gcdtrav.client.view.pictures import MapKind
+from gcdtrav.schemas.grid_layers import GRID_LAYERS
 from gcdtrav.schemas.messages import GridHeader
 from numpy.typing import NDArray
 
-# (channel name, colour scale, the client Grid's attribute): T, U, CVaR, P(T < tau), match and age; layers a
+# (channel name, colour scale) of every layer the table draws: T, U, CVaR, P(T < tau), match and age; layers a
 # grid lacks (older writers) have no channel.
-LAYERS: tuple[tuple[str, MapKind, str], ...] = (
-    ("traversability", "T", "traversability"),
-    ("uncertainty", "U", "uncertainty"),
-    ("cvar", "cvar", "cvar"),
-    ("p_below", "p_below", "p_below"),
-    ("match", "match", "match"),
-    ("age", "age", "age"),
+LAYERS: tuple[tuple[str, MapKind], ...] = tuple(
+    (layer.name, cast(MapKind, layer.scale)) for layer in GRID_LAYERS if layer.scale is not None
 )
 COSTMAP = "costmap"  # its channel name, scale "cost"
 LAYER_CELL_BYTES = 8  # the value (float32, NaN = unknown) and its colour as red, green, blue, alpha (uint8)
@@ -34,8 +31,8 @@ ROBOT_COLOUR = (255, 255, 255)
 def layer_values(grid: GridMaps) -> dict[str, tuple[MapKind, NDArray[np.float32]]]:
     """The grid's layers by channel name, those it has; NaN where unknown (age: never observed)."""
     found: dict[str, tuple[MapKind, NDArray[np.float32]]] = {}
-    for name, kind, attribute in LAYERS:
-        values = getattr(grid, attribute)
+    for name, kind in LAYERS:
+        values = grid.layers.get(name)
         if values is not None:
             found[name] = (kind, np.asarray(values, np.float32))
     return found

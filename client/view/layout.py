@@ -45,7 +45,7 @@ def source_tab(source: str, prefix: str, configs: dict[str, Any]) -> dict[str, A
 
     three_d = panel_id("3D", source, "grid")
     grid_topics: dict[str, Any] = {f"{topic}/grid/{name}": {"visible": False, "colorMode": "rgba-fields"}
-                                   for name, _, _ in LAYERS}  # fmt: skip
+                                   for name, _ in LAYERS}  # fmt: skip
     grid_topics[f"{topic}/grid/{COSTMAP}"] = {"visible": False, "colorMode": "rgba-fields"}
     grid_topics[f"{topic}/grid/{RISK_LAYER}"]["visible"] = True
     configs[three_d] = {

@@ -58,7 +58,14 @@ from gcdtrav.client.view.replay import LOG_LINES_KEPT, QUESTION_SCHEMA, OpenQues
 from gcdtrav.schemas.anchors import AnchorSetError
 from gcdtrav.schemas.inputs import decode_payload, image_format, input_kind
 from gcdtrav.schemas.keys import INPUT_MESSAGE_KINDS, Keys, input_key, input_source_of
-from gcdtrav.schemas.messages import AnchorSetReply, ContextDistribution, GridHeader, ServiceStatus, SourceView
+from gcdtrav.schemas.messages import (
+    AnchorSetReply,
+    ContextDistribution,
+    GridCameraStatus,
+    GridHeader,
+    ServiceStatus,
+    SourceView,
+)
 from numpy.typing import NDArray
 from pydantic import BaseModel
 
@@ -183,6 +190,7 @@ class Viewer:
         self._swap_lock = threading.Lock()  # one anchor swap at a time
         self._active: AnchorSetReply | None = None
         self.cameras = frames.cameras_from_settings(options.settings) if options.settings else {}
+        self.grid_cameras: dict[str, GridCameraStatus] = {}  # by camera source, from the grids' status
         self.recent_log: Recent[Log] = Recent(LOG_LINES_KEPT)
         self.questions = OpenQuestions()
         self.probe = probe.ProbeTarget()
@@ -363,14 +371,14 @@ class Viewer:
     def _show_camera_place(
         self, channels: SourceChannels, source: str, frame_id: str, when: Timestamp, size: tuple[int, int] | None
     ) -> None:
-        """For a camera the settings file describes: base_link -> its optical frame, its calibration and its
-        frustum (with the robot's marker)."""
+        """base_link -> the camera's optical frame where its grid fuses it (frames.camera_mount), and for a
+        camera the settings file gives intrinsics, its calibration and its frustum (with the robot's marker)."""
         camera = self.cameras.get(source)
-        if camera is None:
+        mount = frames.camera_mount(camera, self.grid_cameras.get(source))
+        if mount is None:
             return
-        mount = frames.mount_transform(when, camera.mount, frame_id)
-        self.emit(channels.transforms, FrameTransforms(transforms=[mount]))
-        if camera.intrinsics is not None:
+        self.emit(channels.transforms, FrameTransforms(transforms=[frames.mount_transform(when, mount, frame_id)]))
+        if camera is not None and camera.intrinsics is not None:
             self.emit(channels.calibration, frames.calibration(when, camera.intrinsics, frame_id, size))
             frustum = frames.frustum_entity(when, source, camera.intrinsics, frame_id)
             self.emit(channels.scene, SceneUpdate(entities=[frustum, frames.robot_entity(when, source)]))
@@ -390,8 +398,17 @@ class Viewer:
         if header.robot is not None and header.frame_id != frames.BASE_FRAME:
             transform = frames.robot_transform(when, header.frame_id, header.robot)
             self.emit(channels.transforms, FrameTransforms(transforms=[transform]))
-        if header.source not in self.cameras or self.cameras[header.source].intrinsics is None:
-            self.emit(channels.scene, SceneUpdate(entities=[frames.robot_entity(when, header.source)]))
+        entities = [] if self._draws_frustum(header.source) else [frames.robot_entity(when, header.source)]
+        if header.capture_pose is not None and header.frame_id != frames.BASE_FRAME:
+            entities.append(frames.capture_entity(when, header.source, header.frame_id, header.capture_pose))
+        if entities:
+            self.emit(channels.scene, SceneUpdate(entities=entities))
+
+    def _draws_frustum(self, source: str) -> bool:
+        """Whether the camera's place draws the robot's marker beside the frustum (_show_camera_place)."""
+        camera = self.cameras.get(source)
+        drawn = camera is not None and camera.intrinsics is not None
+        return drawn and frames.camera_mount(camera, self.grid_cameras.get(source)) is not None
 
     def _show_layer(
         self,
@@ -461,6 +478,12 @@ class Viewer:
 
     def _show_statuses(self, statuses: list[ServiceStatus]) -> None:
         self.emit(self.status_channel, {"instances": [s.model_dump(mode="json") for s in statuses]})
+        self.grid_cameras = {  # where each grid fuses its cameras: the next frame draws them there
+            camera: placed
+            for status in statuses
+            for grid in status.grids or []
+            for camera, placed in grid.cameras.items()
+        }
         versions = {s.anchor_set_version for s in statuses}
         if self._active is None or self._active.version not in versions or len(versions) > 1:
             with self._swap_lock:  # not in the middle of a swap from the Parameters panel

@@ -19,6 +19,8 @@ from gcdtrav.schemas.settings.grids import (
     CameraMountSettings,
     GridCamera,
     GridSettings,
+    GridTfSettings,
+    PoseBufferSettings,
 )
 from gcdtrav.schemas.settings.risk import RiskSettings
 from gcdtrav.schemas.settings.ros import IMAGE_TYPES, RosInput, RosNode, RosOutput
@@ -37,6 +39,8 @@ __all__ = [
     "ExperienceSettings",
     "GridCamera",
     "GridSettings",
+    "GridTfSettings",
+    "PoseBufferSettings",
     "Precision",
     "ReuseSettings",
     "RiskSettings",

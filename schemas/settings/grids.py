@@ -5,9 +5,10 @@ from __future__ import annotations
 from typing import Any, Literal
 
 import numpy as np
+from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
 from gcdtrav.schemas.strict import StrictModel
 from numpy.typing import NDArray
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 # optical (x right, y down, z forward) -> body (x forward, y left, z up): the mount's convention, shared by the
 # service's ground geometry and the viewer's camera transform.
@@ -45,6 +46,59 @@ class CameraMountSettings(StrictModel):
     yaw: float = 0.0
 
 
+# tf2_msgs/msg/TFMessage as rmw_zenoh keys it: <domain>/<topic>/<type>/<type hash>, any domain and hash
+TF_KEY = "*/tf/tf2_msgs::msg::dds_::TFMessage_/*"
+TF_STATIC_KEY = "*/tf_static/tf2_msgs::msg::dds_::TFMessage_/*"
+FRAME_AXES = Literal["auto", "optical", "body"]
+
+
+def _frame_name(value: str) -> str:
+    if not value or len(value) > MAX_FRAME_ID_CHARS or value.startswith("/"):
+        raise ValueError(f"'{value}' is not a tf frame id (1 to {MAX_FRAME_ID_CHARS} characters, no leading '/')")
+    return value
+
+
+class GridTfSettings(StrictModel):
+    """The grid's geometry from ROS tf (/tf_static and /tf, tf2_msgs/TFMessage CDR; docs/grid.md, "Mount and
+    pose from tf"): each camera's mount, the robot's pose, or both."""
+
+    mount: bool = Field(
+        default=False,
+        description="Each camera's mount from tf: base_frame -> the camera's frame (its frame_id, else its images' "
+        "header frame_id, else its CameraInfo's). Instead of mount:.",
+    )
+    pose: bool = Field(
+        default=False, description="The robot's pose from tf: odom_frame -> base_frame. Instead of pose_key."
+    )
+    base_frame: str = Field(
+        default="base_link",
+        description="The robot frame whose z = 0 is the ground (the grid's ground plane): base_footprint on robots "
+        "whose base_link sits above the ground.",
+    )
+    odom_frame: str = Field(
+        default="odom", description="The grid's frame with pose: the pose is odom_frame -> base_frame."
+    )
+    tf_key: str = Field(
+        default=TF_KEY, description="/tf's key: rmw_zenoh's (any domain and hash); 'tf' through zenoh-bridge-ros2dds."
+    )
+    tf_static_key: str = Field(
+        default=TF_STATIC_KEY, description="/tf_static's key (transient local: read from the publishers' caches)."
+    )
+    buffer_s: float = Field(
+        default=10.0, gt=0, le=300, description="How long /tf's transforms are kept for lookups (tf2's default)."
+    )
+
+    _frames = field_validator("base_frame", "odom_frame")(_frame_name)
+
+    @model_validator(mode="after")
+    def _something_from_tf(self) -> GridTfSettings:
+        if not (self.mount or self.pose):
+            raise ValueError("tf: set mount, pose or both to true (or leave tf out)")
+        if self.base_frame == self.odom_frame:
+            raise ValueError(f"tf: base_frame and odom_frame are both '{self.base_frame}'")
+        return self
+
+
 class GridCamera(StrictModel):
     """One camera of a grid: its source, intrinsics and where it sits on the robot."""
 
@@ -53,6 +107,17 @@ class GridCamera(StrictModel):
     camera_info_key: str | None = Field(default=None, description="sensor_msgs/CameraInfo CDR key (overrides).")
     mount: CameraMountSettings = Field(default_factory=CameraMountSettings)
     depth_key: str | None = Field(default=None, description="Depth image (32FC1 m or 16UC1 mm, CDR) for 3-D points.")
+    frame_id: str | None = Field(
+        default=None,
+        description="With tf.mount: the camera's tf frame [its images' header frame_id, else its CameraInfo's].",
+    )
+    frame_axes: FRAME_AXES = Field(
+        default="auto",
+        description="With tf.mount: the camera frame's axes; optical: z forward, x right, y down; body: x forward, "
+        "y left, z up; auto: optical when the frame's name holds 'optical' (ROS's *_optical_frame), else body.",
+    )
+
+    _frame = field_validator("frame_id")(lambda value: value if value is None else _frame_name(value))
 
     @model_validator(mode="after")
     def _needs_intrinsics(self) -> GridCamera:
@@ -61,8 +126,39 @@ class GridCamera(StrictModel):
         return self
 
 
+class PoseBufferSettings(StrictModel):
+    """How a grid looks up the robot's pose at a frame's capture stamp (docs/grid.md, *Which pose*)."""
+
+    span_s: float = Field(
+        default=10.0,
+        gt=0,
+        description="Poses kept this long (by their stamps): a frame older than the oldest pose is not fused "
+        "(before_poses); keep it above the slowest frame's capture-to-fusion time (max_frame_age_s).",
+    )
+    max_poses: int = Field(default=2000, ge=2, description="Poses kept at most (the oldest go first).")
+    extrapolate_s: float = Field(
+        default=0.1,
+        ge=0,
+        description="A frame up to this much newer than the newest pose (or older than the oldest) takes the "
+        "pose extrapolated at the last velocity; beyond, the grid waits for the pose.",
+    )
+    wait_s: float = Field(
+        default=0.2,
+        ge=0,
+        le=2.0,
+        description="How long fusion waits for a pose stream that has not yet reached a frame's stamp; then "
+        "the frame is not fused (pose_too_old). The worker waits, outside the grid's lock.",
+    )
+    max_gap_s: float = Field(
+        default=0.5,
+        gt=0,
+        description="Two poses further apart are not interpolated between: a frame taken in the gap (the "
+        "stream stopped) is not fused (pose_gap).",
+    )
+
+
 # The single-camera form's own fields: with ``cameras`` they belong to each camera instead.
-SINGLE_CAMERA_FIELDS = ("intrinsics", "camera_info_key", "mount", "depth_key")
+SINGLE_CAMERA_FIELDS = ("intrinsics", "camera_info_key", "mount", "depth_key", "frame_id", "frame_axes")
 
 
 class GridSettings(StrictModel):
@@ -95,8 +191,16 @@ class GridSettings(StrictModel):
         "expired; 0 or null: never.",
     )
     pose_key: str | None = Field(default=None, description="Robot pose stream: the grid then lives in its frame.")
+    tf: GridTfSettings | None = Field(
+        default=None, description="The mounts, the pose or both from ROS tf instead of mount: and pose_key."
+    )
+    frame_id: str | None = GridCamera.model_fields["frame_id"]
+    frame_axes: FRAME_AXES = GridCamera.model_fields["frame_axes"]
     pose_format: Literal["gcdtrav", "odometry"] = Field(
         default="gcdtrav", description="gcdtrav: msgpack Pose2D; odometry: nav_msgs/msg/Odometry CDR."
+    )
+    poses: PoseBufferSettings = Field(
+        default_factory=PoseBufferSettings, description="The pose stream's buffer: each frame is fused at its pose."
     )
     depth_key: str | None = Field(default=None, description="Depth image (32FC1 m or 16UC1 mm, CDR) for 3-D points.")
     occupancy_grid: bool = Field(default=False, description="Also publish nav_msgs/OccupancyGrid CDR (T and U).")
@@ -135,6 +239,28 @@ class GridSettings(StrictModel):
             raise ValueError(f"grid of '{self.source}': more than 2000 x 2000 cells; coarsen resolution_m")
         return self
 
+    @model_validator(mode="after")
+    def _geometry_from_one_place(self) -> GridSettings:
+        """A mount or a pose given twice (in YAML and from tf) is an error, not a silent choice: which one the
+        operator meant cannot be guessed, and a wrong mount misplaces every cell."""
+        tf = self.tf
+        if tf is not None and tf.pose and self.pose_key is not None:
+            raise ValueError(f"grid '{self.source}': the pose comes from pose_key or from tf (tf.pose), not both")
+        mount_from_tf = tf is not None and tf.mount
+        for camera in self.camera_list():
+            # judged by value, not by what the YAML spelt: a dumped config validates again unchanged
+            if mount_from_tf and camera.mount != CameraMountSettings():
+                raise ValueError(
+                    f"grid '{self.source}', camera '{camera.source}': the mount comes from mount: or from tf "
+                    "(tf.mount), not both"
+                )
+            if not mount_from_tf and (camera.frame_id is not None or camera.frame_axes != "auto"):
+                raise ValueError(
+                    f"grid '{self.source}', camera '{camera.source}': frame_id and frame_axes are read only with "
+                    "tf: {mount: true}"
+                )
+        return self
+
     def camera_list(self) -> list[GridCamera]:
         """The grid's cameras, the single-camera form as a list of one."""
         if self.cameras is not None:
@@ -145,6 +271,8 @@ class GridSettings(StrictModel):
             camera_info_key=self.camera_info_key,
             mount=self.mount,
             depth_key=self.depth_key,
+            frame_id=self.frame_id,
+            frame_axes=self.frame_axes,
         )
         return [single]
 

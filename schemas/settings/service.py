@@ -166,6 +166,12 @@ class ServiceSettings(StrictModel):
     preview: bool = Field(default=True, description="Publish a colourised JPEG on {prefix}/out/{source}/preview.")
     preview_max_width: int = Field(default=640, ge=64)
     instance: str = Field(default_factory=default_instance_name, description="Name in results and liveliness.")
+    allow_mixed_models: bool = Field(
+        default=False,
+        description="Take sources even when this instance's model (checkpoint fingerprint) differs from the fleet's "
+        "(the model of the instance serving longest). Off: such an instance takes no sources and says why. On for "
+        "the new instances of a rolling model upgrade (deploy/README.md).",
+    )
     grids: list[GridSettings] = Field(
         default_factory=list, description="Ground grids: one per source, or fusing several cameras."
     )
@@ -181,6 +187,20 @@ class ServiceSettings(StrictModel):
         default=False,
         description="precision auto with nothing cached: measure the modes before serving. Default: serve in "
         "fp32 at once, measure in the background, then switch between frames (status says measuring).",
+    )
+    metrics_port: int = Field(
+        default=0,
+        ge=0,
+        le=65535,
+        description="TCP port of the Prometheus metrics (HTTP GET /metrics, docs/metrics.md) [env "
+        "GCDTRAV_METRICS_PORT]; 0: off, nothing listens. Off by default: the endpoint has no authentication (the "
+        "zenoh side has ACL and TLS) and names the fleet's sources, so it opens only where asked for.",
+    )
+    metrics_address: str = Field(
+        default="0.0.0.0",
+        min_length=1,
+        description="Address the metrics port listens on. All interfaces by default: a port set is meant for a "
+        "Prometheus elsewhere (a pod's IP in Kubernetes); 127.0.0.1 keeps it on the box.",
     )
     threads: int | None = Field(
         default=None,

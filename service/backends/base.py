@@ -25,6 +25,7 @@ class BackendDescription:
     precision_reason: str = ""  # why that mode (asked for, or what auto measured)
     measuring: bool = False  # a background measurement of the modes is running
     needs_measurement: bool = False  # auto found nothing measured: the caller should measure
+    fingerprint: str = ""  # the checkpoint's (model_fingerprint), computed once at load; "": unknown
 
 
 @runtime_checkable

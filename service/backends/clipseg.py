@@ -35,6 +35,7 @@ import torch
 from gcdtrav.schemas.paths import default_cache_dir, expanded
 from gcdtrav.service.backends.base import BackendDescription, ModelUnavailableError
 from gcdtrav.service.backends.decoder import DECODER_CHUNK, FastDecoder
+from gcdtrav.service.backends.expected_warnings import expected_torch_warnings
 from gcdtrav.service.backends.hub import cached_in_hub_cache, hub_offline
 from gcdtrav.service.backends.machine import available_precisions, machine_has
 from gcdtrav.service.backends.modes import AUTO, RuntimeMode, missing_requirement, runtime_mode
@@ -43,6 +44,7 @@ from gcdtrav.service.backends.onnx_runtime import (
     ExportError,
     OrtCompute,
     exported_model,
+    model_fingerprint,
 )
 from numpy.typing import NDArray
 
@@ -131,9 +133,10 @@ class VisionTrunk(torch.nn.Module):
             bf16_layers = torch.nn.ModuleList(copy.deepcopy(layer).to(torch.bfloat16) for layer in layers)
             trunk = cls(copies[0], copies[1], bf16_layers, torch.bfloat16)
         elif arithmetic == "int8":
-            quantized = torch.ao.quantization.quantize_dynamic(
-                copy.deepcopy(trunk), {torch.nn.Linear}, dtype=torch.qint8
-            )
+            with expected_torch_warnings():  # torch deprecates what int8 uses: said once in the docs, not per run
+                quantized = torch.ao.quantization.quantize_dynamic(
+                    copy.deepcopy(trunk), {torch.nn.Linear}, dtype=torch.qint8
+                )
             assert isinstance(quantized, VisionTrunk)
             trunk = quantized
         # Quick-GELU as a fused oneDNN post-op where it applies (not on int8's quantised linears) and is
@@ -286,6 +289,7 @@ class ClipSegBackend:
             ) from None
         config_file = _locate(model, "config.json")
         self.checkpoint_dir = config_file.parent if config_file is not None else None
+        self.fingerprint = model_fingerprint(self.checkpoint_dir)  # once: the weights do not change under us
         self.preprocess = Preprocessing.from_config_file(_locate(model, "preprocessor_config.json"))
         self.extract_layers = list(self.model.config.extract_layers)
         self._prepared: OrderedDict[tuple[str, ...], torch.Tensor] = OrderedDict()
@@ -357,6 +361,7 @@ class ClipSegBackend:
             precision_reason=running.reason,
             measuring=self.measuring,
             needs_measurement=self.needs_measurement,
+            fingerprint=self.fingerprint,
         )
 
     def use_compute(self, compute: Compute, precision: str, reason: str | None = None) -> None:

@@ -31,6 +31,7 @@ import numpy as np
 import torch
 from gcdtrav.service.backends.cpus import cpu_features
 from gcdtrav.service.backends.decoder import DECODER_CHUNK
+from gcdtrav.service.backends.expected_warnings import expected_torch_warnings
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +82,13 @@ def checkpoint_digests(checkpoint: Path) -> dict[str, str]:
         stat = path.stat()
         digests[path.name] = _sha256_while_unchanged(path.resolve(), stat.st_size, stat.st_mtime_ns)
     return digests
+
+
+def model_fingerprint(checkpoint: Path | None) -> str:
+    """16 hex digits that differ between checkpoints: a hash over the config and the weight files' hashes.
+    Instances compare it (service/runtime/fleet_models.py); "" when the checkpoint's files are not found."""
+    digests = checkpoint_digests(checkpoint) if checkpoint is not None else {}
+    return hashlib.sha256(json.dumps(digests, sort_keys=True).encode()).hexdigest()[:16] if digests else ""
 
 
 @functools.lru_cache(maxsize=32)
@@ -181,7 +189,7 @@ def _export(vision: Any, decoder: Any, extract_layers: list[int], input_size: in
 
     trunk, decoder_graph = TrunkGraph(vision, extract_layers).eval(), DecoderGraph(decoder).eval()
     pixels = torch.zeros(1, 3, input_size, input_size)
-    with torch.no_grad():
+    with torch.no_grad(), expected_torch_warnings(tracing=True):  # the export is checked against torch after
         activations = trunk(pixels)
         conditional = torch.zeros(2, decoder.film_mul.in_features)
         torch.onnx.export(trunk, (pixels,), str(into / TRUNK), dynamo=False, opset_version=17, input_names=["pixels"])

@@ -1,4 +1,4 @@
-"""Puts the credit ledger's grants (service/runtime/credits.py) on ``{prefix}/credit/{source}``.
+"""Puts the credit ledger's grants (service/runtime/credits.py, ``Credits``) on ``{prefix}/credit/{source}``.
 
 A grant is tiny and worth more than a map: it goes with priority INTERACTIVE_HIGH, ahead of the maps waiting
 in the same link's queue, and express (not batched). It is published whether or not a relay listens: a
@@ -13,28 +13,25 @@ import threading
 
 import zenoh
 from gcdtrav.schemas.keys import Keys
-from gcdtrav.schemas.messages import MSGPACK_ENCODING
+from gcdtrav.schemas.messages import MSGPACK_ENCODING, CreditGrant
 from gcdtrav.service.bus.entities import undeclare_all
-from gcdtrav.service.runtime.credits import TAKEN, CreditLedger, FrameTimes
-from gcdtrav.service.runtime.frames import PendingFrame
-from gcdtrav.service.runtime.stats import ServiceStats
 
 log = logging.getLogger("gcdtrav.service")
 
 
 class CreditPublisher:
-    def __init__(self, session: zenoh.Session, keys: Keys, ledger: CreditLedger, stats: ServiceStats) -> None:
-        self.session, self.keys, self.ledger, self.stats = session, keys, ledger, stats
+    """The runtime's ``CreditSink`` (service/runtime/credits.py): one express publisher per source."""
+
+    def __init__(self, session: zenoh.Session, keys: Keys) -> None:
+        self.session, self.keys = session, keys
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._lock = threading.Lock()
         self._closed = False
 
-    def freed(self, source: str, reason: str, times: FrameTimes | None) -> None:
-        """The source's slot is free (called from subscriber callbacks and the worker)."""
-        grant = self.ledger.freed(source, reason, times, self.stats.problem(source))
+    def put(self, source: str, grant: CreditGrant) -> bool:
         with self._lock:
             if self._closed:
-                return
+                return False
             publisher = self._publishers.get(source)
             if publisher is None:
                 publisher = self.session.declare_publisher(
@@ -46,22 +43,9 @@ class CreditPublisher:
                 )
                 self._publishers[source] = publisher
             publisher.put(grant.pack())
-        self.stats.credit(source)
-
-    def taken(self, pending: PendingFrame) -> None:
-        self.freed(pending.source, TAKEN, FrameTimes(pending.stamp, pending.sent_at, pending.received_at))
-
-    def published(self, source: str, stamp: float) -> None:
-        """Maps of ``source`` captured at ``stamp`` went out: later credits say how fresh the maps are."""
-        self.ledger.published(source, stamp)
-
-    def answered(self, pending: PendingFrame, reason: str) -> None:
-        """The frame freed its slot without being taken: answered with the last maps (``unchanged``), or
-        waiting for its refresh (``refresh``)."""
-        self.freed(pending.source, reason, FrameTimes(pending.stamp, pending.sent_at, pending.received_at))
+        return True
 
     def forget(self, source: str) -> None:
-        self.ledger.forget(source)
         with self._lock:
             publisher = self._publishers.pop(source, None)
         if publisher is not None:

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 import zenoh
-from gcdtrav.schemas.experience import AnswerReply
+from gcdtrav.schemas.experience import AnswerReply, CalibrationFigures
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import MSGPACK_ENCODING, ExperienceStatus, MessageError
 from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
@@ -145,6 +145,10 @@ class ExperienceBus:
 
     def status(self) -> ExperienceStatus:
         return self.experience.status()
+
+    def calibration(self) -> CalibrationFigures:
+        """The active anchor set graded by the stored pairs (the metrics' ECE and coverage)."""
+        return self.experience.report(self.pipeline.anchors).figures
 
     # ---- inputs --------------------------------------------------------------------------------------
     def _input_handler(self, handler: Callable[[bytes, float], None], reason: str) -> Callable[[zenoh.Sample], None]:
@@ -265,9 +269,10 @@ class ExperienceBus:
     def _after_fusion(self, grid: SourceGrid, camera: CameraState, image: NDArray[np.uint8] | None) -> None:
         """Under the grid's lock, on the worker: snapshot the grid, maybe ask; never fail the frame's outputs."""
         source = grid.config.source
+        pose = grid.fused_at.pose if grid.fused_at is not None else None  # the image's pose, not the newest
         try:
-            crop = image_crop(image, grid.pose, camera.mount, camera.camera)
-            question = self.experience.on_grid_update(source, grid.grid, grid.pose, crop)
+            crop = image_crop(image, pose, camera.mount, camera.camera)
+            question = self.experience.on_grid_update(source, grid.grid, pose, crop)
         except Exception as err:
             self.stats.rejected(None, "experience_failed", f"{source}: {type(err).__name__}: {err}"[:200], err)
             return

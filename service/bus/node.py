@@ -23,33 +23,22 @@ from gcdtrav.service.bus.anchor_sync import AnchorSync
 from gcdtrav.service.bus.credits import CreditPublisher
 from gcdtrav.service.bus.entities import undeclare_all
 from gcdtrav.service.bus.experience import experience_bus
+from gcdtrav.service.bus.fleet_models import FleetModels
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
 from gcdtrav.service.bus.queryables import AnchorQueries, SourceQueries
-from gcdtrav.service.bus.ros_graph import RosGraph
+from gcdtrav.service.bus.ros_graph import RosGraph, graph_inputs
+from gcdtrav.service.bus.tf import declare_tf_inputs
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
-from gcdtrav.service.runtime.admission import Admission
-from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
-from gcdtrav.service.runtime.assignment import TABLE_IDLE_S, Assignment
-from gcdtrav.service.runtime.credits import CreditLedger
-from gcdtrav.service.runtime.frames import PendingFrame
-from gcdtrav.service.runtime.freshness import FrameGate, Freshness
+from gcdtrav.service.runtime.assembly import Runtime
 from gcdtrav.service.runtime.grids import GridOutputs
-from gcdtrav.service.runtime.history import FrameHistory
-from gcdtrav.service.runtime.intake_rate import IntakeRate
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
-from gcdtrav.service.runtime.outputs import FramePublisher, OutputBuilder
+from gcdtrav.service.runtime.metrics import MetricsSources, ServiceMetrics
 from gcdtrav.service.runtime.probes import Probes
-from gcdtrav.service.runtime.progress import Health, ProgressMonitor
-from gcdtrav.service.runtime.reuse import ReuseTracker
-from gcdtrav.service.runtime.share import policy_for
-from gcdtrav.service.runtime.sources import SourceTracker
+from gcdtrav.service.runtime.progress import Health
+from gcdtrav.service.runtime.state_lock import StateLock
 from gcdtrav.service.runtime.stats import ServiceStats
-from gcdtrav.service.runtime.status import StatusParts
-from gcdtrav.service.runtime.triage import Triage
-from gcdtrav.service.runtime.worker import FrameWorker
 
 log = logging.getLogger("gcdtrav.service")
 WATCHDOG_INTERVAL_S = 0.25
@@ -74,100 +63,26 @@ def publisher_of(sample: zenoh.Sample) -> str | None:
 
 class TraversabilityService:
     def __init__(self, session: zenoh.Session, pipeline: Pipeline, settings: ServiceSettings) -> None:
-        self.session = session
-        self.pipeline = pipeline
-        self.settings = settings
-        self.prefix = settings.prefix
-        self.keys = Keys(settings.prefix)
-        self.history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
-        self.stats = ServiceStats(log, settings.source_idle_s)
-        self.intake_rate = IntakeRate(
-            settings.intake_rate_per_publisher, settings.intake_rate_anonymous, settings.intake_burst_s
-        )
+        self.session, self.pipeline, self.settings = session, pipeline, settings
+        self.prefix, self.keys = settings.prefix, Keys(settings.prefix)
+        self.stats = ServiceStats(log, settings.source_idle_s)  # the runtime's, counting the bus's refusals too
         self._declared: list[Any] = []
         self._stopping = threading.Event()
         self.membership: Membership | None = None
         self._leaving: Callable[[str], bool] | None = None  # after stop(): what it owned when it left
         self.probes: Probes | None = None
         self.anchor_sync: AnchorSync | None = None
-        self.anchor_switch = AnchorSwitch(
-            pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes
-        )
-        backend = pipeline.describe()
-        self.grids = (
-            GridOutputs(settings.grids, len(self.anchor_switch.head().anchor_set), settings.instance, settings.risk)
-            if settings.grids
-            else None
-        )
-        grids = self.grids
-        self.reuse = ReuseTracker(
-            settings.reuse,
-            settings.schedule,
-            grids.pose_of if grids else lambda source: None,
-            anchors_version=lambda: self.anchor_switch.head().version,
-        )
-        self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
-            round(settings.pending_budget_mb * 1e6),
-            policy=policy_for(settings.schedule, self.reuse.motion),
-            triage=settings.reuse.enabled or settings.schedule.policy == "need",
-        )
-        self.ros_graph = RosGraph(session, settings, self.stats.rejected) if settings.ros_inputs else None
-        self.outputs = FrameOutputs(session, self.keys, self.ros_graph)
-        self.freshness = Freshness.from_settings(settings, log)  # the one judge of a frame's age
-        ledger = CreditLedger(settings.instance, backend.input_size, self.freshness.max_age_s)
-        self.credits = CreditPublisher(session, self.keys, ledger, self.stats)
-        # the one hand-off out: encoded in the runtime, put by self.outputs, the credits told
-        self.publisher = FramePublisher(OutputBuilder(settings, backend.model_id), self.outputs, self.credits.published)
-        forget = (
-            self.queue.forget,
-            self.history.forget,
-            self.stats.forget,
-            self.outputs.forget,
-            self.publisher.forget,
-            self.credits.forget,
-            self.freshness.offsets.forget,
-            self.reuse.forget,
-        )
-        self.sources = SourceTracker(
-            settings.max_sources, settings.source_idle_s, forget, reclaim_after_s=settings.reclaim_after_s
-        )
-        self.admission = Admission(settings, self.sources, self.queue, self.stats, self.credits.freed, self.freshness)
-        idle = min(settings.source_idle_s, TABLE_IDLE_S)  # the table's memory, not the source's state
-        self.assignment = Assignment(idle_s=idle, max_known=4 * settings.max_sources)
-        self.progress = ProgressMonitor(settings.stall_after_s)
-        self.status_parts = StatusParts(
-            settings.instance,
-            time.time(),
-            pipeline,
-            self.anchor_switch,
-            self.queue,
-            self.history,
-            self.stats,
-            self.sources,
-            self.progress,
-            self.freshness.offsets,
-        )
-        gate = FrameGate(self.owns, self.freshness)
-        self.worker = FrameWorker(
-            self.queue,
-            pipeline,
-            self.history,
-            self.stats,
-            self.sources,
-            settings,
-            self.publisher,
-            self.credits.taken,
-            self.progress,
-            gate,
-            self.admission,
-            Triage(self.queue, self.reuse, settings, self.stats, self.publisher.republish, self.credits.answered)
-            if self.queue.triage
-            else None,
-            grids=self.grids,
-        )
+        self.state_lock = StateLock(settings.state_file, settings.instance)  # one service per state file
+        self.ros_graph = RosGraph(session, settings, self.stats.rejected) if graph_inputs(settings) else None
+        self.outputs = FrameOutputs(session, self.keys, self.ros_graph)  # the runtime's sinks: they only put
+        self.credits = CreditPublisher(session, self.keys)
+        self.runtime = Runtime.build(settings, pipeline, self.outputs, self.credits, self.owns, self.stats, time.time())
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
-        self.experience = experience_bus(session, settings, pipeline, self.grids, self.stats, self.owns)
+        self.experience = experience_bus(session, settings, pipeline, self.runtime.grids, self.stats, self.owns)
+        calibration = self.experience.calibration if self.experience is not None else None
+        self.metrics = ServiceMetrics(MetricsSources(self.status, self._owned, settings.max_frame_age_s, calibration))
+        self.stats.events = self.metrics.timings  # histograms see every frame; `serve` serves the registry
 
     def _check_inputs(self) -> None:
         own = zenoh.KeyExpr(self.keys.outputs)
@@ -188,15 +103,30 @@ class TraversabilityService:
         joins the fleet (declares its token, so sources move to it) only once it serves: subscribers and
         worker up, and after ``observe_s`` of watching, so that its table already holds the robots the others
         serve (a robot it has not seen twice yet would be claimed by neither). Its queryables come last: an
-        instance that answers status serves."""
+        instance that answers status serves. The anchor set's token comes before the alive token: a join is
+        logged with it (membership.describe)."""
         began = time.monotonic()
         if self.settings.health_port:  # first: a supervisor sees it starting
             self.probes = Probes(self.liveness, self.readiness, self.settings.health_address, self.settings.health_port)
             self.probes.start()
-        self.membership = Membership(
-            self.session, self.prefix, self.settings.instance, assignment=self.assignment, join=False
+        self.anchor_sync = AnchorSync(self.session, self.keys, self.settings.instance, self.runtime.anchor_switch)
+        models = FleetModels(
+            self.session,
+            self.keys,
+            self.settings.instance,
+            self.pipeline.describe().fingerprint,
+            self.settings.allow_mixed_models,
         )
-        self.anchor_sync = AnchorSync(self.session, self.keys, self.settings.instance, self.anchor_switch)
+        fleet = self.anchor_sync.fleet
+        self.membership = Membership(
+            self.session,
+            self.prefix,
+            self.settings.instance,
+            assignment=self.runtime.assignment,
+            models=models,
+            anchor_set_of=lambda instance: fleet.versions().get(instance),
+            join=False,
+        )
         for expression in self.settings.inputs:
             head = literal_head(expression)
             self._declared.append(self.session.declare_subscriber(expression, self._image_handler(head)))
@@ -204,16 +134,16 @@ class TraversabilityService:
             self._declared.append(self.session.declare_subscriber(ros_input.key, self._ros_handler(ros_input)))
         if self.ros_graph is not None:
             self.ros_graph.start()
-        if self.grids is not None:
-            self._declare_grid_inputs(self.grids)
+        if self.runtime.grids is not None:
+            self._declare_grid_inputs(self.runtime.grids)
         if self.experience is not None:
             self._declared += self.experience.start()
-        self.worker.start()
+        self.runtime.worker.start()
         self._watchdog.start()
         self._stopping.wait(max(0.0, began + observe_s - time.monotonic()))
         self.membership.rejoin()
         self._declare_queryables()  # answering status means serving: callers wait for it
-        backend, active = self.pipeline.describe(), self.anchor_switch.head().anchor_set
+        backend, active = self.pipeline.describe(), self.runtime.anchor_switch.head().anchor_set
         log.info(
             "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, grids %s, experience %s, model %s (%s), "
             "anchor set %s (%d anchors), method %s, outputs %s",
@@ -227,7 +157,7 @@ class TraversabilityService:
             active.version,
             len(active),
             self.pipeline.settings.method.value,
-            "overlapping inference" if self.worker.overlap_outputs else "after inference, same thread",
+            "overlapping inference" if self.runtime.worker.overlap_outputs else "after inference, same thread",
         )
 
     def stop(self, timeout: float | None = None) -> None:
@@ -240,8 +170,8 @@ class TraversabilityService:
         self._stopping.set()
         if self.membership is not None:
             self._leaving = self.membership.leave()
-        self.queue.close()
-        if not self.worker.stop(deadline):
+        self.runtime.queue.close()
+        if not self.runtime.worker.stop(deadline):
             log.warning("the frame in flight did not finish within %.1f s; its outputs are dropped", timeout)
         if self.membership is not None:
             self.membership.close()
@@ -255,7 +185,8 @@ class TraversabilityService:
         self._declared.clear()
         if self.anchor_sync is not None:
             self.anchor_sync.close()
-        self.anchor_switch.close()
+        self.runtime.anchor_switch.close()
+        self.state_lock.release()
         if self.ros_graph is not None:
             self.ros_graph.close()
 
@@ -272,22 +203,15 @@ class TraversabilityService:
             if self.experience is None:
                 self.stats.rejected(None, "experience_off", f"{key}: experience is not enabled on this service")
             return
-        if not self._admitted(publisher := publisher_of(sample)):
+        if not self.runtime.admission.admit(publisher := publisher_of(sample)):
             return
         self._enqueue(input_source_of(key, head), sample, None, publisher)
-
-    def _admitted(self, publisher: str | None) -> bool:
-        """The publisher is within its intake rate: checked before anything else of the sample is read."""
-        if self.intake_rate.admit(publisher):
-            return True
-        self.stats.rejected_unread("rate_limited", lambda: f"publisher {publisher or '(no source info)'}")
-        return False
 
     def _ros_handler(self, ros_input: RosInput) -> Callable[[zenoh.Sample], None]:
         return lambda sample: self._on_ros_image(sample, ros_input)
 
     def _on_ros_image(self, sample: zenoh.Sample, ros_input: RosInput) -> None:
-        if self._stopping.is_set() or not self._admitted(publisher := publisher_of(sample)):
+        if self._stopping.is_set() or not self.runtime.admission.admit(publisher := publisher_of(sample)):
             return
         key = str(sample.key_expr)
         try:
@@ -301,6 +225,10 @@ class TraversabilityService:
             topic = replace(topic, msgtype=ros_input.message_type)
         self._enqueue(topic.source, sample, topic, publisher)
 
+    def _owned(self) -> int:
+        """Sources the fleet's table gives this instance; before start() it owns what it tracks."""
+        return self.membership.owned() if self.membership is not None else len(self.runtime.sources)
+
     def owns(self, source: str) -> bool:
         """Instances of one prefix share the sources; before start() this instance owns them all; leaving,
         those it owned when it left (only the frames already in its hands are finished)."""
@@ -310,13 +238,13 @@ class TraversabilityService:
 
     def liveness(self) -> Health:
         """The worker progresses (the /livez probe)."""
-        return self.progress.health()
+        return self.runtime.progress.health()
 
     def readiness(self) -> Health:
         """In the fleet and serving (the /readyz probe)."""
         if self._stopping.is_set():
             return Health(False, "draining: left the fleet, finishing the frame in flight")
-        health = self.progress.health()
+        health = self.runtime.progress.health()
         if not health.healthy:
             return health
         if self.membership is None or self.membership.withdrawn:
@@ -326,7 +254,7 @@ class TraversabilityService:
     def _watch_progress(self) -> None:
         """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again."""
         while not self._stopping.wait(WATCHDOG_INTERVAL_S):
-            change = self.progress.check(len(self.queue))
+            change = self.runtime.progress.check(len(self.runtime.queue))
             if change is None or self.membership is None:
                 continue
             if change.health.healthy:
@@ -341,13 +269,13 @@ class TraversabilityService:
             self.membership.note(source)
         if self.owns(source):  # else another live instance serves this source
             key, size, encoding = str(sample.key_expr), len(sample.payload), str(sample.encoding)
-            self.admission.offer(source, key, size, sample.payload.to_bytes, encoding, ros, publisher)
+            self.runtime.admission.offer(source, key, size, sample.payload.to_bytes, encoding, ros, publisher)
 
     def _declare_queryables(self) -> None:
-        per_source = SourceQueries(self.keys, self.history, self.grids, self.owns, self.settings.risk)
-        anchors = AnchorQueries(self.keys, self.anchor_switch, self.stats)
+        per_source = SourceQueries(self.keys, self.runtime.history, self.runtime.grids, self.owns, self.settings.risk)
+        anchors = AnchorQueries(self.keys, self.runtime.anchor_switch, self.stats)
         handlers = [(self.keys.patch("**"), per_source.on_patch, False)]
-        if self.grids is not None:
+        if self.runtime.grids is not None:
             handlers.append((self.keys.cell("**"), per_source.on_cell, False))
         handlers += [
             (self.keys.anchors, anchors.on_anchors, True),
@@ -364,6 +292,7 @@ class TraversabilityService:
         for key, source, setter, reason in grids.inputs():  # poses by grid, CameraInfo and depth by camera
             handler = self._grid_input_handler(source, setter, reason)
             self._declared.append(self.session.declare_subscriber(key, handler))
+        self._declared += declare_tf_inputs(self.session, grids, self.stats)  # mounts and poses from tf
 
     def _grid_input_handler(
         self, source: str, setter: Callable[[str, bytes], None], reason: str
@@ -380,7 +309,9 @@ class TraversabilityService:
         live = sorted(self.membership.live()) if self.membership else None
         fleet = self.anchor_sync.fleet.versions() if self.anchor_sync else {}
         experience = self.experience.status() if self.experience is not None else None
-        return self.status_parts.status(time.time(), live, fleet, experience)
+        models = self.membership.models if self.membership else None
+        models_status = models.status(live or []) if models is not None else None
+        return self.runtime.status_parts.status(time.time(), live, fleet, experience, models_status)
 
     def _on_status_query(self, query: zenoh.Query) -> None:
         replies.check_no_parameters(query)

@@ -9,8 +9,10 @@ with each '/' inside a name written as '%'. An entity's gid is the XXH3-128 of i
 bits first, both little-endian); publishers send it in every sample's attachment.
 
 The service declares one node per (zenoh namespace, domain) it meets, a publisher token (MP) for each ROS
-output, and a best-effort subscription token (MS) for every camera publisher whose topic matches a
-``ros_inputs`` key: image_transport publishers send only while they count a subscriber.
+output, a best-effort subscription token (MS) for every camera publisher whose topic matches a
+``ros_inputs`` key (image_transport publishers send only while they count a subscriber), and a subscription
+token with tf2_ros's listener QoS for every /tf and /tf_static publisher a grid's rmw_zenoh tf key matches (so
+``ros2 topic info`` lists the service among their subscribers).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.entities import undeclare_all
 from gcdtrav.service.ros import cdr as ros_io
+from gcdtrav.service.ros.tf import TF_MESSAGE
 from zenoh.ext import Int64, UInt8, z_serialize
 
 log = logging.getLogger("gcdtrav.service")
@@ -71,6 +74,41 @@ class Qos:
 IMAGE_QOS = Qos()  # rclcpp's default publisher profile: reliable, volatile, keep-last 10
 GRID_QOS = Qos(transient_local=True, depth=1)  # a map: late joiners get the last one
 CAMERA_SUBSCRIPTION_QOS = Qos(reliable=False, depth=1)  # matches best-effort and reliable cameras alike
+TF_QOS = Qos(depth=100)  # tf2_ros DynamicListenerQoS: reliable, volatile, keep-last 100
+TF_STATIC_QOS = Qos(transient_local=True, depth=100)  # tf2_ros StaticListenerQoS: transient local, keep-last 100
+
+
+@dataclass(frozen=True)
+class GraphInput:
+    """A key the service subscribes to in rmw_zenoh's layout, and the QoS its subscription tokens carry."""
+
+    key: str  # with the zenoh namespace, e.g. robot1/*/tf/tf2_msgs::msg::dds_::TFMessage_/*
+    zenoh_namespace: str
+    qos: Qos
+
+
+def tf_graph_input(key: str, qos: Qos) -> GraphInput | None:
+    """A grid's tf key as a graph input, if in rmw_zenoh's layout ([<zenoh ns>/]<domain>/<topic>/TFMessage type/
+    <hash>, the domain a number or '*'); None for zenoh-bridge-ros2dds's plain 'tf', which has no tokens."""
+    parts = key.split("/")
+    if len(parts) < 4 or parts[-2] != ros_io.dds_type_name(TF_MESSAGE):
+        return None
+    domain = next((i for i, part in enumerate(parts[:-3]) if part.isdigit() or part == "*"), None)
+    return None if domain is None else GraphInput(key, "/".join(parts[:domain]), qos)
+
+
+def graph_inputs(settings: ServiceSettings) -> list[GraphInput]:
+    """The grids' tf keys (first: a key that also matches a camera input gets tf's QoS), then the rmw_zenoh
+    camera inputs."""
+    found: list[GraphInput] = []
+    for grid in settings.grids:
+        if grid.tf is not None:
+            for key, qos in ((grid.tf.tf_static_key, TF_STATIC_QOS), (grid.tf.tf_key, TF_QOS)):
+                tf_input = tf_graph_input(key, qos)
+                if tf_input is not None and tf_input not in found:
+                    found.append(tf_input)
+    cameras = [i for i in settings.ros_inputs if i.layout == "rmw_zenoh"]
+    return found + [GraphInput(i.key, i.zenoh_namespace, CAMERA_SUBSCRIPTION_QOS) for i in cameras]
 
 
 @dataclass(frozen=True)
@@ -188,12 +226,12 @@ class RosGraph:
         self._subscriptions: dict[tuple[str, TopicInfo, int], tuple[Entity, set[str]]] = {}
         self._watchers: list[Any] = []
         self._closed = False
-        self.inputs = [i for i in settings.ros_inputs if i.layout == "rmw_zenoh"]
+        self.inputs = graph_inputs(settings)
         self._input_keys = [(i, zenoh.KeyExpr(i.key)) for i in self.inputs]
 
     # ---- lifecycle -----------------------------------------------------------------------------------
     def start(self) -> None:
-        """Node tokens for the inputs' literal domains, and discovery of camera publishers."""
+        """Node tokens for the inputs' literal domains, and discovery of camera and tf publishers."""
         watched: set[str] = set()
         for ros_input in self.inputs:
             domain = ros_io.strip_namespace(ros_input.key, ros_input.zenoh_namespace).split("/")[0]
@@ -295,7 +333,7 @@ class RosGraph:
         return lambda sample: self._on_token(sample, zenoh_namespace)
 
     def _on_token(self, sample: zenoh.Sample, zenoh_namespace: str) -> None:
-        """A camera's publisher token came or went: subscribe while one matching an input lives."""
+        """A camera's (or tf's) publisher token came or went: subscribe while one matching an input lives."""
         key = str(sample.key_expr)
         try:
             peer = parse_publisher_token(ros_io.strip_namespace(key, zenoh_namespace))
@@ -307,20 +345,21 @@ class RosGraph:
         data_key = with_namespace(
             zenoh_namespace, f"{peer.domain}/{peer.topic.strip('/')}/{peer.dds_type}/{peer.type_hash}"
         )
-        if not any(i.zenoh_namespace == zenoh_namespace and k.intersects(data_key) for i, k in self._input_keys):
+        matched = next(
+            (i for i, k in self._input_keys if i.zenoh_namespace == zenoh_namespace and k.intersects(data_key)), None
+        )
+        if matched is None or ros_io.is_output_topic(peer.topic, self.settings.ros_output.topic_templates()):
             return
-        if ros_io.is_output_topic(peer.topic, self.settings.ros_output.topic_templates()):
-            return
-        topic = TopicInfo(peer.topic, peer.dds_type, peer.type_hash, CAMERA_SUBSCRIPTION_QOS)
+        topic = TopicInfo(peer.topic, peer.dds_type, peer.type_hash, matched.qos)
         try:
             if sample.kind == zenoh.SampleKind.PUT:
-                self._camera_appeared(zenoh_namespace, peer.domain, topic, key)
+                self._publisher_appeared(zenoh_namespace, peer.domain, topic, key)
             else:
-                self._camera_left(zenoh_namespace, peer.domain, topic, key)
+                self._publisher_left(zenoh_namespace, peer.domain, topic, key)
         except zenoh.ZError as err:
             log.warning("ROS graph: subscription token for %s not changed: %s", peer.topic, err)
 
-    def _camera_appeared(self, zenoh_namespace: str, domain: int, topic: TopicInfo, camera_token: str) -> None:
+    def _publisher_appeared(self, zenoh_namespace: str, domain: int, topic: TopicInfo, publisher_token: str) -> None:
         with self._lock:
             if self._closed:
                 return
@@ -332,14 +371,14 @@ class RosGraph:
                 entry = (entity, set())
                 self._subscriptions[(zenoh_namespace, topic, domain)] = entry
                 log.info("ROS graph: subscribed to %s (%s, %s)", topic.name, topic.dds_type, topic.type_hash)
-            entry[1].add(camera_token)
+            entry[1].add(publisher_token)
 
-    def _camera_left(self, zenoh_namespace: str, domain: int, topic: TopicInfo, camera_token: str) -> None:
+    def _publisher_left(self, zenoh_namespace: str, domain: int, topic: TopicInfo, publisher_token: str) -> None:
         with self._lock:
             entry = self._subscriptions.get((zenoh_namespace, topic, domain))
             if entry is None:
                 return
-            entry[1].discard(camera_token)
+            entry[1].discard(publisher_token)
             if not entry[1]:
                 del self._subscriptions[(zenoh_namespace, topic, domain)]
                 self._undeclare(zenoh_namespace, entry[0])

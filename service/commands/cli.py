@@ -26,7 +26,7 @@ from gcdtrav.service.backends import default_model
 if TYPE_CHECKING:
     from gcdtrav.service.experience.dataset_fit import FitRun
 
-SERVICE_MODULES = ("torch", "transformers", "matplotlib", "tqdm")
+SERVICE_MODULES = ("torch", "transformers", "matplotlib", "tqdm", "prometheus_client")
 EXIT_FAILURES = 1  # some inputs could not be processed
 EXIT_USAGE = 2  # bad configuration: anchor file, model weights, arguments
 CACHE_DIR_HELP = (
@@ -83,8 +83,15 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cache-dir", type=Path, default=None, help=CACHE_DIR_HELP)
 
 
+DESCRIPTION = (
+    "Traversability T and uncertainty U of every image patch. Start with `gcdtrav doctor --model DIR` on a new "
+    "box, then `gcdtrav serve`; `infer` works on image files offline. status, anchors, probe, calibration, answer, "
+    "view and relay need no torch (the operator's laptop, the robot). `gcdtrav COMMAND --help` for each."
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="gcdtrav", description=__doc__)
+    parser = argparse.ArgumentParser(prog="gcdtrav", description=DESCRIPTION)
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     commands = parser.add_subparsers(dest="command", required=True)
 
@@ -169,6 +176,16 @@ def build_parser() -> argparse.ArgumentParser:
         choices=PRECISIONS,
         default=None,
         help=PRECISION_HELP + " [auto]",
+    )
+    group.add_argument(
+        "--metrics-port",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="serve Prometheus metrics on http://ADDRESS:PORT/metrics (docs/metrics.md); 0: off [0]",
+    )
+    group.add_argument(
+        "--metrics-address", default=None, metavar="ADDRESS", help="address of the metrics port [0.0.0.0]"
     )
     group.add_argument(
         "--measure-first",
@@ -277,6 +294,8 @@ def serve_settings(args: argparse.Namespace):  # type: ignore[no-untyped-def]
             "threads",
             "precision",
             "measure_before_serving",
+            "metrics_port",
+            "metrics_address",
         )
     }
     if args.method is not None:

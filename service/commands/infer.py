@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TextIO
 
 import cv2
 import numpy as np
@@ -125,13 +127,48 @@ def output_dirs(images: Sequence[Path], out_dir: Path) -> list[Path]:
     return dirs
 
 
+def check_probes_first(probes: Sequence[tuple[int, int]], images: Sequence[Path]) -> None:
+    """Every --probe against every image before any inference: a usage error is not found after an hour's work.
+    Images are decoded for it (their decoded size is the one that counts: EXIF orientation); unreadable ones are
+    left to the run, which reports them."""
+    for path in images if probes else ():
+        try:
+            image = read_image(path)
+        except ImageDecodeError:
+            continue
+        check_probes(probes, path, image.shape[1], image.shape[0])
+
+
+class ClosedPipeWriter:
+    """Writes to a stream until its reader goes (``gcdtrav infer ... | head``); then nothing more, quietly:
+    the images are still processed and written, as the command line asked."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self.stream, self.closed = stream, False
+
+    def write(self, text: str) -> None:
+        if self.closed:
+            return
+        try:
+            self.stream.write(text)
+            self.stream.flush()
+        except BrokenPipeError:
+            self.closed = True
+            # What is still buffered would fail again at exit ("Exception ignored"): point the fd at devnull.
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, self.stream.fileno())
+            os.close(devnull)
+
+
 def run_infer(pipeline: Pipeline, images: Sequence[Path], options: InferOptions) -> int:
     """Process every image; a bad one is reported and skipped. Returns the number of failures.
 
-    Raises ProbeOutsideImage (before that image's inference) for a --probe pixel outside an image.
+    Raises ProbeOutsideImage (before any inference) for a --probe pixel outside an image.
     """
     from tqdm import tqdm
 
+    check_probes_first(options.probes, images)
+    answers = ClosedPipeWriter(sys.stdout)
     failures = 0
     targets = list(zip(images, output_dirs(images, options.out_dir), strict=True))
     progress = tqdm(targets, desc="infer", unit="img", disable=len(targets) < 2, file=sys.stderr)
@@ -146,7 +183,8 @@ def run_infer(pipeline: Pipeline, images: Sequence[Path], options: InferOptions)
         result = pipeline.process(image)
         write_outputs(stem_dir, image, result, options)
         for answer in probe_answers(str(path), result, options.probes, *image.shape[:2]):
-            progress.write(answer + "\n", file=sys.stdout)
+            with progress.external_write_mode(file=sys.stdout):
+                answers.write(answer + "\n\n")
         summary = {
             "image": str(path),
             "size": [image.shape[1], image.shape[0]],

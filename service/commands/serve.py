@@ -16,6 +16,7 @@ import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings, SettingsError
 from gcdtrav.service.backends.cpus import set_torch_threads, usable_cpus
+from gcdtrav.service.commands.metrics_http import metrics_endpoint
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.state import load_anchor_state
 
@@ -119,12 +120,13 @@ def run_service(settings: ServiceSettings, config: zenoh.Config, fallback: zenoh
     measurement = None
     try:
         service.start(observe_s=JOIN_OBSERVE_S)
-        if pipeline.describe().needs_measurement:  # status answers meanwhile: measuring
-            from gcdtrav.service.backends.precision_choice import measure_in_background
+        with metrics_endpoint(settings, service.metrics.registry):  # a taken port: SettingsError, exit 2
+            if pipeline.describe().needs_measurement:  # status answers meanwhile: measuring
+                from gcdtrav.service.backends.precision_choice import measure_in_background
 
-            measurement = measure_in_background(pipeline.backend)
-        while not stop.wait(0.5):
-            pass
+                measurement = measure_in_background(pipeline.backend)
+            while not stop.wait(0.5):
+                pass
     finally:
         deadline = time.monotonic() + settings.shutdown_grace_s  # the whole exit, within the grace period
         service.stop()

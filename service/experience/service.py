@@ -29,9 +29,9 @@ from gcdtrav.service.experience.fitter import FitOptions
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore
 from gcdtrav.service.experience.velocity import (
+    MAX_INPUT_BYTES,
     VelocityTracker,
     decode_command,
-    decode_message,
     decode_odometry,
     is_ros_topic,
 )
@@ -44,7 +44,7 @@ ExperienceInput = tuple[str, bool, Callable[[bytes, float], None], str]  # key o
 
 def decode_answer(payload: bytes) -> OperatorAnswer:
     """An OperatorAnswer in msgpack or JSON; MessageError if it is neither."""
-    return decode_message(OperatorAnswer, payload)
+    return OperatorAnswer.decode(payload, MAX_INPUT_BYTES)
 
 
 def experience_file(state_dir: Path, prefix: str) -> Path:
@@ -116,7 +116,7 @@ class Experience:
     def on_planned_path(self, source: str, payload: bytes, received_at: float) -> None:
         """A planner's path ahead of ``source``: questions look along it (an empty one: the heading again).
         MessageError for a bad one (the bus counts it)."""
-        path = decode_message(PlannedPath, payload)
+        path = PlannedPath.decode(payload, MAX_INPUT_BYTES)
         if len(path.points) < 2:
             self._paths.pop(source, None)
         else:

@@ -15,7 +15,6 @@ persisted (docs/calibration.md). No middleware here: the bus hands it decoded pa
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -29,7 +28,7 @@ import msgpack
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.experience import OUTCOME_KINDS, AnchorProposal, CalibrationReport, TraversalOutcome
-from gcdtrav.schemas.messages import MessageError
+from gcdtrav.schemas.messages import MessageTooLarge
 from gcdtrav.service.experience.calibration import calibration_figures
 from gcdtrav.service.experience.fitter import FitOptions, propose
 from gcdtrav.service.experience.pairs import Pairs, concept_key
@@ -51,16 +50,11 @@ class OutcomeRejected(ValueError):
 
 def decode_outcome(payload: bytes) -> TraversalOutcome:
     """A TraversalOutcome from msgpack or JSON (a payload starting with '{'); OutcomeRejected with the reason."""
-    if len(payload) > MAX_OUTCOME_BYTES:
-        raise OutcomeRejected("oversized", f"outcome of {len(payload)} bytes is over {MAX_OUTCOME_BYTES}")
     try:
-        if payload.lstrip()[:1] == b"{":
-            data = json.loads(payload)
-            if not isinstance(data, dict):
-                raise MessageError("a TraversalOutcome must be a JSON object")
-            return TraversalOutcome.validated(data)
-        return TraversalOutcome.unpack(payload)
-    except (MessageError, ValueError, UnicodeDecodeError) as err:
+        return TraversalOutcome.decode(payload, MAX_OUTCOME_BYTES)
+    except MessageTooLarge as err:
+        raise OutcomeRejected("oversized", str(err)) from None
+    except ValueError as err:  # MessageError, or whatever else a bad value raised
         raise OutcomeRejected("bad_outcome", str(err)) from None
 
 

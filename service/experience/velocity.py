@@ -19,19 +19,16 @@ msgpack or JSON on a zenoh key (``Twist2D``, ``Odometry2D``).
 
 from __future__ import annotations
 
-import json
 import math
 import threading
 from dataclasses import dataclass
-from typing import TypeVar
 
 from gcdtrav.schemas.experience import Odometry2D, TraversalOutcome, Twist2D
-from gcdtrav.schemas.messages import Message, MessageError
+from gcdtrav.schemas.messages import check_size
 from gcdtrav.schemas.settings import ExperienceSettings
 from gcdtrav.service.ros.cdr import decode_odometry_motion, decode_twist
 
 MAX_INPUT_BYTES = 64 * 1024  # an Odometry CDR with its covariances is about 700 bytes
-M = TypeVar("M", bound=Message)
 
 
 def is_ros_topic(name: str) -> bool:
@@ -39,39 +36,22 @@ def is_ros_topic(name: str) -> bool:
     return name.startswith("/")
 
 
-def decode_message(kind: type[M], payload: bytes) -> M:
-    """A message in msgpack or JSON (a payload starting with '{'); MessageError naming what is wrong."""
-    if len(payload) > MAX_INPUT_BYTES:
-        raise MessageError(f"{kind.__name__} of {len(payload)} bytes is over {MAX_INPUT_BYTES}")
-    if payload.lstrip()[:1] == b"{":
-        try:
-            data = json.loads(payload)
-        except (ValueError, UnicodeDecodeError) as err:
-            raise MessageError(f"not a JSON {kind.__name__}: {err}") from None
-        if not isinstance(data, dict):
-            raise MessageError(f"a {kind.__name__} must be a JSON object")
-        return kind.validated(data)
-    return kind.unpack(payload)
-
-
 def decode_command(payload: bytes, ros: bool) -> Twist2D:
-    if len(payload) > MAX_INPUT_BYTES:
-        raise MessageError(f"Twist of {len(payload)} bytes is over {MAX_INPUT_BYTES}")
-    if ros:
-        vx, vy, wz = decode_twist(payload)
-        return Twist2D(vx=vx, vy=vy, wz=wz)
-    return decode_message(Twist2D, payload)
+    """A velocity command: a ROS Twist in CDR, or a Twist2D (msgpack or JSON); MessageError when unusable."""
+    if not ros:
+        return Twist2D.decode(payload, MAX_INPUT_BYTES)
+    check_size("Twist", payload, MAX_INPUT_BYTES)
+    vx, vy, wz = decode_twist(payload)
+    return Twist2D(vx=vx, vy=vy, wz=wz)
 
 
 def decode_odometry(payload: bytes, ros: bool) -> Odometry2D:
-    if len(payload) > MAX_INPUT_BYTES:
-        raise MessageError(f"Odometry of {len(payload)} bytes is over {MAX_INPUT_BYTES}")
-    if ros:
-        pose, (vx, vy, wz) = decode_odometry_motion(payload)
-        return Odometry2D(
-            stamp=pose.stamp, frame_id=pose.frame_id, x=pose.x, y=pose.y, yaw=pose.yaw, vx=vx, vy=vy, wz=wz
-        )
-    return decode_message(Odometry2D, payload)
+    """Odometry: a ROS Odometry in CDR, or an Odometry2D (msgpack or JSON); MessageError when unusable."""
+    if not ros:
+        return Odometry2D.decode(payload, MAX_INPUT_BYTES)
+    check_size("Odometry", payload, MAX_INPUT_BYTES)
+    pose, (vx, vy, wz) = decode_odometry_motion(payload)
+    return Odometry2D(stamp=pose.stamp, frame_id=pose.frame_id, x=pose.x, y=pose.y, yaw=pose.yaw, vx=vx, vy=vy, wz=wz)
 
 
 @dataclass

@@ -200,6 +200,12 @@ class GroundGrid:
             return np.full(self.last_seen.shape, np.nan)
         return self.stamp - self.last_seen
 
+    def cell_match(self, i: int, j: int) -> float | None:
+        """One cell's fused match score (``match()``'s); None where unknown."""
+        if not (self.known[i, j] and self.mass[i, j] > 0):
+            return None
+        return float(self.match_sums[i, j] / self.mass[i, j])
+
     def cell_weights(self, i: int, j: int) -> NDArray[np.float32] | None:
         if not self.known[i, j]:
             return None

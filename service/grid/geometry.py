@@ -94,3 +94,15 @@ def map_cell_pixels(map_shape: tuple[int, int], image_size: tuple[int, int]) -> 
     width, height = image_size
     v, u = np.meshgrid((np.arange(h) + 0.5) * height / h, (np.arange(w) + 0.5) * width / w, indexing="ij")
     return u.ravel(), v.ravel()
+
+
+def mount_from_axes(origin: NDArray[np.floating], axes: NDArray[np.floating], optical: bool) -> CameraMount:
+    """The mount of a camera frame at ``origin`` whose axes are the columns of ``axes``, both in the base frame
+    (a tf base -> camera transform). ``optical``: the frame is z forward, x right, y down (ROS's
+    ``*_optical_frame``); else x forward, y left, z up (the mount's own body frame)."""
+    body = np.asarray(axes, np.float64) @ OPTICAL_TO_BODY.T if optical else np.asarray(axes, np.float64)
+    yaw = float(np.arctan2(body[1, 0], body[0, 0]))
+    pitch = float(np.arctan2(-body[2, 0], np.hypot(body[2, 1], body[2, 2])))
+    roll = float(np.arctan2(body[2, 1], body[2, 2]))
+    x, y, z = (float(value) for value in origin)
+    return CameraMount(x, y, z, roll, pitch, yaw)

@@ -8,14 +8,13 @@ the cell was never observed: an expired cell keeps its age.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+from gcdtrav.schemas.grid_layers import COUNT, GRID_LAYERS
 from gcdtrav.service.engine import risk
 from gcdtrav.service.grid.fusion import GroundGrid
 from numpy.typing import NDArray
-
-# The layers of a GridMap, in this order (grid_map's layer names).
-LAYER_NAMES = ("traversability", "uncertainty", "cvar", "p_below", "match", "count", "age")
 
 # nav_msgs/OccupancyGrid values of the costmap, as Nav2's static layer reads them (static_layer.cpp).
 UNKNOWN_COST = -1  # unknown_cost_value 255: NO_INFORMATION with track_unknown_space, else FREE_SPACE
@@ -28,7 +27,8 @@ HIGHEST_COST = 98
 
 @dataclass(frozen=True)
 class GridLayers:
-    """Every cell's layers (rows i = y, columns j = x, as the grid), at the risk levels alpha and tau."""
+    """Every cell's layers (rows i = y, columns j = x, as the grid), at the risk levels alpha and tau: one
+    attribute per row of the grid layers' table (schemas/grid_layers.py), and p_lethal for the costmap."""
 
     traversability: NDArray[np.float32]
     uncertainty: NDArray[np.float32]
@@ -46,11 +46,14 @@ class GridLayers:
     def known(self) -> NDArray[np.bool_]:
         return self.count > 0
 
+    def values(self) -> dict[str, NDArray[Any]]:
+        """Every layer of the table (schemas/grid_layers.py) by name, as the GridMessage encodes it."""
+        return {layer.name: getattr(self, layer.name) for layer in GRID_LAYERS}
+
     def float_layers(self) -> dict[str, NDArray[np.float32]]:
-        """Every layer as float32 by name (LAYER_NAMES), unknown NaN: a GridMap's layers."""
-        count = np.where(self.known, self.count, np.nan)
-        values = (self.traversability, self.uncertainty, self.cvar, self.p_below, self.match, count, self.age)
-        return {name: np.asarray(value, np.float32) for name, value in zip(LAYER_NAMES, values, strict=True)}
+        """Every layer as float32 by name, in the table's order, unknown NaN: a GridMap's layers."""
+        values = self.values() | {COUNT: np.where(self.known, self.count, np.nan)}
+        return {name: np.asarray(value, np.float32) for name, value in values.items()}
 
 
 def grid_layers(

@@ -1,4 +1,5 @@
-"""ROS 2 images over Zenoh, without a ROS installation: CDR via rosbags, pixels via rosbags-image.
+"""ROS 2 messages over Zenoh, without a ROS installation: CDR via rosbags (camera images read by
+schemas/ros_image.py, numpy only).
 
 Two key layouts reach Zenoh:
   rmw_zenoh                 [<zenoh namespace>/]<domain>/<topic>/<type>/<type hash>, e.g.
@@ -17,34 +18,21 @@ from functools import cache
 from typing import Any
 
 import numpy as np
+from gcdtrav.schemas import ros_image
 from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
 from gcdtrav.schemas.messages import GridHeader, MessageError, Pose2D
+from gcdtrav.schemas.ros_image import COMPRESSED_IMAGE as COMPRESSED_IMAGE  # re-exported: the ROS types in one place
+from gcdtrav.schemas.ros_image import IMAGE as IMAGE
 from gcdtrav.service.grid.geometry import PinholeCamera
 from gcdtrav.service.ros.grid_map_msgs import GRID_MAP as GRID_MAP  # re-exported: the output types in one place
 from gcdtrav.service.ros.grid_map_msgs import register_types
 from numpy.typing import NDArray
 
-IMAGE = "sensor_msgs/msg/Image"
-COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 HUMBLE_HASH = "TypeHashNotSupported"  # rmw_zenoh on Humble: the type-hash chunk of every key and token
 # image_transport's "compressed" format string: the original encoding; the codec and what it holds
 PREVIEW_FORMAT = "rgb8; jpeg compressed bgr8"
-SUPPORTED_TYPES = (IMAGE, COMPRESSED_IMAGE)
-# bytes per pixel of each raw encoding we accept; Bayer patterns are one 8-bit channel
-RAW_ENCODINGS = {
-    "rgb8": 3,
-    "bgr8": 3,
-    "rgba8": 4,
-    "bgra8": 4,
-    "mono8": 1,
-    "mono16": 2,
-    "bayer_rggb8": 1,
-    "bayer_bggr8": 1,
-    "bayer_gbrg8": 1,
-    "bayer_grbg8": 1,
-}
 
 
 @cache
@@ -161,75 +149,11 @@ class RosFrame:
     header: Any  # std_msgs/Header, reused on the outputs
 
 
-def _stamp_seconds(header: Any) -> float:
-    return float(header.stamp.sec) + float(header.stamp.nanosec) * 1e-9
-
-
 def decode_ros_image(payload: bytes, msgtype: str, max_pixels: int) -> RosFrame:
-    """CDR Image/CompressedImage -> RGB, validating sizes before touching pixels."""
-    if msgtype not in SUPPORTED_TYPES:
-        raise RejectedInput("unsupported_ros_type", f"{msgtype} (supported: {', '.join(SUPPORTED_TYPES)})")
-    try:
-        message = typestore().deserialize_cdr(payload, msgtype)
-    except Exception as err:  # rosbags raises assorted errors on truncated or garbled CDR
-        raise RejectedInput("bad_cdr", f"{msgtype} does not deserialise: {type(err).__name__}: {err}") from None
-    frame_id = str(message.header.frame_id)
-    if len(frame_id) > MAX_FRAME_ID_CHARS:
-        raise RejectedInput(
-            "frame_id_too_long", f"frame_id of {len(frame_id)} characters is over the limit of {MAX_FRAME_ID_CHARS}"
-        )
-    image = _decode_compressed(message, max_pixels) if msgtype == COMPRESSED_IMAGE else _decode_raw(message, max_pixels)
-    return RosFrame(image, _stamp_seconds(message.header), frame_id, message.header)
-
-
-def _decode_compressed(message: Any, max_pixels: int) -> NDArray[np.uint8]:
-    from gcdtrav.schemas.images import ImageDecodeError, decode_image
-
-    try:
-        return decode_image(bytes(message.data), max_pixels)
-    except ImageDecodeError as err:
-        raise RejectedInput("undecodable", f"CompressedImage ({message.format}): {err}") from None
-
-
-def _decode_raw(message: Any, max_pixels: int) -> NDArray[np.uint8]:
-    from rosbags.image import message_to_cvimage
-
-    encoding = str(message.encoding).lower()
-    if encoding not in RAW_ENCODINGS:
-        raise RejectedInput("unknown_encoding", f"'{message.encoding}' (supported: {', '.join(RAW_ENCODINGS)})")
-    width, height, step = int(message.width), int(message.height), int(message.step)
-    if width <= 0 or height <= 0:
-        raise RejectedInput("size_mismatch", f"image of {width}x{height} pixels")
-    if width * height > max_pixels:
-        raise RejectedInput("too_many_pixels", f"{width}x{height} exceeds the limit of {max_pixels} pixels")
-    row = width * RAW_ENCODINGS[encoding]
-    data = np.asarray(message.data, dtype=np.uint8)
-    if step < row or len(data) != step * height:
-        raise RejectedInput(
-            "size_mismatch",
-            f"{encoding} {width}x{height}, step {step}: needs step >= {row} and "
-            f"{step}x{height} = {step * height} bytes, got {len(data)}",
-        )
-    if step != row:  # drop row padding: rosbags-image assumes packed rows
-        data = np.ascontiguousarray(data.reshape(height, step)[:, :row]).ravel()
-        message = type(message)(
-            header=message.header,
-            height=height,
-            width=width,
-            encoding=message.encoding,
-            is_bigendian=message.is_bigendian,
-            step=row,
-            data=data,
-        )
-    try:
-        if encoding == "mono16":  # 16-bit to 8-bit: the top byte, as cv_bridge's mono16 -> mono8
-            mono = np.asarray(message_to_cvimage(message), dtype=np.uint16)
-            gray = (mono >> 8).astype(np.uint8)
-            return np.repeat(gray[:, :, None], 3, axis=2)
-        rgb = message_to_cvimage(message, "rgb8")
-    except Exception as err:  # rosbags-image raises its own and OpenCV errors
-        raise RejectedInput("undecodable", f"{encoding}: {type(err).__name__}: {err}") from None
-    return np.ascontiguousarray(rgb, dtype=np.uint8)
+    """CDR Image/CompressedImage -> RGB (read by schemas/ros_image.py, the one reader), with the message's
+    header for the ROS outputs; RejectedInput when unusable."""
+    frame = ros_image.decode_ros_image(payload, msgtype, max_pixels)
+    return RosFrame(frame.image, frame.stamp, frame.frame_id, header_of(frame.sec, frame.nanosec, frame.frame_id))
 
 
 # ---- outputs ---------------------------------------------------------------------------------------
@@ -268,11 +192,15 @@ def compressed_jpeg_cdr(header: Any, jpeg: bytes) -> bytes:
 
 
 def make_header(stamp: float, frame_id: str) -> Any:
-    types = typestore().types
     sec = int(stamp)
+    return header_of(sec, round((stamp - sec) * 1e9) % 1_000_000_000, frame_id)
+
+
+def header_of(sec: int, nanosec: int, frame_id: str) -> Any:
+    """A std_msgs/Header of exactly this stamp (a float would round its nanoseconds)."""
+    types = typestore().types
     return types["std_msgs/msg/Header"](
-        stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=round((stamp - sec) * 1e9) % 1_000_000_000),
-        frame_id=frame_id,
+        stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id
     )
 
 
@@ -301,6 +229,11 @@ def decode_pose(payload: bytes, fmt: str) -> Pose2D:
 
 
 def decode_camera_info(payload: bytes) -> PinholeCamera:
+    return decode_camera_info_frame(payload)[0]
+
+
+def decode_camera_info_frame(payload: bytes) -> tuple[PinholeCamera, str]:
+    """sensor_msgs/CameraInfo CDR -> the intrinsics and its header's frame_id (the camera's optical frame)."""
     try:
         info = typestore().deserialize_cdr(payload, "sensor_msgs/msg/CameraInfo")
     except Exception as err:  # rosbags raises assorted errors on bad CDR
@@ -308,7 +241,9 @@ def decode_camera_info(payload: bytes) -> PinholeCamera:
     k = np.asarray(info.k, dtype=np.float64)
     if not (np.isfinite(k).all() and k[0] > 0 and k[4] > 0 and info.width > 0 and info.height > 0):
         raise MessageError(f"CameraInfo needs finite intrinsics, positive focal lengths and a size; k={k.tolist()}")
-    return PinholeCamera(fx=k[0], fy=k[4], cx=k[2], cy=k[5], width=int(info.width), height=int(info.height))
+    camera = PinholeCamera(fx=k[0], fy=k[4], cx=k[2], cy=k[5], width=int(info.width), height=int(info.height))
+    frame_id = str(info.header.frame_id)
+    return camera, frame_id if len(frame_id) <= MAX_FRAME_ID_CHARS else ""
 
 
 def decode_depth(payload: bytes) -> NDArray[np.float32]:

@@ -1,8 +1,10 @@
-"""What the subscriber callback checks before a frame takes any state, in order: the source's name, for a
-new source the candidates' caps (service/runtime/candidates.py), the payload's size (refused unread: never
-copied out of the middleware's buffer), the frame's age (its capture stamp, read without decoding by
-service/runtime/frame_age.py, judged by service/runtime/freshness.py) and the pending frames' byte budget.
-No middleware here: the bus hands over the source, the size and a way to read.
+"""What the subscriber callback checks before a frame takes any state, in order: the publisher's intake
+rate (``admit``, service/runtime/intake_rate.py: before anything of the sample is read, its key included),
+then (``offer``) the source's name, for a new source the candidates' caps (service/runtime/candidates.py),
+the payload's size (refused unread: never copied out of the middleware's buffer), the frame's age (its
+capture stamp, read without decoding by service/runtime/frame_age.py, judged by
+service/runtime/freshness.py) and the pending frames' byte budget. No middleware here: the bus hands over
+the publisher, the source, the size and a way to read.
 
 A tracked source's frame that is refused frees its slot at once: ``on_freed`` (the credits) hears of it.
 
@@ -24,6 +26,7 @@ from gcdtrav.service.runtime.credits import REFUSED, STALE, FrameTimes
 from gcdtrav.service.runtime.frame_age import input_times
 from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.freshness import Dropped, Freshness
+from gcdtrav.service.runtime.intake_rate import IntakeRate
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.runtime.sources import SourcesFull, SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
@@ -43,6 +46,17 @@ class Admission:
         self.freshness = freshness or Freshness.from_settings(settings)
         self.on_freed = on_freed
         self.candidates = CandidatePool(settings.max_candidates)
+        self.intake_rate = IntakeRate(
+            settings.intake_rate_per_publisher, settings.intake_rate_anonymous, settings.intake_burst_s
+        )
+
+    def admit(self, publisher: str | None) -> bool:
+        """The first check: the publisher is within its intake rate, checked before anything else of the
+        sample is read; a refusal is counted by reason only (no source is known yet)."""
+        if self.intake_rate.admit(publisher):
+            return True
+        self.stats.rejected_unread("rate_limited", lambda: f"publisher {publisher or '(no source info)'}")
+        return False
 
     def offer(
         self,

@@ -20,8 +20,8 @@ import numpy as np
 from gcdtrav.schemas.images import peek_image_size
 from gcdtrav.schemas.inputs import decode_payload
 from gcdtrav.schemas.messages import ImageEnvelope, MessageError, PixelEncoding, Pose2D, peek_fields
+from gcdtrav.schemas.ros_image import decode_ros_image
 from gcdtrav.schemas.settings.share import ReuseSettings
-from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.frames import PendingFrame
 from numpy.typing import NDArray
 
@@ -57,7 +57,7 @@ def glance(pending: PendingFrame, max_bytes: int, max_pixels: int, blocks: tuple
     if pending.ros is not None:
         if pending.ros.msgtype is None:
             raise ValueError(f"no message type for '{pending.key}'")
-        frame = ros_io.decode_ros_image(pending.payload, pending.ros.msgtype, max_pixels)
+        frame = decode_ros_image(pending.payload, pending.ros.msgtype, max_pixels)  # no header: nothing goes out
         return Glance(thumbnail_of_rgb(frame.image, blocks), frame.stamp, frame.frame_id, size_of(frame.image))
     jpeg, stamp, frame_id = _jpeg_inside(pending)
     if jpeg is not None:

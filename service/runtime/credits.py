@@ -21,8 +21,11 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 from gcdtrav.schemas.messages import CreditGrant
+from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.service.runtime.stats import ServiceStats
 
 TAKEN, STALE, REFUSED, UNCHANGED, REFRESH = "taken", "stale", "refused", "unchanged", "refresh"
 
@@ -91,3 +94,42 @@ class CreditLedger:
         with self._lock:
             self._granted.pop(source, None)
             self._last_maps.pop(source, None)
+
+
+class CreditSink(Protocol):
+    """Where grants go: the bus puts them on ``{prefix}/credit/{source}`` (service/bus/credits.py)."""
+
+    def put(self, source: str, grant: CreditGrant) -> bool:
+        """Put the grant; False, nothing put, once closed (shutdown)."""
+        ...
+
+    def forget(self, source: str) -> None: ...
+
+
+class Credits:
+    """The runtime's side of the credits: when a slot frees (admission's refusals, the worker's takes, the
+    triage's answers), the ledger's grant, with the source's problem, goes to the sink and is counted."""
+
+    def __init__(self, ledger: CreditLedger, stats: ServiceStats, sink: CreditSink) -> None:
+        self.ledger, self.stats, self.sink = ledger, stats, sink
+
+    def freed(self, source: str, reason: str, times: FrameTimes | None) -> None:
+        """The source's slot is free (called from subscriber callbacks and the worker)."""
+        if self.sink.put(source, self.ledger.freed(source, reason, times, self.stats.problem(source))):
+            self.stats.credit(source)
+
+    def taken(self, pending: PendingFrame) -> None:
+        self.freed(pending.source, TAKEN, FrameTimes(pending.stamp, pending.sent_at, pending.received_at))
+
+    def published(self, source: str, stamp: float) -> None:
+        """Maps of ``source`` captured at ``stamp`` went out: later credits say how fresh the maps are."""
+        self.ledger.published(source, stamp)
+
+    def answered(self, pending: PendingFrame, reason: str) -> None:
+        """The frame freed its slot without being taken: answered with the last maps (``unchanged``), or
+        waiting for its refresh (``refresh``)."""
+        self.freed(pending.source, reason, FrameTimes(pending.stamp, pending.sent_at, pending.received_at))
+
+    def forget(self, source: str) -> None:
+        self.ledger.forget(source)
+        self.sink.forget(source)

@@ -7,11 +7,11 @@ their receipt.
 
 from __future__ import annotations
 
-import struct
 from dataclasses import dataclass
 
 from gcdtrav.schemas.inputs import input_kind
 from gcdtrav.schemas.messages import MessageError, peek_fields
+from gcdtrav.schemas.ros_image import peek_stamp
 
 
 @dataclass(frozen=True)
@@ -22,15 +22,6 @@ class InputTimes:
 
 def _number(value: object) -> float | None:
     return float(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else None
-
-
-def ros_header_stamp(payload: bytes) -> float | None:
-    """The header stamp of a stamped ROS message in CDR (the header comes first: int32 sec, uint32 nanosec
-    after the 4-byte encapsulation header); None when the payload is too short or not CDR."""
-    if len(payload) < 12 or payload[0] != 0 or payload[1] not in (0, 1):
-        return None
-    sec, nanosec = struct.unpack_from("<iI" if payload[1] == 1 else ">iI", payload, 4)
-    return sec + nanosec * 1e-9
 
 
 def envelope_times(payload: bytes) -> InputTimes:
@@ -44,5 +35,5 @@ def envelope_times(payload: bytes) -> InputTimes:
 def input_times(payload: bytes, encoding: str, ros: bool) -> InputTimes:
     """Capture stamp and send time of an input payload, as cheaply as possible (no pixels are touched)."""
     if ros:
-        return InputTimes(ros_header_stamp(payload), None)
+        return InputTimes(peek_stamp(payload), None)
     return envelope_times(payload) if input_kind(payload, encoding) == "envelope" else InputTimes(None, None)

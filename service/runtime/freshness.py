@@ -103,16 +103,15 @@ class Freshness:
     def age_s(self, lag_s: float | None, received_at: float, now: float) -> float:
         return _age(lag_s, now - received_at)
 
-    def check(self, pending: PendingFrame, now: float, when: str) -> None:
-        """Raise Dropped (``stale``) if the frame is older than max_frame_age_s at ``now``."""
-        self._check_age(pending.lag_s, now - pending.received_at, when, None)
+    def check(self, pending: PendingFrame, now: float, when: str) -> float:
+        """The frame's age at ``now``; raise Dropped (``stale``) if it is older than max_frame_age_s."""
+        return self._check_age(pending.lag_s, now - pending.received_at, when, None)
 
-    def _check_age(self, lag_s: float | None, waited_s: float, when: str, reading: Reading | None) -> None:
-        if self.max_age_s is None:
-            return
+    def _check_age(self, lag_s: float | None, waited_s: float, when: str, reading: Reading | None) -> float:
         age = _age(lag_s, waited_s)
-        if age > self.max_age_s:
+        if self.max_age_s is not None and age > self.max_age_s:
             raise Dropped("stale", self._explain_age(age, waited_s, when, reading))
+        return age
 
     def _observe(self, source: str, stamp: float, received_at: float) -> Reading:
         reading = self.offsets.observe(source, stamp, received_at)
@@ -184,10 +183,11 @@ class FrameGate:
         self._check_owner(pending)
         self.freshness.check(pending, self._clock(), "before inference")
 
-    def before_publish(self, pending: PendingFrame) -> None:
-        """Raise Dropped unless this instance owns the source now and the frame is young enough."""
+    def before_publish(self, pending: PendingFrame) -> float:
+        """The frame's age as judged now (its maps' age when published: the metrics' map age); raise Dropped
+        unless this instance owns the source now and the frame is young enough."""
         self._check_owner(pending)
-        self.freshness.check(pending, self._clock(), "when its maps were ready")
+        return self.freshness.check(pending, self._clock(), "when its maps were ready")
 
     def _check_owner(self, pending: PendingFrame) -> None:
         if not self.owns(pending.source):

@@ -4,15 +4,15 @@ A robot publishes faster than a CPU infers. Keeping only the newest unprocessed 
 memory (sources x one payload) whatever the input rate, and serving sources in turn keeps one fast
 robot from starving the others.
 
-Sources whose first frame is waiting take at most every other turn while a returning source waits: a
-flood of new names (a frame counter in the key, a hostile peer) then gets at most half of the inference,
-and the robots that keep streaming the other half, instead of one turn in (flood + robots).
-
 Which waiting source goes next is the ``policy``'s (service/runtime/share.py): round-robin (the source
-waiting longest), or a weighted share by need. With ``triage`` on, a frame first arrives in the source's
-*arrival* slot, is glanced at (``take_untriaged``) and settled: reused (it leaves the queue, never
-inferred) or moved to the source's *ready* slot, replacing an older ready frame. A source then holds at
-most two frames: the newest arrival and the newest ready one. Without triage a frame is ready at once.
+waiting longest), or a weighted share by need. It reads each ready frame's claim: its class (first, urgent,
+news, refresh) and its source's need. With ``triage`` on, a frame first arrives in the source's *arrival*
+slot, is glanced at (``take_untriaged``) and settled: reused (it leaves the queue, never inferred) or moved
+to the source's *ready* slot with the glance's claim, replacing an older ready frame. A source then holds at
+most two frames: the newest arrival and the newest ready one. Without triage a frame is ready at once, as
+news. Two claims are the queue's own: a source's first frame (nothing received from it before) is *first*
+until anything more comes from it, and an *urgent* wait stays urgent until the source's turn, whatever
+frame replaces the one that made it so (its consumers still hold maps of a view that is gone).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
-from gcdtrav.service.runtime.share import RoundRobin, SharePolicy, Waiting
+from gcdtrav.service.runtime.share import NEWS_CLAIM, Claim, FrameClass, RoundRobin, SharePolicy, Waiting
 
 T = TypeVar("T")
 
@@ -50,6 +50,7 @@ class _Slot(Generic[T]):
     glancing: bool = False  # the arrival is being glanced at
     ready: _Entry[T] | None = None  # to be inferred
     since: float = 0.0  # monotonic: when the ready frame began waiting (kept when a newer one replaces it)
+    claim: Claim = NEWS_CLAIM  # the ready frame's class and its source's need, for the policy
 
     @property
     def empty(self) -> bool:
@@ -67,7 +68,6 @@ class LatestFrameQueue(Generic[T]):
     _cond: threading.Condition = field(default_factory=threading.Condition)
     _closed: bool = False
     _bytes: int = 0
-    _last_took_new: bool = False
 
     def put(self, source: str, item: T, nbytes: int = 0) -> bool:
         """Store ``item`` as the source's newest frame. Returns False if it replaced (dropped) an older one.
@@ -75,8 +75,7 @@ class LatestFrameQueue(Generic[T]):
         Raises PendingBudgetExceeded, keeping what is queued, if ``nbytes`` more would exceed ``max_bytes``.
         """
         with self._cond:
-            counters = self._counters.setdefault(source, QueueCounters())
-            counters.received += 1
+            counters = self._received(source)
             slot = self._pending.get(source) or _Slot()
             older = slot.arrived if self.triage else slot.ready
             freed = older.nbytes if older is not None else 0
@@ -89,7 +88,7 @@ class LatestFrameQueue(Generic[T]):
                 slot.arrived, slot.glancing = entry, False
             else:
                 slot.since = slot.since if slot.ready is not None else self.clock()
-                slot.ready = entry
+                slot.ready, slot.claim = entry, self._claim(source, slot, NEWS_CLAIM)
             self._pending[source] = slot
             self._bytes += nbytes - freed
             self._cond.notify_all()
@@ -98,24 +97,40 @@ class LatestFrameQueue(Generic[T]):
     def count_unqueued(self, source: str) -> None:
         """Count a frame that was received but refused before queueing (e.g. over the byte limit)."""
         with self._cond:
-            self._counters.setdefault(source, QueueCounters()).received += 1
+            self._received(source)
+
+    def _received(self, source: str) -> QueueCounters:
+        """Count a frame received from ``source``: its first frame waiting is no longer a stranger's."""
+        counters = self._counters.setdefault(source, QueueCounters())
+        counters.received += 1
+        slot = self._pending.get(source)
+        if slot is not None and slot.claim.kind is FrameClass.FIRST:
+            slot.claim = Claim(FrameClass.NEWS, slot.claim.need)
+        return counters
+
+    def _claim(self, source: str, slot: _Slot[T], claim: Claim) -> Claim:
+        """The claim of the frame now ready in ``slot``: a source's first frame is first, an urgent wait stays
+        urgent until the source's turn, else the glance's."""
+        if self._counters[source].received == 1:
+            return Claim(FrameClass.FIRST, claim.need)
+        if slot.ready is not None and slot.claim.kind is FrameClass.URGENT:
+            return Claim(FrameClass.URGENT, claim.need)
+        return claim
 
     def take(self, timeout: float | None = None) -> tuple[str, T] | None:
         """The next source's newest ready frame, by the policy; None on timeout or after close()."""
         with self._cond:
             if not self._cond.wait_for(lambda: self._any_ready() or self._closed, timeout):
                 return None
-            waiting = [Waiting(source, slot.since) for source, slot in self._pending.items() if slot.ready]
+            waiting = [Waiting(source, slot.since, slot.claim) for source, slot in self._pending.items() if slot.ready]
             if not waiting:
                 return None
-            if self._last_took_new:  # a new source's first frame takes at most every other turn
-                waiting = [w for w in waiting if not self._is_new(w.source)] or waiting
             now = self.clock()
-            source = self.policy.choose(waiting, now)
-            self.policy.taken(source, now)
-            self._last_took_new = self._is_new(source)
+            chosen = self.policy.choose(waiting, now)
+            self.policy.taken(chosen, now)
+            source = chosen.source
             slot = self._pending[source]
-            entry, slot.ready = slot.ready, None
+            entry, slot.ready, slot.claim = slot.ready, None, NEWS_CLAIM
             assert entry is not None
             self._bytes -= entry.nbytes
             if slot.empty:
@@ -142,18 +157,19 @@ class LatestFrameQueue(Generic[T]):
     def _unglanced(self) -> str | None:
         return next((s for s, slot in self._pending.items() if slot.arrived is not None and not slot.glancing), None)
 
-    def settle(self, source: str, item: T, reused: bool) -> bool:
-        """The glance's verdict on the arrival ``item``: reused (it leaves the queue) or ready for inference
-        (replacing an older ready frame, counted dropped). False if ``item`` is no longer the source's arrival
-        (replaced by a newer frame, or its source forgotten): nothing changed."""
+    def settle(self, source: str, item: T, claim: Claim | None) -> bool:
+        """The glance's verdict on the arrival ``item``: None, reused (it leaves the queue), or ready for
+        inference with ``claim`` (replacing an older ready frame, counted dropped). False if ``item`` is no
+        longer the source's arrival (replaced by a newer frame, or its source forgotten): nothing changed."""
         with self._cond:
             slot = self._pending.get(source)
             if slot is None or slot.arrived is None or slot.arrived.item is not item:
                 return False
             entry, slot.arrived, slot.glancing = slot.arrived, None, False
-            if reused:
+            if claim is None:
                 self._bytes -= entry.nbytes
             else:
+                slot.claim = self._claim(source, slot, claim)
                 if slot.ready is not None:
                     self._bytes -= slot.ready.nbytes
                     self._counters.setdefault(source, QueueCounters()).dropped += 1
@@ -188,10 +204,6 @@ class LatestFrameQueue(Generic[T]):
         with self._cond:
             slot = self._pending.get(source)
             return slot is not None and slot.ready is not None
-
-    def _is_new(self, source: str) -> bool:
-        """Its first frame: nothing received from it before (forgotten sources start again)."""
-        return self._counters[source].received == 1
 
     def forget(self, source: str) -> None:
         """Drop the source's pending frames and counters (a source the service no longer tracks)."""

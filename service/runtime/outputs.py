@@ -172,6 +172,7 @@ class OutputBuilder:
             "published_at": now,
             "order": (stamp, pending.received_at),
             "computed_from": computed,
+            "age_at_receipt_s": age_at_receipt(pending),
         }
         outputs = [Output(self.keys.maps(pending.source), _with_header(maps, update).pack(), "msgpack")]
         if compact and compact_maps is not None:
@@ -201,6 +202,7 @@ class OutputBuilder:
             image_size=record.image_size,
             scale=record.scale,
             order=(done.image.stamp, done.pending.received_at),
+            age_at_receipt_s=age_at_receipt(done.pending),
         )
         with_full = self.settings.full_resolution and full is not None
         maps = [result.maps.traversability, result.maps.uncertainty, *(full if with_full and full else ())]
@@ -280,6 +282,12 @@ class OutputBuilder:
 
 
 _Maps = TypeVar("_Maps", MapsMessage, CompactMapsMessage)
+
+
+def age_at_receipt(pending: PendingFrame) -> float | None:
+    """The frame's lag at intake, as the freshness gate judged it; a negative one (a clock slightly ahead) ages
+    nothing there either."""
+    return None if pending.lag_s is None else max(pending.lag_s, 0.0)
 
 
 def _with_header(message: _Maps, update: dict[str, Any]) -> _Maps:

@@ -1,5 +1,8 @@
-"""Unchanged views are not inferred again (issue 34). No zenoh here.
+"""Unchanged views are not inferred again (issue 34): the verdicts (``ReuseTracker``) and the glance thread
+that applies them (``Triage``). No zenoh here: reused maps leave through ``republish``.
 
+Each queued frame is looked at on the triage's own thread, so a parked robot's unchanged frames are answered
+at their own rate while inference runs, and a change is known to the scheduler the moment its frame arrives.
 Per source, every frame is glanced at (service/runtime/change.py) and compared with the source's last
 *inferred* frame (the reference: never with the last reused one, so a slow drift adds up until it counts).
 The frame is **reused** (not inferred: that frame's maps are published again under this frame's stamp,
@@ -16,14 +19,19 @@ counted ``unchanged``) when all of these hold:
   ``max_wait_s``), each later unchanged frame takes its place in line (the refresh infers a frame of now,
   not one that waited into staleness) and the frame it replaces is answered with the last maps; so up to
   ``max_reuse_s + 2 * max_wait_s``: the floor, then as long again for the frames overdue with it; a worker
-  that long without serving is hung.
+  that long without serving is hung. Such a refresh frees the source's credit when it settles (``refresh``),
+  so the robot's next unchanged frames are answered meanwhile.
 
-Otherwise the frame goes to the scheduler; **urgent** when it changed after the view had settled (the
-frames before it unchanged, reused or refreshed: its consumers hold maps of a view that is gone, a person
-walked in), which the scheduler serves first within its limits (service/runtime/share.py). A moving
-robot's views never settle, so its frames are never urgent: its share is its weight's. The glances also
-give the scheduler each source's motion: the pose's speed where a pose is known, else the fraction of
-blocks that moved per second between consecutive frames.
+Otherwise the frame goes to the scheduler with its claim (service/runtime/share.py): **refresh** when only
+``max_reuse_s`` sent it; **urgent** when it changed after the view had settled (the frames before it
+unchanged, reused or refreshed: its consumers hold maps of a view that is gone, a person walked in), which
+the scheduler serves first within its limits; else **news**. A moving robot's views never settle, so its
+frames are never urgent: its share is its weight's. The claim also carries the source's need: its motion
+from the glances (the pose's speed where a pose is known, else the fraction of blocks that moved per second
+between consecutive frames) and the ambiguity ahead in its last inferred maps.
+
+A frame that cannot be glanced at (undecodable, a ROS message without a type) goes on to the worker, which
+decodes it again and counts its fault by reason: one place counts bad frames.
 """
 
 from __future__ import annotations
@@ -33,20 +41,26 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
+from gcdtrav.service.runtime import credits
 from gcdtrav.service.runtime.change import (
     Glance,
     Thumbnail,
+    glance,
     moved_fraction,
     pose_moved,
     pose_speeds,
     thumbnail_of_rgb,
 )
-from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
+from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.share import NO_NEED, Claim, FrameClass, Need, ambiguity_of
+from gcdtrav.service.runtime.stats import ServiceStats
 from numpy.typing import NDArray
 
 GLANCES_KEPT = 2
@@ -63,6 +77,15 @@ class Verdict:
     moved: float  # fraction of blocks moved since the reference (1.0 without one)
     urgent: bool = False  # changed after the view had settled
     behind_refresh: bool = False  # reused past max_reuse_s because the source's refresh waits for its turn
+    need: Need = NO_NEED  # the source's, as of this glance
+
+    @property
+    def claim(self) -> Claim | None:
+        """The frame's claim on inference for the scheduler; None: reused."""
+        if self.reuse:
+            return None
+        kind = FrameClass.REFRESH if self.reason == MAX_REUSE else FrameClass.NEWS
+        return Claim(FrameClass.URGENT if self.urgent else kind, self.need)
 
 
 @dataclass
@@ -77,6 +100,7 @@ class _View:
     previous_at: float = -math.inf
     previous_pose: Pose2D | None = None
     motion: float = 0.0  # 0..1
+    ambiguity: float = 0.0  # 0..1, ahead in the reference's maps (service/runtime/share.py, ambiguity_of)
     # The last frames glanced at, for the reference: the one inferred is the newest ready one, maybe one
     # arrival behind the newest glance.
     glanced: deque[tuple[PendingFrame, Thumbnail]] = field(default_factory=lambda: deque(maxlen=GLANCES_KEPT))
@@ -112,7 +136,7 @@ class ReuseTracker:
             verdict = self._verdict(view, glance, pose, now, refresh_waiting)
             if verdict.reason in (UNCHANGED, MAX_REUSE, CHANGED, POSE, SIZE):
                 view.settled = verdict.reason in (UNCHANGED, MAX_REUSE)
-            return verdict
+            return replace(verdict, need=Need(view.motion, view.ambiguity))
 
     def _verdict(self, view: _View, glance: Glance, pose: Pose2D | None, now: float, refresh_waiting: bool) -> Verdict:
         if view.reference is None:
@@ -158,9 +182,11 @@ class ReuseTracker:
         if pose is not None and (view.previous_pose is None or pose.stamp > view.previous_pose.stamp):
             view.previous_pose = pose
 
-    def inferred(self, source: str, pending: PendingFrame, image: NDArray[np.uint8], anchors: str = "") -> None:
+    def inferred(
+        self, source: str, pending: PendingFrame, image: NDArray[np.uint8], anchors: str = "", ambiguity: float = 0.0
+    ) -> None:
         """The source's frame was inferred (with the anchor set of version ``anchors``) and its maps published:
-        the new reference."""
+        the new reference, with its ``ambiguity`` ahead."""
         now, pose = self.clock(), self.pose_of(source)
         with self._lock:
             view = self._views.setdefault(source, _View())
@@ -168,14 +194,88 @@ class ReuseTracker:
             # Not glanced at (no triage for it, or its glance forgotten): from the decoded image, the same means.
             thumbnail = kept if kept is not None else thumbnail_of_rgb(image, self.settings.blocks)
             view.reference, view.reference_pose, view.inferred_at = thumbnail, pose, now
-            view.reference_anchors = anchors
+            view.reference_anchors, view.ambiguity = anchors, ambiguity
             view.reference_size = (int(image.shape[1]), int(image.shape[0]))
 
-    def motion(self, source: str) -> float:
+    def need(self, source: str) -> Need:
         with self._lock:
             view = self._views.get(source)
-            return view.motion if view is not None else 0.0
+            return Need(view.motion, view.ambiguity) if view is not None else NO_NEED
 
     def forget(self, source: str) -> None:
         with self._lock:
             self._views.pop(source, None)
+
+
+Republish = Callable[[PendingFrame, Glance], bool]  # the source's last maps under this frame; False: not put
+
+
+class Triage:
+    """The glance thread's steps: each arrival judged, then settled in the queue (reused, or ready with its
+    claim), reused frames answered, inferred frames made the new reference."""
+
+    def __init__(
+        self,
+        frames: LatestFrameQueue[PendingFrame],
+        tracker: ReuseTracker,
+        settings: ServiceSettings,
+        stats: ServiceStats,
+        republish: Republish,
+        on_freed: Callable[[PendingFrame, str], None] = lambda pending, reason: None,
+    ) -> None:
+        self.frames, self.tracker, self.settings, self.stats = frames, tracker, settings, stats
+        self.republish = republish
+        self.on_freed = on_freed  # the credits: the source may send its next frame (service/runtime/credits.py)
+
+    def next_reusable(self, timeout: float) -> tuple[PendingFrame, Glance] | None:
+        """Glance at the next queued frame; the frame and its glance if it is to be reused (it has left the
+        queue), None if it went on to inference (or nothing came within ``timeout``)."""
+        item = self.frames.take_untriaged(timeout)
+        if item is None:
+            return None
+        source, pending = item
+        settings = self.settings
+        try:
+            seen = glance(pending, settings.max_payload_bytes, settings.max_pixels, settings.reuse.blocks)
+        except Exception:  # the worker decodes it again and counts why it failed
+            self.frames.settle(source, pending, Claim(need=self.tracker.need(source)))
+            return None
+        verdict = self.tracker.judge(source, pending, seen, refresh_waiting=self.frames.has_ready(source))
+        if verdict.claim is not None:
+            if self.frames.settle(source, pending, verdict.claim) and verdict.reason == MAX_REUSE:
+                self.on_freed(pending, credits.REFRESH)
+            return None
+        if verdict.behind_refresh:
+            return self._in_line(source, pending, seen)
+        if not self.frames.settle(source, pending, None):
+            return None  # replaced meanwhile: the newer frame is glanced at next
+        return pending, seen
+
+    def _in_line(self, source: str, pending: PendingFrame, seen: Glance) -> tuple[PendingFrame, Glance] | None:
+        """An unchanged frame while the source's refresh waits: it takes the refresh's place in line (so the
+        refresh infers the newest view, never one that waited into staleness); the frame it replaced, older,
+        is answered with the last maps instead."""
+        answered = self.frames.settle_in_line(source, pending)
+        if answered is None or answered is pending:
+            return None if answered is None else (pending, seen)
+        settings = self.settings
+        try:  # glanced once already: the same bytes give the same glance
+            return answered, glance(answered, settings.max_payload_bytes, settings.max_pixels, settings.reuse.blocks)
+        except Exception as err:  # counted, never the triage thread's end
+            self.stats.rejected(source, "processing_failed", repr(err)[:200], err)
+            return None
+
+    def reuse(self, pending: PendingFrame, seen: Glance, map_age_s: float | None = None) -> None:
+        """Publish the source's last maps for this frame and count it unchanged (a shutdown's: dropped);
+        ``map_age_s``: the frame's age as judged before publishing."""
+        if not self.republish(pending, seen):
+            self.stats.dropped(pending.source, "shutdown")
+            return
+        self.stats.unchanged(pending.source, map_age_s)
+        self.on_freed(pending, credits.UNCHANGED)
+
+    def inferred(self, done: ProcessedFrame) -> None:
+        """A frame's maps went out: the source's new reference, with its ambiguity ahead for the scheduler."""
+        maps = done.result.maps
+        ambiguity = ambiguity_of(maps.uncertainty, maps.match, self.settings.schedule)
+        self.tracker.inferred(done.source, done.pending, done.image.image, done.result.anchors.version, ambiguity)

@@ -8,6 +8,7 @@ import time
 from collections import Counter, OrderedDict, deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from gcdtrav.schemas.messages import SourceStatus
@@ -77,6 +78,39 @@ def age_percentiles(values: deque[float]) -> dict[str, float]:
     return {"p50": round(float(p50), 2), "p95": round(float(p95), 2)}
 
 
+class FrameEvents(Protocol):
+    """Timings observed as they happen (the metrics' histograms, service/runtime/metrics.py); counts are not
+    here: they are read from the snapshot when asked."""
+
+    def waited(self, wait_s: float) -> None:
+        """A frame was taken for inference ``wait_s`` after its receipt."""
+
+    def inferred(self, inference_s: float) -> None:
+        """A frame's inference took ``inference_s``."""
+
+    def published(self, source: str, map_age_s: float) -> None:
+        """Maps of ``source`` went out, inferred or reused, ``map_age_s`` old as the freshness rule judged them."""
+
+    def forget(self, source: str) -> None:
+        """``source`` is forgotten: its series go."""
+
+
+class NoEvents:
+    """Timings observed by nobody."""
+
+    def waited(self, wait_s: float) -> None:
+        pass
+
+    def inferred(self, inference_s: float) -> None:
+        pass
+
+    def published(self, source: str, map_age_s: float) -> None:
+        pass
+
+    def forget(self, source: str) -> None:
+        pass
+
+
 @dataclass(frozen=True)
 class StatsSnapshot:
     """The status's counting part, read under one lock so its numbers agree with each other."""
@@ -90,9 +124,10 @@ class StatsSnapshot:
 class ServiceStats:
     """Thread-safe; written by the subscriber callbacks and the worker, read by the status query."""
 
-    def __init__(self, log: logging.Logger, idle_s: float = 300.0) -> None:
+    def __init__(self, log: logging.Logger, idle_s: float = 300.0, events: FrameEvents | None = None) -> None:
         self._lock = threading.Lock()
         self._log = log
+        self.events: FrameEvents = events or NoEvents()  # the timings, told outside the lock
         self.idle_s = idle_s  # source_idle_s: refused sources are listed that long after their last frame
         self.sources: dict[str, SourceStats] = {}
         # Sources refused before they took a slot (every frame stale, or undecodable): their counts are kept,
@@ -104,7 +139,13 @@ class ServiceStats:
         self._last_logged: dict[str, float] = {}
         self._suppressed: Counter[str] = Counter()
 
-    def processed(self, name: str, seq: int, latency_ms: float, inference_ms: float) -> None:
+    def processed(
+        self, name: str, seq: int, latency_ms: float, inference_ms: float, map_age_s: float | None = None
+    ) -> None:
+        """Inferred maps of ``name`` went out; ``map_age_s``: their age as judged before publishing."""
+        self.events.inferred(inference_ms / 1e3)
+        if map_age_s is not None:
+            self.events.published(name, map_age_s)
         with self._lock:
             stats = self.sources.setdefault(name, SourceStats())
             stats.processed += 1
@@ -114,8 +155,10 @@ class ServiceStats:
             stats.latency_ms.append(latency_ms)
             stats.inference_ms.append(inference_ms)
 
-    def unchanged(self, name: str) -> None:
+    def unchanged(self, name: str, map_age_s: float | None = None) -> None:
         """A frame whose view had not changed: not inferred, the source's last maps published again."""
+        if map_age_s is not None:
+            self.events.published(name, map_age_s)
         with self._lock:
             stats = self.sources.setdefault(name, SourceStats())
             stats.unchanged += 1
@@ -154,6 +197,10 @@ class ServiceStats:
         if detail:
             self._log_limited("stale", f"dropped {name}: stale: {detail}")
 
+    def waited(self, wait_s: float) -> None:
+        """A frame was taken for inference ``wait_s`` after its receipt."""
+        self.events.waited(max(wait_s, 0.0))
+
     def credit(self, name: str) -> None:
         with self._lock:
             self.sources.setdefault(name, SourceStats()).credits += 1
@@ -166,6 +213,7 @@ class ServiceStats:
             stats = self.sources.pop(name, None)
             if stats is not None and stats.processed == 0 and stats.dropped + stats.rejected > 0:
                 self._refused_entry(name).absorb(stats)
+        self.events.forget(name)
 
     def _refused_entry(self, name: str) -> SourceStats:
         entry = self.refused.pop(name, None) or SourceStats()

@@ -10,6 +10,8 @@ from gcdtrav.schemas.messages import ExperienceStatus, ServiceStatus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.clock_offset import ClockOffsets
+from gcdtrav.service.runtime.fleet_models import FleetModelsStatus
+from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
@@ -31,6 +33,7 @@ class StatusParts:
     sources: SourceTracker
     progress: ProgressMonitor
     clock_offsets: ClockOffsets  # each source's clock against this instance's, as estimated
+    grids: GridOutputs | None = None  # the ground grids, if any: their health
 
     def status(
         self,
@@ -38,6 +41,7 @@ class StatusParts:
         live: list[str] | None = None,
         fleet: Mapping[str, str] | None = None,
         experience: ExperienceStatus | None = None,
+        models: FleetModelsStatus | None = None,
     ) -> ServiceStatus:
         """This instance's status at ``now``; ``live``: the instances of the prefix (None: this one alone);
         ``fleet``: every instance's anchor-set version as this one knows it; ``experience``: its own status
@@ -71,4 +75,8 @@ class StatusParts:
             anchor_set_accepted_at=head.accepted_at or None,  # 0: the set it started with, never swapped
             anchor_sets=dict(fleet or {}),
             experience=experience,
+            grids=self.grids.statuses(self.clock_offsets.offsets()) if self.grids is not None else None,
+            model_fingerprint=backend.fingerprint,
+            model_refused=models.refused if models else "",
+            instance_models=dict(models.fingerprints) if models else {},
         )

@@ -27,9 +27,9 @@ from gcdtrav.service.runtime.grids import FusedGrid, GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory, FrameRecord
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.progress import ProgressMonitor
+from gcdtrav.service.runtime.reuse import Triage
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
-from gcdtrav.service.runtime.triage import Triage
 
 log = logging.getLogger("gcdtrav.service")
 _R = TypeVar("_R")
@@ -98,6 +98,7 @@ class FrameWorker:
             if item is None:
                 continue
             _, pending = item
+            self.stats.waited(time.time() - pending.received_at)
             self._guarded(pending, self.on_taken, pending)
             inferred = self._guarded(pending, self._infer, pending)
             if inferred is None:
@@ -122,8 +123,7 @@ class FrameWorker:
         """The source's last maps again, for an unchanged frame: checked like a frame about to be published."""
         assert self.triage is not None
         check_stamp(seen.stamp)
-        self.gate.before_publish(pending)
-        self.triage.reuse(pending, seen)
+        self.triage.reuse(pending, seen, self.gate.before_publish(pending))
 
     def _output_loop(self) -> None:
         while (item := self._inferred.get()) is not None:
@@ -196,13 +196,13 @@ class FrameWorker:
         record = self.history.record(
             source, maps.weights, result.anchors, image.stamp, image.frame_id, image.camera_size, maps.match
         )
-        self.gate.before_publish(inferred.pending)  # the engine took time too
+        map_age_s = self.gate.before_publish(inferred.pending)  # the engine took time too
         done = ProcessedFrame(inferred, result, record, self._fuse(inferred.pending, inferred.image, result, record))
         if not self.publish(done):
             self.stats.dropped(source, "shutdown")  # finished after the outputs closed
             return
         latency_ms = (time.time() - inferred.pending.received_at) * 1e3
-        self.stats.processed(source, record.seq, latency_ms, result.inference_ms)
+        self.stats.processed(source, record.seq, latency_ms, result.inference_ms, map_age_s)
         if self.triage is not None:
             self.triage.inferred(done)
 
@@ -214,7 +214,8 @@ class FrameWorker:
         if self.grids is None:
             return None
         maps = result.maps
-        return self.grids.fuse(pending.source, record, maps.weights, maps.match, pending.ros, image.image)
+        unstamped = pending.stamp is None  # a bare image: stamped with its receipt
+        return self.grids.fuse(pending.source, record, maps.weights, maps.match, pending.ros, image.image, unstamped)
 
 
 def lower_this_thread(nice: int) -> bool:

@@ -75,7 +75,7 @@ def test_probe_prints_a_pixels_distribution_and_draws_it(service, tmp_path: Path
     assert probe.returncode == 0, probe.stderr
     from gcdtrav.service.runtime.queries import answer_patch_query
 
-    expected = answer_patch_query(running.history, "r1/front", {"x": "20", "y": "10"})
+    expected = answer_patch_query(running.runtime.history, "r1/front", {"x": "20", "y": "10"})
     assert expected.patch is not None
     i, j = expected.patch  # the answer in the user's terms: the pixel as typed (x, y), the patch named (row, column)
     assert probe.stdout.startswith(f"r1/front pixel (x=20, y=10) in seq={expected.seq} patch (row i={i}, column j={j})")
@@ -117,13 +117,13 @@ def test_history_and_rollback_survive_a_restart(tiny_backend, tmp_path: Path) ->
     # the temporaries of history writes a crash interrupted.
     from gcdtrav.service.commands.serve import starting_anchor_set
 
-    interrupted = settings.state_dir / f".{running.anchor_switch.history_file.name}.x1y2z3.tmp"
+    interrupted = settings.state_dir / f".{running.runtime.anchor_switch.history_file.name}.x1y2z3.tmp"
     interrupted.write_text('{"instance": "ops-2", "entries": [')
 
     with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (running, port):
         assert running.pipeline.anchors.version == puddles.version
         assert not interrupted.exists()
-        versions = [e.version for e in running.anchor_switch.history().entries]
+        versions = [e.version for e in running.runtime.anchor_switch.history().entries]
         assert versions == [
             puddles.version,
             AnchorSet.parse(two).version,
@@ -137,17 +137,21 @@ def test_failures_are_one_line_with_the_right_exit_code(service, tmp_path: Path)
     bad = tmp_path / "bad.yaml"
     bad.write_text("anchors:\n  - {concept: mud, position: 1.5}\n")
     rejected = gcdtrav("anchors", "set", str(bad), *flags)
-    assert rejected.returncode == 1 and len(rejected.stderr.strip().splitlines()) == 1
+    assert rejected.returncode == 2 and len(rejected.stderr.strip().splitlines()) == 1  # a usage error (README)
     assert "position 1.5 is outside [0, 1]" in rejected.stderr
     assert running.pipeline.anchors.version == default_anchor_set().version
     missing = gcdtrav("anchors", "set", str(tmp_path / "nope.yaml"), *flags)
-    assert missing.returncode == 1 and "cannot read the file" in missing.stderr
+    assert missing.returncode == 2 and "cannot read the file" in missing.stderr
     unreachable = gcdtrav("status", "-m", "client", "-e", "tcp/127.0.0.1:9", "--no-multicast-scouting")
     assert unreachable.returncode == 1 and len(unreachable.stderr.strip().splitlines()) == 1
     assert unreachable.stderr.startswith("gcdtrav status: zenoh: Unable to connect to any of [")
     assert "tcp/127.0.0.1:9" in unreachable.stderr and ".rs:" not in unreachable.stderr
     usage = gcdtrav("anchors", "swap", "x.yaml")
     assert usage.returncode == 2
+    for args in (("answer", "cam", "1.5"), ("answer", "cam", "maybe"), ("anchors", "rollback", "0")):
+        usage = gcdtrav(*args, *flags)
+        assert usage.returncode == 2 and "Traceback" not in usage.stderr, (args, usage.stderr)
+    assert "a score must be in [0, 1]" in gcdtrav("answer", "cam", "1.5", *flags).stderr
 
 
 def test_diff_names_added_removed_and_moved_concepts() -> None:

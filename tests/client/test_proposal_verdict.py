@@ -102,6 +102,16 @@ def test_the_text_ends_with_the_verdict_and_an_older_services_proposal_is_judged
     assert proposal_lines(older)[-1] == text[-1] + " (judged here: the service sent no verdict)"
 
 
+def test_a_verdict_word_from_a_newer_service_is_read_and_never_applied() -> None:
+    better = proposal(figures(0.355), figures(0.246))
+    assert better.judged().applicable
+    payload = better.model_dump()
+    payload["verdict"]["verdict"] = "better, with caveats"  # a word this reader does not know
+    payload["verdict"]["figures"][0]["judgement"] = "much better"
+    newer = AnchorProposal.unpack(msgpack.packb(payload))
+    assert newer.judged().verdict == "better, with caveats" and not newer.judged().applicable
+
+
 # ---- `gcdtrav anchors propose --apply` against a live service --------------------------------------------
 
 

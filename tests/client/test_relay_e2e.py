@@ -8,6 +8,7 @@ only because a consumer there subscribes, stale frames are counted, and the rela
 
 from __future__ import annotations
 
+import logging
 import subprocess
 import threading
 import time
@@ -95,8 +96,12 @@ class Robot:
 
 
 @contextmanager
-def robot_with_relay(tiny_backend, tmp_path: Path, **relay_kw: object) -> Iterator[Robot]:  # type: ignore[no-untyped-def]
-    settings = ServiceSettings(state_dir=tmp_path, instance="box-1", preview=False, max_frame_age_s=2.0)
+def robot_with_relay(
+    tiny_backend, tmp_path: Path, service_kw: dict[str, object] | None = None, **relay_kw: object
+) -> Iterator[Robot]:  # type: ignore[no-untyped-def]
+    settings = ServiceSettings.model_validate(
+        {"state_dir": tmp_path, "instance": "box-1", "preview": False, "max_frame_age_s": 2.0} | (service_kw or {})
+    )
     with in_process_service(SlowBackend(tiny_backend, 0.3), settings) as (_, service_port):
         robot_port = free_port()
         bus = zenoh.open(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{robot_port}"], multicast_scouting=False))
@@ -196,6 +201,38 @@ def test_a_lost_credit_costs_one_timeout(tiny_backend, tmp_path: Path) -> None: 
         elapsed = time.monotonic() - elapsed
         assert camera.sent - sent <= elapsed / 0.5 + 1  # one per timeout (the camera offers 50 a second)
         assert wait_until(lambda: source_status(robot) is not None, 10)  # the frames still arrive
+        causes = robot.relay.health(SOURCE).causes  # the relay says why maps stay away
+        assert "no_instance" in causes and "'elsewhere'" in causes["no_instance"], causes
+
+
+def test_a_camera_on_another_clock_is_not_stale_and_a_silent_camera_is_named_once(  # type: ignore[no-untyped-def]
+    tiny_backend, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Every frame stamped an hour ago (a camera on another clock): the service judges by delay and serves them,
+    and so does the relay: fresh, with the clock named. Then the camera stops: named, and logged once."""
+    caplog.set_level(logging.INFO, logger="gcdtrav.relay")
+    with robot_with_relay(tiny_backend, tmp_path, camera_silent_after_s=0.5) as robot:
+        robot.camera.age_s = 3600.0
+        robot.camera.start()
+        health = lambda: robot.relay.health(SOURCE)  # noqa: E731
+        assert wait_until(lambda: health().map_age_s is not None and not health().stale, 20), health()
+        assert wait_until(lambda: "camera_clock" in health().causes, 5)
+        assert "3600" in health().causes["camera_clock"] and "behind" in health().causes["camera_clock"]
+        assert set(health().causes) == {"camera_clock"}
+        robot.camera.stop()
+        assert wait_until(lambda: "camera_silent" in health().causes, 5), health()
+        assert CAMERA_KEY in health().causes["camera_silent"]
+        time.sleep(1.0)  # five health periods: still one line for the change
+        named = [r for r in caplog.records if "camera_silent" in r.getMessage()]
+        assert len(named) == 1, [r.getMessage() for r in named]
+
+
+def test_a_refusing_service_is_named_in_the_relays_health(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    with robot_with_relay(tiny_backend, tmp_path, service_kw={"max_pixels": 100}) as robot:
+        robot.camera.start()
+        causes = lambda: robot.relay.health(SOURCE).causes  # noqa: E731
+        assert wait_until(lambda: "service_refuses" in causes(), 20), causes()
+        assert "too_many_pixels" in causes()["service_refuses"] and "no_instance" not in causes()
 
 
 def test_relay_command_is_torch_free_and_checks_its_arguments() -> None:

@@ -51,7 +51,8 @@ def test_every_source_in_full_under_aligned_headers_with_reasons_and_why() -> No
         fields = columns(row)
         assert fields[1][0] == spans[1][0]  # instance: left-aligned, starts under its header
         assert [end for _, end in fields[2:10]] == [end for _, end in spans[2:10]]  # numbers: right-aligned
-    assert "stale 3 (refused: no slot)" in rows[0] and "replaced 2" in rows[1] and "undecodable 6" in rows[2]
+    assert "stale 3 (not tracked: every frame refused)" in rows[0]
+    assert "replaced 2" in rows[1] and "undecodable 6" in rows[2]
     why = "  r9/stale (a-rather-long-instance-name): stale: captured 3600.0 s ago, over max_frame_age_s = 5 s"
     assert why in lines
     assert "  png (b): undecodable: x" in lines
@@ -94,3 +95,13 @@ def test_each_source_shows_its_clock_offset_and_clocks_off_by_a_second_are_named
 
 def test_offsets_at_their_edges() -> None:
     assert clock_offset(None) == "-" and clock_offset(0.0) == "+0.00" and clock_offset(-3600.0) == "-3600.00"
+
+
+def test_a_source_refused_for_an_undecodable_frame_is_not_called_a_capacity_problem() -> None:
+    from gcdtrav.client.commands.operator import reasons
+    from gcdtrav.schemas.messages import SourceStatus
+
+    junk = SourceStatus(received=1, rejected=1, rejected_by_reason={"undecodable": 1}, refused=True)
+    assert reasons(junk) == "undecodable 1 (not tracked: every frame refused)"
+    full = SourceStatus(received=2, rejected=2, rejected_by_reason={"too_many_sources": 2}, refused=True)
+    assert reasons(full) == "too_many_sources 2 (not tracked: no source slot left)"

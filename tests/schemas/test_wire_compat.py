@@ -234,3 +234,21 @@ def test_configuration_stays_strict() -> None:
 
 def test_the_status_reports_the_service_schema_version() -> None:
     assert fields_of(SAMPLES[m.ServiceStatus])["schema_version"] == m.SCHEMA_VERSION
+
+
+def test_decode_reads_msgpack_or_json_and_refuses_what_is_over_its_limit_unread() -> None:
+    """One decode for every message a person or script may send as JSON: the same fields either way, the size
+    limit before anything is read (MessageTooLarge, a MessageError), a clear error for anything else."""
+    twist = e.Twist2D(vx=0.5, wz=0.1)
+    as_json = b"  " + twist.model_dump_json().encode()  # leading whitespace: still JSON
+    assert e.Twist2D.decode(twist.pack()) == twist == e.Twist2D.decode(as_json)
+    assert e.Twist2D.decode(as_json, max_bytes=len(as_json)) == twist  # the limit is inclusive
+    for payload in (as_json, twist.pack()):
+        with pytest.raises(m.MessageTooLarge, match=f"Twist2D of {len(payload)} bytes exceeds the limit"):
+            e.Twist2D.decode(payload, max_bytes=len(payload) - 1)
+    with pytest.raises(m.MessageTooLarge):
+        e.Twist2D.unpack(twist.pack(), max_bytes=1)
+    for bad, message in ((b"{not json", "not a JSON Twist2D"), (b"[1, 2]", "msgpack"), (b'{"vy": 1}', "vx")):
+        with pytest.raises(m.MessageError, match=message) as err:
+            e.Twist2D.decode(bad)
+        assert not isinstance(err.value, m.MessageTooLarge)

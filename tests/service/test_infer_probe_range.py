@@ -55,3 +55,36 @@ def test_a_probe_without_figure_prints_its_answer_and_outside_exits_2(
     assert not (tmp_path / "out" / "scene" / "figure.png").exists()
     assert main([*args, "--probe", "640,10"]) == 2
     assert "--probe 640,10 is outside" in capsys.readouterr().err
+
+
+def test_a_probe_outside_a_later_image_stops_before_any_inference(
+    tmp_path: Path, tiny_model_dir: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    first, later = tmp_path / "first.png", tmp_path / "later.png"
+    cv2.imwrite(str(first), textured_image(480, 640))
+    cv2.imwrite(str(later), textured_image(90, 140))
+    out = tmp_path / "out"
+    args = ["infer", str(first), str(later), "--out", str(out), "--model", str(tiny_model_dir)]
+    assert main([*args, "--probe", "320,400"]) == 2
+    assert f"--probe 320,400 is outside {later}" in capsys.readouterr().err
+    assert not (out / "first").exists()  # checked before the first image's inference, not after
+
+
+def test_infer_into_a_closed_pipe_writes_every_image_without_a_traceback(tmp_path: Path, tiny_model_dir: Path) -> None:
+    """`gcdtrav infer ... --probe X,Y | head`: the reader goes, the run goes on quietly."""
+    import subprocess
+    import sys
+
+    images = [tmp_path / f"img{i}.png" for i in range(3)]
+    for image in images:
+        cv2.imwrite(str(image), textured_image(90, 140))
+    out = tmp_path / "out"
+    args = ["infer", *map(str, images), "--out", str(out), "--model", str(tiny_model_dir), "--probe", "10,10"]
+    code = f"import sys; from gcdtrav.service.commands.cli import main; sys.exit(main({args!r}))"
+    process = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert process.stdout is not None and process.stderr is not None
+    process.stdout.close()  # head exited before the first answer
+    err = process.stderr.read()
+    assert process.wait(timeout=120) == 0, err
+    assert "Traceback" not in err and "BrokenPipe" not in err, err
+    assert all((out / image.stem / "summary.json").is_file() for image in images)

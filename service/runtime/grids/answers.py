@@ -74,7 +74,8 @@ def cell_reply(grid: SourceGrid, i: int, j: int, anchors: AnchorSet, levels: Ris
         grid.grid.stamp or 0.0,
         grid.frame_id(),
     )
-    return with_risk(reply, weights, anchors, levels).model_copy(
+    match = grid.grid.cell_match(i, j)  # the grid's match layer: a cell answers with it, as a patch does
+    return with_risk(reply, weights, anchors, levels, match).model_copy(
         update={
             "cell": (i, j),
             "cell_xy": grid.grid.centre_of(i, j),

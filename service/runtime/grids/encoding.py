@@ -5,8 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numpy as np
-from gcdtrav.schemas.images import encode_age_png, encode_count_png, encode_maps_png16
+from gcdtrav.schemas.grid_layers import encode_layers
 from gcdtrav.schemas.messages import GridHeader, GridMessage
 from gcdtrav.schemas.settings import GridSettings, RiskSettings
 from gcdtrav.service.grid.layers import GridLayers, nav2_costs
@@ -51,18 +50,7 @@ class FusedGrid:
 
 def encode_update(config: GridSettings, header: GridHeader, layers: GridLayers, ros: RosTopic | None) -> GridUpdate:
     """The payloads of one grid update (encoded outside the grid's lock)."""
-    maps = (layers.traversability, layers.uncertainty, layers.cvar, layers.p_below, layers.match)
-    t, u, cvar, p_below, match = encode_maps_png16(*(np.nan_to_num(values) for values in maps))
-    message = GridMessage(
-        header=header,
-        traversability_png=t,
-        uncertainty_png=u,
-        count_png=encode_count_png(layers.count),
-        cvar_png=cvar,
-        p_below_png=p_below,
-        match_png=match,
-        age_png=encode_age_png(layers.age),
-    )
+    message = GridMessage.model_validate({"header": header, **encode_layers(layers.values())})
     known = layers.known
     occupancy = uncertainty = grid_map = costmap = None
     if config.occupancy_grid:
@@ -81,6 +69,7 @@ def grid_header(
 ) -> GridHeader:
     """The header of a grid's message (and its ROS messages), as of now."""
     pose = grid.pose
+    at = grid.fused_at.pose if grid.fused_at is not None else None
     stamp = grid.grid.stamp or 0.0
     return GridHeader(
         source=grid.config.source,
@@ -100,4 +89,6 @@ def grid_header(
         tau=risk.tau,
         expired_cells=int(grid.grid.expired.sum()),
         age_s=clock() - stamp if grid.grid.stamp is not None else None,
+        capture_stamp=grid.fused_stamp,
+        capture_pose=(at.x, at.y, at.yaw) if at is not None else None,
     )

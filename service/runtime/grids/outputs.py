@@ -15,28 +15,36 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from functools import partial
 
 import numpy as np
-from gcdtrav.schemas.messages import ContextDistribution, GridHeader, PathReply, Pose2D
+from gcdtrav.schemas.inputs import RejectedInput
+from gcdtrav.schemas.messages import ContextDistribution, GridHeader, GridStatus, PathReply, Pose2D
 from gcdtrav.schemas.settings import GridSettings, RiskSettings
 from gcdtrav.service.grid.fusion import GroundGrid
+from gcdtrav.service.grid.geometry import CameraMount
 from gcdtrav.service.grid.layers import grid_layers
+from gcdtrav.service.grid.poses import PoseAt
 from gcdtrav.service.ros.cdr import (
     RosTopic,
-    decode_camera_info,
+    decode_camera_info_frame,
     decode_depth,
     decode_pose,
 )
 from gcdtrav.service.runtime.grids import answers
 from gcdtrav.service.runtime.grids.encoding import FusedGrid, GridUpdate, grid_header
-from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid, grid_spec
+from gcdtrav.service.runtime.grids.health import NO_INTRINSICS, NO_MOUNT
+from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid, grid_spec, grid_status
+from gcdtrav.service.runtime.grids.tf import GridTf
 from gcdtrav.service.runtime.history import FrameRecord
 from numpy.typing import NDArray
 
 log = logging.getLogger("gcdtrav.service")
 
 GridInput = tuple[str, str, Callable[[str, bytes], None], str]  # key, grid or camera, setter, rejection reason
+# key, grid, static (/tf_static: transient local), handler: a TFMessage's payload -> the transforms it refused
+TfInput = tuple[str, str, bool, Callable[[bytes], list[RejectedInput]]]
 # Called under the grid's lock after each fusion: the grid, the camera that fed it, the frame's image if known.
 AfterFusion = Callable[[SourceGrid, CameraState, NDArray[np.uint8] | None], None]
 
@@ -54,11 +62,30 @@ class GridOutputs:
         instance: str,
         risk: RiskSettings | None = None,
         clock: Callable[[], float] = time.time,
+        clock_mode: str = "estimated",
     ) -> None:
-        self.instance, self.risk, self.clock = instance, risk or RiskSettings(), clock
+        """``clock_mode``: the service's ``clock`` setting ("estimated" or "synced"), how an unstamped frame's
+        receipt becomes a stamp on the pose stream's clock (``capture_stamp``)."""
+        self.instance, self.risk, self.clock, self.clock_mode = instance, risk or RiskSettings(), clock, clock_mode
         self.sources = {c.source: SourceGrid(c, GroundGrid(grid_spec(c), anchor_count)) for c in configs}
         self.camera_grids = {camera: grid for grid in self.sources.values() for camera in grid.cameras}
         self.after_fusion: AfterFusion | None = None  # the experience's snapshots and questions (service/bus)
+        # grids whose mounts or pose come from tf: their trees hand over poses and mounts as they learn them
+        self.tf = {
+            c.source: GridTf(c.source, c.tf, c.camera_list(), self.add_pose, self.set_mount)
+            for c in configs
+            if c.tf is not None
+        }
+        for source, tf in self.tf.items():
+            self.sources[source].tf_waiting = tf.waiting
+
+    def tf_inputs(self) -> list[TfInput]:
+        """The /tf and /tf_static subscriptions of the grids that take geometry from tf."""
+        found: list[TfInput] = []
+        for source, tf in self.tf.items():
+            found.append((tf.config.tf_static_key, source, True, partial(tf.on_message, static=True)))
+            found.append((tf.config.tf_key, source, False, partial(tf.on_message, static=False)))
+        return found
 
     def inputs(self) -> list[GridInput]:
         """What the grids subscribe to besides the maps: pose streams (by grid), CameraInfo and depth (by
@@ -77,25 +104,43 @@ class GridOutputs:
         return found
 
     def set_pose(self, source: str, payload: bytes) -> None:
-        """The pose of the grid published under ``source``."""
-        grid = self.sources[source]
-        pose = decode_pose(payload, grid.config.pose_format)
-        with grid.lock:
-            grid.pose = pose
+        """A pose of the grid published under ``source`` (its pose stream's payload); MessageError if bad."""
+        self.add_pose(source, decode_pose(payload, self.sources[source].config.pose_format))
+
+    def add_pose(self, grid_source: str, pose: Pose2D) -> None:
+        """A decoded pose of the grid published under ``grid_source`` (its pose stream, or tf): into its buffer,
+        waking a frame waiting for it. Takes only the buffer's lock, never the grid's."""
+        grid = self.sources[grid_source]
+        now = self.clock()
+        grid.poses.add(pose, now)
+        grid.health.pose_received_at = now
 
     def pose_of(self, camera: str) -> Pose2D | None:
-        """The latest pose of the robot carrying camera ``camera`` (its grid's pose stream); None: unknown."""
+        """The newest pose of the robot carrying camera ``camera`` (its grid's pose stream); None: unknown."""
         grid = self.camera_grids.get(camera)
-        if grid is None:
-            return None
+        return None if grid is None else grid.pose
+
+    def set_mount(self, camera_source: str, mount: CameraMount, origin: str) -> None:
+        """Camera ``camera_source``'s mount in the base frame, from ``origin`` ("settings" or "tf"); the next
+        frame's ground rays are computed afresh."""
+        grid = self.camera_grids[camera_source]
         with grid.lock:
-            return grid.pose
+            grid.cameras[camera_source].set_mount(mount, origin)
 
     def set_camera_info(self, camera: str, payload: bytes) -> None:
-        intrinsics = decode_camera_info(payload)
+        intrinsics, frame_id = decode_camera_info_frame(payload)
         grid = self.camera_grids[camera]
         with grid.lock:
-            grid.cameras[camera].camera = intrinsics
+            state = grid.cameras[camera]
+            state.camera, state.intrinsics_origin = intrinsics, "camera_info"
+        self._camera_frame(grid, camera, frame_id, "camera_info")
+
+    def _camera_frame(self, grid: SourceGrid, camera: str, frame_id: str, origin: str) -> None:
+        """A frame id the camera's images or CameraInfo carry: its tf frame, for a grid with tf.mount. Outside the
+        grid's lock: a mount it makes known is set under it."""
+        tf = self.tf.get(grid.config.source)
+        if tf is not None:
+            tf.camera_frame(camera, frame_id, origin)
 
     def set_depth(self, camera: str, payload: bytes) -> None:
         depth = decode_depth(payload)
@@ -124,20 +169,31 @@ class GridOutputs:
         match: NDArray[np.floating] | None = None,
         ros: RosTopic | None = None,
         image: NDArray[np.uint8] | None = None,
+        unstamped: bool = False,
     ) -> FusedGrid | None:
         """Fuse a processed frame of camera ``source`` (its weights and match scores per map patch, its ROS
-        topic if a ROS camera, its image for ``after_fusion``) into its grid; the grid's layers to publish, or
-        None (not a grid's camera, or no intrinsics yet)."""
+        topic if a ROS camera, its image for ``after_fusion``) into its grid, projected from the robot's pose at
+        the frame's capture stamp (``unstamped``: a bare image, stamped with its receipt; see
+        ``capture_stamp``); the grid's layers to publish, or None (not a grid's camera, or not fused: counted
+        by reason in the grid's health)."""
         grid = self.camera_grids.get(source)
         if grid is None:
             return None
         camera = grid.cameras[source]
+        self._camera_frame(grid, source, record.frame_id, "image")
+        # The pose at capture, waited for (bounded) outside the grid's lock: the pose stream may lag the frame.
+        stamp = self.capture_stamp(grid, record.stamp, unstamped)
+        wait_s = self._pose_wait_s(grid) if camera.camera is not None else 0.0
+        at = grid.poses.wait(stamp, wait_s) if grid.expects_pose() else PoseAt(None)
         with grid.lock:
             camera.ros = ros or camera.ros
-            if camera.camera is None:
-                log.warning("grid of %s: no intrinsics yet (waiting for CameraInfo), frame not fused", source)
+            reason = NO_INTRINSICS if camera.camera is None else NO_MOUNT if camera.mount_origin is None else at.reason
+            if reason is not None:
+                self._not_fused(grid, source, stamp, reason)
                 return None
-            grid.fuse(camera, weights, record.image_size, record.stamp, record.anchors, match)
+            grid.fuse(camera, weights, record.image_size, record.stamp, record.anchors, match, at.pose)
+            grid.fused_at, grid.fused_stamp = at, stamp
+            grid.health.fused_frame(source, stamp, self.clock(), grid.config.costmap)
             if self.after_fusion is not None:
                 self.after_fusion(grid, camera, image)
             anchors = record.anchors
@@ -147,6 +203,36 @@ class GridOutputs:
             header = self.header(grid, anchors.version)
             ros_topic = grid.ros_topic()
         return FusedGrid(grid.config, header, layers, ros_topic)
+
+    def _pose_wait_s(self, grid: SourceGrid) -> float:
+        """How long a frame may wait for its pose: ``poses.wait_s`` while the stream is alive (a pose within
+        ``max_gap_s``); a stream that stopped would only stall the worker, every frame."""
+        heard = grid.health.pose_received_at
+        alive = heard is not None and self.clock() - heard <= grid.config.poses.max_gap_s
+        return grid.config.poses.wait_s if alive else 0.0
+
+    def capture_stamp(self, grid: SourceGrid, stamp: float, unstamped: bool) -> float:
+        """When the frame was taken on the pose stream's clock. A stamped frame: its stamp (the robot's clock,
+        as the poses'). A bare image carries only its receipt on the service's clock: with ``clock: synced``
+        that is the robot's; with ``estimated``, the receipt less the pose stream's learnt offset (service
+        minus robot plus the pose link's smallest delay), as a source's clock is learnt."""
+        if not unstamped or self.clock_mode == "synced":
+            return stamp
+        offset = grid.poses.offset_s
+        return stamp if offset is None else stamp - offset
+
+    def _not_fused(self, grid: SourceGrid, camera: str, stamp: float, reason: str) -> None:
+        """Count a frame the grid could not fuse; logged once per camera and reason in a row."""
+        if grid.health.not_fused_frame(camera, reason, self.clock()):
+            log.warning("grid %s: frame of %s (stamp %.3f) not fused: %s", grid.config.source, camera, stamp, reason)
+
+    def statuses(self, clock_offsets: Mapping[str, float]) -> list[GridStatus]:
+        """Every grid's health now (``clock_offsets``: each source's learnt clock, for the pose stream's)."""
+        found = []
+        for grid in self.sources.values():
+            with grid.lock:
+                found.append(grid_status(grid, self.clock(), clock_offsets))
+        return found
 
     def header(self, grid: SourceGrid, version: str) -> GridHeader:
         return grid_header(grid, version, self.instance, self.risk, self.clock)

@@ -90,7 +90,8 @@ def test_grid_cells_hold_t_u_count_and_t_colours() -> None:
         source="cam", seq=0, stamp=0.0, frame_id="odom", origin=(0.0, 0.0), resolution=0.5, cells=2,
         anchor_set_version="x", resets=0, known_cells=3, instance="i",
     )  # fmt: skip
-    cells = np.frombuffer(grid_cells(Grid(header, t, t / 2, count)), np.uint8).reshape(2, 2, GRID_CELL_BYTES)
+    grid = Grid(header, {"traversability": t, "uncertainty": t / 2, "count": count})
+    cells = np.frombuffer(grid_cells(grid), np.uint8).reshape(2, 2, GRID_CELL_BYTES)
     assert np.array_equal(cells[..., 0:4].copy().view("<f4")[..., 0], t, equal_nan=True)
     assert np.array_equal(cells[..., 4:8].copy().view("<f4")[..., 0], t / 2, equal_nan=True)
     assert cells[..., 8:12].copy().view("<u4")[..., 0].tolist() == [[3, 1], [0, 70000]]

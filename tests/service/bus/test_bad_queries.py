@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 from conftest import camera_grid, textured_image
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
-from gcdtrav.schemas.messages import AnchorSetRejection, ErrorReply, MessageError
+from gcdtrav.schemas.messages import AnchorSetRejection, ErrorReply, MessageError, Pose2D
 from gcdtrav.service.runtime.errors import QueryError
 from gcdtrav.service.runtime.queries import PATCH_FORMS, parameter_pairs, strict_parameters
 from zenoh_helpers import connecting_config, first_frame_through, wait_until
@@ -129,7 +129,9 @@ def served(tiny_backend, tmp_path: Path) -> Iterator[tuple[TraversabilityService
     with in_process_service(tiny_backend, settings) as (service, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         try:
-            first_frame_through(client, "cam", textured_image(60, 80))
+            # The grid fuses a frame at the robot's pose at its capture stamp: the pose first, then the frame.
+            client.session.put("robot/pose", Pose2D(stamp=0.5, frame_id="odom", x=0.0, y=0.0, yaw=0.0).pack())
+            first_frame_through(client, "cam", textured_image(60, 80), stamp=0.5)
             # The maps go out before the frame is counted (and before its grid): wait for the count too.
             assert wait_until(lambda: "cam" in client.status().sources and client.status().sources["cam"].processed, 10)
             yield service, client
@@ -218,13 +220,13 @@ def test_bad_poses_and_intrinsics_are_rejected_and_the_grid_keeps_the_last_good_
     errors = " ".join(client.status().last_errors)
     assert "x: Value error, nan is not a finite number" in errors and "1e+300 m is beyond the limit" in errors
     assert "frame_id: String should have at most 256 characters" in errors and "finite intrinsics" in errors
-    client.publish_image("cam", textured_image(60, 80, seed=3))
+    client.publish_image("cam", textured_image(60, 80, seed=3), stamp=1.0)  # taken at the good pose (moved 2 m)
     assert wait_until(lambda: bool(grids), 15), "no grid after the bad inputs"
     subscriber.undeclare()
     assert grids[-1].header.robot == (2.0, 0.0, 0.0) and grids[-1].header.known_cells > 0  # the last good pose
     assert "processing_failed" not in rejected()
     assert (
-        service.grids is not None and service.grids.sources["cam"].cameras["cam"].camera.fx == 60
+        service.runtime.grids is not None and service.runtime.grids.sources["cam"].cameras["cam"].camera.fx == 60
     )  # the configured intrinsics
 
 
@@ -248,7 +250,8 @@ def test_a_handler_that_raises_still_answers_and_the_service_goes_on(  # type: i
 ) -> None:
     service, client = served
     owner, name = target
-    owner = {"grids": service.grids, "service": service, "switch": service.anchor_switch}.get(owner, owner)  # type: ignore[call-overload]
+    runtime = service.runtime
+    owner = {"grids": runtime.grids, "service": service, "switch": runtime.anchor_switch}.get(owner, owner)  # type: ignore[call-overload]
     with monkeypatch.context() as patch:
         patch.setattr(owner, name, boom)
         assert raw_get(client, selector, payload) == (False, "internal error: RuntimeError; see the service log")

@@ -70,9 +70,10 @@ def test_instances_converge_new_ones_adopt_and_rollback_ends_everywhere_on_one_s
         a, b = fleet.start("box-a"), fleet.start("box-b")
         assert wait_until(lambda: len(client.statuses(timeout=1.0)) == 2, 20)
         first = distinct_set("first")
-        a.anchor_switch.swap(first)  # a swap that reached one instance only
+        a.runtime.anchor_switch.swap(first)  # a swap that reached one instance only
         assert wait_until(lambda: fleet.converged_on(first.version), 10), fleet.versions()
-        assert b.anchor_switch.head().accepted_at == a.anchor_switch.head().accepted_at  # adopted, not re-accepted
+        accepted = a.runtime.anchor_switch.head().accepted_at
+        assert b.runtime.anchor_switch.head().accepted_at == accepted  # adopted, not re-accepted
         c = fleet.start("box-c")  # starts with the default set and an empty state dir
         assert wait_until(lambda: fleet.converged_on(first.version), 10), fleet.versions()
         assert wait_until(lambda: c.status().anchor_sets == dict.fromkeys(fleet.running, first.version), 5)
@@ -102,7 +103,7 @@ def test_a_swap_one_instance_refuses_names_each_instance_and_the_status_shows_th
         assert wait_until(lambda: len(client.statuses(timeout=1.0)) == 2, 20)
         blocker = tmp_path / "not-a-dir"
         blocker.write_text("a file where b's state dir would be")
-        b.anchor_switch.state_file = blocker / "gcdtrav.anchors.json"  # every write on b fails (also as root)
+        b.runtime.anchor_switch.state_file = blocker / "gcdtrav.anchors.json"  # every write on b fails (also as root)
         new = distinct_set("new")
         with pytest.raises(PartialSwap) as partial:
             client.set_anchors(new)

@@ -7,6 +7,7 @@ The expected strings are written out from rmw_zenoh's format (rmw_zenoh_cpp/src/
 
 from __future__ import annotations
 
+import re
 import struct
 import threading
 import time
@@ -16,7 +17,8 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
-from zenoh_helpers import connecting_config, wait_until
+from gcdtrav.client.session.zenoh_args import zenoh_config
+from zenoh_helpers import connecting_config, free_port, wait_until
 
 pytest.importorskip("rosbags")
 pytest.importorskip("xxhash")
@@ -408,3 +410,97 @@ def test_forgotten_outputs_take_their_publisher_tokens_along(tmp_path: Path) -> 
         assert rejected == []
     finally:
         session.close()
+
+
+# ---- /tf and /tf_static: subscription tokens with tf2_ros's listener QoS ---------------------------------
+
+TF_HASH = "RIHS01_e369d0f05a23ae52508854b66f6aa0437f3449d652e8cbf22d5abe85d020f087"
+TF_TYPE = "tf2_msgs::msg::dds_::TFMessage_"
+
+
+def tf_settings(tmp_path: Path, **tf: str) -> Any:
+    from gcdtrav.schemas.settings import ServiceSettings
+
+    camera = {"source": "cam", "intrinsics": {"fx": 30, "fy": 30, "cx": 16, "cy": 12, "width": 32, "height": 24}}
+    grid = camera | {"tf": {"mount": True, "pose": True} | tf}
+    return ServiceSettings.model_validate({"state_dir": str(tmp_path), "grids": [grid]})
+
+
+def test_tf_qos_strings_are_tf2_ros_listeners() -> None:
+    from gcdtrav.service.bus.ros_graph import TF_QOS, TF_STATIC_QOS
+
+    assert TF_STATIC_QOS.keyexpr() == ":1:,100:,:,:,,"  # StaticListenerQoS: reliable, transient local, keep-last 100
+    assert TF_QOS.keyexpr() == "::,100:,:,:,,"  # DynamicListenerQoS: reliable, volatile, keep-last 100
+
+
+def test_tf_keys_join_the_graph_only_in_rmw_zenohs_layout(tmp_path: Path) -> None:
+    from gcdtrav.service.bus.ros_graph import TF_QOS, TF_STATIC_QOS, GraphInput, graph_inputs, tf_graph_input
+
+    assert graph_inputs(tf_settings(tmp_path)) == [
+        GraphInput(f"*/tf_static/{TF_TYPE}/*", "", TF_STATIC_QOS),
+        GraphInput(f"*/tf/{TF_TYPE}/*", "", TF_QOS),
+    ]
+    assert graph_inputs(tf_settings(tmp_path, tf_key="tf", tf_static_key="tf_static")) == []  # the bridge's keys
+    assert tf_graph_input(f"robot1/*/tf/{TF_TYPE}/*", TF_QOS) == GraphInput(
+        f"robot1/*/tf/{TF_TYPE}/*", "robot1", TF_QOS
+    )
+    assert tf_graph_input(f"0/robot1/tf/{TF_TYPE}/*", TF_QOS) == GraphInput(f"0/robot1/tf/{TF_TYPE}/*", "", TF_QOS)
+    assert tf_graph_input(f"robot1/tf/{TF_TYPE}/*", TF_QOS) is None  # no domain chunk: not rmw_zenoh's layout
+    assert tf_graph_input("tf/bad", TF_QOS) is None
+
+
+def test_tf_publishers_are_answered_with_listener_subscription_tokens(tmp_path: Path) -> None:
+    """A robot's /tf_static and /tf publisher tokens (as robot_state_publisher's rmw_zenoh declares them): the
+    service declares a subscription for each with tf2_ros's listener QoS, and withdraws it with the publisher."""
+    from gcdtrav.service.bus.ros_graph import RosGraph
+
+    port = free_port()
+    robot = zenoh.open(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
+    service = zenoh.open(connecting_config(port))
+    graph = None
+    try:
+        robot_zid = str(robot.info.zid())
+        node = robot.liveliness().declare_token(f"@ros2_lv/0/{robot_zid}/0/0/NN/%/%/robot_state_publisher")
+        publishers = {
+            topic: robot.liveliness().declare_token(
+                f"@ros2_lv/0/{robot_zid}/0/{n}/MP/%/%/robot_state_publisher/%{topic}/{TF_TYPE}/{TF_HASH}/{qos}"
+            )
+            for n, (topic, qos) in enumerate((("tf_static", ":1:,1:,:,:,,"), ("tf", "::,100:,:,:,,")), start=1)
+        }
+        seen: dict[str, str] = {}
+        watcher = robot.liveliness().declare_subscriber(
+            "@ros2_lv/0/**", lambda s: seen.__setitem__(str(s.key_expr), str(s.kind)), history=True
+        )
+        rejected: list[str] = []
+        graph = RosGraph(service, tf_settings(tmp_path), lambda _name, reason, _detail: rejected.append(reason))
+        graph.start()
+        ours = f"@ros2_lv/0/{graph.zid}/"
+
+        def live() -> list[str]:
+            return sorted(k for k, v in seen.items() if k.startswith(ours) and v == str(zenoh.SampleKind.PUT))
+
+        def without_ids() -> list[str]:  # ids follow discovery order, which zenoh does not fix
+            return sorted(re.sub(r"^(@ros2_lv/0/\w+/0/)\d+/", r"\1<id>/", token) for token in live())
+
+        subscriptions = [
+            f"{ours}0/<id>/MS/%/%/gcdtrav/%{topic}/{TF_TYPE}/{TF_HASH}/{qos}"
+            for topic, qos in (("tf_static", ":1:,100:,:,:,,"), ("tf", "::,100:,:,:,,"))
+        ]
+        node_token = f"{ours}0/<id>/NN/%/%/gcdtrav"  # with the first subscription (the default keys' domain is '*')
+        assert wait_until(lambda: without_ids() == sorted([node_token, *subscriptions]), 10), live()
+        assert f"{ours}0/0/NN/%/%/gcdtrav" in live()
+
+        publishers["tf"].undeclare()  # the /tf publisher goes: its subscription token goes too
+        assert wait_until(lambda: without_ids() == sorted([node_token, subscriptions[0]]), 10), live()
+        graph.close()
+        graph = None
+        assert wait_until(lambda: live() == [], 10), live()
+        assert rejected == []
+        watcher.undeclare()
+        publishers["tf_static"].undeclare()
+        node.undeclare()
+    finally:
+        if graph is not None:
+            graph.close()
+        service.close()
+        robot.close()

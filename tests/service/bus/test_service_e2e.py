@@ -79,7 +79,7 @@ def running(tiny_backend, tmp_path: Path, request: pytest.FixtureRequest) -> Ite
     with started_service(
         tiny_backend, tmp_path, history=3, max_payload_bytes=300_000, full_resolution=True, threads=request.param
     ) as (service, port):
-        assert service.worker.overlap_outputs == (request.param is not None)
+        assert service.runtime.worker.overlap_outputs == (request.param is not None)
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         received: list[Maps] = []
         subscriber = client.subscribe_maps("**", received.append)
@@ -252,10 +252,10 @@ def test_latest_only_under_load(tiny_backend, tmp_path: Path, threads: int | Non
                 client.publish_image("burst", image)
                 if index % 10 == 0:
                     client.publish_image("steady", image)
-                queued.append(len(service.queue))
+                queued.append(len(service.runtime.queue))
                 time.sleep(0.005)
             assert max(queued) <= 4  # per source the newest arrival and the newest ready frame, whatever the rate
-            assert wait_until(lambda: len(service.queue) == 0 and not _busy(service), 10)
+            assert wait_until(lambda: len(service.runtime.queue) == 0 and not _busy(service), 10)
             time.sleep(0.3)
             status = service.status()
             burst = status.sources["burst"]

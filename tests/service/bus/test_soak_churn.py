@@ -39,6 +39,9 @@ def test_churning_sources_stay_capped_are_forgotten_and_steady_robots_are_served
     refused = churn["churn_frames_refused_too_many_sources"]
     assert refused > 0, summary  # the cap acted ...
     assert churn["churn_frames_sent"] - refused > 2 * MAX_SOURCES, summary  # ... forgotten sources made room
-    low, high = churn["steady_maps_min_max"]
-    assert low > 0 and high - low <= max(3, 0.25 * high), summary  # the steady robots are served evenly
+    # The steady robots are served evenly: each gets maps, and the same share of the frames it sent in (the
+    # scheduler's doing), not the same count over wall time (a slow or busy host's doing as well).
+    assert churn["steady_maps_min_max"][0] > 0, summary
+    low, high = churn["steady_served_min_max"]
+    assert high - low <= 0.25 * high, summary
     assert report["lost"] == 0 and set(report["errors"]["soak-0"]) <= {"too_many_sources", "candidate_evicted"}, summary

@@ -117,6 +117,7 @@ def test_path_cells_in_order() -> None:
 def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     pytest.importorskip("rosbags")
     from gcdtrav.client import Grid, TraversabilityClient
+    from gcdtrav.client.commands.operator import status_table
     from gcdtrav.schemas.anchors import default_anchor_set
     from gcdtrav.schemas.messages import Pose2D
     from gcdtrav.schemas.settings import ServiceSettings
@@ -174,9 +175,11 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
             assert cell.cell == (i, j) and cell.observations == grid.count[i, j]
             assert cell.patch is None and cell.seq is None and cell.grid_updates == header.seq  # no names that lie
             assert cell.mean == pytest.approx(grid.traversability[i, j], abs=2 / 65535)
+            assert grid.match is not None and cell.match == pytest.approx(grid.match[i, j], abs=2 / 65535)
             path = client.path("cam", [(0.0, 0.0), (4.5, 0.0)])
             assert path.unknown_cells > 0 and path.cells and path.lowest_t is not None
             assert path.cells[path.lowest_t].mean == min(c.mean for c in path.cells)
+            assert all(c.match is not None for c in path.cells)  # fused cells carry the grid's match layer
             with pytest.raises(Exception, match="unknown: never observed"):
                 client.cell("cam", -2.0, 0.0)
             with pytest.raises(Exception, match="outside the grid"):
@@ -209,10 +212,23 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
             unswapped = client.cell("cam", 2.7, 0.0)
             assert len(unswapped.weights) == 13 and unswapped.anchor_set_version == header.anchor_set_version
             assert [a.concept for a in unswapped.anchors] == default_anchor_set().concepts
+            # The robot stood still since: its pose at the frame's capture is known (frames fuse at it).
+            client.session.put("robot/pose", Pose2D(stamp=104.0, x=1.0, y=0.0, yaw=0.0).pack())
+            time.sleep(0.2)
             client.publish_image("cam", textured_image(60, 80, seed=9), stamp=104.0)
             assert wait_until(lambda: grids[-1].header.resets == 1, 15)
             assert "anchor set changed" in grids[-1].header.last_reset
             assert len(client.cell("cam", 2.7, 0.0).weights) == 2
+            # A frame taken long after the last pose finds none: not fused, and the status says why.
+            changed = np.full((60, 80, 3), 220, np.uint8)  # a new view (an unchanged one is reused, never fused)
+            client.publish_image("cam", changed, stamp=110.0)
+            assert wait_until(lambda: client.status().grids[0].not_fused_by_reason == {"pose_too_old": 1}, 15)
+            status = client.status()
+            grid_status = status.grids[0]
+            assert grid_status.source == "cam" and grid_status.fused == 4 and grid_status.frame_id == "odom"
+            assert grid_status.newest_fused_stamp == 104.0 and grid_status.cameras["cam"].not_fused == "pose_too_old"
+            assert grid_status.cameras["cam"].intrinsics == "settings" and grid_status.costmap_ago_s is not None
+            assert "cam (" in status_table([status]) and "pose_too_old 1" in status_table([status])
         finally:
             for subscription in subscriptions:
                 subscription.undeclare()

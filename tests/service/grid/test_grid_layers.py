@@ -369,9 +369,10 @@ def test_the_nav2_example_subscribes_the_topic_the_service_publishes() -> None:
     examples = Path(__file__).resolve().parents[3] / "examples" / "nav2"
     settings = load_settings(examples / "gcdtrav.yaml", environ={})
     (grid,) = settings.grids
-    assert grid.costmap and grid.grid_map and grid.pose_format == "odometry"
+    assert grid.costmap and grid.grid_map and grid.tf is not None and grid.tf.mount and grid.tf.pose
     costmap = yaml.safe_load((examples / "nav2_costmap.yaml").read_text())["local_costmap"]["local_costmap"]
     parameters = costmap["ros__parameters"]
+    assert parameters["global_frame"] == grid.tf.odom_frame  # the grid's frame, the pose's from tf
     topic = output_topic(settings.ros_output.costmap_topic, "/" + grid.source)
     assert parameters["gcdtrav_layer"]["map_topic"] == topic == "/camera/front/image_raw/gcdtrav/grid/costmap"
     assert parameters["gcdtrav_layer"]["map_subscribe_transient_local"] is True

@@ -2,19 +2,26 @@
 
 from __future__ import annotations
 
+import tempfile
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import numpy as np
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.images import encode_png
 from gcdtrav.schemas.inputs import DecodedFrame
+from gcdtrav.schemas.keys import Keys
+from gcdtrav.schemas.messages import CreditGrant, MapsMessage
+from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.backends.base import BackendDescription
 from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.runtime.assembly import Runtime
 from gcdtrav.service.runtime.frames import InferredFrame, PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.history import FrameHistory
+from gcdtrav.service.runtime.outputs import Output
 from numpy.typing import NDArray
 
 MAP_SIDE = 8
@@ -75,3 +82,77 @@ def processed(source: str = "r1/front", height: int = 48, width: int = 64) -> Pr
     result = run.finish(inferred.inference)
     record = FrameHistory(2).record(source, result.maps.weights, result.anchors, 12.5, "cam", (width, height))
     return ProcessedFrame(inferred, result, record)
+
+
+class RecordingSink:
+    """The outputs' sink of the assembled runtime, as the bus's FrameOutputs but recording what it is given."""
+
+    def __init__(self, prefix: str = "gcdtrav") -> None:
+        self.keys = Keys(prefix)
+        self.put_by_source: list[tuple[str, list[Output]]] = []
+        self.forgotten: list[str] = []
+        self.closed = False  # then it refuses, as the bus's outputs do after shutdown
+
+    def wants_compact(self, source: str) -> bool:
+        return False
+
+    def put(self, source: str, outputs: list[Output]) -> bool:
+        if self.closed:
+            return False
+        self.put_by_source.append((source, outputs))
+        return True
+
+    def forget(self, source: str) -> None:
+        self.forgotten.append(source)
+
+    @property
+    def sources(self) -> list[str]:
+        """The sources whose payloads were put, in order."""
+        return [source for source, _ in self.put_by_source]
+
+    def maps(self) -> list[MapsMessage]:
+        """The maps messages put, in order."""
+        return [
+            MapsMessage.unpack(output.payload)
+            for source, outputs in self.put_by_source
+            for output in outputs
+            if output.key == self.keys.maps(source)
+        ]
+
+
+class RecordingCredits:
+    """The credits' sink of the assembled runtime, recording the grants."""
+
+    def __init__(self) -> None:
+        self.grants: list[CreditGrant] = []
+
+    def put(self, source: str, grant: CreditGrant) -> bool:
+        self.grants.append(grant)
+        return True
+
+    def forget(self, source: str) -> None:
+        pass
+
+
+def assembled(
+    settings: ServiceSettings,
+    run: Pipeline | None = None,
+    clock: Callable[[], float] = time.monotonic,
+    owns: Callable[[str], bool] = lambda source: True,
+) -> tuple[Runtime, RecordingSink, RecordingCredits]:
+    """The runtime as the service assembles it (``Runtime.build``), with recording sinks instead of zenoh; its
+    anchor state in a new temporary folder unless ``settings`` name one."""
+    if "state_dir" not in settings.model_fields_set:
+        settings = settings.model_copy(update={"state_dir": Path(tempfile.mkdtemp(prefix="gcdtrav-test-state-"))})
+    sink, credits = RecordingSink(settings.prefix), RecordingCredits()
+    return Runtime.build(settings, run or pipeline(), sink, credits, owns, clock=clock), sink, credits
+
+
+def offer(runtime: Runtime, pending: PendingFrame, publisher: str | None = None) -> bool:
+    """``pending`` offered as the bus's subscriber offers a sample: the rate check, then admission."""
+    if not runtime.admission.admit(publisher):
+        return False
+    payload = pending.payload
+    return runtime.admission.offer(
+        pending.source, pending.key, len(payload), lambda: payload, pending.encoding, pending.ros, publisher
+    )

@@ -3,20 +3,13 @@ invented names can neither fill the slots nor keep a real robot's first frame ou
 
 from __future__ import annotations
 
-import logging
-
 import pytest
-from fakes import image, pipeline
+from fakes import assembled, image
 from gcdtrav.schemas.images import encode_png
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.runtime.admission import Admission
 from gcdtrav.service.runtime.candidates import CandidatePool, over_publisher_cap
-from gcdtrav.service.runtime.frames import PendingFrame
-from gcdtrav.service.runtime.history import FrameHistory
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.sources import SourcesFull, SourceTracker
-from gcdtrav.service.runtime.stats import REFUSED_SOURCES, ServiceStats
-from gcdtrav.service.runtime.worker import FrameWorker
+from gcdtrav.service.runtime.stats import REFUSED_SOURCES
 
 PNG = encode_png(image(16, 16))
 GARBAGE = b"\x89PNG not really"
@@ -31,32 +24,19 @@ class FakeClock:
 
 
 class Service:
-    """Admission, queue, tracker and a worker driven one frame at a time (no threads)."""
+    """The runtime as the service assembles it, its worker driven one frame at a time (no threads; no glance:
+    every frame goes straight to inference, taken in round robin)."""
 
     def __init__(self, clock: FakeClock | None = None, **settings: object) -> None:
+        settings = {"reuse": {"enabled": False}, "schedule": {"policy": "round_robin"}} | settings
         self.settings = ServiceSettings(max_frame_age_s=None, **settings)  # type: ignore[arg-type]
-        self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue()
-        self.stats = ServiceStats(logging.getLogger("test"))
-        self.published: list[str] = []
-        forget = (self.queue.forget, self.stats.forget)
-        self.sources = SourceTracker(
-            self.settings.max_sources,
-            self.settings.source_idle_s,
-            forget,
-            clock=clock or FakeClock(),
-            reclaim_after_s=self.settings.reclaim_after_s,
-        )
-        self.admission = Admission(self.settings, self.sources, self.queue, self.stats)
-        self.worker = FrameWorker(
-            self.queue,
-            pipeline(),
-            FrameHistory(2),
-            self.stats,
-            self.sources,
-            self.settings,
-            lambda done: self.published.append(done.source) or True,
-            admission=self.admission,
-        )
+        runtime, self.sink, _ = assembled(self.settings, clock=clock or FakeClock())
+        self.queue, self.stats, self.sources = runtime.queue, runtime.stats, runtime.sources
+        self.admission, self.worker = runtime.admission, runtime.worker
+
+    @property
+    def published(self) -> list[str]:
+        return self.sink.sources
 
     def offer(self, source: str, payload: bytes = PNG, publisher: str | None = None) -> bool:
         return self.admission.offer(

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import msgpack
 import pytest
-from gcdtrav.client.relay.ros_camera import compressed_image_cdr
 from gcdtrav.schemas.messages import CreditGrant, ImageEnvelope
+from gcdtrav.schemas.ros_image import compressed_image_cdr, peek_stamp
 from gcdtrav.service.runtime.credits import REFUSED, STALE, TAKEN, CreditLedger, FrameTimes
-from gcdtrav.service.runtime.frame_age import input_times, ros_header_stamp
+from gcdtrav.service.runtime.frame_age import input_times
 
 
 def ledger(**kw: object) -> CreditLedger:
@@ -59,5 +59,5 @@ def test_input_times_read_without_decoding() -> None:
     assert input_times(b"\x81\xa5stamp\xa3bad", "", ros=False).stamp is None  # a string: no stamp
     assert input_times(b"\xde\x00", "", ros=False).stamp is None  # truncated msgpack: the decoder will say why
     assert input_times(compressed_image_cdr(b"\xff\xd8", 7.25), "", ros=True).stamp == pytest.approx(7.25)
-    assert ros_header_stamp(b"\x00\x01\x00\x00\x01") is None  # truncated
-    assert ros_header_stamp(b"garbage-garbage-") is None
+    assert peek_stamp(b"\x00\x01\x00\x00\x01") is None  # truncated
+    assert peek_stamp(b"garbage-garbage-") is None

@@ -7,18 +7,12 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from fakes import pipeline, png_frame, processed
+from fakes import assembled, png_frame, processed
 from gcdtrav.schemas.messages import GridMessage
-from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.schemas.settings import ReuseSettings, ServiceSettings
 from gcdtrav.service.runtime.change import Glance
-from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.grids import GridOutputs
-from gcdtrav.service.runtime.history import FrameHistory
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.outputs import FramePublisher, Output, OutputBuilder
-from gcdtrav.service.runtime.sources import SourceTracker
-from gcdtrav.service.runtime.stats import ServiceStats
-from gcdtrav.service.runtime.worker import FrameWorker
 
 LOG = __import__("logging").getLogger("test")
 GRID = {
@@ -53,31 +47,25 @@ class Sink:
 
 
 def test_the_worker_fuses_the_grid_of_a_camera_and_hands_the_fused_grid_on() -> None:
-    config = settings()
-    grids = GridOutputs(config.grids, 13, "test", config.risk)
-    queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue()
-    published: list[ProcessedFrame] = []
-
-    def publish(done: ProcessedFrame) -> bool:
-        published.append(done)
-        return True
-
-    history, stats = FrameHistory(2), ServiceStats(LOG)
-    worker = FrameWorker(queue, pipeline(), history, stats, SourceTracker(8, 60), config, publish, grids=grids)
+    config = settings().model_copy(update={"reuse": ReuseSettings(enabled=False)})
+    runtime, sink, _ = assembled(config)
+    grids, queue, worker = runtime.grids, runtime.queue, runtime.worker
+    assert grids is not None
     worker.start()
     try:
         queue.put("cam", png_frame("cam"))
         queue.put("other", png_frame("other"))
         deadline = time.monotonic() + 10
-        while len(published) < 2 and time.monotonic() < deadline:
+        while len(sink.put_by_source) < 2 and time.monotonic() < deadline:
             time.sleep(0.01)
     finally:
         worker.stop(time.monotonic() + 5)
-    by_source = {done.source: done for done in published}
-    assert by_source["other"].grid is None  # no grid fed by that camera
-    fused = by_source["cam"].grid
-    assert fused is not None and fused.header.seq == 0 and grids.sources["cam"].seq == 0
-    assert fused.header.anchor_set_version == by_source["cam"].result.anchors.version
+    by_source = {source: {output.key: output for output in outputs} for source, outputs in sink.put_by_source}
+    assert sink.keys.grid("other") not in by_source["other"]  # no grid fed by that camera
+    fused = GridMessage.unpack(by_source["cam"][sink.keys.grid("cam")].payload)
+    assert fused.header.seq == 0 and grids.sources["cam"].seq == 0
+    maps = next(maps for maps in sink.maps() if maps.header.source == "cam")
+    assert fused.header.anchor_set_version == maps.header.anchor_set_version
 
 
 def test_the_outputs_only_encode_the_grid_the_worker_fused() -> None:

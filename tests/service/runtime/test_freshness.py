@@ -6,19 +6,13 @@ import time
 from dataclasses import replace
 
 import pytest
-from fakes import image, pipeline, png_frame
+from fakes import assembled, image, png_frame
 from gcdtrav.schemas.images import encode_png
 from gcdtrav.schemas.inputs import DecodedFrame, RejectedInput
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
+from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.freshness import ClockMode, Dropped, FrameGate, Freshness, check_stamp
-from gcdtrav.service.runtime.history import FrameHistory
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
-from gcdtrav.service.runtime.progress import ProgressMonitor
-from gcdtrav.service.runtime.sources import SourceTracker
-from gcdtrav.service.runtime.stats import ServiceStats
-from gcdtrav.service.runtime.worker import FrameWorker
 
 LOG = __import__("logging").getLogger("test")
 
@@ -66,15 +60,6 @@ def test_gate_drops_frames_of_other_instances_and_frames_too_old() -> None:
         gate.before_inference(frame, DecodedFrame(image(), float("nan"), ""))
 
 
-class Outputs:
-    def __init__(self) -> None:
-        self.published: list[ProcessedFrame] = []
-
-    def publish(self, done: ProcessedFrame) -> bool:
-        self.published.append(done)
-        return True
-
-
 def envelope_frame(source: str, stamp: float, received_at: float) -> PendingFrame:
     rgb = image()
     payload = ImageEnvelope(
@@ -84,22 +69,11 @@ def envelope_frame(source: str, stamp: float, received_at: float) -> PendingFram
 
 
 def test_worker_counts_each_gated_frame_and_publishes_only_the_good_one() -> None:
-    queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue()
-    stats, outputs = ServiceStats(LOG), Outputs()
-    settings = ServiceSettings(max_frame_age_s=2.0, max_stamp_skew_s=60.0)
-    gate = FrameGate(lambda source: source != "moved", Freshness.from_settings(settings))
-    progress = ProgressMonitor(settings.stall_after_s)
-    frames = FrameWorker(
-        queue,
-        pipeline(),
-        FrameHistory(2),
-        stats,
-        SourceTracker(8, 60),
-        settings,
-        outputs.publish,
-        progress=progress,
-        gate=gate,
+    settings = ServiceSettings(
+        max_frame_age_s=2.0, max_stamp_skew_s=60.0, reuse={"enabled": False}, schedule={"policy": "round_robin"}
     )
+    runtime, sink, _ = assembled(settings, owns=lambda source: source != "moved")
+    queue, stats, frames = runtime.queue, runtime.stats, runtime.worker
     now = time.time()
     queue.put("good", envelope_frame("good", now, now))
     queue.put("old", envelope_frame("old", now - 30, now - 30))  # e.g. queued before a SIGSTOP
@@ -113,10 +87,10 @@ def test_worker_counts_each_gated_frame_and_publishes_only_the_good_one() -> Non
         time.sleep(0.01)
     assert frames.stop(time.monotonic() + 10)
     snapshot = stats.snapshot(queue.counters())
-    assert [done.source for done in outputs.published] == ["good"]
+    assert [maps.header.source for maps in sink.maps()] == ["good"]
     assert snapshot.dropped_by_reason == {"stale": 2, "not_owner": 1}
     assert snapshot.rejected_by_reason == {"bad_stamp": 1}
-    assert outputs.published[0].image.stamp == now
+    assert sink.maps()[0].header.stamp == now
 
 
 @pytest.mark.parametrize("clock", ["estimated", "synced"])

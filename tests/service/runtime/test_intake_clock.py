@@ -3,27 +3,18 @@ stamps, bare images) and one publisher flooding: what is queued, what is refused
 
 from __future__ import annotations
 
-import logging
 import time
 from collections.abc import Callable
 
 import pytest
-from fakes import Clock, image, pipeline
-from gcdtrav.client.relay.ros_camera import compressed_image_cdr
+from fakes import Clock, assembled, image
 from gcdtrav.schemas.images import encode_jpeg, encode_png
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
+from gcdtrav.schemas.ros_image import compressed_image_cdr
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros.cdr import RosTopic
-from gcdtrav.service.runtime.admission import Admission
-from gcdtrav.service.runtime.credits import REFUSED, STALE, FrameTimes
-from gcdtrav.service.runtime.frames import PendingFrame
-from gcdtrav.service.runtime.freshness import FrameGate, Freshness
-from gcdtrav.service.runtime.history import FrameHistory
+from gcdtrav.service.runtime.credits import REFUSED, STALE
 from gcdtrav.service.runtime.intake_rate import MAX_PUBLISHERS, IntakeRate
-from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
-from gcdtrav.service.runtime.sources import SourceTracker
-from gcdtrav.service.runtime.stats import ServiceStats
-from gcdtrav.service.runtime.worker import FrameWorker
 
 HOUR = 3600.0
 RGB = image(16, 16)
@@ -31,32 +22,23 @@ COMPRESSED = RosTopic("/cam/image/compressed", "sensor_msgs/msg/CompressedImage"
 
 
 class Service:
-    """Admission, one freshness rule, the gate and a worker driven one frame at a time (no threads)."""
+    """The runtime as the service assembles it, its worker driven one frame at a time (no threads; no glance:
+    every frame goes straight to inference)."""
 
     def __init__(self, tracker_clock: Callable[[], float] = time.monotonic, **settings: object) -> None:
+        settings = {"reuse": {"enabled": False}, "schedule": {"policy": "round_robin"}} | settings
         self.settings = ServiceSettings(**settings)  # type: ignore[arg-type]
-        self.queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue()
-        self.stats = ServiceStats(logging.getLogger("test"))
-        self.freshness = Freshness.from_settings(self.settings)
-        self.freed: list[tuple[str, str]] = []
-        self.published: list[tuple[str, float]] = []
-        forget = (self.queue.forget, self.stats.forget, self.freshness.offsets.forget)
-        self.sources = SourceTracker(8, 60, forget, clock=tracker_clock)
-        self.admission = Admission(self.settings, self.sources, self.queue, self.stats, self.freed_slot, self.freshness)
-        self.worker = FrameWorker(
-            self.queue,
-            pipeline(),
-            FrameHistory(2),
-            self.stats,
-            self.sources,
-            self.settings,
-            lambda done: self.published.append((done.source, done.image.stamp)) or True,
-            gate=FrameGate(lambda source: True, self.freshness),
-            admission=self.admission,
-        )
+        runtime, self.sink, self.credits = assembled(self.settings, clock=tracker_clock)
+        self.queue, self.stats, self.freshness = runtime.queue, runtime.stats, runtime.freshness
+        self.sources, self.admission, self.worker = runtime.sources, runtime.admission, runtime.worker
 
-    def freed_slot(self, source: str, reason: str, times: FrameTimes | None) -> None:
-        self.freed.append((source, reason))
+    @property
+    def freed(self) -> list[tuple[str, str]]:
+        return [(grant.source, grant.reason) for grant in self.credits.grants]
+
+    @property
+    def published(self) -> list[tuple[str, float]]:
+        return [(maps.header.source, maps.header.stamp) for maps in self.sink.maps()]
 
     def envelope(self, source: str, stamp: float) -> bool:
         payload = ImageEnvelope(

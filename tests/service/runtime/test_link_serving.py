@@ -7,20 +7,18 @@ import time
 
 import numpy as np
 import pytest
-from fakes import MAP_SIDE, pipeline, processed
+from fakes import MAP_SIDE, assembled, processed
 from gcdtrav.client.client import Maps
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.runtime.admission import Admission
 from gcdtrav.service.runtime.credits import FrameTimes
-from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
-from gcdtrav.service.runtime.history import FrameHistory
+from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.outputs import OutputBuilder
 from gcdtrav.service.runtime.sources import SourceTracker
 from gcdtrav.service.runtime.stats import ServiceStats
-from gcdtrav.service.runtime.worker import FrameWorker
 
 LOG = __import__("logging").getLogger("test")
 JPEG = encode_jpeg(np.full((48, 64, 3), 100, np.uint8))
@@ -72,17 +70,10 @@ def test_a_refused_frame_frees_the_slot_too() -> None:
 
 
 def test_the_worker_grants_at_take_and_drops_what_waited_too_long() -> None:
-    queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue()
-    stats, published, taken = ServiceStats(LOG), [], []
-    settings = ServiceSettings(max_frame_age_s=1.0)
-
-    def publish(done: ProcessedFrame) -> bool:
-        published.append(done)
-        return True
-
-    worker = FrameWorker(
-        queue, pipeline(), FrameHistory(2), stats, SourceTracker(8, 60), settings, publish, taken.append
-    )
+    settings = ServiceSettings(max_frame_age_s=1.0, reuse={"enabled": False}, schedule={"policy": "round_robin"})
+    runtime, sink, credits = assembled(settings)
+    queue, stats, worker = runtime.queue, runtime.stats, runtime.worker
+    taken, published = credits.grants, sink.put_by_source
     # Admitted fresh (lag 0.5 s), but it waited in the queue for 3 s: stale at take.
     waited = PendingFrame("r1", "gcdtrav/in/r1", envelope(0.0), "application/msgpack", time.time() - 3.0, lag_s=0.5)
     queue.put("r1", waited)

@@ -22,6 +22,7 @@ from gcdtrav.service.runtime.reuse import (
     ReuseTracker,
     Verdict,
 )
+from gcdtrav.service.runtime.share import Claim, FrameClass, Need
 from scenes import flicker, jpeg_frame, noisy, scene, with_person
 
 LIMITS = (20_000_000, 40_000_000)
@@ -140,13 +141,31 @@ def test_motion_follows_the_view_or_the_pose() -> None:
     for k in range(10):
         still.frame(noisy(scene(), 5.0, k))
         moving.frame(scene(shift=8 * k))
-    assert still.tracker.motion("r1") == 0.0
-    assert moving.tracker.motion("r1") > 0.5
+    assert still.tracker.need("r1").motion == 0.0
+    assert moving.tracker.need("r1").motion > 0.5
     driving = Robot(with_pose=True)
     for k in range(10):
         driving.pose = Pose2D(stamp=0.2 * (k + 1), x=0.1 * (k + 1), y=0.0, yaw=0.0)  # 0.5 m/s
         driving.frame(scene())
-    assert driving.tracker.motion("r1") > 0.5  # from the pose, though the view never changes
+    assert driving.tracker.need("r1").motion > 0.5  # from the pose, though the view never changes
+    assert driving.frame(scene()).need == driving.tracker.need("r1")  # the verdict carries the need
+
+
+def test_the_verdict_s_claim_is_the_frame_s_class_and_the_source_s_need() -> None:
+    """What the scheduler reads from the frame: reused (no claim), refresh, urgent or news, and the need with
+    the ambiguity ahead of the last inferred maps."""
+    robot, view = Robot(ReuseSettings(max_reuse_s=1.0)), scene()
+    assert robot.frame(view).claim == Claim(FrameClass.NEWS, Need(0.0, 0.0))
+    robot.tracker.inferred("r1", jpeg_frame(view), view, robot.anchors, ambiguity=0.4)
+    assert robot.frame(view).claim is None  # reused
+    assert [robot.frame(noisy(view, 6.0, k)).reason for k in range(4)] == [UNCHANGED] * 3 + [MAX_REUSE]
+    refresh = robot.frame(view, after_s=1.1)
+    assert refresh.reason == MAX_REUSE and refresh.claim == Claim(FrameClass.REFRESH, Need(0.0, 0.0))
+    robot.tracker.inferred("r1", jpeg_frame(view), view, robot.anchors, ambiguity=0.4)
+    urgent = robot.frame(with_person(view))
+    assert urgent.claim is not None and urgent.claim.kind is FrameClass.URGENT
+    assert urgent.claim.need.ambiguity == 0.4 and urgent.claim.need.motion > 0
+    assert robot.frame(np.roll(view, 24, axis=1)).claim.kind is FrameClass.NEWS  # type: ignore[union-attr]
 
 
 def test_forget_starts_the_source_again() -> None:

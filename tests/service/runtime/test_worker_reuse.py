@@ -12,64 +12,59 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from fakes import Clock, pipeline, processed
+from fakes import Clock, RecordingCredits, RecordingSink, assembled, pipeline, processed
 from gcdtrav.schemas.messages import MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.pipeline import Inference
+from gcdtrav.service.pipeline import Inference, Pipeline
 from gcdtrav.service.runtime.change import Glance
-from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
+from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.grids import GridOutputs
-from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.outputs import OutputBuilder
-from gcdtrav.service.runtime.progress import ProgressMonitor
-from gcdtrav.service.runtime.reuse import ReuseTracker
-from gcdtrav.service.runtime.share import policy_for
-from gcdtrav.service.runtime.sources import SourceTracker
+from gcdtrav.service.runtime.reuse import ReuseTracker, Triage
+from gcdtrav.service.runtime.share import Claim, FrameClass, policy_for
 from gcdtrav.service.runtime.stats import ServiceStats
-from gcdtrav.service.runtime.triage import Triage
-from gcdtrav.service.runtime.worker import FrameWorker
 from scenes import jpeg_frame, noisy, scene, with_person
 
 LOG = __import__("logging").getLogger("test")
 
 
 class Outputs:
+    """The triage's hand-off and credits, recorded (for the triage driven by hand)."""
+
     def __init__(self) -> None:
-        self.inferred: list[ProcessedFrame] = []
         self.reused: list[tuple[PendingFrame, Glance]] = []
         self.freed: list[str] = []
-
-    def publish(self, done: ProcessedFrame) -> bool:
-        self.inferred.append(done)
-        return True
 
     def republish(self, pending: PendingFrame, seen: Glance) -> bool:
         self.reused.append((pending, seen))
         return True
 
 
-def serving(progress: ProgressMonitor | None = None, run=None, **settings: object):  # type: ignore[no-untyped-def]
-    config = ServiceSettings.model_validate(settings)
-    stats, outputs = ServiceStats(LOG), Outputs()
-    run = run or pipeline()
-    tracker = ReuseTracker(config.reuse, config.schedule, anchors_version=lambda: run.anchors.version)
-    queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
-        policy=policy_for(config.schedule, tracker.motion), triage=True
-    )
-    triage = Triage(queue, tracker, config, stats, outputs.republish, lambda p, reason: outputs.freed.append(reason))
-    worker = FrameWorker(
-        queue,
-        run,
-        FrameHistory(2),
-        stats,
-        SourceTracker(8, 60),
-        config,
-        outputs.publish,
-        progress=progress,
-        triage=triage,
-    )
-    return worker, queue, stats, outputs
+class Answers:
+    """What the assembled runtime's sinks were given: maps inferred, maps reused (``computed_from`` set) and the
+    reasons of the credits granted without taking the frame (unchanged, refresh)."""
+
+    def __init__(self, sink: RecordingSink, credits: RecordingCredits) -> None:
+        self.sink, self.credits = sink, credits
+
+    @property
+    def inferred(self) -> list[MapsMessage]:
+        return [maps for maps in self.sink.maps() if maps.header.computed_from is None]
+
+    @property
+    def reused(self) -> list[MapsMessage]:
+        return [maps for maps in self.sink.maps() if maps.header.computed_from is not None]
+
+    @property
+    def freed(self) -> list[str]:
+        return [grant.reason for grant in self.credits.grants if grant.reason != "taken"]
+
+
+def serving(run: Pipeline | None = None, **settings: object):  # type: ignore[no-untyped-def]
+    """The runtime as the service assembles it (the glance, the need share, the worker, the hand-off out)."""
+    runtime, sink, credits = assembled(ServiceSettings.model_validate(settings), run)
+    return runtime.worker, runtime.queue, runtime.stats, Answers(sink, credits)
 
 
 def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
@@ -79,7 +74,7 @@ def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
     assert condition()
 
 
-def feed(queue: LatestFrameQueue[PendingFrame], outputs: Outputs, frames: list[np.ndarray], source: str = "r1") -> None:
+def feed(queue: LatestFrameQueue[PendingFrame], outputs: Answers, frames: list[np.ndarray], source: str = "r1") -> None:
     """One frame at a time, each answered (inferred or reused) before the next: a robot on credits."""
 
     def answered() -> int:
@@ -126,13 +121,17 @@ def test_reuse_off_infers_every_frame() -> None:
 
 
 def test_a_refresh_is_marked_for_the_scheduler_and_news_is_not(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The scheduler lets a refresh (max_reuse_s reached, the view unchanged) yield; the triage says which."""
+    """The scheduler lets a refresh (max_reuse_s reached, the view unchanged) yield; the triage's claim says
+    which."""
     worker, queue, _, outputs = serving(reuse={"max_reuse_s": 0.2})
     marks: list[bool] = []
-    mark = queue.policy.mark_refresh
-    monkeypatch.setattr(
-        queue.policy, "mark_refresh", lambda source, refresh: (marks.append(refresh), mark(source, refresh))
-    )
+    settle = queue.settle
+
+    def marking(source: str, item: PendingFrame, claim: Claim | None) -> bool:
+        marks.extend([] if claim is None else [claim.kind is FrameClass.REFRESH])
+        return settle(source, item, claim)
+
+    monkeypatch.setattr(queue, "settle", marking)
     worker.start()
     view = scene()
     try:
@@ -179,8 +178,8 @@ def test_a_hung_inference_is_seen_while_parked_views_are_still_answered() -> Non
         return infer(image)
 
     run.infer = hanging_infer  # type: ignore[method-assign]
-    progress = ProgressMonitor(stall_after_s=0.3)
-    worker, queue, _, outputs = serving(progress=progress, run=run)
+    worker, queue, _, outputs = serving(run=run, stall_after_s=0.3)
+    progress = worker.progress
     worker.start()
     view, stalled = scene(), []
     try:
@@ -210,7 +209,7 @@ def test_unchanged_frames_take_a_waiting_refresh_s_place_and_the_replaced_one_is
     clock, stats, outputs = Clock(), ServiceStats(LOG), Outputs()
     tracker = ReuseTracker(config.reuse, config.schedule, clock=clock)
     queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
-        policy=policy_for(config.schedule, tracker.motion), triage=True, clock=clock
+        policy=policy_for(config.schedule), triage=True, clock=clock
     )
     triage = Triage(queue, tracker, config, stats, outputs.republish, lambda p, reason: outputs.freed.append(reason))
     view, answered = scene(), []
@@ -242,7 +241,7 @@ def test_unchanged_frames_take_a_waiting_refresh_s_place_and_the_replaced_one_is
 def test_an_unchanged_frame_behind_a_refresh_taken_meanwhile_is_answered_itself() -> None:
     queue: LatestFrameQueue[str] = LatestFrameQueue(triage=True)
     queue.put("a", "refresh")
-    assert queue.take_untriaged(0) == ("a", "refresh") and queue.settle("a", "refresh", reused=False)
+    assert queue.take_untriaged(0) == ("a", "refresh") and queue.settle("a", "refresh", Claim(FrameClass.REFRESH))
     queue.put("a", "next")
     assert queue.take_untriaged(0) == ("a", "next")
     assert queue.take(0) == ("a", "refresh")  # the worker took the refresh between the glance and its verdict
@@ -257,8 +256,9 @@ def test_an_unchanged_frame_behind_a_refresh_taken_meanwhile_is_answered_itself(
 )
 def test_fleets_under_load_are_accounted_for(kinds: tuple[str, ...]) -> None:
     """Several sources streaming faster than the answers: replaced frames are dropped, none lost; a parked
-    source is inferred once (well within max_reuse_s), a moving one at every turn it gets."""
-    worker, queue, stats, _ = serving()
+    source is inferred once (well within max_reuse_s, however slow the host), a moving one at every turn it
+    gets."""
+    worker, queue, stats, _ = serving(reuse={"max_reuse_s": 3600.0})
     worker.start()
     try:
         for k in range(30):

@@ -1,0 +1,187 @@
+"""The zenoh-free runtime assembled in one place: ``Runtime.build`` makes every part and hands each the others
+it needs, so the service (service/bus/node.py wires zenoh to it) and the tests run the same assembly.
+
+What the bus provides: where a frame's payloads go (``sink``, service/bus/outputs.py), where the credits go
+(``credit_sink``, service/bus/credits.py) and whether this instance owns a source (``owns``, the fleet's
+membership). What it calls: ``admission`` from its subscribers (``admit``, then ``offer``), the parts the
+queryables answer from (``history``, ``grids``, ``anchor_switch``), ``status_parts`` for the status query,
+``assignment`` for the membership and ``worker`` to start and stop.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+from gcdtrav.schemas.settings import ServiceSettings
+from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.runtime.admission import Admission
+from gcdtrav.service.runtime.anchor_switch import AnchorSwitch
+from gcdtrav.service.runtime.assignment import TABLE_IDLE_S, Assignment
+from gcdtrav.service.runtime.credits import CreditLedger, Credits, CreditSink
+from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.service.runtime.freshness import FrameGate, Freshness
+from gcdtrav.service.runtime.grids import GridOutputs
+from gcdtrav.service.runtime.history import FrameHistory
+from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
+from gcdtrav.service.runtime.outputs import FramePublisher, OutputBuilder, OutputSink
+from gcdtrav.service.runtime.progress import ProgressMonitor
+from gcdtrav.service.runtime.reuse import ReuseTracker, Triage
+from gcdtrav.service.runtime.share import policy_for
+from gcdtrav.service.runtime.sources import SourceTracker
+from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.runtime.status import StatusParts
+from gcdtrav.service.runtime.worker import FrameWorker
+
+log = logging.getLogger("gcdtrav.service")
+
+
+class Sink(OutputSink, Protocol):
+    """The outputs' sink, which also forgets a source's publishers when the source goes."""
+
+    def forget(self, source: str) -> None: ...
+
+
+@dataclass(frozen=True)
+class Runtime:
+    """Every part of the runtime, as ``build`` wired them."""
+
+    settings: ServiceSettings
+    pipeline: Pipeline
+    stats: ServiceStats
+    history: FrameHistory
+    anchor_switch: AnchorSwitch
+    grids: GridOutputs | None
+    reuse: ReuseTracker
+    queue: LatestFrameQueue[PendingFrame]
+    freshness: Freshness  # the one judge of a frame's age
+    credits: Credits
+    publisher: FramePublisher  # the one hand-off out
+    sources: SourceTracker
+    admission: Admission
+    assignment: Assignment
+    progress: ProgressMonitor
+    status_parts: StatusParts
+    worker: FrameWorker
+
+    @classmethod
+    def build(
+        cls,
+        settings: ServiceSettings,
+        pipeline: Pipeline,
+        sink: Sink,
+        credit_sink: CreditSink,
+        owns: Callable[[str], bool],
+        stats: ServiceStats | None = None,
+        started_at: float | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> Runtime:
+        """The runtime of ``settings``; ``stats``: shared with the bus (its refusals are counted there too);
+        ``started_at``: wall-clock seconds, for the status's uptime (None: now); ``clock``: the sources'
+        idleness is timed by it (monotonic seconds)."""
+        stats = stats or ServiceStats(log, settings.source_idle_s)
+        history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
+        switch = AnchorSwitch(pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes)
+        grids = (
+            GridOutputs(
+                settings.grids,
+                len(switch.head().anchor_set),
+                settings.instance,
+                settings.risk,
+                clock_mode=settings.clock,
+            )
+            if settings.grids
+            else None
+        )
+        reuse, queue = _schedule(settings, grids, switch)
+        freshness = Freshness.from_settings(settings, log)
+        backend = pipeline.describe()
+        credits = Credits(CreditLedger(settings.instance, backend.input_size, freshness.max_age_s), stats, credit_sink)
+        # the one hand-off out: encoded here, put by the sink, the credits told
+        publisher = FramePublisher(OutputBuilder(settings, backend.model_id), sink, credits.published)
+        forget = (
+            queue.forget,
+            history.forget,
+            stats.forget,
+            sink.forget,
+            publisher.forget,
+            credits.forget,
+            freshness.offsets.forget,
+            reuse.forget,
+        )
+        sources = SourceTracker(
+            settings.max_sources, settings.source_idle_s, forget, clock, reclaim_after_s=settings.reclaim_after_s
+        )
+        admission = Admission(settings, sources, queue, stats, credits.freed, freshness)
+        progress = ProgressMonitor(settings.stall_after_s)
+        status_parts = StatusParts(
+            settings.instance,
+            time.time() if started_at is None else started_at,
+            pipeline,
+            switch,
+            queue,
+            history,
+            stats,
+            sources,
+            progress,
+            freshness.offsets,
+            grids,
+        )
+        triage = Triage(queue, reuse, settings, stats, publisher.republish, credits.answered) if queue.triage else None
+        worker = FrameWorker(
+            queue,
+            pipeline,
+            history,
+            stats,
+            sources,
+            settings,
+            publisher,
+            credits.taken,
+            progress,
+            FrameGate(owns, freshness),
+            admission,
+            triage,
+            grids=grids,
+        )
+        idle = min(settings.source_idle_s, TABLE_IDLE_S)  # the table's memory, not the source's state
+        assignment = Assignment(idle_s=idle, max_known=4 * settings.max_sources)
+        return cls(
+            settings,
+            pipeline,
+            stats,
+            history,
+            switch,
+            grids,
+            reuse,
+            queue,
+            freshness,
+            credits,
+            publisher,
+            sources,
+            admission,
+            assignment,
+            progress,
+            status_parts,
+            worker,
+        )
+
+
+def _schedule(
+    settings: ServiceSettings, grids: GridOutputs | None, switch: AnchorSwitch
+) -> tuple[ReuseTracker, LatestFrameQueue[PendingFrame]]:
+    """The reuse's tracker (poses from the grids) and the queue with the schedule's policy."""
+    reuse = ReuseTracker(
+        settings.reuse,
+        settings.schedule,
+        grids.pose_of if grids else lambda source: None,
+        anchors_version=lambda: switch.head().version,
+    )
+    queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(
+        round(settings.pending_budget_mb * 1e6),
+        policy=policy_for(settings.schedule),
+        triage=settings.reuse.enabled or settings.schedule.policy == "need",
+    )
+    return reuse, queue

@@ -1,0 +1,28 @@
+"""A query nothing answers says what happened: ended at once by zenoh, or timed out; never 'within 5 s' after 1 s."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+from gcdtrav.client import QueryTimeout, TraversabilityClient
+from gcdtrav.client.client import no_reply_message
+from gcdtrav.client.session.zenoh_args import zenoh_config
+from zenoh_helpers import free_port
+
+
+def test_a_query_ended_early_does_not_claim_the_whole_timeout() -> None:
+    assert "within" not in no_reply_message("gcdtrav/status", 5.0, 1.2)
+    assert "ended after 1.2 s" in no_reply_message("gcdtrav/status", 5.0, 1.2)
+    assert "within 5 s" in no_reply_message("gcdtrav/status", 5.0, 5.0)
+
+
+def test_no_service_on_loopback_names_what_really_happened() -> None:
+    config = zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{free_port()}"], multicast_scouting=False)
+    with TraversabilityClient(config=config, timeout=5.0) as client:
+        started = time.monotonic()
+        with pytest.raises(QueryTimeout) as raised:
+            client.status()
+        waited = time.monotonic() - started
+    message = str(raised.value)
+    assert ("within 5 s" in message) == (waited >= 4.5), (waited, message)

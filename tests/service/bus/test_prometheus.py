@@ -1,0 +1,327 @@
+"""A real Prometheus (Debian's /usr/bin/prometheus) scrapes `gcdtrav serve` instances on loopback: its PromQL
+answers agree with what the robots received, every query of the Grafana dashboard returns data, an instance
+joins and leaves mid-stream. One Prometheus, one router and the instances are shared by the module's tests.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import signal
+import subprocess
+import tempfile
+import threading
+import time
+import urllib.parse
+import urllib.request
+from collections import Counter
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import pytest
+from conftest import textured_image
+from zenoh_helpers import client_config, connecting_config, free_port, serve_args, start_router, wait_until
+
+pytest.importorskip("torch")
+PROMETHEUS = shutil.which("prometheus")
+pytestmark = pytest.mark.skipif(
+    PROMETHEUS is None,
+    reason="the prometheus binary is not installed (Debian: apt-get install prometheus; .ci/run installs it)",
+)
+
+from gcdtrav.client import Maps, TraversabilityClient  # noqa: E402
+from gcdtrav.schemas.settings import ServiceSettings  # noqa: E402
+
+from tools.loopback import SimulatedRobots, in_process_service, wait_for_statuses  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[3]
+DASHBOARD = ROOT / "deploy" / "grafana" / "gcdtrav.json"
+ROBOTS = [f"r{k}/front" for k in range(4)]
+FPS = 2.0
+IMAGE = textured_image(48, 64)
+JPEG = cv2.imencode(".jpg", IMAGE)[1].tobytes()  # one view: after the first, maps are reused (and refreshed)
+
+
+class Robots(SimulatedRobots):
+    """The robots streaming at FPS (tools/loopback.py); the maps they receive, whole (inferred or reused)."""
+
+    def __init__(self, client: TraversabilityClient) -> None:
+        super().__init__(client, ROBOTS, FPS, JPEG)
+        self.maps: list[Maps] = []
+        self.lock = threading.Lock()
+
+    def on_maps(self, maps: Maps) -> None:
+        with self.lock:
+            self.maps.append(maps)
+
+    def received(self, source: str, reused: bool) -> int:
+        with self.lock:
+            return sum(m.header.source == source and m.reused == reused for m in self.maps)
+
+    def instances_serving(self, source: str) -> set[str]:
+        with self.lock:
+            return {m.header.instance for m in self.maps if m.header.source == source}
+
+
+@dataclass
+class Fleet:
+    model: Path
+    state: Path
+    router_port: int
+    ports: dict[str, int]  # instance -> metrics port (box-c joins later)
+    prometheus_url: str
+    processes: dict[str, subprocess.Popen[str]] = field(default_factory=dict)
+
+    def start(self, name: str) -> subprocess.Popen[str]:
+        args = serve_args(
+            self.model,
+            *("-m", "client", "-e", f"tcp/127.0.0.1:{self.router_port}", "--instance", name),
+            *("--state-dir", str(self.state / name), "--no-preview", "--threads", "1"),
+            *("--metrics-port", str(self.ports[name]), "--metrics-address", "127.0.0.1"),
+        )
+        process = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, text=True)
+        self.processes[name] = process
+        return process
+
+    def query(self, expr: str) -> list[dict[str, Any]]:
+        """An instant query's result vector (HTTP API /api/v1/query)."""
+        url = f"{self.prometheus_url}/api/v1/query?" + urllib.parse.urlencode({"query": expr})
+        with urllib.request.urlopen(url, timeout=10) as response:
+            body = json.load(response)
+        assert body["status"] == "success", body
+        return list(body["data"]["result"])
+
+    def by(self, expr: str, label: str) -> dict[str, float]:
+        return {sample["metric"].get(label, ""): float(sample["value"][1]) for sample in self.query(expr)}
+
+    def scalar(self, expr: str) -> float | None:
+        result = self.query(expr)
+        return float(result[0]["value"][1]) if result else None
+
+
+def prometheus_config(ports: dict[str, int], storage: Path) -> Path:
+    """Scrape every second: the fleet's instances (job gcdtrav), the experience instance apart (a fleet of its
+    own, so that the fleet's sums stay the robots')."""
+
+    def job(name: str, instances: list[str]) -> dict[str, Any]:
+        return {"job_name": name, "static_configs": [{"targets": [f"127.0.0.1:{ports[i]}" for i in instances]}]}
+
+    config = storage / "prometheus.yml"
+    config.write_text(
+        json.dumps(  # JSON is YAML
+            {
+                "global": {"scrape_interval": "1s", "evaluation_interval": "1s", "scrape_timeout": "900ms"},
+                "rule_files": [str(ROOT / "deploy" / "prometheus" / "alerts.yaml")],
+                "scrape_configs": [job("gcdtrav", ["box-a", "box-b", "box-c"]), job("gcdtrav-experience", ["exp-1"])],
+            }
+        )
+    )
+    return config
+
+
+@pytest.fixture(scope="module")
+def fleet(tiny_model_dir: Path) -> Iterator[Fleet]:
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp_path = Path(tmp)
+        router_port, web_port = free_port(), free_port()
+        router = start_router(router_port)
+        ports = {name: free_port() for name in ("box-a", "box-b", "box-c", "exp-1")}
+        storage = tmp_path / "prometheus"
+        storage.mkdir()
+        assert PROMETHEUS is not None
+        log = (storage / "prometheus.log").open("w")  # a file: an unread pipe would fill and block it
+        prometheus = subprocess.Popen(
+            [
+                PROMETHEUS,
+                f"--config.file={prometheus_config(ports, storage)}",
+                f"--storage.tsdb.path={storage / 'data'}",
+                f"--web.listen-address=127.0.0.1:{web_port}",
+                "--log.level=warn",
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=log,
+            text=True,
+        )
+        fleet = Fleet(tiny_model_dir, tmp_path, router_port, ports, f"http://127.0.0.1:{web_port}")
+        try:
+            fleet.start("box-a")
+            fleet.start("box-b")
+            assert wait_until(lambda: ready(fleet.prometheus_url), 30), "prometheus did not become ready"
+            yield fleet
+        finally:
+            for process in [*fleet.processes.values(), prometheus, router]:
+                if process.poll() is None:
+                    process.terminate()
+            for process in [*fleet.processes.values(), prometheus, router]:
+                try:
+                    process.wait(timeout=20)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+            log.close()
+
+
+def ready(url: str) -> bool:
+    try:
+        with urllib.request.urlopen(f"{url}/-/ready", timeout=2) as response:
+            return response.status == 200
+    except OSError:
+        return False
+
+
+@pytest.fixture(scope="module")
+def robots(fleet: Fleet) -> Iterator[Robots]:
+    """The robots streamed for a few seconds to two instances, one stale frame and one undecodable input
+    among them; stopped, and every instance's counts scraped."""
+    client = TraversabilityClient(config=client_config(fleet.router_port), timeout=5.0)
+    fleet_robots = Robots(client)
+    subscriber = client.subscribe_maps("**", fleet_robots.on_maps)
+    try:
+        wait_for_statuses(client, 2, timeout_s=120)
+        assert wait_until(lambda: fleet.scalar("sum(gcdtrav_instances_live)") == 4, 30), "both see both"
+        fleet_robots.start()
+        assert wait_until(lambda: all(fleet_robots.received(r, False) for r in ROBOTS), 30), "maps for every robot"
+        client.publish_image(ROBOTS[0], IMAGE, stamp=time.time() - 60)  # dropped stale at intake
+        client.session.put("gcdtrav/in/junk/cam", b"\x00 not an image")  # rejected
+        time.sleep(4)
+        yield fleet_robots
+    finally:
+        fleet_robots.stop()
+        subscriber.undeclare()
+        client.close()
+
+
+def settled(fleet: Fleet, robots: Robots, processed: str, reused: str) -> tuple[bool, str]:
+    """Whether Prometheus's per-source counts equal the maps the robots received (and what differs)."""
+    got_processed, got_reused = fleet.by(processed, "source"), fleet.by(reused, "source")
+    expected = {r: (robots.received(r, False), robots.received(r, True)) for r in ROBOTS}
+    found = {r: (got_processed.get(r), got_reused.get(r)) for r in ROBOTS}
+    return all(found[r] == expected[r] for r in ROBOTS), f"prometheus {found}, robots {expected}"
+
+
+def test_prometheus_counts_agree_with_the_maps_the_robots_received(fleet: Fleet, robots: Robots) -> None:
+    robots.stop()
+    processed = "sum by (source) (gcdtrav_frames_processed_total)"
+    reused = "sum by (source) (gcdtrav_frames_reused_total)"
+    assert wait_until(lambda: settled(fleet, robots, processed, reused)[0], 20), settled(
+        fleet, robots, processed, reused
+    )[1]
+    assert fleet.scalar("sum(gcdtrav_sources_owned)") == len(ROBOTS)  # the fleet's table, split between them
+    owned = fleet.by("gcdtrav_sources_owned", "instance")
+    assert sorted(owned.values()) == [2.0, 2.0], owned  # bounded loads: 4 robots on 2 instances
+    assert fleet.by("gcdtrav_healthy", "instance") == {f"127.0.0.1:{fleet.ports[b]}": 1.0 for b in ("box-a", "box-b")}
+    assert fleet.by("gcdtrav_service_info", "name").keys() == {"box-a", "box-b"}
+    assert fleet.by("up", "instance")[f"127.0.0.1:{fleet.ports['box-c']}"] == 0.0  # not started yet
+    # The histograms: one map age per published map, one inference per inferred one.
+    ages = fleet.by("sum by (source) (gcdtrav_map_age_seconds_count)", "source")
+    assert ages == {r: float(robots.received(r, False) + robots.received(r, True)) for r in ROBOTS}
+    assert fleet.scalar("sum(gcdtrav_inference_seconds_count)") == sum(robots.received(r, False) for r in ROBOTS)
+    assert fleet.scalar("sum(gcdtrav_queue_wait_seconds_count)") >= sum(robots.received(r, False) for r in ROBOTS)
+    p95 = fleet.scalar("histogram_quantile(0.95, sum by (le) (gcdtrav_map_age_seconds_bucket))")
+    assert p95 is not None and 0 < p95 <= 5.0  # never over max_frame_age_s: older frames are dropped
+    # The stale frame and the junk input, by reason.
+    assert fleet.scalar('sum(gcdtrav_frames_dropped_total{source="r0/front", reason="stale"})') == 1
+    assert fleet.scalar("sum(gcdtrav_inputs_rejected_total)") == 1
+    offsets = fleet.by("max by (source) (gcdtrav_clock_offset_seconds)", "source")
+    assert set(offsets) == set(ROBOTS) and all(abs(v) < 1 for v in offsets.values()), offsets  # one clock here
+
+
+def test_an_instance_joins_and_leaves_mid_stream(fleet: Fleet, robots: Robots) -> None:
+    robots.start()
+    try:
+        box_c = fleet.start("box-c")
+        target_c = f"127.0.0.1:{fleet.ports['box-c']}"
+        assert wait_until(lambda: fleet.by("gcdtrav_instances_live", "instance").get(target_c) == 3, 90), "joined"
+        assert wait_until(lambda: fleet.by("gcdtrav_sources_owned", "instance").get(target_c, 0) >= 1, 20)
+        assert wait_until(lambda: fleet.scalar("sum(gcdtrav_sources_owned)") == len(ROBOTS), 20)
+        assert wait_until(lambda: any("box-c" in robots.instances_serving(r) for r in ROBOTS), 20), "c serves"
+        moved = [r for r in ROBOTS if "box-c" in robots.instances_serving(r)]
+        box_c.send_signal(signal.SIGTERM)
+        box_c.wait(30)
+        assert wait_until(lambda: fleet.by("up", "instance").get(target_c) == 0.0, 20)
+        assert wait_until(lambda: fleet.scalar("sum(gcdtrav_sources_owned)") == len(ROBOTS), 20)  # c's series stale
+        assert set(fleet.by("gcdtrav_instances_live", "instance").values()) == {2.0}
+        served = {r: len(robots.instances_serving(r)) for r in moved}
+        time.sleep(2)
+    finally:
+        robots.stop()
+    # Every count the instances made, box-c's last scrape included, against the maps received: exact for the
+    # robots box-c never served; for those it did, its last frames may have gone out after its last scrape.
+    processed = "sum by (source) (max_over_time(gcdtrav_frames_processed_total[10m]))"
+    reused = "sum by (source) (max_over_time(gcdtrav_frames_reused_total[10m]))"
+    time.sleep(2.5)  # the remaining instances' last counts scraped
+    counted = fleet.by(processed, "source")
+    counted_reused = fleet.by(reused, "source")
+    for robot in ROBOTS:
+        maps = robots.received(robot, False), robots.received(robot, True)
+        if robot in moved:
+            assert counted[robot] <= maps[0] and counted_reused[robot] <= maps[1], (robot, counted, maps)
+        else:
+            assert (counted[robot], counted_reused[robot]) == maps, (robot, counted, maps)
+    assert all(n >= 2 for n in served.values()), served  # served by box-c and by another instance
+    assert Counter(fleet.by("gcdtrav_healthy", "instance").values()) == Counter({1.0: 2})
+
+
+def dashboard_queries() -> list[tuple[str, str]]:
+    dashboard = json.loads(DASHBOARD.read_text("utf-8"))
+    return [(panel["title"], target["expr"]) for panel in dashboard["panels"] for target in panel["targets"]]
+
+
+@contextmanager
+def experience_instance(port: int, state: Path) -> Iterator[None]:
+    """An instance with experience on (its own session: a fleet of one), driven by the synthetic robot until
+    it has pairs to grade, its metrics on ``port``."""
+    from gcdtrav.service.commands.metrics_http import metrics_endpoint
+
+    from tools.robot_drive import BusRobot, experience_settings, grid_settings
+    from tools.synthetic_scene import SceneBackend, make_world, start_anchors
+
+    settings = ServiceSettings(
+        state_dir=state,
+        instance="exp-1",
+        preview=False,
+        max_frame_age_s=None,  # simulated time from a stamp in the past, like a replayed bag
+        max_stamp_skew_s=None,
+        grids=[grid_settings()],
+        experience=experience_settings(),
+        metrics_port=port,
+        metrics_address="127.0.0.1",
+    )
+    with (
+        in_process_service(SceneBackend(), settings, start_anchors()) as (service, zenoh_port),
+        metrics_endpoint(settings, service.metrics.registry),
+        TraversabilityClient(config=connecting_config(zenoh_port), timeout=5.0) as client,
+    ):
+        robot = BusRobot(client, make_world(seed=0))
+        robot.drive(25.0, seed=1)
+        robot.close()
+        yield
+
+
+def test_every_query_of_the_dashboard_returns_data(fleet: Fleet, robots: Robots) -> None:
+    """Each expression of deploy/grafana/gcdtrav.json, with Grafana's rate window filled in, answers a finite
+    value while the robots stream and the experience instance has graded its pairs."""
+    queries = dashboard_queries()
+    assert len(queries) >= 15 and any("calibration" in expr for _, expr in queries)
+    robots.start()
+    try:
+        with experience_instance(fleet.ports["exp-1"], fleet.state / "exp-1"):
+            target = f"127.0.0.1:{fleet.ports['exp-1']}"
+            assert wait_until(lambda: fleet.by("gcdtrav_calibration_ece", "instance").get(target) is not None, 20)
+
+            def empty() -> list[tuple[str, str, list[Any]]]:
+                window = "2m"  # Grafana's $__rate_interval: at least four scrapes
+                answers = [(title, e, fleet.query(e.replace("$__rate_interval", window))) for title, e in queries]
+                return [(t, e, a) for t, e, a in answers if not any(finite(sample) for sample in a)]
+
+            assert wait_until(lambda: not empty(), 20), empty()
+    finally:
+        robots.stop()
+
+
+def finite(sample: dict[str, Any]) -> bool:
+    return math.isfinite(float(sample["value"][1]))
