@@ -203,8 +203,8 @@ def test_a_starting_instance_joins_only_after_watching_the_inputs(tiny_backend: 
         assert probe(health_port, "/readyz") == (200, "ok\n")
         assert wait_until(lambda: old.membership.live() == {"box-old", "box-new"}, 5)  # type: ignore[union-attr]
         # The moment it joined both tables agreed: every robot had one owner, none was left to neither.
-        assert new.assignment.table() == old.assignment.table()
-        assert set(new.assignment.table()) == set(sources)
+        assert new.runtime.assignment.table() == old.runtime.assignment.table()
+        assert set(new.runtime.assignment.table()) == set(sources)
     finally:
         robots.stop()
         client.close()
