@@ -232,6 +232,28 @@ class Hazard:
         return (np.abs(np.asarray(x) - self.x) <= half) & (np.abs(np.asarray(y) - self.y) <= half)
 
 
+def hazard_pixels(
+    scene: SceneCamera, hazard: Hazard, pose: tuple[float, float, float]
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Per pixel (flattened, one patch per pixel) of the camera at ``pose`` (x, y, yaw): whether its ray meets
+    the hazard, and whether it meets the ground at all (not sky, within range)."""
+    shape = (scene.camera.height, scene.camera.width)
+    u, v = map_cell_pixels(shape, (scene.camera.width, scene.camera.height))
+    base, valid = ground_points(scene.camera, scene.mount, u, v, scene.max_range_m)
+    x, y, yaw = pose
+    c, s = math.cos(yaw), math.sin(yaw)
+    inside = hazard.covers(x + c * base[:, 0] - s * base[:, 1], y + s * base[:, 0] + c * base[:, 1])
+    return inside & valid, valid
+
+
+def hazard_image(scene: SceneCamera, hazard: Hazard, pose: tuple[float, float, float]) -> NDArray[np.uint8]:
+    """What the camera at ``pose`` sees of the hazard on paved ground, as the colours ``SceneBackend`` reads
+    (RGB, height x width): the wet appearance's in the hazard, the paved one's around it, sky elsewhere."""
+    inside, valid = hazard_pixels(scene, hazard, pose)
+    colours = np.where(inside, APPEARANCES.index("wet"), np.where(valid, APPEARANCES.index("paved"), len(APPEARANCES)))
+    return palette()[colours].reshape(scene.camera.height, scene.camera.width, 3).astype(np.uint8)
+
+
 def hazard_view(
     scene: SceneCamera, hazard: Hazard, pose: tuple[float, float, float], concepts: Sequence[str]
 ) -> NDArray[np.float32]:
@@ -239,11 +261,7 @@ def hazard_view(
     one patch per pixel, the hazard's row where its ground point falls in the hazard, the ground's elsewhere,
     uniform where the ray meets no ground (sky, beyond range)."""
     shape = (scene.camera.height, scene.camera.width)
-    u, v = map_cell_pixels(shape, (scene.camera.width, scene.camera.height))
-    base, valid = ground_points(scene.camera, scene.mount, u, v, scene.max_range_m)
-    x, y, yaw = pose
-    c, s = math.cos(yaw), math.sin(yaw)
-    inside = hazard.covers(x + c * base[:, 0] - s * base[:, 1], y + s * base[:, 0] + c * base[:, 1])
+    inside, valid = hazard_pixels(scene, hazard, pose)
     rows = {
         name: np.array([table.get(concept, FLOOR_PROBABILITY) for concept in concepts], np.float32)
         for name, table in (("hazard", HAZARD_ROW), ("ground", GROUND_ROW))

@@ -8,8 +8,9 @@ Declared only with ``experience.enabled`` (off: nothing here runs, nothing chang
   experience.cmd_vel, .odometry       subscribers: Twist2D / Odometry2D on a zenoh key, or a ROS topic (CDR)
   {prefix}/out/{source}/calibration   queryable: CalibrationReport of the active anchor set
   {prefix}/config/anchors/proposal    queryable: AnchorProposal (``source=`` optional), never applied here
-  {prefix}/out/{source}/question      OperatorQuestion, published after a grid update that asks one, and
-                                      queryable: the open one (`gcdtrav answer` shows its crop before answering)
+  {prefix}/out/{source}/question      queryable: the open OperatorQuestion (`gcdtrav answer` shows its crop
+                                      before answering); a new one is published with the grid update that asked
+                                      it, by the runtime's outputs like every payload (``Experience.after_fusion``)
 
 A bad message is rejected with its reason and counted in the service's stats (``bad_outcome``,
 ``oversized``, ``bad_cmd_vel``, ``bad_odometry``, ``bad_answer``, ``unknown_answer``, ``unknown_grid``).
@@ -25,41 +26,24 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 import zenoh
 from gcdtrav.schemas.experience import AnswerReply, CalibrationFigures
 from gcdtrav.schemas.keys import Keys
-from gcdtrav.schemas.messages import MSGPACK_ENCODING, ExperienceStatus, MessageError
-from gcdtrav.schemas.settings import RosInput, ServiceSettings, SettingsError
+from gcdtrav.schemas.messages import ExperienceStatus, MessageError
+from gcdtrav.schemas.settings import RosInput, ServiceSettings
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus.guard import answering
-from gcdtrav.service.experience.crop import image_crop
-from gcdtrav.service.experience.service import Experience, decode_answer, experience_file
+from gcdtrav.service.experience.service import Experience, decode_answer
 from gcdtrav.service.experience.store import OutcomeRejected
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros.cdr import dds_type_name
 from gcdtrav.service.runtime.errors import QueryError
-from gcdtrav.service.runtime.grids import GridOutputs
-from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid
 from gcdtrav.service.runtime.queries import strict_parameters
 from gcdtrav.service.runtime.stats import ServiceStats
-from numpy.typing import NDArray
 
 log = logging.getLogger("gcdtrav.service")
 SAVE_EVERY_S = 10.0
-MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
 TWIST, ODOMETRY = "geometry_msgs/msg/Twist", "nav_msgs/msg/Odometry"
-
-
-def experience_grid(settings: ServiceSettings, grids: GridOutputs | None) -> str:
-    """The grid the outcomes belong to: ``experience.grid``, else the first; a SettingsError without one."""
-    names = list(grids.sources) if grids is not None else []
-    if not names:
-        raise SettingsError("experience: enabled needs a ground grid (grids:): outcomes pair with its cells")
-    wanted = settings.experience.grid or names[0]
-    if wanted not in names:
-        raise SettingsError(f"experience: grid '{wanted}' is not one of the grids {names}")
-    return wanted
 
 
 def ros_key(topic: str, msgtype: str, ros_inputs: list[RosInput]) -> str:
@@ -77,22 +61,19 @@ class ExperienceBus:
         session: zenoh.Session,
         settings: ServiceSettings,
         pipeline: Pipeline,
-        grids: GridOutputs | None,
+        experience: Experience,
         stats: ServiceStats,
         owns: Callable[[str], bool],
     ) -> None:
         self.session, self.settings, self.pipeline, self.stats, self.owns = session, settings, pipeline, stats, owns
         self.keys = Keys(settings.prefix)
-        self.grids = grids
-        path = experience_file(settings.state_dir, settings.prefix)
-        source = experience_grid(settings, grids)
-        self.experience = Experience(settings.experience, settings.ask, source, settings.risk.tau, path)
+        self.experience = experience  # the grids were given its after_fusion: its questions leave with their maps
         self._stopping = threading.Event()
         self._saver = threading.Thread(target=self._save_now_and_then, name="gcdtrav-experience", daemon=True)
 
     # ---- lifecycle -----------------------------------------------------------------------------------
     def start(self) -> list[Any]:
-        """Declare the subscribers and queryables (returned, for the node to undeclare), hook the grids."""
+        """Declare the subscribers and queryables (returned, for the node to undeclare)."""
         declared: list[Any] = [
             self.session.declare_subscriber(self.keys.outcome("**"), self._on_outcome),
             self.session.declare_subscriber(self.keys.answer("**"), self._on_answer_sample),
@@ -110,8 +91,6 @@ class ExperienceBus:
         )
         for key, respond, complete in queryables:
             declared.append(self.session.declare_queryable(key, answering(respond, self.stats), complete=complete))
-        if self.grids is not None:
-            self.grids.after_fusion = self._after_fusion
         self._saver.start()
         log.info("experience: outcomes of grid %s, stored in %s", self.experience.source, self.experience.store.path)
         return declared
@@ -131,10 +110,8 @@ class ExperienceBus:
         return f"grid {self.experience.source}, " + (", ".join(inputs) or "outcomes from the bus only")
 
     def close(self) -> None:
-        """Unhook the grids and save; the node undeclares the entities."""
+        """Save; the node undeclares the entities."""
         self._stopping.set()
-        if self.grids is not None:
-            self.grids.after_fusion = None
         if self._saver.is_alive():
             self._saver.join(timeout=5.0)
         self.experience.save_if_dirty()
@@ -265,31 +242,16 @@ class ExperienceBus:
             raise QueryError(str(err)) from None
         replies.reply(query, self.keys.anchor_proposal, proposal)
 
-    # ---- the grid ------------------------------------------------------------------------------------
-    def _after_fusion(self, grid: SourceGrid, camera: CameraState, image: NDArray[np.uint8] | None) -> None:
-        """Under the grid's lock, on the worker: snapshot the grid, maybe ask; never fail the frame's outputs."""
-        source = grid.config.source
-        pose = grid.fused_at.pose if grid.fused_at is not None else None  # the image's pose, not the newest
-        try:
-            crop = image_crop(image, pose, camera.mount, camera.camera)
-            question = self.experience.on_grid_update(source, grid.grid, pose, crop)
-        except Exception as err:
-            self.stats.rejected(None, "experience_failed", f"{source}: {type(err).__name__}: {err}"[:200], err)
-            return
-        if question is not None:
-            log.info("question %s to the operator: %s ahead (%s)", question.id, question.reason, source)
-            self.session.put(self.keys.question(source), question.pack(), encoding=MSGPACK)
-
 
 def experience_bus(
     session: zenoh.Session,
     settings: ServiceSettings,
     pipeline: Pipeline,
-    grids: GridOutputs | None,
+    experience: Experience | None,
     stats: ServiceStats,
     owns: Callable[[str], bool],
 ) -> ExperienceBus | None:
-    """The experience's wiring, or None when ``experience.enabled`` is off."""
-    if not settings.experience.enabled:
+    """The experience's wiring, or None when ``experience.enabled`` is off (no experience)."""
+    if experience is None:
         return None
-    return ExperienceBus(session, settings, pipeline, grids, stats, owns)
+    return ExperienceBus(session, settings, pipeline, experience, stats, owns)

@@ -30,6 +30,7 @@ from gcdtrav.service.bus.outputs import FrameOutputs
 from gcdtrav.service.bus.queryables import AnchorQueries, SourceQueries
 from gcdtrav.service.bus.ros_graph import RosGraph, graph_inputs
 from gcdtrav.service.bus.tf import declare_tf_inputs
+from gcdtrav.service.experience.service import service_experience
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.assembly import Runtime
@@ -76,10 +77,14 @@ class TraversabilityService:
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if graph_inputs(settings) else None
         self.outputs = FrameOutputs(session, self.keys, self.ros_graph)  # the runtime's sinks: they only put
         self.credits = CreditPublisher(session, self.keys)
-        self.runtime = Runtime.build(settings, pipeline, self.outputs, self.credits, self.owns, self.stats, time.time())
+        experience = service_experience(settings, self.stats.rejected)  # None when off; asks at the grids' fusion
+        asks = experience.after_fusion if experience is not None else None
+        self.runtime = Runtime.build(
+            settings, pipeline, self.outputs, self.credits, self.owns, self.stats, time.time(), after_fusion=asks
+        )
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
-        self.experience = experience_bus(session, settings, pipeline, self.runtime.grids, self.stats, self.owns)
+        self.experience = experience_bus(session, settings, pipeline, experience, self.stats, self.owns)
         calibration = self.experience.calibration if self.experience is not None else None
         self.metrics = ServiceMetrics(MetricsSources(self.status, self._owned, settings.max_frame_age_s, calibration))
         self.stats.events = self.metrics.timings  # histograms see every frame; `serve` serves the registry

@@ -1,7 +1,8 @@
 """Everything the bus needs of issue 33 for one service, behind one object, so the wiring stays thin: it
-subscribes to ``inputs()`` and hands payloads over, calls ``on_grid_update`` after each grid fusion, answers
-the calibration query with ``report`` and the proposal with ``proposal``, and calls ``save_if_dirty``
-now and then and at shutdown. No middleware here.
+subscribes to ``inputs()`` and hands payloads over, answers the calibration query with ``report`` and the
+proposal with ``proposal``, and calls ``save_if_dirty`` now and then and at shutdown. The grids call
+``after_fusion`` under their lock after each fusion (given at their construction); the question it returns
+leaves with the frame's grid, through the runtime's one hand-off out. No middleware here.
 
 One experience per service: the outcomes of ``experience.grid`` (the first grid when unset). Questions are
 asked per grid that has a pose (``ask.enabled``).
@@ -14,6 +15,7 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.experience import (
     AnchorProposal,
@@ -23,8 +25,9 @@ from gcdtrav.schemas.experience import (
     PlannedPath,
 )
 from gcdtrav.schemas.messages import ExperienceStatus, Pose2D, QuestionStatus
-from gcdtrav.schemas.settings import AskSettings, ExperienceSettings
+from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings, SettingsError
 from gcdtrav.service.experience.ask import Crop, OperatorAsker
+from gcdtrav.service.experience.crop import image_crop
 from gcdtrav.service.experience.fitter import FitOptions
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore
@@ -36,10 +39,14 @@ from gcdtrav.service.experience.velocity import (
     is_ros_topic,
 )
 from gcdtrav.service.grid.fusion import GroundGrid
+from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid
+from numpy.typing import NDArray
 
 log = logging.getLogger("gcdtrav.service")
 SNAPSHOT_SLACK_S = 5.0  # snapshots kept beyond lookahead_s: outcomes arrive a little late
 ExperienceInput = tuple[str, bool, Callable[[bytes, float], None], str]  # key or topic, is ROS, handler, reason
+# Counts a bad input (the service's ServiceStats.rejected): source or None, reason, detail, the error.
+Rejected = Callable[[str | None, str, str, BaseException | None], None]
 
 
 def decode_answer(payload: bytes) -> OperatorAnswer:
@@ -52,6 +59,28 @@ def experience_file(state_dir: Path, prefix: str) -> Path:
     return state_dir / f"{prefix.replace('/', '_')}.experience.msgpack"
 
 
+def experience_grid(settings: ServiceSettings) -> str:
+    """The grid the outcomes belong to: ``experience.grid``, else the first; a SettingsError without one."""
+    names = [grid.source for grid in settings.grids]
+    if not names:
+        raise SettingsError("experience: enabled needs a ground grid (grids:): outcomes pair with its cells")
+    wanted = settings.experience.grid or names[0]
+    if wanted not in names:
+        raise SettingsError(f"experience: grid '{wanted}' is not one of the grids {names}")
+    return wanted
+
+
+def service_experience(settings: ServiceSettings, rejected: Rejected) -> Experience | None:
+    """The service's experience (its pairs stored in the state directory), or None when ``experience.enabled``
+    is off; a SettingsError when its grid is not configured."""
+    if not settings.experience.enabled:
+        return None
+    path = experience_file(settings.state_dir, settings.prefix)
+    return Experience(
+        settings.experience, settings.ask, experience_grid(settings), settings.risk.tau, path, rejected=rejected
+    )
+
+
 class Experience:
     def __init__(
         self,
@@ -61,8 +90,11 @@ class Experience:
         tau: float,
         path: Path | None,
         clock: Callable[[], float] = time.time,
+        rejected: Rejected | None = None,
     ) -> None:
+        """``rejected``: where a failed ``after_fusion`` is counted (the service's stats); None: logged only."""
         self.settings, self.ask_settings, self.source, self.tau, self.clock = settings, ask, grid_source, tau, clock
+        self.rejected = rejected or _logged
         self.ring = SnapshotRing(
             settings.snapshot_every_s, int(settings.snapshot_budget_mb * 1e6), settings.lookahead_s + SNAPSHOT_SLACK_S
         )
@@ -130,6 +162,21 @@ class Experience:
         return held[1]
 
     # ---- the grid ------------------------------------------------------------------------------------
+    def after_fusion(
+        self, grid: SourceGrid, camera: CameraState, image: NDArray[np.uint8] | None
+    ) -> OperatorQuestion | None:
+        """Under the grid's lock, on the worker, right after it fused a frame (``GridOutputs``' ``after_fusion``):
+        snapshot the grid, maybe ask, in memory only; the question goes out with the frame's grid. Never fails the
+        frame's outputs: an error is counted (``experience_failed``) and no question asked."""
+        source = grid.config.source
+        pose = grid.fused_at.pose if grid.fused_at is not None else None  # the image's pose, not the newest
+        try:
+            crop = image_crop(image, pose, camera.mount, camera.camera)
+            return self.on_grid_update(source, grid.grid, pose, crop)
+        except Exception as err:
+            self.rejected(None, "experience_failed", f"{source}: {type(err).__name__}: {err}"[:200], err)
+            return None
+
     def on_grid_update(
         self, source: str, grid: GroundGrid, pose: Pose2D | None, crop: Crop | None = None
     ) -> OperatorQuestion | None:
@@ -193,3 +240,7 @@ class Experience:
 
     def save_if_dirty(self) -> bool:
         return self.store.save_if_dirty()
+
+
+def _logged(name: str | None, reason: str, detail: str, error: BaseException | None) -> None:
+    log.error("%s: %s: %s", name or "-", reason, detail, exc_info=error)

@@ -25,6 +25,7 @@ from gcdtrav.service.runtime.credits import CreditLedger, Credits, CreditSink
 from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.freshness import FrameGate, Freshness
 from gcdtrav.service.runtime.grids import GridOutputs
+from gcdtrav.service.runtime.grids.outputs import AfterFusion
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.outputs import FramePublisher, OutputBuilder, OutputSink
@@ -78,10 +79,12 @@ class Runtime:
         stats: ServiceStats | None = None,
         started_at: float | None = None,
         clock: Callable[[], float] = time.monotonic,
+        after_fusion: AfterFusion | None = None,
     ) -> Runtime:
         """The runtime of ``settings``; ``stats``: shared with the bus (its refusals are counted there too);
         ``started_at``: wall-clock seconds, for the status's uptime (None: now); ``clock``: the sources'
-        idleness is timed by it (monotonic seconds)."""
+        idleness is timed by it (monotonic seconds); ``after_fusion``: the experience's, called by the grids
+        under their lock (``Experience.after_fusion``: its question leaves with the frame's outputs)."""
         stats = stats or ServiceStats(log, settings.source_idle_s)
         history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
         switch = AnchorSwitch(pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes)
@@ -92,6 +95,7 @@ class Runtime:
                 settings.instance,
                 settings.risk,
                 clock_mode=settings.clock,
+                after_fusion=after_fusion,
             )
             if settings.grids
             else None
@@ -176,7 +180,7 @@ def _schedule(
     reuse = ReuseTracker(
         settings.reuse,
         settings.schedule,
-        grids.pose_of if grids else lambda source: None,
+        grids.pose_of if grids else lambda source, stamp: None,
         anchors_version=lambda: switch.head().version,
     )
     queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(

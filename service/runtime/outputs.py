@@ -1,7 +1,7 @@
-"""What the service publishes for one processed frame, as payloads: maps, preview, ROS images, ground grid.
-Only encoding: the worker has fused the grid (``ProcessedFrame.grid``); ``FramePublisher`` is the worker's
-one hand-off out, and the bus (``service/bus/outputs.py``, an ``OutputSink``) only puts the payloads on
-their keys and topics.
+"""What the service publishes for one processed frame, as payloads: maps, preview, ROS images, ground grid and
+the question its fusion asked an operator. Only encoding: the worker has fused the grid (``ProcessedFrame.grid``,
+the question included); ``FramePublisher`` is the worker's one hand-off out, and the bus
+(``service/bus/outputs.py``, an ``OutputSink``) only puts the payloads on their keys and topics.
 
 The preview is drawn at its own size (at most ``preview_max_width`` for T-over-image beside U): T and U are
 resized once to that size, not to the image's and back. T and U at the image's size are made only when
@@ -10,6 +10,7 @@ something needs them (``full_resolution``, ROS outputs).
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -32,12 +33,13 @@ from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.change import Glance
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
-from gcdtrav.service.runtime.grids import GridUpdate
+from gcdtrav.service.runtime.grids import FusedGrid, GridUpdate
 from numpy.typing import NDArray
 
 Encoding = Literal["msgpack", "jpeg", "cdr"]
 RosQos = Literal["image", "grid"]  # rclcpp's default publisher profile; a map's (transient local, depth 1)
 PREVIEW_JPEG_QUALITY = 80
+log = logging.getLogger("gcdtrav.service")
 
 
 @dataclass(frozen=True)
@@ -152,6 +154,7 @@ class OutputBuilder:
             outputs += self._ros_images(done, *full, panel, jpeg)
         if done.grid is not None:
             outputs += self._grid(done.grid.encode())
+            outputs += self._question(done.grid)
         return outputs
 
     def reused(self, pending: PendingFrame, stamp: float, frame_id: str, compact: bool = False) -> list[Output]:
@@ -274,6 +277,14 @@ class OutputBuilder:
             if update.ros is not None and names.enabled:
                 outputs.append(self._ros(update.ros, template, msgtype, payload, "grid"))
         return outputs
+
+    def _question(self, fused: FusedGrid) -> list[Output]:
+        """The question the grid's fusion made the experience ask an operator, under the grid's source."""
+        question = fused.question
+        if question is None:
+            return []
+        log.info("question %s to the operator: %s ahead (%s)", question.id, question.reason, question.source)
+        return [Output(self.keys.question(fused.config.source), question.pack(), "msgpack")]
 
     @staticmethod
     def _ros(camera: ros_io.RosTopic, template: str, msgtype: str, payload: bytes, qos: RosQos) -> Output:

@@ -13,7 +13,9 @@ counted ``unchanged``) when all of these hold:
 - the frame has the reference's size (the maps' scale is for that size);
 - at most ``changed_fraction`` of the thumbnail's blocks moved beyond ``block_threshold``;
 - with a pose (a grid's pose stream), the robot neither moved ``translation_m`` nor turned ``rotation_deg``
-  since the reference (turning in place in front of a blank wall counts as a change);
+  since the reference (turning in place in front of a blank wall counts as a change): both poses at their
+  frames' capture stamps, not the newest when they reach the service (a frame is in flight for up to seconds:
+  a robot that parks meanwhile did move between the two captures);
 - the reference is younger than ``max_reuse_s``: after that the next frame is inferred, changed or not.
   While that refresh waits for its turn (it yields to frames with news up to the scheduler's floor,
   ``max_wait_s``), each later unchanged frame takes its place in line (the refresh infers a frame of now,
@@ -113,7 +115,7 @@ class ReuseTracker:
         self,
         settings: ReuseSettings,
         schedule: ScheduleSettings | None = None,
-        pose_of: Callable[[str], Pose2D | None] = lambda source: None,
+        pose_of: Callable[[str, float | None], Pose2D | None] = lambda source, stamp: None,
         clock: Callable[[], float] = time.monotonic,
         anchors_version: Callable[[], str] = lambda: "",
     ) -> None:
@@ -128,7 +130,7 @@ class ReuseTracker:
         """Reuse the source's last maps for this frame, or infer it (and how urgently). ``refresh_waiting``: a
         frame of the source already waits for inference; an unchanged view past ``max_reuse_s`` is then
         reused while that frame waits, instead of replacing it."""
-        now, pose = self.clock(), self.pose_of(source)
+        now, pose = self.clock(), self.pose_of(source, pending.stamp)  # where the robot was when it was taken
         with self._lock:
             view = self._views.setdefault(source, _View())
             self._follow_motion(view, glance.thumbnail, pose, now)
@@ -187,7 +189,7 @@ class ReuseTracker:
     ) -> None:
         """The source's frame was inferred (with the anchor set of version ``anchors``) and its maps published:
         the new reference, with its ``ambiguity`` ahead."""
-        now, pose = self.clock(), self.pose_of(source)
+        now, pose = self.clock(), self.pose_of(source, pending.stamp)
         with self._lock:
             view = self._views.setdefault(source, _View())
             kept = next((thumbnail for frame, thumbnail in view.glanced if frame is pending), None)

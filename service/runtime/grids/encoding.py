@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from gcdtrav.schemas.experience import OperatorQuestion
 from gcdtrav.schemas.grid_layers import encode_layers
 from gcdtrav.schemas.messages import GridHeader, GridMessage
 from gcdtrav.schemas.settings import GridSettings, RiskSettings
@@ -37,12 +38,14 @@ class GridUpdate:
 @dataclass(frozen=True)
 class FusedGrid:
     """A grid right after a frame was fused into it (``GridOutputs.fuse``, in the worker): its layers and
-    header, taken under the grid's lock, for the outputs to encode (``encode``) outside it."""
+    header, taken under the grid's lock, for the outputs to encode (``encode``) outside it; the question the
+    fusion made the experience ask an operator, if any, to publish beside it."""
 
     config: GridSettings
     header: GridHeader
     layers: GridLayers
     ros: RosTopic | None  # the topic its ROS outputs derive from
+    question: OperatorQuestion | None = None
 
     def encode(self) -> GridUpdate:
         return encode_update(self.config, self.header, self.layers, self.ros)

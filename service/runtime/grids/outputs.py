@@ -19,6 +19,7 @@ from collections.abc import Callable, Mapping
 from functools import partial
 
 import numpy as np
+from gcdtrav.schemas.experience import OperatorQuestion
 from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.messages import ContextDistribution, GridHeader, GridStatus, PathReply, Pose2D
 from gcdtrav.schemas.settings import GridSettings, RiskSettings
@@ -45,8 +46,10 @@ log = logging.getLogger("gcdtrav.service")
 GridInput = tuple[str, str, Callable[[str, bytes], None], str]  # key, grid or camera, setter, rejection reason
 # key, grid, static (/tf_static: transient local), handler: a TFMessage's payload -> the transforms it refused
 TfInput = tuple[str, str, bool, Callable[[bytes], list[RejectedInput]]]
-# Called under the grid's lock after each fusion: the grid, the camera that fed it, the frame's image if known.
-AfterFusion = Callable[[SourceGrid, CameraState, NDArray[np.uint8] | None], None]
+# Called under the grid's lock after each fusion with the grid, the camera that fed it and the frame's image if
+# known: the experience's snapshot and question, in memory only (no I/O under the lock). The question it returns
+# leaves with the frame's grid (``FusedGrid.question``), put by the bus like every other payload.
+AfterFusion = Callable[[SourceGrid, CameraState, NDArray[np.uint8] | None], OperatorQuestion | None]
 
 
 class GridOutputs:
@@ -63,13 +66,15 @@ class GridOutputs:
         risk: RiskSettings | None = None,
         clock: Callable[[], float] = time.time,
         clock_mode: str = "estimated",
+        after_fusion: AfterFusion | None = None,
     ) -> None:
         """``clock_mode``: the service's ``clock`` setting ("estimated" or "synced"), how an unstamped frame's
-        receipt becomes a stamp on the pose stream's clock (``capture_stamp``)."""
+        receipt becomes a stamp on the pose stream's clock (``capture_stamp``). ``after_fusion``: the
+        experience's (``Experience.after_fusion``), or None."""
         self.instance, self.risk, self.clock, self.clock_mode = instance, risk or RiskSettings(), clock, clock_mode
         self.sources = {c.source: SourceGrid(c, GroundGrid(grid_spec(c), anchor_count)) for c in configs}
         self.camera_grids = {camera: grid for grid in self.sources.values() for camera in grid.cameras}
-        self.after_fusion: AfterFusion | None = None  # the experience's snapshots and questions (service/bus)
+        self._after_fusion = after_fusion
         # grids whose mounts or pose come from tf: their trees hand over poses and mounts as they learn them
         self.tf = {
             c.source: GridTf(c.source, c.tf, c.camera_list(), self.add_pose, self.set_mount)
@@ -115,10 +120,15 @@ class GridOutputs:
         grid.poses.add(pose, now)
         grid.health.pose_received_at = now
 
-    def pose_of(self, camera: str) -> Pose2D | None:
-        """The newest pose of the robot carrying camera ``camera`` (its grid's pose stream); None: unknown."""
+    def pose_of(self, camera: str, stamp: float | None = None) -> Pose2D | None:
+        """The pose of the robot carrying camera ``camera`` (its grid's pose stream) when its frame stamped
+        ``stamp`` was taken (looked up, never waited for); the newest where the stream has none there (it lags,
+        or a bare image: ``stamp`` None); None: unknown."""
         grid = self.camera_grids.get(camera)
-        return None if grid is None else grid.pose
+        if grid is None:
+            return None
+        at = grid.poses.at(stamp).pose if stamp is not None else None
+        return at if at is not None else grid.pose
 
     def set_mount(self, camera_source: str, mount: CameraMount, origin: str) -> None:
         """Camera ``camera_source``'s mount in the base frame, from ``origin`` ("settings" or "tf"); the next
@@ -194,15 +204,14 @@ class GridOutputs:
             grid.fuse(camera, weights, record.image_size, record.stamp, record.anchors, match, at.pose)
             grid.fused_at, grid.fused_stamp = at, stamp
             grid.health.fused_frame(source, stamp, self.clock(), grid.config.costmap)
-            if self.after_fusion is not None:
-                self.after_fusion(grid, camera, image)
+            question = self._after_fusion(grid, camera, image) if self._after_fusion is not None else None
             anchors = record.anchors
             positions, widths = np.asarray(anchors.positions), np.asarray(anchors.widths)
             risk = self.risk
             layers = grid_layers(grid.grid, positions, widths, risk.alpha, risk.tau, grid.config.lethal_tau)
             header = self.header(grid, anchors.version)
             ros_topic = grid.ros_topic()
-        return FusedGrid(grid.config, header, layers, ros_topic)
+        return FusedGrid(grid.config, header, layers, ros_topic, question)
 
     def _pose_wait_s(self, grid: SourceGrid) -> float:
         """How long a frame may wait for its pose: ``poses.wait_s`` while the stream is alive (a pose within

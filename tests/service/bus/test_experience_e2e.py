@@ -5,20 +5,24 @@ commands an operator runs (`gcdtrav calibration`, `anchors propose [--apply]`, `
 from __future__ import annotations
 
 import subprocess
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 import pytest
+import zenoh
 from conftest import torch_free_gcdtrav
-from gcdtrav.client import QueryTimeout, ServiceError, TraversabilityClient
+from gcdtrav.client import QueryTimeout, ServiceError, TraversabilityClient, zenoh_config
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
 from gcdtrav.schemas.experience import OperatorQuestion, TraversalOutcome
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.commands.serve import starting_anchor_set
 from gcdtrav.service.experience.service import experience_file
-from zenoh_helpers import connecting_config, wait_until
+from gcdtrav.service.pipeline import Pipeline
+from zenoh_helpers import connecting_config, free_port, wait_until
 
 from tools.loopback import in_process_service
 from tools.robot_drive import CAMERA_SOURCE, CMD_VEL_KEY, START_STAMP, BusRobot, experience_settings, grid_settings
@@ -247,3 +251,82 @@ def test_ros_topics_are_read_as_cdr_on_rmw_zenoh_keys(tmp_path: Path, caplog: py
             return rejected.get("bad_cmd_vel") == 1 and rejected.get("bad_odometry") == 1 and "outcomes" in counts
 
         assert wait_until(seen, timeout=5), client.status()
+
+
+class OwnedLock:
+    """A grid's lock that knows which thread holds it (threading.Lock only knows that one does)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.owner: int | None = None
+
+    def __enter__(self) -> OwnedLock:
+        self._lock.acquire()
+        self.owner = threading.get_ident()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.owner = None
+        self._lock.release()
+
+
+class WatchedSession:
+    """A zenoh session whose every call, and every put of a publisher declared on it, notes whether the calling
+    thread holds a grid's lock (a zenoh call may block on the network: never under a runtime lock)."""
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self.session, self.locks, self.calls_under_lock = session, list[OwnedLock](), list[str]()
+
+    def check(self, call: str) -> None:
+        if any(lock.owner == threading.get_ident() for lock in self.locks):
+            self.calls_under_lock.append(f"{call} on {threading.current_thread().name}")
+
+    def __getattr__(self, name: str) -> Any:
+        found = getattr(self.session, name)
+        if not callable(found):
+            return found
+
+        def call(*args: Any, **kwargs: Any) -> Any:
+            self.check(f"session.{name}")
+            result = found(*args, **kwargs)
+            return WatchedPublisher(result, self) if name == "declare_publisher" else result
+
+        return call
+
+
+class WatchedPublisher:
+    def __init__(self, publisher: zenoh.Publisher, session: WatchedSession) -> None:
+        self.publisher, self.session = publisher, session
+
+    def put(self, *args: Any, **kwargs: Any) -> None:
+        self.session.check(f"put on {self.publisher.key_expr}")
+        self.publisher.put(*args, **kwargs)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.publisher, name)
+
+
+def test_no_zenoh_call_runs_under_a_grid_lock_questions_included(tmp_path: Path) -> None:
+    """The operator's question leaves with the frame's other payloads (FrameOutputs), not from under the lock
+    of the grid whose fusion asked it."""
+    port = free_port()
+    listening = zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    with zenoh.open(listening) as real:
+        session = WatchedSession(real)
+        pipeline = Pipeline(SceneBackend(), start_anchors(), ServiceSettings().engine)
+        service = TraversabilityService(session, pipeline, settings(tmp_path))  # type: ignore[arg-type]
+        grids = service.runtime.grids
+        assert grids is not None
+        for grid in grids.sources.values():
+            grid.lock = OwnedLock()  # type: ignore[assignment]
+            session.locks.append(grid.lock)  # type: ignore[arg-type]
+        service.start()
+        try:
+            with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
+                questions: list[OperatorQuestion] = []
+                client.subscribe_questions("**", questions.append)
+                BusRobot(client, make_world(seed=0)).drive(90.0, seed=1)
+                assert wait_until(lambda: questions, timeout=5)  # the fusion asked one: the path ran
+        finally:
+            service.stop()
+    assert session.calls_under_lock == []

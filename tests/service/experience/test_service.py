@@ -9,11 +9,12 @@ import pytest
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
 from gcdtrav.schemas.experience import Odometry2D, OperatorAnswer, PlannedPath, TraversalOutcome
 from gcdtrav.schemas.messages import MessageError, Pose2D
-from gcdtrav.schemas.settings import AskSettings, ExperienceSettings
-from gcdtrav.service.experience.service import Experience, experience_file
+from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings, SettingsError
+from gcdtrav.service.experience.service import Experience, experience_file, service_experience
 from gcdtrav.service.experience.store import OutcomeRejected
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.ros.cdr import twist_cdr
+from gcdtrav.service.runtime.grids import GridOutputs
 
 ANCHORS = AnchorSet(anchors=[Anchor(concept="mud", position=0.1), Anchor(concept="grass", position=0.8)])
 SETTINGS = ExperienceSettings(enabled=True, cmd_vel="/cmd_vel", odometry="robot/odom", footprint_m=0.2)
@@ -106,3 +107,24 @@ def test_a_planners_path_steers_where_questions_look_until_it_lapses() -> None:
         experience.on_planned_path("cam", b'{"stamp": 0, "points": [[1e9, 0], [0, 0]]}', received_at=now[0])
     with pytest.raises(MessageError):
         experience.on_planned_path("cam", b"\x00garbage", received_at=now[0])
+
+
+def test_after_fusion_snapshots_the_grid_and_a_failure_is_counted_not_raised(tmp_path: Path) -> None:
+    grid = {"source": "cam", "intrinsics": {"fx": 40, "fy": 40, "cx": 32, "cy": 24, "width": 64, "height": 48},
+            "mount": {"z": 1.0, "pitch": 0.5}, "size_m": 6.0, "resolution_m": 0.5}  # fmt: skip
+    settings = ServiceSettings.model_validate({"state_dir": tmp_path, "grids": [grid], "experience": {"enabled": True}})
+    rejected: list[tuple[str | None, str, str]] = []
+    experience = service_experience(settings, lambda name, reason, detail, _: rejected.append((name, reason, detail)))
+    assert experience is not None and experience.source == "cam"
+    assert experience.store.path == experience_file(tmp_path, "gcdtrav")
+    fused = GridOutputs(settings.grids, 2, "test").sources["cam"]
+    fused.grid, camera = ambiguous_strip(0.0), fused.cameras["cam"]  # as if a frame was fused
+    assert experience.after_fusion(fused, camera, None) is None and len(experience.ring) == 1  # the snapshot
+    experience.on_grid_update = lambda *args: 1 / 0  # type: ignore[method-assign,assignment,misc]
+    assert experience.after_fusion(fused, camera, None) is None  # the frame's outputs go on
+    assert rejected == [(None, "experience_failed", "cam: ZeroDivisionError: division by zero")]
+    off = settings.model_copy(update={"experience": ExperienceSettings()})
+    assert service_experience(off, lambda *args: None) is None
+    with pytest.raises(SettingsError, match="grid 'nope' is not one of the grids"):
+        service_experience(settings.model_copy(update={"experience": SETTINGS.model_copy(update={"grid": "nope"})}),
+                           lambda *args: None)  # fmt: skip

@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from fakes import processed
+from gcdtrav.schemas.experience import OperatorQuestion
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.outputs import OutputBuilder
@@ -59,3 +60,29 @@ def test_the_grids_cdr_outputs_go_on_their_keys_and_the_cameras_ros_topics() -> 
     assert ((values.reshape(known.shape) == -1) == ~known).all()  # min_match 0: unknown only where unobserved
     assert (layers["cvar"][known] <= layers["traversability"][known] + 1e-6).all()
     assert np.isnan(layers["count"][~known]).all() and (layers["age"][known] == 0).all()
+
+
+def test_the_question_a_fusion_asks_leaves_with_the_frames_outputs_on_the_question_key() -> None:
+    """The hook runs under the grid's lock (it sees the grid as fused) and only returns its question; the output
+    builder emits it beside the grid, and a fusion that asks nothing adds nothing."""
+    grid = {"source": "cam", "intrinsics": {"fx": 40, "fy": 40, "cx": 32, "cy": 24, "width": 64, "height": 48},
+            "mount": {"z": 1.0, "pitch": 0.5}, "size_m": 6.0, "resolution_m": 0.5}  # fmt: skip
+    settings = ServiceSettings.model_validate({"grids": [grid], "preview": False})
+    question = OperatorQuestion(id="cam-1", source="cam", stamp=1.0, reason="novel", region=(0.0, 0.0, 1.0, 1.0),
+                                cells=[(0.5, 0.5)], concepts=[], anchor_set_version="v")  # fmt: skip
+    asked: list[bool] = []
+
+    def after_fusion(fused, camera, image):  # type: ignore[no-untyped-def]
+        asked.append(fused.lock.locked() and int(fused.grid.known.sum()) > 0)
+        return question if len(asked) == 1 else None
+
+    grids = GridOutputs(settings.grids, 13, "test", settings.risk, after_fusion=after_fusion)
+    builder, done = OutputBuilder(settings, "fake"), processed("cam")
+    built = []
+    for _ in range(2):
+        fused = grids.fuse("cam", done.record, done.result.maps.weights, done.result.maps.match)
+        built.append({output.key: output for output in builder.build(replace(done, grid=fused))})
+    assert asked == [True, True]
+    assert built[0]["gcdtrav/out/cam/question"].payload == question.pack()
+    assert built[0]["gcdtrav/out/cam/question"].encoding == "msgpack"
+    assert "gcdtrav/out/cam/question" not in built[1] and "gcdtrav/out/cam/grid" in built[1]

@@ -14,6 +14,7 @@ from gcdtrav.schemas.messages import Pose2D, ServiceStatus
 from gcdtrav.service.grid.geometry import CameraMount
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.grids.health import QUIET_S
+from gcdtrav.service.runtime.grids.outputs import AfterFusion
 from gcdtrav.service.runtime.history import FrameRecord
 
 from benchmarks.placement import (
@@ -68,10 +69,12 @@ class Clock:
         return self.now
 
 
-def outputs(clock: Clock, clock_mode: str = "estimated", **poses: float) -> GridOutputs:
+def outputs(
+    clock: Clock, clock_mode: str = "estimated", after_fusion: AfterFusion | None = None, **poses: float
+) -> GridOutputs:
     config = grid_settings(scene_camera()).model_copy(update={})
     config = type(config).model_validate(config.model_dump() | {"poses": {"wait_s": 0.0, **poses}})
-    return GridOutputs([config], len(ANCHORS), "test", clock=clock, clock_mode=clock_mode)
+    return GridOutputs([config], len(ANCHORS), "test", clock=clock, clock_mode=clock_mode, after_fusion=after_fusion)
 
 
 def frame(stamp: float, pose: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> tuple[FrameRecord, np.ndarray]:
@@ -188,14 +191,13 @@ def test_a_stopped_pose_stream_does_not_stall_fusion() -> None:
 
 def test_after_fusion_sees_the_pose_the_image_was_fused_at_not_the_newest() -> None:
     clock = Clock()
-    grids = outputs(clock)
-    add_poses(grids, 0.0, 2.0)
     seen: list[tuple[float, float]] = []
 
     def after(grid, camera, image):  # type: ignore[no-untyped-def]
         seen.append((grid.fused_at.pose.x, grid.pose.x))  # the experience's question crop reads fused_at
 
-    grids.after_fusion = after
+    grids = outputs(clock, after_fusion=after)
+    add_poses(grids, 0.0, 2.0)
     assert fuse(grids, 1.2)
     assert seen == [pytest.approx((1.2, 2.0))]
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 from fakes import Clock
@@ -11,6 +12,7 @@ from gcdtrav.schemas.messages import Pose2D
 from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
 from gcdtrav.service.runtime.change import glance
 from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.reuse import (
     ANCHORS,
     CHANGED,
@@ -25,6 +27,8 @@ from gcdtrav.service.runtime.reuse import (
 from gcdtrav.service.runtime.share import Claim, FrameClass, Need
 from scenes import flicker, jpeg_frame, noisy, scene, with_person
 
+from benchmarks.placement import CAMERA, grid_settings, scene_camera
+
 LIMITS = (20_000_000, 40_000_000)
 
 
@@ -36,7 +40,11 @@ class Robot:
         self.pose: Pose2D | None = Pose2D(stamp=0.0, x=0.0, y=0.0, yaw=0.0) if with_pose else None
         self.anchors = "v1"
         self.tracker = ReuseTracker(
-            settings or ReuseSettings(), ScheduleSettings(), lambda s: self.pose, self.clock, lambda: self.anchors
+            settings or ReuseSettings(),
+            ScheduleSettings(),
+            lambda s, stamp: self.pose,
+            self.clock,
+            lambda: self.anchors,
         )
         self.settings = self.tracker.settings
 
@@ -128,6 +136,31 @@ def test_a_pose_that_appears_after_the_reference_is_a_change() -> None:
     robot.pose = Pose2D(stamp=1.0, x=2.0, y=0.0, yaw=0.0)
     assert robot.frame(view).reason == POSE
     assert robot.frame(view).reason == UNCHANGED
+
+
+def test_a_robot_that_parked_while_its_frame_was_in_flight_moved_since_that_frame() -> None:
+    """The poses compared are where the robot was when each frame was taken (the grid's pose buffer), not the
+    newest when the frame reaches the service: the reference, taken while driving, arrives once the robot has
+    parked 0.5 m further on; the next frame, taken parked, of a blank wall that looks the same, is a change."""
+    grids = GridOutputs([grid_settings(scene_camera())], 8, "test")
+    for k in range(101):  # 1 m/s for 1 s, then parked at x = 1: poses at 50 Hz up to 2 s
+        grids.add_pose(CAMERA, Pose2D(stamp=k / 50, frame_id="odom", x=min(k / 50, 1.0), y=0.0, yaw=0.0))
+    tracker, wall = ReuseTracker(ReuseSettings(), pose_of=grids.pose_of), np.full((480, 640, 3), 128, np.uint8)
+
+    def judged(stamp: float) -> Verdict:
+        pending = replace(jpeg_frame(wall, CAMERA), stamp=stamp)
+        verdict = tracker.judge(CAMERA, pending, glance(pending, *LIMITS, tracker.settings.blocks))
+        if not verdict.reuse:
+            tracker.inferred(CAMERA, pending, wall)
+        return verdict
+
+    assert judged(0.5).reason == FIRST  # taken at x = 0.5, inferred with the robot parked at x = 1
+    assert judged(1.5).reason == POSE  # taken at x = 1: the newest poses alike (both x = 1) would reuse it
+    assert judged(1.9).reason == UNCHANGED  # parked since
+    # A frame the pose stream has not reached yet, or a bare image (no stamp): the newest pose.
+    assert grids.pose_of(CAMERA, 5.0) == grids.pose_of(CAMERA) == grids.sources[CAMERA].pose
+    assert grids.pose_of(CAMERA, 0.5) == Pose2D(stamp=0.5, frame_id="odom", x=0.5, y=0.0, yaw=0.0)
+    assert grids.pose_of("another/camera", 0.5) is None
 
 
 def test_reuse_off_infers_every_frame() -> None:
