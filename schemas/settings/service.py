@@ -125,6 +125,25 @@ class ServiceSettings(StrictModel):
         "from the fleet (its sources fail over) and reports itself unhealthy until it progresses again; set it a "
         "few seconds above the slowest frame's inference time.",
     )
+    shutdown_grace_s: float = Field(
+        default=10.0,
+        gt=0,
+        description="On SIGINT/SIGTERM the instance leaves the fleet at once (its liveliness token goes, the "
+        "others take its sources), finishes the frame in flight and exits within this many seconds; a frame "
+        "not finished by then is dropped. Kubernetes: keep terminationGracePeriodSeconds a few seconds above.",
+    )
+    health_port: int = Field(
+        default=0,
+        ge=0,
+        le=65535,
+        description="Port of the HTTP probes /livez (the worker progresses) and /readyz (in the fleet, serving); "
+        "0: off. For Kubernetes' liveness and readiness probes; answered from memory, no zenoh.",
+    )
+    health_address: str = Field(
+        default="0.0.0.0",
+        description="Address the probes listen on once health_port is set: every interface, as a pod's kubelet "
+        "probes the pod's IP; 127.0.0.1 keeps them on the box (a local supervisor). They tell only ok or why not.",
+    )
     max_anchor_set_bytes: int = Field(
         default=DEFAULT_MAX_ANCHOR_SET_BYTES,
         ge=1024,

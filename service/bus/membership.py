@@ -6,6 +6,10 @@ An instance that stalls (``service/runtime/progress.py``) withdraws its token: t
 within their liveliness delay, and it serves nothing until it rejoins (declares the token again).
 With ``models`` (``service/bus/fleet_models.py``), instances refused for their model stay out of the table.
 Joins and leaves are logged as warnings, with the instance's model and anchor set: never silent.
+
+Scaling robots do not feel: a starting instance watches the others and notes the sources before it joins
+(``join=False``, then ``rejoin`` once it serves), so it takes sources only when it can serve them; a leaving
+one withdraws its token first (``leave``) and finishes the frames already in its hands.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ class Membership:
         assignment: Assignment | None = None,
         models: FleetModels | None = None,
         anchor_set_of: Callable[[str], str | None] = lambda instance: None,
+        join: bool = True,
     ) -> None:
         self.instance = instance
         self.models, self._anchor_set_of = models, anchor_set_of
@@ -45,7 +50,9 @@ class Membership:
         self._others: set[str] = set()
         self._lock = threading.Lock()
         self._on_change = on_change
-        self._token: zenoh.LivelinessToken | None = session.liveliness().declare_token(self._keys.alive(instance))
+        self._token: zenoh.LivelinessToken | None = (
+            session.liveliness().declare_token(self._keys.alive(instance)) if join else None
+        )
         if models is not None:
             models.on_change = self._changed
         self.assignment.set_instances(self.serving())
@@ -101,6 +108,15 @@ class Membership:
         if token is not None:
             undeclare_all([token])
             self._changed()
+
+    def leave(self) -> Callable[[str], bool]:
+        """Leave the fleet for good (shutdown): the token goes first, so the others take the sources now.
+        Returns whether this instance owned a source just before: the frames it already holds are finished."""
+        if self.withdrawn:  # a stalled instance had left already: it owns nothing to finish
+            return lambda source: False
+        owner = self.assignment.frozen()
+        self.withdraw()
+        return lambda source: owner(source) == self.instance
 
     def rejoin(self) -> None:
         with self._lock:

@@ -37,6 +37,8 @@ from gcdtrav.service.runtime.assembly import Runtime
 from gcdtrav.service.runtime.fleet.state_lock import StateLock
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.metrics import MetricsSources, ServiceMetrics
+from gcdtrav.service.runtime.probes import Probes
+from gcdtrav.service.runtime.progress import Health
 from gcdtrav.service.runtime.stats import ServiceStats
 
 log = logging.getLogger("gcdtrav.service")
@@ -68,6 +70,8 @@ class TraversabilityService:
         self._declared: list[Any] = []
         self._stopping = threading.Event()
         self.membership: Membership | None = None
+        self._leaving: Callable[[str], bool] | None = None  # after stop(): what it owned when it left
+        self.probes: Probes | None = None
         self.anchor_sync: AnchorSync | None = None
         self.state_lock = StateLock(settings.state_file, settings.instance)  # one service per state file
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if graph_inputs(settings) else None
@@ -99,9 +103,17 @@ class TraversabilityService:
                 )
 
     # ---- lifecycle -----------------------------------------------------------------------------------
-    def start(self) -> None:
-        # Membership before the inputs: a frame arriving during start-up must already go to its owner only.
-        # The anchor set's token before the alive token: a join is logged with it (membership.describe).
+    def start(self, observe_s: float = 0.0) -> None:
+        """Serve. The instance watches the others and notes the sources on the inputs from the start, but
+        joins the fleet (declares its token, so sources move to it) only once it serves: subscribers and
+        worker up, and after ``observe_s`` of watching, so that its table already holds the robots the others
+        serve (a robot it has not seen twice yet would be claimed by neither). Its queryables come last: an
+        instance that answers status serves. The anchor set's token comes before the alive token: a join is
+        logged with it (membership.describe)."""
+        began = time.monotonic()
+        if self.settings.health_port:  # first: a supervisor sees it starting
+            self.probes = Probes(self.liveness, self.readiness, self.settings.health_address, self.settings.health_port)
+            self.probes.start()
         self.anchor_sync = AnchorSync(self.session, self.keys, self.settings.instance, self.runtime.anchor_switch)
         models = FleetModels(
             self.session,
@@ -118,6 +130,7 @@ class TraversabilityService:
             assignment=self.runtime.assignment,
             models=models,
             anchor_set_of=lambda instance: fleet.versions().get(instance),
+            join=False,
         )
         for expression in self.settings.inputs:
             head = literal_head(expression)
@@ -128,11 +141,13 @@ class TraversabilityService:
             self.ros_graph.start()
         if self.runtime.grids is not None:
             self._declare_grid_inputs(self.runtime.grids)
-        self._declare_queryables()
         if self.experience is not None:
             self._declared += self.experience.start()
         self.runtime.worker.start()
         self._watchdog.start()
+        self._stopping.wait(max(0.0, began + observe_s - time.monotonic()))
+        self.membership.rejoin()
+        self._declare_queryables()  # answering status means serving: callers wait for it
         backend, active = self.pipeline.describe(), self.runtime.anchor_switch.head().anchor_set
         log.info(
             "serving: inputs %s, ROS inputs %s, outputs %s/out/{source}/maps, grids %s, experience %s, model %s (%s), "
@@ -150,14 +165,23 @@ class TraversabilityService:
             "overlapping inference" if self.runtime.worker.overlap_outputs else "after inference, same thread",
         )
 
-    def stop(self, timeout: float = 10.0) -> None:
-        """Stop taking frames, let those in flight finish, undeclare everything."""
+    def stop(self, timeout: float | None = None) -> None:
+        """Leave the fleet first (the token goes: the others take this instance's sources on their next frame),
+        stop taking frames, finish and publish the frame in flight, undeclare everything; within ``timeout``
+        (default ``shutdown_grace_s``). The frames still queued are counted dropped (``shutdown``): their
+        robots' next frames go to the new owners."""
+        timeout = self.settings.shutdown_grace_s if timeout is None else timeout
+        deadline = time.monotonic() + timeout
         self._stopping.set()
+        if self.membership is not None:
+            self._leaving = self.membership.leave()
         self.runtime.queue.close()
+        if not self.runtime.worker.stop(deadline):
+            log.warning("the frame in flight did not finish within %.1f s; its outputs are dropped", timeout)
         if self.membership is not None:
             self.membership.close()
-        if not self.runtime.worker.stop(time.monotonic() + timeout):
-            log.warning("the frame in flight did not finish within %.0f s; its outputs are dropped", timeout)
+        if self.probes is not None:
+            self.probes.close()
         self.outputs.close()  # before the session's entities: a late frame is refused, not put on a dead key
         self.credits.close()
         undeclare_all(self._declared)
@@ -211,8 +235,26 @@ class TraversabilityService:
         return self.membership.owned() if self.membership is not None else len(self.runtime.sources)
 
     def owns(self, source: str) -> bool:
-        """Instances of one prefix share the sources; before start() this instance owns them all."""
+        """Instances of one prefix share the sources; before start() this instance owns them all; leaving,
+        those it owned when it left (only the frames already in its hands are finished)."""
+        if self._leaving is not None:
+            return self._leaving(source)
         return self.membership is None or self.membership.owns(source)
+
+    def liveness(self) -> Health:
+        """The worker progresses (the /livez probe)."""
+        return self.runtime.progress.health()
+
+    def readiness(self) -> Health:
+        """In the fleet and serving (the /readyz probe)."""
+        if self._stopping.is_set():
+            return Health(False, "draining: left the fleet, finishing the frame in flight")
+        health = self.runtime.progress.health()
+        if not health.healthy:
+            return health
+        if self.membership is None or self.membership.withdrawn:
+            return Health(False, "starting: not in the fleet yet")
+        return health
 
     def _watch_progress(self) -> None:
         """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again."""

@@ -7,9 +7,11 @@ import os
 import signal
 import sys
 import threading
+import time
 from types import FrameType
 from typing import NoReturn
 
+import numpy as np
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings, SettingsError
@@ -20,6 +22,10 @@ from gcdtrav.service.runtime.fleet.state import load_anchor_state
 
 log = logging.getLogger("gcdtrav.service")
 MEASUREMENT_STOP_S = 5.0  # at shutdown, how long a background measurement may take to reach its next mode
+# Before joining the fleet, watch the inputs this long: robots at 2 Hz or faster are then established in this
+# instance's table as in the others', so no source is left to neither when the sources move (assignment.py).
+JOIN_OBSERVE_S = 1.0
+WARM_UP_SIDE = 64  # the warm-up frame; the backend resizes every image to its input size anyway
 
 
 def starting_anchor_set(settings: ServiceSettings) -> AnchorSet:
@@ -63,6 +69,14 @@ def with_torch_threads(settings: ServiceSettings) -> ServiceSettings:
     return settings.model_copy(update={"threads": threads})
 
 
+def warm_up(pipeline: Pipeline) -> None:
+    """One inference before the instance joins: the first call of a backend pays its lazy set-up (kernel
+    choice, allocations), which the first robot it takes over would otherwise wait for."""
+    began = time.perf_counter()
+    pipeline.process(np.full((WARM_UP_SIDE, WARM_UP_SIDE, 3), 128, np.uint8))
+    log.info("warmed up: one inference in %.0f ms before joining the fleet", (time.perf_counter() - began) * 1e3)
+
+
 def open_session(config: zenoh.Config, fallback: zenoh.Config | None = None) -> zenoh.Session:
     """The session; if it cannot open (serve's default port taken), the fallback config's, with a warning."""
     try:
@@ -87,6 +101,7 @@ def run_service(settings: ServiceSettings, config: zenoh.Config, fallback: zenoh
 
     settings = with_torch_threads(settings)
     pipeline = build_service_pipeline(settings)
+    warm_up(pipeline)
     stop = threading.Event()
 
     def request_stop(signum: int, _frame: FrameType | None) -> None:
@@ -104,7 +119,7 @@ def run_service(settings: ServiceSettings, config: zenoh.Config, fallback: zenoh
         raise
     measurement = None
     try:
-        service.start()
+        service.start(observe_s=JOIN_OBSERVE_S)
         with metrics_endpoint(settings, service.metrics.registry):  # a taken port: SettingsError, exit 2
             if pipeline.describe().needs_measurement:  # status answers meanwhile: measuring
                 from gcdtrav.service.backends.precision_choice import measure_in_background
@@ -113,10 +128,12 @@ def run_service(settings: ServiceSettings, config: zenoh.Config, fallback: zenoh
             while not stop.wait(0.5):
                 pass
     finally:
+        deadline = time.monotonic() + settings.shutdown_grace_s  # the whole exit, within the grace period
         service.stop()
         session.close()
     log.info("stopped")
-    if measurement is not None and not measurement.stop(MEASUREMENT_STOP_S):
+    left_s = min(MEASUREMENT_STOP_S, max(0.0, deadline - time.monotonic()))
+    if measurement is not None and not measurement.stop(left_s):
         leave_during_measurement()
     return 0
 

@@ -19,7 +19,7 @@ from typing import Protocol
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
-from gcdtrav.service.runtime.fleet.assignment import Assignment
+from gcdtrav.service.runtime.fleet.assignment import TABLE_IDLE_S, Assignment
 from gcdtrav.service.runtime.fleet.credits import CreditLedger, Credits, CreditSink
 from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.grids import GridOutputs
@@ -150,7 +150,8 @@ class Runtime:
             triage,
             grids=grids,
         )
-        assignment = Assignment(idle_s=settings.source_idle_s, max_known=4 * settings.max_sources)
+        idle = min(settings.source_idle_s, TABLE_IDLE_S)  # the table's memory, not the source's state
+        assignment = Assignment(idle_s=idle, max_known=4 * settings.max_sources)
         return cls(
             settings,
             pipeline,

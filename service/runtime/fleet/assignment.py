@@ -22,6 +22,12 @@ from collections import Counter
 from collections.abc import Callable, Iterable
 
 SWEEP_INTERVAL_S = 1.0
+# How long a silent source stays in the table. Every instance's table must hold the same sources, and an instance
+# that joins has seen only the sources that sent frames since it started: a source silent for minutes but still
+# in the others' tables made them disagree, and a robot could be left to no instance until it left them (36 s in
+# benchmarks/autoscale.py with source_idle_s, 300 s). Short, so that any disagreement ends within it; sources
+# slower than one frame per TABLE_IDLE_S leave and re-enter the table (rebalancing the others).
+TABLE_IDLE_S = 10.0
 
 
 def weight(instance: str, source: str) -> int:
@@ -104,6 +110,12 @@ class Assignment:
     def table(self) -> dict[str, str]:
         with self._lock:
             return dict(self._table)
+
+    def frozen(self) -> Callable[[str], str | None]:
+        """``owner`` as it answers now, unchanged by later changes (an instance leaving finishes with it)."""
+        with self._lock:
+            table, instances = dict(self._table), self._instances
+        return lambda source: (table.get(source) or owner_of(source, instances)) if instances else None
 
     def _forget_a_newcomer(self) -> bool:
         """Room for a new name when full: the longest-known name with a single frame goes (a flood's)."""

@@ -7,7 +7,7 @@ from collections import Counter
 
 import pytest
 from fakes import Clock
-from gcdtrav.service.runtime.fleet.assignment import Assignment, assign, owner_of
+from gcdtrav.service.runtime.fleet.assignment import TABLE_IDLE_S, Assignment, assign, owner_of
 
 README_ROBOTS = [f"r{i}/front" for i in range(8)]
 
@@ -99,3 +99,33 @@ def test_a_source_enters_the_table_at_its_established_frame(established_after: i
     assert "r1" not in assignment.table() and assignment.owner("r1") == "a"
     assignment.note("r1")
     assert assignment.table() == {"r1": "a"}
+
+
+@pytest.mark.parametrize("idle_s", [300.0, TABLE_IDLE_S])
+def test_an_instance_joining_after_robots_went_silent_agrees_with_the_others_within_the_table_idle(
+    idle_s: float,
+) -> None:
+    """Instances a and b saw eight robots, six went silent; c starts 2 s later and sees only the two that stream.
+    With the sources' idle (300 s) the old tables kept the six for minutes and gave r1 to b while c's gave it to
+    c (in benchmarks/autoscale.py a robot went 36 s without maps that way); with TABLE_IDLE_S they agree once
+    the six are TABLE_IDLE_S silent."""
+    clock = Clock()
+    old = [Assignment(established_after=2, idle_s=idle_s, clock=clock) for _ in "ab"]
+    for view in old:
+        view.set_instances(["a", "b"])
+        established(view, README_ROBOTS)
+    clock.now += 2
+    newcomer = Assignment(established_after=2, idle_s=idle_s, clock=clock)
+    newcomer.set_instances(["a", "b"])
+    views = [*old, newcomer]
+    streaming = README_ROBOTS[:2]
+    for view in views:
+        view.set_instances(["a", "b", "c"])  # c joins
+    for _ in range(int(TABLE_IDLE_S) + 2):  # the two robots keep streaming, 1 frame/s
+        for view in views:
+            for source in streaming:
+                view.note(source)
+        clock.now += 1
+    owners = {source: {view.owner(source) for view in views} for source in streaming}
+    agree = all(len(found) == 1 for found in owners.values())
+    assert agree == (idle_s == TABLE_IDLE_S), owners
