@@ -33,12 +33,10 @@ from gcdtrav.service.bus.tf import declare_tf_inputs
 from gcdtrav.service.experience.service import service_experience
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
+from gcdtrav.service.runtime import probes
 from gcdtrav.service.runtime.assembly import Runtime
 from gcdtrav.service.runtime.fleet.state_lock import StateLock
-from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.metrics import MetricsSources, ServiceMetrics
-from gcdtrav.service.runtime.probes import Probes
-from gcdtrav.service.runtime.progress import Health
 from gcdtrav.service.runtime.stats import ServiceStats
 
 log = logging.getLogger("gcdtrav.service")
@@ -71,7 +69,7 @@ class TraversabilityService:
         self._stopping = threading.Event()
         self.membership: Membership | None = None
         self._leaving: Callable[[str], bool] | None = None  # after stop(): what it owned when it left
-        self.probes: Probes | None = None
+        self.probes: probes.Probes | None = None
         self.anchor_sync: AnchorSync | None = None
         self.state_lock = StateLock(settings.state_file, settings.instance)  # one service per state file
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if graph_inputs(settings) else None
@@ -112,7 +110,9 @@ class TraversabilityService:
         logged with it (membership.describe)."""
         began = time.monotonic()
         if self.settings.health_port:  # first: a supervisor sees it starting
-            self.probes = Probes(self.liveness, self.readiness, self.settings.health_address, self.settings.health_port)
+            self.probes = probes.Probes(
+                self.liveness, self.readiness, self.settings.health_address, self.settings.health_port
+            )
             self.probes.start()
         self.anchor_sync = AnchorSync(self.session, self.keys, self.settings.instance, self.runtime.anchor_switch)
         models = FleetModels(
@@ -139,8 +139,7 @@ class TraversabilityService:
             self._declared.append(self.session.declare_subscriber(ros_input.key, self._ros_handler(ros_input)))
         if self.ros_graph is not None:
             self.ros_graph.start()
-        if self.runtime.grids is not None:
-            self._declare_grid_inputs(self.runtime.grids)
+        self._declare_grid_inputs()
         if self.experience is not None:
             self._declared += self.experience.start()
         self.runtime.worker.start()
@@ -241,20 +240,14 @@ class TraversabilityService:
             return self._leaving(source)
         return self.membership is None or self.membership.owns(source)
 
-    def liveness(self) -> Health:
+    def liveness(self) -> probes.Health:
         """The worker progresses (the /livez probe)."""
         return self.runtime.progress.health()
 
-    def readiness(self) -> Health:
+    def readiness(self) -> probes.Health:
         """In the fleet and serving (the /readyz probe)."""
-        if self._stopping.is_set():
-            return Health(False, "draining: left the fleet, finishing the frame in flight")
-        health = self.runtime.progress.health()
-        if not health.healthy:
-            return health
-        if self.membership is None or self.membership.withdrawn:
-            return Health(False, "starting: not in the fleet yet")
-        return health
+        in_fleet = self.membership is not None and not self.membership.withdrawn
+        return probes.ready(self.runtime.progress.health(), self._stopping.is_set(), in_fleet)
 
     def _watch_progress(self) -> None:
         """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again."""
@@ -293,7 +286,10 @@ class TraversabilityService:
                 self.session.declare_queryable(key, answering(handler, self.stats), complete=complete)
             )
 
-    def _declare_grid_inputs(self, grids: GridOutputs) -> None:
+    def _declare_grid_inputs(self) -> None:
+        grids = self.runtime.grids
+        if grids is None:
+            return
         for key, source, setter, reason in grids.inputs():  # poses by grid, CameraInfo and depth by camera
             handler = self._grid_input_handler(source, setter, reason)
             self._declared.append(self.session.declare_subscriber(key, handler))

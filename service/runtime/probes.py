@@ -20,6 +20,17 @@ from gcdtrav.service.runtime.progress import Health
 log = logging.getLogger("gcdtrav.service")
 
 
+def ready(health: Health, draining: bool, in_fleet: bool) -> Health:
+    """The readiness rule: not draining, the worker progressing, and a member of the fleet."""
+    if draining:
+        return Health(False, "draining: left the fleet, finishing the frame in flight")
+    if not health.healthy:
+        return health
+    if not in_fleet:
+        return Health(False, "starting: not in the fleet yet")
+    return health
+
+
 class Probes:
     """``/livez`` and ``/readyz`` on ``address:port`` (port 0 in tests: one the system picks)."""
 
