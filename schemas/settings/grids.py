@@ -50,6 +50,16 @@ class CameraMountSettings(StrictModel):
 TF_KEY = "*/tf/tf2_msgs::msg::dds_::TFMessage_/*"
 TF_STATIC_KEY = "*/tf_static/tf2_msgs::msg::dds_::TFMessage_/*"
 FRAME_AXES = Literal["auto", "optical", "body"]
+# A camera's tf frame, in both forms (GridCamera and the single-camera GridSettings): one definition.
+CAMERA_FRAME_ID: Any = Field(
+    default=None,
+    description="With tf.mount: the camera's tf frame [its images' header frame_id, else its CameraInfo's].",
+)
+CAMERA_FRAME_AXES: Any = Field(
+    default="auto",
+    description="With tf.mount: the camera frame's axes; optical: z forward, x right, y down; body: x forward, "
+    "y left, z up; auto: optical when the frame's name holds 'optical' (ROS's *_optical_frame), else body.",
+)
 
 
 def _frame_name(value: str) -> str:
@@ -107,15 +117,8 @@ class GridCamera(StrictModel):
     camera_info_key: str | None = Field(default=None, description="sensor_msgs/CameraInfo CDR key (overrides).")
     mount: CameraMountSettings = Field(default_factory=CameraMountSettings)
     depth_key: str | None = Field(default=None, description="Depth image (32FC1 m or 16UC1 mm, CDR) for 3-D points.")
-    frame_id: str | None = Field(
-        default=None,
-        description="With tf.mount: the camera's tf frame [its images' header frame_id, else its CameraInfo's].",
-    )
-    frame_axes: FRAME_AXES = Field(
-        default="auto",
-        description="With tf.mount: the camera frame's axes; optical: z forward, x right, y down; body: x forward, "
-        "y left, z up; auto: optical when the frame's name holds 'optical' (ROS's *_optical_frame), else body.",
-    )
+    frame_id: str | None = CAMERA_FRAME_ID
+    frame_axes: FRAME_AXES = CAMERA_FRAME_AXES
 
     _frame = field_validator("frame_id")(lambda value: value if value is None else _frame_name(value))
 
@@ -194,8 +197,8 @@ class GridSettings(StrictModel):
     tf: GridTfSettings | None = Field(
         default=None, description="The mounts, the pose or both from ROS tf instead of mount: and pose_key."
     )
-    frame_id: str | None = GridCamera.model_fields["frame_id"]
-    frame_axes: FRAME_AXES = GridCamera.model_fields["frame_axes"]
+    frame_id: str | None = CAMERA_FRAME_ID
+    frame_axes: FRAME_AXES = CAMERA_FRAME_AXES
     pose_format: Literal["gcdtrav", "odometry"] = Field(
         default="gcdtrav", description="gcdtrav: msgpack Pose2D; odometry: nav_msgs/msg/Odometry CDR."
     )
