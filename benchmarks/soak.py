@@ -33,6 +33,7 @@ import numpy as np
 import zenoh
 from gcdtrav.client import ServiceError, TraversabilityClient, zenoh_config
 from gcdtrav.schemas.images import encode_jpeg
+from gcdtrav.schemas.messages import ServiceStatus
 from gcdtrav.service.commands.bench import bench_image, rss_mb
 
 from tools.loopback import INFER_EVERY_FRAME, SimulatedRobots, free_port, service_processes, wait_for_statuses
@@ -137,6 +138,12 @@ def churn_verdict(
     }
 
 
+def all_counted(sent: dict[str, int], statuses: list[ServiceStatus]) -> bool:
+    """Every robot's frames sent are counted received by the instances that answered."""
+    received = {name: sum(s.sources[name].received for s in statuses if name in s.sources) for name in sent}
+    return all(received[name] >= count for name, count in sent.items())
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--minutes", type=float, default=10.0)
@@ -217,9 +224,15 @@ def main() -> int:
             )
         robots.stop()
         churn.stop()
-        # Let the last frames finish, but read the counts before the services forget the stopped robots as idle.
-        time.sleep(min(3.0, args.source_idle_s / 3))
+        # Let the last frames finish, but read the counts before the services forget the stopped robots as idle:
+        # until every frame sent is counted received somewhere, or two thirds of the idle time have passed (a
+        # loaded host may count the last frame a second late; a frame still missing then is lost).
+        settle_until = time.monotonic() + min(6.0, args.source_idle_s * 2 / 3)
+        time.sleep(min(1.0, args.source_idle_s / 3))
         statuses = client.statuses(timeout=5.0)
+        while not all_counted(robots.sent, statuses) and time.monotonic() < settle_until:
+            time.sleep(0.2)
+            statuses = client.statuses(timeout=5.0)
         subscriber.undeclare()
         per_robot = {}
         for name in robots.names:
