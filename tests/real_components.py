@@ -1,0 +1,53 @@
+"""Real components the tests run against (PostgreSQL, ROS 2's rclpy, Prometheus): skipped here, required in CI.
+
+A developer without Debian's ``postgresql`` or the ROS 2 wheels still runs the rest of the suite; the skip says
+what to install. CI names what it installed in ``GCDTRAV_REQUIRE`` (``.ci/run``), and there a missing component
+fails the test instead of skipping it, so a broken install step can never pass as "skipped".
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import shutil
+from pathlib import Path
+from typing import NoReturn
+
+import pytest
+
+REQUIRE_ENV = "GCDTRAV_REQUIRE"
+
+
+def required() -> set[str]:
+    """The components CI installed and so requires: names from GCDTRAV_REQUIRE (space or comma separated)."""
+    return set(os.environ.get(REQUIRE_ENV, "").replace(",", " ").split())
+
+
+def missing(component: str, how_to_install: str) -> NoReturn:
+    """Skip (locally) or fail (where CI requires the component) a test that needs ``component``."""
+    message = f"{component} is not installed here ({how_to_install})"
+    if component in required():
+        pytest.fail(f"{message}, but {REQUIRE_ENV} requires it", pytrace=False)
+    pytest.skip(message)
+
+
+def postgresql_bin() -> Path:
+    """The directory of Debian's PostgreSQL server programs (initdb, pg_ctl, postgres), newest version first."""
+    for version_dir in sorted(Path("/usr/lib/postgresql").glob("*/bin"), reverse=True):
+        if (version_dir / "initdb").exists() and (version_dir / "pg_ctl").exists():
+            return version_dir
+    missing("postgresql", "apt-get install postgresql")
+
+
+def require_rclpy() -> None:
+    """ROS 2's own client library (the Kilted wheels on PyPI: ros-rclpy and the message packages)."""
+    if importlib.util.find_spec("rclpy") is None:
+        missing("rclpy", "pip install ros-rclpy ros-rmw-fastrtps-cpp and the message packages, see .ci/run")
+
+
+def require_prometheus() -> str:
+    """The path of a real Prometheus server (Debian's prometheus package)."""
+    path = shutil.which("prometheus")
+    if path is None:
+        missing("prometheus", "apt-get install prometheus")
+    return path
