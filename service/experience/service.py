@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
-from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.experience import (
     AnchorProposal,
     CalibrationReport,
@@ -28,7 +28,7 @@ from gcdtrav.schemas.messages import ExperienceStatus, Pose2D, QuestionStatus
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings, SettingsError
 from gcdtrav.service.experience.ask import Crop, OperatorAsker
 from gcdtrav.service.experience.crop import image_crop
-from gcdtrav.service.experience.fitter import FitOptions
+from gcdtrav.service.experience.fitter import BEST_IN_HISTORY, PAPER, FitOptions
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore
 from gcdtrav.service.experience.velocity import (
@@ -193,14 +193,16 @@ class Experience:
     def report(self, anchors: AnchorSet) -> CalibrationReport:
         return self.store.report(self.source, anchors, self.tau)
 
-    def proposal(self, anchors: AnchorSet) -> AnchorProposal:
-        """ValueError without pairs of the set's concept tuple."""
+    def proposal(self, anchors: AnchorSet, history: Sequence[AnchorSet] = ()) -> AnchorProposal:
+        """Fitted to the pairs, judged against ``anchors`` (the active set), the paper's set and the best of
+        ``history`` (the sets active before); ValueError without pairs of the set's concept tuple."""
         options = FitOptions(
             tau=self.tau,
             held_out_fraction=self.settings.held_out_fraction,
             min_pairs_per_anchor=self.settings.min_pairs_per_anchor,
         )
-        return self.store.propose(self.source, anchors, options)
+        baselines = [(PAPER, default_anchor_set()), *((BEST_IN_HISTORY, past) for past in history)]
+        return self.store.propose(self.source, anchors, options, baselines)
 
     def counts(self) -> dict[str, int]:
         """Every counter: the store's, the tracker's (velocity_*), the askers' (ask_*)."""

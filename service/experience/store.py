@@ -19,7 +19,7 @@ import logging
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -222,9 +222,12 @@ class ExperienceStore:
             counts=counts,
         )
 
-    def propose(self, source: str, anchors: AnchorSet, options: FitOptions) -> AnchorProposal:
-        """An AnchorProposal fitted on this tuple's pairs (ValueError without pairs)."""
-        return propose(self.pairs(anchors.concepts), anchors, options, source, self.clock())
+    def propose(
+        self, source: str, anchors: AnchorSet, options: FitOptions, baselines: Sequence[tuple[str, AnchorSet]] = ()
+    ) -> AnchorProposal:
+        """An AnchorProposal fitted on this tuple's pairs, judged also against ``baselines`` (ValueError without
+        pairs)."""
+        return propose(self.pairs(anchors.concepts), anchors, options, source, self.clock(), baselines)
 
     # ---- persistence -----------------------------------------------------------------------------------
     def save(self) -> bool:
