@@ -189,7 +189,7 @@ class FigureVerdict(WireModel):
 class BaselineJudgement(WireModel):
     """The proposed set against another set than the current one, on the same held-out pairs."""
 
-    baseline: str = Field(description="Which set: \"paper's set\" or \"best in history\".")
+    baseline: str = Field(description='Which set: "paper\'s set" or "best in history".')
     version: str
     verdict: str = Field(description="better | no better | worse: the proposed set against this one.")
     figures: list[FigureVerdict]
@@ -224,7 +224,9 @@ class ProposalVerdict(WireModel):
             pairs += f", fewer than the {self.min_held_out_pairs} a verdict needs"
         worse_than = [
             f"worse than the {b.baseline} {b.version} ("
-            + ", ".join(f"{f.figure} {_figure(f.before)} -> {_figure(f.after)}" for f in b.figures if f.judgement == "worse")
+            + ", ".join(
+                f"{f.figure} {_figure(f.before)} -> {_figure(f.after)}" for f in b.figures if f.judgement == "worse"
+            )
             + ")"
             for b in self.against
             if b.verdict == "worse"

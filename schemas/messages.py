@@ -450,6 +450,11 @@ class AnchorSetReply(Message):
     anchor_set: AnchorSet
     version: str
     instance: str | None = Field(default=None, description="The instance that answered. Since 1.2.")
+    accepted_at: float | None = Field(
+        default=None,
+        description="When the set became active in the fleet, s since the epoch (0: the start set). Present since "
+        "1.4, whose services take expected=VERSION (compare-and-swap) and proposal=VERSION.",
+    )
 
 
 class AnchorHistoryEntry(WireModel):

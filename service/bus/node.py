@@ -83,6 +83,8 @@ class TraversabilityService:
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
         self.experience = experience_bus(session, settings, pipeline, experience, self.stats, self.owns)
+        if self.experience is not None:  # its proposals are kept in the store and judged against the history
+            self.experience.anchors = self.runtime.anchor_switch
         calibration = self.experience.calibration if self.experience is not None else None
         self.metrics = ServiceMetrics(MetricsSources(self.status, self._owned, settings.max_frame_age_s, calibration))
         self.stats.events = self.metrics.timings  # histograms see every frame; `serve` serves the registry
@@ -190,6 +192,7 @@ class TraversabilityService:
         if self.anchor_sync is not None:
             self.anchor_sync.close()
         self.runtime.anchor_switch.close()
+        self.runtime.store.close()
         self.state_lock.release()
         if self.ros_graph is not None:
             self.ros_graph.close()

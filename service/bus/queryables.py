@@ -25,7 +25,9 @@ ROLLBACK_FORM = (
     "steps=N (1 = the set before the active one)[;instance=NAME (only that instance rolls back)]"
     "[;expected=VERSION (only if that set is active)]"
 )
-SWAP_FORM = "[expected=VERSION (only if that set is active)] with a payload, or proposal=VERSION[;expected=V][;force=true]"
+SWAP_FORM = (
+    "[expected=VERSION (only if that set is active)] with a payload, or proposal=VERSION[;expected=V][;force=true]"
+)
 SWAP_PARAMETERS = {"expected", "force", "proposal"}
 
 
@@ -33,7 +35,6 @@ def parse_flag(text: str, name: str) -> bool:
     if text not in ("true", "false"):
         raise QueryError(f"parameter '{name}' is '{text}'; give {name}=true or {name}=false")
     return text == "true"
-
 
 
 class SourceQueries:
@@ -121,7 +122,9 @@ class AnchorQueries:
             return
         verdict = kept.proposal.judged()
         if not verdict.applicable and not force:
-            done(None, AnchorSetError([f"proposal {version} is not applied: {verdict.reason()}; force=true applies it"]))
+            done(
+                None, AnchorSetError([f"proposal {version} is not applied: {verdict.reason()}; force=true applies it"])
+            )
             return
         expected = expected or kept.proposal.current_version
         self.switch.submit_set(kept.proposal.proposed, done, expected, "proposal", forced=not verdict.applicable)
@@ -142,7 +145,11 @@ class AnchorQueries:
         replies.reply(query, self.keys.anchor_history, self.switch.history())
 
     def _set_reply(self, anchors: AnchorSet) -> AnchorSetReply:
-        return AnchorSetReply(anchor_set=anchors, version=anchors.version, instance=self.switch.instance)
+        head = self.switch.head()
+        accepted_at = head.accepted_at if head.version == anchors.version else None
+        return AnchorSetReply(
+            anchor_set=anchors, version=anchors.version, instance=self.switch.instance, accepted_at=accepted_at
+        )
 
     def _swap_answer(self, query: zenoh.Query, key: str) -> SwapDone:
         """Reply to a swap or rollback query once the switch's worker is done with it."""

@@ -36,6 +36,7 @@ from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
 from gcdtrav.service.runtime.triage.reuse import ReuseTracker, Triage
 from gcdtrav.service.runtime.worker import FrameWorker
+from gcdtrav.service.store import Store, open_store
 
 log = logging.getLogger("gcdtrav.service")
 
@@ -55,6 +56,7 @@ class Runtime:
     stats: ServiceStats
     history: FrameHistory
     anchor_switch: AnchorSwitch
+    store: Store  # the fleet's record: the anchor history and active set (service/store)
     grids: GridOutputs | None
     reuse: ReuseTracker
     queue: LatestFrameQueue[PendingFrame]
@@ -80,14 +82,19 @@ class Runtime:
         started_at: float | None = None,
         clock: Callable[[], float] = time.monotonic,
         after_fusion: AfterFusion | None = None,
+        store: Store | None = None,
     ) -> Runtime:
         """The runtime of ``settings``; ``stats``: shared with the bus (its refusals are counted there too);
         ``started_at``: wall-clock seconds, for the status's uptime (None: now); ``clock``: the sources'
         idleness is timed by it (monotonic seconds); ``after_fusion``: the experience's, called by the grids
-        under their lock (``Experience.after_fusion``: its question leaves with the frame's outputs)."""
+        under their lock (``Experience.after_fusion``: its question leaves with the frame's outputs); ``store``: the
+        fleet's store (None: the one ``settings.store`` names, opened here)."""
         stats = stats or ServiceStats(log, settings.source_idle_s)
         history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
-        switch = AnchorSwitch(pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes)
+        store = store or open_store(settings.store, settings.state_dir, settings.prefix)
+        switch = AnchorSwitch(
+            pipeline, store, settings.instance, settings.max_anchor_set_bytes, legacy_state_file=settings.state_file
+        )
         grids = (
             GridOutputs(
                 settings.grids,
@@ -158,6 +165,7 @@ class Runtime:
             stats,
             history,
             switch,
+            store,
             grids,
             reuse,
             queue,
