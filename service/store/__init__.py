@@ -17,6 +17,7 @@ from gcdtrav.service.store.records import (
     StoredProposal,
     StoreError,
     StoreUnavailable,
+    concept_key,
     pair_bytes,
 )
 
@@ -34,6 +35,7 @@ __all__ = [
     "StoreError",
     "StoreUnavailable",
     "StoredProposal",
+    "concept_key",
     "open_store",
     "pair_bytes",
     "sqlite_file",

@@ -3,6 +3,7 @@ anchor-set history, the active pointer and kept proposals; and the errors a stor
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -18,6 +19,12 @@ PAIR_OVERHEAD_BYTES = 8 + 8 + 8 + 1 + 2
 
 def pair_bytes(concepts: int) -> int:
     return 4 * concepts + PAIR_OVERHEAD_BYTES
+
+
+def concept_key(concepts: Sequence[str]) -> tuple[str, ...]:
+    """The tuple a pair belongs to: the same concepts in another order give the same per-concept weights (the
+    model scores each concept on its own; the softmax does not care about order), so the key is sorted."""
+    return tuple(sorted(concepts))
 
 
 # ---- errors ---------------------------------------------------------------------------------------------------
