@@ -38,6 +38,7 @@ from gcdtrav.service.runtime.assembly import Runtime
 from gcdtrav.service.runtime.fleet.state_lock import StateLock
 from gcdtrav.service.runtime.metrics import MetricsSources, ServiceMetrics
 from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.store import Store
 
 log = logging.getLogger("gcdtrav.service")
 WATCHDOG_INTERVAL_S = 0.25
@@ -61,7 +62,10 @@ def publisher_of(sample: zenoh.Sample) -> str | None:
 
 
 class TraversabilityService:
-    def __init__(self, session: zenoh.Session, pipeline: Pipeline, settings: ServiceSettings) -> None:
+    def __init__(
+        self, session: zenoh.Session, pipeline: Pipeline, settings: ServiceSettings, store: Store | None = None
+    ) -> None:
+        """``store``: the fleet's store (service/store); None: the one ``settings.store`` names, opened here."""
         self.session, self.pipeline, self.settings = session, pipeline, settings
         self.prefix, self.keys = settings.prefix, Keys(settings.prefix)
         self.stats = ServiceStats(log, settings.source_idle_s)  # the runtime's, counting the bus's refusals too
@@ -78,7 +82,15 @@ class TraversabilityService:
         experience = service_experience(settings, self.stats.rejected)  # None when off; asks at the grids' fusion
         asks = experience.after_fusion if experience is not None else None
         self.runtime = Runtime.build(
-            settings, pipeline, self.outputs, self.credits, self.owns, self.stats, time.time(), after_fusion=asks
+            settings,
+            pipeline,
+            self.outputs,
+            self.credits,
+            self.owns,
+            self.stats,
+            time.time(),
+            after_fusion=asks,
+            store=store,
         )
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
