@@ -44,6 +44,11 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
     put = actions.add_parser("set", help="validate FILE, show the change, and swap it in on every instance")
     put.add_argument("file", type=Path, help="anchor set, JSON or YAML")
     put.add_argument("--dry-run", action="store_true", help="validate and show the change; swap nothing")
+    put.add_argument(
+        "--expected",
+        metavar="VERSION",
+        help="swap only while this set is the active one [the active set the change is shown against]",
+    )
     history = actions.add_parser("history", help="the last accepted anchor sets, newest (active) first")
     rollback = actions.add_parser("rollback", help="swap back to an earlier set of the history, on every instance")
     rollback.add_argument("steps", nargs="?", type=positive_int, default=1, help="how far back [1: the set before]")
@@ -291,7 +296,7 @@ def set_anchors(client: TraversabilityClient, args: argparse.Namespace) -> int:
         return EXIT_OK
     # Only if the set the diff was shown against is still active (1.4 services): of two operators swapping at
     # once one wins, the other gets ActivationLost naming the winner (exit 1, one line).
-    expected = seen.version if seen.accepted_at is not None else None
+    expected = args.expected or (seen.version if seen.accepted_at is not None else None)
     version = client.set_anchors(new, expected_version=expected)  # PartialSwap (exit 1) names who holds what
     print(f"swapped: anchor set {version} active on {fleet_sets(client)}")
     return EXIT_OK
