@@ -10,6 +10,7 @@ one database of a throw-away PostgreSQL cluster), a zenoh router on loopback and
 from __future__ import annotations
 
 import subprocess
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -17,7 +18,6 @@ from typing import Any
 
 import pytest
 import zenoh
-from conftest import torch_free_gcdtrav
 from store_test_helpers import proposal_of
 from zenoh_helpers import client_config, free_port, start_router, wait_until
 
@@ -97,6 +97,13 @@ def fleet_on_one_store(
         router.communicate(timeout=20)
 
 
+def torch_free_gcdtrav(*args: str) -> list[str]:
+    """`gcdtrav ARGS` where torch cannot be imported (tests/conftest.py's, which this folder's conftest hides)."""
+    main = f"from gcdtrav.service.commands.cli import main; sys.exit(main({list(args)!r}))"
+    code = f"import sys; sys.modules['torch'] = None; {main}"
+    return [sys.executable, "-c", code]
+
+
 def gcdtrav(*args: str) -> subprocess.CompletedProcess[str]:
     return subprocess.run(torch_free_gcdtrav(*args), capture_output=True, text=True, timeout=60)
 
@@ -163,7 +170,7 @@ def test_apply_by_version_applies_exactly_the_kept_proposal_or_refuses_in_one_li
 ) -> None:
     better = ProposalVerdict(verdict="better", figures=[], held_out_pairs=500, enough_pairs=True)
     worse = better.model_copy(update={"verdict": "worse"})
-    with fleet_on_one_store(tiny_backend, tmp_path, open_same_store, "box-a", "box-b") as (fleet, client, flags):
+    with fleet_on_one_store(tiny_backend, tmp_path, open_same_store, "box-a", "box-b") as (fleet, _, flags):
         store = fleet.running["box-a"][0].runtime.store
         start = default_anchor_set()
         reviewed, stale, forced = named_set("reviewed"), named_set("stale"), named_set("forced")
