@@ -102,6 +102,7 @@ def test_a_swap_one_instance_refuses_names_each_instance_and_the_status_shows_th
     try:
         a, b = fleet.start("box-a"), fleet.start("box-b")
         assert wait_until(lambda: len(client.statuses(timeout=1.0)) == 2, 20)
+
         def unwritable(*_: object, **__: object) -> None:
             raise StoreUnavailable("the store b.sqlite3: disk I/O error")
 
