@@ -217,7 +217,8 @@ class ProposalVerdict(WireModel):
 
     def reason(self) -> str:
         """One line: the verdict, the figures behind it, the pairs."""
-        shown = [f for f in self.figures if f.judgement == "worse"] if self.verdict == "worse" else self.figures
+        worse_here = _verdict(self.figures) == "worse"  # against the current set (the baselines come below)
+        shown = [f for f in self.figures if f.judgement == "worse"] if worse_here else self.figures
         figures = ", ".join(f"{f.figure} {_figure(f.before)} -> {_figure(f.after)} ({f.judgement})" for f in shown)
         pairs = f"{self.held_out_pairs} held-out pairs"
         if not self.enough_pairs:
