@@ -114,10 +114,16 @@ def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> Non
         proposal = client.anchor_proposal()
         assert proposal.verdict is not None and proposal.verdict.applicable  # the fit beats the start set
         assert "verdict: better on the held-out pairs: mae " in dry
-        applied = gcdtrav("anchors", "propose", "--apply", *flags).stdout
+        assert proposal.kept and f"gcdtrav anchors apply {proposal.proposed_version} swaps in exactly" in dry
+        end = robot.drive(20.0, seed=3, start_stamp=end + 5.0)  # pairs arrive between review and apply
+        refit = client.anchor_proposal()
+        assert refit.pairs_until is not None and proposal.pairs_until is not None
+        assert refit.pairs_until > proposal.pairs_until and refit.proposed_version != proposal.proposed_version
+        applied = gcdtrav("anchors", "apply", proposal.proposed_version, *flags).stdout  # the reviewed one
         assert f"swapped: anchor set {proposal.proposed.version} active on exp-1" in applied
-        assert service.pipeline.anchors.version == proposal.proposed.version
+        assert service.pipeline.anchors == proposal.proposed  # exactly the reviewed set, not the refit
         assert client.anchor_history()[0].entries[1].anchor_set == before  # rollback-able
+        assert client.anchor_history()[0].entries[0].how == "proposal"
 
         robot.drive(30.0, seed=2, start_stamp=end + 10.0)  # the same concepts: one tuple, two versions
         report = client.calibration(CAMERA_SOURCE)
