@@ -115,10 +115,12 @@ def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> Non
         assert proposal.verdict is not None and proposal.verdict.applicable  # the fit beats the start set
         assert "verdict: better on the held-out pairs: mae " in dry
         assert proposal.kept and f"gcdtrav anchors apply {proposal.proposed_version} swaps in exactly" in dry
+        reviewed = proposal.train_pairs + proposal.held_out_pairs
         end = robot.drive(20.0, seed=3, start_stamp=end + 5.0)  # pairs arrive between review and apply
-        refit = client.anchor_proposal()
-        assert refit.pairs_until is not None and proposal.pairs_until is not None
-        assert refit.pairs_until > proposal.pairs_until and refit.proposed_version != proposal.proposed_version
+        assert wait_until(lambda: client.calibration(CAMERA_SOURCE).figures.pairs > reviewed, 10)
+        refit = client.anchor_proposal()  # what a refit at apply time would have swapped in
+        assert refit.train_pairs + refit.held_out_pairs > reviewed
+        assert refit.proposed_version != proposal.proposed_version
         applied = gcdtrav("anchors", "apply", proposal.proposed_version, *flags).stdout  # the reviewed one
         assert f"swapped: anchor set {proposal.proposed.version} active on exp-1" in applied
         assert service.pipeline.anchors == proposal.proposed  # exactly the reviewed set, not the refit
