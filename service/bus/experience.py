@@ -67,11 +67,12 @@ class ExperienceBus:
         experience: Experience,
         stats: ServiceStats,
         owns: Callable[[str], bool],
+        anchors: AnchorSwitch | None = None,
     ) -> None:
         self.session, self.settings, self.pipeline, self.stats, self.owns = session, settings, pipeline, stats, owns
         self.keys = Keys(settings.prefix)
         self.experience = experience  # the grids were given its after_fusion: its questions leave with their maps
-        self.anchors: AnchorSwitch | None = None  # the history a proposal is judged against and kept beside
+        self.anchors = anchors  # the history a proposal is judged against, the store it is kept in
         self._stopping = threading.Event()
         self._saver = threading.Thread(target=self._save_now_and_then, name="gcdtrav-experience", daemon=True)
 
@@ -273,8 +274,9 @@ def experience_bus(
     experience: Experience | None,
     stats: ServiceStats,
     owns: Callable[[str], bool],
+    anchors: AnchorSwitch | None = None,
 ) -> ExperienceBus | None:
     """The experience's wiring, or None when ``experience.enabled`` is off (no experience)."""
     if experience is None:
         return None
-    return ExperienceBus(session, settings, pipeline, experience, stats, owns)
+    return ExperienceBus(session, settings, pipeline, experience, stats, owns, anchors)

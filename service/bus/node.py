@@ -94,9 +94,8 @@ class TraversabilityService:
         )
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
-        self.experience = experience_bus(session, settings, pipeline, experience, self.stats, self.owns)
-        if self.experience is not None:  # its proposals are kept in the store and judged against the history
-            self.experience.anchors = self.runtime.anchor_switch
+        switch = self.runtime.anchor_switch  # proposals are judged against its history and kept in its store
+        self.experience = experience_bus(session, settings, pipeline, experience, self.stats, self.owns, switch)
         calibration = self.experience.calibration if self.experience is not None else None
         self.metrics = ServiceMetrics(MetricsSources(self.status, self._owned, settings.max_frame_age_s, calibration))
         self.stats.events = self.metrics.timings  # histograms see every frame; `serve` serves the registry
