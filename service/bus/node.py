@@ -38,6 +38,9 @@ from gcdtrav.service.runtime.assembly import Runtime
 from gcdtrav.service.runtime.fleet.state_lock import StateLock
 from gcdtrav.service.runtime.metrics import MetricsSources, ServiceMetrics
 from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.store import StoreError
+from gcdtrav.service.store.opening import service_outbox
+from gcdtrav.service.store.outbox import store_status
 
 log = logging.getLogger("gcdtrav.service")
 WATCHDOG_INTERVAL_S = 0.25
@@ -75,7 +78,12 @@ class TraversabilityService:
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if graph_inputs(settings) else None
         self.outputs = FrameOutputs(session, self.keys, self.ros_graph)  # the runtime's sinks: they only put
         self.credits = CreditPublisher(session, self.keys)
-        experience = service_experience(settings, self.stats.rejected)  # None when off; asks at the grids' fusion
+        try:  # the store of pairs and anchor history: reachable or not, the service serves; refused: no start
+            self.store = service_outbox(settings)
+        except StoreError as err:
+            self.state_lock.release()
+            raise SettingsError(str(err)) from None
+        experience = service_experience(settings, self.stats.rejected, self.store)  # None when off; asks at fusion
         asks = experience.after_fusion if experience is not None else None
         self.runtime = Runtime.build(
             settings, pipeline, self.outputs, self.credits, self.owns, self.stats, time.time(), after_fusion=asks
@@ -140,6 +148,7 @@ class TraversabilityService:
         if self.ros_graph is not None:
             self.ros_graph.start()
         self._declare_grid_inputs()
+        self.store.start()
         if self.experience is not None:
             self._declared += self.experience.start()
         self.runtime.worker.start()
@@ -186,6 +195,7 @@ class TraversabilityService:
         undeclare_all(self._declared)
         if self.experience is not None:
             self.experience.close()  # after its subscribers: the last outcomes are saved too
+        self.store.close()  # what is queued is written while the store takes it (bounded), then closed
         self._declared.clear()
         if self.anchor_sync is not None:
             self.anchor_sync.close()
@@ -312,7 +322,8 @@ class TraversabilityService:
         experience = self.experience.status() if self.experience is not None else None
         models = self.membership.models if self.membership else None
         models_status = models.status(live or []) if models is not None else None
-        return self.runtime.status_parts.status(time.time(), live, fleet, experience, models_status)
+        store = store_status(self.store.state())
+        return self.runtime.status_parts.status(time.time(), live, fleet, experience, models_status, store)
 
     def _on_status_query(self, query: zenoh.Query) -> None:
         replies.check_no_parameters(query)

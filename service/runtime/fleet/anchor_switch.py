@@ -24,6 +24,7 @@ from pathlib import Path
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply, MessageError
 from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.store.legacy import history_file_of
 from gcdtrav.service.runtime.fleet.state import (
     remove_stale_temporaries,
     save_anchor_state,
@@ -34,10 +35,6 @@ log = logging.getLogger("gcdtrav.service")
 
 HISTORY_LENGTH = 20
 SwapDone = Callable[[AnchorSet | None, BaseException | None], None]
-
-
-def history_file_of(state_file: Path) -> Path:
-    return state_file.with_name(state_file.name.removesuffix(".json") + "-history.json")
 
 
 class AnchorSwitch:
