@@ -1,6 +1,6 @@
 """Everything the bus needs of issue 33 for one service, behind one object, so the wiring stays thin: it
 subscribes to ``inputs()`` and hands payloads over, answers the calibration query with ``report`` and the
-proposal with ``proposal``, and calls ``save_if_dirty`` now and then and at shutdown. The grids call
+proposal with ``proposal``, and calls ``flush`` at shutdown. The grids call
 ``after_fusion`` under their lock after each fusion (given at their construction); the question it returns
 leaves with the frame's grid, through the runtime's one hand-off out. No middleware here. Its pairs go to the
 fleet's store (service/store/) through the outbox the service opened; reports and proposals read the fleet's.
