@@ -24,12 +24,12 @@ from pathlib import Path
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply, MessageError
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.store.legacy import history_file_of
 from gcdtrav.service.runtime.fleet.state import (
     remove_stale_temporaries,
     save_anchor_state,
     write_atomically,
 )
+from gcdtrav.service.store.legacy import history_file_of
 
 log = logging.getLogger("gcdtrav.service")
 
