@@ -823,9 +823,11 @@ class TraversabilityClient:
         path = PlannedPath(stamp=time.time() if stamp is None else stamp, frame_id=frame_id, points=list(points))
         self.session.put(self.keys.planned_path(source), path.pack(), encoding=MSGPACK)
 
-    def calibration(self, source: str, timeout: float | None = None) -> CalibrationReport:
-        """The active anchor set graded by the outcomes stored for the grid ``source``."""
-        return self._query(self.keys.calibration(source), CalibrationReport, timeout=timeout)
+    def calibration(self, source: str, timeout: float | None = None, by_source: bool = False) -> CalibrationReport:
+        """The active anchor set graded by the fleet's stored outcomes of the grid ``source``'s concept tuple;
+        ``by_source``: each source's (robot's) figures too."""
+        params = {"by_source": "true"} if by_source else None
+        return self._query(self.keys.calibration(source), CalibrationReport, params, timeout=timeout)
 
     def anchor_proposal(self, source: str | None = None, timeout: float | None = None) -> AnchorProposal:
         """An anchor set fitted on the experience (of ``source``'s grid; default the service's), never applied:

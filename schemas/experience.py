@@ -147,6 +147,12 @@ class CalibrationReport(Message):
     counts: dict[str, int] = Field(
         default_factory=dict, description="The store's counters: outcomes, pairs, rejected and ignored by reason."
     )
+    pairs_by_source: dict[str, int] = Field(
+        default_factory=dict, description="The graded pairs by the grid (robot) they came from, the fleet's. Since 1.5."
+    )
+    by_source: dict[str, CalibrationFigures] | None = Field(
+        default=None, description="Each source's own figures, when asked (by_source=true); else None. Since 1.5."
+    )
 
 
 # ---- anchor proposals -----------------------------------------------------------------------------------

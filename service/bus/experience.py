@@ -6,7 +6,8 @@ Declared only with ``experience.enabled`` (off: nothing here runs, nothing chang
   {prefix}/in/{source}/answer         subscriber (OperatorAnswer put) and queryable (the answer as payload,
                                       replied with an AnswerReply)
   experience.cmd_vel, .odometry       subscribers: Twist2D / Odometry2D on a zenoh key, or a ROS topic (CDR)
-  {prefix}/out/{source}/calibration   queryable: CalibrationReport of the active anchor set
+  {prefix}/out/{source}/calibration   queryable: CalibrationReport of the active anchor set over the fleet's
+                                      pairs (``by_source=true``: each source's figures too)
   {prefix}/config/anchors/proposal    queryable: AnchorProposal (``source=`` optional), never applied here
   {prefix}/out/{source}/question      queryable: the open OperatorQuestion (`gcdtrav answer` shows its crop
                                       before answering); a new one is published with the grid update that asked
@@ -14,14 +15,14 @@ Declared only with ``experience.enabled`` (off: nothing here runs, nothing chang
 
 A bad message is rejected with its reason and counted in the service's stats (``bad_outcome``,
 ``oversized``, ``bad_cmd_vel``, ``bad_odometry``, ``bad_answer``, ``unknown_answer``, ``unknown_grid``).
-The pairs are saved every ``SAVE_EVERY_S`` and at shutdown.
+The pairs go to the fleet's store through the service's outbox (service/store/outbox.py); a store that cannot
+be read makes a calibration or proposal query an error naming it, nothing else.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -45,7 +46,7 @@ from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.store import StoreError
 
 log = logging.getLogger("gcdtrav.service")
-SAVE_EVERY_S = 10.0
+CLOSE_FLUSH_S = 5.0  # at shutdown, this instance's queued pairs get this long to reach the store
 TWIST, ODOMETRY = "geometry_msgs/msg/Twist", "nav_msgs/msg/Odometry"
 
 
@@ -73,8 +74,6 @@ class ExperienceBus:
         self.keys = Keys(settings.prefix)
         self.experience = experience  # the grids were given its after_fusion: its questions leave with their maps
         self.anchors = anchors  # the history a proposal is judged against, the store it is kept in
-        self._stopping = threading.Event()
-        self._saver = threading.Thread(target=self._save_now_and_then, name="gcdtrav-experience", daemon=True)
 
     # ---- lifecycle -----------------------------------------------------------------------------------
     def start(self) -> list[Any]:
@@ -96,8 +95,9 @@ class ExperienceBus:
         )
         for key, respond, complete in queryables:
             declared.append(self.session.declare_queryable(key, answering(respond, self.stats), complete=complete))
-        self._saver.start()
-        log.info("experience: outcomes of grid %s, stored in %s", self.experience.source, self.experience.store.path)
+        outbox = self.experience.store.outbox
+        log.info("experience: outcomes of grid %s, pairs stored in %s %s", self.experience.source, outbox.backend,
+                 outbox.location)  # fmt: skip
         return declared
 
     def _input_key(self, key: str, ros: bool) -> str:
@@ -115,22 +115,20 @@ class ExperienceBus:
         return f"grid {self.experience.source}, " + (", ".join(inputs) or "outcomes from the bus only")
 
     def close(self) -> None:
-        """Save; the node undeclares the entities."""
-        self._stopping.set()
-        if self._saver.is_alive():
-            self._saver.join(timeout=5.0)
-        self.experience.save_if_dirty()
-
-    def _save_now_and_then(self) -> None:
-        while not self._stopping.wait(SAVE_EVERY_S):
-            self.experience.save_if_dirty()  # a failed write is logged and counted by the store
+        """Write the queued pairs (bounded); the node undeclares the entities and closes the store."""
+        self.experience.flush(CLOSE_FLUSH_S)
 
     def status(self) -> ExperienceStatus:
         return self.experience.status()
 
-    def calibration(self) -> CalibrationFigures:
-        """The active anchor set graded by the stored pairs (the metrics' ECE and coverage)."""
-        return self.experience.report(self.pipeline.anchors).figures
+    def calibration(self) -> CalibrationFigures | None:
+        """The active anchor set graded by the fleet's pairs (the metrics' ECE and coverage); None while the
+        store cannot be read."""
+        try:
+            return self.experience.report(self.pipeline.anchors).figures
+        except StoreError as err:
+            log.warning("no calibration figures for the metrics: %s", err)
+            return None
 
     # ---- inputs --------------------------------------------------------------------------------------
     def _input_handler(self, handler: Callable[[bytes, float], None], reason: str) -> Callable[[zenoh.Sample], None]:
@@ -216,10 +214,17 @@ class ExperienceBus:
             raise QueryError(f"query one source's calibration, e.g. {self.keys.calibration(self.experience.source)}")
         if not self.owns(source):
             return
-        replies.check_no_parameters(query)
+        replies.check_format(query)
+        params = strict_parameters(replies.without_format(query), "by_source=true (optional)")
+        if set(params) - {"by_source"} or params.get("by_source", "false") not in ("true", "false"):
+            raise QueryError(f"unknown parameter(s) {dict(params)}; give by_source=true or none")
         if source != self.experience.source:
             raise QueryError(f"no experience of '{source}': this service collects grid '{self.experience.source}'")
-        replies.reply(query, key, self.experience.report(self.pipeline.anchors))
+        try:
+            report = self.experience.report(self.pipeline.anchors, params.get("by_source") == "true")
+        except StoreError as err:
+            raise QueryError(f"cannot read the pairs: {err}") from None
+        replies.reply(query, key, report)
 
     def _on_question(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
@@ -245,6 +250,8 @@ class ExperienceBus:
             proposal = self.experience.proposal(self.pipeline.anchors, self._past_sets())
         except ValueError as err:
             raise QueryError(str(err)) from None
+        except StoreError as err:
+            raise QueryError(f"cannot read the pairs: {err}") from None
         replies.reply(query, self.keys.anchor_proposal, self._kept(proposal))
 
     def _past_sets(self) -> list[AnchorSet]:

@@ -14,6 +14,7 @@ from dataclasses import replace
 from typing import Any
 
 import zenoh
+from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.keys import Keys, input_source_of, literal_head
 from gcdtrav.schemas.messages import MessageError, ServiceStatus
@@ -38,7 +39,9 @@ from gcdtrav.service.runtime.assembly import Runtime
 from gcdtrav.service.runtime.fleet.state_lock import StateLock
 from gcdtrav.service.runtime.metrics import MetricsSources, ServiceMetrics
 from gcdtrav.service.runtime.stats import ServiceStats
-from gcdtrav.service.store import Store
+from gcdtrav.service.store import Store, StoreError, StoreUnavailable
+from gcdtrav.service.store.opening import service_outbox
+from gcdtrav.service.store.outbox import store_status
 
 log = logging.getLogger("gcdtrav.service")
 WATCHDOG_INTERVAL_S = 0.25
@@ -79,7 +82,12 @@ class TraversabilityService:
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if graph_inputs(settings) else None
         self.outputs = FrameOutputs(session, self.keys, self.ros_graph)  # the runtime's sinks: they only put
         self.credits = CreditPublisher(session, self.keys)
-        experience = service_experience(settings, self.stats.rejected)  # None when off; asks at the grids' fusion
+        try:  # the store of pairs and anchor history: reachable or not, the service serves; refused: no start
+            self.store = service_outbox(settings, store)
+        except StoreError as err:
+            self.state_lock.release()
+            raise SettingsError(str(err)) from None
+        experience = service_experience(settings, self.stats.rejected, self.store)  # None when off; asks at fusion
         asks = experience.after_fusion if experience is not None else None
         self.runtime = Runtime.build(
             settings,
@@ -90,7 +98,7 @@ class TraversabilityService:
             self.stats,
             time.time(),
             after_fusion=asks,
-            store=store,
+            store=self._open_store,
         )
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
@@ -153,6 +161,7 @@ class TraversabilityService:
         if self.ros_graph is not None:
             self.ros_graph.start()
         self._declare_grid_inputs()
+        self.store.start()
         if self.experience is not None:
             self._declared += self.experience.start()
         self.runtime.worker.start()
@@ -199,11 +208,11 @@ class TraversabilityService:
         undeclare_all(self._declared)
         if self.experience is not None:
             self.experience.close()  # after its subscribers: the last outcomes are saved too
+        self.store.close()  # what is queued is written while the store takes it (bounded), then closed
         self._declared.clear()
         if self.anchor_sync is not None:
             self.anchor_sync.close()
         self.runtime.anchor_switch.close()
-        self.runtime.store.close()
         self.state_lock.release()
         if self.ros_graph is not None:
             self.ros_graph.close()
@@ -263,9 +272,18 @@ class TraversabilityService:
         in_fleet = self.membership is not None and not self.membership.withdrawn
         return probes.ready(self.runtime.progress.health(), self._stopping.is_set(), in_fleet)
 
+    def _open_store(self) -> Store:
+        """The store, for the anchor switch; StoreUnavailable while it was never reached."""
+        opened = self.store.store
+        if opened is None:
+            raise StoreUnavailable(f"the store {self.store.location} was not reached yet")
+        return opened
+
     def _watch_progress(self) -> None:
-        """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again."""
+        """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again; serve the
+        store's anchor set once a store away at start answers."""
         while not self._stopping.wait(WATCHDOG_INTERVAL_S):
+            self.runtime.anchor_switch.sync(self._synced_anchors)
             change = self.runtime.progress.check(len(self.runtime.queue))
             if change is None or self.membership is None:
                 continue
@@ -275,6 +293,11 @@ class TraversabilityService:
             else:
                 log.error("worker %s: withdrawing from the fleet (its sources fail over)", change.health.reason)
                 self.membership.withdraw()
+
+    @staticmethod
+    def _synced_anchors(anchors: AnchorSet | None, error: BaseException | None) -> None:
+        if error is not None:
+            log.error("anchor set from the store: %s", error)
 
     def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None, publisher: str | None) -> None:
         if self.membership is not None:
@@ -326,7 +349,8 @@ class TraversabilityService:
         experience = self.experience.status() if self.experience is not None else None
         models = self.membership.models if self.membership else None
         models_status = models.status(live or []) if models is not None else None
-        return self.runtime.status_parts.status(time.time(), live, fleet, experience, models_status)
+        store = store_status(self.store.state())
+        return self.runtime.status_parts.status(time.time(), live, fleet, experience, models_status, store)
 
     def _on_status_query(self, query: zenoh.Query) -> None:
         replies.check_no_parameters(query)

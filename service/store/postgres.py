@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from typing import Any
@@ -21,6 +22,7 @@ from gcdtrav.service.store.sql import Cursor, Lock, SqlStore
 
 ADVISORY_CLASS = 0x6763  # 'gc': the first key of gcdtrav's advisory locks
 ADVISORY_KEYS: dict[Lock, int] = {"schema": 1, "pairs": 2, "anchors": 3}
+IDLE_CHECK_S = 1.0  # a connection idle longer is checked before use
 
 
 def _psycopg() -> Any:
@@ -70,9 +72,22 @@ class PostgresStore(SqlStore):
         self._local.connection = connection
         return connection
 
+    def _live_connection(self) -> Any:
+        """This thread's connection, checked with one round trip if it sat idle (the server may have restarted
+        meanwhile: better a fresh connection now than a failed call)."""
+        connection = self._connection()
+        if time.monotonic() - getattr(self._local, "used_at", 0.0) > IDLE_CHECK_S:
+            try:
+                connection.execute("SELECT 1")
+            except self._psycopg.Error:
+                self._forget(connection)
+                connection = self._connection()
+        self._local.used_at = time.monotonic()
+        return connection
+
     @contextmanager
     def _transaction(self, lock: Lock | None) -> Iterator[Cursor]:
-        connection = self._connection()
+        connection = self._live_connection()
         try:
             with connection.transaction(), connection.cursor() as cursor:
                 if lock is not None:

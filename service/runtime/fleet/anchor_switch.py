@@ -4,7 +4,8 @@ The fleet's store (``service/store``) is the record of which set is active and o
 is one compare-and-swap transaction there (``Store.activate``), so of two operators swapping at once exactly
 one wins and the other learns whose set it lost to. The start set (configured, or an instance's old anchor
 state file, imported once) seeds an empty store only; a store holding an active set overrides it, so the set
-an operator applied survives any restart, even of every instance on empty state dirs (PostgreSQL).
+an operator applied survives any restart, even of every instance on empty state dirs (PostgreSQL). The files
+of an instance before the store are imported once when the store opens (``service/store/legacy.py``).
 
 A swap recomputes the text embeddings, which takes longer than a zenoh callback should wait, so swaps run on
 this module's own worker thread and report to a callback; frames keep flowing meanwhile and each frame uses
@@ -18,13 +19,11 @@ import logging
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from pathlib import Path
 
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
-from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply, MessageError
+from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.fleet.fleet_anchors import ActiveSet
-from gcdtrav.service.runtime.fleet.state import load_anchor_state, remove_stale_temporaries
 from gcdtrav.service.store import HistoryRecord, Store, StoreError
 
 log = logging.getLogger("gcdtrav.service")
@@ -46,11 +45,6 @@ class ActivationLost(AnchorSetError):
         self.winner = winner
 
 
-def history_file_of(state_file: Path) -> Path:
-    """The history file of the instances before the store (imported once)."""
-    return state_file.with_name(state_file.name.removesuffix(".json") + "-history.json")
-
-
 def entry_of(record: HistoryRecord) -> AnchorHistoryEntry:
     return AnchorHistoryEntry(
         accepted_at=record.accepted_at,
@@ -64,15 +58,14 @@ def entry_of(record: HistoryRecord) -> AnchorHistoryEntry:
 
 class AnchorSwitch:
     def __init__(
-        self,
-        pipeline: Pipeline,
-        store: Store,
-        instance: str,
-        max_body_bytes: int,
-        legacy_state_file: Path | None = None,
+        self, pipeline: Pipeline, store: Store | Callable[[], Store], instance: str, max_body_bytes: int
     ) -> None:
-        self.pipeline, self.store, self.instance = pipeline, store, instance
+        """``store``: the fleet's store, or what returns it once open (StoreUnavailable until then: the start set
+        is served meanwhile, and ``sync`` installs the store's active set once it answers)."""
+        self.pipeline, self.instance = pipeline, instance
+        self._store_of: Callable[[], Store] = (lambda: store) if isinstance(store, Store) else store
         self.max_body_bytes = max_body_bytes
+        self._synced = False  # the store's active set was read (or seeded) once
         self._lock = threading.Lock()
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gcdtrav-anchors")
         self._listeners: list[Callable[[AnchorHistoryEntry], None]] = []
@@ -80,11 +73,38 @@ class AnchorSwitch:
         self._head = AnchorHistoryEntry(accepted_at=0.0, version=start.version, anchor_set=start)
         self._history = [self._head]  # the last history read from the store, for when it is unreachable
         try:
-            if legacy_state_file is not None:
-                import_legacy_state(store, legacy_state_file, instance)
-            self._install(store.seed(start, instance))  # the start set seeds an empty store only
+            self._install(self.store.seed(start, instance))  # the start set seeds an empty store only
+            self._synced = True
         except StoreError as err:  # serve the start set; swaps say the store is unreachable
-            log.error("anchor store %s: %s; serving anchor set %s until it answers", store.location, err, start.version)
+            log.error("anchor store: %s; serving anchor set %s until it answers", err, start.version)
+
+    @property
+    def store(self) -> Store:
+        """The fleet's store; StoreUnavailable while it was never reached."""
+        return self._store_of()
+
+    def sync(self, done: SwapDone) -> bool:
+        """Once the store answers after a start without it: install its active set (seeding an empty store
+        with the set served), on the worker. False (nothing to do) once that happened or while it is away."""
+        if self._synced:
+            return False
+        try:
+            store = self.store
+        except StoreError:
+            return False
+        self._synced = True
+
+        def install() -> AnchorSet:
+            with self._lock:
+                served = self._head
+                self._install(store.seed(self.pipeline.anchors, self.instance))
+                head = self._head
+            if head != served:
+                self._tell(head)
+            return head.anchor_set
+
+        self._run(install, done)
+        return True
 
     # ---- swaps, on the worker ------------------------------------------------------------------------
     def submit(
@@ -117,7 +137,10 @@ class AnchorSwitch:
 
     def _adopt(self, announced: ActiveSet, fetch: Callable[[], AnchorHistoryEntry | None]) -> AnchorSet:
         with self._lock:
-            recorded = self.store.active()
+            try:
+                recorded = self.store.active()
+            except StoreError:  # away: the announcer's set, fetched over the bus, cannot be recorded either
+                recorded = None
             served, installed = self._head, None
             if recorded is not None and ActiveSet.of(recorded.accepted_at, recorded.version) >= announced:
                 self._install(recorded)
@@ -199,7 +222,7 @@ class AnchorSwitch:
         """Serve the record's set here (embeddings computed when it is not the one served already)."""
         if record.version != self.pipeline.anchors.version:
             self.pipeline.activate(self.pipeline.prepare(record.anchor_set))
-            log.info("anchor set %s from the store %s", record.version, self.store.location)
+            log.info("anchor set %s from the store (%s by %s)", record.version, record.how, record.instance or "-")
         self._head = entry_of(record)
 
     def _tell(self, head: AnchorHistoryEntry) -> None:
@@ -234,40 +257,3 @@ class AnchorSwitch:
 
     def close(self) -> None:
         self._worker.shutdown(wait=True)
-
-
-def import_legacy_state(store: Store, state_file: Path, instance: str) -> None:
-    """An instance's anchor state from before the store (the state file and its history file), into an empty
-    store once, oldest first; the files are kept, renamed ``.imported``. A store with an active set: untouched."""
-    history_file = history_file_of(state_file)
-    if store.active() is not None or not (state_file.is_file() or history_file.is_file()):
-        return
-    entries = list(reversed(load_history(history_file)))
-    active = load_anchor_state(state_file)
-    if active is not None and (not entries or entries[-1].version != active.version):
-        entries.append(AnchorHistoryEntry(accepted_at=0.0, version=active.version, anchor_set=active))
-    for k, entry in enumerate(entries):
-        if k == 0:
-            store.seed(entry.anchor_set, instance, "imported", entry.accepted_at)
-        else:
-            store.activate(entry.anchor_set, None, "imported", instance, accepted_at=entry.accepted_at)
-    for path in (state_file, history_file):
-        try:
-            if path.is_file():
-                path.rename(path.with_name(path.name + ".imported"))
-        except OSError as err:
-            log.warning("imported %s into the store but cannot rename it: %s", path, err.strerror or err)
-    log.info("imported %d anchor set(s) of %s into the store %s", len(entries), state_file, store.location)
-
-
-def load_history(history_file: Path) -> list[AnchorHistoryEntry]:
-    """The accepted sets of a history file from before the store, newest first; empty if none is usable."""
-    try:
-        if history_file.parent.is_dir():
-            remove_stale_temporaries(history_file)  # writes a crash interrupted
-        if not history_file.is_file():
-            return []
-        return AnchorHistoryReply.model_validate_json(history_file.read_text("utf-8")).entries
-    except (OSError, ValueError, MessageError) as err:
-        log.error("ignoring the anchor history file %s: %s", history_file, err)
-        return []

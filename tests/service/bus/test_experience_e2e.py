@@ -20,8 +20,8 @@ from gcdtrav.schemas.experience import OperatorQuestion, TraversalOutcome
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.commands.serve import starting_anchor_set
-from gcdtrav.service.experience.service import experience_file
 from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.store.opening import sqlite_file
 from zenoh_helpers import connecting_config, free_port, wait_until
 
 from tools.loopback import in_process_service
@@ -132,7 +132,7 @@ def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> Non
         assert report.anchor_set_version == proposal.proposed.version
         assert set(report.pairs_by_version) == {before.version, proposal.proposed.version}
         total = report.figures.pairs
-    assert experience_file(state, "gcdtrav").is_file()
+    assert sqlite_file(state, "gcdtrav").is_file()
 
     restarted = settings(state)
     with running(restarted, starting_anchor_set(restarted)) as (_, client, _flags):  # as `gcdtrav serve` starts
@@ -213,7 +213,8 @@ def test_experience_off_declares_nothing_and_changes_nothing(tmp_path: Path) -> 
             client.anchor_proposal(timeout=0.5)
         with pytest.raises(QueryTimeout):
             client.question(CAMERA_SOURCE, timeout=0.5)
-    assert not experience_file(tmp_path, "gcdtrav").exists()
+        store = client.status().store  # the store holds the anchor history: opened, with experience off too
+        assert store is not None and store.reachable and store.written_pairs == 0
 
 
 def test_settings_that_cannot_work_are_refused_at_start(tmp_path: Path) -> None:

@@ -26,6 +26,8 @@ from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.stats import REFUSED_SOURCES, ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
+from gcdtrav.service.store.opening import sqlite_outbox
+from gcdtrav.service.store.outbox import store_status
 from gcdtrav.service.store.sqlite import SqliteStore
 from prometheus_client import generate_latest
 from prometheus_client.parser import text_string_to_metric_families
@@ -50,7 +52,9 @@ class Service:
             "box-1", 0.0, run, switch, self.queue, history, self.stats, self.sources, self.progress, self.offsets
         )
         self.owned = owned
-        self.metrics = ServiceMetrics(MetricsSources(lambda: self.parts.status(1.0), lambda: self.owned, 5.0))
+        self.store = sqlite_outbox(tmp_path / "store.sqlite3", 100, 10**6)  # the node's store, as it is wired
+        status = lambda: self.parts.status(1.0, store=store_status(self.store.state()))  # noqa: E731
+        self.metrics = ServiceMetrics(MetricsSources(status, lambda: self.owned, 5.0))
         self.stats.events = self.metrics.timings
 
     def frame(self, source: str, map_age_s: float = 0.3, reused: bool = False) -> None:

@@ -15,9 +15,10 @@ from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply
 from gcdtrav.service.backends.base import BackendDescription
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.runtime.fleet.anchor_switch import ActivationLost, AnchorSwitch, history_file_of
+from gcdtrav.service.runtime.fleet.anchor_switch import ActivationLost, AnchorSwitch
 from gcdtrav.service.runtime.fleet.state import save_anchor_state
 from gcdtrav.service.store import Store
+from gcdtrav.service.store.legacy import history_file_of, import_anchor_state
 from numpy.typing import NDArray
 
 OpenStore = Callable[[], Store]  # conftest.open_same_store
@@ -54,9 +55,13 @@ class NamesBackend:
 def instance(
     open_store: OpenStore, name: str, start: AnchorSet | None = None, legacy: Path | None = None
 ) -> AnchorSwitch:
-    """An instance starting on an empty state dir with ``start`` configured (default: the paper's set)."""
+    """An instance starting on an empty state dir with ``start`` configured (default: the paper's set), its
+    anchor state from before the store in ``legacy`` imported as the service's store opening does."""
     pipeline = Pipeline(NamesBackend(), start or default_anchor_set(), EngineSettings())
-    return AnchorSwitch(pipeline, open_store(), name, 65536, legacy_state_file=legacy)
+    store = open_store()
+    if legacy is not None:
+        import_anchor_state(store, legacy, name)
+    return AnchorSwitch(pipeline, store, name, 65536)
 
 
 def race(

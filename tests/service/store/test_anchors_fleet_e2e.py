@@ -136,7 +136,7 @@ def test_two_operators_setting_at_once_exactly_one_wins_the_other_exits_1_naming
         assert len(refusal) == 1 and refusal[0].startswith(f"gcdtrav anchors: lost to anchor set {version}: ")
         assert f"expected {seen} to be active: nothing swapped" in refusal[0]
         assert wait_until(lambda: fleet.converged_on(version), 10), fleet.versions()
-        store = fleet.running["box-a"][0].runtime.store
+        store = fleet.running["box-a"][0].runtime.anchor_switch.store
         assert [(entry.version, entry.how) for entry in store.history(5)] == [(version, "set"), (seen, "seeded")]
 
 
@@ -171,7 +171,7 @@ def test_apply_by_version_applies_exactly_the_kept_proposal_or_refuses_in_one_li
     better = ProposalVerdict(verdict="better", figures=[], held_out_pairs=500, enough_pairs=True)
     worse = better.model_copy(update={"verdict": "worse"})
     with fleet_on_one_store(tiny_backend, tmp_path, open_same_store, "box-a", "box-b") as (fleet, _, flags):
-        store = fleet.running["box-a"][0].runtime.store
+        store = fleet.running["box-a"][0].runtime.anchor_switch.store
         start = default_anchor_set()
         reviewed, stale, forced = named_set("reviewed"), named_set("stale"), named_set("forced")
         store.put_proposal(proposal_of(start, reviewed).model_copy(update={"verdict": better, "kept": True}), "box-b")
