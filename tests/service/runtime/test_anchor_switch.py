@@ -124,3 +124,30 @@ def test_rollback_returns_to_the_set_before(switch) -> None:  # type: ignore[no-
     assert [(e.version, e.how) for e in switch.history().entries][:2] == [(original, "rollback"), (TWO.version, "set")]
     _, error, _ = swap_and_wait(switch.submit_rollback, 5)
     assert isinstance(error, AnchorSetError) and "no set 5 step(s) back" in str(error)
+
+
+def test_a_store_away_at_start_is_synced_from_once_it_answers(tmp_path: Path) -> None:
+    """A database down when the instance starts: it serves its start set; once the store answers, ``sync``
+    (the service's watchdog calls it) installs the set the store holds, once."""
+    store = SqliteStore(tmp_path / "store.sqlite3")
+    store.seed(TWO, "box-a")  # the fleet's set, recorded before this instance started
+    reachable = threading.Event()
+
+    def store_of() -> SqliteStore:
+        if not reachable.is_set():
+            raise StoreUnavailable("the store db:5432: connection refused")
+        return store
+
+    pipeline = Pipeline(ThreadRecordingBackend(), default_anchor_set(), EngineSettings())
+    switch = AnchorSwitch(pipeline, store_of, "box-b", 65536)
+    told: list[str] = []
+    switch.on_change(lambda head: told.append(head.version))
+    assert switch.head().version == default_anchor_set().version
+    assert switch.sync(lambda anchors, error: None) is False  # still away: nothing to do yet
+    reachable.set()
+    anchors, error, _ = swap_and_wait(switch.sync)
+    assert error is None and anchors == TWO and pipeline.anchors == TWO and told == [TWO.version]
+    assert switch.sync(lambda anchors, error: None) is False  # once
+    assert [entry.how for entry in switch.history().entries] == ["seeded"]  # nothing recorded twice
+    switch.close()
+    store.close()
