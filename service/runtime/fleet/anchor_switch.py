@@ -97,7 +97,11 @@ class AnchorSwitch:
         def install() -> AnchorSet:
             with self._lock:
                 served = self._head
-                self._install(store.seed(self.pipeline.anchors, self.instance))
+                try:
+                    self._install(store.seed(self.pipeline.anchors, self.instance))
+                except StoreError:
+                    self._synced = False  # away again: the next call tries again
+                    raise
                 head = self._head
             if head != served:
                 self._tell(head)
