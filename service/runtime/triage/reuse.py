@@ -46,10 +46,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.schemas.messages import Pose2D, credits
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
-from gcdtrav.service.runtime.fleet import credits
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.schedule.share import NO_NEED, Claim, FrameClass, Need, ambiguity_of
