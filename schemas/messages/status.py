@@ -58,9 +58,9 @@ class GridStatus(WireModel):
     )
     pose_clock_s: float | None = Field(
         default=None,
-        description="Its first camera's learnt clock offset minus the pose stream's (service/runtime/"
-        "clock_offset.py): the pose clock minus the camera's plus the links' smallest delays' difference; near 0 "
-        "when both run on the robot's clock, far from 0 frames find no pose at their stamp. None: not known.",
+        description="Its first camera's learnt clock offset minus the pose stream's (both learnt by "
+        "schemas/delay_window.py): the pose clock minus the camera's plus the links' smallest delays' difference; "
+        "near 0 when both run on the robot's clock, far from 0 frames find no pose at their stamp. None: not known.",
     )
     poses_held: int = Field(default=0, description="Poses in its buffer.")
     cameras: dict[str, GridCameraStatus] = Field(default_factory=dict)
