@@ -46,9 +46,6 @@ class CreditWindow:
         usual = statistics.median(self._waits) if self._waits else 0.0
         return min(max(self.base_timeout_s, TIMEOUT_STRETCH * usual), max(MAX_CREDIT_TIMEOUT_S, self.base_timeout_s))
 
-    def has_credit(self) -> bool:
-        return self._credit
-
     def wait_s(self) -> float:
         """Seconds until a frame may go without a credit; 0 when one may go now."""
         if self._credit:
