@@ -38,7 +38,6 @@ class CreditWindow:
         self._waits: deque[float] = deque(maxlen=16)
         self.timeouts = 0
         self.unanswered = 0  # frames sent without a credit since the last grant: no owner answers
-        self.grants = 0
         self.owner: str | None = None
 
     @property
@@ -68,7 +67,6 @@ class CreditWindow:
         if not self._credit and math.isfinite(self._last_sent):
             self._waits.append(self._clock() - self._last_sent)
         self._credit = True
-        self.grants += 1
         self.unanswered = 0
         self.owner = grant.instance
 
