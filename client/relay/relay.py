@@ -241,9 +241,13 @@ class CameraLink:
             image, stamp, frame_id, original_size = self._decode(frame)
         except RejectedInput as err:
             self.undecodable += 1
-            self.unusable = f"camera frame on {frame.key} not usable: {err}"
-            log.warning("%s: %s", self.source, self.unusable)
+            unusable = f"camera frame on {frame.key} not usable: {err}"
+            if unusable != self.unusable:  # once per change, not at the camera's rate
+                log.warning("%s: %s (counted; said again only when it changes)", self.source, unusable)
+            self.unusable = unusable
             return None
+        if self.unusable is not None:
+            log.info("%s: camera frames usable again", self.source)
         self.unusable = None
         self.camera_clock.add(stamp, frame.arrived_at)
         settings = self.relay.settings
