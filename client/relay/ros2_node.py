@@ -430,7 +430,8 @@ def settings_overrides(parameters: dict[str, Any]) -> dict[str, object]:
         if not len(cameras) == len(sources) == len(infos):
             raise ValueError(f"{len(cameras)} camera, {len(sources)} source, {len(infos)} camera_info_key parameters")
         overrides["cameras"] = [
-            {"camera": c, "source": s, "camera_info_key": i} for c, s, i in zip(cameras, sources, infos, strict=True)
+            {"camera": c, "source": s, "camera_info_key": i or None}  # '' in a list of keys: none for this camera
+            for c, s, i in zip(cameras, sources, infos, strict=True)
         ]
     if "odometry_key" in parameters:
         overrides["odometry"] = {"key": parameters["odometry_key"]} | (
