@@ -196,12 +196,14 @@ def stamp_of(message: Any) -> tuple[int, int]:
     return int(message.header.stamp.sec), int(message.header.stamp.nanosec)
 
 
-def diagnostic_values(array: Any, source: str) -> dict[str, str] | None:
-    """The key/values of ``source``'s status in a DiagnosticArray (with ``level`` and ``message``), or None."""
-    for status in array.status:
-        values = {value.key: value.value for value in status.values}
-        if values.get("source") == source:
-            return values | {"level": str(status.level[0]), "message": status.message}
+def diagnostic_values(arrays: Received, source: str) -> dict[str, str] | None:
+    """The key/values of ``source``'s newest status in the DiagnosticArrays received (with ``name``, ``level``
+    and ``message``), or None."""
+    for array, _ in reversed(list(arrays.messages)):
+        for status in array.status:
+            values = {value.key: value.value for value in status.values}
+            if values.get("source") == source:
+                return values | {"name": status.name, "level": str(status.level[0]), "message": status.message}
     return None
 
 
