@@ -47,6 +47,11 @@ class RelayCamera(StrictModel):
         default="auto", description="auto: from the rmw_zenoh key; bridge keys carry no type, so set it."
     )
     zenoh_namespace: str = Field(default="", description="The robot's zenoh 'namespace', prefixed to its keys.")
+    ros_reliable: bool = Field(
+        default=False,
+        description="ROS 2 node only: subscribe reliably instead of with the sensor-data QoS (best effort). For "
+        "a reliable camera of very large frames: best effort loses a whole frame with any one of its fragments.",
+    )
     camera_info: str | None = Field(
         default="auto",
         description="ROS 2 node only (`gcdtrav relay --ros`): the camera's sensor_msgs/CameraInfo topic; auto: "

@@ -129,6 +129,7 @@ class Camera:
         encoding: str = "rgb8",
         frame_id: str = "camera_optical",
         focal: float | None = None,
+        qos: Any = 10,
     ) -> None:
         from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 
@@ -140,10 +141,8 @@ class Camera:
             self.message: Any = CompressedImage(format="jpeg", data=encode_jpeg(pixels, 90))
         else:
             data = np.ascontiguousarray(pixels).tobytes()
-            self.message = Image(
-                height=height, width=width, encoding=encoding, step=len(data) // height, data=data
-            )
-        self.publisher = robot.publisher(CompressedImage if compressed else Image, topic)
+            self.message = Image(height=height, width=width, encoding=encoding, step=len(data) // height, data=data)
+        self.publisher = robot.publisher(CompressedImage if compressed else Image, topic, qos)
         self.info: Any = None
         if focal is not None:
             base = topic.removesuffix("/compressed").rsplit("/", 1)[0]

@@ -241,13 +241,8 @@ class CameraLink:
             image, stamp, frame_id, original_size = self._decode(frame)
         except RejectedInput as err:
             self.undecodable += 1
-            unusable = f"camera frame on {frame.key} not usable: {err}"
-            if unusable != self.unusable:  # once per change, not at the camera's rate
-                log.warning("%s: %s (counted; said again only when it changes)", self.source, unusable)
-            self.unusable = unusable
+            self.unusable = f"camera frame on {frame.key} not usable: {err}"  # a cause: logged once per change
             return None
-        if self.unusable is not None:
-            log.info("%s: camera frames usable again", self.source)
         self.unusable = None
         self.camera_clock.add(stamp, frame.arrived_at)
         settings = self.relay.settings

@@ -67,6 +67,7 @@ log = logging.getLogger("gcdtrav.relay")
 NODE_NAME = "gcdtrav_relay"
 GRAPH_PERIOD_S = 0.25  # how often subscriber counts and camera types are read from the graph
 SENSOR_QOS = qos_profile_sensor_data  # best effort, keep last 5: matches reliable and best-effort publishers
+RELIABLE_CAMERA_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)  # the newest frame only
 IMAGE_QOS = QoSProfile(depth=10)  # rclcpp's default publisher profile, as the service's own ROS outputs
 LATCHED_QOS = QoSProfile(
     depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
@@ -105,16 +106,13 @@ def float_image(values: NDArray[np.float32], header: Header) -> Image:
 
 
 def set_cause(link: CameraLink, code: str, text: str | None) -> None:
-    """A cause the graph shows (or None: gone), logged once per change. A new dict: the health reads it from
-    another thread."""
+    """A cause the graph shows (or None: gone); the relay logs each change of a camera's causes once. A new
+    dict: the health reads it from another thread."""
     if link.graph_causes.get(code) == text:
         return
     causes = {key: value for key, value in link.graph_causes.items() if key != code}
-    if text is None:
-        log.info("%s: %s resolved", link.source, code)
-    else:
+    if text is not None:
         causes[code] = text
-        log.warning("%s: %s: %s", link.source, code, text)
     link.graph_causes = causes
 
 
@@ -157,8 +155,9 @@ class RosCamera:
         if msgtype is None:
             return
         self.msgtype = msgtype
+        qos = RELIABLE_CAMERA_QOS if self.camera.ros_reliable else SENSOR_QOS
         self._subscription = self.side.node.create_subscription(
-            MESSAGE_CLASSES[msgtype], self.topic, self.on_image, SENSOR_QOS, raw=True
+            MESSAGE_CLASSES[msgtype], self.topic, self.on_image, qos, raw=True
         )
         log.info("%s: subscribed to %s (%s)", self.link.source, self.topic, msgtype)
 

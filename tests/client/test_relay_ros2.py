@@ -82,7 +82,9 @@ def test_camera_to_costmap_through_a_ros2_relay(ros_domain: int, tiny_backend: A
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
     with in_process_service(tiny_backend, service_settings(tmp_path)) as (_, port):
         robot = RosRobot("robot_under_test")
-        front = Camera(robot, "/r1/front/image_raw", textured_image(240, 320), 10.0, frame_id="front_optical", focal=200.0)
+        front = Camera(
+            robot, "/r1/front/image_raw", textured_image(240, 320), 10.0, frame_id="front_optical", focal=200.0
+        )
         rear = Camera(robot, "/r1/rear/image_raw/compressed", textured_image(120, 160, seed=1), 5.0, compressed=True)
         odometry = Odometry(robot, "/r1/odom", 30.0)
         log = LogFile(tmp_path / "relay.log")
