@@ -48,6 +48,7 @@ from gcdtrav.client.relay.causes import (
     NO_INSTANCE,
 )
 from gcdtrav.client.relay.relay import MSGPACK, CameraLink, CapturedFrame, Guarded, Relay
+from gcdtrav.client.relay.ros_parameters import PARAMETERS, as_list, camera_info_topic, settings_overrides
 from gcdtrav.client.relay.state import RateWindow
 from gcdtrav.schemas.messages import Pose2D, RelayHealth
 from gcdtrav.schemas.relay import RelayCamera, RelayOdometry, RelaySettings
@@ -77,14 +78,6 @@ ERROR_CAUSES = (CAMERA_SILENT, CAMERA_UNUSABLE, CAMERA_WRONG_TYPE, NO_INSTANCE) 
 # The service's outputs as ROS topics, under the camera's topic. The speed layer's mask and filter info (issue
 # 48: grid/speed_mask, nav2_msgs/CostmapFilterInfo) join here as one more RosOutput once the service makes them.
 TRAVERSABILITY, UNCERTAINTY, COSTMAP = "gcdtrav/traversability", "gcdtrav/uncertainty", "gcdtrav/grid/costmap"
-
-
-def camera_info_topic(image_topic: str) -> str:
-    """image_transport's convention: the CameraInfo beside the image (a transport's subtopic left out)."""
-    parts = image_topic.rstrip("/").split("/")
-    if len(parts) > 2 and parts[-1] in ("compressed", "compressedDepth", "theora", "zstd"):
-        parts = parts[:-1]
-    return "/".join([*parts[:-1], "camera_info"])
 
 
 def ros_time(sec_nanosec: tuple[int, int]) -> Time:
@@ -382,23 +375,6 @@ def diagnostic_status(node_name: str, topic: str, health: RelayHealth) -> Diagno
 
 
 # ---- the node's life: parameters, settings, spin, shutdown ----------------------------------------------
-PARAMETERS = (
-    "settings",
-    "camera",
-    "source",
-    "camera_info_key",
-    "prefix",
-    "input_prefix",
-    "jpeg_quality",
-    "max_side",
-    "credit_timeout_s",
-    "stale_after_s",
-    "odometry_topic",
-    "odometry_key",
-    "connect",
-)
-
-
 def parameter_values(node: Node) -> dict[str, Any]:
     """The ROS parameters given (``--ros-args -p camera:=/camera/image_raw``, a launch file's), by name."""
     from rcl_interfaces.msg import ParameterDescriptor
@@ -410,33 +386,6 @@ def parameter_values(node: Node) -> dict[str, Any]:
         if value is not None:
             given[name] = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else value
     return given
-
-
-def as_list(value: Any) -> list[Any]:
-    return list(value) if isinstance(value, list) else [value]
-
-
-def settings_overrides(parameters: dict[str, Any]) -> dict[str, object]:
-    """Relay settings from ROS parameters (on top of the YAML file and the flags)."""
-    overrides: dict[str, object] = {
-        name: parameters[name]
-        for name in ("prefix", "input_prefix", "jpeg_quality", "max_side", "credit_timeout_s", "stale_after_s")
-        if name in parameters
-    }
-    if "camera" in parameters or "source" in parameters:
-        cameras, sources = as_list(parameters.get("camera", [])), as_list(parameters.get("source", []))
-        infos = as_list(parameters.get("camera_info_key", [None] * len(cameras)))
-        if not len(cameras) == len(sources) == len(infos):
-            raise ValueError(f"{len(cameras)} camera, {len(sources)} source, {len(infos)} camera_info_key parameters")
-        overrides["cameras"] = [
-            {"camera": c, "source": s, "camera_info_key": i or None}  # '' in a list of keys: none for this camera
-            for c, s, i in zip(cameras, sources, infos, strict=True)
-        ]
-    if "odometry_key" in parameters:
-        overrides["odometry"] = {"key": parameters["odometry_key"]} | (
-            {"topic": parameters["odometry_topic"]} if "odometry_topic" in parameters else {}
-        )
-    return overrides
 
 
 def run_node(
