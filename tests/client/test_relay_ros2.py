@@ -201,3 +201,49 @@ def test_a_bad_parameter_is_a_usage_error(ros_domain: int, tmp_path: Path) -> No
     )
     assert result.returncode == 2 and "2 camera, 1 source" in result.stderr, result.stderr
     assert time.monotonic() - began < 60
+
+
+def test_use_sim_time_stamps_the_diagnostics(ros_domain: int, tmp_path: Path) -> None:
+    """With use_sim_time the node's clock is /clock's: a bag replayed, a simulator. The outputs keep the camera's
+    stamps (whatever clock they are on); the health the node stamps itself follows the simulated time."""
+    import zenoh
+    from diagnostic_msgs.msg import DiagnosticArray
+    from gcdtrav.client.session.zenoh_args import zenoh_config
+    from builtin_interfaces.msg import Time
+    from rosgraph_msgs.msg import Clock
+    from zenoh_helpers import free_port
+
+    port = free_port()
+    robot = RosRobot("simulator")
+    clock = robot.publisher(Clock, "/clock")
+    ticking = robot.every(0.05, lambda: clock.publish(Clock(clock=Time(sec=1000, nanosec=5))))
+    _, diagnostics = robot.subscribe(DiagnosticArray, "/diagnostics")
+    log = LogFile(tmp_path / "relay.log")
+    with zenoh.open(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)):
+        relay = subprocess.Popen(
+            relay_command(
+                "-e",
+                f"tcp/127.0.0.1:{port}",
+                "--ros-args",
+                "-p",
+                "camera:=/sim/image",
+                "-p",
+                "source:=sim",
+                "-p",
+                "use_sim_time:=true",
+            ),
+            stdout=subprocess.DEVNULL,
+            stderr=log.handle,
+        )
+        try:
+
+            def stamps() -> set[tuple[int, int]]:
+                return {(array.header.stamp.sec, array.header.stamp.nanosec) for array, _ in diagnostics.messages}
+
+            assert wait_until(lambda: (1000, 5) in stamps(), 60), (stamps(), log.text())
+            assert stamps() <= {(0, 0), (1000, 5)}, stamps()  # (0, 0): before the first /clock; never the wall
+        finally:
+            status = stop_process(relay)
+            ticking.cancel()
+            robot.close()
+    assert status == 0, log.text()
