@@ -207,9 +207,9 @@ def test_use_sim_time_stamps_the_diagnostics(ros_domain: int, tmp_path: Path) ->
     """With use_sim_time the node's clock is /clock's: a bag replayed, a simulator. The outputs keep the camera's
     stamps (whatever clock they are on); the health the node stamps itself follows the simulated time."""
     import zenoh
+    from builtin_interfaces.msg import Time
     from diagnostic_msgs.msg import DiagnosticArray
     from gcdtrav.client.session.zenoh_args import zenoh_config
-    from builtin_interfaces.msg import Time
     from rosgraph_msgs.msg import Clock
     from zenoh_helpers import free_port
 

@@ -66,7 +66,7 @@ def test_parameters_override_the_yaml(tmp_path: Path) -> None:
     ],
 )
 def test_unpaired_cameras_are_refused(parameters: dict[str, object]) -> None:
-    with pytest.raises(ValueError, match="camera, .* source"):
+    with pytest.raises(ValueError, match=r"camera, .* source"):
         settings_overrides(parameters)
 
 
