@@ -174,6 +174,10 @@ class RosCamera:
         self._info_sent, self._info_sent_at = content, now
         self._info_publisher.put(serialize_message(info))
 
+    def close(self) -> None:
+        if self._info_publisher is not None:
+            self._info_publisher.undeclare()
+
 
 class RosOutput:
     """One output of one source as ROS topics, fetched over the link only while a ROS subscriber exists."""
@@ -339,8 +343,7 @@ class RosRobotSide:
         if self.odometry is not None:
             self.odometry.close()
         for camera in self.cameras.values():
-            if camera._info_publisher is not None:
-                camera._info_publisher.undeclare()
+            camera.close()
 
 
 def diagnostic_status(node_name: str, topic: str, health: RelayHealth) -> DiagnosticStatus:
