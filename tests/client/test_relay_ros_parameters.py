@@ -96,3 +96,19 @@ def test_the_launch_file_is_python_and_names_only_the_nodes_parameters() -> None
     literal = {name: ast.literal_eval(value) for name, value in given.items() if name != "use_sim_time"}
     settings = RelaySettings.model_validate(settings_overrides(literal))
     assert [c.source for c in settings.cameras] == ["r1/front", "r1/rear"]
+
+
+def test_the_base_install_stays_ros_free() -> None:
+    """The zenoh relay imports no rclpy; --ros without it says what to install, exit 1, no traceback."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys; sys.modules['rclpy'] = None\n"
+        "import gcdtrav.client.relay.relay, gcdtrav.client.relay.ros_parameters, gcdtrav.client.commands.relay\n"
+        "from gcdtrav.service.commands.cli import main\n"
+        "sys.exit(main(['relay', '--ros', '--ros-args', '-p', 'camera:=/a', '-p', 'source:=a']))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 1, result.stderr
+    assert "gcdtrav relay --ros: needs ROS 2's rclpy" in result.stderr and "Traceback" not in result.stderr
