@@ -20,8 +20,8 @@ from gcdtrav.schemas.experience import OperatorQuestion, TraversalOutcome
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.commands.serve import starting_anchor_set
-from gcdtrav.service.store.opening import sqlite_file
 from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.store.opening import sqlite_file
 from zenoh_helpers import connecting_config, free_port, wait_until
 
 from tools.loopback import in_process_service
