@@ -141,10 +141,12 @@ def test_the_fleets_pairs_survive_scale_down_and_a_full_restart(
         counts.append(settled_pairs(client, {"d", "e"}))
         robot.drive(1.0, seed=3, start_stamp=end + 10.0)  # a few frames: the robot finds its owner
         counts.append(settled_pairs(client, {"d", "e"}))
-        by_first = client.calibration(CAMERA_SOURCE)
+        by_first, proposed_first = client.calibration(CAMERA_SOURCE), client.anchor_proposal()
         fleet.stop(owner(client))  # the other answers now
-        by_second = client.calibration(CAMERA_SOURCE)
+        by_second, proposed_second = client.calibration(CAMERA_SOURCE), client.anchor_proposal()
         assert same_figures(by_first, by_second)
+        assert proposed_first.proposed == proposed_second.proposed  # the same fit of the same pairs
+        assert (proposed_first.before, proposed_first.after) == (proposed_second.before, proposed_second.after)
         assert by_first.figures.pairs >= before.figures.pairs
         assert counts == sorted(counts), counts  # never dropped
         print(f"\nthe fleet's pairs at each step: {counts}")
