@@ -68,15 +68,19 @@ def statuses(client: TraversabilityClient) -> dict[str, ServiceStatus]:
 def settled_pairs(client: TraversabilityClient, instances: set[str]) -> int:
     """The fleet's pair count once every instance's queued pairs are written: what each instance reads."""
 
+    counts: set[int] = set()
+
     def settled() -> bool:
         seen = statuses(client)
-        return set(seen) == instances and all(
-            s.store is not None and s.store.reachable and s.store.pending_pairs == 0 for s in seen.values()
+        counts.clear()
+        counts.update(s.experience.pairs for s in seen.values() if s.experience is not None)
+        return (
+            set(seen) == instances
+            and all(s.store is not None and s.store.reachable and s.store.pending_pairs == 0 for s in seen.values())
+            and len(counts) == 1  # one store: every instance counts the same pairs (each reads it every second)
         )
 
     assert wait_until(settled, timeout=60), statuses(client)
-    counts = {s.experience.pairs for s in statuses(client).values() if s.experience is not None}
-    assert len(counts) == 1, counts  # one store: every instance counts the same pairs
     return counts.pop()
 
 
