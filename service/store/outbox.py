@@ -168,7 +168,6 @@ class PairOutbox:
         try:
             store = self._store or self._opened(self._opener())
             result = store.append_pairs(batch, self.max_pairs, self.max_bytes) if batch else None
-            totals = store.totals() if batch or time.monotonic() - self._totals_at >= TOTALS_EVERY_S else None
         except StoreUnavailable as err:
             self._failed(err)
             with self._changed:
@@ -176,13 +175,14 @@ class PairOutbox:
                 self._writing = 0
                 self._changed.notify_all()
             return
-        except StoreError as err:  # not transient (a refused row): counted, never retried forever
-            log.error("store %s refused %d pairs: %s", self.location, len(batch), err)
+        except Exception as err:  # not transient (a refused row, a bug): counted, never retried forever
+            log.error("store %s refused %d pairs: %s", self.location, len(batch), err, exc_info=True)
             with self._changed:
                 self._dropped += len(batch)
                 self._writing = 0
                 self._changed.notify_all()
             return
+        totals = self._read_totals(store, force=bool(batch))
         with self._changed:
             if result is not None:
                 self._written += result.stored
@@ -195,11 +195,18 @@ class PairOutbox:
             self._unreachable_since, self._error = None, None
             self._changed.notify_all()
 
-    def _opened(self, store: Store) -> Store:
+    def _read_totals(self, store: Store, force: bool) -> PairTotals | None:
+        """The store's totals, after a write or when the last read is older than TOTALS_EVERY_S; None if not
+        read (a failure here changes nothing: the pairs are written, the next write reads again)."""
+        if not force and time.monotonic() - self._totals_at < TOTALS_EVERY_S:
+            return None
         try:
-            totals: PairTotals | None = store.totals()
+            return store.totals()
         except StoreError:
-            totals = None
+            return None
+
+    def _opened(self, store: Store) -> Store:
+        totals = self._read_totals(store, force=True)
         with self._changed:
             self._store = store
             if totals is not None:
