@@ -700,7 +700,7 @@ class TraversabilityClient:
         """Swap the service's anchor set; returns the new version or raises AnchorSetRejected.
         ``expected_version``: swap only if that set is still the active one (the one the caller reviewed the
         change against): of two callers swapping at once one wins, the other gets ActivationLost naming the
-        winner. Services before 1.4 (no ``accepted_at`` in their AnchorSetReply) refuse it as a parameter."""
+        winner. Services before 1.5 (no ``accepted_at`` in their AnchorSetReply) refuse it as a parameter."""
         if isinstance(anchor_set, AnchorSet):
             text = anchor_set.to_json()
         elif isinstance(anchor_set, str):
@@ -770,7 +770,7 @@ class TraversabilityClient:
             raise ServiceError("no instance answered with an anchor history")
         newest = max(histories, key=lambda h: (h.entries[0].accepted_at, h.entries[0].version, h.instance))
         params: dict[str, Any] = {"steps": steps, "instance": newest.instance}
-        if newest.entries[0].how is not None:  # a 1.4 service: roll back only from the set shown (compare-and-swap)
+        if newest.entries[0].how is not None:  # a 1.5 service: roll back only from the set shown (compare-and-swap)
             params["expected"] = newest.entries[0].version
         answers, errors = self._replies(
             self.keys.anchor_rollback, AnchorSetReply, params, timeout=timeout, every_instance=True

@@ -203,7 +203,7 @@ class BaselineJudgement(WireModel):
 
 class ProposalVerdict(WireModel):
     """A proposal judged on its held-out pairs: better only if no judged figure is worse and one is better, and
-    (since 1.4) not worse than the paper's set or the best set of the history either."""
+    (since 1.5) not worse than the paper's set or the best set of the history either."""
 
     verdict: str = Field(description="Verdict's words today; any other word (a newer service) is never applied.")
     figures: list[FigureVerdict]
@@ -213,7 +213,7 @@ class ProposalVerdict(WireModel):
     against: list[BaselineJudgement] = Field(
         default_factory=list,
         description="The proposed set against the paper's set and the history's best of the same concepts; a "
-        "worse judgement against any makes the verdict worse. Since 1.4.",
+        "worse judgement against any makes the verdict worse. Since 1.5.",
     )
 
     @property
@@ -317,11 +317,11 @@ class AnchorProposal(Message):
     kept: bool = Field(
         default=False,
         description="Kept in the fleet's store under proposed_version: `gcdtrav anchors apply VERSION` applies "
-        "exactly this proposed set, never a refit. False: an offline fit, or a service before 1.4.",
+        "exactly this proposed set, never a refit. False: an offline fit, or a service before 1.5.",
     )
-    pairs_from: float | None = Field(default=None, description="The first pair's stamp, s. Since 1.4.")
+    pairs_from: float | None = Field(default=None, description="The first pair's stamp, s. Since 1.5.")
     pairs_until: float | None = Field(
-        default=None, description="The last pair's stamp, s: pairs that came later are not in it. Since 1.4."
+        default=None, description="The last pair's stamp, s: pairs that came later are not in it. Since 1.5."
     )
 
     def judged(self) -> ProposalVerdict:

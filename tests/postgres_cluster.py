@@ -34,8 +34,9 @@ def free_port() -> int:
 class PostgresCluster:
     """One server; ``stop`` and ``start`` keep its data and port (an outage), ``destroy`` removes it all."""
 
-    def __init__(self, bin_dir: Path) -> None:
-        self.bin_dir = bin_dir
+    def __init__(self, bin_dir: Path, durable: bool = False) -> None:
+        """``durable``: fsync as a production server does (benchmarks); off in tests, which never crash it."""
+        self.bin_dir, self.durable = bin_dir, durable
         self.root = Path(tempfile.mkdtemp(prefix="gcdtrav-pg-"))
         self.data, self.sockets, self.log = self.root / "data", self.root / "sockets", self.root / "server.log"
         self.port = free_port()
@@ -72,7 +73,8 @@ class PostgresCluster:
             raise RuntimeError(f"{program} failed ({result.returncode}): {result.stderr.strip()}\n{log}")
 
     def start(self) -> None:
-        options = (f"-c listen_addresses=127.0.0.1 -p {self.port} -k {self.sockets} -c fsync=off "
+        fsync = "on" if self.durable else "off"
+        options = (f"-c listen_addresses=127.0.0.1 -p {self.port} -k {self.sockets} -c fsync={fsync} "
                    "-c max_connections=60")  # fmt: skip
         self._run("pg_ctl", "-D", str(self.data), "-l", str(self.log), "-w", "-t", "60", "-o", options, "start")
 
@@ -98,10 +100,10 @@ class PostgresCluster:
 
 
 @contextlib.contextmanager
-def postgres_cluster() -> Iterator[PostgresCluster]:
+def postgres_cluster(durable: bool = False) -> Iterator[PostgresCluster]:
     if importlib.util.find_spec("psycopg") is None:
         missing("postgresql", "psycopg: pip install 'gcdtrav[postgresql]'")
-    cluster = PostgresCluster(postgresql_bin())
+    cluster = PostgresCluster(postgresql_bin(), durable)
     try:
         cluster.start()
         yield cluster

@@ -330,7 +330,8 @@ def status_lines(statuses: list[ServiceStatus]) -> list[str]:
 
 def store_line(instance: str, store: StoreStatus) -> str:
     """A store that cannot be reached, for `gcdtrav status`: since when, what waits, what was dropped."""
-    since = time.strftime("%H:%M:%S", time.localtime(store.unreachable_since)) if store.unreachable_since else "start"
+    when = store.unreachable_since
+    since = time.strftime("%H:%M:%S", time.localtime(when)) if when is not None else "start"
     return (
         f"STORE UNREACHABLE from {instance} since {since}: {store.backend} {store.location}; "
         f"{store.pending_pairs} pairs waiting in memory, {store.dropped_pairs} dropped; {store.error or ''}"

@@ -294,7 +294,7 @@ def set_anchors(client: TraversabilityClient, args: argparse.Namespace) -> int:
     if args.dry_run:
         print("dry run: nothing swapped")
         return EXIT_OK
-    # Only if the set the diff was shown against is still active (1.4 services): of two operators swapping at
+    # Only if the set the diff was shown against is still active (1.5 services): of two operators swapping at
     # once one wins, the other gets ActivationLost naming the winner (exit 1, one line).
     expected = args.expected or (seen.version if seen.accepted_at is not None else None)
     version = client.set_anchors(new, expected_version=expected)  # PartialSwap (exit 1) names who holds what

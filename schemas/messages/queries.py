@@ -79,7 +79,7 @@ class AnchorSetReply(Message):
     accepted_at: float | None = Field(
         default=None,
         description="When the set became active in the fleet, s since the epoch (0: the start set). Present since "
-        "1.4, whose services take expected=VERSION (compare-and-swap) and proposal=VERSION.",
+        "1.5, whose services take expected=VERSION (compare-and-swap) and proposal=VERSION.",
     )
 
 
@@ -88,11 +88,11 @@ class AnchorHistoryEntry(WireModel):
     version: str
     anchor_set: AnchorSet
     forced: bool = Field(
-        default=False, description="Applied with --force although its proposal was not judged better. Since 1.4."
+        default=False, description="Applied with --force although its proposal was not judged better. Since 1.5."
     )
-    activated_by: str | None = Field(default=None, description="The instance that activated it. Since 1.4.")
+    activated_by: str | None = Field(default=None, description="The instance that activated it. Since 1.5.")
     how: str | None = Field(
-        default=None, description="seeded, set, proposal, rollback or imported (a newer word may come). Since 1.4."
+        default=None, description="seeded, set, proposal, rollback or imported (a newer word may come). Since 1.5."
     )
 
 
@@ -112,7 +112,7 @@ class AnchorSetRejection(Message):
     lost_to: str | None = Field(
         default=None,
         description="The version activated first while this request expected another active set: it lost the "
-        "compare-and-swap. Since 1.4.",
+        "compare-and-swap. Since 1.5.",
     )
 
 

@@ -73,21 +73,15 @@ class ExperienceStore:
         )  # fmt: skip
         self.counts: dict[str, int] = {}
         self._lock = threading.Lock()  # the counters only: never held across a store call
-        self._totals = PairTotals(0, 0)  # the store's, as last read (status shows them while it is down)
 
     # ---- counters --------------------------------------------------------------------------------------
     def _count(self, name: str, by: int = 1) -> None:
         self.counts[name] = self.counts.get(name, 0) + by
 
     def totals(self) -> PairTotals:
-        """Pairs and bytes in the whole store (every instance's), or the last known while it is unreachable."""
-        store = self.outbox.store
-        try:
-            if store is not None:
-                self._totals = store.totals()
-        except StoreUnavailable:
-            pass
-        return self._totals
+        """Pairs and bytes in the whole store (every instance's), as the outbox's writer last read them: a
+        status never waits on the store."""
+        return self.outbox.totals
 
     # ---- outcomes in -----------------------------------------------------------------------------------
     def ingest(self, payload: bytes, ring: SnapshotRing) -> int:

@@ -15,11 +15,12 @@ from dataclasses import dataclass
 
 from gcdtrav.schemas.messages import StoreStatus
 from gcdtrav.service.store.base import Store
-from gcdtrav.service.store.records import PairRecord, StoreError, StoreUnavailable
+from gcdtrav.service.store.records import PairRecord, PairTotals, StoreError, StoreUnavailable
 
 log = logging.getLogger("gcdtrav.service")
 BATCH_PAIRS = 2_000  # pairs per transaction: a drive's burst in one commit, yet a short one
 WRITE_EVERY_S = 0.5  # pairs wait at most about this long before their batch is written
+TOTALS_EVERY_S = 1.0  # the store's totals (every instance's pairs) are read this often for status and metrics
 
 
 @dataclass(frozen=True)
@@ -61,6 +62,8 @@ class PairOutbox:
         self._unreachable_since: float | None = None
         self._error: str | None = None
         self._written = self._dropped = self._evicted = 0
+        self._totals = PairTotals(0, 0)  # the whole store's, read by the writer: status never waits on the store
+        self._totals_at = -float("inf")
         self._writing = 0  # pairs taken from the queue into the transaction under way
         self._stopping = False
         self._thread = threading.Thread(target=self._write_forever, name="gcdtrav-store", daemon=True)
@@ -123,6 +126,12 @@ class PairOutbox:
         return self._store
 
     @property
+    def totals(self) -> PairTotals:
+        """The whole store's pairs and bytes as last read (at most about TOTALS_EVERY_S old while reachable)."""
+        with self._changed:
+            return self._totals
+
+    @property
     def pending(self) -> int:
         with self._changed:
             return len(self._pending) + self._writing
@@ -166,26 +175,42 @@ class PairOutbox:
                 self._writing = 0
                 self._changed.notify_all()
             return
-        except StoreError as err:  # not transient (a refused row): counted, never retried forever
-            log.error("store %s refused %d pairs: %s", self.location, len(batch), err)
+        except Exception as err:  # not transient (a refused row, a bug): counted, never retried forever
+            log.error("store %s refused %d pairs: %s", self.location, len(batch), err, exc_info=True)
             with self._changed:
                 self._dropped += len(batch)
                 self._writing = 0
                 self._changed.notify_all()
             return
+        totals = self._read_totals(store, force=bool(batch))
         with self._changed:
             if result is not None:
                 self._written += result.stored
                 self._evicted += result.evicted
+            if totals is not None:
+                self._totals, self._totals_at = totals, time.monotonic()
             self._writing = 0
             if self._unreachable_since is not None:
                 log.info("store %s reachable again; %d pairs waiting", self.location, len(self._pending))
             self._unreachable_since, self._error = None, None
             self._changed.notify_all()
 
+    def _read_totals(self, store: Store, force: bool) -> PairTotals | None:
+        """The store's totals, after a write or when the last read is older than TOTALS_EVERY_S; None if not
+        read (a failure here changes nothing: the pairs are written, the next write reads again)."""
+        if not force and time.monotonic() - self._totals_at < TOTALS_EVERY_S:
+            return None
+        try:
+            return store.totals()
+        except StoreError:
+            return None
+
     def _opened(self, store: Store) -> Store:
+        totals = self._read_totals(store, force=True)
         with self._changed:
             self._store = store
+            if totals is not None:
+                self._totals, self._totals_at = totals, time.monotonic()
         return store
 
     def _failed(self, err: StoreError) -> None:

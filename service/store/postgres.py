@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from typing import Any
@@ -22,7 +21,6 @@ from gcdtrav.service.store.sql import Cursor, Lock, SqlStore
 
 ADVISORY_CLASS = 0x6763  # 'gc': the first key of gcdtrav's advisory locks
 ADVISORY_KEYS: dict[Lock, int] = {"schema": 1, "pairs": 2, "anchors": 3}
-IDLE_CHECK_S = 1.0  # a connection idle longer is checked before use
 
 
 def _psycopg() -> Any:
@@ -72,31 +70,41 @@ class PostgresStore(SqlStore):
         self._local.connection = connection
         return connection
 
-    def _live_connection(self) -> Any:
-        """This thread's connection, checked with one round trip if it sat idle (the server may have restarted
-        meanwhile: better a fresh connection now than a failed call)."""
-        connection = self._connection()
-        if time.monotonic() - getattr(self._local, "used_at", 0.0) > IDLE_CHECK_S:
-            try:
-                connection.execute("SELECT 1")
-            except self._psycopg.Error:
-                self._forget(connection)
-                connection = self._connection()
-        self._local.used_at = time.monotonic()
-        return connection
-
     @contextmanager
     def _transaction(self, lock: Lock | None) -> Iterator[Cursor]:
-        connection = self._live_connection()
+        connection = self._begun()
         try:
-            with connection.transaction(), connection.cursor() as cursor:
+            with connection.cursor() as cursor:
                 if lock is not None:
                     cursor.execute("SELECT pg_advisory_xact_lock(%s, %s)", (ADVISORY_CLASS, ADVISORY_KEYS[lock]))
                 yield cursor
-        except self._psycopg.Error as err:
+            connection.execute("COMMIT")
+        except BaseException as err:
+            if not connection.broken:
+                with suppress(self._psycopg.Error):
+                    connection.execute("ROLLBACK")
+            if not isinstance(err, self._psycopg.Error):
+                raise
             if connection.broken or isinstance(err, self._psycopg.OperationalError):
                 self._forget(connection)
             raise self._error(err) from None
+
+    def _begun(self) -> Any:
+        """This thread's connection inside a new transaction; on a fresh connection if the kept one fails at
+        BEGIN (the server restarted since it was used: nothing was done, so trying again is safe)."""
+        connection = self._connection()
+        try:
+            connection.execute("BEGIN")
+            return connection
+        except self._psycopg.Error:
+            self._forget(connection)
+        connection = self._connection()
+        try:
+            connection.execute("BEGIN")
+        except self._psycopg.Error as err:
+            self._forget(connection)
+            raise self._error(err) from None
+        return connection
 
     def _forget(self, connection: Any) -> None:
         self._local.connection = None

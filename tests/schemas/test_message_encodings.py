@@ -92,7 +92,7 @@ ENCODINGS: dict[str, str] = {
     "Pose2D": "8d8c2f26050aa8d8",
     "QuestionStatus": "34c954ab9f7e0fcd",
     "RelayHealth": "a776a0fce767f62b",
-    "ServiceStatus": "ba35e00fff079430",
+    "ServiceStatus": "545d0304df477165",  # 1.5: store (issue 46)
     "SourceStatus": "b8cb4513be01ecb6",
     "SourceView": "d16a2d24f70c230c",
 }

@@ -68,15 +68,19 @@ def statuses(client: TraversabilityClient) -> dict[str, ServiceStatus]:
 def settled_pairs(client: TraversabilityClient, instances: set[str]) -> int:
     """The fleet's pair count once every instance's queued pairs are written: what each instance reads."""
 
+    counts: set[int] = set()
+
     def settled() -> bool:
         seen = statuses(client)
-        return set(seen) == instances and all(
-            s.store is not None and s.store.reachable and s.store.pending_pairs == 0 for s in seen.values()
+        counts.clear()
+        counts.update(s.experience.pairs for s in seen.values() if s.experience is not None)
+        return (
+            set(seen) == instances
+            and all(s.store is not None and s.store.reachable and s.store.pending_pairs == 0 for s in seen.values())
+            and len(counts) == 1  # one store: every instance counts the same pairs (each reads it every second)
         )
 
     assert wait_until(settled, timeout=60), statuses(client)
-    counts = {s.experience.pairs for s in statuses(client).values() if s.experience is not None}
-    assert len(counts) == 1, counts  # one store: every instance counts the same pairs
     return counts.pop()
 
 
@@ -141,10 +145,12 @@ def test_the_fleets_pairs_survive_scale_down_and_a_full_restart(
         counts.append(settled_pairs(client, {"d", "e"}))
         robot.drive(1.0, seed=3, start_stamp=end + 10.0)  # a few frames: the robot finds its owner
         counts.append(settled_pairs(client, {"d", "e"}))
-        by_first = client.calibration(CAMERA_SOURCE)
+        by_first, proposed_first = client.calibration(CAMERA_SOURCE), client.anchor_proposal()
         fleet.stop(owner(client))  # the other answers now
-        by_second = client.calibration(CAMERA_SOURCE)
+        by_second, proposed_second = client.calibration(CAMERA_SOURCE), client.anchor_proposal()
         assert same_figures(by_first, by_second)
+        assert proposed_first.proposed == proposed_second.proposed  # the same fit of the same pairs
+        assert (proposed_first.before, proposed_first.after) == (proposed_second.before, proposed_second.after)
         assert by_first.figures.pairs >= before.figures.pairs
         assert counts == sorted(counts), counts  # never dropped
         print(f"\nthe fleet's pairs at each step: {counts}")

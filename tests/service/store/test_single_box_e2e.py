@@ -7,7 +7,9 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from gcdtrav.client import TraversabilityClient
+import pytest
+from gcdtrav.client import ServiceError, TraversabilityClient
+from gcdtrav.schemas.experience import CalibrationReport
 from gcdtrav.schemas.settings import load_settings
 from gcdtrav.service.commands.serve import starting_anchor_set
 from gcdtrav.service.store.legacy import IMPORTED_SUFFIX
@@ -41,6 +43,10 @@ def test_defaults_import_the_old_pairs_into_sqlite_and_keep_them(tmp_path: Path)
         assert status.experience is not None and status.experience.pairs == 1250  # every tuple's
         report = client.calibration(CAMERA_SOURCE)
         assert report.figures.pairs == OLD_PAIRS_OF_THE_ACTIVE_TUPLE and report.pairs_by_source == {"robot/cam": 350}
+        split = client.calibration(CAMERA_SOURCE, by_source=True)  # gcdtrav calibration --by-source
+        assert split.by_source == {"robot/cam": report.figures} and report.by_source is None
+        with pytest.raises(ServiceError, match="by_source=true or none"):
+            client._query(client.keys.calibration(CAMERA_SOURCE), CalibrationReport, {"by_source": "maybe"})
         assert (state / f"gcdtrav.experience.msgpack{IMPORTED_SUFFIX}").is_file()
         assert not (state / "gcdtrav.experience.msgpack").exists()
         BusRobot(client, make_world(seed=0)).drive(8.0, seed=1)  # with the imported active set: its tuple

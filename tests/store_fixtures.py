@@ -1,6 +1,7 @@
-"""The store's one test suite runs against both backends: ``store`` is a fresh SQLite file or a fresh database
-in one throw-away PostgreSQL cluster (tests/postgres_cluster.py; skipped locally without PostgreSQL, a
-failure in CI)."""
+"""Fixtures of the store's test suite (tests/service/store/), run against both backends: ``store`` is a fresh
+SQLite file or a fresh database in one throw-away PostgreSQL cluster (tests/postgres_cluster.py; skipped
+locally without PostgreSQL, a failure in CI). A plugin of tests/conftest.py: a second conftest.py would
+replace the root one as ``conftest`` (``from conftest import ...`` in other tests)."""
 
 from __future__ import annotations
 
