@@ -24,8 +24,9 @@ MSGPACK_ENCODING = "application/msgpack"
 # changes or removes one, and a reader refuses a message of another major with both versions named.
 # 1.0 was the integer 1 in MapsHeader only; 1.1 puts the version in every message and adds risk fields;
 # 1.2 adds ServiceStatus.measuring, MapsHeader.order, the status's health and anchor-set fleet fields, and the
-# grid's planner layers (GridMessage, GridHeader).
-SCHEMA_VERSION = "1.4"
+# grid's planner layers (GridMessage, GridHeader); 1.5 adds the grid's speed layer (GridMessage.speed_png,
+# GridStatus.speed_ago_s and speed_safe).
+SCHEMA_VERSION = "1.5"
 _VERSION = re.compile(r"^(\d+)(?:\.\d+)?$")
 
 
@@ -426,6 +427,11 @@ class GridMessage(Message):
     age_png: bytes | None = Field(
         default=None, description="Seconds since each cell was last observed, in 0.1 s steps. Since 1.2."
     )
+    speed_png: bytes | None = Field(
+        default=None,
+        description="Fraction of the robot's maximum speed per cell (value / 65535), unknown cells included "
+        "(docs/grid.md, \"Speed from uncertainty\"); None: the grid has no speed layer. Since 1.5.",
+    )
 
 
 class PathReply(Message):
@@ -533,6 +539,15 @@ class GridStatus(WireModel):
     cameras: dict[str, GridCameraStatus] = Field(default_factory=dict)
     costmap_ago_s: float | None = Field(
         default=None, description="Service seconds since the last costmap went out; None: none (or costmap off)."
+    )
+    speed_ago_s: float | None = Field(
+        default=None,
+        description="Service seconds since the last speed filter mask went out; None: none (or speed off). Since 1.5.",
+    )
+    speed_safe: bool | None = Field(
+        default=None,
+        description="Whether that mask is the safe one (the floor everywhere: the grid went stale, or the service "
+        "stops); None: none. Since 1.5.",
     )
     problem: str = Field(default="", description="Why it fuses nothing, when frames come and none fused for a while.")
     tf_waiting: dict[str, str] = Field(
