@@ -430,7 +430,7 @@ class GridMessage(Message):
     speed_png: bytes | None = Field(
         default=None,
         description="Fraction of the robot's maximum speed per cell (value / 65535), unknown cells included "
-        "(docs/grid.md, \"Speed from uncertainty\"); None: the grid has no speed layer. Since 1.5.",
+        '(docs/grid.md, "Speed from uncertainty"); None: the grid has no speed layer. Since 1.5.',
     )
 
 

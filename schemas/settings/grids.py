@@ -168,7 +168,9 @@ class GridSpeedSettings(StrictModel):
     maximum speed, 0 = no limit), its CostmapFilterInfo and a SpeedLimit at the robot's pose."""
 
     # 0.01: the mask's smallest limit is 1 percent (Nav2 reads a mask value 0 as "no limit")
-    floor: float = Field(default=0.3, ge=0.01, le=1, description="The slowest fraction of maximum speed; 1: never slow.")
+    floor: float = Field(
+        default=0.3, ge=0.01, le=1, description="The slowest fraction of maximum speed; 1: never slow."
+    )
     u_full: float = Field(default=0.1, ge=0, le=1, description="U at or below this: no slowing for U.")
     u_floor: float = Field(default=0.2, ge=0, le=1, description="U at or above this: the floor.")
     p_below_full: float = Field(default=0.1, ge=0, le=1, description="P(T < tau) at or below this: no slowing.")
@@ -264,8 +266,8 @@ class GridSettings(StrictModel):
 
     speed: GridSpeedSettings | None = Field(
         default=None,
-        description="Also publish a speed layer and Nav2 speed filter mask from U (docs/grid.md, \"Speed from "
-        "uncertainty\"); null: off.",
+        description='Also publish a speed layer and Nav2 speed filter mask from U (docs/grid.md, "Speed from '
+        'uncertainty"); null: off.',
     )
 
     @model_validator(mode="after")

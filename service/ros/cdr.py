@@ -27,7 +27,9 @@ from gcdtrav.schemas.ros_image import IMAGE as IMAGE
 from gcdtrav.service.grid.geometry import PinholeCamera
 from gcdtrav.service.ros.grid_map_msgs import GRID_MAP as GRID_MAP  # re-exported: the output types in one place
 from gcdtrav.service.ros.grid_map_msgs import register_types
-from gcdtrav.service.ros.nav2_msgs import COSTMAP_FILTER_INFO, SPEED_FILTER_PERCENT, SPEED_LIMIT
+from gcdtrav.service.ros.nav2_msgs import COSTMAP_FILTER_INFO as COSTMAP_FILTER_INFO  # re-exported
+from gcdtrav.service.ros.nav2_msgs import SPEED_FILTER_PERCENT
+from gcdtrav.service.ros.nav2_msgs import SPEED_LIMIT as SPEED_LIMIT
 from gcdtrav.service.ros.nav2_msgs import register_types as register_nav2_types
 from numpy.typing import NDArray
 

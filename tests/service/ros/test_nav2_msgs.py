@@ -32,9 +32,10 @@ def _share_of(package: str) -> Path:
 
 def official_hashes(tmp_path: Path) -> dict[str, str]:
     """RIHS01 of each shipped nav2_msgs .msg, by ROS 2's generator, as colcon builds nav2_msgs."""
-    if importlib.util.find_spec("rosidl_generator_type_description") is None or importlib.util.find_spec(
-        "std_msgs"
-    ) is None:
+    if (
+        importlib.util.find_spec("rosidl_generator_type_description") is None
+        or importlib.util.find_spec("std_msgs") is None
+    ):
         missing("rclpy", "pip install -r tests/requirements-ros2.txt")
     from rosidl_adapter.msg import convert_msg_to_idl
     from rosidl_generator_type_description import generate_type_hash
@@ -77,7 +78,9 @@ def test_type_store_hashes_match_the_release() -> None:
 
 def test_filter_info_and_speed_limit_round_trip() -> None:
     store = cdr.typestore()
-    info = store.deserialize_cdr(cdr.costmap_filter_info_cdr("odom", "/cam/gcdtrav/grid/speed_mask"), nav2_msgs.COSTMAP_FILTER_INFO)
+    info = store.deserialize_cdr(
+        cdr.costmap_filter_info_cdr("odom", "/cam/gcdtrav/grid/speed_mask"), nav2_msgs.COSTMAP_FILTER_INFO
+    )
     assert (info.type, info.base, info.multiplier) == (1, 0.0, 1.0)
     assert info.filter_mask_topic == "/cam/gcdtrav/grid/speed_mask" and info.header.frame_id == "odom"
     limit = store.deserialize_cdr(cdr.speed_limit_cdr(12.25, "odom", 30.0), nav2_msgs.SPEED_LIMIT)
