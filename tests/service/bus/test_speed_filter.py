@@ -28,9 +28,7 @@ from tools.loopback import in_process_service
 IMAGE_HASH = "RIHS01_d31d41a9a4c4bc8eae9be757b0beed306564f7526c88ea6a4588fb9582527d47"
 BASE = "0/camera/front/image_raw/gcdtrav/grid"
 MASK_KEY = f"{BASE}/speed_mask/nav_msgs::msg::dds_::OccupancyGrid_/{ros.type_hash(ros.OCCUPANCY_GRID)}"
-INFO_KEY = (
-    f"{BASE}/speed_filter_info/nav2_msgs::msg::dds_::CostmapFilterInfo_/{ros.type_hash(ros.COSTMAP_FILTER_INFO)}"
-)
+INFO_KEY = f"{BASE}/speed_filter_info/nav2_msgs::msg::dds_::CostmapFilterInfo_/{ros.type_hash(ros.COSTMAP_FILTER_INFO)}"
 LIMIT_KEY = f"{BASE}/speed_limit/nav2_msgs::msg::dds_::SpeedLimit_/{ros.type_hash(ros.SPEED_LIMIT)}"
 FLOOR, STALE_S = 0.3, 3.0
 
@@ -85,7 +83,9 @@ class Nav2Side:
         self.frames += 1
         image = textured_image(24, 32, seed=self.frames)
         attachment = rmw_attachment(self.frames, 0, entity_gid(self.publisher_token))
-        self.session.put(self.camera_key, image_cdr(image, "rgb8", stamp=stamp, frame_id="front"), attachment=attachment)
+        self.session.put(
+            self.camera_key, image_cdr(image, "rgb8", stamp=stamp, frame_id="front"), attachment=attachment
+        )
 
     def close(self) -> None:
         for declared in [*self.subscribers, *self.tokens]:
