@@ -96,7 +96,7 @@ def test_speed_settings_are_strict_and_their_ramps_rise() -> None:
         GridSpeedSettings(floor=0.0)  # a 0 % mask value would read as "no limit"
     with pytest.raises(ValidationError):
         GridSpeedSettings(rate_hz=0.0)
-    with pytest.raises(ValidationError, match="extra|not permitted"):
+    with pytest.raises(ValidationError, match=r"extra|not permitted"):
         GridSpeedSettings.model_validate({"flor": 0.3})
     grid = GridSettings.model_validate({"source": "cam", "camera_info_key": "k", "speed": {"floor": 0.5}})
     assert grid.speed is not None and grid.speed.floor == 0.5
