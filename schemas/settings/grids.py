@@ -178,6 +178,14 @@ class GridSpeedSettings(StrictModel):
     min_match: float = Field(
         default=0.0, ge=0, le=1, description="Cells whose match score is below this are novel: the floor; 0: never."
     )
+    lead_m: float = Field(
+        default=0.5,
+        ge=0,
+        le=5,
+        description="Slow ground reaches this far out (each cell takes the slowest within lead_m): Nav2's "
+        "SpeedFilter reads only the robot's own cell, so the robot must start braking this far before ambiguous "
+        "ground (its braking distance from full speed to the floor plus its speed times the filter's period).",
+    )
     unknown: Literal["floor", "full"] = Field(
         default="floor", description="Cells never observed or expired: the floor, or full speed (no limit)."
     )

@@ -6,7 +6,9 @@ as Nav2's speed filter reads it (docs/grid.md, "Speed from uncertainty").
 
 ``ramp(v; a, b)`` is 0 at or below a, 1 at or above b, linear between. A novel cell (match score below
 ``min_match``) and a known cell whose U or P(T < tau) is not a number take the floor; an unknown cell (never
-observed, or expired) the floor or full speed, as ``unknown`` says.
+observed, or expired) the floor or full speed, as ``unknown`` says. Then each cell takes the slowest fraction
+within ``lead_m`` of it (a min filter over a disc): SpeedFilter on Jazzy and Kilted reads only the robot's own
+cell, so slow ground must reach out by the robot's braking distance for it to arrive there slow.
 
 Nav2's SpeedFilter (nav2_costmap_2d/plugins/costmap_filters/speed_filter.cpp) reads a mask value v of 1..100
 as ``base + multiplier * v`` percent of the maximum speed (type 1; base 0 and multiplier 1 here), 0 as no limit,
@@ -15,6 +17,9 @@ and -1 (unknown) as an error that keeps whatever limit it had: so the mask never
 
 from __future__ import annotations
 
+import math
+
+import cv2
 import numpy as np
 from gcdtrav.schemas.settings import GridSpeedSettings
 from gcdtrav.service.grid.layers import GridLayers
@@ -29,8 +34,9 @@ def ramp(values: NDArray[np.floating], start: float, end: float) -> NDArray[np.f
     return np.asarray(np.clip((values - start) / (end - start), 0.0, 1.0), np.float32)
 
 
-def speed_fractions(layers: GridLayers, settings: GridSpeedSettings) -> NDArray[np.float32]:
-    """Every cell's fraction of maximum speed, in [floor, 1] (rows i = y, columns j = x, as the grid)."""
+def speed_fractions(layers: GridLayers, settings: GridSpeedSettings, resolution_m: float) -> NDArray[np.float32]:
+    """Every cell's fraction of maximum speed, in [floor, 1] (rows i = y, columns j = x, as the grid, whose
+    cells are ``resolution_m`` wide)."""
     with np.errstate(invalid="ignore"):  # NaN where unknown: set below
         slow = np.fmax(
             ramp(layers.uncertainty, settings.u_full, settings.u_floor),
@@ -42,7 +48,17 @@ def speed_fractions(layers: GridLayers, settings: GridSpeedSettings) -> NDArray[
     slow = np.where(known & (novel | ~np.isfinite(slow)), 1.0, slow)
     fractions = (1.0 - (1.0 - settings.floor) * slow).astype(np.float32)
     fractions[~known] = settings.floor if settings.unknown == "floor" else 1.0
-    return fractions
+    return lead_in(fractions, settings.lead_m, resolution_m)
+
+
+def lead_in(fractions: NDArray[np.float32], lead_m: float, resolution_m: float) -> NDArray[np.float32]:
+    """Each cell's slowest fraction within ``lead_m`` (OpenCV's elliptic disc of that radius in cells; the grid's
+    rim taken as it is); unchanged below one cell."""
+    radius = math.floor(lead_m / resolution_m + 1e-9)
+    if radius < 1:
+        return fractions
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    return np.asarray(cv2.erode(fractions, disc, borderType=cv2.BORDER_REPLICATE), np.float32)
 
 
 def mask_values(fractions: NDArray[np.floating]) -> NDArray[np.int8]:

@@ -214,7 +214,7 @@ class GridOutputs:
             risk = self.risk
             layers = grid_layers(grid.grid, positions, widths, risk.alpha, risk.tau, grid.config.lethal_tau)
             if grid.config.speed is not None:
-                layers = replace(layers, speed=speed_fractions(layers, grid.config.speed))
+                layers = replace(layers, speed=speed_fractions(layers, grid.config.speed, grid.config.resolution_m))
             header = self.header(grid, anchors.version)
             ros_topic = grid.ros_topic()
             mask_due = grid.speed_mask_due(self.clock())

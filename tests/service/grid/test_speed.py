@@ -7,10 +7,16 @@ import numpy as np
 import pytest
 from gcdtrav.schemas.settings import GridSettings, GridSpeedSettings
 from gcdtrav.service.grid.layers import GridLayers
-from gcdtrav.service.grid.speed import fraction_at, limit_percent, mask_values, speed_fractions
+from gcdtrav.service.grid import speed
+from gcdtrav.service.grid.speed import fraction_at, lead_in, limit_percent, mask_values
 from pydantic import ValidationError
 
 U_MAX = 0.5  # the largest std of a mixture over [0, 1] with zero widths (half at 0, half at 1)
+
+
+def speed_fractions(layers: GridLayers, settings: GridSpeedSettings) -> np.ndarray:
+    """The fractions of cells 1 m wide without a lead-in (lead_m below one cell): each cell on its own."""
+    return speed.speed_fractions(layers, settings, resolution_m=1.0)
 
 
 def cells(u: list[float], p_below: list[float] | None = None, match: list[float] | None = None,
@@ -101,3 +107,19 @@ def test_speed_settings_are_strict_and_their_ramps_rise() -> None:
     grid = GridSettings.model_validate({"source": "cam", "camera_info_key": "k", "speed": {"floor": 0.5}})
     assert grid.speed is not None and grid.speed.floor == 0.5
     assert GridSettings(source="cam", camera_info_key="k").speed is None
+
+
+def test_slow_ground_reaches_out_lead_m_and_no_further() -> None:
+    fractions = np.ones((9, 9), np.float32)
+    fractions[4, 4] = 0.3
+    spread = lead_in(fractions, lead_m=0.2, resolution_m=0.1)  # two cells
+    assert spread[4, 2] == spread[4, 6] == spread[2, 4] == pytest.approx(0.3) and spread[4, 1] == 1.0
+    assert spread[3, 3] == pytest.approx(0.3) and spread[2, 2] == 1.0  # a disc, not a square
+    np.testing.assert_array_equal(lead_in(fractions, lead_m=0.09, resolution_m=0.1), fractions)  # under a cell
+    np.testing.assert_array_equal(lead_in(fractions, lead_m=0.0, resolution_m=0.1), fractions)
+    edge = np.ones((3, 3), np.float32)
+    edge[0, 0] = 0.5
+    assert lead_in(edge, 0.1, 0.1)[0, 1] == 0.5 and lead_in(edge, 0.1, 0.1)[2, 2] == 1.0  # the rim as any cell
+    layers = cells([0.0, 0.0, 0.0, U_MAX, 0.0])
+    slowed = speed.speed_fractions(layers, GridSpeedSettings(floor=0.3, lead_m=1.0), resolution_m=1.0)
+    np.testing.assert_allclose(slowed[0], [1.0, 1.0, 0.3, 0.3, 0.3])
