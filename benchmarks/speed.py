@@ -176,6 +176,7 @@ class Drive:
     time_to_goal_s: float
     contacts: int
     hazards: int
+    entry_speeds: list[float]  # the robot's speed as it first entered each hazard it reached, m/s
     stalls: int
     mean_speed_ambiguous: float
     mean_speed_clear: float
@@ -215,7 +216,8 @@ def drive(ground: Ground, route_m: float, layer: Layer | None, seed: int, route:
     robot = Robot(limit=1.0)
     frames: list[tuple[float, float, tuple[float, float, float]]] = []  # (fused at, captured at, pose then)
     masks: list[Mask] = []
-    dt, t, touched, slow_since, stalls = 1.0 / POSE_HZ, 0.0, set(), None, 0
+    dt, t, slow_since, stalls = 1.0 / POSE_HZ, 0.0, None, 0
+    entered: dict[int, float] = {}  # hazard -> the speed it was entered at
     limit_deadline = 120.0 + route_m / (V_MAX * FLOOR)
     while robot.x < route_m and t < limit_deadline:
         step = round(t * POSE_HZ)
@@ -229,15 +231,15 @@ def drive(ground: Ground, route_m: float, layer: Layer | None, seed: int, route:
         kind = int(ground.kind(np.array(robot.x), np.array(0.0)))
         robot.samples[kind].append(robot.v)
         hazard = ground.hazard_at(robot.x, 0.0)
-        if hazard is not None and hazard not in touched and robot.v > V_SAFE:
-            touched.add(hazard)
+        if hazard is not None and hazard not in entered:
+            entered[hazard] = robot.v
         slow_since, stalls = stall_watch(robot.v, t, slow_since, stalls)
         robot.step(dt)
         t += dt
     clear = robot.samples[0] + robot.samples[1]
     return Drive(
-        "off" if layer is None else layer.name, seed, route, t, len(touched), len(ground.hazards),
-        stalls, _mean(robot.samples[2]), _mean(clear), robot.x >= route_m,
+        "off" if layer is None else layer.name, seed, route, t, sum(v > V_SAFE for v in entered.values()),
+        len(ground.hazards), list(entered.values()), stalls, _mean(robot.samples[2]), _mean(clear), robot.x >= route_m,
     )  # fmt: skip
 
 
@@ -311,6 +313,8 @@ def summary(drives: list[Drive]) -> list[dict[str, float | str | int]]:
             "layer": layer, "drives": len(mine), "reached": sum(d.reached for d in mine),
             "time_to_goal_s_median": statistics.median(d.time_to_goal_s for d in mine),
             "contacts": sum(d.contacts for d in mine), "hazards": sum(d.hazards for d in mine),
+            "entry_speed_median": statistics.median(v for d in mine for v in d.entry_speeds),
+            "entry_speed_max": max(v for d in mine for v in d.entry_speeds),
             "stalls": sum(d.stalls for d in mine),
             "mean_speed_ambiguous_median": statistics.median(d.mean_speed_ambiguous for d in mine),
             "mean_speed_clear_median": statistics.median(d.mean_speed_clear for d in mine),
@@ -320,14 +324,15 @@ def summary(drives: list[Drive]) -> list[dict[str, float | str | int]]:
 
 def table(rows: list[dict[str, float | str | int]]) -> str:
     lines = [
-        "| speed layer | drives (reached) | time to goal, s (median) | hazard contacts / hazards | stalls | "
-        "mean speed m/s on ambiguous / clear ground (median) |",
-        "|---|---|---|---|---|---|",
+        "| speed layer | drives (reached) | time to goal, s (median) | hazard contacts / hazards | "
+        "speed entering a hazard, m/s (median / max) | stalls | mean speed m/s on ambiguous / clear ground (median) |",
+        "|---|---|---|---|---|---|---|",
     ]
     for row in rows:
         lines.append(
             f"| {row['layer']} | {row['drives']} ({row['reached']}) | {row['time_to_goal_s_median']:.1f} | "
-            f"{row['contacts']} / {row['hazards']} | {row['stalls']} | "
+            f"{row['contacts']} / {row['hazards']} | {row['entry_speed_median']:.2f} / {row['entry_speed_max']:.2f} | "
+            f"{row['stalls']} | "
             f"{row['mean_speed_ambiguous_median']:.2f} / {row['mean_speed_clear_median']:.2f} |"
         )
     return "\n".join(lines)

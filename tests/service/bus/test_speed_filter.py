@@ -196,3 +196,24 @@ def test_nav2_gets_mask_and_info_late_too_and_the_safe_mask_when_stale_and_at_st
             assert is_safe(nav2.last(MASK_KEY, ros.OCCUPANCY_GRID))
         finally:
             nav2.close()
+
+
+def test_the_nav2_example_feeds_its_speed_filter_from_gcdtravs_topics() -> None:
+    """examples/nav2: the SpeedFilter's filter_info_topic is the info topic the example service publishes, and
+    that info names the mask topic the service publishes the mask on."""
+    import yaml
+    from gcdtrav.schemas.settings import load_settings
+
+    root = Path(__file__).resolve().parents[3] / "examples" / "nav2"
+    service = load_settings(root / "gcdtrav.yaml", environ={})
+    speed = service.grids[0].speed
+    assert speed is not None and speed.lead_m > 0
+    costmap = yaml.safe_load((root / "nav2_costmap.yaml").read_text())["local_costmap"]["local_costmap"]
+    parameters = costmap["ros__parameters"]
+    (name,) = parameters["filters"]
+    speed_filter = parameters[name]
+    assert speed_filter["plugin"] == "nav2_costmap_2d::SpeedFilter"
+    camera = "/" + service.grids[0].source
+    names = service.ros_output
+    assert speed_filter["filter_info_topic"] == ros.output_topic(names.speed_filter_info_topic, camera)
+    assert parameters["global_frame"] == service.grids[0].tf.odom_frame  # type: ignore[union-attr]
