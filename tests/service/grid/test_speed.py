@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from gcdtrav.schemas.settings import GridSettings, GridSpeedSettings
-from gcdtrav.service.grid.layers import GridLayers
 from gcdtrav.service.grid import speed
+from gcdtrav.service.grid.layers import GridLayers
 from gcdtrav.service.grid.speed import fraction_at, lead_in, limit_percent, mask_values
 from pydantic import ValidationError
 
