@@ -31,6 +31,9 @@ MASK_KEY = f"{BASE}/speed_mask/nav_msgs::msg::dds_::OccupancyGrid_/{ros.type_has
 INFO_KEY = f"{BASE}/speed_filter_info/nav2_msgs::msg::dds_::CostmapFilterInfo_/{ros.type_hash(ros.COSTMAP_FILTER_INFO)}"
 LIMIT_KEY = f"{BASE}/speed_limit/nav2_msgs::msg::dds_::SpeedLimit_/{ros.type_hash(ros.SPEED_LIMIT)}"
 FLOOR, STALE_S = 0.3, 3.0
+# The tiny random model finds everything ambiguous: ramps it never reaches, so a live mask says "no limit" (0)
+# and only the safe one holds the floor.
+NEVER_SLOW = {"u_full": 0.99, "u_floor": 1.0, "p_below_full": 0.99, "p_below_floor": 1.0, "unknown": "full"}
 
 
 class Nav2Side:
@@ -94,26 +97,28 @@ class Nav2Side:
 
 
 def settings(tmp_path: Path) -> ServiceSettings:
-    return ServiceSettings.model_validate(
-        {
-            "state_dir": str(tmp_path),
-            "instance": "speed",
-            "max_frame_age_s": None,
-            "inputs": [],
-            "ros_inputs": [{"key": "0/**/sensor_msgs::msg::dds_::Image_/*"}],
-            "ros_output": {"enabled": True, "preview": "none"},
-            "grids": [
-                {
-                    "source": "camera/front/image_raw",
-                    "intrinsics": {"fx": 30, "fy": 30, "cx": 16, "cy": 12, "width": 32, "height": 24},
-                    "mount": {"z": 1.0, "pitch": 0.6},
-                    "size_m": 6.0,
-                    "resolution_m": 0.5,
-                    "speed": {"floor": FLOOR, "rate_hz": 10.0, "stale_s": STALE_S},
-                }
-            ],
-        }
-    )
+    return ServiceSettings.model_validate(settings_document(tmp_path))
+
+
+def settings_document(tmp_path: Path) -> dict[str, Any]:
+    return {
+        "state_dir": str(tmp_path),
+        "instance": "speed",
+        "max_frame_age_s": None,
+        "inputs": [],
+        "ros_inputs": [{"key": "0/**/sensor_msgs::msg::dds_::Image_/*"}],
+        "ros_output": {"enabled": True, "preview": "none"},
+        "grids": [
+            {
+                "source": "camera/front/image_raw",
+                "intrinsics": {"fx": 30, "fy": 30, "cx": 16, "cy": 12, "width": 32, "height": 24},
+                "mount": {"z": 1.0, "pitch": 0.6},
+                "size_m": 6.0,
+                "resolution_m": 0.5,
+                "speed": {"floor": FLOOR, "rate_hz": 10.0, "stale_s": STALE_S, **NEVER_SLOW},
+            }
+        ],
+    }
 
 
 def is_safe(mask: Any) -> bool:
@@ -140,6 +145,7 @@ def test_nav2_gets_mask_and_info_late_too_and_the_safe_mask_when_stale_and_at_st
             assert (mask.info.width, mask.info.height, mask.info.resolution) == (12, 12, 0.5)
             assert mask.header.frame_id == info.header.frame_id == "base_link"
             assert data.min() >= 0 and data.max() <= 100  # never -1: Nav2 reads it as an error, keeps the old limit
+            assert (data == 0).all() and not is_safe(mask)  # a live mask: no limit anywhere (NEVER_SLOW)
             limit = nav2.last(LIMIT_KEY, ros.SPEED_LIMIT)
             assert limit.percentage and (limit.speed_limit == 0.0 or 1.0 <= limit.speed_limit <= 100.0)
 
@@ -217,3 +223,58 @@ def test_the_nav2_example_feeds_its_speed_filter_from_gcdtravs_topics() -> None:
     names = service.ros_output
     assert speed_filter["filter_info_topic"] == ros.output_topic(names.speed_filter_info_topic, camera)
     assert parameters["global_frame"] == service.grids[0].tf.odom_frame  # type: ignore[union-attr]
+
+
+def test_sigterm_to_gcdtrav_serve_leaves_nav2_the_safe_mask(tiny_model_dir: Path, tmp_path: Path) -> None:
+    """The real process: `gcdtrav serve` with a speed grid, frames streaming, SIGTERM: it exits 0 and the last
+    mask and SpeedLimit a Nav2 node holds are the floor."""
+    import os
+    import signal
+    import subprocess
+
+    import yaml
+    from zenoh_helpers import free_port, serve_args
+
+    document = settings_document(tmp_path) | {"max_sources": 4}
+    document.pop("instance")
+    path = tmp_path / "speed.yaml"
+    path.write_text(yaml.safe_dump(document))
+    port = free_port()
+    args = serve_args(tiny_model_dir, "-l", f"tcp/127.0.0.1:{port}", "--settings", str(path), "--precision", "fp32")
+    env = {**os.environ, "GCDTRAV_SHUTDOWN_GRACE_S": "5"}
+    process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    nav2 = None
+    try:
+        assert wait_until(lambda: _listening(port), 60), "gcdtrav serve did not start"
+        nav2 = Nav2Side(port)
+        sent = [0.0]
+
+        def live_mask() -> bool:  # frames until a mask that is not the safe one has come
+            sent[0] += 0.2
+            nav2.send_frame(1_700_000_000.0 + sent[0])  # type: ignore[union-attr]
+            time.sleep(0.2)
+            return nav2.count(MASK_KEY) > 0 and not is_safe(nav2.last(MASK_KEY, ros.OCCUPANCY_GRID))  # type: ignore[union-attr]
+
+        if not wait_until(live_mask, 90):
+            process.kill()
+            pytest.fail(f"no live mask; gcdtrav serve said: {process.communicate()[0][-3000:]}")
+        masks = nav2.count(MASK_KEY)
+        process.send_signal(signal.SIGTERM)
+        output, _ = process.communicate(timeout=30)
+        assert process.returncode == 0, output[-2000:]
+        assert wait_until(lambda: nav2.count(MASK_KEY) > masks, 5)  # type: ignore[union-attr]
+        assert is_safe(nav2.last(MASK_KEY, ros.OCCUPANCY_GRID))
+        assert nav2.last(LIMIT_KEY, ros.SPEED_LIMIT).speed_limit == FLOOR * 100
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+        if nav2 is not None:
+            nav2.close()
+
+
+def _listening(port: int) -> bool:
+    import socket
+
+    with socket.socket() as probe:
+        return probe.connect_ex(("127.0.0.1", port)) == 0
