@@ -11,7 +11,8 @@ hazard (a hidden rock or hole) the camera cannot tell from the rest of the patch
 same there. The robot must cross: a straight route of ROUTE_M through the patches, no planner to go around.
 
 The loop, in simulated time: the robot (max speed V_MAX, accelerating at ACCEL and braking at DECEL) publishes its
-pose at 50 Hz; its camera takes a frame at 5 Hz that reaches fusion LATENCY_S later (uniform); the grid
+pose at 50 Hz; its camera takes a frame at 5 Hz that reaches fusion LATENCY_S later (uniform; 2-3 s in the
+last row: a slow box or link); the grid
 (GridOutputs, no zenoh) fuses it at the pose of its capture and hands out a speed mask at most ``rate_hz``; the
 mask reaches Nav2's SpeedFilter LINK_S after that, decoded from its nav_msgs/OccupancyGrid CDR; the SpeedFilter
 looks up the robot's cell in the last mask it has at 10 Hz, as nav2_costmap_2d's does (a cell off the mask
@@ -157,13 +158,16 @@ class Layer:
 
     rate_hz: float
     lead_m: float
+    latency_s: tuple[float, float] = LATENCY_S  # capture to fusion, uniform
 
     @property
     def name(self) -> str:
-        return f"mask at {self.rate_hz:g} Hz, lead_m {self.lead_m:g}"
+        slow = "" if self.latency_s == LATENCY_S else f", fused {self.latency_s[0]:g}-{self.latency_s[1]:g} s late"
+        return f"mask at {self.rate_hz:g} Hz, lead_m {self.lead_m:g}{slow}"
 
 
-LAYERS = (Layer(1.0, 0.0), Layer(1.0, LEAD_M), Layer(5.0, LEAD_M))  # the default speed.rate_hz is 1 Hz
+# the default speed.rate_hz is 1 Hz; the last: a slow box or link, frames fused 2-3 s after capture
+LAYERS = (Layer(1.0, 0.0), Layer(1.0, LEAD_M), Layer(5.0, LEAD_M), Layer(1.0, LEAD_M, (2.0, 3.0)))
 
 
 @dataclass
@@ -224,7 +228,7 @@ def drive(ground: Ground, route_m: float, layer: Layer | None, seed: int, route:
         grids.add_pose(CAMERA, Pose2D(stamp=t, frame_id="odom", x=robot.x, y=0.0, yaw=0.0))
         if layer is not None:
             if step % round(POSE_HZ / FRAME_HZ) == 0:
-                frames.append((t + float(rng.uniform(*LATENCY_S)), t, (robot.x, 0.0, 0.0)))
+                frames.append((t + float(rng.uniform(*layer.latency_s)), t, (robot.x, 0.0, 0.0)))
             masks += fuse_due(grids, eyes, ground, frames, t, anchors, clock)
             if step % round(POSE_HZ / FILTER_HZ) == 0:
                 robot.limit = filter_limit(masks, robot, t)
