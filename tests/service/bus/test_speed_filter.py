@@ -121,6 +121,11 @@ def settings_document(tmp_path: Path) -> dict[str, Any]:
     }
 
 
+def graph_tokens(session: zenoh.Session, prefix: str) -> list[str]:
+    """The liveliness tokens under ``prefix`` (an entity's zid) alive now."""
+    return [str(reply.ok.key_expr) for reply in session.liveliness().get(prefix + "**") if reply.ok is not None]
+
+
 def is_safe(mask: Any) -> bool:
     return bool((np.asarray(mask.data) == round(FLOOR * 100)).all())
 
@@ -133,7 +138,8 @@ def test_nav2_gets_mask_and_info_late_too_and_the_safe_mask_when_stale_and_at_st
         try:
             assert service.ros_graph is not None
             ours = f"@ros2_lv/0/{service.ros_graph.zid}/"
-            assert wait_until(lambda: service.ros_graph is not None and service.ros_graph._subscriptions, 10)
+            # the service answers the camera's publisher token with its subscription token: it takes frames
+            assert wait_until(lambda: any("/MS/" in token for token in graph_tokens(nav2.session, ours)), 10)
             nav2.send_frame(1_700_000_000.0)
             assert wait_until(lambda: nav2.count(MASK_KEY) and nav2.count(INFO_KEY) and nav2.count(LIMIT_KEY), 30)
 
@@ -150,14 +156,7 @@ def test_nav2_gets_mask_and_info_late_too_and_the_safe_mask_when_stale_and_at_st
             assert limit.percentage and (limit.speed_limit == 0.0 or 1.0 <= limit.speed_limit <= 100.0)
 
             # the publishers are in the graph with a map's QoS (reliable, transient local, keep-last 1)
-            def graph() -> list[str]:
-                found: list[str] = []
-                replies = nav2.session.liveliness().get(f"@ros2_lv/0/{service.ros_graph.zid}/**")  # type: ignore[union-attr]
-                for reply in replies:
-                    found.append(str(reply.ok.key_expr))
-                return found
-
-            tokens = graph()
+            tokens = graph_tokens(nav2.session, ours)
             for topic, dds_type in (("speed_mask", "nav_msgs::msg::dds_::OccupancyGrid_"),
                                     ("speed_filter_info", "nav2_msgs::msg::dds_::CostmapFilterInfo_")):  # fmt: skip
                 assert any(f"%gcdtrav%grid%{topic}/{dds_type}/" in t and t.endswith("/:1:,1:,:,:,,") for t in tokens)
@@ -222,7 +221,7 @@ def test_the_nav2_example_feeds_its_speed_filter_from_gcdtravs_topics() -> None:
     camera = "/" + service.grids[0].source
     names = service.ros_output
     assert speed_filter["filter_info_topic"] == ros.output_topic(names.speed_filter_info_topic, camera)
-    assert parameters["global_frame"] == service.grids[0].tf.odom_frame  # type: ignore[union-attr]
+    assert parameters["global_frame"] == service.grids[0].tf.odom_frame
 
 
 def test_sigterm_to_gcdtrav_serve_leaves_nav2_the_safe_mask(tiny_model_dir: Path, tmp_path: Path) -> None:
@@ -251,9 +250,9 @@ def test_sigterm_to_gcdtrav_serve_leaves_nav2_the_safe_mask(tiny_model_dir: Path
 
         def live_mask() -> bool:  # frames until a mask that is not the safe one has come
             sent[0] += 0.2
-            nav2.send_frame(1_700_000_000.0 + sent[0])  # type: ignore[union-attr]
+            nav2.send_frame(1_700_000_000.0 + sent[0])
             time.sleep(0.2)
-            return nav2.count(MASK_KEY) > 0 and not is_safe(nav2.last(MASK_KEY, ros.OCCUPANCY_GRID))  # type: ignore[union-attr]
+            return nav2.count(MASK_KEY) > 0 and not is_safe(nav2.last(MASK_KEY, ros.OCCUPANCY_GRID))
 
         if not wait_until(live_mask, 90):
             process.kill()
@@ -262,7 +261,7 @@ def test_sigterm_to_gcdtrav_serve_leaves_nav2_the_safe_mask(tiny_model_dir: Path
         process.send_signal(signal.SIGTERM)
         output, _ = process.communicate(timeout=30)
         assert process.returncode == 0, output[-2000:]
-        assert wait_until(lambda: nav2.count(MASK_KEY) > masks, 5)  # type: ignore[union-attr]
+        assert wait_until(lambda: nav2.count(MASK_KEY) > masks, 5)
         assert is_safe(nav2.last(MASK_KEY, ros.OCCUPANCY_GRID))
         assert nav2.last(LIMIT_KEY, ros.SPEED_LIMIT).speed_limit == FLOOR * 100
     finally:

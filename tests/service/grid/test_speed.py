@@ -51,7 +51,7 @@ def test_p_below_slows_alone_and_the_larger_of_the_two_wins() -> None:
 
 @pytest.mark.parametrize(("unknown", "expected"), [("floor", 0.3), ("full", 1.0)])
 def test_unknown_cells_take_the_configured_value(unknown: str, expected: float) -> None:
-    settings = GridSpeedSettings(floor=0.3, unknown=unknown)  # type: ignore[arg-type]
+    settings = GridSpeedSettings(floor=0.3, unknown=unknown)
     fractions = speed_fractions(cells([0.0, 0.0], count=[1, 0]), settings)
     np.testing.assert_allclose(fractions[0], [1.0, expected])
 

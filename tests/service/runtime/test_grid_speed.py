@@ -79,7 +79,7 @@ def test_the_mask_slows_the_hazard_leaves_paved_ground_free_and_goes_out_at_most
     second = fuse(grids)
     assert second.speed is not None and second.speed.mask is None and second.speed.limit
     clock.now += 1 / RATE_HZ
-    assert fuse(grids).speed.mask is not None  # type: ignore[union-attr]
+    assert fuse(grids).speed.mask is not None
 
 
 def test_a_stale_grid_hands_out_the_safe_mask_once_and_a_fresh_frame_replaces_it() -> None:
