@@ -123,3 +123,20 @@ def test_slow_ground_reaches_out_lead_m_and_no_further() -> None:
     layers = cells([0.0, 0.0, 0.0, U_MAX, 0.0])
     slowed = speed.speed_fractions(layers, GridSpeedSettings(floor=0.3, lead_m=1.0), resolution_m=1.0)
     np.testing.assert_allclose(slowed[0], [1.0, 1.0, 0.3, 0.3, 0.3])
+
+
+def test_the_lowest_floor_is_one_percent_never_no_limit() -> None:
+    settings = GridSpeedSettings(floor=0.01)
+    fractions = speed_fractions(cells([U_MAX, 0.0], count=[1, 0]), settings)
+    np.testing.assert_allclose(fractions[0], [0.01, 0.01], atol=1e-6)
+    np.testing.assert_array_equal(mask_values(fractions), [[1, 1]])  # 1 %, not 0 (which Nav2 reads as no limit)
+    assert limit_percent(float(fractions[0, 0])) == 1.0
+
+
+def test_the_settings_edges_are_accepted_and_beyond_them_refused() -> None:
+    edges = GridSpeedSettings(floor=1.0, rate_hz=10.0, lead_m=5.0, min_match=1.0, u_full=0.0, u_floor=1.0)
+    assert (edges.rate_hz, edges.lead_m) == (10.0, 5.0)
+    for beyond in ({"rate_hz": 10.01}, {"lead_m": 5.01}, {"lead_m": -0.1}, {"floor": 1.01}, {"stale_s": 0.0},
+                   {"unknown": "nan"}, {"u_floor": 1.01}):  # fmt: skip
+        with pytest.raises(ValidationError):
+            GridSpeedSettings.model_validate(beyond)
