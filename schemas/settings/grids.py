@@ -199,8 +199,8 @@ class GridSpeedSettings(StrictModel):
     stale_s: float = Field(
         default=3.0,
         gt=0,
-        description="No frame fused for this long: the grid is stale and the safe mask (the floor everywhere) "
-        "replaces the last one.",
+        description="No frame fused and no view found unchanged (reused) for this long: the grid is stale and the "
+        "safe mask (the floor everywhere) replaces the last one.",
     )
 
     @model_validator(mode="after")

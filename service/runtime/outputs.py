@@ -88,15 +88,17 @@ class OutputSink(Protocol):
 class FramePublisher:
     """The one hand-off out: encode a processed frame (the worker's) or an unchanged one's reused maps (the
     triage's), give the payloads to the sink and, once they are out, tell ``published(source, stamp)`` (the
-    credits: later grants say how fresh the maps are)."""
+    credits: later grants say how fresh the maps are) and, for an unchanged one, ``unchanged(source)`` (the
+    grids: its camera's view still holds, so its grid is not stale)."""
 
     def __init__(
         self,
         builder: OutputBuilder,
         sink: OutputSink,
         published: Callable[[str, float], None] = lambda source, stamp: None,
+        unchanged: Callable[[str], None] = lambda source: None,
     ) -> None:
-        self.builder, self.sink, self.published = builder, sink, published
+        self.builder, self.sink, self.published, self.unchanged = builder, sink, published, unchanged
 
     def __call__(self, done: ProcessedFrame) -> bool:
         outputs = self.builder.build(done, compact=self.sink.wants_compact(done.source))
@@ -113,6 +115,7 @@ class FramePublisher:
         if not outputs or not self.sink.put(pending.source, outputs):
             return False
         self.published(pending.source, seen.stamp)
+        self.unchanged(pending.source)
         return True
 
     def publish_speed(self, updates: list[SpeedUpdate]) -> bool:

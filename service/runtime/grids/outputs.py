@@ -245,6 +245,13 @@ class GridOutputs:
             mask_due = grid.speed_mask_due(self.clock())
         return FusedGrid(grid.config, header, layers, ros_topic, question, mask_due)
 
+    def unchanged(self, camera: str) -> None:
+        """Camera ``camera``'s view was found unchanged and its last maps reused (the triage): its grid's
+        evidence still holds, so its speed mask is not stale. Without the grid's lock (one assignment)."""
+        grid = self.camera_grids.get(camera)
+        if grid is not None:
+            grid.health.unchanged_at = self.clock()
+
     def safe_speed(self, stale_only: bool) -> list[SpeedUpdate]:
         """The safe speed mask and limit (the floor everywhere) of every grid whose live mask must go: it is
         stale (no frame fused for speed.stale_s), or, ``stale_only`` False, the service stops. A grid that never
@@ -258,9 +265,10 @@ class GridOutputs:
                     continue
                 if stale_only:
                     log.warning(
-                        "grid %s: no frame fused for %.1f s: the safe speed mask (the floor) replaces the last",
+                        "grid %s: no frame fused or found unchanged for %.1f s: the safe speed mask (the floor) "
+                        "replaces the last",
                         grid.config.source,
-                        now - (grid.health.fused_at or now),
+                        grid.config.speed.stale_s if grid.config.speed is not None else 0.0,
                     )
                 grid.speed_mask_at, grid.speed_safe = now, True
                 header, ros_topic = self.header(grid, ""), grid.ros_topic()

@@ -110,11 +110,14 @@ class SourceGrid:
         return True
 
     def speed_stale(self, now: float) -> bool:
-        """Whether the grid's live mask outlived its evidence: no frame fused for speed.stale_s. Under the lock."""
-        speed, fused_at = self.config.speed, self.health.fused_at
+        """Whether the grid's live mask outlived its evidence: for speed.stale_s no frame fused and no view of its
+        cameras found unchanged (a standing robot's frames are reused, not fused, up to reuse.max_reuse_s: its
+        grid still holds). Under the lock."""
+        speed, health = self.config.speed, self.health
         if speed is None or self.speed_mask_at is None or self.speed_safe:
             return False
-        return fused_at is None or now - fused_at >= speed.stale_s
+        evidence = [at for at in (health.fused_at, health.unchanged_at) if at is not None]
+        return not evidence or now - max(evidence) >= speed.stale_s
 
     @property
     def pose(self) -> Pose2D | None:

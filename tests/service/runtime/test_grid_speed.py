@@ -106,6 +106,22 @@ def test_a_stale_grid_hands_out_the_safe_mask_once_and_a_fresh_frame_replaces_it
     assert grids.statuses({})[0].speed_safe is False
 
 
+def test_a_standing_robots_unchanged_views_keep_its_grid_from_going_stale() -> None:
+    """The triage reuses an unchanged view's maps instead of fusing it (up to reuse.max_reuse_s, 5 s, beyond
+    stale_s): the camera is alive and its view holds, so the live mask stays."""
+    clock = Clock()
+    grids = speed_grids(clock)
+    fuse(grids)
+    for _ in range(3):
+        clock.now += STALE_S - 0.5
+        grids.unchanged(CAMERA)
+        assert grids.safe_speed(stale_only=True) == []
+    grids.unchanged("another/camera")  # not a grid's: nothing
+    clock.now += STALE_S
+    (safe,) = grids.safe_speed(stale_only=True)  # the views stopped too
+    assert safe.safe
+
+
 def test_at_stop_every_live_mask_is_replaced_by_the_safe_one() -> None:
     clock = Clock()
     grids = speed_grids(clock)
@@ -137,3 +153,31 @@ def test_a_grid_without_speed_has_no_speed_outputs_status_or_metrics() -> None:
     status = grids.statuses({})[0]
     assert status.speed_ago_s is None and status.speed_safe is None
     assert all(not family.samples for family in speed_families([status]))
+
+
+def test_the_assembled_runtime_tells_the_grid_of_each_reused_view() -> None:
+    """The wiring: the triage's reuse reaches GridOutputs.unchanged through the one hand-off out."""
+    import time
+
+    from fakes import assembled
+    from gcdtrav.schemas.settings import ServiceSettings
+    from scenes import jpeg_frame, noisy, scene
+
+    grid = {
+        "source": "r1", "intrinsics": {"fx": 40, "fy": 40, "cx": 32, "cy": 24, "width": 64, "height": 48},
+        "mount": {"z": 1.0, "pitch": 0.5}, "size_m": 6.0, "resolution_m": 0.5, "speed": {},
+    }  # fmt: skip
+    runtime, sink, _ = assembled(ServiceSettings.model_validate({"grids": [grid], "preview": False}))
+    assert runtime.grids is not None
+    health = runtime.grids.sources["r1"].health
+    runtime.worker.start()
+    view = scene()
+    try:
+        for k in range(3):  # the first is inferred and fused, the others reused
+            runtime.queue.put("r1", jpeg_frame(noisy(view, 5.0, k), "r1"))
+            deadline = time.monotonic() + 10
+            while len(sink.maps()) <= k and time.monotonic() < deadline:
+                time.sleep(0.005)
+    finally:
+        assert runtime.worker.stop(time.monotonic() + 10)
+    assert health.fused == 1 and health.unchanged_at is not None and health.unchanged_at >= health.fused_at
