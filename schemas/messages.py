@@ -25,7 +25,7 @@ MSGPACK_ENCODING = "application/msgpack"
 # 1.0 was the integer 1 in MapsHeader only; 1.1 puts the version in every message and adds risk fields;
 # 1.2 adds ServiceStatus.measuring, MapsHeader.order, the status's health and anchor-set fleet fields, and the
 # grid's planner layers (GridMessage, GridHeader).
-SCHEMA_VERSION = "1.4"
+SCHEMA_VERSION = "1.5"
 _VERSION = re.compile(r"^(\d+)(?:\.\d+)?$")
 
 
@@ -309,6 +309,20 @@ class RelayHealth(Message):
         description="What may keep this camera's maps stale, by cause: camera_silent, no_instance, service_refuses, "
         "camera_unusable, camera_clock (client/relay/causes.py), each with a sentence; empty: none known. Since 1.4.",
     )
+    parked: bool = Field(
+        default=False,
+        description="The robot stopped this camera on purpose (CameraParked on its bus): its silence is no fault, "
+        "the silent-robot alert stays quiet. The relay also sends its health over the link every "
+        "link_health_period_s, so the service knows. Since 1.5.",
+    )
+
+
+class CameraParked(Message):
+    """{prefix}/relay/{source}/parked, on the robot's bus: the robot's own software says it stops (parked: true)
+    or restarts (false) a camera on purpose; the relay marks its RelayHealth until told otherwise."""
+
+    parked: bool = Field(description="True: the camera is stopped on purpose; false: it runs again.")
+    reason: str = Field(default="", max_length=200, description="Why, for the operator (e.g. 'charging').")
 
 
 # ---- queries ---------------------------------------------------------------------------------------

@@ -15,7 +15,10 @@ timeout (``credit_timeout_s``). Outputs (maps, maps8, grid, preview) cross the l
 the robot's bus subscribes to them. Every ``health_period_s`` the relay publishes a RelayHealth per camera on
 the robot's bus (``{prefix}/relay/{source}/health``) with what may keep its maps stale (``causes.py``: a
 silent camera, no instance answering, the service refusing, an unusable frame, a camera clock off this host's),
-and logs each change once: stale, fresh again, a cause found or gone.
+and logs each change once: stale, fresh again, a cause found or gone. The same health goes over the link every
+``link_health_period_s`` (and at once when a camera is parked or runs again): the service's silent-robot alert
+hears the robot through it. The robot's own software parks a camera it stops on purpose (``CameraParked`` on
+``{prefix}/relay/{source}/parked``): its silence is then no cause and pages nobody.
 Maps' ages are judged on this host's clock from the camera's stamps plus the camera's learnt clock offset
 (``state.CameraClock``), as the service judges frames by delay: a camera stamping from another clock is
 not stale forever.
@@ -43,6 +46,7 @@ from gcdtrav.schemas.inputs import RejectedInput, decode_payload
 from gcdtrav.schemas.keys import Keys, input_key
 from gcdtrav.schemas.messages import (
     MSGPACK_ENCODING,
+    CameraParked,
     CreditGrant,
     ImageEnvelope,
     MessageError,
@@ -117,6 +121,7 @@ class CameraLink:
         self.model_input = (CLIPSEG_INPUT_SIDE, CLIPSEG_INPUT_SIDE)
         self.captured = self.sent = self.undecodable = 0
         self.unusable: str | None = None  # why the last camera frame could not be sent, if it could not
+        self.parked = False  # the robot's software stopped the camera on purpose (CameraParked)
         self._slot: CapturedFrame | None = None
         self._cond = threading.Condition()
         self._publisher: Guarded | None = None
@@ -130,6 +135,7 @@ class CameraLink:
         declared = [
             Guarded(self.relay.local.declare_subscriber(self.camera_key, self.on_frame)),
             Guarded(self.relay.link.declare_subscriber(self.relay.keys.credit(self.source), self.on_grant)),
+            Guarded(self.relay.local.declare_subscriber(self.relay.keys.relay_parked(self.source), self.on_parked)),
             self._publisher,
         ]
         self._thread.start()
@@ -165,6 +171,18 @@ class CameraLink:
             self.model_input = grant.model_input
             self.window.grant(grant)
             self._cond.notify()
+
+    def on_parked(self, sample: zenoh.Sample) -> None:
+        try:
+            notice = CameraParked.decode(sample.payload.to_bytes(), max_bytes=4096)
+        except MessageError as err:
+            log.warning("%s: ignoring a parked notice: %s", self.source, err)
+            return
+        if notice.parked != self.parked:
+            self.parked = notice.parked
+            said = f" ({notice.reason})" if notice.reason else ""
+            log.info("%s: camera %s%s", self.source, "parked" if notice.parked else "runs again", said)
+            self.relay.tell_link_now()
 
     # ---- sending --------------------------------------------------------------------------------------
     def _run(self) -> None:
@@ -242,6 +260,7 @@ class CameraLink:
             refusal,
             self.unusable,
             self.camera_clock.offset_s(),
+            self.parked,
         )
 
     def health(self, freshness: FreshnessWatch, downlink: float, stale_after_s: float) -> RelayHealth:
@@ -267,6 +286,7 @@ class CameraLink:
             round_trip_s=None if best is None else best[0],
             problem=self.unusable or freshness.reason(self.source),
             causes=found,
+            parked=self.parked,
         )
 
 
@@ -341,6 +361,8 @@ class Relay:
         self._on_stale = on_stale
         self._declared: list[Guarded] = []
         self._health: dict[str, Guarded] = {}
+        self._link_health: dict[str, Guarded] = {}  # the same health over the link: the service hears the robot
+        self._link_due = threading.Event()  # a camera parked or runs again: tell the service at once
         self._wake = threading.Event()
         self.started_at = time.time()
         self._told_causes: dict[str, dict[str, str]] = {}  # per source, change_key of the causes last logged
@@ -352,6 +374,10 @@ class Relay:
             self._health[camera.source] = Guarded(
                 self.local.declare_publisher(self.keys.relay_health(camera.source), encoding=MSGPACK)
             )
+            if self.settings.link_health_period_s is not None:
+                self._link_health[camera.source] = Guarded(
+                    self.link.declare_publisher(self.keys.relay_health(camera.source), encoding=MSGPACK)
+                )
             self.forwarders += [OutputForwarder(self, camera.source, kind) for kind in self.settings.forward]
             self._declared += camera.start()
         self._thread.start()
@@ -365,6 +391,11 @@ class Relay:
         return self
 
     def wake(self) -> None:
+        self._wake.set()
+
+    def tell_link_now(self) -> None:
+        """Send every camera's health over the link at the control thread's next turn (a camera parked)."""
+        self._link_due.set()
         self._wake.set()
 
     def grant_seen(self, source: str, grant: CreditGrant) -> None:
@@ -381,9 +412,11 @@ class Relay:
 
     # ---- the control thread: subscriptions on demand, health, staleness ----------------------------
     def _control(self) -> None:
-        next_health = time.monotonic()
+        next_health = next_link = time.monotonic()
+        link_period = self.settings.link_health_period_s
         while not self.stopping:
-            self._wake.wait(max(0.0, next_health - time.monotonic()))
+            due = min(next_health, next_link) if link_period is not None else next_health
+            self._wake.wait(max(0.0, due - time.monotonic()))
             self._wake.clear()
             if self.stopping:
                 return
@@ -392,6 +425,17 @@ class Relay:
             if time.monotonic() >= next_health:
                 next_health += self.settings.health_period_s
                 self._report()
+            if link_period is not None and (time.monotonic() >= next_link or self._link_due.is_set()):
+                self._link_due.clear()
+                next_link = time.monotonic() + link_period
+                self._report_over_link()
+
+    def _report_over_link(self) -> None:
+        for camera in self.cameras:
+            try:
+                self._link_health[camera.source].put(self.health(camera.source).pack())
+            except zenoh.ZError as err:  # the link session is closing
+                log.debug("%s: health over the link failed: %s", camera.source, err)
 
     def _report(self) -> None:
         for change in self.freshness.check():
@@ -444,7 +488,8 @@ class Relay:
         self._thread.join(5)
         for forwarder in self.forwarders:
             forwarder.close()
-        for entity in [*self._declared, *self._health.values()]:
+        for entity in [*self._declared, *self._health.values(), *self._link_health.values()]:
             entity.undeclare()
         self._declared.clear()
         self._health.clear()
+        self._link_health.clear()

@@ -27,6 +27,7 @@ from gcdtrav.service.bus.fleet_models import FleetModels
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
+from gcdtrav.service.bus.presence import declare_relay_health
 from gcdtrav.service.bus.queryables import AnchorQueries, SourceQueries
 from gcdtrav.service.bus.ros_graph import RosGraph, graph_inputs
 from gcdtrav.service.bus.tf import declare_tf_inputs
@@ -84,7 +85,12 @@ class TraversabilityService:
         self._check_inputs()
         self.experience = experience_bus(session, settings, pipeline, experience, self.stats, self.owns)
         calibration = self.experience.calibration if self.experience is not None else None
-        self.metrics = ServiceMetrics(MetricsSources(self.status, self._owned, settings.max_frame_age_s, calibration))
+        self.metrics = ServiceMetrics(
+            MetricsSources(
+                self.status, self._owned, settings.max_frame_age_s, calibration, self.runtime.presence.heard
+            ),
+            settings.instance,
+        )
         self.stats.events = self.metrics.timings  # histograms see every frame; `serve` serves the registry
 
     def _check_inputs(self) -> None:
@@ -140,6 +146,7 @@ class TraversabilityService:
         if self.ros_graph is not None:
             self.ros_graph.start()
         self._declare_grid_inputs()
+        self._declared.append(declare_relay_health(self.session, self.keys, self.runtime.presence, self.stats))
         if self.experience is not None:
             self._declared += self.experience.start()
         self.runtime.worker.start()
@@ -265,6 +272,7 @@ class TraversabilityService:
     def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None, publisher: str | None) -> None:
         if self.membership is not None:
             self.membership.note(source)
+        self.runtime.presence.frame(source)
         if self.owns(source):  # else another live instance serves this source
             key, size, encoding = str(sample.key_expr), len(sample.payload), str(sample.encoding)
             self.runtime.admission.offer(source, key, size, sample.payload.to_bytes, encoding, ros, publisher)
