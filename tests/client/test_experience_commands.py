@@ -6,7 +6,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from gcdtrav.client.client import ServiceError
 from gcdtrav.client.commands.experience import (
     BIAS_LIMIT,
     COVERAGE_SLACK,
