@@ -10,8 +10,8 @@ from pathlib import Path
 
 from conftest import torch_free_gcdtrav
 from gcdtrav.client import TraversabilityClient
+from gcdtrav.schemas.delay_window import WINDOW_S
 from gcdtrav.schemas.settings import load_settings
-from gcdtrav.service.runtime.intake.clock_offset import WINDOW_S
 from zenoh_helpers import connecting_config
 
 from tools.loopback import in_process_service
