@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import signal
 import subprocess
 import tempfile
@@ -28,21 +27,17 @@ import cv2
 import pytest
 import yaml
 from conftest import textured_image
+from real_components import require_prometheus
 from zenoh_helpers import client_config, connecting_config, free_port, serve_args, start_router, wait_until
 
 pytest.importorskip("torch")
-PROMETHEUS = shutil.which("prometheus")
-pytestmark = pytest.mark.skipif(
-    PROMETHEUS is None,
-    reason="the prometheus binary is not installed (Debian: apt-get install prometheus; .ci/run installs it)",
-)
 
-from gcdtrav.client import Maps, TraversabilityClient  # noqa: E402
-from gcdtrav.schemas.keys import Keys  # noqa: E402
-from gcdtrav.schemas.messages import RelayHealth  # noqa: E402
-from gcdtrav.schemas.settings import ServiceSettings  # noqa: E402
+from gcdtrav.client import Maps, TraversabilityClient
+from gcdtrav.schemas.keys import Keys
+from gcdtrav.schemas.messages import RelayHealth
+from gcdtrav.schemas.settings import ServiceSettings
 
-from tools.loopback import SimulatedRobots, in_process_service, wait_for_statuses  # noqa: E402
+from tools.loopback import SimulatedRobots, in_process_service, wait_for_statuses
 
 ROOT = Path(__file__).resolve().parents[3]
 DASHBOARD = ROOT / "deploy" / "grafana" / "gcdtrav.json"
@@ -157,11 +152,11 @@ def fleet(tiny_model_dir: Path) -> Iterator[Fleet]:
         ports = {name: free_port() for name in ("box-a", "box-b", "box-c", "exp-1", "idle-1")}
         storage = tmp_path / "prometheus"
         storage.mkdir()
-        assert PROMETHEUS is not None
+        prometheus_bin = require_prometheus()  # skipped here without it; a failure in CI (GCDTRAV_REQUIRE)
         log = (storage / "prometheus.log").open("w")  # a file: an unread pipe would fill and block it
         prometheus = subprocess.Popen(
             [
-                PROMETHEUS,
+                prometheus_bin,
                 f"--config.file={prometheus_config(ports, storage)}",
                 f"--storage.tsdb.path={storage / 'data'}",
                 f"--web.listen-address=127.0.0.1:{web_port}",
