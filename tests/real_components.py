@@ -43,6 +43,10 @@ def require_rclpy() -> None:
     """ROS 2's own client library (the Kilted wheels on PyPI: ros-rclpy and the message packages)."""
     if importlib.util.find_spec("rclpy") is None:
         missing("rclpy", "pip install ros-rclpy ros-rmw-fastrtps-cpp and the message packages, see .ci/run")
+    try:
+        import rclpy  # noqa: F401
+    except ImportError as err:  # wheels installed outside this venv: their libraries are not on its path
+        missing("rclpy", f"it is installed but does not import: {err}")
 
 
 def require_prometheus() -> str:
