@@ -42,7 +42,8 @@ class Service:
         run = pipeline()
         self.queue: LatestFrameQueue[bytes] = LatestFrameQueue(10_000_000)
         self.sources = SourceTracker(max_sources=max_sources, idle_s=60.0)
-        self.stats = ServiceStats(logging.getLogger("test"))
+        self.metrics = ServiceMetrics("box-1")
+        self.stats = ServiceStats(logging.getLogger("test"), events=self.metrics.timings)
         self.offsets = ClockOffsets(5.0, 300.0)
         self.progress = ProgressMonitor(2.0, self.clock)
         switch = AnchorSwitch(run, tmp_path / "anchors.json", "box-1", 65536)
@@ -52,11 +53,8 @@ class Service:
         )
         self.owned = owned
         self.presence = SourcePresence(max_sources, 60.0, lambda: self.clock.now)
-        self.metrics = ServiceMetrics(
-            MetricsSources(lambda: self.parts.status(1.0), lambda: self.owned, 5.0, heard=self.presence.heard),
-            "box-1",
-        )
-        self.stats.events = self.metrics.timings
+        heard = self.presence.heard
+        self.metrics.collect(MetricsSources(lambda: self.parts.status(1.0), lambda: self.owned, 5.0, heard=heard))
 
     def frame(self, source: str, map_age_s: float = 0.3, reused: bool = False) -> None:
         """A frame received, taken and published."""
@@ -257,8 +255,9 @@ def test_calibration_is_recomputed_until_pairs_come_then_at_most_every_interval(
 
 def test_calibration_metrics_where_experience_is_on(tmp_path: Path) -> None:
     service = Service(tmp_path)
-    service.metrics = ServiceMetrics(
-        MetricsSources(lambda: service.parts.status(1.0), lambda: 0, None, lambda: figures(40, 0.05)), "box-1"
+    service.metrics = ServiceMetrics("box-1")
+    service.metrics.collect(
+        MetricsSources(lambda: service.parts.status(1.0), lambda: 0, None, lambda: figures(40, 0.05))
     )
     assert service.value("gcdtrav_calibration_ece") == 0.05 and service.value("gcdtrav_calibration_pairs") == 40
     assert service.value("gcdtrav_calibration_coverage", alpha="0.1") == 0.88
