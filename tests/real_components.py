@@ -43,6 +43,10 @@ def require_rclpy() -> None:
     """ROS 2's own client library (the Kilted wheels on PyPI: ros-rclpy and the message packages)."""
     if importlib.util.find_spec("rclpy") is None:
         missing("rclpy", "pip install ros-rclpy ros-rmw-fastrtps-cpp and the message packages, see .ci/run")
+    try:
+        import rclpy  # noqa: F401
+    except ImportError as err:  # wheels installed outside this venv: their libraries are not on its path
+        missing("rclpy", f"it is installed but does not import: {err}")
 
 
 def require_prometheus() -> str:
@@ -51,3 +55,13 @@ def require_prometheus() -> str:
     if path is None:
         missing("prometheus", "apt-get install prometheus")
     return path
+
+
+def nss_wrapper() -> Path:
+    """cwrap's nss_wrapper (Debian libnss-wrapper): a test resolver loaded with LD_PRELOAD, which answers host
+    names from the file NSS_WRAPPER_HOSTS, so a process resolves the cluster's names to 127.0.0.1 without
+    /etc/hosts or DNS being touched."""
+    for folder in ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib"):
+        if (Path(folder) / "libnss_wrapper.so").exists():
+            return Path(folder) / "libnss_wrapper.so"
+    missing("nss_wrapper", "apt-get install libnss-wrapper")

@@ -2,12 +2,17 @@
 
 Each cause has a code (``RelayHealth.causes``' keys) and a sentence saying what to check:
 
-- ``camera_silent``: no camera frame for ``camera_silent_after_s``: the camera, its driver or its key;
+- ``camera_silent``: no camera frame for ``camera_silent_after_s``: the camera, its driver or its key (not
+  while the robot has parked the camera: stopped on purpose, ``CameraParked``);
 - ``no_instance``: frames went out without a credit after the timeout and no grant came since: no service
   instance of the prefix is reachable (not running, another prefix, the link down);
 - ``service_refuses``: the service answers, but its last credit names why the frames give no maps
   (``CreditGrant.problem``: stale, undecodable, too large, ...);
 - ``camera_unusable``: the relay cannot decode the camera's frames;
+- ``camera_wrong_type`` (the ROS 2 node): the camera's topic is published with a type that is no image
+  (or another than ``ros_message_type``), so no frame can come;
+- ``camera_info_unusable`` (the ROS 2 node): the camera's CameraInfo cannot place pixels on the ground (a zero
+  focal length, no size): it is not sent, and a grid of this camera fuses nothing until a good one comes;
 - ``camera_clock``: the camera stamps from a clock more than ``CLOCK_NOTE_S`` off this host's. Not a cause
   of staleness any more (ages are judged by delay, ``state.CameraClock``), but said: every stamp the robot's
   consumers read is on the camera's clock.
@@ -20,8 +25,14 @@ from dataclasses import dataclass
 
 CAMERA_SILENT, NO_INSTANCE, SERVICE_REFUSES = "camera_silent", "no_instance", "service_refuses"
 CAMERA_UNUSABLE, CAMERA_CLOCK = "camera_unusable", "camera_clock"
+CAMERA_WRONG_TYPE, CAMERA_INFO_UNUSABLE = "camera_wrong_type", "camera_info_unusable"
 CLOCK_NOTE_S = 1.0  # the service warns of a source's clock beyond this too (clock_offset.py WARN_OFFSET_S)
-TEXT_MATTERS = (SERVICE_REFUSES, CAMERA_UNUSABLE)  # a new text is a new cause; the others' texts hold figures
+TEXT_MATTERS = (
+    SERVICE_REFUSES,
+    CAMERA_UNUSABLE,
+    CAMERA_WRONG_TYPE,
+    CAMERA_INFO_UNUSABLE,
+)  # a new text is a new cause; the others' texts hold figures
 
 
 @dataclass(frozen=True)
@@ -35,11 +46,12 @@ class CameraFacts:
     refusal: str | None  # the last credit's problem
     unusable: str | None  # why the last camera frame could not be sent
     clock_offset_s: float | None  # this host's clock minus the camera's
+    parked: bool = False  # the robot stopped the camera on purpose: its silence is no cause
 
 
 def causes(facts: CameraFacts, silent_after_s: float, prefix: str) -> dict[str, str]:
     found: dict[str, str] = {}
-    if facts.silent_s > silent_after_s:
+    if facts.silent_s > silent_after_s and not facts.parked:
         since = "since the relay started" if facts.captured == 0 else f"for {facts.silent_s:.0f} s"
         found[CAMERA_SILENT] = f"no camera frame on '{facts.camera_key}' {since}: check the camera and its key"
     if facts.unanswered:

@@ -27,16 +27,18 @@ from gcdtrav.service.bus.fleet_models import FleetModels
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
+from gcdtrav.service.bus.presence import declare_relay_health
 from gcdtrav.service.bus.queryables import AnchorQueries, SourceQueries
 from gcdtrav.service.bus.ros_graph import RosGraph, graph_inputs
 from gcdtrav.service.bus.tf import declare_tf_inputs
 from gcdtrav.service.experience.service import service_experience
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
-from gcdtrav.service.runtime import probes
 from gcdtrav.service.runtime.assembly import Runtime
 from gcdtrav.service.runtime.fleet.state_lock import StateLock
+from gcdtrav.service.runtime.http_endpoints import ready
 from gcdtrav.service.runtime.metrics import MetricsSources, ServiceMetrics
+from gcdtrav.service.runtime.progress import Health
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.store import StoreError
 from gcdtrav.service.store.opening import service_outbox
@@ -67,12 +69,12 @@ class TraversabilityService:
     def __init__(self, session: zenoh.Session, pipeline: Pipeline, settings: ServiceSettings) -> None:
         self.session, self.pipeline, self.settings = session, pipeline, settings
         self.prefix, self.keys = settings.prefix, Keys(settings.prefix)
-        self.stats = ServiceStats(log, settings.source_idle_s)  # the runtime's, counting the bus's refusals too
+        self.metrics = ServiceMetrics(settings.instance)  # its histograms see every frame the stats count
+        self.stats = ServiceStats(log, settings.source_idle_s, self.metrics.timings)  # the bus's refusals too
         self._declared: list[Any] = []
         self._stopping = threading.Event()
         self.membership: Membership | None = None
         self._leaving: Callable[[str], bool] | None = None  # after stop(): what it owned when it left
-        self.probes: probes.Probes | None = None
         self.anchor_sync: AnchorSync | None = None
         self.state_lock = StateLock(settings.state_file, settings.instance)  # one service per state file
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if graph_inputs(settings) else None
@@ -92,8 +94,8 @@ class TraversabilityService:
         self._check_inputs()
         self.experience = experience_bus(session, settings, pipeline, experience, self.stats, self.owns)
         calibration = self.experience.calibration if self.experience is not None else None
-        self.metrics = ServiceMetrics(MetricsSources(self.status, self._owned, settings.max_frame_age_s, calibration))
-        self.stats.events = self.metrics.timings  # histograms see every frame; `serve` serves the registry
+        heard = self.runtime.presence.heard  # the robots heard: the silent-robot alert's series
+        self.metrics.collect(MetricsSources(self.status, self._owned, settings.max_frame_age_s, calibration, heard))
 
     def _check_inputs(self) -> None:
         own = zenoh.KeyExpr(self.keys.outputs)
@@ -117,11 +119,6 @@ class TraversabilityService:
         instance that answers status serves. The anchor set's token comes before the alive token: a join is
         logged with it (membership.describe)."""
         began = time.monotonic()
-        if self.settings.health_port:  # first: a supervisor sees it starting
-            self.probes = probes.Probes(
-                self.liveness, self.readiness, self.settings.health_address, self.settings.health_port
-            )
-            self.probes.start()
         self.anchor_sync = AnchorSync(self.session, self.keys, self.settings.instance, self.runtime.anchor_switch)
         models = FleetModels(
             self.session,
@@ -149,6 +146,7 @@ class TraversabilityService:
             self.ros_graph.start()
         self._declare_grid_inputs()
         self.store.start()
+        self._declared.append(declare_relay_health(self.session, self.keys, self.runtime.presence, self.stats))
         if self.experience is not None:
             self._declared += self.experience.start()
         self.runtime.worker.start()
@@ -188,8 +186,6 @@ class TraversabilityService:
             log.warning("the frame in flight did not finish within %.1f s; its outputs are dropped", timeout)
         if self.membership is not None:
             self.membership.close()
-        if self.probes is not None:
-            self.probes.close()
         self.outputs.close()  # before the session's entities: a late frame is refused, not put on a dead key
         self.credits.close()
         undeclare_all(self._declared)
@@ -250,14 +246,14 @@ class TraversabilityService:
             return self._leaving(source)
         return self.membership is None or self.membership.owns(source)
 
-    def liveness(self) -> probes.Health:
+    def liveness(self) -> Health:
         """The worker progresses (the /livez probe)."""
         return self.runtime.progress.health()
 
-    def readiness(self) -> probes.Health:
+    def readiness(self) -> Health:
         """In the fleet and serving (the /readyz probe)."""
         in_fleet = self.membership is not None and not self.membership.withdrawn
-        return probes.ready(self.runtime.progress.health(), self._stopping.is_set(), in_fleet)
+        return ready(self.runtime.progress.health(), self._stopping.is_set(), in_fleet)
 
     def _watch_progress(self) -> None:
         """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again."""
@@ -275,6 +271,7 @@ class TraversabilityService:
     def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None, publisher: str | None) -> None:
         if self.membership is not None:
             self.membership.note(source)
+        self.runtime.presence.frame(source)
         if self.owns(source):  # else another live instance serves this source
             key, size, encoding = str(sample.key_expr), len(sample.payload), str(sample.encoding)
             self.runtime.admission.offer(source, key, size, sample.payload.to_bytes, encoding, ros, publisher)

@@ -27,6 +27,7 @@ from gcdtrav.service.runtime.grids.outputs import AfterFusion
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.intake.admission import Admission
 from gcdtrav.service.runtime.intake.freshness import FrameGate, Freshness
+from gcdtrav.service.runtime.intake.presence import SourcePresence
 from gcdtrav.service.runtime.intake.sources import SourceTracker
 from gcdtrav.service.runtime.outputs import FramePublisher, OutputBuilder, OutputSink
 from gcdtrav.service.runtime.progress import ProgressMonitor
@@ -67,6 +68,7 @@ class Runtime:
     progress: ProgressMonitor
     status_parts: StatusParts
     worker: FrameWorker
+    presence: SourcePresence  # the robots heard: the silent-robot alert's metrics
 
     @classmethod
     def build(
@@ -170,6 +172,7 @@ class Runtime:
             progress,
             status_parts,
             worker,
+            SourcePresence(settings.max_sources, settings.source_idle_s),
         )
 
 

@@ -33,6 +33,7 @@ NAMES = (
     "AnchorPoint",
     "AnchorSetRejection",
     "AnchorSetReply",
+    "CameraParked",  # 1.5 (issue 47)
     "CameraPlacement",
     "CompactMapsMessage",
     "ContextDistribution",
@@ -74,6 +75,7 @@ ENCODINGS: dict[str, str] = {
     "AnchorPoint": "0f78399d8b04f214",
     "AnchorSetRejection": "76b065515a8040e7",
     "AnchorSetReply": "63c45ce9cddcac33",
+    "CameraParked": "d1fabadf3045bcfc",  # 1.5 (issue 47)
     "CameraPlacement": "5cc07b0917eecea2",
     "CompactMapsMessage": "6dd57dc6be745b47",
     "ContextDistribution": "8d261f381245817e",
@@ -91,7 +93,7 @@ ENCODINGS: dict[str, str] = {
     "PathReply": "bb1eedee3874093d",
     "Pose2D": "8d8c2f26050aa8d8",
     "QuestionStatus": "34c954ab9f7e0fcd",
-    "RelayHealth": "a776a0fce767f62b",
+    "RelayHealth": "9bff60dd6a7027a2",  # 1.5: parked (issue 47)
     "ServiceStatus": "545d0304df477165",  # 1.5: store (issue 46)
     "SourceStatus": "b8cb4513be01ecb6",
     "SourceView": "d16a2d24f70c230c",
