@@ -1,5 +1,5 @@
-"""A fleet's store: one PostgreSQL database every instance shares (psycopg 3, in the
-``gcdtrav[service]`` extra). One connection per thread, autocommit with explicit transactions; a write transaction first takes a
+"""A fleet's store: one PostgreSQL database every instance shares (psycopg 3, in the ``gcdtrav[service]``
+extra). One connection per thread, autocommit with explicit transactions; a write transaction first takes a
 transaction-scoped advisory lock of its table group, so appends from every instance keep one fleet-wide
 order and bounds, and of two activations exactly one sees the other's result.
 
