@@ -186,6 +186,7 @@ class TraversabilityService:
             log.warning("the frame in flight did not finish within %.1f s; its outputs are dropped", timeout)
         if self.membership is not None:
             self.membership.close()
+        self._safe_speed(stale_only=False)  # no mask outlives the service: the frame in flight is out, no other comes
         self.outputs.close()  # before the session's entities: a late frame is refused, not put on a dead key
         self.credits.close()
         undeclare_all(self._declared)
@@ -258,6 +259,7 @@ class TraversabilityService:
     def _watch_progress(self) -> None:
         """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again."""
         while not self._stopping.wait(WATCHDOG_INTERVAL_S):
+            self._safe_speed(stale_only=True)
             change = self.runtime.progress.check(len(self.runtime.queue))
             if change is None or self.membership is None:
                 continue
@@ -267,6 +269,13 @@ class TraversabilityService:
             else:
                 log.error("worker %s: withdrawing from the fleet (its sources fail over)", change.health.reason)
                 self.membership.withdraw()
+
+    def _safe_speed(self, stale_only: bool) -> None:
+        """Put the safe speed mask (the floor everywhere) of every grid whose live mask went stale or, when
+        stopping, of every grid that has one (docs/grid.md, "Speed from uncertainty")."""
+        grids = self.runtime.grids
+        if grids is not None:
+            self.runtime.publisher.publish_speed(grids.safe_speed(stale_only))
 
     def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None, publisher: str | None) -> None:
         if self.membership is not None:

@@ -107,7 +107,8 @@ class Runtime:
         backend = pipeline.describe()
         credits = Credits(CreditLedger(settings.instance, backend.input_size, freshness.max_age_s), stats, credit_sink)
         # the one hand-off out: encoded here, put by the sink, the credits told
-        publisher = FramePublisher(OutputBuilder(settings, backend.model_id), sink, credits.published)
+        unchanged = grids.unchanged if grids is not None else lambda source: None
+        publisher = FramePublisher(OutputBuilder(settings, backend.model_id), sink, credits.published, unchanged)
         forget = (
             queue.forget,
             history.forget,

@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 from gcdtrav.schemas.experience import CalibrationFigures
-from gcdtrav.schemas.messages import ServiceStatus, SourceStatus, StoreStatus
+from gcdtrav.schemas.messages import GridStatus, ServiceStatus, SourceStatus, StoreStatus
 from gcdtrav.service.runtime.intake.presence import Heard
 from prometheus_client import CollectorRegistry, Histogram, disable_created_metrics
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, InfoMetricFamily, Metric
@@ -127,6 +127,8 @@ HELP = {
     "gcdtrav_calibration_ece": "Expected calibration error of P(T < tau) (0: calibrated).",
     "gcdtrav_calibration_mae": "Mean |T - outcome| over the pairs.",
     "gcdtrav_calibration_coverage": "Share of outcomes at or above the alpha quantile of T (calibrated: 1 - alpha).",
+    "gcdtrav_grid_speed_age_seconds": "Seconds since a grid's last speed filter mask went out (grids with speed).",
+    "gcdtrav_grid_speed_safe": "1 while a grid's last speed mask is the safe one (the floor: stale or stopping).",
 }
 
 
@@ -146,6 +148,7 @@ class StatusCollector(Collector):
         yield from source_families(status.sources)
         yield from heard_families(self.sources.heard())
         yield from service_families(status, self.sources.owned(), self.sources.max_frame_age_s)
+        yield from speed_families(status.grids or [])
         if status.experience is not None:
             yield gauge("gcdtrav_experience_pairs", status.experience.pairs)
         if status.store is not None:
@@ -180,6 +183,18 @@ def source_families(sources: dict[str, SourceStatus]) -> Iterator[Metric]:
         if source.clock_offset_s is not None:
             offset.add_metric([name], source.clock_offset_s)
     yield from (received, processed, reused, dropped, rejected, offset)
+
+
+def speed_families(grids: list[GridStatus]) -> Iterator[Metric]:
+    """Per grid with a speed layer (labelled by the source it is published under): its last mask's age and
+    whether it is the safe one (docs/grid.md, "Speed from uncertainty")."""
+    names = ("gcdtrav_grid_speed_age_seconds", "gcdtrav_grid_speed_safe")
+    age, safe = (GaugeMetricFamily(name, HELP[name], labels=["source"]) for name in names)
+    for grid in grids:
+        if grid.speed_ago_s is not None:
+            age.add_metric([grid.source], grid.speed_ago_s)
+            safe.add_metric([grid.source], int(bool(grid.speed_safe)))
+    yield from (age, safe)
 
 
 def heard_families(heard: dict[str, Heard]) -> Iterator[Metric]:

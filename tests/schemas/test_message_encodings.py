@@ -84,8 +84,8 @@ ENCODINGS: dict[str, str] = {
     "ExperienceStatus": "4af14e7641d86d54",
     "GridCameraStatus": "53933af7bcaf96a8",
     "GridHeader": "45032c519d91c5ab",
-    "GridMessage": "7769ca70ff140d08",
-    "GridStatus": "d8890a741886b576",
+    "GridMessage": "d0c5c59150639ec0",  # 1.5: speed_png
+    "GridStatus": "764176441651b45f",  # 1.5: speed_ago_s, speed_safe
     "ImageEnvelope": "afa63bf98b189131",
     "MapsHeader": "b69d7e8326586de9",
     "MapsMessage": "0b57008939444eab",
@@ -94,7 +94,7 @@ ENCODINGS: dict[str, str] = {
     "Pose2D": "8d8c2f26050aa8d8",
     "QuestionStatus": "34c954ab9f7e0fcd",
     "RelayHealth": "9bff60dd6a7027a2",  # 1.5: parked (issue 47)
-    "ServiceStatus": "545d0304df477165",  # 1.5: store (issue 46)
+    "ServiceStatus": "4fe3a85238c98fd0",  # 1.5: its GridStatus; store (issue 46)
     "SourceStatus": "b8cb4513be01ecb6",
     "SourceView": "d16a2d24f70c230c",
 }
