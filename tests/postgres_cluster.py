@@ -102,7 +102,7 @@ class PostgresCluster:
 @contextlib.contextmanager
 def postgres_cluster(durable: bool = False) -> Iterator[PostgresCluster]:
     if importlib.util.find_spec("psycopg") is None:
-        missing("postgresql", "psycopg: pip install 'gcdtrav[postgresql]'")
+        missing("postgresql", "psycopg: pip install 'gcdtrav[service]'")
     cluster = PostgresCluster(postgresql_bin(), durable)
     try:
         cluster.start()

@@ -1,4 +1,4 @@
-"""A fleet's store: one PostgreSQL database every instance shares (psycopg 3, the ``gcdtrav[postgresql]``
+"""A fleet's store: one PostgreSQL database every instance shares (psycopg 3, in the ``gcdtrav[service]``
 extra). One connection per thread, autocommit with explicit transactions; a write transaction first takes a
 transaction-scoped advisory lock of its table group, so appends from every instance keep one fleet-wide
 order and bounds, and of two activations exactly one sees the other's result.
@@ -28,7 +28,7 @@ def _psycopg() -> Any:
         import psycopg
     except ImportError:
         raise StoreError(
-            "store: url names PostgreSQL, but psycopg is not installed: pip install 'gcdtrav[postgresql]'"
+            "store: url names PostgreSQL, but psycopg is not installed: pip install 'gcdtrav[service]'"
         ) from None
     return psycopg
 
