@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 from conftest import textured_image
-from zenoh_helpers import connecting_config, service_reachable, wait_until
+from zenoh_helpers import connecting_config, service_reachable, subscribed_elsewhere, wait_until
 
 pytest.importorskip("torch")
 
@@ -42,7 +42,7 @@ def serving(backend, state_dir: Path, **settings_kw: object) -> Iterator[Serving
         subscriber = client.subscribe_maps("**", received.append)
         try:
             assert wait_until(lambda: service_reachable(client), 10)
-            time.sleep(0.3)  # let the maps subscription reach the service
+            assert subscribed_elsewhere(service.session, service.keys.maps("probe")), "the maps subscription"
             yield Serving(service, port, client, received)
         finally:
             subscriber.undeclare()
