@@ -3,7 +3,7 @@ and the viewer draws them from it (torch-free: the client reads it).
 
 A row names a layer once: its name (grid_map's layer name, the key of ``Grid.layers`` in the client, the
 viewer's channel), its byte format and its colour scale in the viewer. The GridMessage carries each layer as
-``{name}_png`` (schemas/messages.py). A new layer: a row here, its optional field in ``GridMessage`` and its
+``{name}_png`` (schemas/messages/grid.py). A new layer: a row here, its optional field in ``GridMessage`` and its
 values in ``service/grid/layers.py`` (``GridLayers``).
 """
 

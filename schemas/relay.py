@@ -47,6 +47,22 @@ class RelayCamera(StrictModel):
         default="auto", description="auto: from the rmw_zenoh key; bridge keys carry no type, so set it."
     )
     zenoh_namespace: str = Field(default="", description="The robot's zenoh 'namespace', prefixed to its keys.")
+    ros_reliable: bool = Field(
+        default=False,
+        description="ROS 2 node only: subscribe reliably instead of with the sensor-data QoS (best effort). For "
+        "a reliable camera of very large frames: best effort loses a whole frame with any one of its fragments.",
+    )
+    camera_info: str | None = Field(
+        default="auto",
+        description="ROS 2 node only (`gcdtrav relay --ros`): the camera's sensor_msgs/CameraInfo topic; auto: "
+        "'camera_info' beside the image topic (image_transport's convention: /camera/front/image_raw -> "
+        "/camera/front/camera_info); null: none.",
+    )
+    camera_info_key: str | None = Field(
+        default=None,
+        description="ROS 2 node only: the link key the CameraInfo goes to as CDR, on change and every "
+        "camera_info_period_s (the service's grid camera_info_key); null: checked, not sent.",
+    )
 
     @field_validator("source")
     @classmethod
@@ -64,6 +80,22 @@ class RelayCamera(StrictModel):
         if self.zenoh_namespace:
             _literal_key(self.zenoh_namespace, "zenoh_namespace")
         return self
+
+
+class RelayOdometry(StrictModel):
+    """ROS 2 node only: the robot's odometry, sent to a grid's pose stream as Pose2D (about 60 bytes, not the
+    700 of a nav_msgs/Odometry with its covariances)."""
+
+    topic: str = Field(default="/odom", description="nav_msgs/Odometry topic on the robot.")
+    key: str = Field(description="The link key of the service grid's pose_key (pose_format: gcdtrav).")
+    max_rate_hz: float = Field(
+        default=10.0, gt=0, description="At most this many poses a second cross the link (the grid interpolates)."
+    )
+
+    @field_validator("key")
+    @classmethod
+    def _key_is_literal(cls, value: str) -> str:
+        return _literal_key(value, "odometry key")
 
 
 class RelaySettings(StrictModel):
@@ -99,6 +131,20 @@ class RelaySettings(StrictModel):
         description="The robot's own zenoh router (rmw_zenoh's default), where cameras and consumers are.",
     )
     local_listen: list[str] = Field(default_factory=list, description="Robot-side endpoints to listen on.")
+    max_camera_bytes: int = Field(
+        default=32_000_000,  # a 4K rgb8 frame is 25 MB
+        ge=1000,
+        description="A camera message larger than this is not decoded (camera_unusable: too_large).",
+    )
+    odometry: RelayOdometry | None = Field(default=None, description="ROS 2 node only: odometry to a pose key.")
+    camera_info_period_s: float = Field(
+        default=5.0, gt=0, description="ROS 2 node only: an unchanged CameraInfo is sent again after this long."
+    )
+    ros_maps: Literal["maps8", "maps"] = Field(
+        default="maps8",
+        description="ROS 2 node only: T and U (32FC1 images) come from these maps: maps8, 8-bit at "
+        "compact_maps_max_side (a tenth of the bytes), or maps, 16-bit at the model's map size.",
+    )
 
     @field_validator("prefix", "input_prefix")
     @classmethod

@@ -41,13 +41,12 @@ def postgresql_bin() -> Path:
 
 def require_rclpy() -> None:
     """ROS 2's own client library (the Kilted wheels on PyPI: ros-rclpy and the message packages)."""
-    how = "pip install ros-rclpy ros-rmw-fastrtps-cpp and the message packages, see .ci/run"
     if importlib.util.find_spec("rclpy") is None:
-        missing("rclpy", how)
-    try:  # its C libraries load only with the LD_LIBRARY_PATH ros_wheels_bootstrapper sets for the wheels' prefix
-        import rclpy.serialization  # noqa: F401
-    except ImportError as err:
-        missing("rclpy", f"{how}; installed but does not import: {err}")
+        missing("rclpy", "pip install ros-rclpy ros-rmw-fastrtps-cpp and the message packages, see .ci/run")
+    try:
+        import rclpy  # noqa: F401
+    except ImportError as err:  # wheels installed outside this venv: their libraries are not on its path
+        missing("rclpy", f"it is installed but does not import: {err}")
 
 
 def require_prometheus() -> str:

@@ -72,6 +72,18 @@ def test_runtime_shows_its_rooms_in_the_frames_order() -> None:
     assert not {layer["intake"], layer["triage"]} & LAYERS[layer["schedule"]]
 
 
+def test_intake_and_triage_import_nothing_of_the_fleet() -> None:
+    """The frame's order frees slots (credits) without the fleet: the credit words live in schemas, the frame's
+    times in runtime/frames.py. Neither the table nor the code lets intake/ or triage/ reach fleet/."""
+    fleet = "gcdtrav.service.runtime.fleet"
+    graph = build_graph(ROOT)
+    for room in ("intake", "triage"):
+        layer = f"gcdtrav.service.runtime.{room}"
+        assert fleet not in LAYERS[layer], f"{room} may import the fleet again"
+        reached = {target for module in graph.edges if layer_of(module) == layer for target in graph.edges[module]}
+        assert not {target for target in reached if layer_of(target) == fleet}, f"{room} imports the fleet"
+
+
 def _synthetic_tree(root: Path, files: dict[str, str]) -> None:
     for package in ("schemas", "client", "service", "service/backends", "service/runtime", "service/commands"):
         (root / package).mkdir(parents=True, exist_ok=True)

@@ -62,8 +62,8 @@ LAYERS: dict[str, frozenset[str]] = {
     _RT_SCHEDULE: frozenset({_SCHEMAS}),
     _RT_STATS: frozenset({_SCHEMAS, _RT_SCHEDULE}),  # a source's queue counters and share, for its status
     _RT_FLEET: frozenset({_SCHEMAS, _PIPELINE, _RT_FRAMES, _RT_STATS}),
-    _RT_INTAKE: frozenset({_SCHEMAS, _ROS, _RT_FRAMES, _RT_SCHEDULE, _RT_STATS, _RT_FLEET}),  # fleet: credits
-    _RT_TRIAGE: frozenset({_SCHEMAS, _RT_FRAMES, _RT_SCHEDULE, _RT_STATS, _RT_FLEET}),
+    _RT_INTAKE: frozenset({_SCHEMAS, _ROS, _RT_FRAMES, _RT_SCHEDULE, _RT_STATS}),  # credit words: schemas
+    _RT_TRIAGE: frozenset({_SCHEMAS, _RT_FRAMES, _RT_SCHEDULE, _RT_STATS}),
     _RUNTIME: _BELOW_RUNTIME | _RT_ROOMS,
     _EXPERIENCE: frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _GRID, _ROS, _EVAL}) | _RUNTIME_ALL,
     _BUS: frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS, _EXPERIENCE}) | _RUNTIME_ALL,

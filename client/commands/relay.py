@@ -1,6 +1,7 @@
 """`gcdtrav relay`: the command line of the robot's relay (torch-free, the base install).
 
     gcdtrav relay --camera /camera/front/image_raw --source r1/front -e tcp/OFFBOARD:7447
+    gcdtrav relay --ros -e tcp/OFFBOARD:7447 --ros-args -p camera:=/camera/front/image_raw -p source:=r1/front
 
 Exit codes: 0 stopped by Ctrl-C or SIGTERM, 1 failed (one line on stderr), 2 usage.
 """
@@ -60,12 +61,30 @@ def add_relay_command(commands: argparse._SubParsersAction) -> None:
         "--local-connect", action="append", metavar="ENDPOINT", help="the robot's router [tcp/127.0.0.1:7447]"
     )
     relay.add_argument("--local-mode", choices=["client", "peer"], help="the robot-side session's mode [client]")
+    relay.add_argument(
+        "--ros",
+        action="store_true",
+        help="run as a ROS 2 node (rclpy: the robot's own, on any RMW): cameras, CameraInfo and odometry from the "
+        "ROS graph, T, U, the costmap and /diagnostics back into it (docs/ros2.md)",
+    )
     add_zenoh_arguments(relay)
+    relay.add_argument(
+        "--ros-args",
+        nargs=argparse.REMAINDER,
+        dest="ros_args",
+        help="the rest goes to ROS 2 (implies --ros): -p name:=value, -r from:=to, -r __ns:=/robot1, ...",
+    )
 
 
 def relay_settings(args: argparse.Namespace) -> Any:
     """The settings file with the flags on top; --camera/--source pairs replace its cameras."""
-    from gcdtrav.schemas.relay import RelaySettingsError, load_relay_settings
+    from gcdtrav.schemas.relay import load_relay_settings
+
+    return load_relay_settings(args.settings, flag_overrides(args))
+
+
+def flag_overrides(args: argparse.Namespace) -> dict[str, object]:
+    from gcdtrav.schemas.relay import RelaySettingsError
 
     cameras, sources = args.camera or [], args.source or []
     if len(cameras) != len(sources):
@@ -82,7 +101,7 @@ def relay_settings(args: argparse.Namespace) -> Any:
     }
     if cameras:
         overrides["cameras"] = [{"camera": c, "source": s} for c, s in zip(cameras, sources, strict=True)]
-    return load_relay_settings(args.settings, overrides)
+    return overrides
 
 
 def run(args: argparse.Namespace) -> int:
@@ -91,8 +110,10 @@ def run(args: argparse.Namespace) -> int:
     from gcdtrav.client.session.zenoh_args import zenoh_config, zenoh_config_from_args
     from gcdtrav.schemas.relay import RelaySettingsError
 
+    ros = args.ros or args.ros_args is not None
     try:
-        settings = relay_settings(args)
+        overrides = flag_overrides(args)
+        settings = None if ros else relay_settings(args)
         link_config = zenoh_config_from_args(args)
         if args.mode is None:
             link_config.insert_json5("mode", '"client"')
@@ -102,15 +123,18 @@ def run(args: argparse.Namespace) -> int:
     except Exception as err:  # zenoh raises its own error type for bad config files and values
         print(f"gcdtrav relay: invalid zenoh configuration: {err}", file=sys.stderr)
         return EXIT_USAGE
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda number, frame: _stop(stop, number, frame))
+    if ros:
+        return run_ros(args, overrides, link_config, stop)
+    assert settings is not None
     local_config = zenoh_config(
         mode=settings.local_mode,
         connect=settings.local_connect,
         listen=settings.local_listen,
         multicast_scouting=False,  # never find the service's side through the robot session
     )
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda number, frame: _stop(stop, number, frame))
     try:
         with zenoh.open(link_config) as link, zenoh.open(local_config) as local:
             relay = Relay(settings, link, local).start()
@@ -122,6 +146,26 @@ def run(args: argparse.Namespace) -> int:
         print(f"gcdtrav relay: zenoh: {' '.join(str(err).split())}", file=sys.stderr)
         return EXIT_FAILED
     return EXIT_OK
+
+
+def run_ros(args: argparse.Namespace, overrides: dict[str, object], link_config: Any, stop: threading.Event) -> int:
+    """The ROS 2 node: rclpy is imported only here, so the base install needs no ROS."""
+    import zenoh
+
+    try:
+        from gcdtrav.client.relay.ros2_node import run_node
+    except ImportError as err:
+        print(
+            f"gcdtrav relay --ros: needs ROS 2's rclpy and message packages ({err}): source "
+            "/opt/ros/<distro>/setup.bash on the robot",
+            file=sys.stderr,
+        )
+        return EXIT_FAILED
+    try:
+        return run_node(args.ros_args or [], args.settings, overrides, link_config, stop)
+    except zenoh.ZError as err:
+        print(f"gcdtrav relay: zenoh: {' '.join(str(err).split())}", file=sys.stderr)
+        return EXIT_FAILED
 
 
 def _stop(stop: threading.Event, number: int, frame: FrameType | None) -> None:

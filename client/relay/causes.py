@@ -8,6 +8,10 @@ Each cause has a code (``RelayHealth.causes``' keys) and a sentence saying what 
 - ``service_refuses``: the service answers, but its last credit names why the frames give no maps
   (``CreditGrant.problem``: stale, undecodable, too large, ...);
 - ``camera_unusable``: the relay cannot decode the camera's frames;
+- ``camera_wrong_type`` (the ROS 2 node): the camera's topic is published with a type that is no image
+  (or another than ``ros_message_type``), so no frame can come;
+- ``camera_info_unusable`` (the ROS 2 node): the camera's CameraInfo cannot place pixels on the ground (a zero
+  focal length, no size): it is not sent, and a grid of this camera fuses nothing until a good one comes;
 - ``camera_clock``: the camera stamps from a clock more than ``CLOCK_NOTE_S`` off this host's. Not a cause
   of staleness any more (ages are judged by delay, ``state.CameraClock``), but said: every stamp the robot's
   consumers read is on the camera's clock.
@@ -20,8 +24,14 @@ from dataclasses import dataclass
 
 CAMERA_SILENT, NO_INSTANCE, SERVICE_REFUSES = "camera_silent", "no_instance", "service_refuses"
 CAMERA_UNUSABLE, CAMERA_CLOCK = "camera_unusable", "camera_clock"
+CAMERA_WRONG_TYPE, CAMERA_INFO_UNUSABLE = "camera_wrong_type", "camera_info_unusable"
 CLOCK_NOTE_S = 1.0  # the service warns of a source's clock beyond this too (clock_offset.py WARN_OFFSET_S)
-TEXT_MATTERS = (SERVICE_REFUSES, CAMERA_UNUSABLE)  # a new text is a new cause; the others' texts hold figures
+TEXT_MATTERS = (
+    SERVICE_REFUSES,
+    CAMERA_UNUSABLE,
+    CAMERA_WRONG_TYPE,
+    CAMERA_INFO_UNUSABLE,
+)  # a new text is a new cause; the others' texts hold figures
 
 
 @dataclass(frozen=True)

@@ -27,10 +27,11 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections import OrderedDict
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from functools import partial
-from typing import Any
+from typing import Any, Protocol
 
 import zenoh
 from gcdtrav.client.freshness import FreshnessWatch, Staleness
@@ -55,18 +56,59 @@ from gcdtrav.schemas.ros_image import decode_ros_image
 
 log = logging.getLogger("gcdtrav.relay")
 MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
-MAX_CAMERA_BYTES = 64_000_000  # a 4K rgb8 frame is 25 MB
 MAX_CAMERA_PIXELS = 40_000_000
 STAMPED_OUTPUTS = ("maps", "maps8", "grid")  # their header's stamp is the capture stamp of the newest frame
 OUTPUT_ENCODINGS = {"maps": MSGPACK, "maps8": MSGPACK, "grid": MSGPACK, "preview": zenoh.Encoding.IMAGE_JPEG}
 
 
+STAMPS_KEPT = 64  # exact ROS stamps of the frames last sent, to stamp the outputs that come back
+
+
 @dataclass(frozen=True)
 class CapturedFrame:
-    payload: zenoh.ZBytes  # kept as zenoh gave it: only the frames sent are copied and decoded
+    payload: zenoh.ZBytes | bytes  # kept as zenoh gave it: only the frames sent are copied and decoded
     encoding: str
     key: str
     arrived_at: float
+    ros_type: str | None = None  # a message of the robot's ROS graph (the ROS 2 node): its type
+
+
+class Undeclarable(Protocol):
+    def undeclare(self) -> None: ...
+
+
+class Output(Protocol):
+    """One output of one source on the robot's side, brought over the link only while someone there wants it."""
+
+    source: str
+    kind: str
+    downlink: RateWindow
+
+    @property
+    def active(self) -> bool: ...
+
+    def reconcile(self) -> None: ...
+
+    def close(self) -> None: ...
+
+
+class RobotSide(Protocol):
+    """Where the cameras are and the outputs go: the robot's zenoh bus (``ZenohRobotSide``), or its ROS 2 graph
+    through rclpy (client/relay/ros2_node.py)."""
+
+    def camera_name(self, camera: RelayCamera) -> str:
+        """The camera's key or topic, as the health names it."""
+        ...
+
+    def subscribe_camera(self, link: CameraLink) -> Iterable[Undeclarable]:
+        """Feed ``link.keep`` with the camera's frames."""
+        ...
+
+    def outputs(self, relay: Relay, source: str) -> list[Output]: ...
+
+    def publish_health(self, health: RelayHealth) -> None: ...
+
+    def close(self) -> None: ...
 
 
 class Guarded:
@@ -117,18 +159,20 @@ class CameraLink:
         self.model_input = (CLIPSEG_INPUT_SIDE, CLIPSEG_INPUT_SIDE)
         self.captured = self.sent = self.undecodable = 0
         self.unusable: str | None = None  # why the last camera frame could not be sent, if it could not
+        self.graph_causes: dict[str, str] = {}  # what the robot's ROS graph says is wrong (the ROS 2 node)
+        self._ros_stamps: OrderedDict[float, tuple[int, int]] = OrderedDict()  # sent stamp -> (sec, nanosec)
         self._slot: CapturedFrame | None = None
         self._cond = threading.Condition()
         self._publisher: Guarded | None = None
         self._thread = threading.Thread(target=self._run, name=f"gcdtrav-relay-{self.source}", daemon=True)
 
-    def start(self) -> list[Guarded]:
+    def start(self) -> list[Undeclarable]:
         """Declare the camera subscriber (robot), the credit subscriber and frame publisher (link)."""
         settings = self.relay.settings
         frames_key = input_key(settings.input_prefix, self.source)
         self._publisher = Guarded(self.relay.link.declare_publisher(frames_key, encoding=MSGPACK))
         declared = [
-            Guarded(self.relay.local.declare_subscriber(self.camera_key, self.on_frame)),
+            *self.relay.robot.subscribe_camera(self),
             Guarded(self.relay.link.declare_subscriber(self.relay.keys.credit(self.source), self.on_grant)),
             self._publisher,
         ]
@@ -137,14 +181,14 @@ class CameraLink:
 
     @property
     def camera_key(self) -> str:
-        camera = self.camera
-        if not camera.is_ros:
-            return camera.camera
-        return ros_camera_key(camera.camera, camera.ros_layout, camera.ros_domain, camera.zenoh_namespace)
+        return self.relay.robot.camera_name(self.camera)
 
     # ---- zenoh callbacks: keep, never decode ----------------------------------------------------------
     def on_frame(self, sample: zenoh.Sample) -> None:
-        frame = CapturedFrame(sample.payload, str(sample.encoding), str(sample.key_expr), time.time())
+        self.keep(CapturedFrame(sample.payload, str(sample.encoding), str(sample.key_expr), time.time()))
+
+    def keep(self, frame: CapturedFrame) -> None:
+        """The camera's newest frame: it replaces one not sent yet."""
         with self._cond:
             self._slot = frame  # an older frame not yet sent is replaced: only the newest matters
             self.captured += 1
@@ -197,8 +241,7 @@ class CameraLink:
             image, stamp, frame_id, original_size = self._decode(frame)
         except RejectedInput as err:
             self.undecodable += 1
-            self.unusable = f"camera frame on {frame.key} not usable: {err}"
-            log.warning("%s: %s", self.source, self.unusable)
+            self.unusable = f"camera frame on {frame.key} not usable: {err}"  # a cause: logged once per change
             return None
         self.unusable = None
         self.camera_clock.add(stamp, frame.arrived_at)
@@ -218,14 +261,34 @@ class CameraLink:
 
     def _decode(self, frame: CapturedFrame) -> tuple[Any, float, str, tuple[int, int]]:
         """The camera's image, stamp, frame id and size in the camera's pixels."""
-        payload = frame.payload.to_bytes()
-        if not self.camera.is_ros:
-            decoded = decode_payload(payload, frame.encoding, frame.arrived_at, MAX_CAMERA_BYTES, MAX_CAMERA_PIXELS)
+        payload = frame.payload if isinstance(frame.payload, bytes) else frame.payload.to_bytes()
+        limit = self.relay.settings.max_camera_bytes
+        if len(payload) > limit:
+            raise RejectedInput("too_large", f"{len(payload)} bytes, over max_camera_bytes = {limit}")
+        if frame.ros_type is None and not self.camera.is_ros:
+            decoded = decode_payload(payload, frame.encoding, frame.arrived_at, limit, MAX_CAMERA_PIXELS)
             return decoded.image, decoded.stamp, decoded.frame_id, decoded.camera_size
         configured = self.camera.ros_message_type
-        msgtype = (ros_type_of_key(frame.key) or "") if configured == "auto" else configured
+        msgtype = frame.ros_type or ((ros_type_of_key(frame.key) or "") if configured == "auto" else configured)
         ros = decode_ros_image(payload, msgtype, MAX_CAMERA_PIXELS)
+        self._remember_stamp(ros.stamp, (ros.sec, ros.nanosec))
         return ros.image, ros.stamp, ros.frame_id, (int(ros.image.shape[1]), int(ros.image.shape[0]))
+
+    def _remember_stamp(self, stamp: float, exact: tuple[int, int]) -> None:
+        with self._cond:
+            self._ros_stamps[stamp] = exact
+            while len(self._ros_stamps) > STAMPS_KEPT:
+                self._ros_stamps.popitem(last=False)
+
+    def ros_stamp(self, stamp: float) -> tuple[int, int]:
+        """The exact (sec, nanosec) of the sent frame stamped ``stamp`` (a float's 0.2 us steps lose them): the
+        stamp the robot's consumers match outputs to frames by. The frame's within 1 us, else ``stamp`` split."""
+        with self._cond:
+            near = min(self._ros_stamps, key=lambda sent: abs(sent - stamp), default=None)
+            if near is not None and abs(near - stamp) < 1e-6:
+                return self._ros_stamps[near]
+        sec = math.floor(stamp)
+        return sec, min(round((stamp - sec) * 1e9), 999_999_999)
 
     def stop(self) -> None:
         with self._cond:
@@ -250,6 +313,7 @@ class CameraLink:
         best = self.clock.best()
         settings = self.relay.settings
         found = causes(self.facts(now, freshness.reason(self.source)), settings.camera_silent_after_s, settings.prefix)
+        found |= self.graph_causes
         return RelayHealth(
             source=self.source,
             published_at=now,
@@ -273,13 +337,13 @@ class CameraLink:
 class OutputForwarder:
     """One output of one source, brought over the link only while a consumer on the robot's bus wants it."""
 
-    def __init__(self, relay: Relay, source: str, kind: str) -> None:
+    def __init__(self, relay: Relay, local: zenoh.Session, source: str, kind: str) -> None:
         self.relay, self.source, self.kind = relay, source, kind
         self.key = relay.keys.output(source, kind)
         self.downlink = RateWindow()
         self._wanted = False
         self._subscriber: Guarded | None = None
-        publisher = relay.local.declare_publisher(
+        publisher = local.declare_publisher(
             self.key, encoding=OUTPUT_ENCODINGS[kind], congestion_control=zenoh.CongestionControl.DROP
         )
         self._listener = Guarded(publisher.declare_matching_listener(self._on_matching))
@@ -313,7 +377,7 @@ class OutputForwarder:
                 stamp = float(header["stamp"]) if isinstance(header, dict) else math.nan
             except (MessageError, KeyError, TypeError, ValueError):
                 return
-            self.relay.freshness.observe(self.source, self.relay.camera(self.source).camera_clock.on_host_clock(stamp))
+            self.relay.observe_output(self.source, stamp)
 
     def close(self) -> None:
         for entity in (self._subscriber, self._listener, self._publisher):
@@ -322,25 +386,59 @@ class OutputForwarder:
         self._subscriber = None
 
 
+class ZenohRobotSide:
+    """The robot's zenoh bus (its own router: rmw_zenoh, zenoh-bridge-ros2dds, or plain keys of images)."""
+
+    def __init__(self, local: zenoh.Session) -> None:
+        self.local = local
+        self._health: dict[str, Guarded] = {}
+
+    def camera_name(self, camera: RelayCamera) -> str:
+        if not camera.is_ros:
+            return camera.camera
+        return ros_camera_key(camera.camera, camera.ros_layout, camera.ros_domain, camera.zenoh_namespace)
+
+    def subscribe_camera(self, link: CameraLink) -> list[Guarded]:
+        return [Guarded(self.local.declare_subscriber(link.camera_key, link.on_frame))]
+
+    def outputs(self, relay: Relay, source: str) -> list[Output]:
+        key = relay.keys.relay_health(source)
+        self._health[source] = Guarded(self.local.declare_publisher(key, encoding=MSGPACK))
+        return [OutputForwarder(relay, self.local, source, kind) for kind in relay.settings.forward]
+
+    def publish_health(self, health: RelayHealth) -> None:
+        self._health[health.source].put(health.pack())
+
+    def close(self) -> None:
+        for publisher in self._health.values():
+            publisher.undeclare()
+        self._health.clear()
+
+
 class Relay:
-    """Every camera of one robot; ``start()``, then ``close()``. The sessions stay the caller's."""
+    """Every camera of one robot; ``start()``, then ``close()``. The sessions stay the caller's. The robot's side
+    is its zenoh bus (``local``), or ``robot``: its ROS 2 graph (client/relay/ros2_node.py)."""
 
     def __init__(
         self,
         settings: RelaySettings,
         link: zenoh.Session,
-        local: zenoh.Session,
+        local: zenoh.Session | None = None,
         on_stale: Callable[[Staleness], None] | None = None,
+        robot: RobotSide | None = None,
     ) -> None:
-        self.settings, self.link, self.local = settings, link, local
+        if robot is None:
+            if local is None:
+                raise ValueError("a relay needs the robot's zenoh session or another robot side")
+            robot = ZenohRobotSide(local)
+        self.settings, self.link, self.robot = settings, link, robot
         self.keys = Keys(settings.prefix)
         self.freshness = FreshnessWatch(settings.stale_after_s)
         self.cameras = [CameraLink(self, camera) for camera in settings.cameras]
-        self.forwarders: list[OutputForwarder] = []
+        self.forwarders: list[Output] = []
         self.stopping = False
         self._on_stale = on_stale
-        self._declared: list[Guarded] = []
-        self._health: dict[str, Guarded] = {}
+        self._declared: list[Undeclarable] = []
         self._wake = threading.Event()
         self.started_at = time.time()
         self._told_causes: dict[str, dict[str, str]] = {}  # per source, change_key of the causes last logged
@@ -349,10 +447,7 @@ class Relay:
     def start(self) -> Relay:
         for camera in self.cameras:
             self.freshness.watch(camera.source)
-            self._health[camera.source] = Guarded(
-                self.local.declare_publisher(self.keys.relay_health(camera.source), encoding=MSGPACK)
-            )
-            self.forwarders += [OutputForwarder(self, camera.source, kind) for kind in self.settings.forward]
+            self.forwarders += self.robot.outputs(self, camera.source)
             self._declared += camera.start()
         self._thread.start()
         log.info(
@@ -371,6 +466,10 @@ class Relay:
         """A credit also says how fresh the owner's maps are; it counts while no maps are forwarded."""
         if grant.last_maps_stamp is not None and not any(f.active for f in self.forwarders if f.source == source):
             self.freshness.observe(source, self.camera(source).camera_clock.on_host_clock(grant.last_maps_stamp))
+
+    def observe_output(self, source: str, stamp: float) -> None:
+        """An output of the camera's frame stamped ``stamp`` (the camera's clock) reached the robot."""
+        self.freshness.observe(source, self.camera(source).camera_clock.on_host_clock(stamp))
 
     def camera(self, source: str) -> CameraLink:
         return next(camera for camera in self.cameras if camera.source == source)
@@ -400,7 +499,7 @@ class Relay:
                 self._on_stale(change)
         for camera in self.cameras:
             health = self.health(camera.source)
-            self._health[camera.source].put(health.pack())
+            self.robot.publish_health(health)
             self._log_causes(camera.source, health.causes)
 
     def _log_causes(self, source: str, found: dict[str, str]) -> None:
@@ -444,7 +543,7 @@ class Relay:
         self._thread.join(5)
         for forwarder in self.forwarders:
             forwarder.close()
-        for entity in [*self._declared, *self._health.values()]:
+        for entity in self._declared:
             entity.undeclare()
         self._declared.clear()
-        self._health.clear()
+        self.robot.close()

@@ -12,13 +12,13 @@ from collections.abc import Callable
 
 import cv2
 import numpy as np
+from gcdtrav.schemas.delay_window import SmallestDelay
 from gcdtrav.schemas.messages import CreditGrant
 from numpy.typing import NDArray
 
 MAX_CREDIT_TIMEOUT_S = 30.0
 TIMEOUT_STRETCH = 3.0  # times the usual wait for a credit before it counts as lost
 RATE_WINDOW_S = 10.0
-CAMERA_CLOCK_WINDOW_S = 30.0  # the service's clock window (service/runtime/intake/clock_offset.py WINDOW_S)
 
 
 class CreditWindow:
@@ -77,32 +77,24 @@ class CreditWindow:
 
 
 class CameraClock:
-    """This host's clock minus the camera's, the way the service learns a robot's (service/runtime/
-    clock_offset.py): the smallest delay (arrival here minus capture stamp) of the recent frames. A camera
-    stamping from another clock (a PTP-synced sensor, a board without NTP) then does not make every map look
-    hours old: a map's stamp plus this offset is its capture time on this host's clock, within the camera's
-    smallest delivery delay."""
+    """This host's clock minus the camera's, learnt as the service learns a robot's (the one smallest-delay
+    window, schemas/delay_window.py): the smallest delay (arrival here minus capture stamp) of the recent
+    frames. A camera stamping from another clock (a PTP-synced sensor, a board without NTP) then does not make
+    every map look hours old: a map's stamp plus this offset is its capture time on this host's clock, within
+    the camera's smallest delivery delay."""
 
-    def __init__(self, window_s: float = CAMERA_CLOCK_WINDOW_S) -> None:
-        self.window_s = window_s
-        self._frames: deque[tuple[float, float]] = deque()  # (arrival, delay), delays increasing
+    def __init__(self) -> None:
+        self._delays = SmallestDelay()
         self._lock = threading.Lock()
 
     def add(self, stamp: float, arrived_at: float) -> None:
-        delay = arrived_at - stamp
-        if not math.isfinite(delay):
-            return
         with self._lock:
-            while self._frames and self._frames[-1][1] >= delay:
-                self._frames.pop()  # never the smallest again while this one is in the window
-            self._frames.append((arrived_at, delay))
-            while self._frames[0][0] < arrived_at - self.window_s:
-                self._frames.popleft()
+            self._delays.add(arrived_at, arrived_at - stamp)
 
     def offset_s(self) -> float | None:
         """Host minus camera clock (plus the smallest delivery delay); None before any frame."""
         with self._lock:
-            return self._frames[0][1] if self._frames else None
+            return self._delays.smallest
 
     def on_host_clock(self, stamp: float) -> float:
         """A camera stamp on this host's clock (unchanged before any frame taught the offset)."""

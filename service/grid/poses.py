@@ -19,8 +19,8 @@ than the newest by more than ``span_s`` means the stream's clock stepped back (a
 start, a simulator reset): the buffer restarts from it. So does a pose in another frame than the buffer's
 (the odometry frame changed; poses of two frames do not interpolate). Stamps are the pose stream's clock,
 which the lookups assume is the frames' (both the robot's, docs/grid.md). With each pose's receipt on the
-service's clock, ``offset_s`` is the stream's clock as service/runtime/intake/clock_offset.py learns a source's:
-the smallest delay (receipt minus stamp) of the poses held, the clock offset plus the link's smallest delay.
+service's clock, ``offset_s`` is the stream's clock learnt as a source's is (the one smallest-delay window,
+schemas/delay_window.py): the clock offset plus the link's smallest delay; a restart learns it afresh.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ import math
 import threading
 from dataclasses import dataclass
 
+from gcdtrav.schemas.delay_window import SmallestDelay
 from gcdtrav.schemas.messages import Pose2D
 
 # Why a stamp has no pose (also the grid's counters of frames not fused: service/runtime/grids).
@@ -68,7 +69,7 @@ class PoseBuffer:
         self.span_s, self.max_poses, self.extrapolate_s, self.max_gap_s = span_s, max_poses, extrapolate_s, max_gap_s
         self._poses: list[Pose2D] = []
         self._stamps: list[float] = []
-        self._delays: list[float] = []  # receipt minus stamp of each pose held (inf: receipt unknown)
+        self._delays = SmallestDelay()  # receipt minus stamp of the poses received (receipt known)
         self._changed = threading.Condition()
         self.received = self.out_of_order = self.restarts = 0
 
@@ -80,16 +81,17 @@ class PoseBuffer:
             stepped_back = bool(self._stamps) and pose.stamp < self._stamps[-1] - self.span_s
             if stepped_back or (bool(self._poses) and pose.frame_id != self._poses[-1].frame_id):
                 self.restarts += 1  # the frame changed, or the clock stepped back: the old poses mean nothing now
-                self._poses, self._stamps, self._delays = [], [], []
-            delay = math.inf if received_at is None else received_at - pose.stamp
+                self._poses, self._stamps = [], []
+                self._delays.clear()
+            if received_at is not None:
+                self._delays.add(received_at, received_at - pose.stamp)
             at = bisect.bisect_left(self._stamps, pose.stamp)
             if at < len(self._stamps) and self._stamps[at] == pose.stamp:
-                self._poses[at], self._delays[at] = pose, delay
+                self._poses[at] = pose
             else:
                 self.out_of_order += at < len(self._stamps)
                 self._poses.insert(at, pose)
                 self._stamps.insert(at, pose.stamp)
-                self._delays.insert(at, delay)
             self._trim()
             self._changed.notify_all()
 
@@ -97,15 +99,14 @@ class PoseBuffer:
         oldest = self._stamps[-1] - self.span_s
         drop = max(bisect.bisect_left(self._stamps, oldest), len(self._stamps) - self.max_poses)
         if drop > 0:
-            del self._poses[:drop], self._stamps[:drop], self._delays[:drop]
+            del self._poses[:drop], self._stamps[:drop]
 
     @property
     def offset_s(self) -> float | None:
-        """The stream's clock: service minus pose clock plus the link's smallest delay, over the poses held;
-        None without a pose whose receipt is known."""
+        """The stream's clock: service minus pose clock plus the link's smallest delay; None without a pose
+        whose receipt is known."""
         with self._changed:
-            smallest = min(self._delays, default=math.inf)
-            return smallest if math.isfinite(smallest) else None
+            return self._delays.smallest
 
     @property
     def newest(self) -> Pose2D | None:

@@ -180,7 +180,7 @@ def _schedule(
     reuse = ReuseTracker(
         settings.reuse,
         settings.schedule,
-        grids.pose_of if grids else lambda source, stamp: None,
+        grids.reuse_pose if grids else lambda source, stamp, received_at: None,
         anchors_version=lambda: switch.head().version,
     )
     queue: LatestFrameQueue[PendingFrame] = LatestFrameQueue(

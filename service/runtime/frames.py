@@ -27,6 +27,19 @@ class PendingFrame:
     sent_at: float | None = None  # the envelope's sent_at (a relay's clock), echoed in the credit
     lag_s: float | None = None  # judged at intake (service/runtime/intake/freshness.py); None: no usable stamp
 
+    @property
+    def times(self) -> FrameTimes:
+        return FrameTimes(self.stamp, self.sent_at, self.received_at)
+
+
+@dataclass(frozen=True)
+class FrameTimes:
+    """The times of a frame that freed its source's slot, echoed in the credit so the sender can time the link."""
+
+    stamp: float | None  # capture, the sender's clock
+    sent_at: float | None  # the envelope's sent_at, the sender's clock
+    received_at: float  # this service's clock
+
 
 @dataclass(frozen=True)
 class InferredFrame:

@@ -5,7 +5,8 @@ one already waits is replaced unseen, its bytes wasted on the link. The instance
 takes the source's frames) grants a credit whenever the source's slot frees: its frame went to inference, or
 was refused at intake (stale, over a limit). The sender (``gcdtrav relay``) then sends its newest frame, so
 at most one frame of the source is inferred and one waits. Lost credits are the sender's to recover (it sends
-after a timeout); the ledger only numbers and describes the grants.
+after a timeout); the ledger only numbers and describes the grants (the words of their reasons are
+schemas/messages/credits.py's).
 
 Credits follow the scheduler's shares (service/runtime/schedule/share.py): a frame to infer frees its slot when the
 worker takes it, so a source's credits come at its share of the inference, a low-weight source's less often.
@@ -20,23 +21,12 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Protocol
 
 from gcdtrav.schemas.messages import CreditGrant
-from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.schemas.messages.credits import TAKEN
+from gcdtrav.service.runtime.frames import FrameTimes, PendingFrame
 from gcdtrav.service.runtime.stats import ServiceStats
-
-TAKEN, STALE, REFUSED, UNCHANGED, REFRESH = "taken", "stale", "refused", "unchanged", "refresh"
-
-
-@dataclass(frozen=True)
-class FrameTimes:
-    """The times of the frame that freed the slot, echoed so the sender can time the link."""
-
-    stamp: float | None  # capture, the sender's clock
-    sent_at: float | None  # the envelope's sent_at, the sender's clock
-    received_at: float  # this service's clock
 
 
 class CreditLedger:
@@ -119,7 +109,7 @@ class Credits:
             self.stats.credit(source)
 
     def taken(self, pending: PendingFrame) -> None:
-        self.freed(pending.source, TAKEN, FrameTimes(pending.stamp, pending.sent_at, pending.received_at))
+        self.freed(pending.source, TAKEN, pending.times)
 
     def published(self, source: str, stamp: float) -> None:
         """Maps of ``source`` captured at ``stamp`` went out: later credits say how fresh the maps are."""
@@ -128,7 +118,7 @@ class Credits:
     def answered(self, pending: PendingFrame, reason: str) -> None:
         """The frame freed its slot without being taken: answered with the last maps (``unchanged``), or
         waiting for its refresh (``refresh``)."""
-        self.freed(pending.source, reason, FrameTimes(pending.stamp, pending.sent_at, pending.received_at))
+        self.freed(pending.source, reason, pending.times)
 
     def forget(self, source: str) -> None:
         self.ledger.forget(source)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
@@ -50,6 +51,15 @@ TfInput = tuple[str, str, bool, Callable[[bytes], list[RejectedInput]]]
 # known: the experience's snapshot and question, in memory only (no I/O under the lock). The question it returns
 # leaves with the frame's grid (``FusedGrid.question``), put by the bus like every other payload.
 AfterFusion = Callable[[SourceGrid, CameraState, NDArray[np.uint8] | None], OperatorQuestion | None]
+
+
+@dataclass(frozen=True)
+class CapturePose:
+    """Where the robot was when a frame was taken: the capture stamp on the pose stream's clock, and the
+    pose there or why there is none."""
+
+    stamp: float
+    at: PoseAt
 
 
 class GridOutputs:
@@ -120,15 +130,31 @@ class GridOutputs:
         grid.poses.add(pose, now)
         grid.health.pose_received_at = now
 
-    def pose_of(self, camera: str, stamp: float | None = None) -> Pose2D | None:
-        """The pose of the robot carrying camera ``camera`` (its grid's pose stream) when its frame stamped
-        ``stamp`` was taken (looked up, never waited for); the newest where the stream has none there (it lags,
-        or a bare image: ``stamp`` None); None: unknown."""
+    def pose_at(self, camera: str, stamp: float | None, received_at: float, wait: bool = False) -> CapturePose | None:
+        """The one lookup of where the robot carrying ``camera`` was when its frame was taken: fusion's (``wait``:
+        up to ``poses.wait_s`` for a lagging stream) and reuse's (``reuse_pose``: never waits). ``stamp``: the
+        frame's capture stamp, None for a bare image, then taken at its receipt ``received_at`` (the service's
+        clock; see ``capture_stamp``). None: not a grid's camera."""
         grid = self.camera_grids.get(camera)
         if grid is None:
             return None
-        at = grid.poses.at(stamp).pose if stamp is not None else None
-        return at if at is not None else grid.pose
+        capture = self.capture_stamp(grid, received_at if stamp is None else stamp, stamp is None)
+        if not grid.expects_pose():  # no pose stream: the grid is in base_link
+            return CapturePose(capture, PoseAt(None))
+        # Waited for outside the grid's lock, only by a frame that can be fused (intrinsics known).
+        wait_s = self._pose_wait_s(grid) if wait and grid.cameras[camera].camera is not None else 0.0
+        return CapturePose(capture, grid.poses.wait(capture, wait_s))
+
+    def reuse_pose(self, camera: str, stamp: float | None, received_at: float) -> Pose2D | None:
+        """The pose the reuse compares a frame's view by (service/runtime/triage/reuse.py): its capture pose
+        (``pose_at``, not waited for: the triage must not stall), else the newest pose (docs/grid.md, *Which
+        pose*): a missing pose must not blind the reuse to the robot's motion, and a pose of another time can
+        only make it infer a frame it might have reused. Fusion never falls back: its cells would land where
+        the robot was not. None: not a grid's camera, or no pose at all."""
+        capture = self.pose_at(camera, stamp, received_at)
+        if capture is None or capture.at.pose is not None:
+            return capture.at.pose if capture is not None else None
+        return self.camera_grids[camera].pose
 
     def set_mount(self, camera_source: str, mount: CameraMount, origin: str) -> None:
         """Camera ``camera_source``'s mount in the base frame, from ``origin`` ("settings" or "tf"); the next
@@ -184,7 +210,7 @@ class GridOutputs:
         """Fuse a processed frame of camera ``source`` (its weights and match scores per map patch, its ROS
         topic if a ROS camera, its image for ``after_fusion``) into its grid, projected from the robot's pose at
         the frame's capture stamp (``unstamped``: a bare image, stamped with its receipt; see
-        ``capture_stamp``); the grid's layers to publish, or None (not a grid's camera, or not fused: counted
+        ``pose_at``); the grid's layers to publish, or None (not a grid's camera, or not fused: counted
         by reason in the grid's health)."""
         grid = self.camera_grids.get(source)
         if grid is None:
@@ -192,9 +218,9 @@ class GridOutputs:
         camera = grid.cameras[source]
         self._camera_frame(grid, source, record.frame_id, "image")
         # The pose at capture, waited for (bounded) outside the grid's lock: the pose stream may lag the frame.
-        stamp = self.capture_stamp(grid, record.stamp, unstamped)
-        wait_s = self._pose_wait_s(grid) if camera.camera is not None else 0.0
-        at = grid.poses.wait(stamp, wait_s) if grid.expects_pose() else PoseAt(None)
+        capture = self.pose_at(source, None if unstamped else record.stamp, record.stamp, wait=True)
+        assert capture is not None  # a grid's camera
+        stamp, at = capture.stamp, capture.at
         with grid.lock:
             camera.ros = ros or camera.ros
             reason = NO_INTRINSICS if camera.camera is None else NO_MOUNT if camera.mount_origin is None else at.reason

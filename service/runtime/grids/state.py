@@ -12,6 +12,7 @@ from typing import Any
 import cv2
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.delay_window import clock_difference
 from gcdtrav.schemas.messages import CameraPlacement, GridCameraStatus, GridStatus, Pose2D
 from gcdtrav.schemas.settings import GridCamera, GridSettings
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
@@ -161,9 +162,10 @@ def grid_status(grid: SourceGrid, now: float, clock_offsets: Mapping[str, float]
         )
         for source, camera in grid.cameras.items()
     }
-    pose_offset = grid.poses.offset_s
+    # The pose stream's clock minus the camera's: both learnt by the one smallest-delay window on the service's
+    # clock, from the grid's first camera with a learnt clock (its cameras share the robot's).
     camera_offset = next((clock_offsets[c] for c in grid.cameras if c in clock_offsets), None)
-    pose_clock = None if pose_offset is None or camera_offset is None else round(camera_offset - pose_offset, 3)
+    pose_clock = clock_difference(camera_offset, grid.poses.offset_s)
     return GridStatus(
         source=grid.config.source,
         frame_id=grid.frame_id(),
@@ -172,7 +174,7 @@ def grid_status(grid: SourceGrid, now: float, clock_offsets: Mapping[str, float]
         newest_fused_stamp=health.newest_fused_stamp,
         fused_ago_s=_ago(now, health.fused_at),
         pose_age_s=_ago(now, health.pose_received_at),
-        pose_clock_s=pose_clock,
+        pose_clock_s=None if pose_clock is None else round(pose_clock, 3),
         poses_held=len(grid.poses),
         cameras=cameras,
         costmap_ago_s=_ago(now, health.costmap_at),

@@ -19,10 +19,10 @@ from collections.abc import Callable
 
 from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.limits import MAX_SOURCE_CHARS
+from gcdtrav.schemas.messages.credits import REFUSED, STALE
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros.cdr import RosTopic
-from gcdtrav.service.runtime.fleet.credits import REFUSED, STALE, FrameTimes
-from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.service.runtime.frames import FrameTimes, PendingFrame
 from gcdtrav.service.runtime.intake.candidates import CandidatePool, over_publisher_cap
 from gcdtrav.service.runtime.intake.frame_age import input_times
 from gcdtrav.service.runtime.intake.freshness import Dropped, Freshness

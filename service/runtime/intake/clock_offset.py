@@ -6,11 +6,12 @@ offset + the link's smallest delay, so a frame's *lag*, its delay beyond that sm
 longer than the fastest frame it took: the age ``max_frame_age_s`` judges under ``clock: estimated``, whatever
 the two clocks read (service/runtime/intake/freshness.py). Learnt per source:
 
-- The smallest delay of the fresh frames of the last ``WINDOW_S`` of streaming: a new smallest one at once (a
-  faster frame, or the robot's clock stepped forward), a larger one as older frames leave the window (drift, a
-  small step back). Frames judged stale never enter it, and the window's time runs only while fresh frames
-  flow (a gap counts ``GAP_S`` at most): a backlog after an outage of any length is judged against the clock
-  learnt before it.
+- The smallest delay of the fresh frames of the last ``WINDOW_S`` of streaming (schemas/delay_window.py, the
+  window a grid's pose stream and a relay's camera clock learn by too): a new smallest one at once (a faster
+  frame, or the robot's clock stepped forward), a larger one as older frames leave the window (drift, a small
+  step back). Frames judged stale never enter it, and the window's time runs only while fresh frames flow (a
+  gap counts ``GAP_S`` at most): a backlog after an outage of any length is judged against the clock learnt
+  before it.
 - A clock step larger than the limits: a run of consecutive frames beyond ``max_frame_age_s`` (the clock
   stepped back) or ahead by more than ``max_stamp_skew_s`` (stepped forward far) is a step when its smallest
   delay stops falling: held within ``FLAT_S`` for ``STEP_HOLD_S`` and ``STEP_FRAMES`` frames, the source's
@@ -27,11 +28,10 @@ from __future__ import annotations
 
 import math
 import threading
-from collections import deque
 from dataclasses import dataclass, field
 
-WINDOW_S = 30.0  # the smallest delay of this long a window is the estimate
-GAP_S = 1.0  # a gap between fresh frames counts at most this much of the window
+from gcdtrav.schemas.delay_window import SmallestDelay
+
 STEP_HOLD_S = 1.0  # a run's smallest delay held this long is a clock step
 STEP_FRAMES = 3  # ... over at least this many frames
 FLAT_S = 0.05  # a run's smallest delay falling by more than this is a backlog draining
@@ -63,24 +63,15 @@ class _Run:
 
 @dataclass
 class _SourceClock:
-    offset: float
-    last_fresh: float  # receipt of the last fresh frame
-    streamed: float = 0.0  # seconds of fresh frames so far (a gap counts at most GAP_S): the window's time
-    window: deque[tuple[float, float]] = field(default_factory=deque)  # (streamed, delay), delays increasing
+    offset: float  # the window's smallest delay, or a confirmed step's
+    window: SmallestDelay = field(default_factory=SmallestDelay)
     run: _Run | None = None
     warned: bool = False
 
     def learn(self, received_at: float, delay: float) -> None:
-        """A fresh frame: the window's smallest delay is the estimate. The window counts time only while fresh
-        frames flow, so an outage and the backlog after it age nothing out of it."""
-        self.streamed += min(max(received_at - self.last_fresh, 0.0), GAP_S)
-        self.last_fresh = received_at
-        while self.window and self.window[-1][1] >= delay:
-            self.window.pop()
-        self.window.append((self.streamed, delay))
-        while self.window[0][0] < self.streamed - WINDOW_S:
-            self.window.popleft()  # never the frame just added
-        self.offset = self.window[0][1]
+        """A fresh frame: the window's smallest delay is the estimate."""
+        smallest = self.window.add(received_at, delay)
+        self.offset = delay if smallest is None else smallest  # None only for a non-finite delay, never here
         self.run = None
 
     def extend_run(self, side: str, received_at: float, delay: float) -> float:
@@ -98,8 +89,7 @@ class _SourceClock:
             return 0.0
         stepped = run.floor - self.offset
         self.offset = run.floor
-        self.window = deque([(self.streamed, run.floor)])
-        self.last_fresh = received_at
+        self.window.restart(received_at, run.floor)
         self.run = None
         return stepped
 
@@ -119,7 +109,7 @@ class ClockOffsets:
         with self._lock:
             clock = self._clocks.get(source)
             if clock is None:
-                clock = self._clocks[source] = _SourceClock(delay, received_at)
+                clock = self._clocks[source] = _SourceClock(delay)
             lag = delay - clock.offset
             side = self._side(lag)
             stepped = 0.0

@@ -46,10 +46,9 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.schemas.messages import Pose2D, credits
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
-from gcdtrav.service.runtime.fleet import credits
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.schedule.share import NO_NEED, Claim, FrameClass, Need, ambiguity_of
@@ -108,6 +107,11 @@ class _View:
     glanced: deque[tuple[PendingFrame, Thumbnail]] = field(default_factory=lambda: deque(maxlen=GLANCES_KEPT))
 
 
+# Where the robot carrying a source's camera was when a frame (capture stamp or None, receipt) was taken: the
+# grids' GridOutputs.reuse_pose, the one capture-pose lookup fusion uses too.
+PoseOf = Callable[[str, float | None, float], Pose2D | None]
+
+
 class ReuseTracker:
     """Thread-safe: glances on the triage thread, references set by the worker after publishing."""
 
@@ -115,7 +119,7 @@ class ReuseTracker:
         self,
         settings: ReuseSettings,
         schedule: ScheduleSettings | None = None,
-        pose_of: Callable[[str, float | None], Pose2D | None] = lambda source, stamp: None,
+        pose_of: PoseOf = lambda source, stamp, received_at: None,
         clock: Callable[[], float] = time.monotonic,
         anchors_version: Callable[[], str] = lambda: "",
     ) -> None:
@@ -130,7 +134,7 @@ class ReuseTracker:
         """Reuse the source's last maps for this frame, or infer it (and how urgently). ``refresh_waiting``: a
         frame of the source already waits for inference; an unchanged view past ``max_reuse_s`` is then
         reused while that frame waits, instead of replacing it."""
-        now, pose = self.clock(), self.pose_of(source, pending.stamp)  # where the robot was when it was taken
+        now, pose = self.clock(), self.pose_of(source, pending.stamp, pending.received_at)
         with self._lock:
             view = self._views.setdefault(source, _View())
             self._follow_motion(view, glance.thumbnail, pose, now)
@@ -189,7 +193,7 @@ class ReuseTracker:
     ) -> None:
         """The source's frame was inferred (with the anchor set of version ``anchors``) and its maps published:
         the new reference, with its ``ambiguity`` ahead."""
-        now, pose = self.clock(), self.pose_of(source, pending.stamp)
+        now, pose = self.clock(), self.pose_of(source, pending.stamp, pending.received_at)
         with self._lock:
             view = self._views.setdefault(source, _View())
             kept = next((thumbnail for frame, thumbnail in view.glanced if frame is pending), None)

@@ -9,8 +9,9 @@ import random
 from dataclasses import dataclass
 
 import pytest
+from gcdtrav.schemas.delay_window import WINDOW_S
 from gcdtrav.schemas.inputs import RejectedInput
-from gcdtrav.service.runtime.intake.clock_offset import STEP_HOLD_S, WINDOW_S, ClockOffsets
+from gcdtrav.service.runtime.intake.clock_offset import STEP_HOLD_S, ClockOffsets
 from gcdtrav.service.runtime.intake.freshness import Dropped, Freshness
 
 HOUR = 3600.0

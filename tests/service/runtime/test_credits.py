@@ -5,8 +5,10 @@ from __future__ import annotations
 import msgpack
 import pytest
 from gcdtrav.schemas.messages import CreditGrant, ImageEnvelope
+from gcdtrav.schemas.messages.credits import REFUSED, STALE, TAKEN
 from gcdtrav.schemas.ros_image import compressed_image_cdr, peek_stamp
-from gcdtrav.service.runtime.fleet.credits import REFUSED, STALE, TAKEN, CreditLedger, FrameTimes
+from gcdtrav.service.runtime.fleet.credits import CreditLedger
+from gcdtrav.service.runtime.frames import FrameTimes
 from gcdtrav.service.runtime.intake.frame_age import input_times
 
 

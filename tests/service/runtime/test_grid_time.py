@@ -6,16 +6,21 @@ from __future__ import annotations
 import math
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from gcdtrav.client.commands.grid_status import grid_lines
 from gcdtrav.schemas.messages import Pose2D, ServiceStatus
+from gcdtrav.schemas.settings.share import ReuseSettings
 from gcdtrav.service.grid.geometry import CameraMount
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.grids.health import QUIET_S
 from gcdtrav.service.runtime.grids.outputs import AfterFusion
 from gcdtrav.service.runtime.history import FrameRecord
+from gcdtrav.service.runtime.triage.change import glance
+from gcdtrav.service.runtime.triage.reuse import ReuseTracker
+from scenes import jpeg_frame
 
 from benchmarks.placement import (
     CAMERA,
@@ -216,6 +221,33 @@ def test_an_unstamped_frame_takes_its_receipt_on_the_pose_streams_clock() -> Non
     assert not fuse(synced, 501.5, unstamped=True)  # synced: the receipt is a robot stamp, far past the poses
     assert status(synced).not_fused_by_reason == {"pose_too_old": 1}
     assert status(estimated, {CAMERA: 500.2}).pose_clock_s == pytest.approx(0.15)  # camera vs pose stream
+
+
+def test_a_bare_images_fusion_and_reuse_use_the_same_pose() -> None:
+    """Issue 50: one capture-pose lookup. A bare image (no stamp) received at 501.5 on the service's clock is
+    placed by fusion at its receipt less the pose stream's learnt offset (x = 1.45); the reuse compares its view
+    by the same pose, not the newest (x = 2, where the robot drove on to)."""
+    clock = Clock()
+    grids = outputs(clock)
+    for k in range(101):  # the robot's clock is the service's minus 500 s; poses arrive 0.05 s late
+        clock.now = 500.05 + k / 50
+        grids.add_pose(CAMERA, Pose2D(stamp=k / 50, x=k / 50, y=0.0, yaw=0.0))
+    clock.now = 501.55
+    seen: list[Pose2D | None] = []  # the poses the reuse judged the frame's view by
+
+    def reuse_pose(camera: str, stamp: float | None, received_at: float) -> Pose2D | None:
+        seen.append(grids.reuse_pose(camera, stamp, received_at))
+        return seen[-1]
+
+    tracker, wall = ReuseTracker(ReuseSettings(), pose_of=reuse_pose), np.full((480, 640, 3), 128, np.uint8)
+    bare = replace(jpeg_frame(wall, CAMERA), stamp=None, received_at=501.5)
+    tracker.judge(CAMERA, bare, glance(bare, 20_000_000, 40_000_000, tracker.settings.blocks))
+    tracker.inferred(CAMERA, bare, wall)
+    assert fuse(grids, 501.5, unstamped=True)
+    fused_at = grids.sources[CAMERA].fused_at
+    assert fused_at is not None and fused_at.pose is not None and fused_at.pose.x == pytest.approx(1.45)
+    assert seen == [fused_at.pose, fused_at.pose]  # judged, then the reference set
+    assert grids.sources[CAMERA].pose.x == pytest.approx(2.0)  # type: ignore[union-attr]
 
 
 def test_a_pose_stream_on_another_clock_than_the_cameras_fuses_nothing_and_shows_the_difference() -> None:

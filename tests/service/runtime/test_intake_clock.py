@@ -10,10 +10,10 @@ import pytest
 from fakes import Clock, assembled, image
 from gcdtrav.schemas.images import encode_jpeg, encode_png
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
+from gcdtrav.schemas.messages.credits import REFUSED, STALE
 from gcdtrav.schemas.ros_image import compressed_image_cdr
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros.cdr import RosTopic
-from gcdtrav.service.runtime.fleet.credits import REFUSED, STALE
 from gcdtrav.service.runtime.intake.intake_rate import MAX_PUBLISHERS, IntakeRate
 
 HOUR = 3600.0

@@ -12,8 +12,7 @@ from gcdtrav.client.client import Maps
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.runtime.fleet.credits import FrameTimes
-from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.service.runtime.frames import FrameTimes, PendingFrame
 from gcdtrav.service.runtime.intake.admission import Admission
 from gcdtrav.service.runtime.intake.sources import SourceTracker
 from gcdtrav.service.runtime.outputs import OutputBuilder

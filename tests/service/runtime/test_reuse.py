@@ -42,7 +42,7 @@ class Robot:
         self.tracker = ReuseTracker(
             settings or ReuseSettings(),
             ScheduleSettings(),
-            lambda s, stamp: self.pose,
+            lambda source, stamp, received_at: self.pose,
             self.clock,
             lambda: self.anchors,
         )
@@ -145,7 +145,7 @@ def test_a_robot_that_parked_while_its_frame_was_in_flight_moved_since_that_fram
     grids = GridOutputs([grid_settings(scene_camera())], 8, "test")
     for k in range(101):  # 1 m/s for 1 s, then parked at x = 1: poses at 50 Hz up to 2 s
         grids.add_pose(CAMERA, Pose2D(stamp=k / 50, frame_id="odom", x=min(k / 50, 1.0), y=0.0, yaw=0.0))
-    tracker, wall = ReuseTracker(ReuseSettings(), pose_of=grids.pose_of), np.full((480, 640, 3), 128, np.uint8)
+    tracker, wall = ReuseTracker(ReuseSettings(), pose_of=grids.reuse_pose), np.full((480, 640, 3), 128, np.uint8)
 
     def judged(stamp: float) -> Verdict:
         pending = replace(jpeg_frame(wall, CAMERA), stamp=stamp)
@@ -157,10 +157,11 @@ def test_a_robot_that_parked_while_its_frame_was_in_flight_moved_since_that_fram
     assert judged(0.5).reason == FIRST  # taken at x = 0.5, inferred with the robot parked at x = 1
     assert judged(1.5).reason == POSE  # taken at x = 1: the newest poses alike (both x = 1) would reuse it
     assert judged(1.9).reason == UNCHANGED  # parked since
-    # A frame the pose stream has not reached yet, or a bare image (no stamp): the newest pose.
-    assert grids.pose_of(CAMERA, 5.0) == grids.pose_of(CAMERA) == grids.sources[CAMERA].pose
-    assert grids.pose_of(CAMERA, 0.5) == Pose2D(stamp=0.5, frame_id="odom", x=0.5, y=0.0, yaw=0.0)
-    assert grids.pose_of("another/camera", 0.5) is None
+    # A frame the pose stream has not reached yet (or older than its poses): the newest pose, for reuse only.
+    assert grids.reuse_pose(CAMERA, 5.0, 0.0) == grids.sources[CAMERA].pose
+    assert grids.pose_at(CAMERA, 5.0, 0.0).at.pose is None  # type: ignore[union-attr]
+    assert grids.reuse_pose(CAMERA, 0.5, 0.0) == Pose2D(stamp=0.5, frame_id="odom", x=0.5, y=0.0, yaw=0.0)
+    assert grids.reuse_pose("another/camera", 0.5, 0.0) is None
 
 
 def test_reuse_off_infers_every_frame() -> None:

@@ -1,0 +1,443 @@
+"""`gcdtrav relay --ros`: the relay as a ROS 2 node (rclpy), for robots on any RMW (Fast DDS, Cyclone DDS,
+rmw_zenoh). Imported only for ``--ros``: the base install stays ROS-free; on a robot, rclpy and the message
+packages are the robot's own (``source /opt/ros/<distro>/setup.bash``).
+
+The node takes from the robot's ROS graph what the service needs and sends it as today's relay does
+(client/relay/relay.py: the newest frame per credit, shrunk, JPEG):
+
+- each camera: sensor_msgs/Image or CompressedImage, the type from the graph (sensor-data QoS: best effort,
+  so reliable and best-effort drivers both match), taken as serialized bytes: only frames sent are decoded
+  (schemas/ros_image.py, the service's reader); a topic of another type is a health cause, not a crash;
+- its CameraInfo: checked (focal length, size), sent as CDR to ``camera_info_key`` on change and every
+  ``camera_info_period_s``;
+- odometry: a Pose2D to ``odometry.key`` at most ``max_rate_hz`` (the service's grid pose stream).
+
+And it publishes the service's outputs into the graph, each fetched over the link only while a ROS
+subscriber counts on it (``get_subscription_count``, polled every ``GRAPH_PERIOD_S``):
+
+- ``<camera topic>/gcdtrav/traversability`` and ``.../uncertainty``: sensor_msgs/Image 32FC1 at the maps' size,
+  reliable, volatile, depth 10, with the header (stamp to the nanosecond, frame id) of the camera frame;
+- ``<camera topic>/gcdtrav/grid/costmap``: nav_msgs/OccupancyGrid, reliable, transient local, depth 1 (Nav2's
+  static layer, RViz's Map display get the last one when they join);
+- ``/diagnostics``: diagnostic_msgs/DiagnosticArray, one status per camera, every ``health_period_s``.
+
+tf is not relayed: no tf2_msgs package is assumed (the PyPI wheels have none); grids take the pose from
+odometry and the mount from the service's settings.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import rclpy
+import zenoh
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from gcdtrav.client.client import Maps
+from gcdtrav.client.relay.causes import (
+    CAMERA_INFO_UNUSABLE,
+    CAMERA_SILENT,
+    CAMERA_UNUSABLE,
+    CAMERA_WRONG_TYPE,
+    NO_INSTANCE,
+)
+from gcdtrav.client.relay.relay import MSGPACK, CameraLink, CapturedFrame, Guarded, Relay
+from gcdtrav.client.relay.ros_parameters import PARAMETERS, as_list, camera_info_topic, settings_overrides
+from gcdtrav.client.relay.state import RateWindow
+from gcdtrav.schemas.messages import Pose2D, RelayHealth
+from gcdtrav.schemas.relay import RelayCamera, RelayOdometry, RelaySettings
+from gcdtrav.schemas.ros_image import COMPRESSED_IMAGE, IMAGE, SUPPORTED_TYPES
+from nav_msgs.msg import OccupancyGrid, Odometry
+from numpy.typing import NDArray
+from pydantic import ValidationError
+from rclpy.node import Node
+from rclpy.publisher import Publisher
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.serialization import deserialize_message, serialize_message
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from std_msgs.msg import Header
+
+log = logging.getLogger("gcdtrav.relay")
+
+NODE_NAME = "gcdtrav_relay"
+GRAPH_PERIOD_S = 0.25  # how often subscriber counts and camera types are read from the graph
+SENSOR_QOS = qos_profile_sensor_data  # best effort, keep last 5: matches reliable and best-effort publishers
+RELIABLE_CAMERA_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE)  # the newest frame only
+IMAGE_QOS = QoSProfile(depth=10)  # rclcpp's default publisher profile, as the service's own ROS outputs
+LATCHED_QOS = QoSProfile(
+    depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL
+)  # a map: a subscriber that joins later gets the last one
+MESSAGE_CLASSES: dict[str, Any] = {IMAGE: Image, COMPRESSED_IMAGE: CompressedImage}
+ERROR_CAUSES = (CAMERA_SILENT, CAMERA_UNUSABLE, CAMERA_WRONG_TYPE, NO_INSTANCE)  # no maps can come at all
+# The service's outputs as ROS topics, under the camera's topic. The speed layer's mask and filter info (issue
+# 48: grid/speed_mask, nav2_msgs/CostmapFilterInfo) join here as one more RosOutput once the service makes them.
+TRAVERSABILITY, UNCERTAINTY, COSTMAP = "gcdtrav/traversability", "gcdtrav/uncertainty", "gcdtrav/grid/costmap"
+
+
+def ros_time(sec_nanosec: tuple[int, int]) -> Time:
+    return Time(sec=sec_nanosec[0], nanosec=sec_nanosec[1])
+
+
+def float_image(values: NDArray[np.float32], header: Header) -> Image:
+    """A 32FC1 sensor_msgs/Image, little-endian."""
+    height, width = values.shape
+    return Image(
+        header=header,
+        height=height,
+        width=width,
+        encoding="32FC1",
+        is_bigendian=0,
+        step=4 * width,
+        data=np.ascontiguousarray(values, dtype="<f4").tobytes(),
+    )
+
+
+def set_cause(link: CameraLink, code: str, text: str | None) -> None:
+    """A cause the graph shows (or None: gone); the relay logs each change of a camera's causes once. A new
+    dict: the health reads it from another thread."""
+    if link.graph_causes.get(code) == text:
+        return
+    causes = {key: value for key, value in link.graph_causes.items() if key != code}
+    if text is not None:
+        causes[code] = text
+    link.graph_causes = causes
+
+
+class RosCamera:
+    """One camera's topics in the graph: its image (the type as the graph publishes it) and its CameraInfo."""
+
+    def __init__(self, side: RosRobotSide, link: CameraLink) -> None:
+        self.side, self.link, self.camera = side, link, link.camera
+        self.topic = side.node.resolve_topic_name(self.camera.camera)  # namespace and remapping applied
+        self.msgtype: str | None = None
+        self._subscription: Any = None
+        self._info_sent: tuple[Any, ...] | None = None
+        self._info_sent_at = -math.inf
+        self._info_publisher: Guarded | None = None
+        info_topic = self.camera.camera_info
+        if info_topic is not None:
+            name = camera_info_topic(self.topic) if info_topic == "auto" else info_topic
+            side.node.create_subscription(CameraInfo, name, self.on_camera_info, SENSOR_QOS)
+            if self.camera.camera_info_key is not None:
+                self._info_publisher = Guarded(side.link.declare_publisher(self.camera.camera_info_key))
+        self.check_graph()
+
+    def check_graph(self) -> None:
+        """Subscribe once the graph says the topic's type; name a type that is no image as a cause."""
+        published = {info.topic_type for info in self.side.node.get_publishers_info_by_topic(self.topic)}
+        configured = self.camera.ros_message_type
+        usable = SUPPORTED_TYPES if configured == "auto" else (configured,)
+        wrong = sorted(published - set(usable))
+        set_cause(
+            self.link,
+            CAMERA_WRONG_TYPE,
+            f"'{self.topic}' is published as {', '.join(wrong)}, not {' or '.join(usable)}: no frame can come"
+            if wrong and not published & set(usable)
+            else None,
+        )
+        if self._subscription is not None:
+            return
+        found = [msgtype for msgtype in usable if msgtype in published]
+        msgtype = configured if configured != "auto" else (found[0] if found else None)
+        if msgtype is None:
+            return
+        self.msgtype = msgtype
+        qos = RELIABLE_CAMERA_QOS if self.camera.ros_reliable else SENSOR_QOS
+        self._subscription = self.side.node.create_subscription(
+            MESSAGE_CLASSES[msgtype], self.topic, self.on_image, qos, raw=True
+        )
+        log.info("%s: subscribed to %s (%s)", self.link.source, self.topic, msgtype)
+
+    def on_image(self, data: bytes) -> None:
+        self.link.keep(CapturedFrame(data, self.msgtype or "", self.topic, time.time(), ros_type=self.msgtype))
+
+    def on_camera_info(self, info: CameraInfo) -> None:
+        fx, fy = float(info.k[0]), float(info.k[4])
+        problem = None
+        if not (fx > 0 and fy > 0 and math.isfinite(fx) and math.isfinite(fy)):
+            problem = f"CameraInfo of '{self.topic}' has focal length fx={fx:g}, fy={fy:g}: not sent"
+        elif info.width == 0 or info.height == 0:
+            problem = f"CameraInfo of '{self.topic}' gives no image size ({info.width}x{info.height}): not sent"
+        set_cause(self.link, CAMERA_INFO_UNUSABLE, problem)
+        if problem is not None or self._info_publisher is None:
+            return
+        content = (info.width, info.height, tuple(info.k), tuple(info.d), info.header.frame_id)
+        now = time.monotonic()
+        if content == self._info_sent and now - self._info_sent_at < self.side.settings.camera_info_period_s:
+            return
+        self._info_sent, self._info_sent_at = content, now
+        self._info_publisher.put(serialize_message(info))
+
+    def close(self) -> None:
+        if self._info_publisher is not None:
+            self._info_publisher.undeclare()
+
+
+class RosOutput:
+    """One output of one source as ROS topics, fetched over the link only while a ROS subscriber exists."""
+
+    def __init__(
+        self,
+        relay: Relay,
+        source: str,
+        kind: str,
+        key: str,
+        publishers: Sequence[Publisher],
+        publish: Callable[[bytes], float],
+    ) -> None:
+        self.relay, self.source, self.kind, self.key = relay, source, kind, key
+        self.publishers, self._publish = publishers, publish
+        self.downlink = RateWindow()
+        self._wanted = False
+        self._told_bad = False
+        self._subscriber: Guarded | None = None
+
+    @property
+    def active(self) -> bool:
+        return self._subscriber is not None
+
+    def poll(self) -> bool:
+        """Whether anyone subscribes now; True when that changed."""
+        wanted = any(publisher.get_subscription_count() > 0 for publisher in self.publishers)
+        changed, self._wanted = wanted != self._wanted, wanted
+        return changed
+
+    def reconcile(self) -> None:
+        if self._wanted and self._subscriber is None:
+            self._subscriber = Guarded(self.relay.link.declare_subscriber(self.key, self._on_output))
+            log.info("forwarding %s: a ROS subscriber on the robot", self.key)
+        elif not self._wanted and self._subscriber is not None:
+            self._subscriber.undeclare()
+            self._subscriber = None
+            log.info("no longer forwarding %s: no ROS subscriber", self.key)
+
+    def _on_output(self, sample: zenoh.Sample) -> None:
+        payload = sample.payload.to_bytes()
+        self.downlink.add(len(payload))
+        try:
+            stamp = self._publish(payload)
+        except Exception as err:  # bad bytes from the link: msgpack, PNG and rclpy raise their own error types
+            if not self._told_bad:
+                log.warning("%s: not published on the robot, not readable: %s", self.key, err)
+            self._told_bad = True
+            return
+        self.relay.observe_output(self.source, stamp)
+
+    def close(self) -> None:
+        if self._subscriber is not None:
+            self._subscriber.undeclare()
+            self._subscriber = None
+
+
+class OdometryLink:
+    """The robot's odometry as a grid's pose stream: Pose2D msgpack, at most ``max_rate_hz``."""
+
+    def __init__(self, node: Node, settings: RelayOdometry, link: zenoh.Session) -> None:
+        self.settings = settings
+        self.publisher = Guarded(link.declare_publisher(settings.key, encoding=MSGPACK))
+        self.subscription = node.create_subscription(Odometry, settings.topic, self.on_odometry, SENSOR_QOS)
+        self.sent = self.rejected = 0
+        self._last = -math.inf
+
+    def on_odometry(self, odometry: Odometry) -> None:
+        now = time.monotonic()
+        if now - self._last < 1.0 / self.settings.max_rate_hz:
+            return
+        position, q = odometry.pose.pose.position, odometry.pose.pose.orientation
+        yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+        stamp = odometry.header.stamp.sec + odometry.header.stamp.nanosec * 1e-9
+        try:
+            pose = Pose2D(stamp=stamp, frame_id=odometry.header.frame_id, x=position.x, y=position.y, yaw=yaw)
+        except ValidationError as err:
+            if self.rejected == 0:
+                log.warning("odometry on %s not usable (counted, said once): %s", self.settings.topic, err)
+            self.rejected += 1
+            return
+        self._last = now
+        self.publisher.put(pose.pack())
+        self.sent += 1
+
+    def close(self) -> None:
+        self.publisher.undeclare()
+
+
+class RosRobotSide:
+    """The robot's ROS 2 graph as the relay's robot side (``Relay(robot=...)``)."""
+
+    def __init__(self, node: Node, settings: RelaySettings, link: zenoh.Session) -> None:
+        self.node, self.settings, self.link = node, settings, link
+        self.cameras: dict[str, RosCamera] = {}
+        self.ros_outputs: list[RosOutput] = []
+        self.diagnostics = node.create_publisher(DiagnosticArray, "/diagnostics", IMAGE_QOS)
+        self.odometry = None if settings.odometry is None else OdometryLink(node, settings.odometry, link)
+        self._relay: Relay | None = None
+        self._lock = threading.Lock()
+        self._timer = node.create_timer(GRAPH_PERIOD_S, self._check_graph)
+
+    def camera_name(self, camera: RelayCamera) -> str:
+        return self.node.resolve_topic_name(camera.camera)
+
+    def subscribe_camera(self, link: CameraLink) -> list[Guarded]:
+        with self._lock:
+            self.cameras[link.source] = RosCamera(self, link)
+        return []
+
+    def outputs(self, relay: Relay, source: str) -> list[RosOutput]:
+        self._relay = relay
+        topic = self.node.resolve_topic_name(relay.camera(source).camera.camera)
+        maps_kind = self.settings.ros_maps
+        traversability = self.node.create_publisher(Image, f"{topic}/{TRAVERSABILITY}", IMAGE_QOS)
+        uncertainty = self.node.create_publisher(Image, f"{topic}/{UNCERTAINTY}", IMAGE_QOS)
+        costmap = self.node.create_publisher(OccupancyGrid, f"{topic}/{COSTMAP}", LATCHED_QOS)
+        link = relay.camera(source)
+
+        def publish_maps(payload: bytes) -> float:
+            maps = Maps.from_compact_payload(payload) if maps_kind == "maps8" else Maps.from_payload(payload)
+            header = Header(stamp=ros_time(link.ros_stamp(maps.header.stamp)), frame_id=maps.header.frame_id)
+            traversability.publish(float_image(maps.traversability, header))
+            uncertainty.publish(float_image(maps.uncertainty, header))
+            return maps.header.stamp
+
+        def publish_costmap(payload: bytes) -> float:
+            grid = deserialize_message(payload, OccupancyGrid)
+            stamp = grid.header.stamp.sec + grid.header.stamp.nanosec * 1e-9
+            grid.header.stamp = ros_time(link.ros_stamp(stamp))  # the camera frame's, to the nanosecond
+            costmap.publish(grid)
+            return float(stamp)
+
+        keys = relay.keys
+        found = [
+            RosOutput(
+                relay, source, "maps", keys.output(source, maps_kind), [traversability, uncertainty], publish_maps
+            ),
+            RosOutput(relay, source, "costmap", keys.grid(source, "costmap"), [costmap], publish_costmap),
+        ]
+        with self._lock:
+            self.ros_outputs += found
+        return list(found)
+
+    def _check_graph(self) -> None:
+        with self._lock:
+            cameras, outputs = list(self.cameras.values()), list(self.ros_outputs)
+        for camera in cameras:
+            camera.check_graph()
+        changed = [output.poll() for output in outputs]
+        if any(changed) and self._relay is not None:
+            self._relay.wake()
+
+    def publish_health(self, health: RelayHealth) -> None:
+        camera = self.cameras.get(health.source)
+        topic = camera.topic if camera is not None else health.source
+        array = DiagnosticArray(status=[diagnostic_status(self.node.get_name(), topic, health)])
+        array.header.stamp = self.node.get_clock().now().to_msg()  # ROS time: simulated with use_sim_time
+        self.diagnostics.publish(array)
+
+    def close(self) -> None:
+        self._timer.cancel()
+        if self.odometry is not None:
+            self.odometry.close()
+        for camera in self.cameras.values():
+            camera.close()
+
+
+def diagnostic_status(node_name: str, topic: str, health: RelayHealth) -> DiagnosticStatus:
+    """One camera's health for /diagnostics (rqt_robot_monitor, diagnostic_aggregator): level ERROR when no
+    maps can come (a silent or unusable camera, no instance), WARN for other causes or stale maps."""
+    causes = health.causes or {}
+    if any(code in ERROR_CAUSES for code in causes):
+        level = DiagnosticStatus.ERROR
+    elif causes or health.stale:
+        level = DiagnosticStatus.WARN
+    else:
+        level = DiagnosticStatus.OK
+    age = "no maps yet" if health.map_age_s is None else f"maps {health.map_age_s:.1f} s old"
+    message = "; ".join([age, *(f"{code}: {text}" for code, text in causes.items())])
+    figures = {
+        "source": health.source,
+        "stale": str(health.stale).lower(),
+        "map_age_s": "" if health.map_age_s is None else f"{health.map_age_s:.3f}",
+        "frames_captured": str(health.frames_captured),
+        "frames_sent": str(health.frames_sent),
+        "credit_timeouts": str(health.credit_timeouts),
+        "uplink_bytes_per_s": f"{health.uplink_bytes_per_s:.0f}",
+        "downlink_bytes_per_s": f"{health.downlink_bytes_per_s:.0f}",
+        "owner": health.owner or "",
+        "clock_offset_s": "" if health.clock_offset_s is None else f"{health.clock_offset_s:.3f}",
+    }
+    values = [KeyValue(key=key, value=value) for key, value in figures.items()]
+    values += [KeyValue(key=f"cause.{code}", value=text) for code, text in causes.items()]
+    return DiagnosticStatus(
+        level=level, name=f"{node_name}: {health.source}", message=message, hardware_id=topic, values=values
+    )
+
+
+# ---- the node's life: parameters, settings, spin, shutdown ----------------------------------------------
+def parameter_values(node: Node) -> dict[str, Any]:
+    """The ROS parameters given (``--ros-args -p camera:=/camera/image_raw``, a launch file's), by name."""
+    from rcl_interfaces.msg import ParameterDescriptor
+
+    given = {}
+    for name in PARAMETERS:
+        node.declare_parameter(name, None, ParameterDescriptor(dynamic_typing=True))
+        value = node.get_parameter(name).value
+        if value is not None:
+            given[name] = list(value) if isinstance(value, (list, tuple)) or hasattr(value, "tolist") else value
+    return given
+
+
+def run_node(
+    ros_args: list[str],
+    settings_file: str | None,
+    flag_overrides: dict[str, object],
+    link_config: zenoh.Config,
+    stop: threading.Event,
+) -> int:
+    """Run the node until ``stop`` is set (the command's SIGINT/SIGTERM handlers set it); 0, or 2 for bad
+    settings (one line on stderr)."""
+    import sys
+
+    from gcdtrav.schemas.relay import RelaySettingsError, load_relay_settings
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.signals import SignalHandlerOptions
+
+    context = Context()
+    rclpy.init(
+        args=["gcdtrav", "--ros-args", *ros_args], context=context, signal_handler_options=SignalHandlerOptions.NO
+    )
+    try:
+        node = Node(NODE_NAME, context=context)
+        try:
+            parameters = parameter_values(node)
+            overrides = flag_overrides | settings_overrides(parameters)
+            if "connect" in parameters:
+                link_config.insert_json5("connect/endpoints", repr(as_list(parameters["connect"])).replace("'", '"'))
+            settings = load_relay_settings(parameters.get("settings", settings_file), overrides)
+        except (RelaySettingsError, ValueError) as err:
+            print(f"gcdtrav relay: {err}", file=sys.stderr)
+            node.destroy_node()
+            return 2
+        with zenoh.open(link_config) as link:
+            relay = Relay(settings, link, robot=RosRobotSide(node, settings, link)).start()
+            executor = SingleThreadedExecutor(context=context)
+            executor.add_node(node)
+            spinner = threading.Thread(target=executor.spin, name="gcdtrav-relay-ros", daemon=True)
+            spinner.start()
+            log.info("ROS 2 node %s relaying over the link", node.get_fully_qualified_name())
+            try:
+                stop.wait()
+            finally:
+                relay.close()
+                executor.shutdown(timeout_sec=5)
+                spinner.join(5)
+                node.destroy_node()
+        return 0
+    finally:
+        if context.ok():
+            rclpy.shutdown(context=context)
