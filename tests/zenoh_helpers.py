@@ -28,9 +28,10 @@ def wait_until(condition: Callable[[], object], timeout: float = 10.0, interval:
 
 
 def subscribed_elsewhere(session: zenoh.Session, key: str, timeout: float = 30.0) -> bool:
-    """Whether ``session`` (an in-process service's) comes to know a subscriber of ``key`` in another session
-    within ``timeout``: what it publishes on ``key`` from then on reaches that subscriber. Waited for instead of
-    sleeping while a client's subscription travels to the service."""
+    """Whether ``session`` comes to know a subscriber of ``key`` in another session within ``timeout``: what it
+    publishes on ``key`` from then on reaches that subscriber. Waited for instead of sleeping while a
+    subscription travels: a client's maps subscription to an in-process service's session, or a service's
+    input subscription to the client's."""
     publisher = session.declare_publisher(key, allowed_destination=zenoh.Locality.REMOTE)
     try:
 

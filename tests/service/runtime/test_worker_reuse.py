@@ -188,8 +188,8 @@ def test_a_hung_inference_is_seen_while_parked_views_are_still_answered() -> Non
         queue.put("moving", jpeg_frame(scene(1), "moving"))  # taken, and its inference hangs
         until(lambda: not queue.has_ready("moving") and len(queue) == 0)
         queue.put("moving", jpeg_frame(scene(1, shift=24), "moving"))  # waits behind it
-        deadline = time.monotonic() + 5
-        while not stalled and time.monotonic() < deadline:
+        deadline = time.monotonic() + 60  # a bound on failure only: a loaded host may see the stall at once
+        while not (stalled and len(outputs.reused) >= 3) and time.monotonic() < deadline:
             reused = len(outputs.reused)
             queue.put("parked", jpeg_frame(noisy(view, 4.0, len(outputs.reused)), "parked"))
             until(lambda reused=reused: len(outputs.reused) > reused)  # still answered
