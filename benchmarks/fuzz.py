@@ -114,7 +114,7 @@ def _odometry(types: Any, header: Any) -> Any:
 def _decode_ros(data: bytes) -> None:
     from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS, MAX_POSITION_M
     from gcdtrav.service.ros import cdr as ros
-    from gcdtrav.service.ros.cdr import decode_camera_info, decode_depth, decode_pose
+    from gcdtrav.service.ros.cdr import decode_camera_info_frame, decode_depth, decode_pose
 
     kind, payload = (data[0] % 5, data[1:]) if data else (0, b"")
     if kind in (0, 1):
@@ -123,7 +123,7 @@ def _decode_ros(data: bytes) -> None:
     elif kind == 2:
         decode_depth(payload)
     elif kind == 3:
-        camera = decode_camera_info(payload)
+        camera, _ = decode_camera_info_frame(payload)
         _holds(min(camera.fx, camera.fy) > 0 and math.isfinite(camera.fx + camera.fy + camera.cx + camera.cy),
                "intrinsics not finite and positive")  # fmt: skip
     else:

@@ -46,10 +46,10 @@ from gcdtrav.client.relay.relay import Relay
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.messages import peek_fields
 from gcdtrav.schemas.relay import RelaySettings
-from gcdtrav.schemas.ros_image import compressed_image_cdr, image_cdr
 from gcdtrav.service.commands.bench import bench_image
 
 from tools.loopback import INFER_EVERY_FRAME, free_port, service_processes, wait_for_statuses
+from tools.ros_fixtures import compressed_image_cdr, image_cdr
 from tools.shaping_proxy import LinkShape, ShapingProxy
 
 WAYS = ("raw", "compressed", "relay")

@@ -1,17 +1,12 @@
 """The smallest-delay window: how the service and a robot's relay learn a clock they do not share. No I/O.
 
-A sample's *delay* is its receipt on this clock minus its stamp on the other: the clock offset (this minus
-the other) plus the time it took to get here. The smallest delay of the recent samples is the offset plus the
-link's smallest delay: the other clock, learnt within the fastest delivery. One window for the three learners,
-so they cannot learn apart: a source's clock at intake (service/runtime/intake/clock_offset.py, which adds
-the clock steps), a grid's pose stream (service/grid/poses.py) and a relay's camera (client/relay/state.py
-``CameraClock``). Here in schemas/ because the client and the service both import it.
-
-The window is ``WINDOW_S`` of *streaming* time: time counts only while samples come (a gap counts ``GAP_S``
-at most, a receipt earlier than the last counts none), so an outage ages nothing out of it and a backlog after
-the outage is judged against the clock learnt before it. A new smallest delay is learnt at once (a faster
-sample, or the other clock stepped forward); a larger one as the older samples leave the window (drift, a
-small step back).
+A sample's *delay*, its receipt on this clock minus its stamp on the other, is the clock offset plus the time
+it took; the smallest recent one is the offset plus the link's smallest delay. One window for the three
+learners, so they cannot learn apart: a source's clock at intake (service/runtime/intake/clock_offset.py adds
+the clock steps), a grid's pose stream (service/grid/poses.py) and a relay's camera (client/relay/state.py).
+The window is ``WINDOW_S`` of *streaming*: a gap counts ``GAP_S`` at most, a receipt before the last none, so
+an outage ages nothing out and the backlog after it is judged by the clock learnt before it. A new smallest
+delay is learnt at once (a faster sample, a clock stepped forward), a larger one as older samples leave.
 """
 
 from __future__ import annotations
@@ -54,12 +49,9 @@ class SmallestDelay:
 
     def restart(self, received_at: float, delay: float) -> None:
         """Learn the clock afresh from one sample: the other clock stepped (confirmed by the caller)."""
-        self.clear()
-        self.add(received_at, delay)
-
-    def clear(self) -> None:
         self._samples.clear()
         self._last = None
+        self.add(received_at, delay)
 
 
 def clock_difference(offset_a: float | None, offset_b: float | None) -> float | None:

@@ -49,7 +49,6 @@ IMAGE_SIGNATURES = (
     (b"MM\x00*", "TIFF"),
     (b"RIFF", "WebP"),
 )
-UNSET_ENCODINGS = ("", "zenoh/bytes", "application/octet-stream")  # what a publisher that sets none sends
 
 
 def image_format(payload: bytes) -> str | None:

@@ -55,3 +55,13 @@ def require_prometheus() -> str:
     if path is None:
         missing("prometheus", "apt-get install prometheus")
     return path
+
+
+def nss_wrapper() -> Path:
+    """cwrap's nss_wrapper (Debian libnss-wrapper): a test resolver loaded with LD_PRELOAD, which answers host
+    names from the file NSS_WRAPPER_HOSTS, so a process resolves the cluster's names to 127.0.0.1 without
+    /etc/hosts or DNS being touched."""
+    for folder in ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib"):
+        if (Path(folder) / "libnss_wrapper.so").exists():
+            return Path(folder) / "libnss_wrapper.so"
+    missing("nss_wrapper", "apt-get install libnss-wrapper")

@@ -38,16 +38,12 @@ class CreditWindow:
         self._waits: deque[float] = deque(maxlen=16)
         self.timeouts = 0
         self.unanswered = 0  # frames sent without a credit since the last grant: no owner answers
-        self.grants = 0
         self.owner: str | None = None
 
     @property
     def timeout_s(self) -> float:
         usual = statistics.median(self._waits) if self._waits else 0.0
         return min(max(self.base_timeout_s, TIMEOUT_STRETCH * usual), max(MAX_CREDIT_TIMEOUT_S, self.base_timeout_s))
-
-    def has_credit(self) -> bool:
-        return self._credit
 
     def wait_s(self) -> float:
         """Seconds until a frame may go without a credit; 0 when one may go now."""
@@ -71,7 +67,6 @@ class CreditWindow:
         if not self._credit and math.isfinite(self._last_sent):
             self._waits.append(self._clock() - self._last_sent)
         self._credit = True
-        self.grants += 1
         self.unanswered = 0
         self.owner = grant.instance
 

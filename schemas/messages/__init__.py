@@ -2,9 +2,8 @@
 
 Service and client both import this package, so a field changes in exactly one place. One module per topic:
 ``base`` (the schema version, errors, packing), ``images`` (frames in), ``maps`` (maps out), ``credits`` (the
-link to a robot's relay: credits and the relay's health), ``queries`` (questions and replies), ``grid`` (poses
-in, the ground grid out), ``status`` (the status block). Import from the package: ``from
-gcdtrav.schemas.messages import MapsMessage``.
+link to a robot's relay), ``queries``, ``grid`` (poses in, the grid out), ``status``. Import every name from
+the package, which imports them all (pyproject.toml lets this file's imports go unused).
 """
 
 from gcdtrav.schemas.messages.base import (
@@ -44,45 +43,3 @@ from gcdtrav.schemas.messages.status import (
     SourceStatus,
     SourceView,
 )
-
-__all__ = [
-    "CREDIT_REASONS",
-    "MSGPACK_ENCODING",
-    "RAW_CHANNELS",
-    "SCHEMA_VERSION",
-    "AnchorHistoryEntry",
-    "AnchorHistoryReply",
-    "AnchorPoint",
-    "AnchorSetRejection",
-    "AnchorSetReply",
-    "CameraPlacement",
-    "CompactMapsMessage",
-    "ContextDistribution",
-    "CreditGrant",
-    "ErrorReply",
-    "ExperienceStatus",
-    "GridCameraStatus",
-    "GridHeader",
-    "GridMessage",
-    "GridStatus",
-    "ImageEnvelope",
-    "M",
-    "MapsHeader",
-    "MapsMessage",
-    "Message",
-    "MessageError",
-    "MessageTooLarge",
-    "PathReply",
-    "PixelEncoding",
-    "Pose2D",
-    "QuestionStatus",
-    "RelayHealth",
-    "SchemaVersionError",
-    "ServiceStatus",
-    "SourceStatus",
-    "SourceView",
-    "check_schema_version",
-    "check_size",
-    "peek_fields",
-    "schema_major",
-]

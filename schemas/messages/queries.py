@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.messages.base import Message
 from gcdtrav.schemas.strict import WireModel
-from numpy.typing import NDArray
 from pydantic import Field
 
 
@@ -54,9 +52,6 @@ class ContextDistribution(Message):
     cell_xy: tuple[float, float] | None = Field(default=None, description="Grid queries: the cell's centre, m.")
     observations: int | None = Field(default=None, description="Grid queries: pixels fused into the cell.")
     grid_updates: int | None = Field(default=None, description="Grid queries: the grid's updates so far (its seq).")
-
-    def weights_array(self) -> NDArray[np.float32]:
-        return np.asarray(self.weights, dtype=np.float32)
 
 
 class PathReply(Message):

@@ -9,7 +9,7 @@ anchor set of n concepts runs the ViT n times on the same image and all 12 of it
     tokens, broadcast at the FiLM conditioning;
   * activations are fused into the linear layers where oneDNN can (``onednn.py``);
   * the text-conditional embeddings are computed once per anchor set and cached.
-The results match transformers' own forward (see tests/test_backend_clipseg.py).
+The results match transformers' own forward (see tests/service/backends/test_backend_clipseg.py).
 """
 
 from __future__ import annotations

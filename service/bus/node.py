@@ -33,10 +33,11 @@ from gcdtrav.service.bus.tf import declare_tf_inputs
 from gcdtrav.service.experience.service import service_experience
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
-from gcdtrav.service.runtime import probes
 from gcdtrav.service.runtime.assembly import Runtime
 from gcdtrav.service.runtime.fleet.state_lock import StateLock
+from gcdtrav.service.runtime.http_endpoints import ready
 from gcdtrav.service.runtime.metrics import MetricsSources, ServiceMetrics
+from gcdtrav.service.runtime.progress import Health
 from gcdtrav.service.runtime.stats import ServiceStats
 
 log = logging.getLogger("gcdtrav.service")
@@ -64,12 +65,12 @@ class TraversabilityService:
     def __init__(self, session: zenoh.Session, pipeline: Pipeline, settings: ServiceSettings) -> None:
         self.session, self.pipeline, self.settings = session, pipeline, settings
         self.prefix, self.keys = settings.prefix, Keys(settings.prefix)
-        self.stats = ServiceStats(log, settings.source_idle_s)  # the runtime's, counting the bus's refusals too
+        self.metrics = ServiceMetrics()  # its histograms see every frame the stats count
+        self.stats = ServiceStats(log, settings.source_idle_s, self.metrics.timings)  # the bus's refusals too
         self._declared: list[Any] = []
         self._stopping = threading.Event()
         self.membership: Membership | None = None
         self._leaving: Callable[[str], bool] | None = None  # after stop(): what it owned when it left
-        self.probes: probes.Probes | None = None
         self.anchor_sync: AnchorSync | None = None
         self.state_lock = StateLock(settings.state_file, settings.instance)  # one service per state file
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if graph_inputs(settings) else None
@@ -84,8 +85,7 @@ class TraversabilityService:
         self._check_inputs()
         self.experience = experience_bus(session, settings, pipeline, experience, self.stats, self.owns)
         calibration = self.experience.calibration if self.experience is not None else None
-        self.metrics = ServiceMetrics(MetricsSources(self.status, self._owned, settings.max_frame_age_s, calibration))
-        self.stats.events = self.metrics.timings  # histograms see every frame; `serve` serves the registry
+        self.metrics.collect(MetricsSources(self.status, self._owned, settings.max_frame_age_s, calibration))
 
     def _check_inputs(self) -> None:
         own = zenoh.KeyExpr(self.keys.outputs)
@@ -109,11 +109,6 @@ class TraversabilityService:
         instance that answers status serves. The anchor set's token comes before the alive token: a join is
         logged with it (membership.describe)."""
         began = time.monotonic()
-        if self.settings.health_port:  # first: a supervisor sees it starting
-            self.probes = probes.Probes(
-                self.liveness, self.readiness, self.settings.health_address, self.settings.health_port
-            )
-            self.probes.start()
         self.anchor_sync = AnchorSync(self.session, self.keys, self.settings.instance, self.runtime.anchor_switch)
         models = FleetModels(
             self.session,
@@ -179,8 +174,6 @@ class TraversabilityService:
             log.warning("the frame in flight did not finish within %.1f s; its outputs are dropped", timeout)
         if self.membership is not None:
             self.membership.close()
-        if self.probes is not None:
-            self.probes.close()
         self.outputs.close()  # before the session's entities: a late frame is refused, not put on a dead key
         self.credits.close()
         undeclare_all(self._declared)
@@ -240,14 +233,14 @@ class TraversabilityService:
             return self._leaving(source)
         return self.membership is None or self.membership.owns(source)
 
-    def liveness(self) -> probes.Health:
+    def liveness(self) -> Health:
         """The worker progresses (the /livez probe)."""
         return self.runtime.progress.health()
 
-    def readiness(self) -> probes.Health:
+    def readiness(self) -> Health:
         """In the fleet and serving (the /readyz probe)."""
         in_fleet = self.membership is not None and not self.membership.withdrawn
-        return probes.ready(self.runtime.progress.health(), self._stopping.is_set(), in_fleet)
+        return ready(self.runtime.progress.health(), self._stopping.is_set(), in_fleet)
 
     def _watch_progress(self) -> None:
         """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again."""

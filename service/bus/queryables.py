@@ -98,9 +98,6 @@ class AnchorQueries:
         replies.check_no_parameters(query)
         replies.reply(query, self.keys.anchor_history, self.switch.history())
 
-    def _set_reply(self, anchors: AnchorSet) -> AnchorSetReply:
-        return AnchorSetReply(anchor_set=anchors, version=anchors.version, instance=self.switch.instance)
-
     def _swap_answer(self, query: zenoh.Query, key: str) -> SwapDone:
         """Reply to a swap or rollback query once the switch's worker is done with it."""
 

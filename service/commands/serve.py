@@ -16,9 +16,9 @@ import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings, SettingsError
 from gcdtrav.service.backends.cpus import set_torch_threads, usable_cpus
-from gcdtrav.service.commands.metrics_http import metrics_endpoint
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.fleet.state import load_anchor_state
+from gcdtrav.service.runtime.http_endpoints import Checks, HttpEndpoints
 
 log = logging.getLogger("gcdtrav.service")
 MEASUREMENT_STOP_S = 5.0  # at shutdown, how long a background measurement may take to reach its next mode
@@ -96,11 +96,26 @@ def open_session(config: zenoh.Config, fallback: zenoh.Config | None = None) -> 
 
 
 def run_service(settings: ServiceSettings, config: zenoh.Config, fallback: zenoh.Config | None = None) -> int:
-    """Serve until SIGINT/SIGTERM. ``fallback``: the zenoh config to use if ``config`` cannot open."""
+    """Serve until SIGINT/SIGTERM. ``fallback``: the zenoh config to use if ``config`` cannot open. The HTTP
+    endpoints open first (a taken port: SettingsError, exit 2, before the model loads): the probes answer 503
+    "starting" while the model loads, measures and warms up."""
+    http = HttpEndpoints(settings)
+    try:
+        return serve_with(http, settings, config, fallback)
+    finally:
+        http.close()
+
+
+def serve_with(
+    http: HttpEndpoints, settings: ServiceSettings, config: zenoh.Config, fallback: zenoh.Config | None
+) -> int:
     from gcdtrav.service.bus.node import TraversabilityService
 
     settings = with_torch_threads(settings)
+    if settings.measure_before_serving and settings.precision == "auto":
+        http.starting("loading the model and measuring the modes (precision auto, measure_before_serving)")
     pipeline = build_service_pipeline(settings)
+    http.starting("warming up")
     warm_up(pipeline)
     stop = threading.Event()
 
@@ -111,22 +126,23 @@ def run_service(settings: ServiceSettings, config: zenoh.Config, fallback: zenoh
     signal.signal(signal.SIGINT, request_stop)
     signal.signal(signal.SIGTERM, request_stop)
     zenoh.init_log_from_env_or("error")
+    http.starting("opening the zenoh session")
     session = open_session(config, fallback)
     try:
         service = TraversabilityService(session, pipeline, settings)
     except SettingsError:
         session.close()
         raise
+    http.serve(Checks(service.liveness, service.readiness, service.metrics.registry))
     measurement = None
     try:
         service.start(observe_s=JOIN_OBSERVE_S)
-        with metrics_endpoint(settings, service.metrics.registry):  # a taken port: SettingsError, exit 2
-            if pipeline.describe().needs_measurement:  # status answers meanwhile: measuring
-                from gcdtrav.service.backends.precision_choice import measure_in_background
+        if pipeline.describe().needs_measurement:  # status answers meanwhile: measuring
+            from gcdtrav.service.backends.precision_choice import measure_in_background
 
-                measurement = measure_in_background(pipeline.backend)
-            while not stop.wait(0.5):
-                pass
+            measurement = measure_in_background(pipeline.backend)
+        while not stop.wait(0.5):
+            pass
     finally:
         deadline = time.monotonic() + settings.shutdown_grace_s  # the whole exit, within the grace period
         service.stop()

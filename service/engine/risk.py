@@ -153,14 +153,6 @@ def erfc(x: ArrayLike) -> Float64Array:
     return np.where(values < 0, 2.0 - upper, upper)
 
 
-def erf(x: ArrayLike) -> Float64Array:
-    """Error function, elementwise, in float64."""
-    values = np.asarray(x, dtype=np.float64)
-    small = np.abs(values) <= ERF_SMALL_END
-    # erf_small on every element is cheap and exact where it is used; 1 - erfc is accurate elsewhere.
-    return np.where(small, _erf_small(np.where(small, values, 0.0)), np.sign(values) * (1.0 - erfc(np.abs(values))))
-
-
 def _normal_cdf_pdf(z: Float64Array) -> tuple[Float64Array, Float64Array]:
     """Phi(z) and phi(z), sharing exp(-z^2 / 2); Phi keeps its relative accuracy in the lower tail."""
     x = np.abs(z) * INV_SQRT_2

@@ -25,7 +25,6 @@ from gcdtrav.schemas.experience import (
     OperatorQuestion,
     QuestionConcept,
     TraversalOutcome,
-    answer_score,
 )
 from gcdtrav.schemas.messages import Pose2D
 from gcdtrav.schemas.settings import AskSettings
@@ -214,6 +213,3 @@ class OperatorAsker:
             for x, y in question.message.cells
         ]
         return Answered(outcomes, question.weights, question.anchors)
-
-
-parse_answer = answer_score  # the one parser lives with the messages: the client needs it too

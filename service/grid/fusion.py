@@ -59,10 +59,6 @@ class GroundGrid:
         self.last_reset = ""
 
     # ---- bookkeeping ---------------------------------------------------------------------------------
-    @property
-    def anchor_version(self) -> str | None:
-        return self.anchors.version if self.anchors is not None else None
-
     def reset(self, anchor_count: int, reason: str) -> None:
         n = self.spec.cells
         self.weight_sums = np.zeros((anchor_count, n, n), np.float32)

@@ -81,8 +81,7 @@ class PoseBuffer:
             stepped_back = bool(self._stamps) and pose.stamp < self._stamps[-1] - self.span_s
             if stepped_back or (bool(self._poses) and pose.frame_id != self._poses[-1].frame_id):
                 self.restarts += 1  # the frame changed, or the clock stepped back: the old poses mean nothing now
-                self._poses, self._stamps = [], []
-                self._delays.clear()
+                self._poses, self._stamps, self._delays = [], [], SmallestDelay()
             if received_at is not None:
                 self._delays.add(received_at, received_at - pose.stamp)
             at = bisect.bisect_left(self._stamps, pose.stamp)

@@ -208,6 +208,7 @@ def header_of(sec: int, nanosec: int, frame_id: str) -> Any:
 
 
 def yaw_of_quaternion(x: float, y: float, z: float, w: float) -> float:
+    """The heading (rotation about z) of a unit quaternion: the one conversion, for odometry and tf."""
     return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
 
 
@@ -226,10 +227,6 @@ def decode_pose(payload: bytes, fmt: str) -> Pose2D:
     return Pose2D.validated(
         {"stamp": stamp, "frame_id": frame_id, "x": float(pose.position.x), "y": float(pose.position.y), "yaw": yaw}
     )
-
-
-def decode_camera_info(payload: bytes) -> PinholeCamera:
-    return decode_camera_info_frame(payload)[0]
 
 
 def decode_camera_info_frame(payload: bytes) -> tuple[PinholeCamera, str]:
@@ -316,29 +313,3 @@ def decode_odometry_motion(payload: bytes) -> tuple[Pose2D, tuple[float, float, 
     if not all(math.isfinite(v) for v in values):
         raise MessageError(f"Odometry twist with a number that is not finite: {values}")
     return pose, values
-
-
-def twist_cdr(vx: float, vy: float = 0.0, wz: float = 0.0) -> bytes:
-    types = typestore().types
-    vector = types["geometry_msgs/msg/Vector3"]
-    message = types["geometry_msgs/msg/Twist"](linear=vector(x=vx, y=vy, z=0.0), angular=vector(x=0.0, y=0.0, z=wz))
-    return bytes(typestore().serialize_cdr(message, "geometry_msgs/msg/Twist"))
-
-
-def odometry_cdr(stamp: float, x: float, y: float, yaw: float, vx: float, vy: float = 0.0, wz: float = 0.0) -> bytes:
-    """nav_msgs/msg/Odometry in frame 'odom', child 'base_link' (tests, benchmarks and simulated robots)."""
-    types = typestore().types
-    vector, point = types["geometry_msgs/msg/Vector3"], types["geometry_msgs/msg/Point"]
-    quaternion = types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
-    pose = types["geometry_msgs/msg/PoseWithCovariance"](
-        pose=types["geometry_msgs/msg/Pose"](position=point(x=x, y=y, z=0.0), orientation=quaternion),
-        covariance=np.zeros(36),
-    )
-    twist = types["geometry_msgs/msg/TwistWithCovariance"](
-        twist=types["geometry_msgs/msg/Twist"](linear=vector(x=vx, y=vy, z=0.0), angular=vector(x=0.0, y=0.0, z=wz)),
-        covariance=np.zeros(36),
-    )
-    message = types["nav_msgs/msg/Odometry"](
-        header=make_header(stamp, "odom"), child_frame_id="base_link", pose=pose, twist=twist
-    )
-    return bytes(typestore().serialize_cdr(message, "nav_msgs/msg/Odometry"))

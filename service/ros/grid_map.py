@@ -33,11 +33,6 @@ def to_grid_map_order(layer: NDArray[Any]) -> NDArray[np.float32]:
     return np.ascontiguousarray(np.asarray(layer, np.float32)[::-1, ::-1]).ravel()
 
 
-def from_grid_map_order(data: NDArray[Any], cells_x: int, cells_y: int) -> NDArray[np.float32]:
-    """The inverse of ``to_grid_map_order``: grid_map's data array back to a gcdtrav layer."""
-    return np.asarray(data, np.float32).reshape(cells_y, cells_x)[::-1, ::-1].copy()
-
-
 def grid_map_cdr(header: GridHeader, layers: dict[str, NDArray[np.floating]], basic_layers: list[str]) -> bytes:
     """A GridMap with the layers (NaN where unknown, grid_map's "no data"), in the grid's frame."""
     store = cdr.typestore()
@@ -65,18 +60,3 @@ def grid_map_cdr(header: GridHeader, layers: dict[str, NDArray[np.floating]], ba
         inner_start_index=0,
     )
     return bytes(store.serialize_cdr(message, GRID_MAP))
-
-
-def decode_grid_map(payload: bytes) -> tuple[Any, dict[str, NDArray[np.float32]]]:
-    """A GridMap CDR's message and its layers as gcdtrav layers (row i = y, column j = x); start indices must
-    be 0 and the storage column-major, as grid_map_cdr writes them."""
-    message = cdr.typestore().deserialize_cdr(payload, GRID_MAP)
-    if message.outer_start_index or message.inner_start_index:
-        raise ValueError("a GridMap with a circular-buffer start index is not supported here")
-    layers = {}
-    for name, array in zip(message.layers, message.data, strict=True):
-        column, row = array.layout.dim
-        if (column.label, row.label) != (COLUMN_INDEX, ROW_INDEX):
-            raise ValueError(f"layer {name}: dims {column.label}, {row.label}: not column-major")
-        layers[str(name)] = from_grid_map_order(array.data, int(row.size), int(column.size))
-    return message, layers

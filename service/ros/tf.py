@@ -24,11 +24,10 @@ from dataclasses import dataclass
 import numpy as np
 from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
-from gcdtrav.service.ros.cdr import make_header, typestore
+from gcdtrav.service.ros.cdr import typestore, yaw_of_quaternion
 from numpy.typing import NDArray
 
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
-TF_TOPIC, TF_STATIC_TOPIC = "/tf", "/tf_static"
 QUATERNION_TOLERANCE = 1e-2  # tf2's QUATERNION_NORMALIZATION_TOLERANCE (10e-3) on |q|^2 - 1
 MAX_TRANSFORMS_PER_MESSAGE = 10_000  # a robot's whole tree is tens to hundreds of frames
 
@@ -65,8 +64,7 @@ class Transform:
 
     def yaw(self) -> float:
         """The heading of the child's x axis in the parent's xy plane (the grid's 2-D pose)."""
-        x, y, z, w = self.rotation
-        return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+        return yaw_of_quaternion(*self.rotation)
 
 
 def _multiply(a: tuple[float, ...], b: tuple[float, ...]) -> tuple[float, float, float, float]:
@@ -152,22 +150,3 @@ def _checked(stamped: object) -> StampedTransform:
         scale = 1.0 / math.sqrt(norm2)
         rotation = (rotation[0] * scale, rotation[1] * scale, rotation[2] * scale, rotation[3] * scale)
     return StampedTransform(parent, child, stamp, Transform(translation, rotation))
-
-
-def tf_message_cdr(transforms: list[StampedTransform]) -> bytes:
-    """A TFMessage's CDR bytes (tests, examples and simulated robots publish these)."""
-    types = typestore().types
-    vector, quaternion = types["geometry_msgs/msg/Vector3"], types["geometry_msgs/msg/Quaternion"]
-    items = []
-    for item in transforms:
-        t, q = item.transform.translation, item.transform.rotation
-        items.append(
-            types["geometry_msgs/msg/TransformStamped"](
-                header=make_header(item.stamp, item.parent),
-                child_frame_id=item.child,
-                transform=types["geometry_msgs/msg/Transform"](
-                    translation=vector(x=t[0], y=t[1], z=t[2]), rotation=quaternion(x=q[0], y=q[1], z=q[2], w=q[3])
-                ),
-            )
-        )
-    return bytes(typestore().serialize_cdr(types[TF_MESSAGE](transforms=items), TF_MESSAGE))

@@ -1,5 +1,5 @@
 """The service's metrics in Prometheus's exposition format (docs/metrics.md). No middleware, no HTTP here: the
-serve command serves ``ServiceMetrics.registry`` on ``metrics_port``.
+serve command serves ``ServiceMetrics.registry`` on ``metrics_port`` (http_endpoints.py).
 
 Two kinds, by what their meaning needs:
 
@@ -229,11 +229,14 @@ class ServiceMetrics:
     """One registry per service (several in one process in the tests): the histograms, the collector and the
     process's own metrics (CPU, memory, start time)."""
 
-    def __init__(self, sources: MetricsSources) -> None:
+    def __init__(self) -> None:
         # No *_created series (process-wide in prometheus_client): Prometheus would store each as one more
         # series per histogram and source, for a start time nobody queries.
         disable_created_metrics()
         self.registry = CollectorRegistry()
-        self.timings = FrameTimings(self.registry)
-        self.registry.register(StatusCollector(sources))
+        self.timings = FrameTimings(self.registry)  # the stats' events: built first, given to them at construction
         ProcessCollector(registry=self.registry)
+
+    def collect(self, sources: MetricsSources) -> None:
+        """Read the status at each scrape (once the service whose status it is exists)."""
+        self.registry.register(StatusCollector(sources))

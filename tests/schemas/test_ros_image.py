@@ -10,6 +10,8 @@ from gcdtrav.schemas import ros_image as ri
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.inputs import RejectedInput
 
+from tools.ros_fixtures import compressed_image_cdr, image_cdr
+
 cdr = pytest.importorskip("gcdtrav.service.ros.cdr")
 image_module = pytest.importorskip("rosbags.image")
 
@@ -28,7 +30,7 @@ def rosbags_rgb(payload: bytes) -> np.ndarray:
 @pytest.mark.parametrize("encoding", sorted(CHANNELS))
 def test_raw_images_decode_as_the_service_decodes_them(encoding: str) -> None:
     pixels = np.random.default_rng(3).integers(0, 256, (30, 41, CHANNELS[encoding]), dtype=np.uint8)
-    payload = ri.image_cdr(pixels, 12.25, "cam", encoding)
+    payload = image_cdr(pixels, 12.25, "cam", encoding)
     mine = ri.decode_ros_image(payload, ri.IMAGE, 10**7)
     np.testing.assert_array_equal(mine.image, rosbags_rgb(payload))
     assert (mine.stamp, mine.frame_id) == (12.25, "cam")
@@ -72,11 +74,11 @@ def test_padded_rows_and_compressed_images_from_rosbags() -> None:
     jpeg = cdr.compressed_jpeg_cdr(cdr.make_header(5.5, "y"), encode_jpeg(pixels))
     decoded = ri.decode_ros_image(jpeg, ri.COMPRESSED_IMAGE, 10**7)
     assert decoded.image.shape == (30, 41, 3) and (decoded.stamp, decoded.frame_id) == (5.5, "y")
-    ours = cdr.decode_ros_image(ri.compressed_image_cdr(encode_jpeg(pixels), 7.0, "z"), ri.COMPRESSED_IMAGE, 10**7)
+    ours = cdr.decode_ros_image(compressed_image_cdr(encode_jpeg(pixels), 7.0, "z"), ri.COMPRESSED_IMAGE, 10**7)
     assert (ours.stamp, ours.frame_id) == (7.0, "z") and ri.peek_stamp(jpeg) == 5.5
 
 
-GOOD = ri.image_cdr(np.zeros((4, 4, 3), np.uint8), 1.0, "cam")
+GOOD = image_cdr(np.zeros((4, 4, 3), np.uint8), 1.0, "cam")
 
 
 @pytest.mark.parametrize(
@@ -88,11 +90,11 @@ GOOD = ri.image_cdr(np.zeros((4, 4, 3), np.uint8), 1.0, "cam")
         (GOOD + b"\x00" * 4, ri.IMAGE, "bad_cdr", "4 bytes after the message"),
         (GOOD.replace(b"cam\x00", b"ca\xff\x00"), ri.IMAGE, "bad_cdr", "not UTF-8"),
         (GOOD.replace(b"cam\x00", b"cams"), ri.IMAGE, "bad_cdr", "terminator"),
-        (ri.image_cdr(np.zeros((4, 4, 1), np.uint8), 1.0, encoding="yuv422"), ri.IMAGE, "unknown_encoding", "yuv422"),
-        (ri.image_cdr(np.zeros((40, 40, 3), np.uint8), 1.0), ri.IMAGE, "too_many_pixels", "limit of 100 pixels"),
-        (ri.image_cdr(np.zeros((4, 4, 3), np.uint8), 1.0, "a" * 300), ri.IMAGE, "frame_id_too_long", "300"),
-        (ri.compressed_image_cdr(b"not a jpeg", 1.0), ri.COMPRESSED_IMAGE, "undecodable", "CompressedImage"),
-        (ri.compressed_image_cdr(b"", 1.0), "sensor_msgs/msg/PointCloud2", "unsupported_ros_type", "PointCloud2"),
+        (image_cdr(np.zeros((4, 4, 1), np.uint8), 1.0, encoding="yuv422"), ri.IMAGE, "unknown_encoding", "yuv422"),
+        (image_cdr(np.zeros((40, 40, 3), np.uint8), 1.0), ri.IMAGE, "too_many_pixels", "limit of 100 pixels"),
+        (image_cdr(np.zeros((4, 4, 3), np.uint8), 1.0, "a" * 300), ri.IMAGE, "frame_id_too_long", "300"),
+        (compressed_image_cdr(b"not a jpeg", 1.0), ri.COMPRESSED_IMAGE, "undecodable", "CompressedImage"),
+        (compressed_image_cdr(b"", 1.0), "sensor_msgs/msg/PointCloud2", "unsupported_ros_type", "PointCloud2"),
     ],
 )
 def test_unusable_payloads_say_why(payload: bytes, msgtype: str, reason: str, message: str) -> None:

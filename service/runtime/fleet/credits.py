@@ -76,10 +76,6 @@ class CreditLedger:
         with self._lock:
             self._last_maps[source] = max(stamp, self._last_maps.get(source, stamp))
 
-    def granted(self, source: str) -> int:
-        with self._lock:
-            return self._granted.get(source, 0)
-
     def forget(self, source: str) -> None:
         with self._lock:
             self._granted.pop(source, None)

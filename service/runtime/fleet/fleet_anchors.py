@@ -60,6 +60,3 @@ class FleetAnchors:
         if newest is None or newest[1].version == own.version or newest[1] <= own:
             return None
         return newest
-
-    def diverged(self) -> bool:
-        return len(set(self.versions().values())) > 1

@@ -26,7 +26,6 @@ from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
 SERVING, HELD, MIXED = "serving", "held", "mixed"
-STATES = (SERVING, HELD, MIXED)
 
 
 @dataclass(frozen=True)

@@ -79,7 +79,7 @@ class GridOutputs:
         after_fusion: AfterFusion | None = None,
     ) -> None:
         """``clock_mode``: the service's ``clock`` setting ("estimated" or "synced"), how an unstamped frame's
-        receipt becomes a stamp on the pose stream's clock (``capture_stamp``). ``after_fusion``: the
+        receipt becomes a stamp on the pose stream's clock (``_capture_stamp``). ``after_fusion``: the
         experience's (``Experience.after_fusion``), or None."""
         self.instance, self.risk, self.clock, self.clock_mode = instance, risk or RiskSettings(), clock, clock_mode
         self.sources = {c.source: SourceGrid(c, GroundGrid(grid_spec(c), anchor_count)) for c in configs}
@@ -134,11 +134,11 @@ class GridOutputs:
         """The one lookup of where the robot carrying ``camera`` was when its frame was taken: fusion's (``wait``:
         up to ``poses.wait_s`` for a lagging stream) and reuse's (``reuse_pose``: never waits). ``stamp``: the
         frame's capture stamp, None for a bare image, then taken at its receipt ``received_at`` (the service's
-        clock; see ``capture_stamp``). None: not a grid's camera."""
+        clock; see ``_capture_stamp``). None: not a grid's camera."""
         grid = self.camera_grids.get(camera)
         if grid is None:
             return None
-        capture = self.capture_stamp(grid, received_at if stamp is None else stamp, stamp is None)
+        capture = self._capture_stamp(grid, stamp, received_at)
         if not grid.expects_pose():  # no pose stream: the grid is in base_link
             return CapturePose(capture, PoseAt(None))
         # Waited for outside the grid's lock, only by a frame that can be fused (intrinsics known).
@@ -152,9 +152,9 @@ class GridOutputs:
         only make it infer a frame it might have reused. Fusion never falls back: its cells would land where
         the robot was not. None: not a grid's camera, or no pose at all."""
         capture = self.pose_at(camera, stamp, received_at)
-        if capture is None or capture.at.pose is not None:
-            return capture.at.pose if capture is not None else None
-        return self.camera_grids[camera].pose
+        if capture is None:
+            return None
+        return capture.at.pose or self.camera_grids[camera].pose
 
     def set_mount(self, camera_source: str, mount: CameraMount, origin: str) -> None:
         """Camera ``camera_source``'s mount in the base frame, from ``origin`` ("settings" or "tf"); the next
@@ -246,15 +246,13 @@ class GridOutputs:
         alive = heard is not None and self.clock() - heard <= grid.config.poses.max_gap_s
         return grid.config.poses.wait_s if alive else 0.0
 
-    def capture_stamp(self, grid: SourceGrid, stamp: float, unstamped: bool) -> float:
+    def _capture_stamp(self, grid: SourceGrid, stamp: float | None, received_at: float) -> float:
         """When the frame was taken on the pose stream's clock. A stamped frame: its stamp (the robot's clock,
-        as the poses'). A bare image carries only its receipt on the service's clock: with ``clock: synced``
-        that is the robot's; with ``estimated``, the receipt less the pose stream's learnt offset (service
-        minus robot plus the pose link's smallest delay), as a source's clock is learnt."""
-        if not unstamped or self.clock_mode == "synced":
-            return stamp
-        offset = grid.poses.offset_s
-        return stamp if offset is None else stamp - offset
+        as the poses'). A bare image (``stamp`` None) carries only its receipt on the service's clock: with
+        ``clock: synced`` that is the robot's; with ``estimated``, the receipt less the pose stream's learnt
+        offset (service minus robot plus the pose link's smallest delay), as a source's clock is learnt."""
+        offset = grid.poses.offset_s if stamp is None and self.clock_mode != "synced" else None
+        return (received_at if stamp is None else stamp) - (offset or 0.0)
 
     def _not_fused(self, grid: SourceGrid, camera: str, stamp: float, reason: str) -> None:
         """Count a frame the grid could not fuse; logged once per camera and reason in a row."""

@@ -128,11 +128,6 @@ class ClockOffsets:
             return AHEAD
         return None
 
-    def offset_s(self, source: str) -> float | None:
-        with self._lock:
-            clock = self._clocks.get(source)
-            return None if clock is None else clock.offset
-
     def offsets(self) -> dict[str, float]:
         with self._lock:
             return {source: clock.offset for source, clock in self._clocks.items()}
@@ -140,10 +135,6 @@ class ClockOffsets:
     def forget(self, source: str) -> None:
         with self._lock:
             self._clocks.pop(source, None)
-
-    def __contains__(self, source: object) -> bool:
-        with self._lock:
-            return source in self._clocks
 
 
 def usable_stamp(stamp: float | None) -> bool:

@@ -32,6 +32,7 @@ from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.runtime.http_endpoints import Checks, HttpEndpoints
 
 IMAGE = textured_image(48, 64)
 
@@ -59,6 +60,13 @@ def service(backend: Any, port: int, instance: str, state_dir: Path, **settings:
     session = zenoh.open(client_config(port))
     configured = ServiceSettings(state_dir=state_dir, instance=instance, preview=False, **settings)
     return TraversabilityService(session, Pipeline(backend, default_anchor_set(), EngineSettings()), configured)
+
+
+def probed(running: TraversabilityService) -> HttpEndpoints:
+    """The service's probes on its health_port, as `gcdtrav serve` hands them over."""
+    endpoints = HttpEndpoints(running.settings)
+    endpoints.serve(Checks(running.liveness, running.readiness, running.metrics.registry))
+    return endpoints
 
 
 def close(*services: TraversabilityService) -> None:
@@ -117,6 +125,7 @@ def test_a_stopping_instance_leaves_first_then_publishes_the_frame_in_flight(tin
     router = start_router(router_port)
     gated = GatedBackend(tiny_backend)
     a = service(gated, router_port, "box-a", tmp_path / "a", health_port=health_port)
+    http = probed(a)
     b = service(tiny_backend, router_port, "box-b", tmp_path / "b")
     client = TraversabilityClient(config=client_config(router_port), timeout=3.0)
     received: list[Maps] = []
@@ -145,8 +154,10 @@ def test_a_stopping_instance_leaves_first_then_publishes_the_frame_in_flight(tin
         assert wait_until(lambda: any(m.header.source == source for m in received), 5), "the frame in flight"
         assert [m.header.instance for m in received if m.header.source == source] == ["box-a"]
         assert "not_owner" not in a.status().dropped_by_reason
-        assert probe(health_port, "/livez")[0] == 0  # closed with the service
+        http.close()
+        assert probe(health_port, "/livez")[0] == 0  # closed after the service
     finally:
+        http.close()
         gated.release.set()
         subscriber.undeclare()
         client.close()
@@ -187,6 +198,7 @@ def test_a_starting_instance_joins_only_after_watching_the_inputs(tiny_backend: 
     router = start_router(router_port)
     old = service(tiny_backend, router_port, "box-old", tmp_path / "old")
     new = service(tiny_backend, router_port, "box-new", tmp_path / "new", health_port=health_port)
+    http = probed(new)
     client = TraversabilityClient(config=client_config(router_port), timeout=3.0)
     sources = [f"r{i}/front" for i in range(6)]
     robots = Robots(client, sources, 0.1)
@@ -211,6 +223,7 @@ def test_a_starting_instance_joins_only_after_watching_the_inputs(tiny_backend: 
         if starting.is_alive():
             starting.join(10)
         close(old, new)
+        http.close()
         router.terminate()
         router.communicate(timeout=20)
 

@@ -224,7 +224,9 @@ def test_settings_that_cannot_work_are_refused_at_start(tmp_path: Path) -> None:
 
 def test_ros_topics_are_read_as_cdr_on_rmw_zenoh_keys(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     from gcdtrav.service.bus.experience import ros_key
-    from gcdtrav.service.ros.cdr import RosTopic, odometry_cdr, topic_key, twist_cdr
+    from gcdtrav.service.ros.cdr import RosTopic, topic_key
+
+    from tools.ros_fixtures import odometry_cdr, twist_cdr
 
     ros = experience_settings(cmd_vel="/robot/cmd_vel", odometry="/robot/odom")
     expression = "*/robot/cmd_vel/geometry_msgs::msg::dds_::Twist_/*"

@@ -17,7 +17,7 @@ import urllib.parse
 import urllib.request
 from collections import Counter
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -334,7 +334,7 @@ def dashboard_queries() -> list[tuple[str, str]]:
 def experience_instance(port: int, state: Path) -> Iterator[None]:
     """An instance with experience on (its own session: a fleet of one), driven by the synthetic robot until
     it has pairs to grade, its metrics on ``port``."""
-    from gcdtrav.service.commands.metrics_http import metrics_endpoint
+    from gcdtrav.service.runtime.http_endpoints import Checks, HttpEndpoints
 
     from tools.robot_drive import BusRobot, experience_settings, grid_settings
     from tools.synthetic_scene import SceneBackend, make_world, start_anchors
@@ -352,9 +352,10 @@ def experience_instance(port: int, state: Path) -> Iterator[None]:
     )
     with (
         in_process_service(SceneBackend(), settings, start_anchors()) as (service, zenoh_port),
-        metrics_endpoint(settings, service.metrics.registry),
+        closing(HttpEndpoints(settings)) as http,
         TraversabilityClient(config=connecting_config(zenoh_port), timeout=5.0) as client,
     ):
+        http.serve(Checks(service.liveness, service.readiness, service.metrics.registry))
         robot = BusRobot(client, make_world(seed=0))
         robot.drive(25.0, seed=1)
         robot.close()

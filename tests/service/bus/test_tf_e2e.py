@@ -26,7 +26,9 @@ from zenoh_helpers import connecting_config, free_port, wait_until
 pytest.importorskip("rosbags")
 
 from gcdtrav.service.ros import cdr as ros
-from gcdtrav.service.ros.tf import TF_MESSAGE, StampedTransform, Transform, tf_message_cdr
+from gcdtrav.service.ros.tf import TF_MESSAGE, StampedTransform, Transform
+
+from tools.ros_fixtures import tf_message_cdr
 
 INTRINSICS = {"fx": 40, "fy": 40, "cx": 32, "cy": 24, "width": 64, "height": 48}
 COMMON = {"source": "cam", "intrinsics": INTRINSICS, "size_m": 12.0, "resolution_m": 0.25}

@@ -74,9 +74,8 @@ def test_erfc_matches_math_over_its_whole_range() -> None:
     assert relative.max() < 1e-13
 
 
-def test_erf_and_normal_cdf_match_math() -> None:
+def test_normal_cdf_matches_math() -> None:
     x = np.linspace(-9.0, 9.0, 3601)
-    np.testing.assert_allclose(risk.erf(x), [math.erf(v) for v in x], rtol=1e-15, atol=3e-16)
     np.testing.assert_allclose(risk.normal_cdf(x), [STANDARD_NORMAL.cdf(v) for v in x], rtol=1e-13, atol=1e-16)
     assert risk.erfc(np.inf) == 0.0 and risk.erfc(-np.inf) == 2.0 and np.isnan(risk.erfc(np.nan))
 

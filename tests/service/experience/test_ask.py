@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
 from gcdtrav.schemas.experience import OperatorAnswer
+from gcdtrav.schemas.experience import answer_score as parse_answer
 from gcdtrav.schemas.messages import Pose2D
 from gcdtrav.schemas.settings import AskSettings
-from gcdtrav.service.experience.ask import OperatorAsker, corridor, parse_answer
+from gcdtrav.service.experience.ask import OperatorAsker, corridor
 from gcdtrav.service.experience.store import ExperienceStore
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 

@@ -13,8 +13,9 @@ from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSet
 from gcdtrav.service.experience.service import Experience, experience_file, service_experience
 from gcdtrav.service.experience.store import OutcomeRejected
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
-from gcdtrav.service.ros.cdr import twist_cdr
 from gcdtrav.service.runtime.grids import GridOutputs
+
+from tools.ros_fixtures import twist_cdr
 
 ANCHORS = AnchorSet(anchors=[Anchor(concept="mud", position=0.1), Anchor(concept="grass", position=0.8)])
 SETTINGS = ExperienceSettings(enabled=True, cmd_vel="/cmd_vel", odometry="robot/odom", footprint_m=0.2)

@@ -12,7 +12,8 @@ from gcdtrav.schemas.settings import ExperienceSettings
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.velocity import VelocityTracker, decode_command, decode_odometry, is_ros_topic
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
-from gcdtrav.service.ros.cdr import odometry_cdr, twist_cdr
+
+from tools.ros_fixtures import odometry_cdr, twist_cdr
 
 SETTINGS = ExperienceSettings(footprint_m=0.6, min_command_mps=0.1, outcome_spacing_m=0.3, outcome_period_s=2.0)
 

@@ -122,10 +122,10 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
     from gcdtrav.schemas.messages import Pose2D
     from gcdtrav.schemas.settings import ServiceSettings
     from gcdtrav.service.ros import cdr as ros
-    from gcdtrav.service.ros.grid_map import decode_grid_map
     from zenoh_helpers import connecting_config, wait_until
 
     from tools.loopback import in_process_service
+    from tools.ros_fixtures import decode_grid_map
 
     settings = ServiceSettings.model_validate(
         {
@@ -239,7 +239,7 @@ def test_pose_camera_info_and_depth_messages() -> None:
     pytest.importorskip("rosbags")
     from gcdtrav.schemas.messages import MessageError, Pose2D
     from gcdtrav.service.ros import cdr as ros
-    from gcdtrav.service.ros.cdr import decode_camera_info, decode_depth, decode_pose
+    from gcdtrav.service.ros.cdr import decode_camera_info_frame, decode_depth, decode_pose
 
     types = ros.typestore().types
     header = ros.make_header(12.5, "odom")
@@ -280,7 +280,7 @@ def test_pose_camera_info_and_depth_messages() -> None:
         binning_y=0,
         roi=roi,
     )
-    camera = decode_camera_info(bytes(ros.typestore().serialize_cdr(info, "sensor_msgs/msg/CameraInfo")))
+    camera, _ = decode_camera_info_frame(bytes(ros.typestore().serialize_cdr(info, "sensor_msgs/msg/CameraInfo")))
     assert (camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height) == (500, 510, 320, 240, 640, 480)
 
     millimetres = np.array([[1000, 2500], [0, 65535]], np.uint16)

@@ -19,9 +19,10 @@ from gcdtrav.service.ros.tf import (
     Transform,
     decode_tf_message,
     interpolate,
-    tf_message_cdr,
 )
 from gcdtrav.service.ros.tf_tree import MAX_FRAMES, TfLookupError, TransformTree
+
+from tools.ros_fixtures import tf_message_cdr
 
 # Jazzy's type hash of tf2_msgs/msg/TFMessage, as rmw_zenoh puts it in keys and liveliness tokens (the same hash
 # appears in third-party rmw_zenoh peers' tokens; rosbags computes it from the message definitions)

@@ -95,4 +95,4 @@ def test_a_forgotten_source_leaves_the_bus_sinks_too() -> None:
     assert sink.sources == ["r1"]
     clock.now = settings.source_idle_s + 1
     assert runtime.sources.sweep() == ["r1"] and sink.forgotten == ["r1"]
-    assert runtime.credits.ledger.granted("r1") == 0
+    assert runtime.credits.ledger.freed("r1", "taken").grant == 0  # numbered afresh

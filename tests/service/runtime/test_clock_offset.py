@@ -77,7 +77,7 @@ def test_a_robot_whose_clock_is_off_by_any_amount_has_every_frame_served(offset:
     frames = stream(20, offset)
     outcome = judge(rule, frames)
     assert outcome.served == frames
-    learnt = rule.offsets.offset_s("r1/front")
+    learnt = rule.offsets.offsets().get("r1/front")
     assert learnt is not None and -offset + 0.02 <= learnt <= -offset + 0.03  # plus the link's smallest delay
 
 
@@ -87,7 +87,7 @@ def test_with_clock_synced_the_same_robot_gets_nothing_and_is_told_why(offset: f
     outcome = judge(rule, stream(5, offset))
     assert not outcome.served
     assert outcome.stale if offset < 0 else outcome.skewed  # behind: too old; ahead: from the future
-    learnt = rule.offsets.offset_s("r1/front")
+    learnt = rule.offsets.offsets().get("r1/front")
     assert learnt is not None and abs(learnt + offset) < 0.1  # still learnt, for the status
 
 
@@ -123,7 +123,7 @@ def test_a_clock_step_beyond_the_limits_costs_about_a_second_of_frames_then_is_l
     assert not (outcome.skewed if step < 0 else outcome.stale)
     assert STEP_HOLD_S * FPS <= len(lost) <= (STEP_HOLD_S + 0.2) * FPS
     assert outcome.served == after[len(lost) :]  # every frame after the step is learnt
-    learnt = rule.offsets.offset_s("r1/front")
+    learnt = rule.offsets.offsets().get("r1/front")
     assert learnt is not None and abs(learnt + step) < 0.1
 
 
@@ -134,7 +134,7 @@ def test_a_clock_step_within_the_limits_loses_no_frame(step: float) -> None:
     after = stream(40, step, start=before[-1].captured + 1 / FPS, seed=2)
     assert judge(rule, before).served == before
     assert judge(rule, after).served == after
-    learnt = rule.offsets.offset_s("r1/front")
+    learnt = rule.offsets.offsets().get("r1/front")
     # forward at once; back as the older, smaller delays leave the window
     assert learnt is not None and abs(learnt + step) < 0.1
 
@@ -159,14 +159,14 @@ def test_a_backlog_after_an_outage_is_dropped_not_learnt(seconds: float, rate: f
     rule = estimated()
     before, after = outage(seconds, rate)
     judge(rule, before)
-    learnt = rule.offsets.offset_s("r1/front")
+    learnt = rule.offsets.offsets().get("r1/front")
     outcome = judge(rule, after)
     too_old = [f for f in after if f.received - f.captured > MAX_AGE_S + 0.08]
     young = [f for f in after if f.received - f.captured <= MAX_AGE_S]
     assert too_old and all(f in outcome.stale for f in too_old)
     assert young and all(f in outcome.served for f in young)
     assert outcome.served[-150:] == after[-150:]  # caught up: the last 10 s are all served
-    assert rule.offsets.offset_s("r1/front") == pytest.approx(learnt, abs=0.05)  # not taken for a step
+    assert rule.offsets.offsets().get("r1/front") == pytest.approx(learnt, abs=0.05)  # not taken for a step
 
 
 def test_a_frame_stamped_far_ahead_once_is_rejected_and_changes_nothing() -> None:
@@ -181,7 +181,7 @@ def test_a_frame_stamped_far_ahead_once_is_rejected_and_changes_nothing() -> Non
 def test_bare_images_carry_no_stamp_and_teach_no_clock() -> None:
     rule = estimated()
     age = rule.at_intake("cam", None, T0)
-    assert age.lag_s is None and age.refusal is None and "cam" not in rule.offsets
+    assert age.lag_s is None and age.refusal is None and "cam" not in rule.offsets.offsets()
     for bad in (float("nan"), float("inf"), -1.0):  # the decoder rejects them (bad_stamp), the clock ignores them
         assert rule.at_intake("cam", bad, T0) == age
 
@@ -204,7 +204,7 @@ def test_replayed_bags_without_an_age_limit_are_served_through_loops_and_learnt(
             for frame in stream(20, start=T0 + loop * 20, seed=loop):
                 frames.append(Frame(frame.captured, bag_start + (frame.captured - T0 - loop * 20), frame.received))
         assert judge(rule, frames).served == frames
-        learnt = rule.offsets.offset_s("r1/front")
+        learnt = rule.offsets.offsets().get("r1/front")
         assert learnt is not None and learnt > T0 - bag_start - 1
 
 

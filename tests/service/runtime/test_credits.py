@@ -6,10 +6,12 @@ import msgpack
 import pytest
 from gcdtrav.schemas.messages import CreditGrant, ImageEnvelope
 from gcdtrav.schemas.messages.credits import REFUSED, STALE, TAKEN
-from gcdtrav.schemas.ros_image import compressed_image_cdr, peek_stamp
+from gcdtrav.schemas.ros_image import peek_stamp
 from gcdtrav.service.runtime.fleet.credits import CreditLedger
 from gcdtrav.service.runtime.frames import FrameTimes
 from gcdtrav.service.runtime.intake.frame_age import input_times
+
+from tools.ros_fixtures import compressed_image_cdr
 
 
 def ledger(**kw: object) -> CreditLedger:
@@ -29,7 +31,7 @@ def test_grants_are_numbered_per_source_and_describe_the_freed_frame() -> None:
     )
     assert credits.freed("r1/front", STALE).grant == 1
     assert credits.freed("r2/front", REFUSED).grant == 0  # each source counts its own
-    assert credits.granted("r1/front") == 2 and credits.granted("nobody") == 0
+    assert credits.freed("r1/front", TAKEN).grant == 2 and credits.freed("nobody", TAKEN).grant == 0
 
 
 def test_a_grant_says_how_fresh_the_published_maps_are() -> None:

@@ -16,7 +16,8 @@ from gcdtrav.service.runtime.outputs import OutputBuilder
 pytest.importorskip("rosbags")
 
 from gcdtrav.service.ros import cdr as ros
-from gcdtrav.service.ros.grid_map import decode_grid_map
+
+from tools.ros_fixtures import decode_grid_map
 
 GRID_MAP_HASH = "RIHS01_343b0e72887541beda6b035cc053f2d6fffaad9d6dcb2773c15a808dfca31fde"
 

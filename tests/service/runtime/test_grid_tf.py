@@ -14,8 +14,10 @@ from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.messages import Pose2D
 from gcdtrav.schemas.settings import GridCamera, GridTfSettings
 from gcdtrav.service.grid.geometry import CameraMount
-from gcdtrav.service.ros.tf import StampedTransform, Transform, tf_message_cdr
+from gcdtrav.service.ros.tf import StampedTransform, Transform
 from gcdtrav.service.runtime.grids.tf import GridTf
+
+from tools.ros_fixtures import tf_message_cdr
 
 OPTICAL = (-0.5, 0.5, -0.5, 0.5)  # camera_link (x forward) -> *_optical_frame (z forward, x right, y down)
 INTRINSICS = {"fx": 40, "fy": 40, "cx": 32, "cy": 24, "width": 64, "height": 48}

@@ -11,10 +11,11 @@ from fakes import Clock, assembled, image
 from gcdtrav.schemas.images import encode_jpeg, encode_png
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
 from gcdtrav.schemas.messages.credits import REFUSED, STALE
-from gcdtrav.schemas.ros_image import compressed_image_cdr
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros.cdr import RosTopic
 from gcdtrav.service.runtime.intake.intake_rate import MAX_PUBLISHERS, IntakeRate
+
+from tools.ros_fixtures import compressed_image_cdr
 
 HOUR = 3600.0
 RGB = image(16, 16)
@@ -145,9 +146,9 @@ def test_an_idle_source_forgets_its_clock() -> None:
     clock = Clock()
     service = Service(tracker_clock=clock)
     service.stream("envelope", "r1/front", -HOUR, frames=2)
-    assert "r1/front" in service.freshness.offsets
+    assert "r1/front" in service.freshness.offsets.offsets()
     clock.now = 1000.0
-    assert service.sources.sweep() == ["r1/front"] and "r1/front" not in service.freshness.offsets
+    assert service.sources.sweep() == ["r1/front"] and "r1/front" not in service.freshness.offsets.offsets()
 
 
 # ---- intake rate per publisher ---------------------------------------------------------------------

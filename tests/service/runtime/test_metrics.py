@@ -40,7 +40,8 @@ class Service:
         run = pipeline()
         self.queue: LatestFrameQueue[bytes] = LatestFrameQueue(10_000_000)
         self.sources = SourceTracker(max_sources=max_sources, idle_s=60.0)
-        self.stats = ServiceStats(logging.getLogger("test"))
+        self.metrics = ServiceMetrics()
+        self.stats = ServiceStats(logging.getLogger("test"), events=self.metrics.timings)
         self.offsets = ClockOffsets(5.0, 300.0)
         self.progress = ProgressMonitor(2.0, self.clock)
         switch = AnchorSwitch(run, tmp_path / "anchors.json", "box-1", 65536)
@@ -49,8 +50,7 @@ class Service:
             "box-1", 0.0, run, switch, self.queue, history, self.stats, self.sources, self.progress, self.offsets
         )
         self.owned = owned
-        self.metrics = ServiceMetrics(MetricsSources(lambda: self.parts.status(1.0), lambda: self.owned, 5.0))
-        self.stats.events = self.metrics.timings
+        self.metrics.collect(MetricsSources(lambda: self.parts.status(1.0), lambda: self.owned, 5.0))
 
     def frame(self, source: str, map_age_s: float = 0.3, reused: bool = False) -> None:
         """A frame received, taken and published."""
@@ -208,7 +208,8 @@ def test_calibration_is_recomputed_until_pairs_come_then_at_most_every_interval(
 
 def test_calibration_metrics_where_experience_is_on(tmp_path: Path) -> None:
     service = Service(tmp_path)
-    service.metrics = ServiceMetrics(
+    service.metrics = ServiceMetrics()
+    service.metrics.collect(
         MetricsSources(lambda: service.parts.status(1.0), lambda: 0, None, lambda: figures(40, 0.05))
     )
     assert service.value("gcdtrav_calibration_ece") == 0.05 and service.value("gcdtrav_calibration_pairs") == 40
