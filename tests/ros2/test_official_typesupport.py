@@ -29,6 +29,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from real_components import require_rclpy
 
+from tools import ros_fixtures
+
 UPSTREAM_MSG = Path(__file__).parent / "upstream_msg"
 # A loaded CI host runs examples slowly: bound them by count, never by time
 EXAMPLES = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -199,18 +201,19 @@ def test_the_official_side_reads_our_images_as_the_same_message(
 def test_the_official_side_reads_the_camera_images_our_tests_send(
     shape: tuple[int, int], encoding: str, stamp: float, frame_id: str, seed: int
 ) -> None:
-    """schemas/ros_image.py's writers stand in for camera drivers in tests, benchmarks and examples."""
+    """tools/ros_fixtures.py's writers stand in for camera drivers in tests, benchmarks and examples."""
     from sensor_msgs.msg import CompressedImage, Image
 
     channels = ros_image.RAW_ENCODINGS[encoding]
     pixels = np.random.default_rng(seed).integers(0, 256, (*shape, channels), dtype=np.uint8)
-    image = deserialize(ros_image.image_cdr(pixels, stamp, frame_id, encoding), Image)
+    image = deserialize(ros_fixtures.image_cdr(pixels, stamp, frame_id, encoding), Image)
     assert image.header.frame_id == frame_id
     assert abs(image.header.stamp.sec + image.header.stamp.nanosec * 1e-9 - stamp) < 1e-6
     assert (image.height, image.width, image.encoding, image.step) == (*shape, encoding, shape[1] * channels)
     assert bytes(image.data) == pixels.tobytes()
 
-    compressed = deserialize(ros_image.compressed_image_cdr(b"\xff\xd8jpeg", stamp, frame_id, "png"), CompressedImage)
+    payload = ros_fixtures.compressed_image_cdr(b"\xff\xd8jpeg", stamp, frame_id, "png")
+    compressed = deserialize(payload, CompressedImage)
     assert (compressed.header.frame_id, compressed.format, bytes(compressed.data)) == (frame_id, "png", b"\xff\xd8jpeg")
 
 
@@ -454,11 +457,12 @@ def test_we_read_official_odometry_exactly(
 def test_the_official_side_reads_our_odometry_and_twist_as_the_same_message(
     stamp: float, x: float, y: float, yaw: float, twist: tuple[float, float, float]
 ) -> None:
-    """Simulated robots, tests and benchmarks send these; the service reads Twist from /cmd_vel."""
+    """Simulated robots, tests and benchmarks send these (tools/ros_fixtures.py); the service reads Twist from
+    /cmd_vel."""
     from geometry_msgs.msg import Twist
     from nav_msgs.msg import Odometry
 
-    odometry = deserialize(cdr.odometry_cdr(stamp, x, y, yaw, *twist), Odometry)
+    odometry = deserialize(ros_fixtures.odometry_cdr(stamp, x, y, yaw, *twist), Odometry)
     header = cdr.make_header(stamp, "odom")
     assert_header(odometry.header, header.stamp.sec, header.stamp.nanosec, "odom")
     assert odometry.child_frame_id == "base_link"
@@ -470,7 +474,7 @@ def test_the_official_side_reads_our_odometry_and_twist_as_the_same_message(
     assert (moving.linear.x, moving.linear.y, moving.angular.z) == twist
     assert not odometry.pose.covariance.any() and not odometry.twist.covariance.any()
 
-    command = deserialize(cdr.twist_cdr(*twist), Twist)
+    command = deserialize(ros_fixtures.twist_cdr(*twist), Twist)
     assert (command.linear.x, command.linear.y, command.linear.z) == (twist[0], twist[1], 0.0)
     assert (command.angular.x, command.angular.y, command.angular.z) == (0.0, 0.0, twist[2])
 
