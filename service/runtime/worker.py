@@ -198,13 +198,13 @@ class FrameWorker:
         )
         map_age_s = self.gate.before_publish(inferred.pending)  # the engine took time too
         done = ProcessedFrame(inferred, result, record, self._fuse(inferred.pending, inferred.image, result, record))
-        if self.triage is not None:  # before the maps go out: a frame sent on seeing them is glanced against this
-            self.triage.inferred(done)
         if not self.publish(done):
             self.stats.dropped(source, "shutdown")  # finished after the outputs closed
             return
         latency_ms = (time.time() - inferred.pending.received_at) * 1e3
         self.stats.processed(source, record.seq, latency_ms, result.inference_ms, map_age_s)
+        if self.triage is not None:
+            self.triage.inferred(done)
 
     def _fuse(
         self, pending: PendingFrame, image: DecodedFrame, result: FrameResult, record: FrameRecord
