@@ -209,6 +209,12 @@ class Grid:
     def age(self) -> NDArray[np.float32] | None:
         return self.layers.get("age")
 
+    @property
+    def speed(self) -> NDArray[np.float32] | None:
+        """Fraction of the robot's maximum speed per cell, unknown cells included (docs/grid.md, "Speed from
+        uncertainty"); None: the grid has no speed layer (or a writer before 1.5)."""
+        return self.layers.get("speed")
+
     def planning_layers(self) -> dict[str, NDArray[np.float32]]:
         """The layers ``client.planning.plan`` reads (traversability, cvar, p_below), those the grid has."""
         found = {"traversability": self.traversability, "cvar": self.cvar, "p_below": self.p_below}

@@ -44,6 +44,8 @@ def _encode_fraction(values: NDArray[Any]) -> bytes:
 
 
 FRACTION = LayerCodec(_encode_fraction, decode_map_png16, True)  # [0, 1] as a 16-bit PNG (value / 65535)
+# [0, 1] where every cell has a value, unknown ones included (the speed layer's is configured)
+FRACTION_EVERYWHERE = LayerCodec(_encode_fraction, decode_map_png16, False)
 COUNTS = LayerCodec(encode_count_png, decode_count_png, False)  # 16-bit, saturating at 65535
 AGES = LayerCodec(encode_age_png, decode_age_png, False)  # tenths of a second; NaN: never observed
 
@@ -69,13 +71,17 @@ GRID_LAYERS: tuple[GridLayer, ...] = (
     GridLayer("match", FRACTION, "match"),  # the fused match score
     GridLayer(COUNT, COUNTS, None),
     GridLayer("age", AGES, "age"),  # seconds from the last observation to header.stamp
+    GridLayer("speed", FRACTION_EVERYWHERE, "speed"),  # fraction of maximum speed; only from grids with speed
 )
+OPTIONAL = frozenset({"speed"})  # layers a grid publishes only when configured (GridLayers holds None)
 
 
 def encode_layers(values: Mapping[str, NDArray[Any]]) -> dict[str, bytes]:
-    """{GridMessage field: bytes} of every layer in the table (``values`` by layer name), encoded concurrently."""
-    encoded = encode_all([(layer.codec.encode, values[layer.name]) for layer in GRID_LAYERS])
-    return {layer.field: data for layer, data in zip(GRID_LAYERS, encoded, strict=True)}
+    """{GridMessage field: bytes} of every layer in the table (``values`` by layer name; an optional layer may be
+    absent), encoded concurrently."""
+    present = [layer for layer in GRID_LAYERS if layer.name in values or layer.name not in OPTIONAL]
+    encoded = encode_all([(layer.codec.encode, values[layer.name]) for layer in present])
+    return {layer.field: data for layer, data in zip(present, encoded, strict=True)}
 
 
 def decode_layers(message: GridMessage) -> dict[str, NDArray[Any]]:

@@ -31,7 +31,9 @@ Robots and operators send on (experience enabled; docs/calibration.md):
 
 A relay on a robot (``gcdtrav relay``) publishes on the robot's own bus:
 
-  {prefix}/relay/{source}/health             RelayHealth: map age, credits and link figures of one camera
+  {prefix}/relay/{source}/health             RelayHealth: map age, credits and link figures of one camera (also
+                                             sent over the link every link_health_period_s: the service hears it)
+  {prefix}/relay/{source}/parked             CameraParked, from the robot's software: the camera stopped on purpose
 
 Robots publish images on ``input_key(input_prefix, source)``. A source name may hold slashes
 (``robot1/front``); ``source_of`` recovers it from an output key, ``input_source_of`` from an input key.
@@ -141,6 +143,18 @@ class Keys:
     def relay_health(self, source: str) -> str:
         """A robot relay's freshness and link figures for one camera, on the robot's bus."""
         return f"{self.prefix}/relay/{source}/health"
+
+    def relay_parked(self, source: str) -> str:
+        """Where the robot's own software tells its relay a camera is parked (stopped on purpose) or runs again."""
+        return f"{self.prefix}/relay/{source}/parked"
+
+    def relay_health_source_of(self, key: str) -> str | None:
+        """The source in ``{prefix}/relay/{source}/health``; None when the key is not of that form."""
+        head, tail = f"{self.prefix}/relay/", "/health"
+        if not (key.startswith(head) and key.endswith(tail)) or len(key) <= len(head) + len(tail):
+            return None
+        source = key[len(head) : -len(tail)]
+        return source if "*" not in source and "$" not in source else None
 
     def credit_source_of(self, key: str) -> str | None:
         """The source in ``{prefix}/credit/{source}``; None when the key is not of that form."""

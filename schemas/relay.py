@@ -125,6 +125,13 @@ class RelaySettings(StrictModel):
         description="Outputs brought to the robot's bus, each only while a robot-side consumer subscribes.",
     )
     health_period_s: float = Field(default=1.0, gt=0, description="Seconds between RelayHealth messages.")
+    link_health_period_s: float | None = Field(
+        default=5.0,
+        gt=0,
+        description="Seconds between RelayHealth messages sent over the link to the service too (its silent-robot "
+        "alert hears the robot, and whether a camera is parked; about 0.1 kB/s a camera), and at once when a "
+        "camera is parked or runs again; null: never.",
+    )
     local_mode: Literal["client", "peer"] = Field(default="client", description="The robot-side session's mode.")
     local_connect: list[str] = Field(
         default_factory=lambda: ["tcp/127.0.0.1:7447"],

@@ -239,21 +239,16 @@ def refusal(verdict: ProposalVerdict) -> str | None:
 # ---- answers -------------------------------------------------------------------------------------------
 
 
-def open_question(statuses: list[ServiceStatus], source: str) -> str:
-    for status in statuses:
-        for question in status.experience.open_questions if status.experience else []:
-            if question.source == source:
-                return question.id
-    raise ServiceError(f"no open question for '{source}' (gcdtrav status lists them)")
-
-
 def answer(client: TraversabilityClient, args: argparse.Namespace) -> int:
     """Show the question (its region, concepts, crop and the pairs an answer makes) when asked to, or when no
-    answer is given, and only then record the answer."""
+    answer is given, and only then record the answer. Without --question, the open question is the owner's:
+    only the instance serving the source answers the question query, and only it takes the answer (another
+    instance may still hold one it asked before the source moved)."""
     score = None if args.answer is None else answer_score(args.answer)
-    question_id = args.question or open_question(client.statuses(), args.source)
-    if score is None or args.save_crop is not None or args.show:
-        question = client.question(args.source)
+    showing = score is None or args.save_crop is not None or args.show
+    question = client.question(args.source) if showing or args.question is None else None  # the owner's
+    question_id = args.question or (question.id if question is not None else "")
+    if showing and question is not None:
         if question.id != question_id:
             raise ServiceError(f"question {question_id} is not open; the open one is {question.id}")
         print("\n".join(question_lines(question)))

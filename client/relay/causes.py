@@ -2,7 +2,8 @@
 
 Each cause has a code (``RelayHealth.causes``' keys) and a sentence saying what to check:
 
-- ``camera_silent``: no camera frame for ``camera_silent_after_s``: the camera, its driver or its key;
+- ``camera_silent``: no camera frame for ``camera_silent_after_s``: the camera, its driver or its key (not
+  while the robot has parked the camera: stopped on purpose, ``CameraParked``);
 - ``no_instance``: frames went out without a credit after the timeout and no grant came since: no service
   instance of the prefix is reachable (not running, another prefix, the link down);
 - ``service_refuses``: the service answers, but its last credit names why the frames give no maps
@@ -45,11 +46,12 @@ class CameraFacts:
     refusal: str | None  # the last credit's problem
     unusable: str | None  # why the last camera frame could not be sent
     clock_offset_s: float | None  # this host's clock minus the camera's
+    parked: bool = False  # the robot stopped the camera on purpose: its silence is no cause
 
 
 def causes(facts: CameraFacts, silent_after_s: float, prefix: str) -> dict[str, str]:
     found: dict[str, str] = {}
-    if facts.silent_s > silent_after_s:
+    if facts.silent_s > silent_after_s and not facts.parked:
         since = "since the relay started" if facts.captured == 0 else f"for {facts.silent_s:.0f} s"
         found[CAMERA_SILENT] = f"no camera frame on '{facts.camera_key}' {since}: check the camera and its key"
     if facts.unanswered:

@@ -15,7 +15,10 @@ timeout (``credit_timeout_s``). Outputs (maps, maps8, grid, preview) cross the l
 the robot's bus subscribes to them. Every ``health_period_s`` the relay publishes a RelayHealth per camera on
 the robot's bus (``{prefix}/relay/{source}/health``) with what may keep its maps stale (``causes.py``: a
 silent camera, no instance answering, the service refusing, an unusable frame, a camera clock off this host's),
-and logs each change once: stale, fresh again, a cause found or gone.
+and logs each change once: stale, fresh again, a cause found or gone. The same health goes over the link every
+``link_health_period_s`` (and at once when a camera is parked or runs again): the service's silent-robot alert
+hears the robot through it. The robot's own software parks a camera it stops on purpose (``CameraParked`` on
+``{prefix}/relay/{source}/parked``): its silence is then no cause and pages nobody.
 Maps' ages are judged on this host's clock from the camera's stamps plus the camera's learnt clock offset
 (``state.CameraClock``), as the service judges frames by delay: a camera stamping from another clock is
 not stale forever.
@@ -44,6 +47,7 @@ from gcdtrav.schemas.inputs import RejectedInput, decode_payload
 from gcdtrav.schemas.keys import Keys, input_key
 from gcdtrav.schemas.messages import (
     MSGPACK_ENCODING,
+    CameraParked,
     CreditGrant,
     ImageEnvelope,
     MessageError,
@@ -161,6 +165,7 @@ class CameraLink:
         self.unusable: str | None = None  # why the last camera frame could not be sent, if it could not
         self.graph_causes: dict[str, str] = {}  # what the robot's ROS graph says is wrong (the ROS 2 node)
         self._ros_stamps: OrderedDict[float, tuple[int, int]] = OrderedDict()  # sent stamp -> (sec, nanosec)
+        self.parked = False  # the robot's software stopped the camera on purpose (CameraParked)
         self._slot: CapturedFrame | None = None
         self._cond = threading.Condition()
         self._publisher: Guarded | None = None
@@ -209,6 +214,23 @@ class CameraLink:
             self.model_input = grant.model_input
             self.window.grant(grant)
             self._cond.notify()
+
+    def on_parked(self, sample: zenoh.Sample) -> None:
+        """``CameraParked`` on ``{prefix}/relay/{source}/parked`` of the robot's bus (msgpack or JSON)."""
+        try:
+            notice = CameraParked.decode(sample.payload.to_bytes(), max_bytes=4096)
+        except MessageError as err:
+            log.warning("%s: ignoring a parked notice: %s", self.source, err)
+            return
+        self.park(notice)
+
+    def park(self, notice: CameraParked) -> None:
+        """The robot stops the camera on purpose (or runs it again): said in the health, over the link at once."""
+        if notice.parked != self.parked:
+            self.parked = notice.parked
+            said = f" ({notice.reason})" if notice.reason else ""
+            log.info("%s: camera %s%s", self.source, "parked" if notice.parked else "runs again", said)
+            self.relay.tell_link_now()
 
     # ---- sending --------------------------------------------------------------------------------------
     def _run(self) -> None:
@@ -305,6 +327,7 @@ class CameraLink:
             refusal,
             self.unusable,
             self.camera_clock.offset_s(),
+            self.parked,
         )
 
     def health(self, freshness: FreshnessWatch, downlink: float, stale_after_s: float) -> RelayHealth:
@@ -331,6 +354,7 @@ class CameraLink:
             round_trip_s=None if best is None else best[0],
             problem=self.unusable or freshness.reason(self.source),
             causes=found,
+            parked=self.parked,
         )
 
 
@@ -399,7 +423,12 @@ class ZenohRobotSide:
         return ros_camera_key(camera.camera, camera.ros_layout, camera.ros_domain, camera.zenoh_namespace)
 
     def subscribe_camera(self, link: CameraLink) -> list[Guarded]:
-        return [Guarded(self.local.declare_subscriber(link.camera_key, link.on_frame))]
+        """The camera's frames, and the robot's word that it parked the camera (``CameraParked``)."""
+        parked = link.relay.keys.relay_parked(link.source)
+        return [
+            Guarded(self.local.declare_subscriber(link.camera_key, link.on_frame)),
+            Guarded(self.local.declare_subscriber(parked, link.on_parked)),
+        ]
 
     def outputs(self, relay: Relay, source: str) -> list[Output]:
         key = relay.keys.relay_health(source)
@@ -439,6 +468,8 @@ class Relay:
         self.stopping = False
         self._on_stale = on_stale
         self._declared: list[Undeclarable] = []
+        self._link_health: dict[str, Guarded] = {}  # the same health over the link: the service hears the robot
+        self._link_due = threading.Event()  # a camera parked or runs again: tell the service at once
         self._wake = threading.Event()
         self.started_at = time.time()
         self._told_causes: dict[str, dict[str, str]] = {}  # per source, change_key of the causes last logged
@@ -447,6 +478,10 @@ class Relay:
     def start(self) -> Relay:
         for camera in self.cameras:
             self.freshness.watch(camera.source)
+            if self.settings.link_health_period_s is not None:
+                self._link_health[camera.source] = Guarded(
+                    self.link.declare_publisher(self.keys.relay_health(camera.source), encoding=MSGPACK)
+                )
             self.forwarders += self.robot.outputs(self, camera.source)
             self._declared += camera.start()
         self._thread.start()
@@ -460,6 +495,11 @@ class Relay:
         return self
 
     def wake(self) -> None:
+        self._wake.set()
+
+    def tell_link_now(self) -> None:
+        """Send every camera's health over the link at the control thread's next turn (a camera parked)."""
+        self._link_due.set()
         self._wake.set()
 
     def grant_seen(self, source: str, grant: CreditGrant) -> None:
@@ -480,9 +520,11 @@ class Relay:
 
     # ---- the control thread: subscriptions on demand, health, staleness ----------------------------
     def _control(self) -> None:
-        next_health = time.monotonic()
+        next_health = next_link = time.monotonic()
+        link_period = self.settings.link_health_period_s
         while not self.stopping:
-            self._wake.wait(max(0.0, next_health - time.monotonic()))
+            due = min(next_health, next_link) if link_period is not None else next_health
+            self._wake.wait(max(0.0, due - time.monotonic()))
             self._wake.clear()
             if self.stopping:
                 return
@@ -491,6 +533,17 @@ class Relay:
             if time.monotonic() >= next_health:
                 next_health += self.settings.health_period_s
                 self._report()
+            if link_period is not None and (time.monotonic() >= next_link or self._link_due.is_set()):
+                self._link_due.clear()
+                next_link = time.monotonic() + link_period
+                self._report_over_link()
+
+    def _report_over_link(self) -> None:
+        for camera in self.cameras:
+            try:
+                self._link_health[camera.source].put(self.health(camera.source).pack())
+            except zenoh.ZError as err:  # the link session is closing
+                log.debug("%s: health over the link failed: %s", camera.source, err)
 
     def _report(self) -> None:
         for change in self.freshness.check():
@@ -543,7 +596,8 @@ class Relay:
         self._thread.join(5)
         for forwarder in self.forwarders:
             forwarder.close()
-        for entity in self._declared:
+        for entity in [*self._declared, *self._link_health.values()]:
             entity.undeclare()
         self._declared.clear()
+        self._link_health.clear()
         self.robot.close()

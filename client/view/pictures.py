@@ -13,7 +13,7 @@ from gcdtrav.client.client import Grid
 from gcdtrav.schemas.images import UNCERTAINTY_VMAX, colorize_traversability, colorize_uncertainty
 from numpy.typing import NDArray
 
-MapKind = Literal["T", "U", "cvar", "p_below", "match", "cost", "age"]
+MapKind = Literal["T", "U", "cvar", "p_below", "match", "cost", "age", "speed"]
 MIN_HEIGHT = 256  # small maps are enlarged (nearest neighbour) so the legend's text stays readable
 LEGEND_WIDTH = 84
 BACKGROUND = (40, 40, 40)
@@ -87,6 +87,8 @@ SCALES: dict[str, Scale] = {
     "match": Scale("match", 1.0, _match_colours),
     "cost": Scale("Nav2 cost", LETHAL_COST, _cost_colours, top_label="100 lethal"),
     "age": Scale("age (s)", AGE_SCALE_S, _age_colours),
+    # the speed layer: red = the floor .. green = full speed (T's colours: slow where the grid is unsure)
+    "speed": Scale("speed (of max)", 1.0, colorize_traversability),
 }
 UNKNOWN_COLOUR = (70, 70, 70)  # cells never observed, in the grid's pictures
 

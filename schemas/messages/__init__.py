@@ -19,7 +19,7 @@ from gcdtrav.schemas.messages.base import (
     peek_fields,
     schema_major,
 )
-from gcdtrav.schemas.messages.credits import CREDIT_REASONS, CreditGrant, RelayHealth
+from gcdtrav.schemas.messages.credits import CREDIT_REASONS, CameraParked, CreditGrant, RelayHealth
 from gcdtrav.schemas.messages.grid import GridHeader, GridMessage, Pose2D
 from gcdtrav.schemas.messages.images import RAW_CHANNELS, ImageEnvelope, PixelEncoding
 from gcdtrav.schemas.messages.maps import CompactMapsMessage, MapsHeader, MapsMessage

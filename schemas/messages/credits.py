@@ -79,3 +79,17 @@ class RelayHealth(Message):
         description="What may keep this camera's maps stale, by cause: camera_silent, no_instance, service_refuses, "
         "camera_unusable, camera_clock (client/relay/causes.py), each with a sentence; empty: none known. Since 1.4.",
     )
+    parked: bool = Field(
+        default=False,
+        description="The robot stopped this camera on purpose (CameraParked on its bus): its silence is no fault, "
+        "the silent-robot alert stays quiet. The relay also sends its health over the link every "
+        "link_health_period_s, so the service knows. Since 1.5.",
+    )
+
+
+class CameraParked(Message):
+    """{prefix}/relay/{source}/parked, on the robot's bus: the robot's own software says it stops (parked: true)
+    or restarts (false) a camera on purpose; the relay marks its RelayHealth until told otherwise."""
+
+    parked: bool = Field(description="True: the camera is stopped on purpose; false: it runs again.")
+    reason: str = Field(default="", max_length=200, description="Why, for the operator (e.g. 'charging').")

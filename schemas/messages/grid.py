@@ -71,3 +71,8 @@ class GridMessage(Message):
     age_png: bytes | None = Field(
         default=None, description="Seconds since each cell was last observed, in 0.1 s steps. Since 1.2."
     )
+    speed_png: bytes | None = Field(
+        default=None,
+        description="Fraction of the robot's maximum speed per cell (value / 65535), unknown cells included "
+        '(docs/grid.md, "Speed from uncertainty"); None: the grid has no speed layer. Since 1.5.',
+    )

@@ -67,6 +67,15 @@ class GridStatus(WireModel):
     costmap_ago_s: float | None = Field(
         default=None, description="Service seconds since the last costmap went out; None: none (or costmap off)."
     )
+    speed_ago_s: float | None = Field(
+        default=None,
+        description="Service seconds since the last speed filter mask went out; None: none (or speed off). Since 1.5.",
+    )
+    speed_safe: bool | None = Field(
+        default=None,
+        description="Whether that mask is the safe one (the floor everywhere: the grid went stale, or the service "
+        "stops); None: none. Since 1.5.",
+    )
     problem: str = Field(default="", description="Why it fuses nothing, when frames come and none fused for a while.")
     tf_waiting: dict[str, str] = Field(
         default_factory=dict,

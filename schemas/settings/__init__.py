@@ -19,6 +19,7 @@ from gcdtrav.schemas.settings.grids import (
     CameraMountSettings,
     GridCamera,
     GridSettings,
+    GridSpeedSettings,
     GridTfSettings,
     PoseBufferSettings,
 )
@@ -39,6 +40,7 @@ __all__ = [
     "ExperienceSettings",
     "GridCamera",
     "GridSettings",
+    "GridSpeedSettings",
     "GridTfSettings",
     "PoseBufferSettings",
     "Precision",

@@ -160,6 +160,57 @@ class PoseBufferSettings(StrictModel):
     )
 
 
+class GridSpeedSettings(StrictModel):
+    """The speed layer: per cell, the fraction of the robot's maximum speed (docs/grid.md, "Speed from
+    uncertainty"). Full speed where U and P(T < tau) are low; down to ``floor`` as either rises to its
+    ``*_floor`` threshold (linearly between), where the match score is below ``min_match`` (novel ground) and,
+    if ``unknown: floor``, where the grid knows nothing. Published as a Nav2 speed filter mask (percent of the
+    maximum speed, 0 = no limit), its CostmapFilterInfo and a SpeedLimit at the robot's pose."""
+
+    # 0.01: the mask's smallest limit is 1 percent (Nav2 reads a mask value 0 as "no limit")
+    floor: float = Field(
+        default=0.3, ge=0.01, le=1, description="The slowest fraction of maximum speed; 1: never slow."
+    )
+    u_full: float = Field(default=0.1, ge=0, le=1, description="U at or below this: no slowing for U.")
+    u_floor: float = Field(default=0.2, ge=0, le=1, description="U at or above this: the floor.")
+    p_below_full: float = Field(default=0.1, ge=0, le=1, description="P(T < tau) at or below this: no slowing.")
+    p_below_floor: float = Field(default=0.5, ge=0, le=1, description="P(T < tau) at or above this: the floor.")
+    min_match: float = Field(
+        default=0.0, ge=0, le=1, description="Cells whose match score is below this are novel: the floor; 0: never."
+    )
+    lead_m: float = Field(
+        default=0.5,
+        ge=0,
+        le=5,
+        description="Slow ground reaches this far out (each cell takes the slowest within lead_m): Nav2's "
+        "SpeedFilter reads only the robot's own cell, so the robot must start braking this far before ambiguous "
+        "ground (its braking distance from full speed to the floor plus its speed times the filter's period).",
+    )
+    unknown: Literal["floor", "full"] = Field(
+        default="floor", description="Cells never observed or expired: the floor, or full speed (no limit)."
+    )
+    rate_hz: float = Field(
+        default=1.0,
+        gt=0,
+        le=10,
+        description="At most this many masks a second (Nav2 logs a warning for every new mask); the SpeedLimit "
+        "at the robot's pose goes out with every fused frame.",
+    )
+    stale_s: float = Field(
+        default=3.0,
+        gt=0,
+        description="No frame fused and no view found unchanged (reused) for this long: the grid is stale and the "
+        "safe mask (the floor everywhere) replaces the last one.",
+    )
+
+    @model_validator(mode="after")
+    def _ramps_rise(self) -> GridSpeedSettings:
+        for low, high in (("u_full", "u_floor"), ("p_below_full", "p_below_floor")):
+            if getattr(self, low) >= getattr(self, high):
+                raise ValueError(f"speed: {low} ({getattr(self, low)}) must be below {high} ({getattr(self, high)})")
+        return self
+
+
 # The single-camera form's own fields: with ``cameras`` they belong to each camera instead.
 SINGLE_CAMERA_FIELDS = ("intrinsics", "camera_info_key", "mount", "depth_key", "frame_id", "frame_axes")
 
@@ -219,6 +270,12 @@ class GridSettings(StrictModel):
         le=1,
         description="Costmap: cells whose fused match score is below this are unknown (no anchor describes "
         "them); 0: never.",
+    )
+
+    speed: GridSpeedSettings | None = Field(
+        default=None,
+        description='Also publish a speed layer and Nav2 speed filter mask from U (docs/grid.md, "Speed from '
+        'uncertainty"); null: off.',
     )
 
     @model_validator(mode="after")

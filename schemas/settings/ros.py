@@ -104,6 +104,22 @@ class RosOutput(StrictModel):
         description="nav_msgs/OccupancyGrid graded for Nav2's static layer (grids with costmap; docs/grid.md).",
     )
 
+    speed_mask_topic: str = Field(
+        default="{topic}/gcdtrav/grid/speed_mask",
+        description="nav_msgs/OccupancyGrid speed filter mask, percent of maximum speed, 0 = no limit (grids with "
+        "speed; docs/grid.md).",
+    )
+    speed_filter_info_topic: str = Field(
+        default="{topic}/gcdtrav/grid/speed_filter_info",
+        description="nav2_msgs/CostmapFilterInfo of the speed mask (type 1, percent): a SpeedFilter's "
+        "filter_info_topic.",
+    )
+    speed_limit_topic: str = Field(
+        default="{topic}/gcdtrav/grid/speed_limit",
+        description="nav2_msgs/SpeedLimit at the robot's pose, for a controller without a SpeedFilter (e.g. "
+        "'speed_limit', controller_server's own topic).",
+    )
+
     _templates = field_validator(
         "traversability_topic",
         "uncertainty_topic",
@@ -112,6 +128,9 @@ class RosOutput(StrictModel):
         "grid_uncertainty_topic",
         "gridmap_topic",
         "costmap_topic",
+        "speed_mask_topic",
+        "speed_filter_info_topic",
+        "speed_limit_topic",
     )(_topic_template)
 
     def topic_templates(self) -> list[str]:
@@ -125,4 +144,7 @@ class RosOutput(StrictModel):
             self.grid_uncertainty_topic,
             self.gridmap_topic,
             self.costmap_topic,
+            self.speed_mask_topic,
+            self.speed_filter_info_topic,
+            self.speed_limit_topic,
         ]

@@ -121,7 +121,11 @@ class ExperienceBus:
             self.experience.save_if_dirty()  # a failed write is logged and counted by the store
 
     def status(self) -> ExperienceStatus:
-        return self.experience.status()
+        """The experience's status, with the open questions of the grids this instance owns: one it asked before
+        its grid moved to another instance can no longer be answered here (answers go to the owner)."""
+        status = self.experience.status()
+        owned = [question for question in status.open_questions if self.owns(question.source)]
+        return status.model_copy(update={"open_questions": owned})
 
     def calibration(self) -> CalibrationFigures:
         """The active anchor set graded by the stored pairs (the metrics' ECE and coverage)."""

@@ -27,6 +27,7 @@ from gcdtrav.service.bus.fleet_models import FleetModels
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.membership import Membership
 from gcdtrav.service.bus.outputs import FrameOutputs
+from gcdtrav.service.bus.presence import declare_relay_health
 from gcdtrav.service.bus.queryables import AnchorQueries, SourceQueries
 from gcdtrav.service.bus.ros_graph import RosGraph, graph_inputs
 from gcdtrav.service.bus.tf import declare_tf_inputs
@@ -65,7 +66,7 @@ class TraversabilityService:
     def __init__(self, session: zenoh.Session, pipeline: Pipeline, settings: ServiceSettings) -> None:
         self.session, self.pipeline, self.settings = session, pipeline, settings
         self.prefix, self.keys = settings.prefix, Keys(settings.prefix)
-        self.metrics = ServiceMetrics()  # its histograms see every frame the stats count
+        self.metrics = ServiceMetrics(settings.instance)  # its histograms see every frame the stats count
         self.stats = ServiceStats(log, settings.source_idle_s, self.metrics.timings)  # the bus's refusals too
         self._declared: list[Any] = []
         self._stopping = threading.Event()
@@ -85,7 +86,8 @@ class TraversabilityService:
         self._check_inputs()
         self.experience = experience_bus(session, settings, pipeline, experience, self.stats, self.owns)
         calibration = self.experience.calibration if self.experience is not None else None
-        self.metrics.collect(MetricsSources(self.status, self._owned, settings.max_frame_age_s, calibration))
+        heard = self.runtime.presence.heard  # the robots heard: the silent-robot alert's series
+        self.metrics.collect(MetricsSources(self.status, self._owned, settings.max_frame_age_s, calibration, heard))
 
     def _check_inputs(self) -> None:
         own = zenoh.KeyExpr(self.keys.outputs)
@@ -135,6 +137,7 @@ class TraversabilityService:
         if self.ros_graph is not None:
             self.ros_graph.start()
         self._declare_grid_inputs()
+        self._declared.append(declare_relay_health(self.session, self.keys, self.runtime.presence, self.stats))
         if self.experience is not None:
             self._declared += self.experience.start()
         self.runtime.worker.start()
@@ -174,6 +177,7 @@ class TraversabilityService:
             log.warning("the frame in flight did not finish within %.1f s; its outputs are dropped", timeout)
         if self.membership is not None:
             self.membership.close()
+        self._safe_speed(stale_only=False)  # no mask outlives the service: the frame in flight is out, no other comes
         self.outputs.close()  # before the session's entities: a late frame is refused, not put on a dead key
         self.credits.close()
         undeclare_all(self._declared)
@@ -245,6 +249,7 @@ class TraversabilityService:
     def _watch_progress(self) -> None:
         """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again."""
         while not self._stopping.wait(WATCHDOG_INTERVAL_S):
+            self._safe_speed(stale_only=True)
             change = self.runtime.progress.check(len(self.runtime.queue))
             if change is None or self.membership is None:
                 continue
@@ -255,9 +260,17 @@ class TraversabilityService:
                 log.error("worker %s: withdrawing from the fleet (its sources fail over)", change.health.reason)
                 self.membership.withdraw()
 
+    def _safe_speed(self, stale_only: bool) -> None:
+        """Put the safe speed mask (the floor everywhere) of every grid whose live mask went stale or, when
+        stopping, of every grid that has one (docs/grid.md, "Speed from uncertainty")."""
+        grids = self.runtime.grids
+        if grids is not None:
+            self.runtime.publisher.publish_speed(grids.safe_speed(stale_only))
+
     def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None, publisher: str | None) -> None:
         if self.membership is not None:
             self.membership.note(source)
+        self.runtime.presence.frame(source)
         if self.owns(source):  # else another live instance serves this source
             key, size, encoding = str(sample.key_expr), len(sample.payload), str(sample.encoding)
             self.runtime.admission.offer(source, key, size, sample.payload.to_bytes, encoding, ros, publisher)

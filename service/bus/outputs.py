@@ -32,6 +32,7 @@ class FrameOutputs:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._keys_of_source: dict[str, set[str]] = {}
         self._ros_keys_of_source: dict[str, set[str]] = {}  # publishers (and their tokens) of the ROS graph
+        self._latched: dict[str, bytes] = {}  # key -> the last payload put of a "latched" output
         self._lock = threading.Lock()  # publishing, forgetting and closing exclude each other
         self._closed = False
 
@@ -45,11 +46,15 @@ class FrameOutputs:
             return True
 
     def _put(self, source: str, output: Output) -> None:
+        if output.qos == "latched":  # put once: its publisher's cache holds it for late subscribers
+            if self._latched.get(output.key) == output.payload:
+                return
+            self._latched[output.key] = output.payload
         topic = output.topic
         if topic is not None and topic.layout == "rmw_zenoh" and self.ros_graph is not None:
             # On an rmw_zenoh robot through the graph (MP token, attachment); on a bridge robot, plainly.
             publisher = self.ros_graph.publisher(
-                topic, GRID_QOS if output.qos == "grid" else IMAGE_QOS, ENCODINGS["cdr"]
+                topic, IMAGE_QOS if output.qos == "image" else GRID_QOS, ENCODINGS["cdr"]
             )
             self._ros_keys_of_source.setdefault(source, set()).add(publisher.key)
             publisher.put(output.payload)
@@ -83,6 +88,8 @@ class FrameOutputs:
             keys = self._keys_of_source.pop(source, set())
             publishers = [self._publishers.pop(key) for key in keys]
             ros_keys = self._ros_keys_of_source.pop(source, set())
+            for key in keys | ros_keys:
+                self._latched.pop(key, None)  # a publisher declared again puts its latched payload again
             if self.ros_graph is not None:
                 self.ros_graph.forget(ros_keys)
             undeclare_all(publishers)
@@ -94,3 +101,4 @@ class FrameOutputs:
             self._publishers.clear()
             self._keys_of_source.clear()
             self._ros_keys_of_source.clear()
+            self._latched.clear()

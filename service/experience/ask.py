@@ -8,12 +8,17 @@ the region, the two concepts with the most weight there, a small crop of the las
 wiring supplies), the stamp. An answer becomes ``operator`` outcomes for those cells, paired with the
 weights the question showed, and closes the question; an unanswered one expires after
 ``answer_timeout_s``. Everything is counted (``counts``).
+
+A question's id is unique across the fleet and across restarts: the source, a random part drawn when the
+asker starts, and the asker's count (``robot/cam-9f3a61c2-1``). Several instances ask about one grid as it
+moves between them, and each counts from 1: ids of the count alone named three regions ``robot/cam-1``.
 """
 
 from __future__ import annotations
 
 import itertools
 import math
+import secrets
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -85,6 +90,7 @@ class OperatorAsker:
         self._open: OpenQuestion | None = None
         self._last_asked: float | None = None
         self._asked = 0
+        self._id_part = secrets.token_hex(4)  # this asker's, so that no other instance or start repeats its ids
         self._lock = threading.Lock()
         self.counts: dict[str, int] = {}
 
@@ -176,7 +182,7 @@ class OperatorAsker:
         t, u = gcd.mixture_mean_std(weights, anchors.positions, anchors.widths)
         below = risk.p_below(weights, anchors.positions, anchors.widths, self.tau)
         return OperatorQuestion(
-            id=f"{self.source}-{self._asked}"[-64:],
+            id=f"{self.source}-{self._id_part}-{self._asked}"[-64:],  # the unique tail kept
             source=self.source,
             stamp=stamp,
             reason="novel" if reasons.count("novel") * 2 > len(reasons) else "ambiguous",

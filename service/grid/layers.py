@@ -41,6 +41,7 @@ class GridLayers:
     alpha: float
     tau: float
     lethal_tau: float
+    speed: NDArray[np.float32] | None = None  # fraction of maximum speed (grid/speed.py); None: no speed layer
 
     @property
     def known(self) -> NDArray[np.bool_]:
@@ -48,7 +49,8 @@ class GridLayers:
 
     def values(self) -> dict[str, NDArray[Any]]:
         """Every layer of the table (schemas/grid_layers.py) by name, as the GridMessage encodes it."""
-        return {layer.name: getattr(self, layer.name) for layer in GRID_LAYERS}
+        found = {layer.name: getattr(self, layer.name) for layer in GRID_LAYERS}
+        return {name: values for name, values in found.items() if values is not None}
 
     def float_layers(self) -> dict[str, NDArray[np.float32]]:
         """Every layer as float32 by name, in the table's order, unknown NaN: a GridMap's layers."""

@@ -27,6 +27,10 @@ from gcdtrav.schemas.ros_image import IMAGE as IMAGE
 from gcdtrav.service.grid.geometry import PinholeCamera
 from gcdtrav.service.ros.grid_map_msgs import GRID_MAP as GRID_MAP  # re-exported: the output types in one place
 from gcdtrav.service.ros.grid_map_msgs import register_types
+from gcdtrav.service.ros.nav2_msgs import COSTMAP_FILTER_INFO as COSTMAP_FILTER_INFO  # re-exported
+from gcdtrav.service.ros.nav2_msgs import SPEED_FILTER_PERCENT
+from gcdtrav.service.ros.nav2_msgs import SPEED_LIMIT as SPEED_LIMIT
+from gcdtrav.service.ros.nav2_msgs import register_types as register_nav2_types
 from numpy.typing import NDArray
 
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
@@ -38,11 +42,13 @@ PREVIEW_FORMAT = "rgb8; jpeg compressed bgr8"
 @cache
 def typestore() -> Any:
     """Message definitions of ROS 2 Jazzy (rmw_zenoh's first release): sensor_msgs are the same since Humble.
-    grid_map_msgs, not built in, registered from their .msg text (service/ros/grid_map_msgs.py)."""
+    grid_map_msgs and nav2_msgs' speed filter messages, not built in, registered from their .msg text
+    (service/ros/grid_map_msgs.py, service/ros/nav2_msgs.py)."""
     from rosbags.typesys import Stores, get_typestore
 
     store = get_typestore(Stores.ROS2_JAZZY)
     register_types(store)
+    register_nav2_types(store)
     return store
 
 
@@ -313,3 +319,26 @@ def decode_odometry_motion(payload: bytes) -> tuple[Pose2D, tuple[float, float, 
     if not all(math.isfinite(v) for v in values):
         raise MessageError(f"Odometry twist with a number that is not finite: {values}")
     return pose, values
+
+
+# ---- Nav2's speed filter: its info and the speed limit (docs/grid.md, "Speed from uncertainty") ------------
+
+
+def costmap_filter_info_cdr(frame_id: str, mask_topic: str) -> bytes:
+    """nav2_msgs/CostmapFilterInfo of a speed mask in percent (type 1, base 0, multiplier 1: a mask value v is v
+    percent). Stamped 0: the same bytes for the same mask topic, so the info is put once, not with every mask
+    (each new info makes Nav2's SpeedFilter drop its mask and subscribe afresh)."""
+    message = typestore().types[COSTMAP_FILTER_INFO](
+        header=make_header(0.0, frame_id),
+        type=SPEED_FILTER_PERCENT,
+        filter_mask_topic=mask_topic,
+        base=np.float32(0.0),
+        multiplier=np.float32(1.0),
+    )
+    return bytes(typestore().serialize_cdr(message, COSTMAP_FILTER_INFO))
+
+
+def speed_limit_cdr(stamp: float, frame_id: str, percent: float) -> bytes:
+    """nav2_msgs/SpeedLimit in percent of the maximum speed; 0: no limit."""
+    message = typestore().types[SPEED_LIMIT](header=make_header(stamp, frame_id), percentage=True, speed_limit=percent)
+    return bytes(typestore().serialize_cdr(message, SPEED_LIMIT))

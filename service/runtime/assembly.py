@@ -27,6 +27,7 @@ from gcdtrav.service.runtime.grids.outputs import AfterFusion
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.intake.admission import Admission
 from gcdtrav.service.runtime.intake.freshness import FrameGate, Freshness
+from gcdtrav.service.runtime.intake.presence import SourcePresence
 from gcdtrav.service.runtime.intake.sources import SourceTracker
 from gcdtrav.service.runtime.outputs import FramePublisher, OutputBuilder, OutputSink
 from gcdtrav.service.runtime.progress import ProgressMonitor
@@ -67,6 +68,7 @@ class Runtime:
     progress: ProgressMonitor
     status_parts: StatusParts
     worker: FrameWorker
+    presence: SourcePresence  # the robots heard: the silent-robot alert's metrics
 
     @classmethod
     def build(
@@ -105,7 +107,8 @@ class Runtime:
         backend = pipeline.describe()
         credits = Credits(CreditLedger(settings.instance, backend.input_size, freshness.max_age_s), stats, credit_sink)
         # the one hand-off out: encoded here, put by the sink, the credits told
-        publisher = FramePublisher(OutputBuilder(settings, backend.model_id), sink, credits.published)
+        unchanged = grids.unchanged if grids is not None else lambda source: None
+        publisher = FramePublisher(OutputBuilder(settings, backend.model_id), sink, credits.published, unchanged)
         forget = (
             queue.forget,
             history.forget,
@@ -170,6 +173,7 @@ class Runtime:
             progress,
             status_parts,
             worker,
+            SourcePresence(settings.max_sources, settings.source_idle_s),
         )
 
 

@@ -11,12 +11,17 @@ Two kinds, by what their meaning needs:
   queue wait, the maps' age when published) are histograms, which must see every value as it happens.
 
 Labels are bounded: ``source`` takes at most ``max_sources`` tracked names plus the refused ones the status
-lists (``stats.REFUSED_SOURCES``); ``reason`` is a code of the service; no stamp or payload value is a label.
+lists (``stats.REFUSED_SOURCES``), and at most ``max_sources`` heard ones (``intake.presence``); ``reason`` is a
+code of the service; no stamp or payload value is a label.
+
+Every series carries ``gcdtrav_instance``, the instance's name (``InstanceLabel``): Prometheus's own
+``instance`` is the scrape address, which a dashboard reader cannot tell apart from another pod's.
 """
 
 from __future__ import annotations
 
 import contextlib
+import copy
 import math
 import threading
 import time
@@ -24,7 +29,8 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 from gcdtrav.schemas.experience import CalibrationFigures
-from gcdtrav.schemas.messages import ServiceStatus, SourceStatus
+from gcdtrav.schemas.messages import GridStatus, ServiceStatus, SourceStatus
+from gcdtrav.service.runtime.intake.presence import Heard
 from prometheus_client import CollectorRegistry, Histogram, disable_created_metrics
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, InfoMetricFamily, Metric
 from prometheus_client.process_collector import ProcessCollector
@@ -36,6 +42,7 @@ INFERENCE_BUCKETS = (0.01, 0.025, 0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5, 2.0
 AGE_BUCKETS = (0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 7.5, 10.0, 20.0)
 WAIT_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0)
 CALIBRATION_EVERY_S = 30.0  # the figures go over every stored pair: computed at most this often
+INSTANCE_LABEL = "gcdtrav_instance"  # the instance's name, on every series (Prometheus's `instance` is the address)
 
 
 class FrameTimings:
@@ -84,6 +91,7 @@ class MetricsSources:
     owned: Callable[[], int]  # sources this instance serves in the fleet's table (service/runtime/fleet/assignment.py)
     max_frame_age_s: float | None  # the freshness limit the map-age alert compares with
     calibration: Callable[[], CalibrationFigures | None] | None = None  # None: experience off
+    heard: Callable[[], dict[str, Heard]] = dict  # the robots heard (intake/presence.py); none by default
 
 
 # What each metric read at scrape time means (docs/metrics.md says it at length, with units).
@@ -94,6 +102,9 @@ HELP = {
     "gcdtrav_frames_dropped": "Good frames never published, by reason (replaced, stale, not_owner, shutdown, ...).",
     "gcdtrav_frames_rejected": "Bad frames of a source, by reason (undecodable, oversized, bad_stamp, ...).",
     "gcdtrav_clock_offset_seconds": "Service clock minus the source's clock plus the link's smallest delay.",
+    "gcdtrav_source_last_frame_timestamp_seconds": "When the source's last frame reached this instance (or its "
+    "relay first spoke, before any frame), Unix seconds: the silent-robot alert compares it with now.",
+    "gcdtrav_source_parked": "1 while the source's relay says its camera is stopped on purpose, else 0.",
     "gcdtrav_inputs_rejected": "Every rejected input by reason, those without a source too (rate_limited, ...).",
     "gcdtrav_healthy": "1 while the worker progresses, 0 while stalled (withdrawn from the fleet).",
     "gcdtrav_sources_owned": "Sources the fleet's table gives this instance (sums to the fleet's sources).",
@@ -111,6 +122,8 @@ HELP = {
     "gcdtrav_calibration_ece": "Expected calibration error of P(T < tau) (0: calibrated).",
     "gcdtrav_calibration_mae": "Mean |T - outcome| over the pairs.",
     "gcdtrav_calibration_coverage": "Share of outcomes at or above the alpha quantile of T (calibrated: 1 - alpha).",
+    "gcdtrav_grid_speed_age_seconds": "Seconds since a grid's last speed filter mask went out (grids with speed).",
+    "gcdtrav_grid_speed_safe": "1 while a grid's last speed mask is the safe one (the floor: stale or stopping).",
 }
 
 
@@ -128,7 +141,9 @@ class StatusCollector(Collector):
     def collect(self) -> Iterator[Metric]:
         status = self.sources.status()
         yield from source_families(status.sources)
+        yield from heard_families(self.sources.heard())
         yield from service_families(status, self.sources.owned(), self.sources.max_frame_age_s)
+        yield from speed_families(status.grids or [])
         if status.experience is not None:
             yield gauge("gcdtrav_experience_pairs", status.experience.pairs)
         if self._calibration is not None:
@@ -161,6 +176,32 @@ def source_families(sources: dict[str, SourceStatus]) -> Iterator[Metric]:
         if source.clock_offset_s is not None:
             offset.add_metric([name], source.clock_offset_s)
     yield from (received, processed, reused, dropped, rejected, offset)
+
+
+def speed_families(grids: list[GridStatus]) -> Iterator[Metric]:
+    """Per grid with a speed layer (labelled by the source it is published under): its last mask's age and
+    whether it is the safe one (docs/grid.md, "Speed from uncertainty")."""
+    names = ("gcdtrav_grid_speed_age_seconds", "gcdtrav_grid_speed_safe")
+    age, safe = (GaugeMetricFamily(name, HELP[name], labels=["source"]) for name in names)
+    for grid in grids:
+        if grid.speed_ago_s is not None:
+            age.add_metric([grid.source], grid.speed_ago_s)
+            safe.add_metric([grid.source], int(bool(grid.speed_safe)))
+    yield from (age, safe)
+
+
+def heard_families(heard: dict[str, Heard]) -> Iterator[Metric]:
+    """Per source heard (frames on the inputs, owner or not, or its relay's health): when its last frame came,
+    and whether its relay says it parked (only for sources whose relay spoke)."""
+    last_frame, parked = (
+        GaugeMetricFamily(name, HELP[name], labels=["source"])
+        for name in ("gcdtrav_source_last_frame_timestamp_seconds", "gcdtrav_source_parked")
+    )
+    for name, source in sorted(heard.items()):
+        last_frame.add_metric([name], source.last_frame_at)
+        if source.parked is not None:
+            parked.add_metric([name], int(source.parked))
+    yield from (last_frame, parked)
 
 
 def service_families(status: ServiceStatus, owned: int, max_frame_age_s: float | None) -> Iterator[Metric]:
@@ -225,15 +266,31 @@ class ThrottledCalibration:
             return self._figures
 
 
+class InstanceLabel(CollectorRegistry):
+    """A registry whose every sample carries ``gcdtrav_instance``: a panel or an alert names the instance as
+    ``gcdtrav status`` does, with no join on the info metric, and a pod's series keep their name when its
+    address changes."""
+
+    def __init__(self, instance: str) -> None:
+        super().__init__()
+        self.instance = instance
+
+    def collect(self) -> Iterator[Metric]:
+        for metric in super().collect():
+            labelled = copy.copy(metric)  # the families are built per scrape, but the histograms' are kept
+            labelled.samples = [s._replace(labels={**s.labels, INSTANCE_LABEL: self.instance}) for s in metric.samples]
+            yield labelled
+
+
 class ServiceMetrics:
     """One registry per service (several in one process in the tests): the histograms, the collector and the
-    process's own metrics (CPU, memory, start time)."""
+    process's own metrics (CPU, memory, start time), every series labelled with the instance's name."""
 
-    def __init__(self) -> None:
+    def __init__(self, instance: str) -> None:
         # No *_created series (process-wide in prometheus_client): Prometheus would store each as one more
         # series per histogram and source, for a start time nobody queries.
         disable_created_metrics()
-        self.registry = CollectorRegistry()
+        self.registry = InstanceLabel(instance)
         self.timings = FrameTimings(self.registry)  # the stats' events: built first, given to them at construction
         ProcessCollector(registry=self.registry)
 

@@ -32,12 +32,14 @@ from gcdtrav.schemas.messages import CompactMapsMessage, MapsHeader, MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
-from gcdtrav.service.runtime.grids import FusedGrid, GridUpdate
+from gcdtrav.service.runtime.grids import FusedGrid, GridUpdate, SpeedUpdate
 from gcdtrav.service.runtime.triage.change import Glance
 from numpy.typing import NDArray
 
 Encoding = Literal["msgpack", "jpeg", "cdr"]
-RosQos = Literal["image", "grid"]  # rclcpp's default publisher profile; a map's (transient local, depth 1)
+# rclcpp's default publisher profile; a map's (transient local, depth 1); a map's put only when its bytes change
+# (the speed filter's info: each new one makes Nav2's SpeedFilter drop its mask and subscribe again)
+RosQos = Literal["image", "grid", "latched"]
 PREVIEW_JPEG_QUALITY = 80
 log = logging.getLogger("gcdtrav.service")
 
@@ -86,15 +88,17 @@ class OutputSink(Protocol):
 class FramePublisher:
     """The one hand-off out: encode a processed frame (the worker's) or an unchanged one's reused maps (the
     triage's), give the payloads to the sink and, once they are out, tell ``published(source, stamp)`` (the
-    credits: later grants say how fresh the maps are)."""
+    credits: later grants say how fresh the maps are) and, for an unchanged one, ``unchanged(source)`` (the
+    grids: its camera's view still holds, so its grid is not stale)."""
 
     def __init__(
         self,
         builder: OutputBuilder,
         sink: OutputSink,
         published: Callable[[str, float], None] = lambda source, stamp: None,
+        unchanged: Callable[[str], None] = lambda source: None,
     ) -> None:
-        self.builder, self.sink, self.published = builder, sink, published
+        self.builder, self.sink, self.published, self.unchanged = builder, sink, published, unchanged
 
     def __call__(self, done: ProcessedFrame) -> bool:
         outputs = self.builder.build(done, compact=self.sink.wants_compact(done.source))
@@ -111,7 +115,16 @@ class FramePublisher:
         if not outputs or not self.sink.put(pending.source, outputs):
             return False
         self.published(pending.source, seen.stamp)
+        self.unchanged(pending.source)
         return True
+
+    def publish_speed(self, updates: list[SpeedUpdate]) -> bool:
+        """Grids' speed outputs outside a frame (the safe mask of a stale grid, or at shutdown); False if the
+        sink refused any (closed)."""
+        put = True
+        for update in updates:
+            put = self.sink.put(update.source, self.builder.speed(update)) and put
+        return put
 
     def forget(self, source: str) -> None:
         self.builder.forget(source)
@@ -276,6 +289,26 @@ class OutputBuilder:
             outputs.append(Output(self.keys.grid(source, layer), payload, "cdr"))
             if update.ros is not None and names.enabled:
                 outputs.append(self._ros(update.ros, template, msgtype, payload, "grid"))
+        if update.speed is not None:
+            outputs += self.speed(update.speed)
+        return outputs
+
+    def speed(self, update: SpeedUpdate) -> list[Output]:
+        """A grid's speed filter outputs: the mask (when due) with its filter info, and the SpeedLimit at the
+        robot's pose (docs/grid.md, "Speed from uncertainty")."""
+        source, names = update.source, self.settings.ros_output
+        ros = update.ros if names.enabled else None
+        outputs = [Output(self.keys.grid(source, "speed_limit"), update.limit, "cdr")]
+        if ros is not None:
+            outputs.append(self._ros(ros, names.speed_limit_topic, ros_io.SPEED_LIMIT, update.limit, "image"))
+        if update.mask is None:
+            return outputs
+        outputs.append(Output(self.keys.grid(source, "speed_mask"), update.mask, "cdr"))
+        if ros is not None:
+            mask_topic = ros_io.output_topic(names.speed_mask_topic, ros.topic)
+            info = ros_io.costmap_filter_info_cdr(update.frame_id, mask_topic)
+            outputs.append(self._ros(ros, names.speed_filter_info_topic, ros_io.COSTMAP_FILTER_INFO, info, "latched"))
+            outputs.append(self._ros(ros, names.speed_mask_topic, ros_io.OCCUPANCY_GRID, update.mask, "grid"))
         return outputs
 
     def _question(self, fused: FusedGrid) -> list[Output]:

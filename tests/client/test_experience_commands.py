@@ -6,14 +6,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from gcdtrav.client.client import ServiceError
 from gcdtrav.client.commands.experience import (
     BIAS_LIMIT,
     COVERAGE_SLACK,
     ECE_LIMIT,
     calibration_verdict,
     crop_ansi,
-    open_question,
     question_lines,
     report_lines,
     status_lines,
@@ -87,16 +85,13 @@ def status(questions: list[QuestionStatus], experience: bool = True) -> ServiceS
     )  # fmt: skip
 
 
-def test_status_lines_and_the_open_question_an_answer_closes() -> None:
+def test_status_lines_name_the_open_questions() -> None:
     question = QuestionStatus(id="r1/cam-2", source="r1/cam", stamp=5.0, reason="ambiguous",
                               concepts=["bush", "grass"], region=(1.0, 2.0, 1.5, 2.5))  # fmt: skip
     statuses = [status([], experience=False), status([question])]
     text = "\n".join(status_lines(statuses))
     assert "experience box-1: grid r1/cam, 3 pairs; ask_asked 1, pairs 3" in text
     assert "QUESTION r1/cam-2 (r1/cam): ambiguous ahead, bush vs grass in (1.0, 2.0, 1.5, 2.5)" in text
-    assert open_question(statuses, "r1/cam") == "r1/cam-2"
-    with pytest.raises(ServiceError, match="no open question for 'r2/cam'"):
-        open_question(statuses, "r2/cam")
     assert status_lines([status([], experience=False)]) == []
 
 

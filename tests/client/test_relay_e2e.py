@@ -16,6 +16,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -30,7 +31,8 @@ from gcdtrav.client.freshness import Staleness
 from gcdtrav.client.relay.relay import Relay
 from gcdtrav.client.session.zenoh_args import zenoh_config
 from gcdtrav.schemas.images import encode_jpeg
-from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding, RelayHealth
+from gcdtrav.schemas.keys import Keys
+from gcdtrav.schemas.messages import CameraParked, ImageEnvelope, PixelEncoding, RelayHealth
 from gcdtrav.schemas.relay import RelaySettings
 from gcdtrav.schemas.settings import ServiceSettings
 
@@ -93,6 +95,7 @@ class Robot:
     camera: Camera
     service_client: TraversabilityClient
     changes: list[Staleness]
+    service: Any  # the TraversabilityService, in this process
 
 
 @contextmanager
@@ -102,7 +105,7 @@ def robot_with_relay(
     settings = ServiceSettings.model_validate(
         {"state_dir": tmp_path, "instance": "box-1", "preview": False, "max_frame_age_s": 2.0} | (service_kw or {})
     )
-    with in_process_service(SlowBackend(tiny_backend, 0.3), settings) as (_, service_port):
+    with in_process_service(SlowBackend(tiny_backend, 0.3), settings) as (service, service_port):
         robot_port = free_port()
         bus = zenoh.open(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{robot_port}"], multicast_scouting=False))
         link = zenoh.open(connecting_config(service_port, mode="client"))
@@ -116,7 +119,7 @@ def robot_with_relay(
         relay = Relay(relay_settings, link, local, on_stale=changes.append).start()
         camera = Camera(bus)
         try:
-            yield Robot(bus, relay, camera, service_client, changes)
+            yield Robot(bus, relay, camera, service_client, changes, service)
         finally:
             camera.stop()
             relay.close()
@@ -225,6 +228,32 @@ def test_a_camera_on_another_clock_is_not_stale_and_a_silent_camera_is_named_onc
         time.sleep(1.0)  # five health periods: still one line for the change
         named = [r for r in caplog.records if "camera_silent" in r.getMessage()]
         assert len(named) == 1, [r.getMessage() for r in named]
+
+
+def test_a_parked_camera_is_no_cause_and_the_service_hears_it_over_the_link(  # type: ignore[no-untyped-def]
+    tiny_backend, tmp_path: Path
+) -> None:
+    """The robot's software parks the camera and stops it: the relay names no silent camera and says parked, on
+    its bus and over the link, where the service hears it (the silent-robot alert's gcdtrav_source_parked);
+    running again, the silence is a cause again."""
+    with robot_with_relay(tiny_backend, tmp_path, camera_silent_after_s=0.5, link_health_period_s=0.5) as robot:
+        heard = lambda: robot.service.runtime.presence.heard().get(SOURCE)  # noqa: E731
+        health = lambda: robot.relay.health(SOURCE)  # noqa: E731
+        robot.camera.start()
+        assert wait_until(lambda: heard() is not None and heard().parked is False, 20), heard()  # over the link
+        parked_key = Keys().relay_parked(SOURCE)
+        robot.bus.put(parked_key, CameraParked(parked=True, reason="charging").pack())
+        robot.camera.stop()
+        assert wait_until(lambda: heard().parked is True, 5), heard()  # told at once, not at the next period
+        time.sleep(1.0)  # twice camera_silent_after_s
+        assert health().parked and "camera_silent" not in health().causes, health()
+        last_frame = heard().last_frame_at
+        assert time.time() - last_frame > 0.9  # silent all the same: only parked keeps the alert quiet
+        robot.bus.put(parked_key, b'{"parked": false}')  # JSON, as a shell script would say it
+        assert wait_until(lambda: heard().parked is False and "camera_silent" in health().causes, 5), health()
+        robot.bus.put(parked_key, b"not a message")  # ignored, logged
+        time.sleep(0.6)
+        assert heard().parked is False and not health().parked
 
 
 def test_a_refusing_service_is_named_in_the_relays_health(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from conftest import torch_free_gcdtrav
 from gcdtrav.client import TraversabilityClient
+from gcdtrav.schemas.delay_window import WINDOW_S
 from gcdtrav.schemas.settings import load_settings
 from zenoh_helpers import connecting_config
 
@@ -26,7 +27,16 @@ def test_the_settings_are_the_simulated_robots() -> None:
     assert settings.grids == [grid_settings()]  # the camera the robot renders, where it puts its pose
     expected = experience_settings()
     assert (settings.experience.cmd_vel, settings.experience.odometry) == (expected.cmd_vel, expected.odometry)
-    assert settings.experience.enabled and settings.ask.enabled and settings.max_frame_age_s is None
+    assert settings.experience.enabled and settings.ask.enabled
+
+
+def test_the_settings_keep_the_map_age_alert_on() -> None:
+    """Without max_frame_age_s, gcdtrav_max_frame_age_seconds is absent and GcdtravMapAgeHigh never fires. The
+    limit must exceed what the simulated clock's drift can make a frame's lag: the offset window (clock:
+    estimated, the smallest delay of WINDOW_S), plus a margin for the frame's time in the service."""
+    settings = load_settings(SETTINGS, environ={})
+    assert settings.clock == "estimated"
+    assert settings.max_frame_age_s is not None and settings.max_frame_age_s >= WINDOW_S + 5.0
 
 
 def test_a_short_drive_gives_calibration_and_a_proposal_data(tmp_path: Path) -> None:

@@ -4,6 +4,7 @@ decoder and the viewer all follow it, so a layer added to it reaches each of the
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 from gcdtrav.client.client import Grid
@@ -22,7 +23,8 @@ def layers() -> GridLayers:
     t = np.array([[0.25, np.nan], [0.5, 1.0]], np.float32)
     count = np.array([[1, 0], [2, 300]], np.int64)
     age = np.array([[0.0, np.nan], [1.25, 3.0]])
-    return GridLayers(t, t / 2, t / 4, 1 - t, np.full((2, 2), 0.5, np.float32), count, age, t, 0.1, 0.3, 0.3)
+    speed = np.array([[0.3, 0.3], [1.0, 0.65]], np.float32)  # configured where unknown: never NaN
+    return GridLayers(t, t / 2, t / 4, 1 - t, np.full((2, 2), 0.5, np.float32), count, age, t, 0.1, 0.3, 0.3, speed)
 
 
 def test_every_layer_of_the_table_is_a_message_field_and_every_layer_field_a_row() -> None:
@@ -32,8 +34,12 @@ def test_every_layer_of_the_table_is_a_message_field_and_every_layer_field_a_row
 
 
 def test_grid_map_layer_order_is_the_tables_and_unchanged() -> None:
-    expected = ("traversability", "uncertainty", "cvar", "p_below", "match", "count", "age")
+    expected = ("traversability", "uncertainty", "cvar", "p_below", "match", "count", "age", "speed")
     assert tuple(layers().float_layers()) == expected == tuple(layer.name for layer in GRID_LAYERS)
+    without_speed = replace(layers(), speed=None)  # a grid without speed: its layers as before 1.5
+    assert tuple(without_speed.float_layers()) == expected[:-1]
+    message = GridMessage.model_validate({"header": HEADER, **encode_layers(without_speed.values())})
+    assert message.speed_png is None and Grid.from_payload(message.pack()).speed is None
 
 
 def test_every_drawn_layer_has_a_colour_scale_in_the_viewer() -> None:

@@ -29,6 +29,10 @@ def test_every_key_under_a_prefix() -> None:
     assert keys.credit_source_of("fleet/a/credit/r1/front") == "r1/front"
     assert keys.credit_source_of("fleet/a/credit/**") is None and keys.credit_source_of("fleet/a/status") is None
     assert keys.relay_health("r1/front") == "fleet/a/relay/r1/front/health"
+    assert keys.relay_parked("r1/front") == "fleet/a/relay/r1/front/parked"
+    assert keys.relay_health_source_of(keys.relay_health("r1/front")) == "r1/front"
+    assert keys.relay_health_source_of(keys.relay_parked("r1/front")) is None
+    assert keys.relay_health_source_of(keys.relay_health("**")) is None
     assert keys.outputs == "fleet/a/out/**"
     assert input_key("gcdtrav/in", "r1/front") == "gcdtrav/in/r1/front"
     with pytest.raises(ValueError, match="unknown output kind 'map'"):
@@ -62,7 +66,7 @@ def test_docs_list_the_same_keys() -> None:
     built = {keys.output("{source}", kind) for kind in OUTPUT_KINDS}
     built |= {keys.grid("{source}", layer) for layer in GRID_LAYERS}
     built |= {keys.anchors, keys.anchor_history, keys.anchor_rollback, keys.status, keys.alive("{instance}")}
-    built |= {keys.credit("{source}"), keys.relay_health("{source}")}
+    built |= {keys.credit("{source}"), keys.relay_health("{source}"), keys.relay_parked("{source}")}
     built |= {keys.active_anchors("{instance}", "{millis}", "{version}")}
     built |= {keys.outcome("{source}"), keys.answer("{source}"), keys.planned_path("{source}"), keys.anchor_proposal}
     assert built <= documented, f"missing from docs/messages.md: {sorted(built - documented)}"

@@ -33,6 +33,7 @@ NAMES = (
     "AnchorPoint",
     "AnchorSetRejection",
     "AnchorSetReply",
+    "CameraParked",  # 1.5 (issue 47)
     "CameraPlacement",
     "CompactMapsMessage",
     "ContextDistribution",
@@ -74,6 +75,7 @@ ENCODINGS: dict[str, str] = {
     "AnchorPoint": "0f78399d8b04f214",
     "AnchorSetRejection": "76b065515a8040e7",
     "AnchorSetReply": "63c45ce9cddcac33",
+    "CameraParked": "d1fabadf3045bcfc",  # 1.5 (issue 47)
     "CameraPlacement": "5cc07b0917eecea2",
     "CompactMapsMessage": "6dd57dc6be745b47",
     "ContextDistribution": "8d261f381245817e",
@@ -82,8 +84,8 @@ ENCODINGS: dict[str, str] = {
     "ExperienceStatus": "4af14e7641d86d54",
     "GridCameraStatus": "53933af7bcaf96a8",
     "GridHeader": "45032c519d91c5ab",
-    "GridMessage": "7769ca70ff140d08",
-    "GridStatus": "d8890a741886b576",
+    "GridMessage": "d0c5c59150639ec0",  # 1.5: speed_png
+    "GridStatus": "764176441651b45f",  # 1.5: speed_ago_s, speed_safe
     "ImageEnvelope": "afa63bf98b189131",
     "MapsHeader": "b69d7e8326586de9",
     "MapsMessage": "0b57008939444eab",
@@ -91,8 +93,8 @@ ENCODINGS: dict[str, str] = {
     "PathReply": "bb1eedee3874093d",
     "Pose2D": "8d8c2f26050aa8d8",
     "QuestionStatus": "34c954ab9f7e0fcd",
-    "RelayHealth": "a776a0fce767f62b",
-    "ServiceStatus": "ba35e00fff079430",
+    "RelayHealth": "9bff60dd6a7027a2",  # 1.5: parked (issue 47)
+    "ServiceStatus": "9df70f736ffbe91d",  # 1.5: its GridStatus
     "SourceStatus": "b8cb4513be01ecb6",
     "SourceView": "d16a2d24f70c230c",
 }

@@ -114,7 +114,9 @@ SAMPLES: dict[type[m.Message], m.Message] = {
         credit_timeouts=0,
         uplink_bytes_per_s=1e4,
         downlink_bytes_per_s=2e4,
+        parked=True,
     ),
+    m.CameraParked: m.CameraParked(parked=True, reason="charging"),
 }
 
 FIGURES = e.CalibrationFigures(

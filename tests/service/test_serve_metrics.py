@@ -78,12 +78,14 @@ def test_metrics_are_off_by_default_and_served_where_asked(tiny_model_dir: Path,
         assert listening_ports(off.pid) == {off_port}  # metrics_port 0: nothing listens but zenoh
         content_type, text = scrape(metrics_port)
         assert content_type.startswith("text/plain") and "version=" in content_type
-        assert "gcdtrav_healthy 1.0" in text and 'gcdtrav_service_info{anchor_set_version="' in text
-        assert 'name="on"' in text and "gcdtrav_instances_live 1.0" in text
-        assert "gcdtrav_sources_owned 2.0" in text  # one instance: every robot is its own
+        named = '{gcdtrav_instance="on"}'  # every series names the instance
+        assert f"gcdtrav_healthy{named} 1.0" in text and 'gcdtrav_service_info{anchor_set_version="' in text
+        assert 'name="on"' in text and f"gcdtrav_instances_live{named} 1.0" in text
+        assert f"gcdtrav_sources_owned{named} 2.0" in text  # one instance: every robot is its own
         for robot in ROBOTS:  # processed or reused, one map each
             mine = sum(m.header.source == robot for m in maps)
-            counted = [f'gcdtrav_frames_{kind}_total{{source="{robot}"}}' for kind in ("processed", "reused")]
+            labels = f'{{gcdtrav_instance="on",source="{robot}"}}'
+            counted = [f"gcdtrav_frames_{kind}_total{labels}" for kind in ("processed", "reused")]
             assert mine == sum(float(line.split()[-1]) for line in text.splitlines() if line.startswith(tuple(counted)))
     finally:
         for process in (off, on):

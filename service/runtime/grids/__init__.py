@@ -3,7 +3,7 @@
 queryables use)."""
 
 from gcdtrav.service.runtime.grids.answers import CELL_FORMS, MAX_PATH_POINTS
-from gcdtrav.service.runtime.grids.encoding import GRID_MAP_BASIC_LAYERS, FusedGrid, GridUpdate
+from gcdtrav.service.runtime.grids.encoding import GRID_MAP_BASIC_LAYERS, FusedGrid, GridUpdate, SpeedUpdate
 from gcdtrav.service.runtime.grids.outputs import GridInput, GridOutputs
 from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid
 
@@ -17,4 +17,5 @@ __all__ = [
     "GridOutputs",
     "GridUpdate",
     "SourceGrid",
+    "SpeedUpdate",
 ]

@@ -5,20 +5,38 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
 from gcdtrav.schemas.experience import OperatorQuestion
 from gcdtrav.schemas.grid_layers import encode_layers
 from gcdtrav.schemas.messages import GridHeader, GridMessage
 from gcdtrav.schemas.settings import GridSettings, RiskSettings
+from gcdtrav.service.grid import speed
 from gcdtrav.service.grid.layers import GridLayers, nav2_costs
 from gcdtrav.service.ros.cdr import (
     RosTopic,
     occupancy_cdr,
     occupancy_values_cdr,
+    speed_limit_cdr,
 )
 from gcdtrav.service.ros.grid_map import grid_map_cdr
 from gcdtrav.service.runtime.grids.state import SourceGrid
+from numpy.typing import NDArray
 
 GRID_MAP_BASIC_LAYERS = ["traversability"]  # a GridMap cell is valid where T is (grid_map's basic layers)
+
+
+@dataclass(frozen=True)
+class SpeedUpdate:
+    """A grid's speed filter outputs (docs/grid.md, "Speed from uncertainty"): the mask, a nav_msgs/OccupancyGrid
+    of percent of maximum speed (None: not due yet, ``speed.rate_hz`` bounds it), and the nav2_msgs/SpeedLimit
+    at the robot's pose; ``safe``: both the floor everywhere (a stale grid, a stopping service)."""
+
+    source: str
+    mask: bytes | None
+    limit: bytes
+    frame_id: str  # the grid's frame, the mask's and the filter info's
+    ros: RosTopic | None
+    safe: bool = False
 
 
 @dataclass(frozen=True)
@@ -33,6 +51,7 @@ class GridUpdate:
     grid_map: bytes | None = None
     costmap: bytes | None = None
     ros: RosTopic | None = None
+    speed: SpeedUpdate | None = None
 
 
 @dataclass(frozen=True)
@@ -46,12 +65,15 @@ class FusedGrid:
     layers: GridLayers
     ros: RosTopic | None  # the topic its ROS outputs derive from
     question: OperatorQuestion | None = None
+    speed_mask_due: bool = False  # a grid with speed: this update carries the mask (at most speed.rate_hz)
 
     def encode(self) -> GridUpdate:
-        return encode_update(self.config, self.header, self.layers, self.ros)
+        return encode_update(self.config, self.header, self.layers, self.ros, self.speed_mask_due)
 
 
-def encode_update(config: GridSettings, header: GridHeader, layers: GridLayers, ros: RosTopic | None) -> GridUpdate:
+def encode_update(
+    config: GridSettings, header: GridHeader, layers: GridLayers, ros: RosTopic | None, speed_mask_due: bool = False
+) -> GridUpdate:
     """The payloads of one grid update (encoded outside the grid's lock)."""
     message = GridMessage.model_validate({"header": header, **encode_layers(layers.values())})
     known = layers.known
@@ -64,7 +86,35 @@ def encode_update(config: GridSettings, header: GridHeader, layers: GridLayers, 
     if config.costmap:
         costs = nav2_costs(layers, config.lethal_probability, config.min_match)
         costmap = occupancy_values_cdr(header, costs)
-    return GridUpdate(config.source, message, occupancy, uncertainty, grid_map, costmap, ros)
+    speed_update = None
+    if config.speed is not None and layers.speed is not None:
+        speed_update = speed_of(config, header, layers.speed, ros, speed_mask_due)
+    return GridUpdate(config.source, message, occupancy, uncertainty, grid_map, costmap, ros, speed_update)
+
+
+def speed_of(
+    config: GridSettings,
+    header: GridHeader,
+    fractions: NDArray[np.float32],
+    ros: RosTopic | None,
+    with_mask: bool,
+    safe: bool = False,
+) -> SpeedUpdate:
+    """The speed filter's payloads of a grid's speed layer: the limit at the robot's pose (header.robot; the
+    floor if it is off the grid) and, ``with_mask``, the mask."""
+    assert config.speed is not None
+    at = speed.fraction_at(fractions, header.origin, header.resolution, header.robot[0], header.robot[1])
+    fraction = speed.safe_fraction(config.speed) if at is None else at
+    limit = speed_limit_cdr(header.stamp, header.frame_id, speed.limit_percent(fraction))
+    mask = occupancy_values_cdr(header, speed.mask_values(fractions)) if with_mask else None
+    return SpeedUpdate(config.source, mask, limit, header.frame_id, ros, safe)
+
+
+def safe_speed(config: GridSettings, header: GridHeader, ros: RosTopic | None) -> SpeedUpdate:
+    """The safe mask and limit: the floor everywhere on the grid (docs/grid.md, "Speed from uncertainty")."""
+    assert config.speed is not None
+    fractions = np.full((header.cells, header.cells), speed.safe_fraction(config.speed), np.float32)
+    return speed_of(config, header, fractions, ros, with_mask=True, safe=True)
 
 
 def grid_header(

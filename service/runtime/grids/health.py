@@ -31,8 +31,8 @@ EXPLAINED = {
 
 @dataclass
 class GridHealth:
-    """Counters of one grid, written under its lock (``pose_received_at`` by ``add_pose`` without it: one
-    assignment, poses never wait for a fusion)."""
+    """Counters of one grid, written under its lock (``pose_received_at`` by ``add_pose`` and ``unchanged_at``
+    by ``GridOutputs.unchanged`` without it: one assignment each, neither waits for a fusion)."""
 
     fused: int = 0
     not_fused: dict[str, int] = field(default_factory=dict)
@@ -42,6 +42,7 @@ class GridHealth:
     frame_at: float | None = None  # service clock of the last frame that reached the grid, fused or not
     pose_received_at: float | None = None  # service clock of the last pose
     costmap_at: float | None = None  # service clock of the last update that carried a costmap
+    unchanged_at: float | None = None  # service clock of its cameras' last unchanged view (reused maps, not fused)
 
     def fused_frame(self, camera: str, stamp: float, now: float, costmap: bool) -> None:
         self.fused += 1

@@ -7,6 +7,8 @@ Keys, for a grid published under {source} (its single camera's source, or its na
   {prefix}/out/{source}/grid/uncertainty          nav_msgs/OccupancyGrid CDR, 100 U / 0.5, unknown -1
   {prefix}/out/{source}/grid/gridmap              grid_map_msgs/GridMap CDR, every layer
   {prefix}/out/{source}/grid/costmap              nav_msgs/OccupancyGrid CDR graded for Nav2 (layers.nav2_costs)
+  {prefix}/out/{source}/grid/speed_mask           nav_msgs/OccupancyGrid CDR, Nav2 speed filter mask (grid/speed.py)
+  {prefix}/out/{source}/grid/speed_limit          nav2_msgs/SpeedLimit CDR at the robot's pose
   {prefix}/out/{source}/cell?x=..;y=..            ContextDistribution of the cell (grid frame, metres)
   {prefix}/out/{source}/cell?path=x0,y0;x1,y1;..  PathReply: the known cells along the polyline
 """
@@ -16,7 +18,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
@@ -28,6 +30,7 @@ from gcdtrav.service.grid.fusion import GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount
 from gcdtrav.service.grid.layers import grid_layers
 from gcdtrav.service.grid.poses import PoseAt
+from gcdtrav.service.grid.speed import speed_fractions
 from gcdtrav.service.ros.cdr import (
     RosTopic,
     decode_camera_info_frame,
@@ -35,7 +38,7 @@ from gcdtrav.service.ros.cdr import (
     decode_pose,
 )
 from gcdtrav.service.runtime.grids import answers
-from gcdtrav.service.runtime.grids.encoding import FusedGrid, GridUpdate, grid_header
+from gcdtrav.service.runtime.grids.encoding import FusedGrid, GridUpdate, SpeedUpdate, grid_header, safe_speed
 from gcdtrav.service.runtime.grids.health import NO_INTRINSICS, NO_MOUNT
 from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid, grid_spec, grid_status
 from gcdtrav.service.runtime.grids.tf import GridTf
@@ -235,9 +238,42 @@ class GridOutputs:
             positions, widths = np.asarray(anchors.positions), np.asarray(anchors.widths)
             risk = self.risk
             layers = grid_layers(grid.grid, positions, widths, risk.alpha, risk.tau, grid.config.lethal_tau)
+            if grid.config.speed is not None:
+                layers = replace(layers, speed=speed_fractions(layers, grid.config.speed, grid.config.resolution_m))
             header = self.header(grid, anchors.version)
             ros_topic = grid.ros_topic()
-        return FusedGrid(grid.config, header, layers, ros_topic, question)
+            mask_due = grid.speed_mask_due(self.clock())
+        return FusedGrid(grid.config, header, layers, ros_topic, question, mask_due)
+
+    def unchanged(self, camera: str) -> None:
+        """Camera ``camera``'s view was found unchanged and its last maps reused (the triage): its grid's
+        evidence still holds, so its speed mask is not stale. Without the grid's lock (one assignment)."""
+        grid = self.camera_grids.get(camera)
+        if grid is not None:
+            grid.health.unchanged_at = self.clock()
+
+    def safe_speed(self, stale_only: bool) -> list[SpeedUpdate]:
+        """The safe speed mask and limit (the floor everywhere) of every grid whose live mask must go: it is
+        stale (no frame fused for speed.stale_s), or, ``stale_only`` False, the service stops. A grid that never
+        handed out a mask, or whose last is already safe, has none to replace."""
+        found = []
+        for grid in self.sources.values():
+            with grid.lock:
+                now = self.clock()
+                live = grid.speed_mask_at is not None and not grid.speed_safe
+                if not (grid.speed_stale(now) if stale_only else live):
+                    continue
+                if stale_only:
+                    log.warning(
+                        "grid %s: no frame fused or found unchanged for %.1f s: the safe speed mask (the floor) "
+                        "replaces the last",
+                        grid.config.source,
+                        grid.config.speed.stale_s if grid.config.speed is not None else 0.0,
+                    )
+                grid.speed_mask_at, grid.speed_safe = now, True
+                header, ros_topic = self.header(grid, ""), grid.ros_topic()
+            found.append(safe_speed(grid.config, header, ros_topic))
+        return found
 
     def _pose_wait_s(self, grid: SourceGrid) -> float:
         """How long a frame may wait for its pose: ``poses.wait_s`` while the stream is alive (a pose within

@@ -94,6 +94,30 @@ class SourceGrid:
         self.tf_waiting: Mapping[str, str] = {}  # with tf: GridTf.waiting, what tf does not give yet and why
         self.fused_at: PoseAt | None = None  # the pose the last fused frame was projected with
         self.fused_stamp: float | None = None  # that frame's capture stamp
+        self.speed_mask_at: float | None = None  # service clock of the last speed mask handed out; None: none yet
+        self.speed_safe = False  # whether that mask was the safe one (the floor everywhere)
+
+    def speed_mask_due(self, now: float) -> bool:
+        """Whether a fusion at ``now`` hands out a new speed mask (at most speed.rate_hz; at once after a safe
+        one, which a fresh grid replaces); marks it handed out. Under the lock."""
+        speed = self.config.speed
+        if speed is None:
+            return False
+        last = self.speed_mask_at
+        if last is not None and not self.speed_safe and now - last < 1.0 / speed.rate_hz:
+            return False
+        self.speed_mask_at, self.speed_safe = now, False
+        return True
+
+    def speed_stale(self, now: float) -> bool:
+        """Whether the grid's live mask outlived its evidence: for speed.stale_s no frame fused and no view of its
+        cameras found unchanged (a standing robot's frames are reused, not fused, up to reuse.max_reuse_s: its
+        grid still holds). Under the lock."""
+        speed, health = self.config.speed, self.health
+        if speed is None or self.speed_mask_at is None or self.speed_safe:
+            return False
+        evidence = [at for at in (health.fused_at, health.unchanged_at) if at is not None]
+        return not evidence or now - max(evidence) >= speed.stale_s
 
     @property
     def pose(self) -> Pose2D | None:
@@ -178,6 +202,8 @@ def grid_status(grid: SourceGrid, now: float, clock_offsets: Mapping[str, float]
         poses_held=len(grid.poses),
         cameras=cameras,
         costmap_ago_s=_ago(now, health.costmap_at),
+        speed_ago_s=_ago(now, grid.speed_mask_at),
+        speed_safe=grid.speed_safe if grid.speed_mask_at is not None else None,
         problem=_with_tf(health.problem(now), waiting),
         tf_waiting=waiting,
     )

@@ -1,13 +1,14 @@
 """A real Prometheus (Debian's /usr/bin/prometheus) scrapes `gcdtrav serve` instances on loopback: its PromQL
-answers agree with what the robots received, every query of the Grafana dashboard returns data, an instance
-joins and leaves mid-stream. One Prometheus, one router and the instances are shared by the module's tests.
+answers agree with what the robots received, every query of the Grafana dashboard returns data and no NaN (an
+idle instance scraped too), every series names its gcdtrav instance, an instance joins and leaves mid-stream,
+and the silent-robot alert fires for a robot that went silent, not for one that parked and said so. One
+Prometheus, one router and the instances are shared by the module's tests.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import shutil
 import signal
 import subprocess
 import tempfile
@@ -24,23 +25,24 @@ from typing import Any
 
 import cv2
 import pytest
+import yaml
 from conftest import textured_image
+from real_components import require_prometheus
 from zenoh_helpers import client_config, connecting_config, free_port, serve_args, start_router, wait_until
 
 pytest.importorskip("torch")
-PROMETHEUS = shutil.which("prometheus")
-pytestmark = pytest.mark.skipif(
-    PROMETHEUS is None,
-    reason="the prometheus binary is not installed (Debian: apt-get install prometheus; .ci/run installs it)",
-)
 
-from gcdtrav.client import Maps, QueryTimeout, TraversabilityClient  # noqa: E402
-from gcdtrav.schemas.settings import ServiceSettings  # noqa: E402
+from gcdtrav.client import Maps, QueryTimeout, TraversabilityClient
+from gcdtrav.schemas.keys import Keys
+from gcdtrav.schemas.messages import RelayHealth
+from gcdtrav.schemas.settings import ServiceSettings
 
-from tools.loopback import SimulatedRobots, in_process_service, wait_for_statuses  # noqa: E402
+from tools.loopback import SimulatedRobots, in_process_service, wait_for_statuses
 
 ROOT = Path(__file__).resolve().parents[3]
 DASHBOARD = ROOT / "deploy" / "grafana" / "gcdtrav.json"
+ALERTS = ROOT / "deploy" / "prometheus" / "alerts.yaml"
+SILENT_AFTER_S = 3  # the test's silent-robot rule: the shipped one waits 60 s, then 1 min
 ROBOTS = [f"r{k}/front" for k in range(4)]
 FPS = 2.0
 IMAGE = textured_image(48, 64)
@@ -94,10 +96,11 @@ class Fleet:
     prometheus_url: str
     processes: dict[str, subprocess.Popen[str]] = field(default_factory=dict)
 
-    def start(self, name: str) -> subprocess.Popen[str]:
+    def start(self, name: str, prefix: str = "gcdtrav") -> subprocess.Popen[str]:
         args = serve_args(
             self.model,
             *("-m", "client", "-e", f"tcp/127.0.0.1:{self.router_port}", "--instance", name),
+            *("--prefix", prefix, "--input", f"{prefix}/in/**"),
             *("--state-dir", str(self.state / name), "--no-preview", "--threads", "1"),
             *("--metrics-port", str(self.ports[name]), "--metrics-address", "127.0.0.1"),
         )
@@ -121,9 +124,21 @@ class Fleet:
         return float(result[0]["value"][1]) if result else None
 
 
+def short_silent_rule(storage: Path) -> Path:
+    """The shipped GcdtravRobotSilent with SILENT_AFTER_S and no ``for``, so that the test runs in seconds;
+    everything else of the rule (the memory, the parked exception) as shipped."""
+    rules = yaml.safe_load(ALERTS.read_text("utf-8"))
+    rule = next(r for group in rules["groups"] for r in group["rules"] if r.get("alert") == "GcdtravRobotSilent")
+    assert rule["expr"].count("> 60") == 1, rule["expr"]  # the shipped threshold, replaced below
+    short = {**rule, "expr": rule["expr"].replace("> 60", f"> {SILENT_AFTER_S}"), "for": "0s"}
+    path = storage / "silent_short.yaml"
+    path.write_text(json.dumps({"groups": [{"name": "gcdtrav-test-short", "rules": [short]}]}))
+    return path
+
+
 def prometheus_config(ports: dict[str, int], storage: Path) -> Path:
     """Scrape every second: the fleet's instances (job gcdtrav), the experience instance apart (a fleet of its
-    own, so that the fleet's sums stay the robots')."""
+    own, so that the fleet's sums stay the robots'), an idle instance (a prefix no robot uses) apart too."""
 
     def job(name: str, instances: list[str]) -> dict[str, Any]:
         return {"job_name": name, "static_configs": [{"targets": [f"127.0.0.1:{ports[i]}" for i in instances]}]}
@@ -133,8 +148,12 @@ def prometheus_config(ports: dict[str, int], storage: Path) -> Path:
         json.dumps(  # JSON is YAML
             {
                 "global": {"scrape_interval": "1s", "evaluation_interval": "1s", "scrape_timeout": "900ms"},
-                "rule_files": [str(ROOT / "deploy" / "prometheus" / "alerts.yaml")],
-                "scrape_configs": [job("gcdtrav", ["box-a", "box-b", "box-c"]), job("gcdtrav-experience", ["exp-1"])],
+                "rule_files": [str(ALERTS), str(short_silent_rule(storage))],
+                "scrape_configs": [
+                    job("gcdtrav", ["box-a", "box-b", "box-c"]),
+                    job("gcdtrav-experience", ["exp-1"]),
+                    job("gcdtrav-idle", ["idle-1"]),
+                ],
             }
         )
     )
@@ -147,14 +166,14 @@ def fleet(tiny_model_dir: Path) -> Iterator[Fleet]:
         tmp_path = Path(tmp)
         router_port, web_port = free_port(), free_port()
         router = start_router(router_port)
-        ports = {name: free_port() for name in ("box-a", "box-b", "box-c", "exp-1")}
+        ports = {name: free_port() for name in ("box-a", "box-b", "box-c", "exp-1", "idle-1")}
         storage = tmp_path / "prometheus"
         storage.mkdir()
-        assert PROMETHEUS is not None
+        prometheus_bin = require_prometheus()  # skipped here without it; a failure in CI (GCDTRAV_REQUIRE)
         log = (storage / "prometheus.log").open("w")  # a file: an unread pipe would fill and block it
         prometheus = subprocess.Popen(
             [
-                PROMETHEUS,
+                prometheus_bin,
                 f"--config.file={prometheus_config(ports, storage)}",
                 f"--storage.tsdb.path={storage / 'data'}",
                 f"--web.listen-address=127.0.0.1:{web_port}",
@@ -362,25 +381,109 @@ def experience_instance(port: int, state: Path) -> Iterator[None]:
         yield
 
 
-def test_every_query_of_the_dashboard_returns_data(fleet: Fleet, robots: Robots) -> None:
+def relay_health(source: str, parked: bool) -> RelayHealth:
+    """What a robot's relay sends over the link (client/relay/relay.py), with only what the service reads set."""
+    return RelayHealth(
+        source=source,
+        published_at=time.time(),
+        newest_map_stamp=None,
+        map_age_s=None,
+        stale=True,
+        stale_after_s=3.0,
+        frames_captured=0,
+        frames_sent=0,
+        credit_timeouts=0,
+        uplink_bytes_per_s=0.0,
+        downlink_bytes_per_s=0.0,
+        parked=parked,
+    )
+
+
+def test_every_query_of_the_dashboard_returns_data_and_no_nan_with_an_idle_instance(
+    fleet: Fleet, robots: Robots
+) -> None:
     """Each expression of deploy/grafana/gcdtrav.json, with Grafana's rate window filled in, answers a finite
-    value while the robots stream and the experience instance has graded its pairs."""
+    value while the robots stream and the experience instance has graded its pairs; and none answers NaN while
+    an instance that owns no robot (no inference, no queue wait: quantiles of nothing) is scraped too."""
     queries = dashboard_queries()
     assert len(queries) >= 15 and any("calibration" in expr for _, expr in queries)
+    fleet.start("idle-1", prefix="idle")
+    idle = 'gcdtrav_sources_owned{gcdtrav_instance="idle-1"}'
+    # scraped for a while: its histograms' rates are 0 over the window
+    assert wait_until(lambda: (fleet.scalar(f"count_over_time({idle}[1m])") or 0) >= 5, 120), "idle-1 scraped"
     robots.start()
     try:
-        with experience_instance(fleet.ports["exp-1"], fleet.state / "exp-1"):
+        with (
+            experience_instance(fleet.ports["exp-1"], fleet.state / "exp-1"),
+            TraversabilityClient(config=client_config(fleet.router_port), timeout=5.0) as client,
+        ):
+            client.session.put(Keys().relay_health(ROBOTS[0]), relay_health(ROBOTS[0], parked=False).pack())
             target = f"127.0.0.1:{fleet.ports['exp-1']}"
             assert wait_until(lambda: fleet.by("gcdtrav_calibration_ece", "instance").get(target) is not None, 20)
 
-            def empty() -> list[tuple[str, str, list[Any]]]:
+            def answers() -> list[tuple[str, str, list[Any]]]:
                 window = "2m"  # Grafana's $__rate_interval: at least four scrapes
-                answers = [(title, e, fleet.query(e.replace("$__rate_interval", window))) for title, e in queries]
-                return [(t, e, a) for t, e, a in answers if not any(finite(sample) for sample in a)]
+                return [(title, e, fleet.query(e.replace("$__rate_interval", window))) for title, e in queries]
+
+            def empty() -> list[tuple[str, str, list[Any]]]:
+                return [(t, e, a) for t, e, a in answers() if not any(finite(sample) for sample in a)]
 
             assert wait_until(lambda: not empty(), 20), empty()
+            nan = [(t, e, s) for t, e, a in answers() for s in a if math.isnan(float(s["value"][1]))]
+            assert not nan, nan
+            assert fleet.scalar(f"max_over_time({idle}[1m])") == 0  # it was idle all along
     finally:
         robots.stop()
+
+
+def test_every_series_names_its_gcdtrav_instance(fleet: Fleet, robots: Robots) -> None:
+    """The gcdtrav name on every series a gcdtrav instance exposes (Prometheus's own up, scrape_* and ALERTS excepted):
+    a panel says which instance without joining the info metric."""
+    unnamed = fleet.query(
+        'count by (__name__) ({job=~"gcdtrav.*", gcdtrav_instance="", __name__!~"up|scrape_.*|ALERTS.*"})'
+    )
+    assert not unnamed, unnamed
+    names = fleet.by('count by (gcdtrav_instance) ({job="gcdtrav", __name__=~"gcdtrav_.*"})', "gcdtrav_instance")
+    assert {"box-a", "box-b"} <= set(names), names
+    info = fleet.query("gcdtrav_service_info")
+    assert info and all(s["metric"]["name"] == s["metric"]["gcdtrav_instance"] for s in info), info
+
+
+def firing_silent(fleet: Fleet) -> set[str]:
+    firing = fleet.query('ALERTS{alertname="GcdtravRobotSilent", alertstate="firing"}')
+    return {sample["metric"]["source"] for sample in firing}
+
+
+def test_a_silent_robot_fires_and_one_that_parked_and_said_so_does_not(fleet: Fleet) -> None:
+    """Three robots stream; then one goes silent, one parks (its relay says so over the link) and stops, one
+    streams on. The shipped rule, with SILENT_AFTER_S for 60 s and no wait, fires for the silent one only."""
+    silent, parked, steady = "silent/front", "parked/front", "steady/front"
+    keys = Keys()
+    with TraversabilityClient(config=client_config(fleet.router_port), timeout=5.0) as client:
+        client.session.put(keys.relay_health(parked), relay_health(parked, parked=False).pack())
+
+        def stream(sources: list[str], seconds: float) -> None:
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                for source in sources:
+                    client.publish_image(source, IMAGE)
+                time.sleep(0.5)
+
+        stream([silent, parked, steady], 3.0)
+        heard = "max by (source) (gcdtrav_source_last_frame_timestamp_seconds)"
+        assert wait_until(lambda: {silent, parked, steady} <= set(fleet.by(heard, "source")), 20), "all heard"
+        client.session.put(keys.relay_health(parked), relay_health(parked, parked=True).pack())  # then stops
+        assert wait_until(lambda: fleet.by("max by (source) (gcdtrav_source_parked)", "source").get(parked) == 1, 20)
+        deadline = time.monotonic() + 30
+        while silent not in firing_silent(fleet) and time.monotonic() < deadline:
+            stream([steady], 1.0)
+        firing = firing_silent(fleet)
+        assert silent in firing, f"not firing for the silent robot after 30 s: {firing}"
+        assert parked not in firing and steady not in firing, firing
+        silence = fleet.by(f"time() - {heard}", "source")
+        assert silence[parked] > SILENT_AFTER_S, silence  # silent as long: only its parking keeps it quiet
+        client.session.put(keys.relay_health(parked), relay_health(parked, parked=False).pack())  # runs again, silent
+        assert wait_until(lambda: parked in firing_silent(fleet), 20), "fires once it no longer says parked"
 
 
 def finite(sample: dict[str, Any]) -> bool:

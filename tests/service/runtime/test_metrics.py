@@ -14,10 +14,12 @@ from gcdtrav.schemas.settings import SettingsError, load_settings
 from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.intake.clock_offset import ClockOffsets
+from gcdtrav.service.runtime.intake.presence import SourcePresence
 from gcdtrav.service.runtime.intake.sources import SourceTracker
 from gcdtrav.service.runtime.metrics import (
     CALIBRATION_EVERY_S,
     HELP,
+    INSTANCE_LABEL,
     MetricsSources,
     ServiceMetrics,
     ThrottledCalibration,
@@ -40,7 +42,7 @@ class Service:
         run = pipeline()
         self.queue: LatestFrameQueue[bytes] = LatestFrameQueue(10_000_000)
         self.sources = SourceTracker(max_sources=max_sources, idle_s=60.0)
-        self.metrics = ServiceMetrics()
+        self.metrics = ServiceMetrics("box-1")
         self.stats = ServiceStats(logging.getLogger("test"), events=self.metrics.timings)
         self.offsets = ClockOffsets(5.0, 300.0)
         self.progress = ProgressMonitor(2.0, self.clock)
@@ -50,7 +52,9 @@ class Service:
             "box-1", 0.0, run, switch, self.queue, history, self.stats, self.sources, self.progress, self.offsets
         )
         self.owned = owned
-        self.metrics.collect(MetricsSources(lambda: self.parts.status(1.0), lambda: self.owned, 5.0))
+        self.presence = SourcePresence(max_sources, 60.0, lambda: self.clock.now)
+        heard = self.presence.heard
+        self.metrics.collect(MetricsSources(lambda: self.parts.status(1.0), lambda: self.owned, 5.0, heard=heard))
 
     def frame(self, source: str, map_age_s: float = 0.3, reused: bool = False) -> None:
         """A frame received, taken and published."""
@@ -68,11 +72,13 @@ class Service:
         self.stats.forget(source)
 
     def samples(self) -> dict[tuple[str, tuple[tuple[str, str], ...]], float]:
+        """Every sample by name and labels, less the instance's name that every one carries (checked)."""
         text = generate_latest(self.metrics.registry).decode()
+        found = [sample for family in text_string_to_metric_families(text) for sample in family.samples]
+        assert all(sample.labels.get(INSTANCE_LABEL) == "box-1" for sample in found), text
         return {
-            (sample.name, tuple(sorted(sample.labels.items()))): sample.value
-            for family in text_string_to_metric_families(text)
-            for sample in family.samples
+            (sample.name, tuple(sorted((k, v) for k, v in sample.labels.items() if k != INSTANCE_LABEL))): sample.value
+            for sample in found
         }
 
     def value(self, name: str, **labels: str) -> float | None:
@@ -175,7 +181,8 @@ def test_names_follow_prometheus_conventions_and_are_documented(tmp_path: Path) 
         if family.type == "histogram":
             assert name.endswith("_seconds"), name
         for sample in family.samples:
-            assert set(sample.labels) <= {"source", "reason", "le", "alpha"} or name == "gcdtrav_service_info", sample
+            labels = set(sample.labels) - {INSTANCE_LABEL}
+            assert labels <= {"source", "reason", "le", "alpha"} or name == "gcdtrav_service_info", sample
     assert not [line for line in text.splitlines() if "_created" in line]
     exposed = {f"{n}_info" if n == "gcdtrav_service" else n for n in HELP}
     assert exposed - {n for n in HELP if n.startswith(("gcdtrav_calibration", "gcdtrav_experience"))} <= set(ours)
@@ -186,6 +193,46 @@ def figures(pairs: int, ece: float | None) -> CalibrationFigures:
         pairs=pairs, mae=0.1 if pairs else None, bias=None, coverage={"0.1": 0.88 if pairs else None}, tau=0.3,
         reliability=[], ece=ece, ause=None, spearman_u_error=None, anchors=[],
     )  # fmt: skip
+
+
+def test_every_series_names_the_instance_the_process_metrics_too(tmp_path: Path) -> None:
+    service = Service(tmp_path)
+    service.frame("r1/front")
+    text = generate_latest(service.metrics.registry).decode()
+    found = [sample for family in text_string_to_metric_families(text) for sample in family.samples]
+    names = {sample.name for sample in found}
+    assert {"gcdtrav_frames_processed_total", "gcdtrav_service_info", "gcdtrav_inference_seconds_bucket"} <= names
+    assert {sample.labels.get(INSTANCE_LABEL) for sample in found} == {"box-1"}
+    info = next(sample for sample in found if sample.name == "gcdtrav_service_info")
+    assert info.labels["name"] == info.labels[INSTANCE_LABEL]
+
+
+def test_sources_heard_say_when_their_last_frame_came_and_whether_they_parked(tmp_path: Path) -> None:
+    service = Service(tmp_path)
+    service.clock.now = 1000.0
+    service.presence.frame("r1/front")
+    service.clock.now = 1002.0
+    service.presence.relay_health("r2/front", parked=True)  # its relay spoke, its camera never sent a frame
+    service.clock.now = 1005.0
+    service.presence.relay_health("r1/front", parked=False)
+    assert service.value("gcdtrav_source_last_frame_timestamp_seconds", source="r1/front") == 1000.0
+    assert service.value("gcdtrav_source_last_frame_timestamp_seconds", source="r2/front") == 1002.0
+    assert service.value("gcdtrav_source_parked", source="r1/front") == 0
+    assert service.value("gcdtrav_source_parked", source="r2/front") == 1
+    service.presence.frame("r3/front")  # no relay: no parked series, it never said
+    assert service.value("gcdtrav_source_parked", source="r3/front") is None
+    service.clock.now = 1064.0  # 60 s (source_idle_s here) after r2 was last heard: forgotten, r1 still heard
+    assert service.value("gcdtrav_source_parked", source="r2/front") is None
+    assert service.value("gcdtrav_source_last_frame_timestamp_seconds", source="r1/front") == 1000.0
+
+
+def test_sources_heard_stay_bounded_by_max_sources(tmp_path: Path) -> None:
+    service = Service(tmp_path, max_sources=4)
+    for k in range(10):
+        service.presence.frame(f"robot{k}/front")
+    service.presence.relay_health("x" * 300, parked=True)  # a name no intake accepts
+    heard = {dict(labels)["source"] for name, labels in service.samples() if name.startswith("gcdtrav_source_")}
+    assert heard == {f"robot{k}/front" for k in range(6, 10)}  # the ones heard longest ago evicted
 
 
 def test_calibration_is_recomputed_until_pairs_come_then_at_most_every_interval(tmp_path: Path) -> None:
@@ -208,7 +255,7 @@ def test_calibration_is_recomputed_until_pairs_come_then_at_most_every_interval(
 
 def test_calibration_metrics_where_experience_is_on(tmp_path: Path) -> None:
     service = Service(tmp_path)
-    service.metrics = ServiceMetrics()
+    service.metrics = ServiceMetrics("box-1")
     service.metrics.collect(
         MetricsSources(lambda: service.parts.status(1.0), lambda: 0, None, lambda: figures(40, 0.05))
     )
