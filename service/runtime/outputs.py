@@ -11,6 +11,7 @@ something needs them (``full_resolution``, ROS outputs).
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -73,6 +74,15 @@ def preview_panel(
     return np.concatenate([left, colorize_uncertainty(u_small)], axis=1)
 
 
+@dataclass(frozen=True)
+class Encoded:
+    """A processed frame's payloads, and its maps as kept for reuse (the same messages, never re-encoded)."""
+
+    outputs: list[Output]
+    maps: MapsMessage
+    compact_maps: CompactMapsMessage | None
+
+
 class OutputSink(Protocol):
     """Where a frame's payloads go: the bus puts them (``service/bus/outputs.py``)."""
 
@@ -89,7 +99,12 @@ class FramePublisher:
     """The one hand-off out: encode a processed frame (the worker's) or an unchanged one's reused maps (the
     triage's), give the payloads to the sink and, once they are out, tell ``published(source, stamp)`` (the
     credits: later grants say how fresh the maps are) and, for an unchanged one, ``unchanged(source)`` (the
-    grids: its camera's view still holds, so its grid is not stale)."""
+    grids: its camera's view still holds, so its grid is not stale).
+
+    One ordering point per frame: its maps are kept for reuse, then ``kept`` is told (the glance's new
+    reference), then they are put, all under one lock that reuse's answers take too. A frame glanced once
+    the reference is set (a robot sends it the moment it sees the maps) is compared with this frame and
+    answered with its maps, never the previous frame's, and only after them (a client drops older maps)."""
 
     def __init__(
         self,
@@ -99,11 +114,17 @@ class FramePublisher:
         unchanged: Callable[[str], None] = lambda source: None,
     ) -> None:
         self.builder, self.sink, self.published, self.unchanged = builder, sink, published, unchanged
+        self._out = threading.Lock()  # keep, reference and put of a frame; a reused frame's answer
 
-    def __call__(self, done: ProcessedFrame) -> bool:
-        outputs = self.builder.build(done, compact=self.sink.wants_compact(done.source))
-        if not self.sink.put(done.source, outputs):
-            return False
+    def __call__(self, done: ProcessedFrame, kept: Callable[[ProcessedFrame], None] = lambda done: None) -> bool:
+        """Put the frame's payloads; ``kept(done)`` runs once its maps are kept for reuse, before they go out.
+        False, nothing put, once closed."""
+        encoded = self.builder.encode(done, compact=self.sink.wants_compact(done.source))  # outside: the slow part
+        with self._out:
+            self.builder.keep(done.source, encoded)
+            kept(done)
+            if not self.sink.put(done.source, encoded.outputs):
+                return False
         self.published(done.source, done.image.stamp)
         return True
 
@@ -111,9 +132,10 @@ class FramePublisher:
         """The source's last maps again for an unchanged frame (reuse); False (nothing put) once closed or
         when no maps of the source are kept."""
         compact = self.sink.wants_compact(pending.source)
-        outputs = self.builder.reused(pending, seen.stamp, seen.frame_id, compact)
-        if not outputs or not self.sink.put(pending.source, outputs):
-            return False
+        with self._out:
+            outputs = self.builder.reused(pending, seen.stamp, seen.frame_id, compact)
+            if not outputs or not self.sink.put(pending.source, outputs):
+                return False
         self.published(pending.source, seen.stamp)
         self.unchanged(pending.source)
         return True
@@ -139,11 +161,23 @@ class OutputBuilder:
         self.keys = Keys(settings.prefix)
         # Per source, the last inferred frame's maps (and compact maps, if made), to publish again for its
         # unchanged views (reuse): the PNGs as they went out, never re-encoded. Threads: the output thread
-        # writes, the triage thread reads; one reference each, swapped whole.
+        # writes, the triage thread reads (FramePublisher orders the two); one reference each, swapped whole.
         self._last: dict[str, tuple[MapsMessage, CompactMapsMessage | None]] = {}
 
     def build(self, done: ProcessedFrame, compact: bool = False) -> list[Output]:
-        """Every payload of the frame; ``compact``: the 8-bit maps too (only while someone subscribes)."""
+        """Every payload of the frame, its maps kept for reuse; ``compact``: the 8-bit maps too (only while
+        someone subscribes)."""
+        encoded = self.encode(done, compact)
+        self.keep(done.source, encoded)
+        return encoded.outputs
+
+    def keep(self, source: str, encoded: Encoded) -> None:
+        """The source's last maps from now on: what its unchanged frames are answered with (reuse)."""
+        if self.settings.reuse.enabled:
+            self._last[source] = (encoded.maps, encoded.compact_maps)
+
+    def encode(self, done: ProcessedFrame, compact: bool = False) -> Encoded:
+        """Every payload of the frame, nothing kept yet."""
         t, u = done.result.maps.traversability, done.result.maps.uncertainty
         width, height = done.record.image_size
         ros_out = self.settings.ros_output.enabled and done.pending.ros is not None
@@ -155,8 +189,6 @@ class OutputBuilder:
         compact_maps = self.compact_maps(done, maps.header) if compact else None
         if compact_maps is not None:
             outputs.append(Output(self.keys.maps8(done.source), compact_maps.pack(), "msgpack"))
-        if self.settings.reuse.enabled:
-            self._last[done.source] = (maps, compact_maps)
         panel = None
         if self.settings.preview or (ros_out and self.settings.ros_output.preview != "none"):
             panel = preview_panel(done.image.image, t, u, self.settings.preview_max_width)
@@ -168,7 +200,7 @@ class OutputBuilder:
         if done.grid is not None:
             outputs += self._grid(done.grid.encode())
             outputs += self._question(done.grid)
-        return outputs
+        return Encoded(outputs, maps, compact_maps)
 
     def reused(self, pending: PendingFrame, stamp: float, frame_id: str, compact: bool = False) -> list[Output]:
         """The source's last maps again for an unchanged frame: this frame's stamp, key and order, the computed

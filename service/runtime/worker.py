@@ -33,6 +33,9 @@ from gcdtrav.service.runtime.triage.reuse import Triage
 
 log = logging.getLogger("gcdtrav.service")
 _R = TypeVar("_R")
+# The hand-off out (runtime/outputs.py's FramePublisher): a processed frame's maps kept for reuse, then the
+# callback told (the glance's new reference), then the payloads put; False: nothing put (closed).
+Publish = Callable[[ProcessedFrame, Callable[[ProcessedFrame], None]], bool]
 
 
 class FrameWorker:
@@ -44,7 +47,7 @@ class FrameWorker:
         stats: ServiceStats,
         sources: SourceTracker,
         settings: ServiceSettings,
-        publish: Callable[[ProcessedFrame], bool],
+        publish: Publish,
         on_taken: Callable[[PendingFrame], None] = lambda pending: None,
         progress: ProgressMonitor | None = None,
         gate: FrameGate | None = None,
@@ -198,13 +201,13 @@ class FrameWorker:
         )
         map_age_s = self.gate.before_publish(inferred.pending)  # the engine took time too
         done = ProcessedFrame(inferred, result, record, self._fuse(inferred.pending, inferred.image, result, record))
-        if not self.publish(done):
+        # The glance's reference is set once the maps are kept for reuse and before they go out: a frame sent
+        # the moment they are seen is compared with this one and answered with its maps, not inferred again.
+        if not self.publish(done, self.triage.inferred if self.triage is not None else _no_reference):
             self.stats.dropped(source, "shutdown")  # finished after the outputs closed
             return
         latency_ms = (time.time() - inferred.pending.received_at) * 1e3
         self.stats.processed(source, record.seq, latency_ms, result.inference_ms, map_age_s)
-        if self.triage is not None:
-            self.triage.inferred(done)
 
     def _fuse(
         self, pending: PendingFrame, image: DecodedFrame, result: FrameResult, record: FrameRecord
@@ -216,6 +219,10 @@ class FrameWorker:
         maps = result.maps
         unstamped = pending.stamp is None  # a bare image: stamped with its receipt
         return self.grids.fuse(pending.source, record, maps.weights, maps.match, pending.ros, image.image, unstamped)
+
+
+def _no_reference(done: ProcessedFrame) -> None:
+    """Without a glance, no reference to set."""
 
 
 def lower_this_thread(nice: int) -> bool:

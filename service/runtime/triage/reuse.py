@@ -8,8 +8,8 @@ Per source, every frame is glanced at (service/runtime/triage/change.py) and com
 The frame is **reused** (not inferred: that frame's maps are published again under this frame's stamp,
 counted ``unchanged``) when all of these hold:
 
-- reuse is enabled and the source has a reference (a frame inferred and published) made with the active
-  anchor set (after a swap every source's next frame is inferred);
+- reuse is enabled and the source has a reference (a frame inferred, its maps kept to publish) made with the
+  active anchor set (after a swap every source's next frame is inferred);
 - the frame has the reference's size (the maps' scale is for that size);
 - at most ``changed_fraction`` of the thumbnail's blocks moved beyond ``block_threshold``;
 - with a pose (a grid's pose stream), the robot neither moved ``translation_m`` nor turned ``rotation_deg``
@@ -113,7 +113,8 @@ PoseOf = Callable[[str, float | None, float], Pose2D | None]
 
 
 class ReuseTracker:
-    """Thread-safe: glances on the triage thread, references set by the worker after publishing."""
+    """Thread-safe: glances on the triage thread, references set by the worker's hand-off out (between keeping
+    a frame's maps for reuse and putting them)."""
 
     def __init__(
         self,
@@ -191,8 +192,8 @@ class ReuseTracker:
     def inferred(
         self, source: str, pending: PendingFrame, image: NDArray[np.uint8], anchors: str = "", ambiguity: float = 0.0
     ) -> None:
-        """The source's frame was inferred (with the anchor set of version ``anchors``) and its maps published:
-        the new reference, with its ``ambiguity`` ahead."""
+        """The source's frame was inferred (with the anchor set of version ``anchors``) and its maps kept for
+        reuse (they go out next): the new reference, with its ``ambiguity`` ahead."""
         now, pose = self.clock(), self.pose_of(source, pending.stamp, pending.received_at)
         with self._lock:
             view = self._views.setdefault(source, _View())
@@ -281,7 +282,8 @@ class Triage:
         self.on_freed(pending, credits.UNCHANGED)
 
     def inferred(self, done: ProcessedFrame) -> None:
-        """A frame's maps went out: the source's new reference, with its ambiguity ahead for the scheduler."""
+        """A frame's maps are kept for reuse, about to go out: the source's new reference, with its ambiguity
+        ahead for the scheduler (the hand-off out calls this between the two, runtime/outputs.py)."""
         maps = done.result.maps
         ambiguity = ambiguity_of(maps.uncertainty, maps.match, self.settings.schedule)
         self.tracker.inferred(done.source, done.pending, done.image.image, done.result.anchors.version, ambiguity)

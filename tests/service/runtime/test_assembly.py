@@ -3,6 +3,7 @@ rate check first, the glance, the scheduler, the worker, the one hand-off out an
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 
@@ -10,15 +11,33 @@ from fakes import Clock, assembled, image
 from gcdtrav.schemas.images import encode_png
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.runtime.assembly import Runtime
+from gcdtrav.service.runtime.frames import PendingFrame
+from gcdtrav.service.runtime.outputs import Output
+from gcdtrav.service.runtime.schedule.share import Claim
 
 PNG = encode_png(image(32, 32))
+OTHER_VIEW = encode_png(255 - image(32, 32))  # every block moved
 
 
-def offer(runtime: Runtime, source: str, publisher: str | None = "robot") -> bool:
+def offer(runtime: Runtime, source: str, publisher: str | None = "robot", png: bytes = PNG) -> bool:
     """As the bus's subscriber does: the rate check, then the offer."""
     if not runtime.admission.admit(publisher):
         return False
-    return runtime.admission.offer(source, f"gcdtrav/in/{source}", len(PNG), lambda: PNG, "image/png", None, publisher)
+    return runtime.admission.offer(source, f"gcdtrav/in/{source}", len(png), lambda: png, "image/png", None, publisher)
+
+
+def answered_on_settle(runtime: Runtime) -> threading.Event:
+    """Set each time the glance settles a frame: to infer (ready, with a claim) or reused (its answer follows);
+    the test clears it before the frame it waits for."""
+    settled, settle = threading.Event(), runtime.queue.settle
+
+    def settle_and_tell(source: str, item: PendingFrame, claim: Claim | None) -> bool:
+        kept = settle(source, item, claim)
+        settled.set()
+        return kept
+
+    runtime.queue.settle = settle_and_tell  # type: ignore[method-assign]
+    return settled
 
 
 def until(condition: Callable[[], bool], timeout_s: float = 20.0) -> None:
@@ -46,6 +65,80 @@ def test_the_assembled_runtime_infers_a_frame_reuses_an_unchanged_one_and_grants
     until(lambda: [grant.reason for grant in credits.grants] == ["taken", "unchanged"])
     counts = runtime.stats.snapshot(runtime.queue.counters()).sources["r1"]
     assert counts.processed == 1 and counts.unchanged == 1
+
+
+def test_a_frame_sent_the_moment_its_maps_are_seen_is_glanced_against_them() -> None:
+    """A robot on credits sends its next frame the moment it sees the maps: the glance's reference is set
+    before the maps go out, so that frame, unchanged, is answered with them and never inferred again. The
+    sink holds the first maps until the glance has settled the next frame: the worst a loaded host does."""
+    runtime, sink, _ = assembled(ServiceSettings(max_frame_age_s=None))
+    settled, put, sent = answered_on_settle(runtime), sink.put, []
+
+    def robot_sees_maps(source: str, outputs: list[Output]) -> bool:
+        if not sent:  # the first maps: the next frame at once, glanced while they are being put
+            sent.append(True)
+            settled.clear()  # the first frame's glance set it
+            assert offer(runtime, "r1")
+            assert settled.wait(20)
+        return put(source, outputs)
+
+    sink.put = robot_sees_maps  # type: ignore[method-assign]
+    runtime.worker.start()
+    try:
+        assert offer(runtime, "r1")
+        until(lambda: len(sink.maps()) == 2)
+    finally:
+        assert runtime.worker.stop(time.monotonic() + 10)
+    first, again = sink.maps()  # in order: the reused answer never overtakes the maps it repeats
+    assert first.header.computed_from is None
+    assert again.header.computed_from == (first.header.stamp, first.header.seq)
+    counts = runtime.stats.snapshot(runtime.queue.counters()).sources["r1"]
+    assert counts.processed == 1 and counts.unchanged == 1
+
+
+def test_a_reused_frame_is_never_answered_with_the_previous_frame_s_maps() -> None:
+    """The maps kept for reuse and the glance's reference change together. A frame of a new view sent while
+    that view's maps are being encoded (the sink held there until the frame is settled and, if reused,
+    answered) must never get the old view's maps; one sent the moment the new maps are seen gets them."""
+    runtime, sink, _ = assembled(ServiceSettings(max_frame_age_s=None))
+    settled, wants_compact, put = answered_on_settle(runtime), sink.wants_compact, sink.put
+    reused_put, sent = threading.Event(), []
+
+    def encoding(source: str) -> bool:  # asked just before a frame's maps are encoded
+        if len(sink.maps()) == 1 and not sent:  # the new view's: the next frame of it now
+            sent.append("while encoding")
+            settled.clear()
+            assert offer(runtime, "r1", png=OTHER_VIEW)
+            assert settled.wait(20)
+            assert runtime.queue.has_ready("r1") or reused_put.wait(20)  # inferred next, or answered
+        return wants_compact(source)
+
+    def seen(source: str, outputs: list[Output]) -> bool:
+        published = put(source, outputs)
+        if any(maps.header.computed_from is not None for maps in sink.maps()):
+            reused_put.set()
+        if len(sink.maps()) == 3 and len(sent) == 1:  # maps of the new view seen: the next frame at once
+            sent.append("on seeing the maps")
+            assert offer(runtime, "r1", png=OTHER_VIEW)
+        return published
+
+    sink.wants_compact, sink.put = encoding, seen  # type: ignore[method-assign]
+    runtime.worker.start()
+    try:
+        assert offer(runtime, "r1")
+        until(lambda: len(sink.maps()) == 1)
+        assert offer(runtime, "r1", png=OTHER_VIEW)  # a new view: inferred
+        until(lambda: len(sink.maps()) == 4)
+    finally:
+        assert runtime.worker.stop(time.monotonic() + 10)
+    old_view, *later = sink.maps()
+    new_view = {(maps.header.stamp, maps.header.seq) for maps in later if maps.header.computed_from is None}
+    reused = [maps.header.computed_from for maps in later if maps.header.computed_from is not None]
+    assert old_view.header.computed_from is None and (old_view.header.stamp, old_view.header.seq) not in reused
+    assert reused and all(computed in new_view for computed in reused)
+    assert len(sent) == 2
+    counts = runtime.stats.snapshot(runtime.queue.counters()).sources["r1"]
+    assert counts.processed + counts.unchanged == 4 and counts.unchanged == len(reused)
 
 
 def test_the_rate_check_is_admissions_first_and_leaves_no_state() -> None:
