@@ -288,6 +288,13 @@ class SpeedTopics:
         )
         self.limit = None if nav2 is None else node.create_publisher(nav2[1], f"{topic}/{SPEED_LIMIT}", IMAGE_QOS)
         self._info_frame: str | None = None
+        if nav2 is None:
+            log.info(
+                "%s: no nav2_msgs here: the speed mask is published on %s, its CostmapFilterInfo and SpeedLimit "
+                "are not (docs/ros2.md: Nav2's costmap_filter_info_server puts the info)",
+                link.source,
+                self.mask_topic,
+            )
 
     def publish_mask(self, payload: bytes) -> float:
         grid = deserialize_message(payload, OccupancyGrid)
