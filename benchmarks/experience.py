@@ -30,6 +30,7 @@ import argparse
 import json
 import math
 import sys
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +45,7 @@ from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore
 from gcdtrav.service.experience.velocity import VelocityTracker, decode_command, decode_odometry
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
+from gcdtrav.service.store.opening import sqlite_outbox
 
 from tools.synthetic_scene import (
     COMMAND_MPS,
@@ -129,7 +131,8 @@ def run(drive_s: float, after_s: float, seed: int) -> dict[str, Any]:
     world = make_world(seed=seed)
     start = start_anchors()
     settings = ExperienceSettings(enabled=True, footprint_m=0.6, **STORE_LIMITS)
-    store = ExperienceStore(None, settings.max_pairs, settings.max_bytes, settings.lookahead_s)
+    where = Path(tempfile.mkdtemp(prefix="gcdtrav-bench-experience-")) / "store.sqlite3"
+    store = ExperienceStore(sqlite_outbox(where, settings.max_pairs, settings.max_bytes), "robot", settings.lookahead_s)
     end = drive(world, start, store, settings, drive_s, seed + 1, START_STAMP)
     proposal = propose(store.pairs(start.concepts), start, FitOptions(tau=TAU), "benchmark", end)
     drive(world, proposal.proposed, store, settings, after_s, seed + 2, end + 10.0)

@@ -12,6 +12,8 @@ from typing import Any
 import numpy as np
 import pytest
 
+pytest_plugins = ["store_fixtures"]  # the store's fixtures over SQLite and PostgreSQL (tests/service/store/)
+
 # Nothing in the test suite may reach a model hub.
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")

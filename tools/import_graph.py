@@ -33,6 +33,7 @@ _ENGINE, _BACKENDS, _PIPELINE = "gcdtrav.service.engine", "gcdtrav.service.backe
 _GRID, _ROS, _EVAL = "gcdtrav.service.grid", "gcdtrav.service.ros", "gcdtrav.service.eval"
 _RUNTIME, _BUS = "gcdtrav.service.runtime", "gcdtrav.service.bus"
 _EXPERIENCE = "gcdtrav.service.experience"
+_STORE = "gcdtrav.service.store"  # what the fleet remembers (pairs, anchor history): below runtime, zenoh-free
 # runtime/ inside, bottom up: the records every room shares (a query's error, the history and its answers, the
 # grids, a frame's record by stage), the schedule, the counters, the fleet beside the frame's order, then the
 # frame's order: intake (offers to the schedule), triage (glances at what the schedule picked). The worker,
@@ -44,7 +45,7 @@ _RT_INTAKE, _RT_TRIAGE = f"{_RUNTIME}.intake", f"{_RUNTIME}.triage"
 _RT_RECORDS = frozenset({_RT_ERRORS, _RT_HISTORY, _RT_QUERIES, _RT_GRIDS, _RT_FRAMES})
 _RT_ROOMS = _RT_RECORDS | {_RT_SCHEDULE, _RT_STATS, _RT_FLEET, _RT_INTAKE, _RT_TRIAGE}
 _RUNTIME_ALL = _RT_ROOMS | {_RUNTIME}
-_BELOW_RUNTIME = frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS})
+_BELOW_RUNTIME = frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS, _STORE})
 LAYERS: dict[str, frozenset[str]] = {
     _SCHEMAS: frozenset(),
     "gcdtrav.service": frozenset({_SCHEMAS}),  # the package's own __init__
@@ -54,6 +55,7 @@ LAYERS: dict[str, frozenset[str]] = {
     _GRID: frozenset({_SCHEMAS, _ENGINE}),
     _ROS: frozenset({_SCHEMAS, _GRID}),
     _EVAL: frozenset({_SCHEMAS, _ENGINE, _BACKENDS}),
+    _STORE: frozenset({_SCHEMAS}),
     _RT_ERRORS: frozenset(),
     _RT_HISTORY: frozenset({_SCHEMAS, _RT_ERRORS}),
     _RT_QUERIES: frozenset({_SCHEMAS, _ENGINE, _RT_ERRORS, _RT_HISTORY}),
@@ -61,14 +63,14 @@ LAYERS: dict[str, frozenset[str]] = {
     _RT_FRAMES: frozenset({_SCHEMAS, _PIPELINE, _ROS, _RT_HISTORY, _RT_GRIDS}),
     _RT_SCHEDULE: frozenset({_SCHEMAS}),
     _RT_STATS: frozenset({_SCHEMAS, _RT_SCHEDULE}),  # a source's queue counters and share, for its status
-    _RT_FLEET: frozenset({_SCHEMAS, _PIPELINE, _RT_FRAMES, _RT_STATS}),
+    _RT_FLEET: frozenset({_SCHEMAS, _PIPELINE, _STORE, _RT_FRAMES, _RT_STATS}),
     _RT_INTAKE: frozenset({_SCHEMAS, _ROS, _RT_FRAMES, _RT_SCHEDULE, _RT_STATS}),  # credit words: schemas
     _RT_TRIAGE: frozenset({_SCHEMAS, _RT_FRAMES, _RT_SCHEDULE, _RT_STATS}),
     _RUNTIME: _BELOW_RUNTIME | _RT_ROOMS,
-    _EXPERIENCE: frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _GRID, _ROS, _EVAL}) | _RUNTIME_ALL,
-    _BUS: frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS, _EXPERIENCE}) | _RUNTIME_ALL,
+    _EXPERIENCE: frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _GRID, _ROS, _EVAL, _STORE}) | _RUNTIME_ALL,
+    _BUS: frozenset({_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS, _EXPERIENCE, _STORE}) | _RUNTIME_ALL,
     "gcdtrav.service.commands": frozenset(
-        {_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS, _EVAL, _EXPERIENCE, _BUS, "gcdtrav.client"}
+        {_SCHEMAS, _ENGINE, _BACKENDS, _PIPELINE, _GRID, _ROS, _EVAL, _EXPERIENCE, _BUS, _STORE, "gcdtrav.client"}
     )
     | _RUNTIME_ALL,
     "gcdtrav.client": frozenset({_SCHEMAS}),

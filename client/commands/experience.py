@@ -1,6 +1,6 @@
 """The experience's operator commands (docs/calibration.md), torch-free like the rest of operator.py:
 
-  gcdtrav calibration [SOURCE] [--png FILE]         the active set graded by the robot's outcomes
+  gcdtrav calibration [SOURCE] [--by-source] [--png FILE]   the active set graded by the fleet's outcomes
   gcdtrav answer SOURCE [drivable|blocked|SCORE]    show the open question of SOURCE (or --question ID), its
                                                     crop (--save-crop FILE, --show), then answer it
 
@@ -10,6 +10,7 @@ and the text both they and `gcdtrav anchors propose` and `gcdtrav status` print.
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
 
 import cv2
@@ -25,7 +26,7 @@ from gcdtrav.schemas.experience import (
     answer_score,
     coverage_shortfall,
 )
-from gcdtrav.schemas.messages import ServiceStatus
+from gcdtrav.schemas.messages import ServiceStatus, StoreStatus
 
 COMMANDS = ("calibration", "answer")
 FIGURES_ROW = "{:<22} {:>6} {:>7} {:>7} {:>20} {:>6} {:>7} {:>8}"
@@ -41,6 +42,7 @@ def add_experience_commands(commands: argparse._SubParsersAction) -> list[argpar
     calibration = commands.add_parser("calibration", help="the active anchor set graded by the robot's outcomes")
     calibration.add_argument("source", nargs="?", help="the grid's source [the one the service collects]")
     calibration.add_argument("--png", type=Path, help="also draw the reliability diagram (needs matplotlib)")
+    calibration.add_argument("--by-source", action="store_true", help="also each source's (robot's) own figures")
     answer = commands.add_parser("answer", help="answer the question a service asked about the ground ahead")
     answer.add_argument("source", help="the grid's source the question is about")
     answer.add_argument(
@@ -67,7 +69,7 @@ def answer_argument(text: str) -> str:
 
 def run_command(client: TraversabilityClient, args: argparse.Namespace) -> int:
     if args.command == "calibration":
-        return calibration(client, args.source, args.png)
+        return calibration(client, args.source, args.png, args.by_source)
     return answer(client, args)
 
 
@@ -82,8 +84,8 @@ def experience_source(client: TraversabilityClient) -> str:
 # ---- calibration ---------------------------------------------------------------------------------------
 
 
-def calibration(client: TraversabilityClient, source: str | None, png: Path | None) -> int:
-    report = client.calibration(source or experience_source(client))
+def calibration(client: TraversabilityClient, source: str | None, png: Path | None, by_source: bool = False) -> int:
+    report = client.calibration(source or experience_source(client), by_source=by_source)
     print("\n".join([*report_lines(report), "", *verdict_lines(report.figures)]))
     if png is not None:
         draw_reliability(report, png)
@@ -116,8 +118,9 @@ def report_lines(report: CalibrationReport) -> list[str]:
         f"calibration of {report.source}: anchor set {report.anchor_set_version} ({len(report.concepts)} concepts)",
         f"pairs by kind: {kinds}; by anchor-set version: "
         + (", ".join(f"{v} {n}" for v, n in sorted(report.pairs_by_version.items())) or "none"),
+        "the fleet's pairs by source: " + (", ".join(f"{s} {n}" for s, n in report.pairs_by_source.items()) or "-"),
         "",
-        *figures_lines([("active set", f)]),
+        *figures_lines([("active set", f), *sorted((report.by_source or {}).items())]),
         "",
         f"{'anchor':<16} {'position':>8} {'width':>6} {'weight':>8} {'dominant':>8} {'mean outcome':>12}",
     ]
@@ -303,6 +306,8 @@ def status_lines(statuses: list[ServiceStatus]) -> list[str]:
     """For `gcdtrav status`: each instance's experience, and the open questions."""
     lines = []
     for s in statuses:
+        if s.store is not None and not s.store.reachable:
+            lines.append(store_line(s.instance, s.store))
         e = s.experience
         if e is None:
             continue
@@ -316,3 +321,13 @@ def status_lines(statuses: list[ServiceStatus]) -> list[str]:
                 f"gcdtrav answer {q.source} drivable|blocked|SCORE (alone: shows it)"
             )
     return ["", *lines] if lines else []
+
+
+def store_line(instance: str, store: StoreStatus) -> str:
+    """A store that cannot be reached, for `gcdtrav status`: since when, what waits, what was dropped."""
+    when = store.unreachable_since
+    since = time.strftime("%H:%M:%S", time.localtime(when)) if when is not None else "start"
+    return (
+        f"STORE UNREACHABLE from {instance} since {since}: {store.backend} {store.location}; "
+        f"{store.pending_pairs} pairs waiting in memory, {store.dropped_pairs} dropped; {store.error or ''}"
+    ).rstrip("; ")

@@ -42,4 +42,5 @@ from gcdtrav.schemas.messages.status import (
     ServiceStatus,
     SourceStatus,
     SourceView,
+    StoreStatus,
 )

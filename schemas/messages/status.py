@@ -153,11 +153,26 @@ class QuestionStatus(WireModel):
     )
 
 
+class StoreStatus(WireModel):
+    """The store of pairs and anchor history as this instance sees it (docs/calibration.md, "Where pairs live")."""
+
+    backend: str = Field(description="sqlite (a file in the state dir) or postgresql (the fleet's database).")
+    location: str = Field(description="The file, or the database URL (never with a password).")
+    reachable: bool
+    unreachable_since: float | None = Field(
+        default=None, description="Since when it could not be reached or written, s since the epoch; None: it can."
+    )
+    error: str | None = Field(default=None, description="The last failure, one line; None while reachable.")
+    pending_pairs: int = Field(default=0, description="Pairs waiting in memory to be written (store.outbox_pairs).")
+    written_pairs: int = Field(default=0, description="Pairs this instance wrote since it started.")
+    dropped_pairs: int = Field(default=0, description="Pairs refused: the outbox was full while the store was down.")
+
+
 class ExperienceStatus(WireModel):
     """The experience of an instance (docs/calibration.md): its grid, pairs and counters, open questions."""
 
     source: str = Field(description="The grid the outcomes belong to.")
-    pairs: int = Field(description="Stored pairs, every concept tuple.")
+    pairs: int = Field(description="Stored pairs in the store (the whole fleet's), every concept tuple.")
     stored_bytes: int = 0
     counts: dict[str, int] = Field(
         default_factory=dict, description="outcomes, pairs, rejected_* and ignored_* by reason, velocity_*, ask_*."
@@ -213,6 +228,9 @@ class ServiceStatus(Message):
     )
     experience: ExperienceStatus | None = Field(
         default=None, description="Experience counts and open questions; None: experience off. Since 1.3."
+    )
+    store: StoreStatus | None = Field(
+        default=None, description="The store of pairs and anchor history; None: an older writer. Since 1.5."
     )
     grids: list[GridStatus] | None = Field(
         default=None, description="Each ground grid's health; None: no grids (or an older writer). Since 1.4."

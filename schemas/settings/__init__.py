@@ -27,6 +27,7 @@ from gcdtrav.schemas.settings.risk import RiskSettings
 from gcdtrav.schemas.settings.ros import IMAGE_TYPES, RosInput, RosNode, RosOutput
 from gcdtrav.schemas.settings.service import ServiceSettings
 from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
+from gcdtrav.schemas.settings.store import StoreSettings
 
 __all__ = [
     "ENV_PREFIX",
@@ -52,6 +53,7 @@ __all__ = [
     "ScheduleSettings",
     "ServiceSettings",
     "SettingsError",
+    "StoreSettings",
     "default_instance_name",
     "load_settings",
 ]

@@ -14,10 +14,12 @@ from gcdtrav.schemas.settings.base import (
     SettingsError,
 )
 from gcdtrav.schemas.settings.service import ServiceSettings
+from gcdtrav.schemas.settings.store import PASSWORD_ENV
 from gcdtrav.schemas.yaml_file import load_mapping
 from pydantic import BaseModel, ValidationError
 
 log = logging.getLogger("gcdtrav.settings")
+NOT_SETTINGS = frozenset({PASSWORD_ENV})  # GCDTRAV_* variables read elsewhere: a secret is never a setting
 
 
 def unknown_setting(path: list[str], section: type[BaseModel] | None = None) -> str | None:
@@ -41,7 +43,7 @@ def _env_overrides(environ: Mapping[str, str]) -> dict[str, Any]:
     must not stop the service); one that names a setting is checked like any other source of it."""
     result: dict[str, Any] = {}
     for name, raw in environ.items():
-        if not name.startswith(ENV_PREFIX):
+        if not name.startswith(ENV_PREFIX) or name in NOT_SETTINGS:
             continue
         path = name[len(ENV_PREFIX) :].lower().split("__")
         if (settings := unknown_setting(path)) is not None:

@@ -22,6 +22,7 @@ from gcdtrav.schemas.settings.grids import GridSettings, one_grid_per_camera
 from gcdtrav.schemas.settings.risk import RiskSettings
 from gcdtrav.schemas.settings.ros import RosInput, RosNode, RosOutput
 from gcdtrav.schemas.settings.share import ReuseSettings, ScheduleSettings
+from gcdtrav.schemas.settings.store import StoreSettings
 from gcdtrav.schemas.strict import StrictModel
 from pydantic import Field, field_validator, model_validator
 
@@ -51,6 +52,7 @@ class ServiceSettings(StrictModel):
     schedule: ScheduleSettings = Field(default_factory=ScheduleSettings)
     experience: ExperienceSettings = Field(default_factory=ExperienceSettings)
     ask: AskSettings = Field(default_factory=AskSettings)
+    store: StoreSettings = Field(default_factory=StoreSettings)
     history: int = Field(default=8, ge=1, le=256, description="Frames per source kept for patch queries.")
     history_budget_mb: float = Field(
         default=512,

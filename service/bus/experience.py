@@ -6,7 +6,8 @@ Declared only with ``experience.enabled`` (off: nothing here runs, nothing chang
   {prefix}/in/{source}/answer         subscriber (OperatorAnswer put) and queryable (the answer as payload,
                                       replied with an AnswerReply)
   experience.cmd_vel, .odometry       subscribers: Twist2D / Odometry2D on a zenoh key, or a ROS topic (CDR)
-  {prefix}/out/{source}/calibration   queryable: CalibrationReport of the active anchor set
+  {prefix}/out/{source}/calibration   queryable: CalibrationReport of the active anchor set over the fleet's
+                                      pairs (``by_source=true``: each source's figures too)
   {prefix}/config/anchors/proposal    queryable: AnchorProposal (``source=`` optional), never applied here
   {prefix}/out/{source}/question      queryable: the open OperatorQuestion (`gcdtrav answer` shows its crop
                                       before answering); a new one is published with the grid update that asked
@@ -14,20 +15,21 @@ Declared only with ``experience.enabled`` (off: nothing here runs, nothing chang
 
 A bad message is rejected with its reason and counted in the service's stats (``bad_outcome``,
 ``oversized``, ``bad_cmd_vel``, ``bad_odometry``, ``bad_answer``, ``unknown_answer``, ``unknown_grid``).
-The pairs are saved every ``SAVE_EVERY_S`` and at shutdown.
+The pairs go to the fleet's store through the service's outbox (service/store/outbox.py); a store that cannot
+be read makes a calibration or proposal query an error naming it, nothing else.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
 import zenoh
-from gcdtrav.schemas.experience import AnswerReply, CalibrationFigures
+from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.experience import AnchorProposal, AnswerReply, CalibrationFigures
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import ExperienceStatus, MessageError
 from gcdtrav.schemas.settings import RosInput, ServiceSettings
@@ -38,11 +40,13 @@ from gcdtrav.service.experience.store import OutcomeRejected
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros.cdr import dds_type_name
 from gcdtrav.service.runtime.errors import QueryError
+from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.queries import strict_parameters
 from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.store import StoreError
 
 log = logging.getLogger("gcdtrav.service")
-SAVE_EVERY_S = 10.0
+CLOSE_FLUSH_S = 5.0  # at shutdown, this instance's queued pairs get this long to reach the store
 TWIST, ODOMETRY = "geometry_msgs/msg/Twist", "nav_msgs/msg/Odometry"
 
 
@@ -64,12 +68,12 @@ class ExperienceBus:
         experience: Experience,
         stats: ServiceStats,
         owns: Callable[[str], bool],
+        anchors: AnchorSwitch | None = None,
     ) -> None:
         self.session, self.settings, self.pipeline, self.stats, self.owns = session, settings, pipeline, stats, owns
         self.keys = Keys(settings.prefix)
         self.experience = experience  # the grids were given its after_fusion: its questions leave with their maps
-        self._stopping = threading.Event()
-        self._saver = threading.Thread(target=self._save_now_and_then, name="gcdtrav-experience", daemon=True)
+        self.anchors = anchors  # the history a proposal is judged against, the store it is kept in
 
     # ---- lifecycle -----------------------------------------------------------------------------------
     def start(self) -> list[Any]:
@@ -91,8 +95,9 @@ class ExperienceBus:
         )
         for key, respond, complete in queryables:
             declared.append(self.session.declare_queryable(key, answering(respond, self.stats), complete=complete))
-        self._saver.start()
-        log.info("experience: outcomes of grid %s, stored in %s", self.experience.source, self.experience.store.path)
+        outbox = self.experience.store.outbox
+        log.info("experience: outcomes of grid %s, pairs stored in %s %s", self.experience.source, outbox.backend,
+                 outbox.location)  # fmt: skip
         return declared
 
     def _input_key(self, key: str, ros: bool) -> str:
@@ -110,15 +115,8 @@ class ExperienceBus:
         return f"grid {self.experience.source}, " + (", ".join(inputs) or "outcomes from the bus only")
 
     def close(self) -> None:
-        """Save; the node undeclares the entities."""
-        self._stopping.set()
-        if self._saver.is_alive():
-            self._saver.join(timeout=5.0)
-        self.experience.save_if_dirty()
-
-    def _save_now_and_then(self) -> None:
-        while not self._stopping.wait(SAVE_EVERY_S):
-            self.experience.save_if_dirty()  # a failed write is logged and counted by the store
+        """Write the queued pairs (bounded); the node undeclares the entities and closes the store."""
+        self.experience.flush(CLOSE_FLUSH_S)
 
     def status(self) -> ExperienceStatus:
         """The experience's status, with the open questions of the grids this instance owns: one it asked before
@@ -127,9 +125,14 @@ class ExperienceBus:
         owned = [question for question in status.open_questions if self.owns(question.source)]
         return status.model_copy(update={"open_questions": owned})
 
-    def calibration(self) -> CalibrationFigures:
-        """The active anchor set graded by the stored pairs (the metrics' ECE and coverage)."""
-        return self.experience.report(self.pipeline.anchors).figures
+    def calibration(self) -> CalibrationFigures | None:
+        """The active anchor set graded by the fleet's pairs (the metrics' ECE and coverage); None while the
+        store cannot be read."""
+        try:
+            return self.experience.report(self.pipeline.anchors).figures
+        except StoreError as err:
+            log.warning("no calibration figures for the metrics: %s", err)
+            return None
 
     # ---- inputs --------------------------------------------------------------------------------------
     def _input_handler(self, handler: Callable[[bytes, float], None], reason: str) -> Callable[[zenoh.Sample], None]:
@@ -215,10 +218,17 @@ class ExperienceBus:
             raise QueryError(f"query one source's calibration, e.g. {self.keys.calibration(self.experience.source)}")
         if not self.owns(source):
             return
-        replies.check_no_parameters(query)
+        replies.check_format(query)
+        params = strict_parameters(replies.without_format(query), "by_source=true (optional)")
+        if set(params) - {"by_source"} or params.get("by_source", "false") not in ("true", "false"):
+            raise QueryError(f"unknown parameter(s) {dict(params)}; give by_source=true or none")
         if source != self.experience.source:
             raise QueryError(f"no experience of '{source}': this service collects grid '{self.experience.source}'")
-        replies.reply(query, key, self.experience.report(self.pipeline.anchors))
+        try:
+            report = self.experience.report(self.pipeline.anchors, params.get("by_source") == "true")
+        except StoreError as err:
+            raise QueryError(f"cannot read the pairs: {err}") from None
+        replies.reply(query, key, report)
 
     def _on_question(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
@@ -241,10 +251,31 @@ class ExperienceBus:
         if source != self.experience.source or not self.owns(source):
             return  # another instance's experience
         try:
-            proposal = self.experience.proposal(self.pipeline.anchors)
+            proposal = self.experience.proposal(self.pipeline.anchors, self._past_sets())
         except ValueError as err:
             raise QueryError(str(err)) from None
-        replies.reply(query, self.keys.anchor_proposal, proposal)
+        except StoreError as err:
+            raise QueryError(f"cannot read the pairs: {err}") from None
+        replies.reply(query, self.keys.anchor_proposal, self._kept(proposal))
+
+    def _past_sets(self) -> list[AnchorSet]:
+        """The history's sets (the verdict's "best in history" is among them)."""
+        if self.anchors is None:
+            return []
+        return [entry.anchor_set for entry in self.anchors.history().entries]
+
+    def _kept(self, proposal: AnchorProposal) -> AnchorProposal:
+        """The proposal kept in the store, so that what the operator reviews is what `anchors apply` applies;
+        unkept (said so in the reply) when the store does not answer."""
+        if self.anchors is None:
+            return proposal
+        kept = proposal.model_copy(update={"kept": True})
+        try:
+            self.anchors.store.put_proposal(kept, self.settings.instance)
+        except StoreError as err:
+            log.error("proposal %s not kept: the store does not answer (%s)", proposal.proposed_version, err)
+            return proposal
+        return kept
 
 
 def experience_bus(
@@ -254,8 +285,9 @@ def experience_bus(
     experience: Experience | None,
     stats: ServiceStats,
     owns: Callable[[str], bool],
+    anchors: AnchorSwitch | None = None,
 ) -> ExperienceBus | None:
     """The experience's wiring, or None when ``experience.enabled`` is off (no experience)."""
     if experience is None:
         return None
-    return ExperienceBus(session, settings, pipeline, experience, stats, owns)
+    return ExperienceBus(session, settings, pipeline, experience, stats, owns, anchors)

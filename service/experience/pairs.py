@@ -10,13 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.experience import OUTCOME_KINDS
+from gcdtrav.service.store.records import concept_key
 from numpy.typing import NDArray
-
-
-def concept_key(concepts: Sequence[str]) -> tuple[str, ...]:
-    """The tuple a pair belongs to: the same concepts in another order give the same per-concept weights (the
-    model scores each concept on its own; the softmax does not care about order), so the key is sorted."""
-    return tuple(sorted(concepts))
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,9 @@
 """Everything the bus needs of issue 33 for one service, behind one object, so the wiring stays thin: it
 subscribes to ``inputs()`` and hands payloads over, answers the calibration query with ``report`` and the
-proposal with ``proposal``, and calls ``save_if_dirty`` now and then and at shutdown. The grids call
+proposal with ``proposal``, and calls ``flush`` at shutdown. The grids call
 ``after_fusion`` under their lock after each fusion (given at their construction); the question it returns
-leaves with the frame's grid, through the runtime's one hand-off out. No middleware here.
+leaves with the frame's grid, through the runtime's one hand-off out. No middleware here. Its pairs go to the
+fleet's store (service/store/) through the outbox the service opened; reports and proposals read the fleet's.
 
 One experience per service: the outcomes of ``experience.grid`` (the first grid when unset). Questions are
 asked per grid that has a pose (``ask.enabled``).
@@ -12,11 +13,10 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
-from pathlib import Path
+from collections.abc import Callable, Sequence
 
 import numpy as np
-from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.experience import (
     AnchorProposal,
     CalibrationReport,
@@ -28,7 +28,7 @@ from gcdtrav.schemas.messages import ExperienceStatus, Pose2D, QuestionStatus
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings, SettingsError
 from gcdtrav.service.experience.ask import Crop, OperatorAsker
 from gcdtrav.service.experience.crop import image_crop
-from gcdtrav.service.experience.fitter import FitOptions
+from gcdtrav.service.experience.fitter import BEST_IN_HISTORY, PAPER, FitOptions
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore
 from gcdtrav.service.experience.velocity import (
@@ -40,6 +40,7 @@ from gcdtrav.service.experience.velocity import (
 )
 from gcdtrav.service.grid.fusion import GroundGrid
 from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid
+from gcdtrav.service.store.outbox import PairOutbox
 from numpy.typing import NDArray
 
 log = logging.getLogger("gcdtrav.service")
@@ -54,11 +55,6 @@ def decode_answer(payload: bytes) -> OperatorAnswer:
     return OperatorAnswer.decode(payload, MAX_INPUT_BYTES)
 
 
-def experience_file(state_dir: Path, prefix: str) -> Path:
-    """Named by prefix, as the anchor state: a restarted process must find it."""
-    return state_dir / f"{prefix.replace('/', '_')}.experience.msgpack"
-
-
 def experience_grid(settings: ServiceSettings) -> str:
     """The grid the outcomes belong to: ``experience.grid``, else the first; a SettingsError without one."""
     names = [grid.source for grid in settings.grids]
@@ -70,15 +66,13 @@ def experience_grid(settings: ServiceSettings) -> str:
     return wanted
 
 
-def service_experience(settings: ServiceSettings, rejected: Rejected) -> Experience | None:
-    """The service's experience (its pairs stored in the state directory), or None when ``experience.enabled``
+def service_experience(settings: ServiceSettings, rejected: Rejected, outbox: PairOutbox) -> Experience | None:
+    """The service's experience (its pairs through ``outbox`` to the store), or None when ``experience.enabled``
     is off; a SettingsError when its grid is not configured."""
     if not settings.experience.enabled:
         return None
-    path = experience_file(settings.state_dir, settings.prefix)
-    return Experience(
-        settings.experience, settings.ask, experience_grid(settings), settings.risk.tau, path, rejected=rejected
-    )
+    grid, tau, instance = experience_grid(settings), settings.risk.tau, settings.instance
+    return Experience(settings.experience, settings.ask, grid, tau, outbox, rejected=rejected, instance=instance)
 
 
 class Experience:
@@ -88,17 +82,19 @@ class Experience:
         ask: AskSettings,
         grid_source: str,
         tau: float,
-        path: Path | None,
+        outbox: PairOutbox,
         clock: Callable[[], float] = time.time,
         rejected: Rejected | None = None,
+        instance: str = "",
     ) -> None:
-        """``rejected``: where a failed ``after_fusion`` is counted (the service's stats); None: logged only."""
+        """``outbox``: the way to the store; ``rejected``: where a failed ``after_fusion`` is counted (the
+        service's stats), None: logged only; ``instance``: who pairs (kept with each pair)."""
         self.settings, self.ask_settings, self.source, self.tau, self.clock = settings, ask, grid_source, tau, clock
         self.rejected = rejected or _logged
         self.ring = SnapshotRing(
             settings.snapshot_every_s, int(settings.snapshot_budget_mb * 1e6), settings.lookahead_s + SNAPSHOT_SLACK_S
         )
-        self.store = ExperienceStore(path, settings.max_pairs, settings.max_bytes, settings.lookahead_s, clock)
+        self.store = ExperienceStore(outbox, grid_source, settings.lookahead_s, instance, clock)
         self.tracker = VelocityTracker(settings)
         self.askers: dict[str, OperatorAsker] = {}
         # source -> (receipt, vertices): a planner's path ahead. Written by zenoh's callbacks, read by the worker;
@@ -190,21 +186,27 @@ class Experience:
         return asker.update(grid, pose, crop, self.path_ahead(source))
 
     # ---- answers -------------------------------------------------------------------------------------
-    def report(self, anchors: AnchorSet) -> CalibrationReport:
-        return self.store.report(self.source, anchors, self.tau)
+    def report(self, anchors: AnchorSet, by_source: bool = False) -> CalibrationReport:
+        """The fleet's pairs of the set's tuple graded; StoreUnavailable if the store cannot be read."""
+        return self.store.report(anchors, self.tau, by_source)
 
-    def proposal(self, anchors: AnchorSet) -> AnchorProposal:
-        """ValueError without pairs of the set's concept tuple."""
+    def proposal(self, anchors: AnchorSet, history: Sequence[AnchorSet] = ()) -> AnchorProposal:
+        """Fitted to the pairs, judged against ``anchors`` (the active set), the paper's set and the best of
+        ``history`` (the sets active before); ValueError without pairs of the set's concept tuple;
+        StoreUnavailable if the store cannot be read."""
         options = FitOptions(
             tau=self.tau,
             held_out_fraction=self.settings.held_out_fraction,
             min_pairs_per_anchor=self.settings.min_pairs_per_anchor,
         )
-        return self.store.propose(self.source, anchors, options)
+        baselines = [(PAPER, default_anchor_set()), *((BEST_IN_HISTORY, past) for past in history)]
+        return self.store.propose(self.source, anchors, options, baselines)
 
     def counts(self) -> dict[str, int]:
-        """Every counter: the store's, the tracker's (velocity_*), the askers' (ask_*)."""
+        """Every counter: the pairing's, the outbox's (store_*), the tracker's (velocity_*), the askers' (ask_*)."""
         found = dict(self.store.counts)
+        outbox = self.store.outbox.state()
+        found.update(store_written=outbox.written, store_dropped=outbox.dropped, store_evicted=outbox.evicted)
         found.update({f"velocity_{k}": v for k, v in self.tracker.counts.items()})
         for asker in self.askers.values():
             for name, value in asker.counts.items():
@@ -222,7 +224,7 @@ class Experience:
         raise ValueError(f"no open question for '{source}' (questions are asked of grids with a pose)")
 
     def status(self) -> ExperienceStatus:
-        """What ``gcdtrav status`` shows: the grid, the pairs, every counter, the open questions."""
+        """What ``gcdtrav status`` shows: the grid, the fleet's pairs, every counter, the open questions."""
         questions = [
             QuestionStatus(
                 id=q.id, source=q.source, stamp=q.stamp, reason=q.reason, concepts=[c.concept for c in q.concepts],
@@ -230,16 +232,18 @@ class Experience:
             )
             for q in self.open_questions()
         ]  # fmt: skip
+        totals = self.store.totals()
         return ExperienceStatus(
             source=self.source,
-            pairs=self.store.size,
-            stored_bytes=self.store.nbytes,
+            pairs=totals.pairs,
+            stored_bytes=totals.bytes,
             counts=self.counts(),
             open_questions=questions,
         )
 
-    def save_if_dirty(self) -> bool:
-        return self.store.save_if_dirty()
+    def flush(self, timeout_s: float) -> bool:
+        """Wait until this instance's queued pairs are in the store; False if it did not take them in time."""
+        return self.store.outbox.flush(timeout_s)
 
 
 def _logged(name: str | None, reason: str, detail: str, error: BaseException | None) -> None:

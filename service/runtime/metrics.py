@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 
 from gcdtrav.schemas.experience import CalibrationFigures
-from gcdtrav.schemas.messages import GridStatus, ServiceStatus, SourceStatus
+from gcdtrav.schemas.messages import GridStatus, ServiceStatus, SourceStatus, StoreStatus
 from gcdtrav.service.runtime.intake.presence import Heard
 from prometheus_client import CollectorRegistry, Histogram, disable_created_metrics
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, InfoMetricFamily, Metric
@@ -117,7 +117,12 @@ HELP = {
     "gcdtrav_measuring": "1 while precision auto times the modes in the background.",
     "gcdtrav_max_frame_age_seconds": "The freshness limit max_frame_age_s.",
     "gcdtrav_service": "What this instance runs: its name, model, precision mode, method, anchor set version.",
-    "gcdtrav_experience_pairs": "Stored experience pairs (every concept tuple).",
+    "gcdtrav_experience_pairs": "Stored experience pairs in the store, the fleet's (every concept tuple).",
+    "gcdtrav_store_reachable": "1 while this instance can reach and write its store of pairs and anchor history.",
+    "gcdtrav_store_unreachable_since_seconds": "Since when the store is unreachable, s since the epoch (0: it is).",
+    "gcdtrav_store_pending_pairs": "Pairs waiting in memory for the store (at most store.outbox_pairs).",
+    "gcdtrav_store_written_pairs": "Pairs this instance wrote to the store.",
+    "gcdtrav_store_dropped_pairs": "Pairs dropped: the store was unreachable and the outbox full.",
     "gcdtrav_calibration_pairs": "Experience pairs of the active concept tuple the calibration figures grade.",
     "gcdtrav_calibration_ece": "Expected calibration error of P(T < tau) (0: calibrated).",
     "gcdtrav_calibration_mae": "Mean |T - outcome| over the pairs.",
@@ -146,6 +151,8 @@ class StatusCollector(Collector):
         yield from speed_families(status.grids or [])
         if status.experience is not None:
             yield gauge("gcdtrav_experience_pairs", status.experience.pairs)
+        if status.store is not None:
+            yield from store_families(status.store)
         if self._calibration is not None:
             yield from calibration_families(self._calibration.figures())
 
@@ -231,6 +238,16 @@ def service_families(status: ServiceStatus, owned: int, max_frame_age_s: float |
     }
     info.add_metric([], running)
     yield info
+
+
+def store_families(store: StoreStatus) -> Iterator[Metric]:
+    """The store as this instance sees it: reachable or since when not, and the pairs on their way."""
+    yield gauge("gcdtrav_store_reachable", int(store.reachable))
+    yield gauge("gcdtrav_store_unreachable_since_seconds", store.unreachable_since or 0.0)
+    yield gauge("gcdtrav_store_pending_pairs", store.pending_pairs)
+    for name, value in (("gcdtrav_store_written_pairs", store.written_pairs),
+                        ("gcdtrav_store_dropped_pairs", store.dropped_pairs)):  # fmt: skip
+        yield CounterMetricFamily(name, HELP[name], value=value)
 
 
 def calibration_families(figures: CalibrationFigures | None) -> Iterator[Metric]:

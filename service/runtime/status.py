@@ -6,7 +6,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from gcdtrav.schemas.messages import ExperienceStatus, ServiceStatus
+from gcdtrav.schemas.messages import ExperienceStatus, ServiceStatus, StoreStatus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.fleet.fleet_models import FleetModelsStatus
@@ -42,6 +42,7 @@ class StatusParts:
         fleet: Mapping[str, str] | None = None,
         experience: ExperienceStatus | None = None,
         models: FleetModelsStatus | None = None,
+        store: StoreStatus | None = None,
     ) -> ServiceStatus:
         """This instance's status at ``now``; ``live``: the instances of the prefix (None: this one alone);
         ``fleet``: every instance's anchor-set version as this one knows it; ``experience``: its own status
@@ -75,6 +76,7 @@ class StatusParts:
             anchor_set_accepted_at=head.accepted_at or None,  # 0: the set it started with, never swapped
             anchor_sets=dict(fleet or {}),
             experience=experience,
+            store=store,
             grids=self.grids.statuses(self.clock_offsets.offsets()) if self.grids is not None else None,
             model_fingerprint=backend.fingerprint,
             model_refused=models.refused if models else "",

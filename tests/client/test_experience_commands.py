@@ -27,7 +27,7 @@ from gcdtrav.schemas.experience import (
     ReliabilityBin,
     answer_score,
 )
-from gcdtrav.schemas.messages import ExperienceStatus, QuestionStatus, ServiceStatus
+from gcdtrav.schemas.messages import ExperienceStatus, QuestionStatus, ServiceStatus, StoreStatus
 
 
 def figures(pairs: int) -> CalibrationFigures:
@@ -189,3 +189,24 @@ def test_the_status_line_says_how_many_pairs_an_answer_makes() -> None:
     assert "in (1.0, 2.0, 1.5, 2.5); an answer makes 12 pairs; gcdtrav answer r1/cam" in "\n".join(
         status_lines([status([listed])])
     )
+
+
+def test_an_unreachable_store_is_a_status_line_and_a_reachable_one_none() -> None:
+    down = StoreStatus(backend="postgresql", location="postgresql://gcdtrav@db:5432/gcdtrav", reachable=False,
+                       unreachable_since=1.7e9, error="refused", pending_pairs=40, dropped_pairs=3)  # fmt: skip
+    text = "\n".join(status_lines([status([]).model_copy(update={"store": down})]))
+    assert "STORE UNREACHABLE from box-1 since " in text and "postgresql postgresql://gcdtrav@db:5432/gcdtrav" in text
+    assert "40 pairs waiting in memory, 3 dropped; refused" in text
+    up = down.model_copy(update={"reachable": True, "unreachable_since": None, "error": None})
+    assert "STORE" not in "\n".join(status_lines([status([]).model_copy(update={"store": up})]))
+
+
+def test_a_report_names_its_sources_and_their_own_figures() -> None:
+    report = CalibrationReport(
+        source="r1/cam", stamp=1.0, anchor_set_version="v1", concepts=["grass"], figures=figures(250),
+        pairs_by_source={"r1/cam": 200, "r2/cam": 50}, by_source={"r1/cam": figures(200), "r2/cam": figures(50)},
+    )  # fmt: skip
+    text = "\n".join(report_lines(report))
+    assert "the fleet's pairs by source: r1/cam 200, r2/cam 50" in text
+    rows = [line.split()[:2] for line in text.splitlines() if line.startswith(("r1/cam ", "r2/cam "))]
+    assert rows == [["r1/cam", "200"], ["r2/cam", "50"]]

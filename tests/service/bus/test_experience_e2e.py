@@ -20,8 +20,8 @@ from gcdtrav.schemas.experience import OperatorQuestion, TraversalOutcome
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.commands.serve import starting_anchor_set
-from gcdtrav.service.experience.service import experience_file
 from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.store.opening import sqlite_file
 from zenoh_helpers import connecting_config, free_port, wait_until
 
 from tools.loopback import in_process_service
@@ -114,17 +114,25 @@ def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> Non
         proposal = client.anchor_proposal()
         assert proposal.verdict is not None and proposal.verdict.applicable  # the fit beats the start set
         assert "verdict: better on the held-out pairs: mae " in dry
-        applied = gcdtrav("anchors", "propose", "--apply", *flags).stdout
+        assert proposal.kept and f"gcdtrav anchors apply {proposal.proposed_version} swaps in exactly" in dry
+        reviewed = proposal.train_pairs + proposal.held_out_pairs
+        end = robot.drive(20.0, seed=3, start_stamp=end + 5.0)  # pairs arrive between review and apply
+        assert wait_until(lambda: client.calibration(CAMERA_SOURCE).figures.pairs > reviewed, 10)
+        refit = client.anchor_proposal()  # what a refit at apply time would have swapped in
+        assert refit.train_pairs + refit.held_out_pairs > reviewed
+        assert refit.proposed_version != proposal.proposed_version
+        applied = gcdtrav("anchors", "apply", proposal.proposed_version, *flags).stdout  # the reviewed one
         assert f"swapped: anchor set {proposal.proposed.version} active on exp-1" in applied
-        assert service.pipeline.anchors.version == proposal.proposed.version
+        assert service.pipeline.anchors == proposal.proposed  # exactly the reviewed set, not the refit
         assert client.anchor_history()[0].entries[1].anchor_set == before  # rollback-able
+        assert client.anchor_history()[0].entries[0].how == "proposal"
 
         robot.drive(30.0, seed=2, start_stamp=end + 10.0)  # the same concepts: one tuple, two versions
         report = client.calibration(CAMERA_SOURCE)
         assert report.anchor_set_version == proposal.proposed.version
         assert set(report.pairs_by_version) == {before.version, proposal.proposed.version}
         total = report.figures.pairs
-    assert experience_file(state, "gcdtrav").is_file()
+    assert sqlite_file(state, "gcdtrav").is_file()
 
     restarted = settings(state)
     with running(restarted, starting_anchor_set(restarted)) as (_, client, _flags):  # as `gcdtrav serve` starts
@@ -205,7 +213,8 @@ def test_experience_off_declares_nothing_and_changes_nothing(tmp_path: Path) -> 
             client.anchor_proposal(timeout=0.5)
         with pytest.raises(QueryTimeout):
             client.question(CAMERA_SOURCE, timeout=0.5)
-    assert not experience_file(tmp_path, "gcdtrav").exists()
+        store = client.status().store  # the store holds the anchor history: opened, with experience off too
+        assert store is not None and store.reachable and store.written_pairs == 0
 
 
 def test_settings_that_cannot_work_are_refused_at_start(tmp_path: Path) -> None:

@@ -3,6 +3,8 @@ becomes operator outcomes paired with what the question showed, and closes it.""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
@@ -13,6 +15,7 @@ from gcdtrav.schemas.settings import AskSettings
 from gcdtrav.service.experience.ask import OperatorAsker, corridor
 from gcdtrav.service.experience.store import ExperienceStore
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
+from gcdtrav.service.store.opening import sqlite_outbox
 
 ANCHORS = AnchorSet(anchors=[Anchor(concept="mud", position=0.1), Anchor(concept="grass", position=0.8)])
 SETTINGS = AskSettings(enabled=True, range_m=3.0, width_m=1.0, persist_s=1.0, min_cells=3, min_interval_s=10.0)
@@ -75,7 +78,7 @@ def test_novel_ground_asks_too() -> None:
     assert question.match == pytest.approx(0.05, abs=1e-3)
 
 
-def test_an_answer_becomes_operator_outcomes_and_closes_the_question() -> None:
+def test_an_answer_becomes_operator_outcomes_and_closes_the_question(tmp_path: Path) -> None:
     grid, asker = new_grid(), OperatorAsker("cam", SETTINGS, tau=0.3)
     for stamp in (0.0, 1.1):
         observe(grid, AHEAD, [0.5, 0.5], stamp)
@@ -86,7 +89,7 @@ def test_an_answer_becomes_operator_outcomes_and_closes_the_question() -> None:
     answered = asker.answer(OperatorAnswer(id=question.id, source="cam", score=parse_answer("blocked")), 5.0)
     assert [o.kind for o in answered.outcomes] == ["operator"] * 4 and {o.score for o in answered.outcomes} == {0.0}
     assert [(o.x, o.y) for o in answered.outcomes] == question.cells and answered.outcomes[0].stamp == 5.0
-    store = ExperienceStore(None, 100, 10**6, 2.0)
+    store = ExperienceStore(sqlite_outbox(tmp_path / "store.sqlite3", 100, 10**6), "cam", 2.0)
     assert store.add_predicted(answered.weights, answered.anchors, answered.outcomes[0]) == 4
     assert store.pairs(ANCHORS.concepts).weights_for(ANCHORS)[0] == pytest.approx([0.5, 0.5], abs=1e-3)
     assert asker.open_question is None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -10,15 +11,23 @@ from gcdtrav.schemas.anchors import Anchor, AnchorSet
 from gcdtrav.schemas.experience import Odometry2D, OperatorAnswer, PlannedPath, TraversalOutcome
 from gcdtrav.schemas.messages import MessageError, Pose2D
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings, SettingsError
-from gcdtrav.service.experience.service import Experience, experience_file, service_experience
+from gcdtrav.service.experience.service import Experience, service_experience
 from gcdtrav.service.experience.store import OutcomeRejected
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.runtime.grids import GridOutputs
+from gcdtrav.service.store.opening import service_outbox, sqlite_file, sqlite_outbox
+from gcdtrav.service.store.outbox import PairOutbox
 
 from tools.ros_fixtures import twist_cdr
 
 ANCHORS = AnchorSet(anchors=[Anchor(concept="mud", position=0.1), Anchor(concept="grass", position=0.8)])
 SETTINGS = ExperienceSettings(enabled=True, cmd_vel="/cmd_vel", odometry="robot/odom", footprint_m=0.2)
+
+
+def outbox(path: Path | None = None) -> PairOutbox:
+    """A SQLite store of its own, or the one at ``path`` (a restart)."""
+    where = path or Path(tempfile.mkdtemp(prefix="gcdtrav-experience-")) / "store.sqlite3"
+    return sqlite_outbox(where, 10_000, 10**7)
 
 
 def ambiguous_strip(stamp: float) -> GroundGrid:
@@ -29,9 +38,9 @@ def ambiguous_strip(stamp: float) -> GroundGrid:
 
 
 def test_commands_and_odometry_become_pairs_a_report_and_a_proposal(tmp_path: Path) -> None:
-    path = experience_file(tmp_path, "gcdtrav/site")
-    assert path.name == "gcdtrav_site.experience.msgpack"
-    experience = Experience(SETTINGS, AskSettings(), "cam", tau=0.3, path=path)
+    path = sqlite_file(tmp_path, "gcdtrav/site")
+    assert path.name == "gcdtrav_site.store.sqlite3"
+    experience = Experience(SETTINGS, AskSettings(), "cam", tau=0.3, outbox=outbox(path))
     assert [(key, ros, reason) for key, ros, _, reason in experience.inputs()] == [
         ("/cmd_vel", True, "bad_cmd_vel"),
         ("robot/odom", False, "bad_odometry"),
@@ -53,14 +62,15 @@ def test_commands_and_odometry_become_pairs_a_report_and_a_proposal(tmp_path: Pa
         experience.on_outcome(b'{"score": 2}')
     outcome = TraversalOutcome(stamp=3.0, x=1.05, y=0.05, score=0.1, kind="contact")
     assert experience.on_outcome(outcome.pack()) == 1
-    assert experience.save_if_dirty()
-    again = Experience(SETTINGS, AskSettings(), "cam", tau=0.3, path=path)
+    assert experience.flush(5.0)
+    experience.store.outbox.close()
+    again = Experience(SETTINGS, AskSettings(), "cam", tau=0.3, outbox=outbox(path))
     assert again.report(ANCHORS).figures.pairs == report.figures.pairs + 1
 
 
 def test_questions_and_answers_through_the_facade() -> None:
     ask = AskSettings(enabled=True, persist_s=1.0, min_cells=3)
-    experience = Experience(ExperienceSettings(enabled=True), ask, "cam", tau=0.3, path=None)
+    experience = Experience(ExperienceSettings(enabled=True), ask, "cam", tau=0.3, outbox=outbox())
     pose = Pose2D(stamp=0.0, x=0.0, y=0.0, yaw=0.0)
     assert experience.on_grid_update("cam", ambiguous_strip(0.0), pose) is None
     question = experience.on_grid_update("cam", ambiguous_strip(1.5), pose, crop=lambda region: b"jpeg")
@@ -74,7 +84,7 @@ def test_questions_and_answers_through_the_facade() -> None:
 
 
 def test_experience_off_makes_no_inputs() -> None:
-    experience = Experience(ExperienceSettings(), AskSettings(), "cam", tau=0.3, path=None)
+    experience = Experience(ExperienceSettings(), AskSettings(), "cam", tau=0.3, outbox=outbox())
     assert experience.inputs() == []
     assert experience.on_grid_update("cam", ambiguous_strip(0.0), Pose2D(stamp=0, x=0, y=0, yaw=0)) is None
 
@@ -85,7 +95,8 @@ def test_a_planners_path_steers_where_questions_look_until_it_lapses() -> None:
     gives the heading back."""
     now = [0.0]
     ask = AskSettings(enabled=True, persist_s=1.0, min_cells=3, path_timeout_s=5.0)
-    experience = Experience(ExperienceSettings(enabled=True), ask, "cam", tau=0.3, path=None, clock=lambda: now[0])
+    on = ExperienceSettings(enabled=True)
+    experience = Experience(on, ask, "cam", tau=0.3, outbox=outbox(), clock=lambda: now[0])
     facing_y = Pose2D(stamp=0.0, x=0.0, y=0.0, yaw=float(-np.pi / 2))
     for stamp in (0.0, 1.5):
         assert experience.on_grid_update("cam", ambiguous_strip(stamp), facing_y) is None
@@ -115,9 +126,12 @@ def test_after_fusion_snapshots_the_grid_and_a_failure_is_counted_not_raised(tmp
             "mount": {"z": 1.0, "pitch": 0.5}, "size_m": 6.0, "resolution_m": 0.5}  # fmt: skip
     settings = ServiceSettings.model_validate({"state_dir": tmp_path, "grids": [grid], "experience": {"enabled": True}})
     rejected: list[tuple[str | None, str, str]] = []
-    experience = service_experience(settings, lambda name, reason, detail, _: rejected.append((name, reason, detail)))
+    store = service_outbox(settings)
+    experience = service_experience(
+        settings, lambda name, reason, detail, _: rejected.append((name, reason, detail)), store
+    )
     assert experience is not None and experience.source == "cam"
-    assert experience.store.path == experience_file(tmp_path, "gcdtrav")
+    assert store.location == str(sqlite_file(tmp_path, "gcdtrav")) and store.state().reachable
     fused = GridOutputs(settings.grids, 2, "test").sources["cam"]
     fused.grid, camera = ambiguous_strip(0.0), fused.cameras["cam"]  # as if a frame was fused
     assert experience.after_fusion(fused, camera, None) is None and len(experience.ring) == 1  # the snapshot
@@ -125,7 +139,7 @@ def test_after_fusion_snapshots_the_grid_and_a_failure_is_counted_not_raised(tmp
     assert experience.after_fusion(fused, camera, None) is None  # the frame's outputs go on
     assert rejected == [(None, "experience_failed", "cam: ZeroDivisionError: division by zero")]
     off = settings.model_copy(update={"experience": ExperienceSettings()})
-    assert service_experience(off, lambda *args: None) is None
+    assert service_experience(off, lambda *args: None, store) is None
     with pytest.raises(SettingsError, match="grid 'nope' is not one of the grids"):
         service_experience(settings.model_copy(update={"experience": SETTINGS.model_copy(update={"grid": "nope"})}),
-                           lambda *args: None)  # fmt: skip
+                           lambda *args: None, store)  # fmt: skip

@@ -1,11 +1,11 @@
-"""The experience store: pairing with the grid as it stood lookahead_s before, counted ignores and rejections,
-concept tuples kept apart across a swap, bounds, restart, a full disk."""
+"""The experience's pairs: pairing with the grid as it stood lookahead_s before, counted ignores and rejections,
+concept tuples kept apart across a swap, bounds, a restart (the SQLite store; tests/service/store/ holds the
+store's own suite over both backends)."""
 
 from __future__ import annotations
 
-import errno
 import json
-import logging
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -13,10 +13,10 @@ import pytest
 from gcdtrav.schemas.anchors import Anchor, AnchorSet
 from gcdtrav.schemas.experience import TraversalOutcome
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.experience import store as store_module
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore, OutcomeRejected
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
+from gcdtrav.service.store.opening import sqlite_outbox
 
 A = AnchorSet(anchors=[Anchor(concept="mud", position=0.1), Anchor(concept="grass", position=0.5)])
 B = AnchorSet(anchors=[Anchor(concept="sand", position=0.2), Anchor(concept="asphalt", position=0.9)])
@@ -34,7 +34,9 @@ def outcome(stamp: float, x: float = 1.05, y: float = 1.05, score: float = 0.7, 
 
 
 def new_store(path: Path | None = None, max_pairs: int = 1000, max_bytes: int = 10_000_000) -> ExperienceStore:
-    return ExperienceStore(path, max_pairs, max_bytes, LOOKAHEAD, clock=lambda: 99.0)
+    """Pairs of grid 'cam' in a SQLite store (a fresh one, or the file at ``path``: a restart)."""
+    where = path or Path(tempfile.mkdtemp(prefix="gcdtrav-experience-")) / "store.sqlite3"
+    return ExperienceStore(sqlite_outbox(where, max_pairs, max_bytes), "cam", LOOKAHEAD, "i1", clock=lambda: 99.0)
 
 
 @pytest.fixture()
@@ -78,7 +80,7 @@ def test_unknown_cells_and_outcomes_before_any_prediction_are_counted_and_ignore
     assert store.add(outcome(12.0, x=-1.5), ring) == 0  # a cell never observed
     assert store.add(outcome(12.0, x=50.0), ring) == 0  # outside the grid
     assert store.counts == {"outcomes": 4, "ignored_no_prediction": 2, "ignored_unknown_cell": 2}
-    assert store.size == 0
+    assert store.totals().pairs == 0
 
 
 def test_a_swap_between_outcomes_keeps_the_pairs_apart(world: tuple[GroundGrid, SnapshotRing]) -> None:
@@ -95,7 +97,7 @@ def test_a_swap_between_outcomes_keeps_the_pairs_apart(world: tuple[GroundGrid, 
     assert store.pairs(A.concepts).outcomes.tolist() == [0.6]
     assert store.pairs(B.concepts).outcomes.tolist() == [0.2]
     np.testing.assert_allclose(store.pairs(reordered.concepts).weights_for(reordered)[0], [0.7, 0.3], atol=1e-3)
-    report = store.report("cam", A, tau=0.3)
+    report = store.report(A, tau=0.3)
     assert report.figures.pairs == 1 and report.pairs_by_version == {A.version: 1}
     assert report.figures.mae == pytest.approx(abs(0.3 * 0.1 + 0.7 * 0.5 - 0.6), abs=1e-3)
 
@@ -129,71 +131,33 @@ def test_the_store_is_bounded_by_count_and_bytes_oldest_first(world: tuple[Groun
     store = new_store(max_pairs=3)
     for k in range(5):
         store.add(outcome(12.0 + k, score=k / 10), ring)
-    assert store.pairs(A.concepts).outcomes.tolist() == [0.2, 0.3, 0.4] and store.counts["evicted"] == 2
-    per_pair = store.nbytes // store.size
+        store.outbox.flush(5.0)  # one append each: the bound applies at every append
+    assert store.pairs(A.concepts).outcomes.tolist() == [0.2, 0.3, 0.4] and store.outbox.state().evicted == 2
+    per_pair = store.totals().bytes // store.totals().pairs
     by_bytes = new_store(max_bytes=2 * per_pair)
     for k in range(5):
         by_bytes.add(outcome(12.0 + k, score=k / 10), ring)
-    assert by_bytes.size == 2 and by_bytes.nbytes <= 2 * per_pair
+    by_bytes.outbox.flush(5.0)
+    assert by_bytes.totals().pairs == 2 and by_bytes.totals().bytes <= 2 * per_pair
 
 
 def test_pairs_survive_a_restart(tmp_path: Path, world: tuple[GroundGrid, SnapshotRing]) -> None:
     grid, ring = world
     observe(grid, 1.05, 1.05, [0.25, 0.75], 10.0, A)
     ring.capture(grid)
-    path = tmp_path / "state" / "gcdtrav.experience.msgpack"
+    path = tmp_path / "state" / "gcdtrav.store.sqlite3"
     store = new_store(path)
     store.add(outcome(12.0, score=0.4), ring)
     store.add(outcome(13.0, score=0.9), ring)
-    assert store.save()
-    (path.parent / f".{path.name}.abc.tmp").write_bytes(b"torn")  # a write a crash interrupted
+    before = store.pairs(A.concepts)
+    store.outbox.close()
     again = new_store(path)
-    before, after = store.pairs(A.concepts), again.pairs(A.concepts)
+    after = again.pairs(A.concepts)
     np.testing.assert_array_equal(before.weights, after.weights)
     assert after.outcomes.tolist() == [0.4, 0.9] and after.versions == before.versions
-    assert again.counts == store.counts
-    assert not list(path.parent.glob("*.tmp"))
-    again.add(outcome(14.0, score=0.1), ring)  # the eviction order continues after the restart
+    again.add(outcome(14.0, score=0.1), ring)  # appended after the restart's
     assert again.pairs(A.concepts).outcomes.tolist() == [0.4, 0.9, 0.1]
-
-
-def test_a_corrupt_file_is_one_log_line_and_an_empty_store(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    path = tmp_path / "x.experience.msgpack"
-    path.write_bytes(b"\x93not what we wrote")
-    with caplog.at_level(logging.ERROR):
-        store = new_store(path)
-    assert store.size == 0 and store.counts == {"load_failed": 1}
-    assert len([r for r in caplog.records if "ignoring the experience store" in r.message]) == 1
-
-
-def test_a_full_disk_is_one_log_line_counted_and_the_last_good_file_stays(
-    tmp_path: Path,
-    world: tuple[GroundGrid, SnapshotRing],
-    monkeypatch: pytest.MonkeyPatch,
-    caplog: pytest.LogCaptureFixture,
-) -> None:
-    grid, ring = world
-    observe(grid, 1.05, 1.05, [0.5, 0.5], 10.0, A)
-    ring.capture(grid)
-    path = tmp_path / "x.experience.msgpack"
-    store = new_store(path)
-    store.add(outcome(12.0), ring)
-    assert store.save()
-    good = path.read_bytes()
-
-    def full(path: Path, text: str | bytes) -> None:
-        raise OSError(errno.ENOSPC, "No space left on device")
-
-    monkeypatch.setattr(store_module, "write_atomically", full)
-    store.add(outcome(13.0), ring)
-    with caplog.at_level(logging.ERROR):
-        assert not store.save()
-        assert not store.save_if_dirty()
-    assert store.counts["save_failed"] == 2 and store.size == 2
-    assert len([r for r in caplog.records if "No space left" in r.message]) == 1
-    assert path.read_bytes() == good
-    monkeypatch.undo()
-    assert store.save_if_dirty() and new_store(path).size == 2
+    assert again.columns(A.concepts).sources == ("cam",) * 3
 
 
 def test_experience_is_off_by_default() -> None:

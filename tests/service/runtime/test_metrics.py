@@ -28,6 +28,9 @@ from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.stats import REFUSED_SOURCES, ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
+from gcdtrav.service.store.opening import sqlite_outbox
+from gcdtrav.service.store.outbox import store_status
+from gcdtrav.service.store.sqlite import SqliteStore
 from prometheus_client import generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -46,15 +49,17 @@ class Service:
         self.stats = ServiceStats(logging.getLogger("test"), events=self.metrics.timings)
         self.offsets = ClockOffsets(5.0, 300.0)
         self.progress = ProgressMonitor(2.0, self.clock)
-        switch = AnchorSwitch(run, tmp_path / "anchors.json", "box-1", 65536)
+        switch = AnchorSwitch(run, SqliteStore(tmp_path / "store.sqlite3"), "box-1", 65536)
         history = FrameHistory(2)
         self.parts = StatusParts(
             "box-1", 0.0, run, switch, self.queue, history, self.stats, self.sources, self.progress, self.offsets
         )
         self.owned = owned
+        self.store = sqlite_outbox(tmp_path / "store.sqlite3", 100, 10**6)  # the node's store, as it is wired
+        status = lambda: self.parts.status(1.0, store=store_status(self.store.state()))  # noqa: E731
         self.presence = SourcePresence(max_sources, 60.0, lambda: self.clock.now)
         heard = self.presence.heard
-        self.metrics.collect(MetricsSources(lambda: self.parts.status(1.0), lambda: self.owned, 5.0, heard=heard))
+        self.metrics.collect(MetricsSources(status, lambda: self.owned, 5.0, heard=heard))
 
     def frame(self, source: str, map_age_s: float = 0.3, reused: bool = False) -> None:
         """A frame received, taken and published."""

@@ -1,0 +1,43 @@
+"""What the fleet must remember, in one store (issue 46, docs/calibration.md): experience pairs, the anchor-set
+history, the active set and kept proposals. One interface (``Store``), two backends with one schema: SQLite in
+the state dir (the default) and PostgreSQL (a fleet's shared database). Imports only schemas; no zenoh."""
+
+from gcdtrav.service.store.base import Store
+from gcdtrav.service.store.opening import open_store, sqlite_file, store_password
+from gcdtrav.service.store.records import (
+    HOW_ACTIVATED,
+    PAIR_OVERHEAD_BYTES,
+    Activation,
+    AppendResult,
+    HistoryRecord,
+    PairColumns,
+    PairRecord,
+    PairTotals,
+    SchemaTooNew,
+    StoredProposal,
+    StoreError,
+    StoreUnavailable,
+    concept_key,
+    pair_bytes,
+)
+
+__all__ = [
+    "HOW_ACTIVATED",
+    "PAIR_OVERHEAD_BYTES",
+    "Activation",
+    "AppendResult",
+    "HistoryRecord",
+    "PairColumns",
+    "PairRecord",
+    "PairTotals",
+    "SchemaTooNew",
+    "Store",
+    "StoreError",
+    "StoreUnavailable",
+    "StoredProposal",
+    "concept_key",
+    "open_store",
+    "pair_bytes",
+    "sqlite_file",
+    "store_password",
+]

@@ -1,0 +1,103 @@
+"""The one interface of what the fleet must remember (issue 46): experience pairs, the anchor-set history, the
+active set, kept proposals. Two backends implement it with one schema (``schema.py``): SQLite in the state dir
+(the default, nothing to set up) and PostgreSQL (a fleet's shared database). No middleware, no experience logic.
+
+Every method is thread-safe and may block on the database: callers on the inference path never call it
+directly (pairs go through ``outbox.PairOutbox``). A connection problem raises ``StoreUnavailable`` (retry
+later); a store of a newer schema raises ``SchemaTooNew`` at opening.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+
+from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.experience import AnchorProposal
+from gcdtrav.service.store.records import (
+    Activation,
+    AppendResult,
+    HistoryRecord,
+    PairColumns,
+    PairRecord,
+    PairTotals,
+    StoredProposal,
+)
+
+
+class Store(ABC):
+    backend: str  # "sqlite" or "postgresql"
+
+    @property
+    @abstractmethod
+    def location(self) -> str:
+        """Where it is, for logs and status: a file path, or a URL without any password."""
+
+    @abstractmethod
+    def schema_version(self) -> int:
+        """The schema version the store holds (equal to schema.SCHEMA_VERSION once opened)."""
+
+    # ---- experience pairs ------------------------------------------------------------------------------
+    @abstractmethod
+    def append_pairs(self, pairs: Sequence[PairRecord], max_pairs: int, max_bytes: int) -> AppendResult:
+        """Append in one transaction (inserts only), then delete the oldest pairs of the whole store, any tuple
+        and source, until at most ``max_pairs`` pairs and ``max_bytes`` bytes (records.pair_bytes) remain."""
+
+    @abstractmethod
+    def pairs(self, concepts: Sequence[str], source: str | None = None) -> PairColumns:
+        """The pairs of this concept tuple (concepts in any order; columns in concept_key order), oldest first;
+        only ``source``'s when given."""
+
+    @abstractmethod
+    def tuples(self) -> list[tuple[str, ...]]:
+        """The concept tuples that have pairs, sorted."""
+
+    @abstractmethod
+    def totals(self) -> PairTotals:
+        """Pairs and bytes in the whole store."""
+
+    # ---- anchor sets -----------------------------------------------------------------------------------
+    @abstractmethod
+    def active(self) -> HistoryRecord | None:
+        """The active set's history entry; None in an empty store (before ``seed``)."""
+
+    @abstractmethod
+    def seed(self, anchors: AnchorSet, instance: str, how: str = "seeded", accepted_at: float = 0.0) -> HistoryRecord:
+        """Make ``anchors`` active only if no set is (an empty store): the start set seeds, never overrides.
+        The active entry afterwards, whichever it is."""
+
+    @abstractmethod
+    def activate(
+        self,
+        anchors: AnchorSet,
+        expected_active_version: str | None,
+        how: str,
+        instance: str,
+        actor: str = "",
+        forced: bool = False,
+        accepted_at: float | None = None,
+    ) -> Activation:
+        """One transaction: if the active set's version is ``expected_active_version`` (None: whatever it is),
+        append ``anchors`` to the history and point the active pointer at it (``applied``); else change
+        nothing and return the winner. ``accepted_at`` None: now."""
+
+    @abstractmethod
+    def history(self, limit: int = 20) -> list[HistoryRecord]:
+        """The last ``limit`` activations, newest (the active one, unless a swap is under way) first."""
+
+    @abstractmethod
+    def put_proposal(self, proposal: AnchorProposal, instance: str) -> StoredProposal:
+        """Keep a proposal under its proposed version (a later one of the same version replaces it)."""
+
+    @abstractmethod
+    def proposal(self, version: str) -> StoredProposal | None:
+        """The kept proposal of that proposed version; None if there is none (or it was pruned)."""
+
+    @abstractmethod
+    def proposals(self, limit: int = 20) -> list[StoredProposal]:
+        """The latest kept proposals, newest first."""
+
+    # ---- lifetime --------------------------------------------------------------------------------------
+    @abstractmethod
+    def close(self) -> None:
+        """Close every connection; the store is unusable afterwards."""

@@ -1,0 +1,58 @@
+"""The one schema both backends hold, and its migrations, forward only.
+
+Each migration is the statements that take the schema from its index to the next version; the types are
+written as {id}, {float} and {blob} and filled in per backend. A store whose ``schema_version`` is above
+``SCHEMA_VERSION`` was written by a newer gcdtrav: it is refused untouched (``SchemaTooNew``), never downgraded.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+SCHEMA_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Dialect:
+    name: str
+    id: str  # an auto-incrementing 64-bit primary key
+    float: str
+    blob: str
+    placeholder: str
+
+    def sql(self, statement: str) -> str:
+        """A statement written with ``?`` placeholders and {id}/{float}/{blob} types, in this dialect."""
+        typed = statement.format(id=self.id, float=self.float, blob=self.blob)
+        return typed.replace("?", self.placeholder) if self.placeholder != "?" else typed
+
+
+SQLITE = Dialect("sqlite", "INTEGER PRIMARY KEY AUTOINCREMENT", "REAL", "BLOB", "?")
+POSTGRESQL = Dialect("postgresql", "BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY", "DOUBLE PRECISION", "BYTEA", "%s")
+
+VERSION_TABLE = (
+    "CREATE TABLE IF NOT EXISTS schema_version "
+    "(singleton INTEGER PRIMARY KEY CHECK (singleton = 1), version INTEGER NOT NULL)"
+)
+
+MIGRATIONS: tuple[tuple[str, ...], ...] = (
+    # 0 -> 1: pairs (with their concept tuples and fleet-wide totals), anchor history, the active pointer,
+    # kept proposals.
+    (
+        "CREATE TABLE concept_tuples (id {id}, concepts TEXT NOT NULL UNIQUE)",
+        "CREATE TABLE pairs (id {id}, tuple_id BIGINT NOT NULL REFERENCES concept_tuples (id), "
+        "source TEXT NOT NULL, anchor_version TEXT NOT NULL, kind SMALLINT NOT NULL, stamp {float} NOT NULL, "
+        "outcome {float} NOT NULL, weights {blob} NOT NULL, nbytes INTEGER NOT NULL, instance TEXT NOT NULL)",
+        "CREATE INDEX pairs_by_tuple ON pairs (tuple_id, id)",
+        "CREATE TABLE pair_totals (singleton INTEGER PRIMARY KEY CHECK (singleton = 1), "
+        "pairs BIGINT NOT NULL, bytes BIGINT NOT NULL)",
+        "INSERT INTO pair_totals (singleton, pairs, bytes) VALUES (1, 0, 0)",
+        "CREATE TABLE anchor_history (entry {id}, version TEXT NOT NULL, anchor_set TEXT NOT NULL, "
+        "accepted_at {float} NOT NULL, how TEXT NOT NULL, forced BOOLEAN NOT NULL, actor TEXT NOT NULL, "
+        "instance TEXT NOT NULL)",
+        "CREATE TABLE anchor_active (singleton INTEGER PRIMARY KEY CHECK (singleton = 1), "
+        "entry BIGINT NOT NULL REFERENCES anchor_history (entry))",
+        "CREATE TABLE anchor_proposals (version TEXT PRIMARY KEY, proposal TEXT NOT NULL, "
+        "stored_at {float} NOT NULL, instance TEXT NOT NULL)",
+    ),
+)
+assert len(MIGRATIONS) == SCHEMA_VERSION

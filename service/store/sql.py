@@ -1,0 +1,291 @@
+"""The store's logic in SQL, once, for both backends (``schema.Dialect`` fills in the differences); a backend
+gives only connections and transactions (``_transaction``), and maps its driver's errors.
+
+Writers are serialised per table group: a backend's write transaction takes the group's lock first (SQLite:
+its one writer lock; PostgreSQL: a transaction-scoped advisory lock), so the fleet-wide totals and the
+active pointer are read and changed by one writer at a time and a compare-and-swap cannot interleave."""
+
+from __future__ import annotations
+
+import json
+import time
+from abc import abstractmethod
+from collections.abc import Sequence
+from contextlib import AbstractContextManager
+from typing import Any, Literal, Protocol
+
+import numpy as np
+from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.experience import AnchorProposal
+from gcdtrav.service.store.base import Store
+from gcdtrav.service.store.records import (
+    Activation,
+    AppendResult,
+    HistoryRecord,
+    PairColumns,
+    PairRecord,
+    PairTotals,
+    SchemaTooNew,
+    StoredProposal,
+    concept_key,
+    pair_bytes,
+)
+from gcdtrav.service.store.schema import MIGRATIONS, SCHEMA_VERSION, VERSION_TABLE, Dialect
+
+Lock = Literal["schema", "pairs", "anchors"]
+EVICT_CHUNK = 10_000  # oldest rows looked at per step while finding where the bounds are kept
+
+
+class Cursor(Protocol):
+    def execute(self, sql: str, params: Sequence[Any] = ..., /) -> Any: ...
+    def executemany(self, sql: str, params: Sequence[Sequence[Any]], /) -> Any: ...
+    def fetchone(self) -> Any: ...
+    def fetchall(self) -> list[Any]: ...
+
+
+class SqlStore(Store):
+    dialect: Dialect
+
+    @abstractmethod
+    def _transaction(self, lock: Lock | None) -> AbstractContextManager[Cursor]:
+        """A cursor inside one transaction, committed on leaving (rolled back on an exception); a write
+        transaction (``lock`` given) holds that group's writer lock from its start."""
+
+    def _run(self, cursor: Cursor, statement: str, params: Sequence[Any] = ()) -> Cursor:
+        cursor.execute(self.dialect.sql(statement), params)
+        return cursor
+
+    # ---- schema ----------------------------------------------------------------------------------------
+    def _migrate(self) -> None:
+        """Create or bring the schema forward, in one transaction; SchemaTooNew, untouched, if it is newer."""
+        with self._transaction("schema") as cursor:
+            self._run(cursor, VERSION_TABLE)
+            row = self._run(cursor, "SELECT version FROM schema_version WHERE singleton = 1").fetchone()
+            found = int(row[0]) if row is not None else 0
+            if found > SCHEMA_VERSION:
+                raise SchemaTooNew(
+                    f"the store {self.location} has schema version {found}, this gcdtrav knows up to "
+                    f"{SCHEMA_VERSION}: run a newer gcdtrav (the store is left untouched)"
+                )
+            for statements in MIGRATIONS[found:]:
+                for statement in statements:
+                    self._run(cursor, statement)
+            if row is None:
+                self._run(cursor, "INSERT INTO schema_version (singleton, version) VALUES (1, ?)", (SCHEMA_VERSION,))
+            elif found < SCHEMA_VERSION:
+                self._run(cursor, "UPDATE schema_version SET version = ? WHERE singleton = 1", (SCHEMA_VERSION,))
+
+    def schema_version(self) -> int:
+        with self._transaction(None) as cursor:
+            return int(self._run(cursor, "SELECT version FROM schema_version WHERE singleton = 1").fetchone()[0])
+
+    # ---- pairs -----------------------------------------------------------------------------------------
+    def append_pairs(self, pairs: Sequence[PairRecord], max_pairs: int, max_bytes: int) -> AppendResult:
+        if not pairs:
+            return AppendResult(0, 0)
+        with self._transaction("pairs") as cursor:
+            tuple_ids = {key: self._tuple_id(cursor, key) for key in {p.concepts for p in pairs}}
+            rows = [
+                (tuple_ids[p.concepts], p.source, p.anchor_version, p.kind, float(p.stamp), float(p.outcome),
+                 np.asarray(p.weights, "<f4").tobytes(), pair_bytes(len(p.concepts)), p.instance)
+                for p in pairs
+            ]  # fmt: skip
+            cursor.executemany(
+                self.dialect.sql(
+                    "INSERT INTO pairs (tuple_id, source, anchor_version, kind, stamp, outcome, weights, nbytes, "
+                    "instance) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)"
+                ),
+                rows,
+            )
+            added = sum(row[7] for row in rows)
+            self._run(
+                cursor,
+                "UPDATE pair_totals SET pairs = pairs + ?, bytes = bytes + ? WHERE singleton = 1",
+                (len(rows), added),
+            )
+            evicted = self._evict(cursor, max_pairs, max_bytes)
+        return AppendResult(len(rows), evicted)
+
+    def _tuple_id(self, cursor: Cursor, concepts: tuple[str, ...]) -> int:
+        text = json.dumps(list(concepts))
+        self._run(cursor, "INSERT INTO concept_tuples (concepts) VALUES (?) ON CONFLICT (concepts) DO NOTHING", (text,))
+        return int(self._run(cursor, "SELECT id FROM concept_tuples WHERE concepts = ?", (text,)).fetchone()[0])
+
+    def _evict(self, cursor: Cursor, max_pairs: int, max_bytes: int) -> int:
+        """Delete the oldest pairs of the whole store until both bounds hold; how many went."""
+        count, size = self._run(cursor, "SELECT pairs, bytes FROM pair_totals WHERE singleton = 1").fetchone()
+        count, size = int(count), int(size)
+        cut, removed, freed, after = None, 0, 0, -1
+        while count - removed > max_pairs or size - freed > max_bytes:
+            rows = self._run(
+                cursor, "SELECT id, nbytes FROM pairs WHERE id > ? ORDER BY id LIMIT ?", (after, EVICT_CHUNK)
+            ).fetchall()
+            if not rows:
+                break
+            for row_id, nbytes in rows:
+                if count - removed <= max_pairs and size - freed <= max_bytes:
+                    break
+                cut, removed, freed = int(row_id), removed + 1, freed + int(nbytes)
+            after = int(rows[-1][0])
+        if cut is None:
+            return 0
+        self._run(cursor, "DELETE FROM pairs WHERE id <= ?", (cut,))
+        self._run(
+            cursor, "UPDATE pair_totals SET pairs = pairs - ?, bytes = bytes - ? WHERE singleton = 1", (removed, freed)
+        )
+        return removed
+
+    def pairs(self, concepts: Sequence[str], source: str | None = None) -> PairColumns:
+        key = concept_key(concepts)
+        with self._transaction(None) as cursor:
+            row = self._run(cursor, "SELECT id FROM concept_tuples WHERE concepts = ?", (json.dumps(list(key)),))
+            found = row.fetchone()
+            if found is None:
+                return PairColumns.empty(key)
+            where, params = "tuple_id = ?", list[Any]([int(found[0])])
+            if source is not None:
+                where, params = where + " AND source = ?", [*params, source]
+            rows = self._run(
+                cursor,
+                f"SELECT id, weights, outcome, stamp, kind, anchor_version, source FROM pairs WHERE {where} "
+                "ORDER BY id",
+                params,
+            ).fetchall()
+        return _columns(key, rows)
+
+    def tuples(self) -> list[tuple[str, ...]]:
+        with self._transaction(None) as cursor:
+            rows = self._run(
+                cursor,
+                "SELECT concepts FROM concept_tuples t WHERE EXISTS (SELECT 1 FROM pairs p WHERE p.tuple_id = t.id)",
+            ).fetchall()
+        return sorted(tuple(json.loads(row[0])) for row in rows)
+
+    def totals(self) -> PairTotals:
+        with self._transaction(None) as cursor:
+            count, size = self._run(cursor, "SELECT pairs, bytes FROM pair_totals WHERE singleton = 1").fetchone()
+        return PairTotals(int(count), int(size))
+
+    # ---- anchor sets -----------------------------------------------------------------------------------
+    _HISTORY_COLUMNS = "h.entry, h.version, h.anchor_set, h.accepted_at, h.how, h.forced, h.actor, h.instance"
+
+    def _active(self, cursor: Cursor) -> HistoryRecord | None:
+        row = self._run(
+            cursor,
+            f"SELECT {self._HISTORY_COLUMNS} FROM anchor_active a JOIN anchor_history h ON h.entry = a.entry "
+            "WHERE a.singleton = 1",
+        ).fetchone()
+        return _history_record(row) if row is not None else None
+
+    def active(self) -> HistoryRecord | None:
+        with self._transaction(None) as cursor:
+            return self._active(cursor)
+
+    def seed(self, anchors: AnchorSet, instance: str, how: str = "seeded", accepted_at: float = 0.0) -> HistoryRecord:
+        with self._transaction("anchors") as cursor:
+            active = self._active(cursor)
+            if active is not None:
+                return active
+            return self._append_active(cursor, anchors, accepted_at, how, False, "", instance)
+
+    def activate(
+        self,
+        anchors: AnchorSet,
+        expected_active_version: str | None,
+        how: str,
+        instance: str,
+        actor: str = "",
+        forced: bool = False,
+        accepted_at: float | None = None,
+    ) -> Activation:
+        when = round(time.time(), 3) if accepted_at is None else accepted_at  # ms: the fleet's tokens carry ms
+        with self._transaction("anchors") as cursor:
+            active = self._active(cursor)
+            if active is not None and expected_active_version is not None and active.version != expected_active_version:
+                return Activation(False, active)
+            return Activation(True, self._append_active(cursor, anchors, when, how, forced, actor, instance))
+
+    def _append_active(
+        self, cursor: Cursor, anchors: AnchorSet, when: float, how: str, forced: bool, actor: str, instance: str
+    ) -> HistoryRecord:
+        self._run(
+            cursor,
+            "INSERT INTO anchor_history (version, anchor_set, accepted_at, how, forced, actor, instance) "
+            "VALUES (?, ?, ?, ?, ?, ?, ?)",
+            (anchors.version, anchors.to_json(), when, how, forced, actor, instance),
+        )
+        entry = int(self._run(cursor, "SELECT MAX(entry) FROM anchor_history").fetchone()[0])
+        updated = self._run(cursor, "UPDATE anchor_active SET entry = ? WHERE singleton = 1", (entry,))
+        if _rowcount(updated) == 0:
+            self._run(cursor, "INSERT INTO anchor_active (singleton, entry) VALUES (1, ?)", (entry,))
+        return HistoryRecord(entry, anchors.version, anchors, when, how, forced, actor, instance)
+
+    def history(self, limit: int = 20) -> list[HistoryRecord]:
+        with self._transaction(None) as cursor:
+            rows = self._run(
+                cursor, f"SELECT {self._HISTORY_COLUMNS} FROM anchor_history h ORDER BY h.entry DESC LIMIT ?", (limit,)
+            ).fetchall()
+        return [_history_record(row) for row in rows]
+
+    # ---- proposals -------------------------------------------------------------------------------------
+    def put_proposal(self, proposal: AnchorProposal, instance: str) -> StoredProposal:
+        stored = StoredProposal(proposal.proposed_version, proposal, round(time.time(), 3), instance)
+        with self._transaction("anchors") as cursor:
+            self._run(cursor, "DELETE FROM anchor_proposals WHERE version = ?", (stored.version,))
+            self._run(
+                cursor,
+                "INSERT INTO anchor_proposals (version, proposal, stored_at, instance) VALUES (?, ?, ?, ?)",
+                (stored.version, proposal.model_dump_json(), stored.stored_at, instance),
+            )
+        return stored
+
+    def proposal(self, version: str) -> StoredProposal | None:
+        with self._transaction(None) as cursor:
+            row = self._run(
+                cursor,
+                "SELECT version, proposal, stored_at, instance FROM anchor_proposals WHERE version = ?",
+                (version,),
+            ).fetchone()
+        return _stored_proposal(row) if row is not None else None
+
+    def proposals(self, limit: int = 20) -> list[StoredProposal]:
+        with self._transaction(None) as cursor:
+            rows = self._run(
+                cursor,
+                "SELECT version, proposal, stored_at, instance FROM anchor_proposals ORDER BY stored_at DESC LIMIT ?",
+                (limit,),
+            ).fetchall()
+        return [_stored_proposal(row) for row in rows]
+
+
+def _rowcount(cursor: Cursor) -> int:
+    return int(getattr(cursor, "rowcount", 0))
+
+
+def _columns(key: tuple[str, ...], rows: list[Any]) -> PairColumns:
+    if not rows:
+        return PairColumns.empty(key)
+    ids, blobs, outcomes, stamps, kinds, versions, sources = zip(*rows, strict=True)
+    weights = np.frombuffer(b"".join(bytes(b) for b in blobs), "<f4").reshape(len(rows), len(key))
+    return PairColumns(
+        concepts=key,
+        ids=np.asarray(ids, np.int64),
+        weights=weights.astype(np.float32),
+        outcomes=np.asarray(outcomes, np.float64),
+        stamps=np.asarray(stamps, np.float64),
+        kinds=np.asarray(kinds, np.uint8),
+        versions=tuple(versions),
+        sources=tuple(sources),
+    )
+
+
+def _history_record(row: Sequence[Any]) -> HistoryRecord:
+    entry, version, text, accepted_at, how, forced, actor, instance = row
+    anchors = AnchorSet.from_text(text, source=f"anchor history entry {entry}")
+    return HistoryRecord(int(entry), str(version), anchors, float(accepted_at), str(how), bool(forced), str(actor),
+                         str(instance))  # fmt: skip
+
+
+def _stored_proposal(row: Sequence[Any]) -> StoredProposal:
+    version, text, stored_at, instance = row
+    return StoredProposal(str(version), AnchorProposal.model_validate_json(text), float(stored_at), str(instance))

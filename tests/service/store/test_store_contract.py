@@ -1,0 +1,182 @@
+"""The Store contract, on SQLite and PostgreSQL alike: pairs kept apart by tuple and source, fleet-wide bounds
+oldest first, the anchor history and its compare-and-swap, kept proposals, the schema version."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from gcdtrav.schemas.anchors import Anchor, AnchorSet, default_anchor_set
+from gcdtrav.service.store import PairRecord, SchemaTooNew, Store, pair_bytes
+from gcdtrav.service.store.schema import SCHEMA_VERSION
+from store_test_helpers import pair, proposal_of
+
+GRASS = ("grass", "gravel", "rock")
+
+
+def test_pairs_come_back_as_appended_oldest_first(store: Store) -> None:
+    records = [pair(GRASS, k, outcome=k / 10) for k in range(10)]
+    result = store.append_pairs(records, max_pairs=100, max_bytes=10**6)
+    assert (result.stored, result.evicted) == (10, 0)
+    got = store.pairs(["rock", "grass", "gravel"])  # any order of the same concepts
+    assert got.concepts == GRASS
+    np.testing.assert_allclose(got.outcomes, [k / 10 for k in range(10)])
+    np.testing.assert_array_equal(got.weights, np.stack([r.weights for r in records]))
+    assert list(got.ids) == sorted(got.ids)
+    assert got.versions == tuple(r.anchor_version for r in records)
+    assert got.sources == tuple(r.source for r in records)
+    assert set(got.kinds) == {0, 1}
+    assert store.totals().pairs == 10 and store.totals().bytes == 10 * pair_bytes(3)
+
+
+def test_tuples_and_sources_stay_apart(store: Store) -> None:
+    other = ("mud", "sand")
+    store.append_pairs([pair(GRASS, 0, source="a"), pair(other, 1, source="a"), pair(GRASS, 2, source="b")], 100, 10**6)
+    assert store.tuples() == [GRASS, other]
+    assert len(store.pairs(GRASS)) == 2 and len(store.pairs(other)) == 1
+    assert store.pairs(GRASS, source="b").sources == ("b",)
+    assert len(store.pairs(GRASS, source="nobody")) == 0
+    assert len(store.pairs(("never", "seen"))) == 0
+
+
+def test_bounds_hold_fleet_wide_oldest_first(open_same_store) -> None:  # type: ignore[no-untyped-def]
+    one, two = open_same_store(), open_same_store()  # two instances on one store
+    one.append_pairs([pair(GRASS, k, outcome=0.0) for k in range(6)], max_pairs=8, max_bytes=10**6)
+    result = two.append_pairs([pair(("mud", "sand"), k, outcome=1.0) for k in range(4)], max_pairs=8, max_bytes=10**6)
+    assert result.evicted == 2
+    assert one.totals().pairs == 8
+    assert len(one.pairs(GRASS)) == 4  # the two oldest, of another tuple, went first
+    # Bytes bound: a 3-concept pair costs more than a 2-concept one; keep at most 3 of them.
+    result = one.append_pairs([pair(GRASS, 9)], max_pairs=100, max_bytes=3 * pair_bytes(3))
+    assert one.totals().bytes <= 3 * pair_bytes(3)
+    assert one.totals().pairs == 3 and result.evicted == 6
+
+
+def test_bound_of_one_pair(store: Store) -> None:
+    for k in range(3):
+        store.append_pairs([pair(GRASS, k, outcome=k / 4)], max_pairs=1, max_bytes=10**6)
+    assert store.totals().pairs == 1
+    assert list(store.pairs(GRASS).outcomes) == [0.5]
+
+
+def test_nothing_to_append(store: Store) -> None:
+    assert store.append_pairs([], 10, 10**6).stored == 0
+    assert store.totals().pairs == 0 and store.tuples() == []
+
+
+def test_appends_from_many_threads_lose_nothing(open_same_store) -> None:  # type: ignore[no-untyped-def]
+    stores = [open_same_store() for _ in range(3)]
+
+    def append(store: Store, start: int) -> None:
+        for k in range(start, start + 20):
+            store.append_pairs([pair(GRASS, k)], 10**6, 10**9)
+
+    threads = [threading.Thread(target=append, args=(s, 100 * i)) for i, s in enumerate(stores)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    assert stores[0].totals().pairs == 60 == len(stores[0].pairs(GRASS))
+
+
+def test_pairs_survive_reopening(open_same_store) -> None:  # type: ignore[no-untyped-def]
+    first = open_same_store()
+    first.append_pairs([pair(GRASS, k) for k in range(5)], 100, 10**6)
+    first.close()
+    again = open_same_store()
+    assert len(again.pairs(GRASS)) == 5 and again.schema_version() == SCHEMA_VERSION
+
+
+# ---- anchor sets ----------------------------------------------------------------------------------------------
+
+
+def _set(position: float) -> AnchorSet:
+    return AnchorSet(
+        name=f"at {position}",
+        default_width=0.1,
+        anchors=[Anchor(concept="rock", position=0.0), Anchor(concept="grass", position=position)],
+    )
+
+
+def test_seed_only_fills_an_empty_store(store: Store) -> None:
+    assert store.active() is None and store.history() == []
+    seeded = store.seed(default_anchor_set(), "i1")
+    assert seeded.how == "seeded" and seeded.accepted_at == 0.0
+    again = store.seed(_set(0.9), "i2")  # a second instance with another configured set
+    assert again.version == default_anchor_set().version
+    assert store.active() == seeded and len(store.history()) == 1
+
+
+def test_activation_is_compare_and_swap(open_same_store) -> None:  # type: ignore[no-untyped-def]
+    one, two = open_same_store(), open_same_store()
+    start = one.seed(_set(0.5), "i1")
+    won = one.activate(_set(0.8), start.version, "set", "i1", actor="ana")
+    lost = two.activate(_set(0.7), start.version, "set", "i2", actor="bo")
+    assert won.applied and not lost.applied
+    assert lost.active.version == _set(0.8).version and lost.active.actor == "ana"
+    assert two.active() == won.active
+    forced = two.activate(_set(0.7), None, "proposal", "i2", forced=True)  # unconditional
+    assert forced.applied and forced.active.forced and forced.active.how == "proposal"
+    history = one.history()
+    assert [h.version for h in history] == [_set(0.7).version, _set(0.8).version, start.version]
+    assert [h.entry for h in history] == sorted((h.entry for h in history), reverse=True)
+    assert history[0].anchor_set == _set(0.7)
+    assert len(one.history(limit=1)) == 1
+
+
+def test_of_concurrent_activations_exactly_one_wins(open_same_store) -> None:  # type: ignore[no-untyped-def]
+    stores = [open_same_store() for _ in range(4)]
+    start = stores[0].seed(_set(0.5), "i0")
+    results: list[object] = [None] * len(stores)
+    barrier = threading.Barrier(len(stores))
+
+    def activate(k: int) -> None:
+        barrier.wait()
+        results[k] = stores[k].activate(_set(0.6 + k / 20), start.version, "set", f"i{k}")
+
+    threads = [threading.Thread(target=activate, args=(k,)) for k in range(len(stores))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    winners = [r for r in results if r.applied]  # type: ignore[attr-defined]
+    assert len(winners) == 1
+    assert all(r.active.version == winners[0].active.version for r in results)  # type: ignore[attr-defined]
+    assert len(stores[0].history()) == 2
+
+
+def test_proposals_are_kept_by_version(store: Store) -> None:
+    first, second = proposal_of(_set(0.5), _set(0.6)), proposal_of(_set(0.5), _set(0.7))
+    store.put_proposal(first, "i1")
+    stored = store.put_proposal(second, "i2")
+    assert stored.version == _set(0.7).version
+    assert store.proposal(_set(0.6).version).proposal == first  # type: ignore[union-attr]
+    assert store.proposal("nope") is None
+    assert [p.version for p in store.proposals()] == [_set(0.7).version, _set(0.6).version]
+    store.put_proposal(first, "i3")  # the same version again replaces it
+    assert store.proposal(_set(0.6).version).instance == "i3"  # type: ignore[union-attr]
+    assert len(store.proposals()) == 2
+
+
+# ---- the schema ---------------------------------------------------------------------------------------------
+
+
+def test_a_newer_schema_is_refused_untouched(open_same_store) -> None:  # type: ignore[no-untyped-def]
+    store = open_same_store()
+    store.append_pairs([pair(GRASS, 0)], 10, 10**6)
+    with store._transaction("schema") as cursor:  # type: ignore[attr-defined]
+        cursor.execute("UPDATE schema_version SET version = 99")
+    with pytest.raises(SchemaTooNew) as refused:
+        open_same_store()
+    message = str(refused.value)
+    assert "schema version 99" in message and f"up to {SCHEMA_VERSION}" in message and "\n" not in message
+    with store._transaction(None) as cursor:  # type: ignore[attr-defined]
+        cursor.execute("SELECT version FROM schema_version")
+        assert cursor.fetchone()[0] == 99
+
+
+def test_pair_record_weights_keep_float32(store: Store) -> None:
+    record = PairRecord(GRASS, np.array([0.1, 0.2, 0.7], np.float32), 0.5, 1.0, 0, "v", "cam")
+    store.append_pairs([record], 10, 10**6)
+    assert store.pairs(GRASS).weights.dtype == np.float32
