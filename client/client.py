@@ -87,6 +87,16 @@ class AnchorSetRejected(ServiceError):
         self.instance = instance
 
 
+class ActivationLost(AnchorSetRejected):
+    """Another set became active first while this swap expected the one it saw (compare-and-swap): ``winner``
+    is that set's version; nothing was swapped."""
+
+    def __init__(self, messages: list[str], winner: str, instance: str | None = None) -> None:
+        super().__init__(messages, winner, instance)
+        self.args = (f"lost to anchor set {winner}: " + "; ".join(messages),)
+        self.winner = winner
+
+
 class PartialSwap(ServiceError):
     """A swap some instances took and others refused or did not answer: ``swapped`` (instance -> version) and
     ``failed`` (instance -> error). They converge to the newest accepted set by themselves (the fleet's
@@ -573,6 +583,8 @@ class TraversabilityClient:
     def _error_from(payload: bytes, key: str) -> ServiceError:
         try:
             rejection = AnchorSetRejection.unpack(payload)
+            if rejection.lost_to is not None:
+                return ActivationLost(rejection.errors, rejection.lost_to, rejection.instance)
             return AnchorSetRejected(rejection.errors, rejection.active_version, rejection.instance)
         except MessageError:
             pass
@@ -685,8 +697,16 @@ class TraversabilityClient:
     def anchors(self, timeout: float | None = None) -> AnchorSetReply:
         return self._query(self.keys.anchors, AnchorSetReply, timeout=timeout)
 
-    def set_anchors(self, anchor_set: AnchorSet | Mapping[str, Any] | str, timeout: float | None = None) -> str:
-        """Swap the service's anchor set; returns the new version or raises AnchorSetRejected."""
+    def set_anchors(
+        self,
+        anchor_set: AnchorSet | Mapping[str, Any] | str,
+        timeout: float | None = None,
+        expected_version: str | None = None,
+    ) -> str:
+        """Swap the service's anchor set; returns the new version or raises AnchorSetRejected.
+        ``expected_version``: swap only if that set is still the active one (the one the caller reviewed the
+        change against): of two callers swapping at once one wins, the other gets ActivationLost naming the
+        winner. Services before 1.5 (no ``accepted_at`` in their AnchorSetReply) refuse it as a parameter."""
         if isinstance(anchor_set, AnchorSet):
             text = anchor_set.to_json()
         elif isinstance(anchor_set, str):
@@ -696,19 +716,44 @@ class TraversabilityClient:
 
             text = json.dumps(dict(anchor_set))
         # Every instance of the prefix swaps, so that all sources use the same set.
+        params = {"expected": expected_version} if expected_version else None
         answers, errors = self._replies(
             self.keys.anchors,
             AnchorSetReply,
+            params,
             payload=text.encode("utf-8"),
             timeout=timeout,
             every_instance=True,
         )
+        return self._swapped(answers, errors)
+
+    @staticmethod
+    def _swapped(answers: list[AnchorSetReply], errors: list[ServiceError]) -> str:
+        """The version every instance swapped to; the lost race (ActivationLost) or the first refusal when
+        none did; PartialSwap when some did and others not."""
         if errors and not answers:
-            raise errors[0]
+            raise next((error for error in errors if isinstance(error, ActivationLost)), errors[0])
         if errors:
             swapped = {answer.instance or f"instance {k + 1}": answer.version for k, answer in enumerate(answers)}
             failed = {getattr(error, "instance", None) or f"unnamed {k + 1}": error for k, error in enumerate(errors)}
             raise PartialSwap(answers[0].version, swapped, failed)
+        return answers[0].version
+
+    def apply_proposal(
+        self, version: str, force: bool = False, expected_version: str | None = None, timeout: float | None = None
+    ) -> str:
+        """Apply the proposal kept in the store under its proposed ``version`` (``anchor_proposal().kept``):
+        exactly the set that was reviewed, never a refit; only while the set it was judged against is active
+        (or ``expected_version``), and only if judged better unless ``force`` (then marked forced in the
+        history). Every instance is asked; an instance whose own store lacks it adopts it from the one that
+        applied it, and this waits (up to ``timeout``) until every instance holds it."""
+        params: dict[str, Any] = {"proposal": version} | ({"force": "true"} if force else {})
+        if expected_version:
+            params["expected"] = expected_version
+        answers, errors = self._replies(self.keys.anchors, AnchorSetReply, params, timeout=timeout, every_instance=True)
+        if not answers:
+            raise next((error for error in errors if isinstance(error, ActivationLost)), errors[0])
+        self._await_fleet_on(answers[0].version, self.timeout if timeout is None else timeout)
         return answers[0].version
 
     def anchor_history(self, timeout: float | None = None) -> list[AnchorHistoryReply]:
@@ -730,7 +775,9 @@ class TraversabilityClient:
         if not histories:
             raise ServiceError("no instance answered with an anchor history")
         newest = max(histories, key=lambda h: (h.entries[0].accepted_at, h.entries[0].version, h.instance))
-        params = {"steps": steps, "instance": newest.instance}
+        params: dict[str, Any] = {"steps": steps, "instance": newest.instance}
+        if newest.entries[0].how is not None:  # a 1.5 service: roll back only from the set shown (compare-and-swap)
+            params["expected"] = newest.entries[0].version
         answers, errors = self._replies(
             self.keys.anchor_rollback, AnchorSetReply, params, timeout=timeout, every_instance=True
         )

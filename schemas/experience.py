@@ -192,14 +192,29 @@ class FigureVerdict(WireModel):
     judgement: str
 
 
+class BaselineJudgement(WireModel):
+    """The proposed set against another set than the current one, on the same held-out pairs."""
+
+    baseline: str = Field(description='Which set: "paper\'s set" or "best in history".')
+    version: str
+    verdict: str = Field(description="better | no better | worse: the proposed set against this one.")
+    figures: list[FigureVerdict]
+
+
 class ProposalVerdict(WireModel):
-    """A proposal judged on its held-out pairs: better only if no judged figure is worse and one is better."""
+    """A proposal judged on its held-out pairs: better only if no judged figure is worse and one is better, and
+    (since 1.5) not worse than the paper's set or the best set of the history either."""
 
     verdict: str = Field(description="Verdict's words today; any other word (a newer service) is never applied.")
     figures: list[FigureVerdict]
     held_out_pairs: int
     min_held_out_pairs: int = MIN_HELD_OUT_PAIRS
     enough_pairs: bool
+    against: list[BaselineJudgement] = Field(
+        default_factory=list,
+        description="The proposed set against the paper's set and the history's best of the same concepts; a "
+        "worse judgement against any makes the verdict worse. Since 1.5.",
+    )
 
     @property
     def applicable(self) -> bool:
@@ -208,11 +223,23 @@ class ProposalVerdict(WireModel):
 
     def reason(self) -> str:
         """One line: the verdict, the figures behind it, the pairs."""
-        shown = [f for f in self.figures if f.judgement == "worse"] if self.verdict == "worse" else self.figures
+        worse_here = _verdict(self.figures) == "worse"  # against the current set (the baselines come below)
+        shown = [f for f in self.figures if f.judgement == "worse"] if worse_here else self.figures
         figures = ", ".join(f"{f.figure} {_figure(f.before)} -> {_figure(f.after)} ({f.judgement})" for f in shown)
         pairs = f"{self.held_out_pairs} held-out pairs"
         if not self.enough_pairs:
             pairs += f", fewer than the {self.min_held_out_pairs} a verdict needs"
+        worse_than = [
+            f"worse than the {b.baseline} {b.version} ("
+            + ", ".join(
+                f"{f.figure} {_figure(f.before)} -> {_figure(f.after)}" for f in b.figures if f.judgement == "worse"
+            )
+            + ")"
+            for b in self.against
+            if b.verdict == "worse"
+        ]
+        if worse_than:
+            figures = "; ".join(worse_than) + (f"; against the current set: {figures}" if figures else "")
         return f"{self.verdict} on the held-out pairs: {figures or 'no figure defined'}; {pairs}"
 
 
@@ -232,20 +259,41 @@ def judge_proposal(
     before: CalibrationFigures, after: CalibrationFigures, held_out_pairs: int, min_pairs: int = MIN_HELD_OUT_PAIRS
 ) -> ProposalVerdict:
     """The current set's held-out figures against the proposed set's, on MAE, coverage and ECE."""
-    figures = [
-        _judge("mae", before.mae, after.mae),
-        _judge("coverage shortfall", coverage_shortfall(before), coverage_shortfall(after)),
-        _judge("ece", before.ece, after.ece),
-    ]
-    judgements = {f.judgement for f in figures}
-    verdict: Verdict = "worse" if "worse" in judgements else "better" if "better" in judgements else "no better"
+    figures = _judged_figures(before, after)
     return ProposalVerdict(
-        verdict=verdict,
+        verdict=_verdict(figures),
         figures=figures,
         held_out_pairs=held_out_pairs,
         min_held_out_pairs=min_pairs,
         enough_pairs=held_out_pairs >= min_pairs,
     )
+
+
+def _judged_figures(before: CalibrationFigures, after: CalibrationFigures) -> list[FigureVerdict]:
+    return [
+        _judge("mae", before.mae, after.mae),
+        _judge("coverage shortfall", coverage_shortfall(before), coverage_shortfall(after)),
+        _judge("ece", before.ece, after.ece),
+    ]
+
+
+def _verdict(figures: list[FigureVerdict]) -> Verdict:
+    judgements = {f.judgement for f in figures}
+    return "worse" if "worse" in judgements else "better" if "better" in judgements else "no better"
+
+
+def judge_against(
+    verdict: ProposalVerdict, after: CalibrationFigures, baselines: list[tuple[str, str, CalibrationFigures]]
+) -> ProposalVerdict:
+    """``verdict`` (the proposed set against the current one) also against each (name, version, figures)
+    baseline on the same held-out pairs: worse against any makes it worse, since a set that only beats a
+    worse current one (a forced set) is no improvement of what the fleet had."""
+    against = []
+    for name, version, figures in baselines:
+        judged = _judged_figures(figures, after)
+        against.append(BaselineJudgement(baseline=name, version=version, verdict=_verdict(judged), figures=judged))
+    worse = verdict.verdict == "worse" or any(b.verdict == "worse" for b in against)
+    return verdict.model_copy(update={"against": against, "verdict": "worse" if worse else verdict.verdict})
 
 
 class AnchorProposal(Message):
@@ -265,6 +313,15 @@ class AnchorProposal(Message):
     after: CalibrationFigures = Field(description="The proposed set on the same pairs.")
     verdict: ProposalVerdict | None = Field(
         default=None, description="judge_proposal of before and after; None from a service older than verdicts."
+    )
+    kept: bool = Field(
+        default=False,
+        description="Kept in the fleet's store under proposed_version: `gcdtrav anchors apply VERSION` applies "
+        "exactly this proposed set, never a refit. False: an offline fit, or a service before 1.5.",
+    )
+    pairs_from: float | None = Field(default=None, description="The first pair's stamp, s. Since 1.5.")
+    pairs_until: float | None = Field(
+        default=None, description="The last pair's stamp, s: pairs that came later are not in it. Since 1.5."
     )
 
     def judged(self) -> ProposalVerdict:

@@ -4,7 +4,8 @@ The variables are not GCDTRAV_*: those are the service's settings.
     python -m tools.faulty_serve serve --model ... [gcdtrav serve arguments]
 
 FAULTY_SERVE_HANG_FLAG=PATH: while the file PATH exists, inference blocks (a hung worker; the process stays alive).
-FAULTY_SERVE_FULL_DIR=DIR: writes of the anchor state under DIR fail with ENOSPC (a full disk, without root mounts).
+FAULTY_SERVE_FULL_DIR=DIR: writes under DIR (files, and the SQLite store's transactions) fail as on a full disk
+(ENOSPC, 'database or disk is full'), without root mounts.
 FAULTY_SERVE_FRAME_COST_S=S: a TEST BACKEND: every inference takes at least S seconds, the rest slept, not computed
 (benchmarks/autoscale.py: capacity then grows with the instances, even on a 2-core machine; its maps are the
 tiny model's, its speed says nothing about gcdtrav's).
@@ -49,17 +50,27 @@ def fixed_frame_cost(seconds: float) -> None:
 
 
 def fail_writes_under(directory: Path) -> None:
-    from gcdtrav.service.runtime.fleet import anchor_switch, state
+    from gcdtrav.service.runtime.fleet import state
+    from gcdtrav.service.store import StoreUnavailable
+    from gcdtrav.service.store.sqlite import SqliteStore
 
-    real_write = state.write_atomically
+    real_write, real_transaction = state.write_atomically, SqliteStore._transaction
+
+    def under(path: Path) -> bool:
+        return Path(path).resolve().is_relative_to(directory.resolve())
 
     def write_atomically(path: Path, text: str | bytes) -> None:
-        if Path(path).resolve().is_relative_to(directory.resolve()):
+        if under(path):
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
         real_write(path, text)
 
-    state.write_atomically = write_atomically  # save_anchor_state looks it up here
-    anchor_switch.write_atomically = write_atomically  # the history file
+    def transaction(self: SqliteStore, lock: Any) -> Any:
+        if lock is not None and under(self.path):  # a write: what SQLite says on a full disk
+            raise StoreUnavailable(f"the store {self.path}: database or disk is full")
+        return real_transaction(self, lock)
+
+    state.write_atomically = write_atomically  # the files still written there (e.g. experience)
+    setattr(SqliteStore, "_transaction", transaction)  # noqa: B010 (as above): the anchor store's writes
 
 
 def main() -> int:

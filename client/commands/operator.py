@@ -1,5 +1,5 @@
 """Operator commands of `gcdtrav`, torch-free: `gcdtrav status`, `gcdtrav anchors get|set|history|rollback|
-propose`, `gcdtrav probe`, and the experience's `gcdtrav calibration` and `gcdtrav answer` (experience.py).
+propose|apply`, `gcdtrav probe`, and the experience's `gcdtrav calibration` and `gcdtrav answer` (experience.py).
 
 They run from the base install (`pip install gcdtrav`), with the zenoh flags of `gcdtrav serve`.
 Exit codes: 0 ok, 1 rejected or failed (one line on stderr), 2 usage error.
@@ -21,7 +21,13 @@ from gcdtrav.client.commands.density_plot import describe, save_distribution
 from gcdtrav.client.commands.grid_status import grid_lines
 from gcdtrav.client.session.zenoh_args import add_zenoh_arguments, zenoh_config_from_args
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, anchor_diff
-from gcdtrav.schemas.messages import AnchorHistoryReply, ContextDistribution, ServiceStatus, SourceStatus
+from gcdtrav.schemas.messages import (
+    AnchorHistoryEntry,
+    AnchorHistoryReply,
+    ContextDistribution,
+    ServiceStatus,
+    SourceStatus,
+)
 
 COMMANDS = ("status", "anchors", "probe", *experience.COMMANDS)
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
@@ -38,6 +44,11 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
     put = actions.add_parser("set", help="validate FILE, show the change, and swap it in on every instance")
     put.add_argument("file", type=Path, help="anchor set, JSON or YAML")
     put.add_argument("--dry-run", action="store_true", help="validate and show the change; swap nothing")
+    put.add_argument(
+        "--expected",
+        metavar="VERSION",
+        help="swap only while this set is the active one [the active set the change is shown against]",
+    )
     history = actions.add_parser("history", help="the last accepted anchor sets, newest (active) first")
     rollback = actions.add_parser("rollback", help="swap back to an earlier set of the history, on every instance")
     rollback.add_argument("steps", nargs="?", type=positive_int, default=1, help="how far back [1: the set before]")
@@ -47,6 +58,11 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
         "--apply", action="store_true", help="swap it in on every instance if judged better (validated, rollback-able)"
     )
     propose.add_argument("--force", action="store_true", help="with --apply: swap it in even if not judged better")
+    apply = actions.add_parser(
+        "apply", help="swap in a proposal kept by `anchors propose`, by its version: exactly the set reviewed"
+    )
+    apply.add_argument("version", help="the proposed set's version that `gcdtrav anchors propose` printed")
+    apply.add_argument("--force", action="store_true", help="swap it in even if not judged better (marked forced)")
     probe = commands.add_parser("probe", help="a pixel's context distribution, printed or drawn (no torch)")
     probe.add_argument("source", help="the source, e.g. r1/front")
     probe.add_argument("x", type=float, help="image pixel column")
@@ -55,7 +71,8 @@ def add_operator_commands(commands: argparse._SubParsersAction) -> None:
     probe.add_argument("--alpha", type=float, help="CVaR and quantile level, 0 < alpha <= 1 [the service's risk.alpha]")
     probe.add_argument("--tau", type=float, help="P(T < tau) threshold, 0 <= tau <= 1 [the service's risk.tau]")
     probe.add_argument("--png", type=Path, help="also draw the density like the paper's Fig. 2 (needs matplotlib)")
-    for parser in (status, get, put, history, rollback, propose, probe, *experience.add_experience_commands(commands)):
+    operator = (status, get, put, history, rollback, propose, apply, probe)
+    for parser in (*operator, *experience.add_experience_commands(commands)):
         parser.add_argument("--prefix", default="gcdtrav", help="the service's key prefix [gcdtrav]")
         parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for replies [5]")
         add_zenoh_arguments(parser)
@@ -88,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
                 "history": show_history,
                 "rollback": roll_back,
                 "propose": propose_anchors,
+                "apply": apply_proposal,
             }
             return actions[args.action](client, args)
     except AnchorSetError as err:  # the operator's own file (anchors set): the service's refusals are ServiceErrors
@@ -268,14 +286,18 @@ def active_yaml(anchors: AnchorSet) -> str:
 
 def set_anchors(client: TraversabilityClient, args: argparse.Namespace) -> int:
     new = AnchorSet.load(args.file)  # the same pydantic model the service validates with
-    active = client.anchors().anchor_set
+    seen = client.anchors()
+    active = seen.anchor_set
     changes = anchor_diff(active, new)
     print(f"{active.version} ({len(active)} anchors) -> {new.version} ({len(new)} anchors)")
     print("\n".join(changes) if changes else "no change")
     if args.dry_run:
         print("dry run: nothing swapped")
         return EXIT_OK
-    version = client.set_anchors(new)  # PartialSwap (exit 1) names which instance holds what
+    # Only if the set the diff was shown against is still active (1.5 services): of two operators swapping at
+    # once one wins, the other gets ActivationLost naming the winner (exit 1, one line).
+    expected = args.expected or (seen.version if seen.accepted_at is not None else None)
+    version = client.set_anchors(new, expected_version=expected)  # PartialSwap (exit 1) names who holds what
     print(f"swapped: anchor set {version} active on {fleet_sets(client)}")
     return EXIT_OK
 
@@ -292,19 +314,33 @@ def show_history(client: TraversabilityClient, args: argparse.Namespace) -> int:
 
 
 def history_lines(histories: list[AnchorHistoryReply]) -> list[str]:
-    """Each instance's accepted sets, newest first; the set an instance started with (never accepted in the
-    fleet: ``accepted_at`` 0) reads 'start set', not 1970."""
+    """The accepted sets, newest first, once per distinct history (instances sharing the fleet's store answer
+    the same one); the set an instance started with (never accepted in the fleet: ``accepted_at`` 0) reads
+    'start set', not 1970; a set applied against its verdict is marked FORCED."""
     lines = []
+    shared: dict[tuple[tuple[float, str], ...], list[str]] = {}
     for history in histories:
-        lines.append(f"instance {history.instance}:")
-        for steps, entry in enumerate(history.entries):
-            when = "start set".ljust(19)
-            if entry.accepted_at > 0:
-                when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(entry.accepted_at))
-            label = "active" if steps == 0 else f"rollback {steps}"
-            anchors = entry.anchor_set
-            lines.append(f"  {label:>11}  {when}  {entry.version}  {anchors.name[:30]:<30} {len(anchors):>2} anchors")
+        shared.setdefault(tuple((e.accepted_at, e.version) for e in history.entries), []).append(history.instance)
+    shown: set[tuple[tuple[float, str], ...]] = set()
+    for history in histories:
+        key = tuple((e.accepted_at, e.version) for e in history.entries)
+        if key in shown:
+            continue
+        shown.add(key)
+        lines.append(f"instance {', '.join(shared[key])}:")
+        lines += [f"  {entry_line(steps, entry)}" for steps, entry in enumerate(history.entries)]
     return lines
+
+
+def entry_line(steps: int, entry: AnchorHistoryEntry) -> str:
+    when = "start set".ljust(19)
+    if entry.accepted_at > 0:
+        when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(entry.accepted_at))
+    label = "active" if steps == 0 else f"rollback {steps}"
+    anchors = entry.anchor_set
+    line = f"{label:>11}  {when}  {entry.version}  {anchors.name[:30]:<30} {len(anchors):>2} anchors"
+    how = " ".join(word for word in (entry.how, f"by {entry.activated_by}" if entry.activated_by else None) if word)
+    return line + (f"  {how}" if how else "") + ("  FORCED (against its verdict)" if entry.forced else "")
 
 
 def roll_back(client: TraversabilityClient, args: argparse.Namespace) -> int:
@@ -327,16 +363,28 @@ def propose_anchors(client: TraversabilityClient, args: argparse.Namespace) -> i
     proposal = client.anchor_proposal(args.source)
     print("\n".join(experience.proposal_lines(proposal)))
     refused = experience.refusal(proposal.judged())
-    forcing = f"not applied: {refused}; gcdtrav anchors propose --apply --force swaps it in anyway"
+    later = f"gcdtrav anchors apply {proposal.proposed_version}" if proposal.kept else "gcdtrav anchors propose --apply"
+    forcing = f"not applied: {refused}; {later} --force swaps it in anyway"
     if not args.apply:
-        print(forcing if refused else "not applied: gcdtrav anchors propose --apply swaps it in")
+        print(forcing if refused else f"not applied: {later} swaps in exactly this set")
         return EXIT_OK
     if refused and not args.force:
         print(f"gcdtrav anchors: {forcing}", file=sys.stderr)
         return EXIT_FAILED
-    version = client.set_anchors(proposal.proposed)
+    if proposal.kept:  # the kept proposal: exactly what was shown, while the set it was judged against is active
+        version = client.apply_proposal(proposal.proposed_version, force=bool(refused))
+    else:  # a service before 1.4 keeps none: the set shown, only over the set shown (if it takes expected)
+        version = client.set_anchors(proposal.proposed)
     forced = " (forced)" if refused else ""
     print(f"swapped{forced}: anchor set {version} active on {fleet_sets(client)} (gcdtrav anchors rollback undoes it)")
+    return EXIT_OK
+
+
+def apply_proposal(client: TraversabilityClient, args: argparse.Namespace) -> int:
+    """The kept proposal of that version, as reviewed: refused in one line if it is gone, if another set became
+    active since it was judged, or (without --force) if it was not judged better."""
+    version = client.apply_proposal(args.version, force=args.force)
+    print(f"swapped: anchor set {version} active on {fleet_sets(client)} (gcdtrav anchors rollback undoes it)")
     return EXIT_OK
 
 

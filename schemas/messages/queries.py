@@ -76,12 +76,24 @@ class AnchorSetReply(Message):
     anchor_set: AnchorSet
     version: str
     instance: str | None = Field(default=None, description="The instance that answered. Since 1.2.")
+    accepted_at: float | None = Field(
+        default=None,
+        description="When the set became active in the fleet, s since the epoch (0: the start set). Present since "
+        "1.5, whose services take expected=VERSION (compare-and-swap) and proposal=VERSION.",
+    )
 
 
 class AnchorHistoryEntry(WireModel):
     accepted_at: float = Field(description="When the set became active, seconds since the Unix epoch.")
     version: str
     anchor_set: AnchorSet
+    forced: bool = Field(
+        default=False, description="Applied with --force although its proposal was not judged better. Since 1.5."
+    )
+    activated_by: str | None = Field(default=None, description="The instance that activated it. Since 1.5.")
+    how: str | None = Field(
+        default=None, description="seeded, set, proposal, rollback or imported (a newer word may come). Since 1.5."
+    )
 
 
 class AnchorHistoryReply(Message):
@@ -97,6 +109,11 @@ class AnchorSetRejection(Message):
     errors: list[str]
     active_version: str
     instance: str | None = Field(default=None, description="The instance that refused. Since 1.2.")
+    lost_to: str | None = Field(
+        default=None,
+        description="The version activated first while this request expected another active set: it lost the "
+        "compare-and-swap. Since 1.5.",
+    )
 
 
 class ErrorReply(Message):

@@ -3,8 +3,10 @@
 Each instance holds one liveliness token ``{prefix}/active/{instance}/{millis}/{version}`` for its active
 set (re-declared after every swap) and watches everyone's (with history: a new or rejoining instance sees
 the current sets at once). When another instance announces a newer set (``service/runtime/fleet/fleet_anchors.py``
-decides), this one fetches it from that instance's ``config/anchors/history`` reply and swaps to it on the
-AnchorSwitch's worker, keeping its accepted_at. No consensus of our own: zenoh's liveliness and queries.
+decides), this one installs it on the AnchorSwitch's worker: from the fleet's shared store, which recorded it
+(one compare-and-swap transaction decided it); an instance with a store of its own fetches it from the
+announcer's ``config/anchors/history`` reply and records it, keeping its accepted_at. The tokens only tell the
+instances at once; the store is the record.
 """
 
 from __future__ import annotations
@@ -83,7 +85,7 @@ class AnchorSync:
             active.version,
             active.accepted_ms,
         )
-        self.switch.submit_adopt(lambda: self._fetch(instance, active), self._adopted)
+        self.switch.submit_adopt(active, lambda: self._fetch(instance, active), self._adopted)
 
     def _fetch(self, instance: str, active: ActiveSet) -> AnchorHistoryEntry | None:
         """The announced set's entry, from its instance's history reply (any instance holding it will do)."""

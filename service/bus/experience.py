@@ -28,7 +28,8 @@ from collections.abc import Callable
 from typing import Any
 
 import zenoh
-from gcdtrav.schemas.experience import AnswerReply, CalibrationFigures
+from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.experience import AnchorProposal, AnswerReply, CalibrationFigures
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import ExperienceStatus, MessageError
 from gcdtrav.schemas.settings import RosInput, ServiceSettings
@@ -39,6 +40,7 @@ from gcdtrav.service.experience.store import OutcomeRejected
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros.cdr import dds_type_name
 from gcdtrav.service.runtime.errors import QueryError
+from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
 from gcdtrav.service.runtime.queries import strict_parameters
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.store import StoreError
@@ -66,10 +68,12 @@ class ExperienceBus:
         experience: Experience,
         stats: ServiceStats,
         owns: Callable[[str], bool],
+        anchors: AnchorSwitch | None = None,
     ) -> None:
         self.session, self.settings, self.pipeline, self.stats, self.owns = session, settings, pipeline, stats, owns
         self.keys = Keys(settings.prefix)
         self.experience = experience  # the grids were given its after_fusion: its questions leave with their maps
+        self.anchors = anchors  # the history a proposal is judged against, the store it is kept in
 
     # ---- lifecycle -----------------------------------------------------------------------------------
     def start(self) -> list[Any]:
@@ -247,12 +251,31 @@ class ExperienceBus:
         if source != self.experience.source or not self.owns(source):
             return  # another instance's experience
         try:
-            proposal = self.experience.proposal(self.pipeline.anchors)
+            proposal = self.experience.proposal(self.pipeline.anchors, self._past_sets())
         except ValueError as err:
             raise QueryError(str(err)) from None
         except StoreError as err:
             raise QueryError(f"cannot read the pairs: {err}") from None
-        replies.reply(query, self.keys.anchor_proposal, proposal)
+        replies.reply(query, self.keys.anchor_proposal, self._kept(proposal))
+
+    def _past_sets(self) -> list[AnchorSet]:
+        """The history's sets (the verdict's "best in history" is among them)."""
+        if self.anchors is None:
+            return []
+        return [entry.anchor_set for entry in self.anchors.history().entries]
+
+    def _kept(self, proposal: AnchorProposal) -> AnchorProposal:
+        """The proposal kept in the store, so that what the operator reviews is what `anchors apply` applies;
+        unkept (said so in the reply) when the store does not answer."""
+        if self.anchors is None:
+            return proposal
+        kept = proposal.model_copy(update={"kept": True})
+        try:
+            self.anchors.store.put_proposal(kept, self.settings.instance)
+        except StoreError as err:
+            log.error("proposal %s not kept: the store does not answer (%s)", proposal.proposed_version, err)
+            return proposal
+        return kept
 
 
 def experience_bus(
@@ -262,8 +285,9 @@ def experience_bus(
     experience: Experience | None,
     stats: ServiceStats,
     owns: Callable[[str], bool],
+    anchors: AnchorSwitch | None = None,
 ) -> ExperienceBus | None:
     """The experience's wiring, or None when ``experience.enabled`` is off (no experience)."""
     if experience is None:
         return None
-    return ExperienceBus(session, settings, pipeline, experience, stats, owns)
+    return ExperienceBus(session, settings, pipeline, experience, stats, owns, anchors)

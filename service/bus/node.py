@@ -14,6 +14,7 @@ from dataclasses import replace
 from typing import Any
 
 import zenoh
+from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.keys import Keys, input_source_of, literal_head
 from gcdtrav.schemas.messages import MessageError, ServiceStatus
@@ -40,7 +41,7 @@ from gcdtrav.service.runtime.http_endpoints import ready
 from gcdtrav.service.runtime.metrics import MetricsSources, ServiceMetrics
 from gcdtrav.service.runtime.progress import Health
 from gcdtrav.service.runtime.stats import ServiceStats
-from gcdtrav.service.store import StoreError
+from gcdtrav.service.store import Store, StoreError, StoreUnavailable
 from gcdtrav.service.store.opening import service_outbox
 from gcdtrav.service.store.outbox import store_status
 
@@ -66,7 +67,10 @@ def publisher_of(sample: zenoh.Sample) -> str | None:
 
 
 class TraversabilityService:
-    def __init__(self, session: zenoh.Session, pipeline: Pipeline, settings: ServiceSettings) -> None:
+    def __init__(
+        self, session: zenoh.Session, pipeline: Pipeline, settings: ServiceSettings, store: Store | None = None
+    ) -> None:
+        """``store``: the fleet's store (service/store); None: the one ``settings.store`` names, opened here."""
         self.session, self.pipeline, self.settings = session, pipeline, settings
         self.prefix, self.keys = settings.prefix, Keys(settings.prefix)
         self.metrics = ServiceMetrics(settings.instance)  # its histograms see every frame the stats count
@@ -81,18 +85,27 @@ class TraversabilityService:
         self.outputs = FrameOutputs(session, self.keys, self.ros_graph)  # the runtime's sinks: they only put
         self.credits = CreditPublisher(session, self.keys)
         try:  # the store of pairs and anchor history: reachable or not, the service serves; refused: no start
-            self.store = service_outbox(settings)
+            self.store = service_outbox(settings, store)
         except StoreError as err:
             self.state_lock.release()
             raise SettingsError(str(err)) from None
         experience = service_experience(settings, self.stats.rejected, self.store)  # None when off; asks at fusion
         asks = experience.after_fusion if experience is not None else None
         self.runtime = Runtime.build(
-            settings, pipeline, self.outputs, self.credits, self.owns, self.stats, time.time(), after_fusion=asks
+            settings,
+            pipeline,
+            self.outputs,
+            self.credits,
+            self.owns,
+            self.stats,
+            time.time(),
+            after_fusion=asks,
+            store=self._open_store,
         )
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
-        self.experience = experience_bus(session, settings, pipeline, experience, self.stats, self.owns)
+        switch = self.runtime.anchor_switch  # proposals are judged against its history and kept in its store
+        self.experience = experience_bus(session, settings, pipeline, experience, self.stats, self.owns, switch)
         calibration = self.experience.calibration if self.experience is not None else None
         heard = self.runtime.presence.heard  # the robots heard: the silent-robot alert's series
         self.metrics.collect(MetricsSources(self.status, self._owned, settings.max_frame_age_s, calibration, heard))
@@ -256,9 +269,18 @@ class TraversabilityService:
         in_fleet = self.membership is not None and not self.membership.withdrawn
         return ready(self.runtime.progress.health(), self._stopping.is_set(), in_fleet)
 
+    def _open_store(self) -> Store:
+        """The store, for the anchor switch; StoreUnavailable while it was never reached."""
+        opened = self.store.store
+        if opened is None:
+            raise StoreUnavailable(f"the store {self.store.location} was not reached yet")
+        return opened
+
     def _watch_progress(self) -> None:
-        """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again."""
+        """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again; serve the
+        store's anchor set once a store away at start answers."""
         while not self._stopping.wait(WATCHDOG_INTERVAL_S):
+            self.runtime.anchor_switch.sync(self._synced_anchors)
             self._safe_speed(stale_only=True)
             change = self.runtime.progress.check(len(self.runtime.queue))
             if change is None or self.membership is None:
@@ -269,6 +291,11 @@ class TraversabilityService:
             else:
                 log.error("worker %s: withdrawing from the fleet (its sources fail over)", change.health.reason)
                 self.membership.withdraw()
+
+    @staticmethod
+    def _synced_anchors(anchors: AnchorSet | None, error: BaseException | None) -> None:
+        if error is not None:
+            log.error("anchor set from the store: %s", error)
 
     def _safe_speed(self, stale_only: bool) -> None:
         """Put the safe speed mask (the floor everywhere) of every grid whose live mask went stale or, when

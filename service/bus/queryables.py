@@ -14,13 +14,27 @@ from gcdtrav.schemas.settings import RiskSettings
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus.guard import guarded
 from gcdtrav.service.runtime.errors import QueryError
-from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch, SwapDone
+from gcdtrav.service.runtime.fleet.anchor_switch import ActivationLost, AnchorSwitch, SwapDone
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.queries import PATCH_FORMS, answer_patch_query, parse_number, strict_parameters
 from gcdtrav.service.runtime.stats import ServiceStats
+from gcdtrav.service.store import StoreError
 
-ROLLBACK_FORM = "steps=N (1 = the set before the active one)[;instance=NAME (only that instance rolls back)]"
+ROLLBACK_FORM = (
+    "steps=N (1 = the set before the active one)[;instance=NAME (only that instance rolls back)]"
+    "[;expected=VERSION (only if that set is active)]"
+)
+SWAP_FORM = (
+    "[expected=VERSION (only if that set is active)] with a payload, or proposal=VERSION[;expected=V][;force=true]"
+)
+SWAP_PARAMETERS = {"expected", "force", "proposal"}
+
+
+def parse_flag(text: str, name: str) -> bool:
+    if text not in ("true", "false"):
+        raise QueryError(f"parameter '{name}' is '{text}'; give {name}=true or {name}=false")
+    return text == "true"
 
 
 class SourceQueries:
@@ -70,33 +84,72 @@ class AnchorQueries:
         self.keys, self.switch, self.stats = keys, switch, stats
 
     def on_anchors(self, query: zenoh.Query) -> None:
-        """Get the active set (no payload) or swap it; the swap runs on the switch's worker, not here."""
-        replies.check_no_parameters(query)
-        payload = query.payload
-        if payload is None or len(payload) == 0:
+        """Get the active set (no payload, no parameter), swap it (a payload), or apply a kept proposal
+        (``proposal=VERSION``); ``expected=VERSION``: only if that set is still the active one (compare-and-swap).
+        The swap runs on the switch's worker, not here."""
+        replies.check_format(query)
+        params = strict_parameters(replies.without_format(query), SWAP_FORM)
+        if set(params) - SWAP_PARAMETERS:
+            raise QueryError(f"unknown parameter(s) {sorted(set(params) - SWAP_PARAMETERS)}; give {SWAP_FORM}")
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        expected, force = params.get("expected"), parse_flag(params.get("force", "false"), "force")
+        done = self._swap_answer(query, self.keys.anchors)
+        if "proposal" in params:
+            if payload:
+                raise QueryError("give either an anchor set as payload or proposal=VERSION, not both")
+            self._apply_proposal(params["proposal"], expected, force, done)
+        elif payload:
+            if force:
+                raise QueryError("force=true goes with proposal=VERSION (a set of your own needs no force)")
+            self.switch.submit(payload, done, expected)
+        elif params:
+            raise QueryError(f"expected and force go with a swap: {SWAP_FORM}")
+        else:
             active = self.switch.head().anchor_set
-            replies.reply(
-                query,
-                self.keys.anchors,
-                AnchorSetReply(anchor_set=active, version=active.version, instance=self.switch.instance),
+            replies.reply(query, self.keys.anchors, self._set_reply(active))
+
+    def _apply_proposal(self, version: str, expected: str | None, force: bool, done: SwapDone) -> None:
+        """The kept proposal's proposed set, exactly as the operator reviewed it (never refitted), compared
+        against the set it was judged against unless ``expected`` names another; refused if gone, or if not
+        judged better without ``force`` (then marked forced in the history)."""
+        try:
+            kept = self.switch.store.proposal(version)
+        except StoreError as err:
+            raise QueryError(f"the anchor store is unreachable ({err}): nothing applied") from None
+        if kept is None:
+            message = f"no kept proposal {version}: it is gone (pruned, or never made); gcdtrav anchors propose"
+            done(None, AnchorSetError([message]))
+            return
+        verdict = kept.proposal.judged()
+        if not verdict.applicable and not force:
+            done(
+                None, AnchorSetError([f"proposal {version} is not applied: {verdict.reason()}; force=true applies it"])
             )
             return
-        self.switch.submit(payload.to_bytes(), self._swap_answer(query, self.keys.anchors))
+        expected = expected or kept.proposal.current_version
+        self.switch.submit_set(kept.proposal.proposed, done, expected, "proposal", forced=not verdict.applicable)
 
     def on_rollback(self, query: zenoh.Query) -> None:
         replies.check_format(query)
         params = strict_parameters(replies.without_format(query), ROLLBACK_FORM)
-        if set(params) - {"steps", "instance"}:
-            unknown = sorted(set(params) - {"steps", "instance"})
-            raise QueryError(f"unknown parameter(s) {unknown}; give steps=N [1] and optionally instance=NAME")
+        if set(params) - {"steps", "instance", "expected"}:
+            unknown = sorted(set(params) - {"steps", "instance", "expected"})
+            raise QueryError(f"unknown parameter(s) {unknown}; give {ROLLBACK_FORM}")
         steps = int(parse_number(params.get("steps", "1"), "steps", int))
         if params.get("instance", self.switch.instance) != self.switch.instance:
             return  # addressed to another instance of the fleet (the one holding its newest set): no reply
-        self.switch.submit_rollback(steps, self._swap_answer(query, self.keys.anchor_rollback))
+        self.switch.submit_rollback(steps, self._swap_answer(query, self.keys.anchor_rollback), params.get("expected"))
 
     def on_history(self, query: zenoh.Query) -> None:
         replies.check_no_parameters(query)
         replies.reply(query, self.keys.anchor_history, self.switch.history())
+
+    def _set_reply(self, anchors: AnchorSet) -> AnchorSetReply:
+        head = self.switch.head()
+        accepted_at = head.accepted_at if head.version == anchors.version else None
+        return AnchorSetReply(
+            anchor_set=anchors, version=anchors.version, instance=self.switch.instance, accepted_at=accepted_at
+        )
 
     def _swap_answer(self, query: zenoh.Query, key: str) -> SwapDone:
         """Reply to a swap or rollback query once the switch's worker is done with it."""
@@ -106,19 +159,19 @@ class AnchorQueries:
 
         def respond(query: zenoh.Query, anchors: AnchorSet | None, error: BaseException | None) -> None:
             if anchors is not None:
-                replies.reply(
-                    query,
-                    key,
-                    AnchorSetReply(anchor_set=anchors, version=anchors.version, instance=self.switch.instance),
-                )
+                replies.reply(query, key, self._set_reply(anchors))
                 return
+            lost_to = error.winner.version if isinstance(error, ActivationLost) else None
             if isinstance(error, AnchorSetError):
-                messages, reason = error.messages, "invalid_anchor_set"
+                messages, reason = error.messages, "lost_activation" if lost_to else "invalid_anchor_set"
             else:
                 messages, reason = [f"swap failed: {type(error).__name__}: {error}"], "swap_failed"
             self.stats.rejected(None, reason, "; ".join(messages)[:300], None if reason != "swap_failed" else error)
             rejection = AnchorSetRejection(
-                errors=messages, active_version=self.switch.head().version, instance=self.switch.instance
+                errors=messages,
+                active_version=self.switch.head().version,
+                instance=self.switch.instance,
+                lost_to=lost_to,
             )
             replies.reply_error(query, rejection)
 

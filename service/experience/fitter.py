@@ -17,15 +17,21 @@ scipy is not a dependency: both solvers are small and here.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from gcdtrav.schemas.anchors import Anchor, AnchorSet, anchor_diff
-from gcdtrav.schemas.experience import AnchorChange, AnchorProposal, judge_proposal
+from gcdtrav.schemas.experience import (
+    AnchorChange,
+    AnchorProposal,
+    CalibrationFigures,
+    judge_against,
+    judge_proposal,
+)
 from gcdtrav.service.engine.risk import normal_cdf
 from gcdtrav.service.experience.calibration import calibration_figures
-from gcdtrav.service.experience.pairs import Pairs
+from gcdtrav.service.experience.pairs import Pairs, concept_key
 from numpy.typing import NDArray
 
 MIN_WIDTH, MAX_WIDTH = 0.005, 1.0
@@ -34,6 +40,7 @@ GOLDEN = (math.sqrt(5) - 1) / 2
 WIDTH_SWEEPS = 4
 GOLDEN_STEPS = 40
 MAX_GRADIENT_STEPS = 20_000
+PAPER, BEST_IN_HISTORY = "paper's set", "best in history"  # the verdict's baselines besides the current set
 
 
 @dataclass(frozen=True)
@@ -178,9 +185,15 @@ def fitted_set(current: AnchorSet, positions: NDArray[np.float64], widths: NDArr
 
 
 def propose(
-    pairs: Pairs, current: AnchorSet, options: FitOptions, source: str = "", stamp: float = 0.0
+    pairs: Pairs,
+    current: AnchorSet,
+    options: FitOptions,
+    source: str = "",
+    stamp: float = 0.0,
+    baselines: Sequence[tuple[str, AnchorSet]] = (),
 ) -> AnchorProposal:
-    """Fit on the earlier pairs, grade current and proposed sets on the later ones and judge the change."""
+    """Fit on the earlier pairs, grade current and proposed sets on the later ones and judge the change, also
+    against the paper's set and the best of ``baselines`` (``baseline_figures``)."""
     train, held = pairs.time_split(options.held_out_fraction)
     if len(train) == 0:
         raise ValueError("no pairs to fit: drive first (or lower held_out_fraction)")
@@ -205,6 +218,9 @@ def propose(
     ]
     before = calibration_figures(held.weights_for(current), held.outcomes, current, options.tau)
     after = calibration_figures(held.weights_for(proposed), held.outcomes, proposed, options.tau)
+    verdict = judge_against(
+        judge_proposal(before, after, len(held)), after, baseline_figures(held, current, baselines, options.tau)
+    )
     return AnchorProposal(
         stamp=stamp,
         source=source,
@@ -218,5 +234,30 @@ def propose(
         held_out_pairs=len(held),
         before=before,
         after=after,
-        verdict=judge_proposal(before, after, len(held)),
+        verdict=verdict,
+        pairs_from=float(pairs.stamps.min()) if len(pairs) else None,
+        pairs_until=float(pairs.stamps.max()) if len(pairs) else None,
     )
+
+
+def baseline_figures(
+    held: Pairs, current: AnchorSet, baselines: Sequence[tuple[str, AnchorSet]], tau: float
+) -> list[tuple[str, str, CalibrationFigures]]:
+    """The figures, on the held-out pairs, of the paper's set and of the history's best set (lowest MAE) among
+    ``baselines`` (name "paper's set" or "history", set): only sets of the pairs' concept tuple can be graded
+    by them, and the current set is judged already."""
+    if len(held) == 0:
+        return []
+    graded: list[tuple[str, str, CalibrationFigures]] = []
+    best: tuple[str, str, CalibrationFigures] | None = None
+    seen = {current.version}
+    for name, anchors in baselines:
+        if anchors.version in seen or concept_key(anchors.concepts) != concept_key(held.concepts):
+            continue
+        seen.add(anchors.version)
+        figures = calibration_figures(held.weights_for(anchors), held.outcomes, anchors, tau)
+        if name == PAPER:
+            graded.append((PAPER, anchors.version, figures))
+        elif figures.mae is not None and (best is None or best[2].mae is None or figures.mae < best[2].mae):
+            best = (BEST_IN_HISTORY, anchors.version, figures)
+    return graded + ([best] if best is not None else [])

@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import numpy as np
-from gcdtrav.schemas.anchors import AnchorSet
+from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.experience import (
     AnchorProposal,
     CalibrationReport,
@@ -28,7 +28,7 @@ from gcdtrav.schemas.messages import ExperienceStatus, Pose2D, QuestionStatus
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings, SettingsError
 from gcdtrav.service.experience.ask import Crop, OperatorAsker
 from gcdtrav.service.experience.crop import image_crop
-from gcdtrav.service.experience.fitter import FitOptions
+from gcdtrav.service.experience.fitter import BEST_IN_HISTORY, PAPER, FitOptions
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore
 from gcdtrav.service.experience.velocity import (
@@ -190,14 +190,17 @@ class Experience:
         """The fleet's pairs of the set's tuple graded; StoreUnavailable if the store cannot be read."""
         return self.store.report(anchors, self.tau, by_source)
 
-    def proposal(self, anchors: AnchorSet) -> AnchorProposal:
-        """ValueError without pairs of the set's concept tuple; StoreUnavailable if the store cannot be read."""
+    def proposal(self, anchors: AnchorSet, history: Sequence[AnchorSet] = ()) -> AnchorProposal:
+        """Fitted to the pairs, judged against ``anchors`` (the active set), the paper's set and the best of
+        ``history`` (the sets active before); ValueError without pairs of the set's concept tuple;
+        StoreUnavailable if the store cannot be read."""
         options = FitOptions(
             tau=self.tau,
             held_out_fraction=self.settings.held_out_fraction,
             min_pairs_per_anchor=self.settings.min_pairs_per_anchor,
         )
-        return self.store.propose(self.source, anchors, options)
+        baselines = [(PAPER, default_anchor_set()), *((BEST_IN_HISTORY, past) for past in history)]
+        return self.store.propose(self.source, anchors, options, baselines)
 
     def counts(self) -> dict[str, int]:
         """Every counter: the pairing's, the outbox's (store_*), the tracker's (velocity_*), the askers' (ask_*)."""

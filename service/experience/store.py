@@ -185,7 +185,9 @@ class ExperienceStore:
             by_source=breakdown,
         )
 
-    def propose(self, source: str, anchors: AnchorSet, options: FitOptions) -> AnchorProposal:
-        """An AnchorProposal fitted on the fleet's pairs of this tuple, judged on the latest of them (ValueError
-        without pairs)."""
-        return propose(self.pairs(anchors.concepts), anchors, options, source, self.clock())
+    def propose(
+        self, source: str, anchors: AnchorSet, options: FitOptions, baselines: Sequence[tuple[str, AnchorSet]] = ()
+    ) -> AnchorProposal:
+        """An AnchorProposal fitted on the fleet's pairs of this tuple, judged on the latest of them, also against
+        ``baselines`` (ValueError without pairs)."""
+        return propose(self.pairs(anchors.concepts), anchors, options, source, self.clock(), baselines)

@@ -37,6 +37,7 @@ from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
 from gcdtrav.service.runtime.triage.reuse import ReuseTracker, Triage
 from gcdtrav.service.runtime.worker import FrameWorker
+from gcdtrav.service.store import Store, open_store
 
 log = logging.getLogger("gcdtrav.service")
 
@@ -55,7 +56,7 @@ class Runtime:
     pipeline: Pipeline
     stats: ServiceStats
     history: FrameHistory
-    anchor_switch: AnchorSwitch
+    anchor_switch: AnchorSwitch  # over the fleet's store: the anchor history and the active set
     grids: GridOutputs | None
     reuse: ReuseTracker
     queue: LatestFrameQueue[PendingFrame]
@@ -82,14 +83,18 @@ class Runtime:
         started_at: float | None = None,
         clock: Callable[[], float] = time.monotonic,
         after_fusion: AfterFusion | None = None,
+        store: Store | Callable[[], Store] | None = None,
     ) -> Runtime:
         """The runtime of ``settings``; ``stats``: shared with the bus (its refusals are counted there too);
         ``started_at``: wall-clock seconds, for the status's uptime (None: now); ``clock``: the sources'
         idleness is timed by it (monotonic seconds); ``after_fusion``: the experience's, called by the grids
-        under their lock (``Experience.after_fusion``: its question leaves with the frame's outputs)."""
+        under their lock (``Experience.after_fusion``: its question leaves with the frame's outputs); ``store``: the
+        fleet's store, or what returns it once open (the service's outbox); None: the one ``settings.store``
+        names, opened here."""
         stats = stats or ServiceStats(log, settings.source_idle_s)
         history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
-        switch = AnchorSwitch(pipeline, settings.state_file, settings.instance, settings.max_anchor_set_bytes)
+        store = store or open_store(settings.store, settings.state_dir, settings.prefix)
+        switch = AnchorSwitch(pipeline, store, settings.instance, settings.max_anchor_set_bytes)
         grids = (
             GridOutputs(
                 settings.grids,

@@ -55,23 +55,26 @@ def location_of(settings: StoreSettings, state_dir: Path, prefix: str) -> tuple[
 def import_legacy_files(store: Store, settings: ServiceSettings, rename_anchor_files: bool = False) -> None:
     """The files of a gcdtrav before the store, imported once (service/store/legacy.py): the msgpack pairs (as
     pairs of the experience's grid) and the anchor state with its history (only into a store without an active
-    set). The anchor files stay in place unless ``rename_anchor_files``: the anchor switch still reads them."""
+    set). The anchor files are renamed with ``rename_anchor_files`` (the service: the store is their record)."""
     grid = settings.experience.grid or (settings.grids[0].source if settings.grids else "")
     legacy.import_experience_file(store, legacy.experience_file(settings.state_dir, settings.prefix), grid,
                                   settings.instance)  # fmt: skip
     legacy.import_anchor_state(store, settings.state_file, settings.instance, rename=rename_anchor_files)
 
 
-def service_outbox(settings: ServiceSettings) -> PairOutbox:
+def service_outbox(settings: ServiceSettings, opened: Store | None = None) -> PairOutbox:
     """The service's way to its store, opened now if it can be (the old files imported at the first open);
     else the outbox's writer keeps trying and the service serves meanwhile. StoreError (SchemaTooNew, a bad
-    password_file, psycopg missing) if the store is refused: the service does not start."""
+    password_file, psycopg missing) if the store is refused: the service does not start. ``opened``: a store
+    opened by the caller (tests: instances sharing one SQLite file) instead of the one the settings name."""
     backend, location = location_of(settings.store, settings.state_dir, settings.prefix)
+    if opened is not None:
+        backend, location = opened.backend, opened.location
 
     def opener() -> Store:
-        store = open_store(settings.store, settings.state_dir, settings.prefix)
+        store = opened or open_store(settings.store, settings.state_dir, settings.prefix)
         try:
-            import_legacy_files(store, settings)
+            import_legacy_files(store, settings, rename_anchor_files=True)
         except BaseException:
             store.close()
             raise

@@ -113,22 +113,16 @@ def test_history_and_rollback_survive_a_restart(tiny_backend, tmp_path: Path) ->
         assert "- lake @ 0.00" in rolled.stdout and running.pipeline.anchors.version == puddles.version
         too_far = gcdtrav("anchors", "rollback", "9", *flags)
         assert too_far.returncode == 1 and "no set 9 step(s) back" in too_far.stderr
-    # A restarted service keeps its history (written atomically in the state directory) and clears
-    # the temporaries of history writes a crash interrupted.
-    from gcdtrav.service.commands.serve import starting_anchor_set
-
-    interrupted = settings.state_dir / f".{running.runtime.anchor_switch.history_file.name}.x1y2z3.tmp"
-    interrupted.write_text('{"instance": "ops-2", "entries": [')
-
-    with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (running, port):
+    # A restarted service serves the store's active set and history (SQLite in the state directory), whatever
+    # set it is started with: the configured one seeds an empty store only.
+    with in_process_service(tiny_backend, settings) as (running, port):
         assert running.pipeline.anchors.version == puddles.version
-        assert not interrupted.exists()
-        versions = [e.version for e in running.runtime.anchor_switch.history().entries]
-        assert versions == [
-            puddles.version,
-            AnchorSet.parse(two).version,
-            puddles.version,
-            default_anchor_set().version,
+        entries = running.runtime.anchor_switch.history().entries
+        assert [(e.version, e.how) for e in entries] == [
+            (puddles.version, "rollback"),
+            (AnchorSet.parse(two).version, "set"),
+            (puddles.version, "set"),
+            (default_anchor_set().version, "seeded"),
         ]
 
 

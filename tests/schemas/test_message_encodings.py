@@ -70,11 +70,11 @@ NAMES = (
 )
 
 ENCODINGS: dict[str, str] = {
-    "AnchorHistoryEntry": "a97de891293e6b0c",
-    "AnchorHistoryReply": "6b0201f0bd518f74",
+    "AnchorHistoryEntry": "3928c927d537545c",  # issue 46: forced, activated_by, how
+    "AnchorHistoryReply": "99dee01ddba44a00",  # issue 46: its entries
     "AnchorPoint": "0f78399d8b04f214",
-    "AnchorSetRejection": "76b065515a8040e7",
-    "AnchorSetReply": "63c45ce9cddcac33",
+    "AnchorSetRejection": "292241e3265f60ae",  # issue 46: lost_to
+    "AnchorSetReply": "d0867a9c7df48d2b",  # issue 46: accepted_at
     "CameraParked": "d1fabadf3045bcfc",  # 1.5 (issue 47)
     "CameraPlacement": "5cc07b0917eecea2",
     "CompactMapsMessage": "6dd57dc6be745b47",

@@ -1,35 +1,30 @@
-"""Hot-swapping the anchor set: validate, prepare, persist, activate, one swap at a time. No middleware here.
+"""Hot-swapping the anchor set: validate, prepare, record, activate, one swap at a time. No middleware here.
 
-A swap recomputes the text embeddings and fsyncs two files, which takes longer than a zenoh callback
-should wait, so swaps run on this module's own worker thread and report to a callback; frames keep flowing
-meanwhile and each frame uses exactly one set (``Pipeline.activate`` replaces one reference).
+The fleet's store (``service/store``) is the record of which set is active and of every set that was: a swap
+is one compare-and-swap transaction there (``Store.activate``), so of two operators swapping at once exactly
+one wins and the other learns whose set it lost to. The start set (configured, or an instance's old anchor
+state file, imported once) seeds an empty store only; a store holding an active set overrides it, so the set
+an operator applied survives any restart, even of every instance on empty state dirs (PostgreSQL). The files
+of an instance before the store are imported once when the store opens (``service/store/legacy.py``).
 
-Two files, each written atomically (a failed write leaves the old file whole): the history (the last
-``HISTORY_LENGTH`` accepted sets with the time each became active, newest first, for ``gcdtrav anchors
-history`` and ``rollback``), then the state file, the commit point: the set a restart serves, written before
-the set is activated or the swap acknowledged. A crash between the two leaves a history whose head was never
-active; the next start puts the active set back at its head, so the two agree. A failed state write refuses
-the swap and takes the new entry back out of the history: a refused set never becomes active.
+A swap recomputes the text embeddings, which takes longer than a zenoh callback should wait, so swaps run on
+this module's own worker thread and report to a callback; frames keep flowing meanwhile and each frame uses
+exactly one set (``Pipeline.activate`` replaces one reference). The store is written before the set is
+activated here or the swap acknowledged: a refused or lost swap never becomes active.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
-import time
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from pathlib import Path
 
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
-from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply, MessageError
+from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.runtime.fleet.state import (
-    remove_stale_temporaries,
-    save_anchor_state,
-    write_atomically,
-)
-from gcdtrav.service.store.legacy import history_file_of
+from gcdtrav.service.runtime.fleet.fleet_anchors import ActiveSet
+from gcdtrav.service.store import HistoryRecord, Store, StoreError
 
 log = logging.getLogger("gcdtrav.service")
 
@@ -37,68 +32,141 @@ HISTORY_LENGTH = 20
 SwapDone = Callable[[AnchorSet | None, BaseException | None], None]
 
 
+class ActivationLost(AnchorSetError):
+    """The compare-and-swap lost: another set became active first; ``winner`` is it. Nothing changed here."""
+
+    def __init__(self, winner: HistoryRecord, expected: str | None) -> None:
+        super().__init__(
+            [
+                f"anchor set {winner.version} was activated first (by {winner.instance or 'another instance'}); "
+                f"this request expected {expected} to be active: nothing swapped"
+            ]
+        )
+        self.winner = winner
+
+
+def entry_of(record: HistoryRecord) -> AnchorHistoryEntry:
+    return AnchorHistoryEntry(
+        accepted_at=record.accepted_at,
+        version=record.version,
+        anchor_set=record.anchor_set,
+        forced=record.forced,
+        activated_by=record.instance or None,
+        how=record.how,
+    )
+
+
 class AnchorSwitch:
-    def __init__(self, pipeline: Pipeline, state_file: Path, instance: str, max_body_bytes: int) -> None:
-        self.pipeline = pipeline
-        self.state_file = state_file
-        self.history_file = history_file_of(state_file)
-        self.instance = instance
+    def __init__(
+        self, pipeline: Pipeline, store: Store | Callable[[], Store], instance: str, max_body_bytes: int
+    ) -> None:
+        """``store``: the fleet's store, or what returns it once open (StoreUnavailable until then: the start set
+        is served meanwhile, and ``sync`` installs the store's active set once it answers)."""
+        self.pipeline, self.instance = pipeline, instance
+        self._store_of: Callable[[], Store] = (lambda: store) if isinstance(store, Store) else store
         self.max_body_bytes = max_body_bytes
+        self._synced = False  # the store's active set was read (or seeded) once
         self._lock = threading.Lock()
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gcdtrav-anchors")
         self._listeners: list[Callable[[AnchorHistoryEntry], None]] = []
-        self._history = load_history(self.history_file)
-        if not self._history or self._history[0].version != pipeline.anchors.version:
-            # The set it started with (rollback can return to it), never accepted in the fleet: accepted_at 0
-            # makes it lose to any accepted set another instance announces (service/runtime/fleet/fleet_anchors.py).
-            try:
-                self._remember(pipeline.anchors, accepted_at=0.0)
-            except OSError as err:  # a full or read-only state dir: serve anyway, say so once
-                start = AnchorHistoryEntry(
-                    accepted_at=0.0, version=pipeline.anchors.version, anchor_set=pipeline.anchors
-                )
-                self._history = [start, *self._history][:HISTORY_LENGTH]
-                log.error(
-                    "cannot write the anchor history %s (%s): serving anchor set %s; swaps will fail until the state "
-                    "dir is writable",
-                    self.history_file,
-                    err.strerror or err,
-                    pipeline.anchors.version,
-                )
+        start = pipeline.anchors
+        self._head = AnchorHistoryEntry(accepted_at=0.0, version=start.version, anchor_set=start)
+        self._history = [self._head]  # the last history read from the store, for when it is unreachable
+        try:
+            self._install(self.store.seed(start, instance))  # the start set seeds an empty store only
+            self._synced = True
+        except StoreError as err:  # serve the start set; swaps say the store is unreachable
+            log.error("anchor store: %s; serving anchor set %s until it answers", err, start.version)
+
+    @property
+    def store(self) -> Store:
+        """The fleet's store; StoreUnavailable while it was never reached."""
+        return self._store_of()
+
+    def sync(self, done: SwapDone) -> bool:
+        """Once the store answers after a start without it: install its active set (seeding an empty store
+        with the set served), on the worker. False (nothing to do) once that happened or while it is away."""
+        if self._synced:
+            return False
+        try:
+            store = self.store
+        except StoreError:
+            return False
+        self._synced = True
+
+        def install() -> AnchorSet:
+            with self._lock:
+                served = self._head
+                try:
+                    self._install(store.seed(self.pipeline.anchors, self.instance))
+                except StoreError:
+                    self._synced = False  # away again: the next call tries again
+                    raise
+                head = self._head
+            if head != served:
+                self._tell(head)
+            return head.anchor_set
+
+        self._run(install, done)
+        return True
 
     # ---- swaps, on the worker ------------------------------------------------------------------------
-    def submit(self, body: bytes, done: SwapDone) -> None:
-        """Swap to the anchor set in ``body`` (JSON or YAML) on the worker; ``done(set, error)`` reports."""
-        self._run(lambda: self.swap(self.parse(body)), done)
+    def submit(
+        self, body: bytes, done: SwapDone, expected: str | None = None, how: str = "set", forced: bool = False
+    ) -> None:
+        """Swap to the anchor set in ``body`` (JSON or YAML) on the worker if ``expected`` (None: whichever) is
+        the active version; ``done(set, error)`` reports."""
+        self._run(lambda: self.swap(self.parse(body), expected, how, forced), done)
 
-    def submit_rollback(self, steps: int, done: SwapDone) -> None:
-        """Swap back to the set ``steps`` entries before the active one, on the worker."""
-        self._run(lambda: self.swap(self.rollback_target(steps)), done)
+    def submit_set(self, anchors: AnchorSet, done: SwapDone, expected: str | None, how: str, forced: bool) -> None:
+        """Swap to ``anchors`` (e.g. a kept proposal's set) on the worker, compared against ``expected``."""
+        self._run(lambda: self.swap(anchors, expected, how, forced), done)
 
-    def submit_adopt(self, fetch: Callable[[], AnchorHistoryEntry | None], done: SwapDone) -> None:
-        """Adopt the fleet's set that ``fetch`` returns (it may query the bus: it runs on the worker), keeping
-        its accepted_at; nothing if it returns None or the set is already active."""
+    def submit_rollback(self, steps: int, done: SwapDone, expected: str | None = None) -> None:
+        """Swap back to the set ``steps`` entries before the active one of the store's history, on the worker."""
 
-        def adopt() -> AnchorSet:
-            entry = fetch()
-            if entry is None:
-                raise AnchorSetError(["the fleet's newest set could not be fetched"])
-            active = self.head()
-            if entry.version == active.version:
-                return active.anchor_set
-            return self.swap(entry.anchor_set, entry.accepted_at)
+        def roll_back() -> AnchorSet:
+            target, active = self.rollback_target(steps)
+            return self.swap(target, expected or active, "rollback")
 
-        self._run(adopt, done)
+        self._run(roll_back, done)
+
+    def submit_adopt(
+        self, announced: ActiveSet, fetch: Callable[[], AnchorHistoryEntry | None], done: SwapDone
+    ) -> None:
+        """Serve the set another instance announced. The store is the record: when it holds that set, or a newer
+        one, that is installed here; only an instance with a store of its own (no shared PostgreSQL) fetches
+        the set with ``fetch`` (it may query the bus: it runs on the worker) and records it, keeping its time."""
+        self._run(lambda: self._adopt(announced, fetch), done)
+
+    def _adopt(self, announced: ActiveSet, fetch: Callable[[], AnchorHistoryEntry | None]) -> AnchorSet:
+        with self._lock:
+            try:
+                recorded = self.store.active()
+            except StoreError:  # away: the announcer's set, fetched over the bus, cannot be recorded either
+                recorded = None
+            served, installed = self._head, None
+            if recorded is not None and ActiveSet.of(recorded.accepted_at, recorded.version) >= announced:
+                self._install(recorded)
+                installed = self._head
+        if installed is not None:
+            if installed != served:
+                self._tell(installed)
+            return installed.anchor_set
+        entry = fetch()
+        if entry is None:
+            raise AnchorSetError(["the fleet's newest set could not be fetched"])
+        return self.swap(entry.anchor_set, None, entry.how or "set", entry.forced, accepted_at=entry.accepted_at)
 
     def on_change(self, listener: Callable[[AnchorHistoryEntry], None]) -> None:
-        """Call ``listener`` with the new head of the history after every swap (on the worker)."""
+        """Call ``listener`` with the new active entry after every swap (on the worker)."""
         self._listeners.append(listener)
 
     def head(self) -> AnchorHistoryEntry:
-        """The active set's entry (the set, its version, when the fleet accepted it): the one owner of which
-        set is active. The pipeline holds the same set with its embeddings, installed by ``swap``, for frames."""
+        """The entry of the set this instance serves (the set, its version, when the fleet accepted it). The
+        pipeline holds the same set with its embeddings, installed by ``swap``, for frames."""
         with self._lock:
-            return self._history[0]
+            return self._head
 
     def _run(self, job: Callable[[], AnchorSet], done: SwapDone) -> None:
         def report(future: Future[AnchorSet]) -> None:
@@ -117,68 +185,79 @@ class AnchorSwitch:
             )
         return AnchorSet.from_text(body, source="anchor set")
 
-    def swap(self, anchors: AnchorSet, accepted_at: float | None = None) -> AnchorSet:
-        """prepare -> persist -> activate under one lock; the active set stays if any step fails. ``accepted_at``:
-        when the fleet accepted it (an adopted set keeps its time), else now."""
+    def swap(
+        self,
+        anchors: AnchorSet,
+        expected: str | None = None,
+        how: str = "set",
+        forced: bool = False,
+        accepted_at: float | None = None,
+    ) -> AnchorSet:
+        """prepare -> record (compare-and-swap on ``expected``; None: whichever is active) -> activate, under one
+        lock; the active set stays if any step fails, ActivationLost if another set won. The set already
+        active in the store is only installed here (every instance receives an operator's swap)."""
         with self._lock:
             prepared = self.pipeline.prepare(anchors)
-            before = self._history
-            self._remember(anchors, accepted_at)
-            try:
-                save_anchor_state(self.state_file, anchors)  # the commit point
-            except Exception:
-                self._restore(before)
-                raise
+            recorded = self._record(anchors, expected, how, forced, accepted_at)
             self.pipeline.activate(prepared)
-            head = self._history[0]
-        log.info("anchor set swapped to %s (%d anchors)", anchors.version, len(anchors))
+            self._head = entry_of(recorded)
+            head = self._head
+        log.info("anchor set swapped to %s (%d anchors, %s)", anchors.version, len(anchors), how)
+        self._tell(head)
+        return anchors
+
+    def _record(
+        self, anchors: AnchorSet, expected: str | None, how: str, forced: bool, accepted_at: float | None
+    ) -> HistoryRecord:
+        try:
+            active = self.store.active()
+            if active is not None and active.version == anchors.version:
+                return active  # already the record's: another instance took the same request first
+            activation = self.store.activate(
+                anchors, expected, how, self.instance, forced=forced, accepted_at=accepted_at
+            )
+        except StoreError as err:
+            raise AnchorSetError([f"the anchor store is unreachable ({err}): nothing swapped"]) from None
+        if not activation.applied and activation.active.version != anchors.version:
+            raise ActivationLost(activation.active, expected)
+        return activation.active
+
+    def _install(self, record: HistoryRecord) -> None:
+        """Serve the record's set here (embeddings computed when it is not the one served already)."""
+        if record.version != self.pipeline.anchors.version:
+            self.pipeline.activate(self.pipeline.prepare(record.anchor_set))
+            log.info("anchor set %s from the store (%s by %s)", record.version, record.how, record.instance or "-")
+        self._head = entry_of(record)
+
+    def _tell(self, head: AnchorHistoryEntry) -> None:
         for listener in self._listeners:
             listener(head)
-        return anchors
 
     # ---- history -------------------------------------------------------------------------------------
     def history(self) -> AnchorHistoryReply:
-        with self._lock:
-            return AnchorHistoryReply(instance=self.instance, entries=list(self._history))
-
-    def rollback_target(self, steps: int) -> AnchorSet:
-        with self._lock:
-            if not 1 <= steps < len(self._history):
-                raise AnchorSetError(
-                    [f"no set {steps} step(s) back: the history holds {len(self._history)} set(s), the active first"]
-                )
-            return self._history[steps].anchor_set
-
-    def _remember(self, anchors: AnchorSet, accepted_at: float | None = None) -> None:
-        when = round(time.time(), 3) if accepted_at is None else accepted_at  # ms: the fleet's tokens carry ms
-        entry = AnchorHistoryEntry(accepted_at=when, version=anchors.version, anchor_set=anchors)
-        self._write_history([entry, *self._history][:HISTORY_LENGTH])
-
-    def _restore(self, entries: list[AnchorHistoryEntry]) -> None:
-        """Take a refused swap's entry back out (best effort: the next start puts the active set at the head)."""
+        """The store's history, newest (active) first; the last one read when the store does not answer."""
         try:
-            self._write_history(entries)
-        except OSError as err:
-            self._history = entries
-            log.warning("could not take the refused set out of %s: %s", self.history_file, err)
+            entries = [entry_of(record) for record in self.store.history(HISTORY_LENGTH)]
+        except StoreError as err:
+            log.warning("anchor history from memory: the store does not answer (%s)", err)
+            with self._lock:
+                entries = list(self._history)
+        else:
+            with self._lock:
+                self._history = entries or [self._head]
+        return AnchorHistoryReply(instance=self.instance, entries=entries or [self.head()])
 
-    def _write_history(self, entries: list[AnchorHistoryEntry]) -> None:
-        reply = AnchorHistoryReply(instance=self.instance, entries=entries)
-        write_atomically(self.history_file, reply.model_dump_json(indent=1) + "\n")
-        self._history = entries  # only once written: a failed write leaves the history as it was
+    def rollback_target(self, steps: int) -> tuple[AnchorSet, str]:
+        """The set ``steps`` activations before the active one in the store, and the active version."""
+        try:
+            entries = self.store.history(HISTORY_LENGTH)
+        except StoreError as err:
+            raise AnchorSetError([f"the anchor store is unreachable ({err}): nothing rolled back"]) from None
+        if not 1 <= steps < len(entries):
+            raise AnchorSetError(
+                [f"no set {steps} step(s) back: the history holds {len(entries)} set(s), the active first"]
+            )
+        return entries[steps].anchor_set, entries[0].version
 
     def close(self) -> None:
         self._worker.shutdown(wait=True)
-
-
-def load_history(history_file: Path) -> list[AnchorHistoryEntry]:
-    """The accepted sets, newest (the active one) first; empty if there is no usable history file."""
-    try:
-        if history_file.parent.is_dir():
-            remove_stale_temporaries(history_file)  # writes a crash interrupted
-        if not history_file.is_file():
-            return []
-        return AnchorHistoryReply.model_validate_json(history_file.read_text("utf-8")).entries
-    except (OSError, ValueError, MessageError) as err:
-        log.error("ignoring the anchor history file %s: %s", history_file, err)
-        return []

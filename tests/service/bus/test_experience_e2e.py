@@ -114,10 +114,18 @@ def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> Non
         proposal = client.anchor_proposal()
         assert proposal.verdict is not None and proposal.verdict.applicable  # the fit beats the start set
         assert "verdict: better on the held-out pairs: mae " in dry
-        applied = gcdtrav("anchors", "propose", "--apply", *flags).stdout
+        assert proposal.kept and f"gcdtrav anchors apply {proposal.proposed_version} swaps in exactly" in dry
+        reviewed = proposal.train_pairs + proposal.held_out_pairs
+        end = robot.drive(20.0, seed=3, start_stamp=end + 5.0)  # pairs arrive between review and apply
+        assert wait_until(lambda: client.calibration(CAMERA_SOURCE).figures.pairs > reviewed, 10)
+        refit = client.anchor_proposal()  # what a refit at apply time would have swapped in
+        assert refit.train_pairs + refit.held_out_pairs > reviewed
+        assert refit.proposed_version != proposal.proposed_version
+        applied = gcdtrav("anchors", "apply", proposal.proposed_version, *flags).stdout  # the reviewed one
         assert f"swapped: anchor set {proposal.proposed.version} active on exp-1" in applied
-        assert service.pipeline.anchors.version == proposal.proposed.version
+        assert service.pipeline.anchors == proposal.proposed  # exactly the reviewed set, not the refit
         assert client.anchor_history()[0].entries[1].anchor_set == before  # rollback-able
+        assert client.anchor_history()[0].entries[0].how == "proposal"
 
         robot.drive(30.0, seed=2, start_stamp=end + 10.0)  # the same concepts: one tuple, two versions
         report = client.calibration(CAMERA_SOURCE)

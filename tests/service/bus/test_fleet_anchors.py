@@ -18,6 +18,7 @@ from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.store import StoreUnavailable
 
 
 def distinct_set(name: str) -> AnchorSet:
@@ -101,9 +102,11 @@ def test_a_swap_one_instance_refuses_names_each_instance_and_the_status_shows_th
     try:
         a, b = fleet.start("box-a"), fleet.start("box-b")
         assert wait_until(lambda: len(client.statuses(timeout=1.0)) == 2, 20)
-        blocker = tmp_path / "not-a-dir"
-        blocker.write_text("a file where b's state dir would be")
-        b.runtime.anchor_switch.state_file = blocker / "gcdtrav.anchors.json"  # every write on b fails (also as root)
+
+        def unwritable(*_: object, **__: object) -> None:
+            raise StoreUnavailable("the store b.sqlite3: disk I/O error")
+
+        b.runtime.anchor_switch.store.activate = unwritable  # type: ignore[method-assign]  # b's store refuses
         new = distinct_set("new")
         with pytest.raises(PartialSwap) as partial:
             client.set_anchors(new)

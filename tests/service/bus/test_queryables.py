@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.keys import Keys
-from gcdtrav.schemas.messages import ContextDistribution, ErrorReply
+from gcdtrav.schemas.messages import AnchorHistoryEntry, ContextDistribution, ErrorReply
 from gcdtrav.service.bus import queryables, replies
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.runtime.history import FrameHistory
@@ -93,9 +93,12 @@ class ImmediateSwitch:
 
     instance = "box-1"
 
-    def submit(self, body: bytes, done: Any) -> None:
+    def submit(self, body: bytes, done: Any, expected: str | None = None) -> None:
         anchors = AnchorSet.from_text(body, source="test")
         threading.Thread(target=done, args=(anchors, None)).start()
+
+    def head(self) -> AnchorHistoryEntry:
+        return AnchorHistoryEntry(accepted_at=0.0, version=ANCHORS.version, anchor_set=ANCHORS)
 
 
 def test_a_swap_reply_that_raises_still_answers_the_query(stats: ServiceStats, monkeypatch) -> None:  # type: ignore[no-untyped-def]

@@ -25,6 +25,8 @@ from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.pipeline import Pipeline
+from gcdtrav.service.store import sqlite_file
+from gcdtrav.service.store.sqlite import SqliteStore
 
 IMAGE = textured_image(48, 64)
 SOURCES = [f"r{i}/front" for i in range(6)]
@@ -204,7 +206,6 @@ class SwapLog:
 def test_sigkill_during_anchor_swaps_never_tears_the_state(tiny_model_dir: Path, tmp_path: Path) -> None:
     router_port = free_port()
     router = start_router(router_port)
-    state_file = tmp_path / "gcdtrav.anchors.json"
     log = SwapLog()
     try:
         with TraversabilityClient(config=client_config(router_port), timeout=3.0) as client:
@@ -224,10 +225,17 @@ def test_sigkill_during_anchor_swaps_never_tears_the_state(tiny_model_dir: Path,
                     assert not worker.is_alive()
                 finally:
                     stop_process(process)
-                assert state_file.is_file()
-                AnchorSet.load(state_file)  # never torn: always a complete, valid set
+                store = SqliteStore(sqlite_file(tmp_path, "gcdtrav"))  # the anchor store in the state dir
+                try:
+                    active = store.active()  # never torn: one transaction, a complete, valid set
+                    assert active is not None and log.may_be_loaded(active.version), (round_index, active)
+                    assert active.anchor_set.version == active.version
+                finally:
+                    store.close()
             assert log.acknowledged != default_anchor_set().version  # swaps did land between the kills
-            print(f"\n4 SIGKILLs during swaps ({log.count} swaps acknowledged): state file valid every time")
+            print(
+                f"\n4 SIGKILLs during swaps ({log.count} swaps acknowledged): the store's active set valid every time"
+            )
     finally:
         router.terminate()
         router.communicate(timeout=20)

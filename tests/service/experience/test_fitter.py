@@ -7,8 +7,10 @@ import itertools
 
 import numpy as np
 import pytest
-from gcdtrav.schemas.anchors import Anchor, AnchorSet, anchor_diff
+from gcdtrav.schemas.anchors import Anchor, AnchorSet, anchor_diff, default_anchor_set
 from gcdtrav.service.experience.fitter import (
+    BEST_IN_HISTORY,
+    PAPER,
     FitOptions,
     bounded_least_squares,
     fit_positions,
@@ -137,3 +139,52 @@ def test_pairs_of_another_concept_tuple_cannot_grade_a_set() -> None:
     other = Pairs.empty(["water", "mud"])
     with pytest.raises(ValueError, match="cannot grade"):
         other.weights_for(CURRENT)
+
+
+GOOD = AnchorSet(
+    name="good", anchors=[Anchor(concept=c, position=float(p)) for c, p in zip(CURRENT.concepts, TRUTH, strict=True)]
+)
+FORCED_WORSE = AnchorSet(  # a set once applied with --force: every concept far from what the robot met
+    name="forced",
+    anchors=[
+        Anchor(concept="grass", position=0.1),
+        Anchor(concept="asphalt", position=0.3),
+        Anchor(concept="water", position=0.6),
+        Anchor(concept="sand", position=0.9),
+    ],
+)
+
+
+def test_a_fit_better_than_a_forced_worse_set_but_worse_than_the_history_is_judged_worse() -> None:
+    """Issue 46: the verdict compares against the paper's set and the best set of the history too, so a fit
+    that only beats a forced worse set is no improvement; sets of other concepts cannot be graded and are left
+    out; the best in history is the one with the lowest held-out MAE."""
+    pairs = synthetic_pairs(4000)
+    options = FitOptions(tau=0.3, held_out_fraction=0.25, min_pairs_per_anchor=300.0)  # held part of the way
+    alone = propose(pairs, FORCED_WORSE, options)
+    assert alone.judged().verdict == "better" and alone.judged().against == []  # against the current set only
+    history = [(BEST_IN_HISTORY, CURRENT), (BEST_IN_HISTORY, GOOD), (BEST_IN_HISTORY, FORCED_WORSE)]
+    judged = propose(pairs, FORCED_WORSE, options, baselines=[(PAPER, default_anchor_set()), *history])
+    verdict = judged.judged()
+    assert verdict.verdict == "worse" and not verdict.applicable
+    assert [(b.baseline, b.version, b.verdict) for b in verdict.against] == [(BEST_IN_HISTORY, GOOD.version, "worse")]
+    assert verdict.figures == alone.judged().figures  # the figures against the current set are unchanged
+    assert f"worse than the best in history {GOOD.version} (mae " in verdict.reason()
+    assert judged.pairs_from == 0.0 and judged.pairs_until == 3999.0  # the pairs it was fitted and judged on
+
+
+def test_a_set_already_judged_is_graded_once_and_a_fit_beating_every_baseline_stays_better() -> None:
+    paper_like = AnchorSet(
+        name="paper-like",
+        anchors=[
+            Anchor(concept="water", position=0.3),
+            Anchor(concept="sand", position=0.5),
+            Anchor(concept="asphalt", position=0.6),
+            Anchor(concept="grass", position=0.7),
+        ],
+    )
+    options = FitOptions(tau=0.3, held_out_fraction=0.25, min_pairs_per_anchor=300.0)
+    baselines = [(PAPER, paper_like), (BEST_IN_HISTORY, paper_like), (BEST_IN_HISTORY, FORCED_WORSE)]
+    verdict = propose(synthetic_pairs(4000), FORCED_WORSE, options, baselines=baselines).judged()
+    assert [(b.baseline, b.version, b.verdict) for b in verdict.against] == [(PAPER, paper_like.version, "better")]
+    assert verdict.verdict == "better" and verdict.applicable

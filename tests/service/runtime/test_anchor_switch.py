@@ -1,6 +1,7 @@
-"""AnchorSwitch without a bus: swaps run on its own worker (never the caller's thread, which in the service
-is zenoh's callback), each step in order, and a failing step leaves the active set, the state file and
-the history as they were."""
+"""AnchorSwitch without a bus, over a real SQLite store: swaps run on its own worker (never the caller's
+thread, which in the service is zenoh's callback), each step in order, and a failing step (the embeddings, the
+store) leaves the active set and the store's history as they were. The compare-and-swap between instances,
+the seed and the restart are in tests/service/store/test_anchor_activation.py, over both backends."""
 
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.service.backends.base import BackendDescription
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
-from gcdtrav.service.runtime.fleet.state import load_anchor_state
+from gcdtrav.service.store import StoreUnavailable
+from gcdtrav.service.store.sqlite import SqliteStore
 from numpy.typing import NDArray
 
 TWO = AnchorSet.model_validate(
@@ -63,13 +65,14 @@ def swap_and_wait(submit: object, *args: object) -> tuple[AnchorSet | None, Base
 def switch(tmp_path: Path):  # type: ignore[no-untyped-def]
     backend = ThreadRecordingBackend()
     pipeline = Pipeline(backend, default_anchor_set(), EngineSettings())
-    (tmp_path / "state").mkdir()
-    switch = AnchorSwitch(pipeline, tmp_path / "state" / "anchors.json", "test", max_body_bytes=65536)
+    store = SqliteStore(tmp_path / "store.sqlite3")
+    switch = AnchorSwitch(pipeline, store, "test", max_body_bytes=65536)
     yield switch, pipeline, backend
     switch.close()
+    store.close()
 
 
-def test_a_swap_runs_on_the_worker_and_persists_before_it_activates(switch) -> None:  # type: ignore[no-untyped-def]
+def test_a_swap_runs_on_the_worker_and_is_recorded_before_it_activates(switch) -> None:  # type: ignore[no-untyped-def]
     switch, pipeline, backend = switch
     anchors, error, reporter = swap_and_wait(switch.submit, TWO.model_dump_json().encode())
     assert error is None and anchors is not None and anchors.version == TWO.version
@@ -77,9 +80,10 @@ def test_a_swap_runs_on_the_worker_and_persists_before_it_activates(switch) -> N
     assert backend.prepared_on[-1] == (reporter, ("water", "asphalt"))  # prepared where it reported
     assert reporter.startswith("gcdtrav-anchors") and reporter != caller
     assert pipeline.anchors.version == TWO.version
-    state = load_anchor_state(switch.state_file)
-    assert state is not None and state.version == TWO.version
+    active = switch.store.active()
+    assert active is not None and active.version == TWO.version and active.how == "set" and active.instance == "test"
     assert [entry.version for entry in switch.history().entries] == [TWO.version, default_anchor_set().version]
+    assert [entry.how for entry in switch.history().entries] == ["set", "seeded"]
 
 
 def test_a_failed_swap_changes_nothing(switch) -> None:  # type: ignore[no-untyped-def]
@@ -88,12 +92,27 @@ def test_a_failed_swap_changes_nothing(switch) -> None:  # type: ignore[no-untyp
     backend.fail_on = "asphalt"
     anchors, error, _ = swap_and_wait(switch.submit, TWO.model_dump_json().encode())
     assert anchors is None and isinstance(error, RuntimeError)
-    assert pipeline.anchors.version == before and not switch.state_file.exists()
+    assert pipeline.anchors.version == before
     assert [entry.version for entry in switch.history().entries] == [before]
 
     anchors, error, _ = swap_and_wait(switch.submit, b"anchors: [{concept: mud, position: 1.5}]")
     assert anchors is None and isinstance(error, AnchorSetError) and "position" in str(error)
     assert pipeline.anchors.version == before
+
+
+def test_a_store_that_does_not_answer_refuses_the_swap_in_one_line(switch, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    switch, pipeline, _ = switch
+    before = pipeline.anchors.version
+
+    def unreachable(*_: object, **__: object) -> None:
+        raise StoreUnavailable("the store db:5432: connection refused")
+
+    monkeypatch.setattr(switch.store, "activate", unreachable)
+    anchors, error, _ = swap_and_wait(switch.submit, TWO.model_dump_json().encode())
+    assert anchors is None and isinstance(error, AnchorSetError)
+    refused = "the anchor store is unreachable (the store db:5432: connection refused): nothing swapped"
+    assert str(error) == f"invalid anchor set: {refused}"
+    assert pipeline.anchors.version == before and switch.head().version == before
 
 
 def test_rollback_returns_to_the_set_before(switch) -> None:  # type: ignore[no-untyped-def]
@@ -102,59 +121,33 @@ def test_rollback_returns_to_the_set_before(switch) -> None:  # type: ignore[no-
     swap_and_wait(switch.submit, TWO.model_dump_json().encode())
     anchors, error, _ = swap_and_wait(switch.submit_rollback, 1)
     assert error is None and anchors is not None and anchors.version == original == pipeline.anchors.version
+    assert [(e.version, e.how) for e in switch.history().entries][:2] == [(original, "rollback"), (TWO.version, "set")]
     _, error, _ = swap_and_wait(switch.submit_rollback, 5)
     assert isinstance(error, AnchorSetError) and "no set 5 step(s) back" in str(error)
 
 
-def restart(state_file: Path) -> tuple[AnchorSet, AnchorSwitch]:
-    """What a restarted service serves (the state file, else the default), and its switch."""
-    anchors = load_anchor_state(state_file) or default_anchor_set()
-    return anchors, AnchorSwitch(Pipeline(ThreadRecordingBackend(), anchors, EngineSettings()), state_file, "b", 65536)
+def test_a_store_away_at_start_is_synced_from_once_it_answers(tmp_path: Path) -> None:
+    """A database down when the instance starts: it serves its start set; once the store answers, ``sync``
+    (the service's watchdog calls it) installs the set the store holds, once."""
+    store = SqliteStore(tmp_path / "store.sqlite3")
+    store.seed(TWO, "box-a")  # the fleet's set, recorded before this instance started
+    reachable = threading.Event()
 
+    def store_of() -> SqliteStore:
+        if not reachable.is_set():
+            raise StoreUnavailable("the store db:5432: connection refused")
+        return store
 
-class Killed(BaseException):
-    """The process dies here: nothing after it runs, nothing catches it."""
-
-
-def test_a_crash_between_the_history_and_the_state_file_restarts_consistent(switch, monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    """Killed after the history and before the commit point (the state file): the swap was never acknowledged;
-    the restart serves the old set and the history names it first again."""
-    switch, pipeline, _ = switch
-    before = pipeline.anchors
-
-    def killed(*_: object) -> None:
-        raise Killed
-
-    monkeypatch.setattr("gcdtrav.service.runtime.fleet.anchor_switch.save_anchor_state", killed)
-    with pytest.raises(Killed):
-        switch.swap(TWO)
-    monkeypatch.undo()
-    anchors, restarted = restart(switch.state_file)
-    assert anchors == before
-    assert restarted.history().entries[0].version == before.version
-    restarted.close()
-
-
-@pytest.mark.parametrize("failing", ["history", "state"])
-def test_a_refused_write_refuses_the_swap_and_survives_a_restart(switch, monkeypatch, failing: str) -> None:  # type: ignore[no-untyped-def]
-    """A full disk at either write: the swap is refused, nothing changes, the history does not name the refused
-    set, and a restart serves the set that was active, never the refused one."""
-    switch, pipeline, _ = switch
-    before = pipeline.anchors
-    real_write = __import__("gcdtrav.service.runtime.fleet.state", fromlist=["x"]).write_atomically
-
-    def full_disk(path: Path, text: str) -> None:
-        if (failing == "history") == (path == switch.history_file):
-            raise OSError(28, "No space left on device")
-        real_write(path, text)
-
-    monkeypatch.setattr("gcdtrav.service.runtime.fleet.anchor_switch.write_atomically", full_disk)
-    monkeypatch.setattr("gcdtrav.service.runtime.fleet.state.write_atomically", full_disk)
-    anchors, error, _ = swap_and_wait(switch.submit, TWO.model_dump_json().encode())
-    monkeypatch.undo()
-    assert anchors is None and isinstance(error, OSError)
-    assert pipeline.anchors == before and load_anchor_state(switch.state_file) in (None, before)
-    assert [entry.version for entry in switch.history().entries] == [before.version]
-    anchors, restarted = restart(switch.state_file)
-    assert anchors == before and restarted.history().entries[0].version == before.version
-    restarted.close()
+    pipeline = Pipeline(ThreadRecordingBackend(), default_anchor_set(), EngineSettings())
+    switch = AnchorSwitch(pipeline, store_of, "box-b", 65536)
+    told: list[str] = []
+    switch.on_change(lambda head: told.append(head.version))
+    assert switch.head().version == default_anchor_set().version
+    assert switch.sync(lambda anchors, error: None) is False  # still away: nothing to do yet
+    reachable.set()
+    anchors, error, _ = swap_and_wait(switch.sync)
+    assert error is None and anchors == TWO and pipeline.anchors == TWO and told == [TWO.version]
+    assert switch.sync(lambda anchors, error: None) is False  # once
+    assert [entry.how for entry in switch.history().entries] == ["seeded"]  # nothing recorded twice
+    switch.close()
+    store.close()

@@ -1,21 +1,19 @@
-"""Start-up with a state dir that is full, unwritable, unreachable or corrupt: the service serves the configured
-(or last good) set with one clear log line, never a traceback. Root ignores chmod, so "unwritable" is a state
-dir under a regular file here, and a full disk is ENOSPC from a patched write."""
+"""Start-up with a store that does not answer or a state dir that is corrupt: the service serves the set it
+started with (configured, or last good) with one clear log line, never a traceback, and refuses swaps in one
+line until the store answers."""
 
 from __future__ import annotations
 
-import errno
 import logging
-import os
 from pathlib import Path
 
 import pytest
 from fakes import pipeline
-from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
-from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.commands.serve import starting_anchor_set
+from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
 from gcdtrav.service.runtime.fleet import state
 from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
+from gcdtrav.service.store import StoreUnavailable
+from gcdtrav.service.store.sqlite import SqliteStore
 
 TWO = AnchorSet.model_validate(
     {"anchors": [{"concept": "water", "position": 0.0}, {"concept": "road", "position": 1.0}]}
@@ -28,19 +26,29 @@ def unreachable_state_dir(tmp_path: Path) -> Path:
     return blocker / "gcdtrav"
 
 
-def test_an_unreachable_state_dir_starts_on_the_configured_set_and_refuses_swaps_cleanly(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture
+@pytest.mark.parametrize("failure", ["connection refused", "database or disk is full"])
+def test_a_store_that_does_not_answer_at_start_serves_the_start_set_and_refuses_swaps_cleanly(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture, failure: str
 ) -> None:
-    settings = ServiceSettings(state_dir=unreachable_state_dir(tmp_path))
+    store = SqliteStore(tmp_path / "store.sqlite3")
+
+    def unavailable(*_: object, **__: object) -> None:
+        raise StoreUnavailable(f"the store db: {failure}")
+
+    for method in ("active", "seed", "activate", "history"):
+        monkeypatch.setattr(store, method, unavailable)
+    run = pipeline()
+    run.activate(run.prepare(TWO))  # the set it was started with (configured, or the last good one)
     with caplog.at_level(logging.ERROR, "gcdtrav.service"):
-        assert starting_anchor_set(settings).version == default_anchor_set().version
-        switch = AnchorSwitch(pipeline(), settings.state_file, "box-1", 65536)
-    assert "cannot write the anchor history" in caplog.text and "swaps will fail" in caplog.text
-    assert switch.head().version == default_anchor_set().version
-    with pytest.raises(OSError):
-        switch.swap(TWO)
-    assert switch.pipeline.anchors.version == default_anchor_set().version
+        switch = AnchorSwitch(run, store, "box-1", 65536)
+    assert f"the store db: {failure}; serving anchor set {TWO.version} until it answers" in caplog.text
+    assert switch.head().version == TWO.version
+    with pytest.raises(AnchorSetError, match="the anchor store is unreachable"):
+        switch.swap(default_anchor_set())
+    assert switch.pipeline.anchors.version == TWO.version
+    assert [entry.version for entry in switch.history().entries] == [TWO.version]  # from memory
     switch.close()
+    store.close()
 
 
 def test_a_state_dir_that_is_itself_a_file_or_holds_garbage_is_one_log_line(
@@ -59,29 +67,3 @@ def test_a_state_dir_that_is_itself_a_file_or_holds_garbage_is_one_log_line(
     directory = tmp_path / "dir" / "gcdtrav.anchors.json"
     directory.mkdir(parents=True)  # something that is not a file where the state file goes
     assert state.load_anchor_state(directory) is None
-
-
-def test_a_full_disk_at_start_serves_the_persisted_set_and_a_swap_keeps_the_active_one(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
-) -> None:
-    state_file = tmp_path / "gcdtrav.anchors.json"
-    state.save_anchor_state(state_file, TWO)  # the last good set, written before the disk filled up
-    settings = ServiceSettings(state_dir=tmp_path)
-
-    def full(fd: int) -> None:
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-
-    monkeypatch.setattr(state.os, "fsync", full)
-    assert starting_anchor_set(settings).version == TWO.version
-    run = pipeline()
-    run.activate(run.prepare(TWO))
-    with caplog.at_level(logging.ERROR, "gcdtrav.service"):
-        switch = AnchorSwitch(run, settings.state_file, "box-1", 65536)  # the history cannot be written
-    assert "No space left on device" in caplog.text
-    with pytest.raises(OSError):
-        switch.swap(default_anchor_set())
-    assert run.anchors.version == TWO.version
-    assert state.load_anchor_state(state_file) is not None
-    assert state.load_anchor_state(state_file).version == TWO.version  # type: ignore[union-attr]
-    assert not list(tmp_path.glob(".*.tmp"))  # failed writes leave no temporaries
-    switch.close()

@@ -30,6 +30,7 @@ from gcdtrav.service.runtime.stats import REFUSED_SOURCES, ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
 from gcdtrav.service.store.opening import sqlite_outbox
 from gcdtrav.service.store.outbox import store_status
+from gcdtrav.service.store.sqlite import SqliteStore
 from prometheus_client import generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -48,7 +49,7 @@ class Service:
         self.stats = ServiceStats(logging.getLogger("test"), events=self.metrics.timings)
         self.offsets = ClockOffsets(5.0, 300.0)
         self.progress = ProgressMonitor(2.0, self.clock)
-        switch = AnchorSwitch(run, tmp_path / "anchors.json", "box-1", 65536)
+        switch = AnchorSwitch(run, SqliteStore(tmp_path / "store.sqlite3"), "box-1", 65536)
         history = FrameHistory(2)
         self.parts = StatusParts(
             "box-1", 0.0, run, switch, self.queue, history, self.stats, self.sources, self.progress, self.offsets

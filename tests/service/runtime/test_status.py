@@ -18,6 +18,7 @@ from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
+from gcdtrav.service.store.sqlite import SqliteStore
 
 TWO = AnchorSet.parse(
     {"name": "two", "anchors": [{"concept": "lake", "position": 0.0}, {"concept": "road", "position": 1.0}]}
@@ -26,7 +27,7 @@ TWO = AnchorSet.parse(
 
 def parts(tmp_path: Path, clock: Clock) -> StatusParts:
     run = pipeline()
-    switch = AnchorSwitch(run, tmp_path / "anchors.json", "box-1", 65536)
+    switch = AnchorSwitch(run, SqliteStore(tmp_path / "store.sqlite3"), "box-1", 65536)
     queue: LatestFrameQueue[bytes] = LatestFrameQueue(1000)
     sources = SourceTracker(max_sources=3, idle_s=60.0)
     progress = ProgressMonitor(2.0, clock)

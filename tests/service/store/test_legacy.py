@@ -81,8 +81,8 @@ def test_an_unreadable_experience_file_stays_and_is_one_log_line(
 
 
 def test_a_first_start_with_defaults_imports_into_sqlite_in_the_state_dir(tmp_path: Path) -> None:
-    """`gcdtrav serve` with no store setting: SQLite in the state dir, the old pairs in it; the anchor files
-    stay where the anchor switch reads them."""
+    """`gcdtrav serve` with no store setting: SQLite in the state dir, the old pairs and anchor sets in it; the
+    anchor files renamed (the store is their record now; the anchor switch reads the store)."""
     state = state_dir_with_old_files(tmp_path)
     settings = ServiceSettings.model_validate({"state_dir": state})
     outbox = service_outbox(settings)
@@ -90,7 +90,8 @@ def test_a_first_start_with_defaults_imports_into_sqlite_in_the_state_dir(tmp_pa
         assert outbox.state().reachable and outbox.location == str(sqlite_file(state, "gcdtrav"))
         assert outbox.store is not None and outbox.store.totals().pairs == PAIRS_WRITTEN
         assert outbox.store.active() is not None and outbox.store.active().how == "imported"  # type: ignore[union-attr]
-        assert (state / "gcdtrav.anchors.json").is_file()
+        assert not (state / "gcdtrav.anchors.json").exists()
+        assert (state / f"gcdtrav.anchors.json{IMPORTED_SUFFIX}").is_file()
     finally:
         outbox.close()
     again = service_outbox(settings)  # a restart imports nothing twice
