@@ -17,7 +17,7 @@ from postgres_cluster import PostgresCluster, postgres_cluster
 from zenoh_helpers import connecting_config, wait_until
 
 from tools.loopback import in_process_service
-from tools.robot_drive import BusRobot
+from tools.robot_drive import START_STAMP, BusRobot
 from tools.synthetic_scene import SceneBackend, make_world, start_anchors
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -50,10 +50,16 @@ def test_a_database_outage_mid_drive_costs_no_map_and_no_pair_within_the_bound(
 
         robot = BusRobot(client, make_world(seed=0), timeout_s=30.0)
         failures: list[BaseException] = []
+        legs: list[float] = []  # the last stamp of each leg driven
+        arrived = threading.Event()
 
         def drive() -> None:
+            """Legs of 2 simulated seconds until told to stop: the drive spans the outage however fast it runs."""
             try:
-                robot.drive(24.0, seed=1)  # every image waits for its maps: a missed map raises
+                end = START_STAMP
+                while not arrived.is_set():
+                    end = robot.drive(2.0, seed=len(legs), start_stamp=end + 1.0)  # a missed map raises
+                    legs.append(end)
             except BaseException as err:  # reported below
                 failures.append(err)
 
@@ -64,9 +70,13 @@ def test_a_database_outage_mid_drive_costs_no_map_and_no_pair_within_the_bound(
         assert wait_until(lambda: not state().reachable, timeout=30)
         down = state()
         assert down.unreachable_since is not None and down.error
-        assert wait_until(lambda: state().pending_pairs + state().dropped_pairs > down.pending_pairs + 20, 60)
+        grown = wait_until(lambda: state().pending_pairs + state().dropped_pairs > down.pending_pairs + 20, 60)
+        assert grown, (failures, state(), client.status().experience)  # the drive goes on, its pairs wait
         during = state()
         database.start()
+        driven = len(legs)
+        assert wait_until(lambda: len(legs) >= driven + 2 or bool(failures), timeout=120)  # and on after it
+        arrived.set()
         driving.join(timeout=300)
         assert not driving.is_alive() and failures == []  # no map missed, through the outage and after
         assert wait_until(lambda: state().reachable and state().pending_pairs == 0, timeout=60)
