@@ -144,6 +144,23 @@ def all_counted(sent: dict[str, int], statuses: list[ServiceStatus]) -> bool:
     return all(received[name] >= count for name, count in sent.items())
 
 
+def with_last_seen(
+    statuses: list[ServiceStatus], names: list[str], seen: dict[tuple[str, str], Any]
+) -> list[ServiceStatus]:
+    """The statuses with each robot's counts as last seen by its instance (kept in ``seen``): an instance that
+    forgot an idle robot no longer reports them."""
+    kept = []
+    for status in statuses:
+        sources = dict(status.sources)
+        for name in names:
+            if name in sources:
+                seen[(status.instance, name)] = sources[name]
+            elif (status.instance, name) in seen:
+                sources[name] = seen[(status.instance, name)]
+        kept.append(status.model_copy(update={"sources": sources}))
+    return kept
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--minutes", type=float, default=10.0)
@@ -224,15 +241,15 @@ def main() -> int:
             )
         robots.stop()
         churn.stop()
-        # Let the last frames finish, but read the counts before the services forget the stopped robots as idle:
-        # until every frame sent is counted received somewhere, or two thirds of the idle time have passed (a
-        # loaded host may count the last frame a second late; a frame still missing then is lost).
-        settle_until = time.monotonic() + min(6.0, args.source_idle_s * 2 / 3)
-        time.sleep(min(1.0, args.source_idle_s / 3))
-        statuses = client.statuses(timeout=5.0)
+        # Let the last frames finish: until every frame sent is counted received somewhere (a loaded host may
+        # count the last one seconds late). The services forget a stopped robot source_idle_s after its last
+        # frame: its counts are kept as last seen. The bound only ends a wait for a frame that is lost.
+        settle_until = time.monotonic() + 60.0
+        seen: dict[tuple[str, str], Any] = {}
+        statuses = with_last_seen(client.statuses(timeout=5.0), robots.names, seen)
         while not all_counted(robots.sent, statuses) and time.monotonic() < settle_until:
             time.sleep(0.2)
-            statuses = client.statuses(timeout=5.0)
+            statuses = with_last_seen(client.statuses(timeout=5.0), robots.names, seen)
         subscriber.undeclare()
         per_robot = {}
         for name in robots.names:

@@ -27,6 +27,23 @@ def wait_until(condition: Callable[[], object], timeout: float = 10.0, interval:
     return bool(condition())
 
 
+def subscribed_elsewhere(session: zenoh.Session, key: str, timeout: float = 30.0) -> bool:
+    """Whether ``session`` comes to know a subscriber of ``key`` in another session within ``timeout``: what it
+    publishes on ``key`` from then on reaches that subscriber. Waited for instead of sleeping while a
+    subscription travels: a client's maps subscription to an in-process service's session, or a service's
+    input subscription to the client's."""
+    publisher = session.declare_publisher(key, allowed_destination=zenoh.Locality.REMOTE)
+    try:
+
+        def matching() -> bool:
+            status = publisher.matching_status  # a MatchingStatus at runtime (the 1.x stub says bool)
+            return bool(getattr(status, "matching", status))
+
+        return wait_until(matching, timeout)
+    finally:
+        publisher.undeclare()
+
+
 def start_router(port: int):  # type: ignore[no-untyped-def]
     """A router process on loopback; returns once it listens."""
     import subprocess

@@ -19,7 +19,16 @@ subscriber counts on it (``get_subscription_count``, polled every ``GRAPH_PERIOD
   reliable, volatile, depth 10, with the header (stamp to the nanosecond, frame id) of the camera frame;
 - ``<camera topic>/gcdtrav/grid/costmap``: nav_msgs/OccupancyGrid, reliable, transient local, depth 1 (Nav2's
   static layer, RViz's Map display get the last one when they join);
+- ``<camera topic>/gcdtrav/grid/speed_mask``: the speed filter mask (a grid with ``speed:``), nav_msgs/OccupancyGrid
+  with the same QoS, as Nav2's SpeedFilter subscribes; where the robot has nav2_msgs (a robot that runs Nav2
+  does), also ``.../speed_filter_info`` (CostmapFilterInfo naming the mask's topic, transient local, put once per
+  change: each new info makes SpeedFilter subscribe again) and ``.../speed_limit`` (SpeedLimit, volatile). The
+  PyPI wheels have no nav2_msgs: there the info comes from Nav2's costmap_filter_info_server (examples/nav2);
 - ``/diagnostics``: diagnostic_msgs/DiagnosticArray, one status per camera, every ``health_period_s``.
+
+The robot's software says a camera is stopped on purpose with std_msgs/Bool on ``<camera topic>/gcdtrav/parked``
+(true: parked; false: runs again; reliable, transient local, depth 1): the relay's ``CameraParked``, so a parked
+robot's silence pages nobody.
 
 tf is not relayed: no tf2_msgs package is assumed (the PyPI wheels have none); grids take the pose from
 odometry and the mount from the service's settings.
@@ -27,6 +36,7 @@ odometry and the mount from the service's settings.
 
 from __future__ import annotations
 
+import importlib
 import logging
 import math
 import threading
@@ -50,7 +60,7 @@ from gcdtrav.client.relay.causes import (
 from gcdtrav.client.relay.relay import MSGPACK, CameraLink, CapturedFrame, Guarded, Relay
 from gcdtrav.client.relay.ros_parameters import PARAMETERS, as_list, camera_info_topic, settings_overrides
 from gcdtrav.client.relay.state import RateWindow
-from gcdtrav.schemas.messages import Pose2D, RelayHealth
+from gcdtrav.schemas.messages import CameraParked, Pose2D, RelayHealth
 from gcdtrav.schemas.relay import RelayCamera, RelayOdometry, RelaySettings
 from gcdtrav.schemas.ros_image import COMPRESSED_IMAGE, IMAGE, SUPPORTED_TYPES
 from nav_msgs.msg import OccupancyGrid, Odometry
@@ -61,7 +71,7 @@ from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
-from std_msgs.msg import Header
+from std_msgs.msg import Bool, Header
 
 log = logging.getLogger("gcdtrav.relay")
 
@@ -75,13 +85,33 @@ LATCHED_QOS = QoSProfile(
 )  # a map: a subscriber that joins later gets the last one
 MESSAGE_CLASSES: dict[str, Any] = {IMAGE: Image, COMPRESSED_IMAGE: CompressedImage}
 ERROR_CAUSES = (CAMERA_SILENT, CAMERA_UNUSABLE, CAMERA_WRONG_TYPE, NO_INSTANCE)  # no maps can come at all
-# The service's outputs as ROS topics, under the camera's topic. The speed layer's mask and filter info (issue
-# 48: grid/speed_mask, nav2_msgs/CostmapFilterInfo) join here as one more RosOutput once the service makes them.
+# The service's outputs as ROS topics, under the camera's topic (the service's own ROS topics' names).
 TRAVERSABILITY, UNCERTAINTY, COSTMAP = "gcdtrav/traversability", "gcdtrav/uncertainty", "gcdtrav/grid/costmap"
+SPEED_MASK, SPEED_FILTER_INFO, SPEED_LIMIT = (
+    "gcdtrav/grid/speed_mask",
+    "gcdtrav/grid/speed_filter_info",
+    "gcdtrav/grid/speed_limit",
+)
+PARKED = "gcdtrav/parked"  # std_msgs/Bool from the robot's software: the camera is stopped on purpose
+SPEED_FILTER_PERCENT = 1  # CostmapFilterInfo.type: a mask value v is v percent of the maximum speed
 
 
 def ros_time(sec_nanosec: tuple[int, int]) -> Time:
     return Time(sec=sec_nanosec[0], nanosec=sec_nanosec[1])
+
+
+def stamp_seconds(stamp: Time) -> float:
+    return float(stamp.sec + stamp.nanosec * 1e-9)
+
+
+def nav2_messages() -> tuple[Any, Any] | None:
+    """nav2_msgs' CostmapFilterInfo and SpeedLimit classes where the robot has them (one that runs Nav2 does);
+    None where not (the PyPI wheels): rclpy publishes only types whose type support it can load."""
+    try:
+        module = importlib.import_module("nav2_msgs.msg")
+    except ImportError:
+        return None
+    return module.CostmapFilterInfo, module.SpeedLimit
 
 
 def float_image(values: NDArray[np.float32], header: Header) -> Image:
@@ -120,6 +150,8 @@ class RosCamera:
         self._info_sent: tuple[Any, ...] | None = None
         self._info_sent_at = -math.inf
         self._info_publisher: Guarded | None = None
+        self.parked_topic = f"{self.topic}/{PARKED}"
+        side.node.create_subscription(Bool, self.parked_topic, self.on_parked, LATCHED_QOS)
         info_topic = self.camera.camera_info
         if info_topic is not None:
             name = camera_info_topic(self.topic) if info_topic == "auto" else info_topic
@@ -156,6 +188,10 @@ class RosCamera:
 
     def on_image(self, data: bytes) -> None:
         self.link.keep(CapturedFrame(data, self.msgtype or "", self.topic, time.time(), ros_type=self.msgtype))
+
+    def on_parked(self, parked: Bool) -> None:
+        """The robot's software stopped the camera on purpose (true) or runs it again (false)."""
+        self.link.park(CameraParked(parked=bool(parked.data), reason=f"said on {self.parked_topic}"[:200]))
 
     def on_camera_info(self, info: CameraInfo) -> None:
         fx, fy = float(info.k[0]), float(info.k[4])
@@ -235,6 +271,72 @@ class RosOutput:
             self._subscriber = None
 
 
+class SpeedTopics:
+    """A grid's speed filter as ROS topics: the mask; its CostmapFilterInfo and the SpeedLimit where the robot
+    has nav2_msgs. The info names the mask's topic and the mask's frame: put when that changes, not per mask
+    (each new info makes Nav2's SpeedFilter drop its mask and subscribe again)."""
+
+    def __init__(self, node: Node, topic: str, link: CameraLink) -> None:
+        self.link = link
+        self.mask_topic = f"{topic}/{SPEED_MASK}"
+        self.mask = node.create_publisher(OccupancyGrid, self.mask_topic, LATCHED_QOS)
+        nav2 = nav2_messages()
+        self.info_type: Any = None if nav2 is None else nav2[0]
+        self.limit_type: Any = None if nav2 is None else nav2[1]
+        self.info = (
+            None if nav2 is None else node.create_publisher(nav2[0], f"{topic}/{SPEED_FILTER_INFO}", LATCHED_QOS)
+        )
+        self.limit = None if nav2 is None else node.create_publisher(nav2[1], f"{topic}/{SPEED_LIMIT}", IMAGE_QOS)
+        self._info_frame: str | None = None
+        if nav2 is None:
+            log.info(
+                "%s: no nav2_msgs here: the speed mask is published on %s, its CostmapFilterInfo and SpeedLimit "
+                "are not (docs/ros2.md: Nav2's costmap_filter_info_server puts the info)",
+                link.source,
+                self.mask_topic,
+            )
+
+    def publish_mask(self, payload: bytes) -> float:
+        grid = deserialize_message(payload, OccupancyGrid)
+        stamp = stamp_seconds(grid.header.stamp)
+        grid.header.stamp = ros_time(self.link.ros_stamp(stamp))
+        if self.info is not None and self.info_type is not None and grid.header.frame_id != self._info_frame:
+            self._info_frame = grid.header.frame_id
+            self.info.publish(
+                self.info_type(
+                    header=Header(frame_id=grid.header.frame_id),
+                    type=SPEED_FILTER_PERCENT,
+                    filter_mask_topic=self.mask_topic,
+                    base=0.0,
+                    multiplier=1.0,
+                )
+            )
+        self.mask.publish(grid)
+        return stamp
+
+    def publish_limit(self, payload: bytes) -> float:
+        limit = deserialize_message(payload, self.limit_type)
+        stamp = stamp_seconds(limit.header.stamp)
+        limit.header.stamp = ros_time(self.link.ros_stamp(stamp))
+        if self.limit is not None:
+            self.limit.publish(limit)
+        return stamp
+
+    def outputs(self, relay: Relay, source: str) -> list[RosOutput]:
+        keys = relay.keys
+        mask_publishers = [self.mask] if self.info is None else [self.mask, self.info]
+        found = [
+            RosOutput(relay, source, "speed_mask", keys.grid(source, "speed_mask"), mask_publishers, self.publish_mask)
+        ]
+        if self.limit is not None:
+            found.append(
+                RosOutput(
+                    relay, source, "speed_limit", keys.grid(source, "speed_limit"), [self.limit], self.publish_limit
+                )
+            )
+        return found
+
+
 class OdometryLink:
     """The robot's odometry as a grid's pose stream: Pose2D msgpack, at most ``max_rate_hz``."""
 
@@ -306,10 +408,10 @@ class RosRobotSide:
 
         def publish_costmap(payload: bytes) -> float:
             grid = deserialize_message(payload, OccupancyGrid)
-            stamp = grid.header.stamp.sec + grid.header.stamp.nanosec * 1e-9
+            stamp = stamp_seconds(grid.header.stamp)
             grid.header.stamp = ros_time(link.ros_stamp(stamp))  # the camera frame's, to the nanosecond
             costmap.publish(grid)
-            return float(stamp)
+            return stamp
 
         keys = relay.keys
         found = [
@@ -317,6 +419,7 @@ class RosRobotSide:
                 relay, source, "maps", keys.output(source, maps_kind), [traversability, uncertainty], publish_maps
             ),
             RosOutput(relay, source, "costmap", keys.grid(source, "costmap"), [costmap], publish_costmap),
+            *SpeedTopics(self.node, topic, link).outputs(relay, source),
         ]
         with self._lock:
             self.ros_outputs += found
@@ -357,10 +460,12 @@ def diagnostic_status(node_name: str, topic: str, health: RelayHealth) -> Diagno
     else:
         level = DiagnosticStatus.OK
     age = "no maps yet" if health.map_age_s is None else f"maps {health.map_age_s:.1f} s old"
-    message = "; ".join([age, *(f"{code}: {text}" for code, text in causes.items())])
+    said = ["parked"] if health.parked else []  # stopped on purpose: its silence is no cause
+    message = "; ".join([*said, age, *(f"{code}: {text}" for code, text in causes.items())])
     figures = {
         "source": health.source,
         "stale": str(health.stale).lower(),
+        "parked": str(health.parked).lower(),
         "map_age_s": "" if health.map_age_s is None else f"{health.map_age_s:.3f}",
         "frames_captured": str(health.frames_captured),
         "frames_sent": str(health.frames_sent),

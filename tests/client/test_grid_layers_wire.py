@@ -16,7 +16,8 @@ from gcdtrav.schemas.images import (
     encode_count_png,
     encode_map_png16,
 )
-from gcdtrav.schemas.messages import GridHeader, GridMessage, WireModel
+from gcdtrav.schemas.messages import GridHeader, GridMessage
+from gcdtrav.schemas.strict import WireModel
 
 OLD_HEADER = {  # a 1.1 writer's header: none of alpha, tau, expired_cells, age_s
     "source": "cam", "seq": 4, "stamp": 10.0, "frame_id": "odom", "origin": (0.0, 0.0), "resolution": 0.5,

@@ -9,6 +9,7 @@ they came from, a late subscriber the latched costmap, and /diagnostics must nam
 
 from __future__ import annotations
 
+import importlib.util
 import random
 import signal
 import subprocess
@@ -43,6 +44,7 @@ from tools.ros2_robot import (  # noqa: E402
 
 DOMAIN = random.randint(100, 200)  # this module's own ROS graph: other suites run beside it
 FRONT, REAR = "r1/front", "r1/rear"
+FLOOR = 0.25  # the speed layer's slowest fraction: ground the grid never saw gets this (25 percent)
 
 
 @pytest.fixture(scope="module")
@@ -67,6 +69,7 @@ def service_settings(state_dir: Path) -> ServiceSettings:
                     "resolution_m": 0.25,
                     "pose_key": "robot/r1/pose",
                     "costmap": True,
+                    "speed": {"floor": FLOOR, "rate_hz": 10.0},
                 }
             ],
         }
@@ -78,9 +81,10 @@ def test_camera_to_costmap_through_a_ros2_relay(ros_domain: int, tiny_backend: A
     from nav_msgs.msg import OccupancyGrid
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from sensor_msgs.msg import Image
+    from std_msgs.msg import Bool
 
     latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-    with in_process_service(tiny_backend, service_settings(tmp_path)) as (_, port):
+    with in_process_service(tiny_backend, service_settings(tmp_path)) as (service, port):
         robot = RosRobot("robot_under_test")
         front = Camera(
             robot, "/r1/front/image_raw", textured_image(240, 320), 10.0, frame_id="front_optical", focal=200.0
@@ -119,35 +123,54 @@ def test_camera_to_costmap_through_a_ros2_relay(ros_domain: int, tiny_backend: A
             _, uncertainty = robot.subscribe(Image, "/r1/front/image_raw/gcdtrav/uncertainty")
             rear_sub, rear_t = robot.subscribe(Image, "/r1/rear/image_raw/compressed/gcdtrav/traversability")
             _, costmap = robot.subscribe(OccupancyGrid, "/r1/front/image_raw/gcdtrav/grid/costmap", latched)
+            _, speed_mask = robot.subscribe(OccupancyGrid, "/r1/front/image_raw/gcdtrav/grid/speed_mask", latched)
             _, diagnostics = robot.subscribe(DiagnosticArray, "/diagnostics")
 
             assert wait_until(lambda: len(traversability) >= 3 and len(uncertainty) >= 3, 120), log.text()[-3000:]
             assert wait_until(lambda: len(rear_t) >= 2, 60), log.text()[-3000:]
             assert wait_until(lambda: len(costmap) >= 1, 60), log.text()[-3000:]
+            assert wait_until(lambda: len(speed_mask) >= 1, 60), log.text()[-3000:]
 
             # T and U: 32FC1 in [0, 1], stamped with the camera frame they came from, to the nanosecond.
-            front_stamps, rear_stamps = set(front.stamps), set(rear.stamps)
-            for image, _ in traversability.messages + uncertainty.messages:
+            images, rear_images = traversability.messages + uncertainty.messages, list(rear_t.messages)
+            front_stamps, rear_stamps = set(front.stamps), set(rear.stamps)  # after the images: none newer
+            for image, _ in images:
                 assert stamp_of(image) in front_stamps and image.header.frame_id == "front_optical"
                 assert image.encoding == "32FC1" and image.step == 4 * image.width
                 values = np.frombuffer(bytes(image.data), "<f4")
                 assert values.size == image.width * image.height and 0.0 <= values.min() <= values.max() <= 1.0
-            assert all(stamp_of(image) in rear_stamps for image, _ in rear_t.messages)  # CompressedImage path
+            assert all(stamp_of(image) in rear_stamps for image, _ in rear_images)  # CompressedImage path
 
             # The costmap: the grid fused the front camera's frames at the odometry's poses, for Nav2.
             grid = costmap.last
-            assert stamp_of(grid) in front_stamps and grid.header.frame_id == "odom"
+            assert stamp_of(grid) in set(front.stamps) and grid.header.frame_id == "odom"
             cells = np.asarray(grid.data, np.int8)
             assert cells.size == grid.info.width * grid.info.height == 32 * 32 and (cells >= 1).any()
 
             # A late subscriber gets the last costmap at once (transient local, depth 1).
             _, late = robot.subscribe(OccupancyGrid, "/r1/front/image_raw/gcdtrav/grid/costmap", latched)
             assert wait_until(lambda: len(late) >= 1, 10), "the late subscriber got no latched costmap"
-            assert stamp_of(late.messages[0][0]) in front_stamps
+            assert stamp_of(late.messages[0][0]) in set(front.stamps)  # the camera may have sent newer frames
+
+            # The speed filter mask, as Nav2's SpeedFilter reads it: percent of the maximum speed per cell, 0 (no
+            # limit) or FLOOR .. 99, never -1 (unknown: an error to SpeedFilter); unseen ground at the floor.
+            mask = speed_mask.last
+            assert stamp_of(mask) in set(front.stamps) and mask.header.frame_id == "odom"
+            percent = np.asarray(mask.data, np.int8)
+            assert percent.size == mask.info.width * mask.info.height == 32 * 32
+            assert set(np.unique(percent).tolist()) <= {0, *range(round(100 * FLOOR), 100)}, np.unique(percent)
+            assert (percent == round(100 * FLOOR)).any()
+            if importlib.util.find_spec("nav2_msgs") is None:  # the PyPI wheels: the info is Nav2's to put
+                assert log.count(f"{FRONT}: no nav2_msgs here: the speed mask is published") == 1
+            _, late_mask = robot.subscribe(OccupancyGrid, "/r1/front/image_raw/gcdtrav/grid/speed_mask", latched)
+            assert wait_until(lambda: len(late_mask) >= 1, 10), "the late subscriber got no latched speed mask"
+            assert stamp_of(late_mask.messages[0][0]) in set(front.stamps)
 
             # Outputs cross the link only while a ROS subscriber exists: the rear camera's costmap never did,
             # its T stops crossing when its subscriber goes.
             assert log.count("forwarding gcdtrav/out/r1/rear/grid/costmap") == 0
+            assert log.count("forwarding gcdtrav/out/r1/rear/grid/speed_mask") == 0
+            assert log.count("forwarding gcdtrav/out/r1/front/grid/speed_mask") == 1
             robot.destroy(rear_sub)
             assert wait_until(lambda: log.count("no longer forwarding gcdtrav/out/r1/rear/maps8") == 1, 10)
 
@@ -162,6 +185,25 @@ def test_camera_to_costmap_through_a_ros2_relay(ros_domain: int, tiny_backend: A
             silent = front_health()
             assert silent is not None and silent["level"] == "2"  # ERROR: no maps can come
             assert "/r1/front/image_raw" in silent["cause.camera_silent"]
+            assert silent["parked"] == "false" and service.runtime.presence.heard()[FRONT].parked is False
+
+            # The robot's software says it stopped the camera on purpose: parked, its silence no longer a cause,
+            # in /diagnostics and in the health over the link (the service's silent-robot alert pages nobody).
+            parked = robot.publisher(Bool, "/r1/front/image_raw/gcdtrav/parked", latched)
+            parked.publish(Bool(data=True))
+            assert wait_until(lambda: (front_health() or {}).get("parked") == "true", 15), front_health()
+            assert wait_until(lambda: "cause.camera_silent" not in (front_health() or {}), 10), front_health()
+            assert (front_health() or {})["message"].startswith("parked")
+            assert wait_until(lambda: service.runtime.presence.heard()[FRONT].parked is True, 10)
+            assert log.count("camera parked (said on /r1/front/image_raw/gcdtrav/parked)") == 1
+
+            # Said again, nothing changes; false: the camera runs again, and its silence is a cause once more.
+            parked.publish(Bool(data=True))
+            parked.publish(Bool(data=False))
+            assert wait_until(lambda: (front_health() or {}).get("parked") == "false", 15), front_health()
+            assert wait_until(lambda: service.runtime.presence.heard()[FRONT].parked is False, 10)
+            assert wait_until(lambda: "cause.camera_silent" in (front_health() or {}), 10), front_health()
+            assert log.count("camera parked") == 1 and log.count("camera runs again") == 1
         finally:
             status = stop_process(relay)
             odometry.stop()

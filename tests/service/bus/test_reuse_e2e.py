@@ -3,13 +3,12 @@ sees ``reused``, ``computed_stamp``), a change and an anchor swap are inferred, 
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from conftest import textured_image
-from zenoh_helpers import connecting_config, service_reachable, wait_until
+from zenoh_helpers import connecting_config, service_reachable, subscribed_elsewhere, wait_until
 
 pytest.importorskip("torch")
 
@@ -37,13 +36,13 @@ def with_person(image: np.ndarray) -> np.ndarray:
 
 def test_a_repeated_view_is_answered_with_its_last_maps_and_changes_are_inferred(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     settings = ServiceSettings(state_dir=tmp_path, instance="reuse-1", max_frame_age_s=None, preview=False)
-    with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (_service, port):
+    with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (service, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         received: list[Maps] = []
         subscriber = client.subscribe_maps("**", received.append)
         try:
             assert wait_until(lambda: service_reachable(client), 10)
-            time.sleep(0.3)
+            assert subscribed_elsewhere(service.session, service.keys.maps("parked")), "the maps subscription"
 
             def publish(image: np.ndarray, stamp: float) -> Maps:
                 before = len(received)

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 from conftest import textured_image
-from zenoh_helpers import connecting_config, service_reachable, wait_until
+from zenoh_helpers import connecting_config, service_reachable, subscribed_elsewhere, wait_until
 
 pytest.importorskip("torch")
 
@@ -42,7 +42,7 @@ def serving(backend, state_dir: Path, **settings_kw: object) -> Iterator[Serving
         subscriber = client.subscribe_maps("**", received.append)
         try:
             assert wait_until(lambda: service_reachable(client), 10)
-            time.sleep(0.3)  # let the maps subscription reach the service
+            assert subscribed_elsewhere(service.session, service.keys.maps("probe")), "the maps subscription"
             yield Serving(service, port, client, received)
         finally:
             subscriber.undeclare()
@@ -102,6 +102,7 @@ def test_a_flooding_publisher_is_rate_limited_while_another_publishers_frames_ar
         robot = TraversabilityClient(config=connecting_config(run.port), timeout=5.0)
         try:
             image = textured_image(32, 32)
+            began = time.monotonic()
             for k in range(300):  # one publisher: far beyond 20 a second plus its 1 s burst
                 run.client.publish_image(f"flood/n{k}", image)
             for _ in range(10):
@@ -112,8 +113,10 @@ def test_a_flooding_publisher_is_rate_limited_while_another_publishers_frames_ar
                 source = run.client.status().sources.get("robot/front")
                 return 0 if source is None else source.received
 
-            assert wait_until(lambda: robot_received() == 10, 15)
+            assert wait_until(lambda: robot_received() == 10, 60)
             status = run.client.status()
+            elapsed_s = time.monotonic() - began  # the flood's frames all reached the intake within it
         finally:
             robot.close()
-    assert 300 - 20 - 20 <= status.rejected_by_reason["rate_limited"] < 300  # its burst and what refilled
+    # all but its 1 s burst and what refilled while they arrived (20 a second: about 1 s here, longer under load)
+    assert 300 - 20 - 20 * elapsed_s <= status.rejected_by_reason["rate_limited"] < 300, elapsed_s

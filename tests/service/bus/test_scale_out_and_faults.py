@@ -63,6 +63,21 @@ def instances_seen(client: TraversabilityClient) -> set[str]:
         return set()
 
 
+def frames_accounted(client: TraversabilityClient, instances: set[str]) -> bool:
+    """Whether each of ``instances`` answers and has finished every frame it received (none in flight)."""
+    try:
+        statuses = {status.instance: status for status in client.statuses(timeout=1.0)}
+    except QueryTimeout:
+        return False
+    if set(statuses) != instances:
+        return False
+    return all(
+        s.received == s.processed + s.unchanged + s.dropped + s.rejected
+        for status in statuses.values()
+        for s in status.sources.values()
+    )
+
+
 def stop_process(process: subprocess.Popen[str]) -> None:
     if process.poll() is None:
         process.kill()
@@ -82,7 +97,7 @@ def test_two_instances_share_sources_and_take_over_when_one_dies(
     by_source: dict[str, list[Maps]] = defaultdict(list)
     subscriber = client.subscribe_maps("**", lambda m: by_source[m.header.source].append(m))
     try:
-        assert wait_until(lambda: instances_seen(client) == {"box-a", "box-b"}, 60), "both instances up"
+        assert wait_until(lambda: instances_seen(client) == {"box-a", "box-b"}, 300), "both instances up"  # a bound
         assert wait_until(lambda: service.membership is not None and service.membership.live() == {"box-a", "box-b"})
         time.sleep(0.5)
         for _ in range(3):
@@ -92,7 +107,8 @@ def test_two_instances_share_sources_and_take_over_when_one_dies(
         assert wait_until(lambda: all(by_source[s] for s in SOURCES), 20)
         owners = {source: service.membership.owner(source) for source in SOURCES}  # type: ignore[union-attr]
         assert sorted(owners.values()) == ["box-a"] * 3 + ["box-b"] * 3  # bounded loads: 3/3
-        time.sleep(1.0)
+        # every frame of the burst above finished (published or dropped) before the maps are read afresh
+        assert wait_until(lambda: frames_accounted(client, {"box-a", "box-b"}), 60), "frames still in flight"
         for source in SOURCES:
             by_source[source].clear()
         for source in SOURCES:
@@ -212,7 +228,7 @@ def test_sigkill_during_anchor_swaps_never_tears_the_state(tiny_model_dir: Path,
             for round_index in range(4):
                 process = serve_process(tiny_model_dir, router_port, "box-k", tmp_path)
                 try:
-                    assert wait_until(lambda: instances_seen(client) == {"box-k"}, 60)
+                    assert wait_until(lambda: instances_seen(client) == {"box-k"}, 300)  # a bound only
                     loaded = client.anchors().version
                     assert log.may_be_loaded(loaded), (round_index, loaded)
                     assert not list(tmp_path.glob(".*.tmp"))  # a restart clears interrupted writes

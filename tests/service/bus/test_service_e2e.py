@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import TINY_INPUT_SIZE, textured_image
-from zenoh_helpers import connecting_config, service_reachable, wait_until
+from zenoh_helpers import connecting_config, service_reachable, subscribed_elsewhere, wait_until
 
 pytest.importorskip("torch")
 
@@ -84,7 +84,7 @@ def running(tiny_backend, tmp_path: Path, request: pytest.FixtureRequest) -> Ite
         received: list[Maps] = []
         subscriber = client.subscribe_maps("**", received.append)
         assert wait_until(lambda: service_reachable(client), 10)
-        time.sleep(0.3)  # let the maps subscription reach the service
+        assert subscribed_elsewhere(service.session, service.keys.maps("probe")), "the maps subscription"
         yield Running(service, client, service.settings, received)
         subscriber.undeclare()
         client.close()
@@ -93,7 +93,7 @@ def running(tiny_backend, tmp_path: Path, request: pytest.FixtureRequest) -> Ite
 def publish_and_wait(run: Running, source: str, image: np.ndarray, **kw: object) -> Maps:
     before = len(run.received)
     run.client.publish_image(source, image, **kw)  # type: ignore[arg-type]
-    assert wait_until(lambda: len(run.received) > before, 15), "no maps received"
+    assert wait_until(lambda: len(run.received) > before, 60), "no maps received"  # the bound of a failure only
     return run.received[-1]
 
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 from typing import Any
 
@@ -10,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 import zenoh
-from zenoh_helpers import connecting_config, wait_until
+from zenoh_helpers import connecting_config, subscribed_elsewhere, wait_until
 
 pytest.importorskip("rosbags")
 
@@ -164,9 +163,12 @@ def test_ros_in_maps_out_both_layouts(tiny_backend, tmp_path: Path) -> None:  # 
             ),
         ]
         try:
-            time.sleep(0.5)
             image_hash = ros.type_hash(ros.IMAGE)
             rmw_key = f"0/robot/front/image_raw/sensor_msgs::msg::dds_::Image_/{image_hash}"
+            for key in (rmw_key, "cam/left"):  # the service's input subscriptions reached the robot's session
+                assert subscribed_elsewhere(client.session, key), key
+            for key in (service.keys.maps("probe"), "robot/front/image_raw/gcdtrav/traversability/x"):
+                assert subscribed_elsewhere(service.session, key), key  # the robot's subscriptions, the service's
             client.session.put(
                 rmw_key, image_cdr(RGB, "rgb8", frame_id="front_optical"), encoding=zenoh.Encoding.APPLICATION_CDR
             )

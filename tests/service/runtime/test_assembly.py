@@ -35,7 +35,8 @@ def test_the_assembled_runtime_infers_a_frame_reuses_an_unchanged_one_and_grants
     try:
         assert offer(runtime, "r1")
         until(lambda: len(sink.maps()) == 1)
-        time.sleep(0.1)  # the glance's reference is the inferred frame
+        # the glance's reference is the inferred frame (set just after its maps go out)
+        until(lambda: runtime.reuse._views["r1"].reference is not None)
         assert offer(runtime, "r1")
         until(lambda: len(sink.maps()) == 2)
     finally:

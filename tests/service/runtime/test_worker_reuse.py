@@ -67,7 +67,7 @@ def serving(run: Pipeline | None = None, **settings: object):  # type: ignore[no
     return runtime.worker, runtime.queue, runtime.stats, Answers(sink, credits)
 
 
-def until(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
+def until(condition: Callable[[], bool], timeout_s: float = 60.0) -> None:  # bounds a failure only
     deadline = time.monotonic() + timeout_s
     while not condition() and time.monotonic() < deadline:
         time.sleep(0.005)
@@ -188,8 +188,8 @@ def test_a_hung_inference_is_seen_while_parked_views_are_still_answered() -> Non
         queue.put("moving", jpeg_frame(scene(1), "moving"))  # taken, and its inference hangs
         until(lambda: not queue.has_ready("moving") and len(queue) == 0)
         queue.put("moving", jpeg_frame(scene(1, shift=24), "moving"))  # waits behind it
-        deadline = time.monotonic() + 5
-        while not stalled and time.monotonic() < deadline:
+        deadline = time.monotonic() + 60  # a bound on failure only: a loaded host may see the stall at once
+        while not (stalled and len(outputs.reused) >= 3) and time.monotonic() < deadline:
             reused = len(outputs.reused)
             queue.put("parked", jpeg_frame(noisy(view, 4.0, len(outputs.reused)), "parked"))
             until(lambda reused=reused: len(outputs.reused) > reused)  # still answered
@@ -254,14 +254,32 @@ def test_an_unchanged_frame_behind_a_refresh_taken_meanwhile_is_answered_itself(
 @pytest.mark.parametrize(
     "kinds", [("parked",), ("moving",), ("parked", "moving")], ids=["all parked", "all moving", "mixed"]
 )
-def test_fleets_under_load_are_accounted_for(kinds: tuple[str, ...]) -> None:
+@pytest.mark.parametrize("infer_s", [0.0, 0.3], ids=["this host", "a slow host"])
+def test_fleets_under_load_are_accounted_for(kinds: tuple[str, ...], infer_s: float) -> None:
     """Several sources streaming faster than the answers: replaced frames are dropped, none lost; a parked
     source is inferred once (well within max_reuse_s, however slow the host), a moving one at every turn it
-    gets."""
-    worker, queue, stats, _ = serving(reuse={"max_reuse_s": 3600.0})
+    gets. Each source's first frame is inferred before the stream: a frame glanced while its source's first
+    inference runs has no view to compare with and is inferred too, which a slow host would otherwise turn
+    into a second inference of a parked robot."""
+    run = pipeline()
+    infer = run.infer
+
+    def slow_infer(image: np.ndarray) -> Inference:
+        time.sleep(infer_s)  # a loaded CI host: each inference outlasts the next frames' glances
+        return infer(image)
+
+    run.infer = slow_infer  # type: ignore[method-assign]
+    worker, queue, stats, _ = serving(run=run, reuse={"max_reuse_s": 3600.0})
     worker.start()
+
+    def first_frames_inferred() -> bool:
+        sources = stats.snapshot(queue.counters()).sources
+        return len(sources) == 3 * len(kinds) and all(s.processed == 1 for s in sources.values())
+
     try:
         for k in range(30):
+            if k == 1:
+                until(first_frames_inferred)
             for robot in range(3):
                 if "parked" in kinds:
                     queue.put(f"parked{robot}", jpeg_frame(noisy(scene(robot), 4.0, k), f"parked{robot}"))
