@@ -51,7 +51,7 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
         "instance TEXT NOT NULL)",
         "CREATE TABLE anchor_active (singleton INTEGER PRIMARY KEY CHECK (singleton = 1), "
         "entry BIGINT NOT NULL REFERENCES anchor_history (entry))",
-        "CREATE TABLE anchor_proposals (version TEXT PRIMARY KEY, proposal TEXT NOT NULL, "
+        "CREATE TABLE anchor_proposals (id {id}, version TEXT NOT NULL UNIQUE, proposal TEXT NOT NULL, "
         "stored_at {float} NOT NULL, instance TEXT NOT NULL)",
     ),
 )

@@ -252,7 +252,7 @@ class SqlStore(Store):
         with self._transaction(None) as cursor:
             rows = self._run(
                 cursor,
-                "SELECT version, proposal, stored_at, instance FROM anchor_proposals ORDER BY stored_at DESC LIMIT ?",
+                "SELECT version, proposal, stored_at, instance FROM anchor_proposals ORDER BY id DESC LIMIT ?",
                 (limit,),
             ).fetchall()
         return [_stored_proposal(row) for row in rows]

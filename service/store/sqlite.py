@@ -83,6 +83,8 @@ class SqliteStore(SqlStore):
 
 
 def _store_error(path: Path, err: sqlite3.Error) -> StoreError:
-    """Locked, full, read-only or unreadable files may heal (retry later); anything else is a plain error."""
+    """Locked, full, read-only, unreadable or corrupt files may heal or be replaced (the service serves on, its
+    pairs waiting; retried later); anything else (a refused row) is a plain error."""
     message = f"the store {path}: {err}"
-    return StoreUnavailable(message) if isinstance(err, sqlite3.OperationalError) else StoreError(message)
+    unusable = isinstance(err, sqlite3.OperationalError) or type(err) is sqlite3.DatabaseError
+    return StoreUnavailable(message) if unusable else StoreError(message)

@@ -164,9 +164,10 @@ class AnchorSwitch:
 
     def head(self) -> AnchorHistoryEntry:
         """The entry of the set this instance serves (the set, its version, when the fleet accepted it). The
-        pipeline holds the same set with its embeddings, installed by ``swap``, for frames."""
-        with self._lock:
-            return self._head
+        pipeline holds the same set with its embeddings, installed by ``swap``, for frames. Read without the
+        lock: the frame's triage asks it (reuse compares versions), and a swap holds the lock while it waits on
+        the store (issue 46: the inference path never waits on the store); the entry is replaced whole."""
+        return self._head
 
     def _run(self, job: Callable[[], AnchorSet], done: SwapDone) -> None:
         def report(future: Future[AnchorSet]) -> None:

@@ -101,3 +101,15 @@ def test_a_store_of_a_newer_schema_stops_the_start_in_one_line(tmp_path: Path) -
     first.close()
     with pytest.raises(SchemaTooNew, match=r"schema version 2, this gcdtrav knows up to 1: run a newer gcdtrav"):
         service_outbox(settings)
+
+
+def test_a_corrupt_sqlite_file_is_an_unreachable_store_and_the_service_serves_on(tmp_path: Path) -> None:
+    settings = ServiceSettings.model_validate({"state_dir": tmp_path})
+    (tmp_path / "gcdtrav.store.sqlite3").write_bytes(b"not a database at all" * 100)
+    outbox = service_outbox(settings)
+    try:
+        state = outbox.state()
+        assert outbox.store is None and not state.reachable and "file is not a database" in (state.error or "")
+        assert outbox.put([]) == 0  # pairs would wait in memory, as in any outage
+    finally:
+        outbox.close(timeout_s=1)
