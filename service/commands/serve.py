@@ -19,6 +19,7 @@ from gcdtrav.service.backends.cpus import set_torch_threads, usable_cpus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.fleet.state import load_anchor_state
 from gcdtrav.service.runtime.http_endpoints import Checks, HttpEndpoints
+from gcdtrav.service.store import StoreError, open_store
 
 log = logging.getLogger("gcdtrav.service")
 MEASUREMENT_STOP_S = 5.0  # at shutdown, how long a background measurement may take to reach its next mode
@@ -29,18 +30,39 @@ WARM_UP_SIDE = 64  # the warm-up frame; the backend resizes every image to its i
 
 
 def starting_anchor_set(settings: ServiceSettings) -> AnchorSet:
-    """The last set accepted at runtime wins over the configured file, which wins over the paper's set."""
+    """The fleet's active set (the store is its record) wins over a state file not yet imported, which wins over
+    the configured file, which wins over the paper's set. The pipeline starts with it, so a restart computes
+    the text embeddings once; the anchor switch still reads the store again (it may have changed meanwhile)."""
+    active = stored_active_set(settings)
+    if active is not None:
+        log.info("anchor set %s: the store's active set", active.version)
+        return active
     persisted = load_anchor_state(settings.state_file)
     if persisted is not None:
-        log.info(
-            "anchor set %s from the state file %s (delete it to use the configured set)",
-            persisted.version,
-            settings.state_file,
-        )
+        log.info("anchor set %s from the state file %s (imported into the store at start)", persisted.version,
+                 settings.state_file)  # fmt: skip
         return persisted
     if settings.anchors_file is not None:
         return AnchorSet.load(settings.anchors_file)
     return default_anchor_set()
+
+
+def stored_active_set(settings: ServiceSettings) -> AnchorSet | None:
+    """The store's active set; None for an empty store or one that cannot be read now (the service then starts
+    with the configured set, and the anchor switch installs the store's once it answers)."""
+    try:
+        store = open_store(settings.store, settings.state_dir, settings.prefix)
+    except StoreError as err:
+        log.warning("anchor store not read at start: %s", err)
+        return None
+    try:
+        active = store.active()
+    except StoreError as err:
+        log.warning("anchor store not read at start: %s", err)
+        return None
+    finally:
+        store.close()
+    return None if active is None else active.anchor_set
 
 
 def build_service_pipeline(settings: ServiceSettings) -> Pipeline:

@@ -29,7 +29,7 @@ INTRINSICS = CameraIntrinsics(fx=100, fy=100, cx=80, cy=60, width=160, height=12
 def test_every_planner_layer_has_its_values_and_colours_unknown_cells_transparent() -> None:
     grid = Grid.from_payload(grid_payload("cam", layers=True))
     layers = grid_layers.layer_values(grid)
-    assert list(layers) == ["traversability", "uncertainty", "cvar", "p_below", "match", "age"]
+    assert list(layers) == ["traversability", "uncertainty", "cvar", "p_below", "match", "age", "speed"]
     kind, cvar = layers["cvar"]
     cells = np.frombuffer(grid_layers.layer_cells(cvar, kind), np.dtype([("v", "<f4"), ("rgba", "u1", (4,))]))
     cells = cells.reshape(4, 4)
@@ -38,6 +38,7 @@ def test_every_planner_layer_has_its_values_and_colours_unknown_cells_transparen
     expected = pictures.colorize_traversability(np.array([0.25], np.float32))[0]
     assert (cells["rgba"][1, 1, :3] == expected).all()  # CVaR reads like T
     assert np.allclose(layers["age"][1][1:, 1:], 1.5) and np.isnan(layers["age"][1][0, 0])
+    assert np.allclose(layers["speed"][1], 0.6, atol=1e-4)  # every cell has a speed, the unknown one too
     old = Grid.from_payload(grid_payload("cam"))  # a 1.1 writer: no risk layers, no channels for them
     assert list(grid_layers.layer_values(old)) == ["traversability", "uncertainty"]
 

@@ -124,7 +124,7 @@ def grid_payload(
     source: str, cells: int = 4, robot: tuple[float, float, float] | None = None, layers: bool = False
 ) -> bytes:
     """A grid of 0.5 m cells in odom, T 0.5 everywhere; with ``layers`` the 1.2 layers too (CVaR 0.25,
-    P(T < 0.3) 0.75, match 0.9, ages 1.5 s) and cell (0, 0) unknown."""
+    P(T < 0.3) 0.75, match 0.9, ages 1.5 s), 1.5's speed (0.6) and cell (0, 0) unknown."""
     values = np.full((cells, cells), 0.5, np.float32)
     header = GridHeader(
         source=source, seq=0, stamp=100.0, frame_id="odom", origin=(0.0, 0.0), resolution=0.5, cells=cells,
@@ -140,6 +140,7 @@ def grid_payload(
             "p_below_png": encode_map_png16(np.full_like(values, 0.75)),
             "match_png": encode_map_png16(np.full_like(values, 0.9)),
             "age_png": encode_age_png(np.where(count > 0, 1.5, np.nan)),
+            "speed_png": encode_map_png16(np.full_like(values, 0.6)),
         }
     return GridMessage(
         header=header,
