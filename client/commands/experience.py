@@ -265,6 +265,7 @@ def answer(client: TraversabilityClient, args: argparse.Namespace) -> int:
         if score is None:
             print(f"nothing recorded: gcdtrav answer {args.source} drivable|blocked|SCORE answers it")
             return 0
+    assert score is not None  # without an answer the question was shown (or ServiceError raised) above
     reply = client.answer(args.source, question_id, score, args.operator)
     print(f"answered {reply.id} ({args.source}): score {reply.score:g}, {reply.pairs} pairs")
     return 0

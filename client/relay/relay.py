@@ -31,7 +31,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from functools import partial
 from typing import Any, Protocol
@@ -108,7 +108,7 @@ class RobotSide(Protocol):
         """Feed ``link.keep`` with the camera's frames."""
         ...
 
-    def outputs(self, relay: Relay, source: str) -> list[Output]: ...
+    def outputs(self, relay: Relay, source: str) -> Sequence[Output]: ...
 
     def publish_health(self, health: RelayHealth) -> None: ...
 

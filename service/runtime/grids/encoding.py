@@ -101,9 +101,10 @@ def speed_of(
     safe: bool = False,
 ) -> SpeedUpdate:
     """The speed filter's payloads of a grid's speed layer: the limit at the robot's pose (header.robot; the
-    floor if it is off the grid) and, ``with_mask``, the mask."""
+    floor if it is off the grid or unknown) and, ``with_mask``, the mask."""
     assert config.speed is not None
-    at = speed.fraction_at(fractions, header.origin, header.resolution, header.robot[0], header.robot[1])
+    robot = header.robot  # None before the grid knows the robot's pose: the limit is then the floor's
+    at = None if robot is None else speed.fraction_at(fractions, header.origin, header.resolution, robot[0], robot[1])
     fraction = speed.safe_fraction(config.speed) if at is None else at
     limit = speed_limit_cdr(header.stamp, header.frame_id, speed.limit_percent(fraction))
     mask = occupancy_values_cdr(header, speed.mask_values(fractions)) if with_mask else None
