@@ -7,7 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.service.grid import speed
 from gcdtrav.service.runtime.grids import GridOutputs
+from gcdtrav.service.runtime.grids.encoding import speed_of
 from gcdtrav.service.runtime.history import FrameRecord
 from gcdtrav.service.runtime.metrics import speed_families
 
@@ -181,3 +183,15 @@ def test_the_assembled_runtime_tells_the_grid_of_each_reused_view() -> None:
     finally:
         assert runtime.worker.stop(time.monotonic() + 10)
     assert health.fused == 1 and health.unchanged_at is not None and health.unchanged_at >= health.fused_at
+
+
+def test_a_grid_that_does_not_know_the_robots_pose_limits_at_the_floor() -> None:
+    """header.robot is None until the grid knows where the robot is: the limit is the floor's, not a crash."""
+    grids = speed_grids(Clock())
+    fused = fuse(grids)
+    config = grid_settings(scene_camera())
+    config = type(config).model_validate(config.model_dump() | {"speed": {"floor": FLOOR}})
+    header = fused.message.header.model_copy(update={"robot": None})
+    fractions = np.ones((header.cells, header.cells), np.float32)  # full speed everywhere but where the robot is
+    update = speed_of(config, header, fractions, None, True)
+    assert limit_of(update.limit) == speed.limit_percent(FLOOR) == round(FLOOR * 100)
