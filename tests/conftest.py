@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from gcdtrav.schemas.anchors import AnchorSet
 
 pytest_plugins = ["store_fixtures"]  # the store's fixtures over SQLite and PostgreSQL (tests/service/store/)
 
@@ -81,3 +82,17 @@ def torch_free_gcdtrav(*args: str) -> list[str]:
         """
     )
     return [sys.executable, "-c", code]
+
+
+def three_anchor_set(name: str) -> AnchorSet:
+    """A set of its own per ``name`` (water, "terrain NAME", road): distinct versions for swap tests."""
+    return AnchorSet.parse(
+        {
+            "name": name,
+            "anchors": [
+                {"concept": "water", "position": 0.0},
+                {"concept": f"terrain {name}", "position": 0.5},
+                {"concept": "road", "position": 1.0},
+            ],
+        }
+    )

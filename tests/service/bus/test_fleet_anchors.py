@@ -12,26 +12,14 @@ from zenoh_helpers import client_config, free_port, start_router, wait_until
 
 pytest.importorskip("torch")
 
+from conftest import three_anchor_set
 from gcdtrav.client import PartialSwap, TraversabilityClient
-from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
+from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.store import StoreUnavailable
-
-
-def distinct_set(name: str) -> AnchorSet:
-    return AnchorSet.parse(
-        {
-            "name": name,
-            "anchors": [
-                {"concept": "water", "position": 0.0},
-                {"concept": f"terrain {name}", "position": 0.5},
-                {"concept": "road", "position": 1.0},
-            ],
-        }
-    )
 
 
 class Fleet:
@@ -70,7 +58,7 @@ def test_instances_converge_new_ones_adopt_and_rollback_ends_everywhere_on_one_s
     try:
         a, b = fleet.start("box-a"), fleet.start("box-b")
         assert wait_until(lambda: len(client.statuses(timeout=1.0)) == 2, 20)
-        first = distinct_set("first")
+        first = three_anchor_set("first")
         a.runtime.anchor_switch.swap(first)  # a swap that reached one instance only
         assert wait_until(lambda: fleet.converged_on(first.version), 10), fleet.versions()
         accepted = a.runtime.anchor_switch.head().accepted_at
@@ -79,7 +67,7 @@ def test_instances_converge_new_ones_adopt_and_rollback_ends_everywhere_on_one_s
         assert wait_until(lambda: fleet.converged_on(first.version), 10), fleet.versions()
         assert wait_until(lambda: c.status().anchor_sets == dict.fromkeys(fleet.running, first.version), 5)
 
-        second = distinct_set("second")
+        second = three_anchor_set("second")
         assert client.set_anchors(second) == second.version
         assert fleet.converged_on(second.version)
         assert client.rollback_anchors(1) == first.version
@@ -107,7 +95,7 @@ def test_a_swap_one_instance_refuses_names_each_instance_and_the_status_shows_th
             raise StoreUnavailable("the store b.sqlite3: disk I/O error")
 
         b.runtime.anchor_switch.store.activate = unwritable  # type: ignore[method-assign]  # b's store refuses
-        new = distinct_set("new")
+        new = three_anchor_set("new")
         with pytest.raises(PartialSwap) as partial:
             client.set_anchors(new)
         assert partial.value.swapped == {"box-a": new.version} and set(partial.value.failed) == {"box-b"}

@@ -6,10 +6,11 @@ history read the store, so a new instance rolls back the fleet's history, not it
 from __future__ import annotations
 
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from conftest import three_anchor_set
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply
@@ -17,24 +18,9 @@ from gcdtrav.service.backends.base import BackendDescription
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.fleet.anchor_switch import ActivationLost, AnchorSwitch
 from gcdtrav.service.runtime.fleet.state import save_anchor_state
-from gcdtrav.service.store import Store
 from gcdtrav.service.store.legacy import history_file_of, import_anchor_state
 from numpy.typing import NDArray
-
-OpenStore = Callable[[], Store]  # conftest.open_same_store
-
-
-def named_set(name: str) -> AnchorSet:
-    return AnchorSet.parse(
-        {
-            "name": name,
-            "anchors": [
-                {"concept": "water", "position": 0.0},
-                {"concept": f"terrain {name}", "position": 0.5},
-                {"concept": "road", "position": 1.0},
-            ],
-        }
-    )
+from store_fixtures import OpenStore
 
 
 class NamesBackend:
@@ -93,7 +79,7 @@ def test_of_two_instances_swapping_at_once_exactly_one_wins_and_the_other_names_
     assert b.head().version == a.head().version  # b found the set a seeded
     for round_ in range(5):  # each round both expect the set they saw
         seen = a.head().version
-        sets = {"box-a": named_set(f"a{round_}"), "box-b": named_set(f"b{round_}")}
+        sets = {"box-a": three_anchor_set(f"a{round_}"), "box-b": three_anchor_set(f"b{round_}")}
         results = race([a, b], sets, seen)
         won = [name for name, result in results.items() if isinstance(result, AnchorSet)]
         assert len(won) == 1, results
@@ -112,11 +98,11 @@ def test_of_two_instances_swapping_at_once_exactly_one_wins_and_the_other_names_
 def test_the_start_set_seeds_an_empty_store_only_and_the_active_set_survives_every_restart(
     open_same_store: OpenStore,
 ) -> None:
-    configured = named_set("configmap")
+    configured = three_anchor_set("configmap")
     first = instance(open_same_store, "box-a", configured)
     seeded = first.store.active()
     assert seeded is not None and seeded.version == configured.version and seeded.how == "seeded"
-    applied = named_set("applied")
+    applied = three_anchor_set("applied")
     first.swap(applied, expected=configured.version)
     first.close()
     first.store.close()  # every instance stopped
@@ -131,7 +117,7 @@ def test_rollback_and_history_read_the_store_whichever_instance_answers(open_sam
     """A pod replaced after the swaps (its own history would be empty) rolls the fleet back through the
     store's history: the set before the active one, not a set its own past holds."""
     a = instance(open_same_store, "box-a")
-    sets = [named_set(name) for name in ("one", "two", "three")]
+    sets = [three_anchor_set(name) for name in ("one", "two", "three")]
     for anchors in sets:
         a.swap(anchors, expected=a.head().version)
     a.close()
@@ -149,8 +135,8 @@ def test_rollback_and_history_read_the_store_whichever_instance_answers(open_sam
 
 def test_a_forced_activation_is_marked_in_the_history(open_same_store: OpenStore) -> None:
     a = instance(open_same_store, "box-a")
-    a.swap(named_set("forced"), expected=a.head().version, how="proposal", forced=True)
-    a.swap(named_set("fine"), expected=a.head().version, how="proposal")
+    a.swap(three_anchor_set("forced"), expected=a.head().version, how="proposal", forced=True)
+    a.swap(three_anchor_set("fine"), expected=a.head().version, how="proposal")
     assert [(e.how, e.forced) for e in a.history().entries] == [
         ("proposal", False),
         ("proposal", True),
@@ -161,7 +147,7 @@ def test_a_forced_activation_is_marked_in_the_history(open_same_store: OpenStore
 
 def test_an_instance_state_from_before_the_store_is_imported_once(open_same_store: OpenStore, tmp_path: Path) -> None:
     state_file = tmp_path / "state" / "gcdtrav.anchors.json"
-    older, newer = named_set("older"), named_set("newer")
+    older, newer = three_anchor_set("older"), three_anchor_set("newer")
     entries = [
         AnchorHistoryEntry(accepted_at=2000.0, version=newer.version, anchor_set=newer),
         AnchorHistoryEntry(accepted_at=1000.0, version=older.version, anchor_set=older),
@@ -175,7 +161,7 @@ def test_an_instance_state_from_before_the_store_is_imported_once(open_same_stor
     assert recorded == [(newer.version, 2000.0, "imported"), (older.version, 1000.0, "imported")]
     assert not state_file.exists() and state_file.with_name(state_file.name + ".imported").is_file()
     a.close()
-    save_anchor_state(state_file, named_set("stale"))  # a state file appearing later: the store is the record
+    save_anchor_state(state_file, three_anchor_set("stale"))  # a state file appearing later: the store is the record
     again = instance(open_same_store, "box-a", legacy=state_file)
     assert [e.version for e in again.history().entries] == [newer.version, older.version]
     again.close()

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -23,29 +23,15 @@ from zenoh_helpers import client_config, free_port, start_router, wait_until
 
 pytest.importorskip("torch")
 
+from conftest import three_anchor_set
 from gcdtrav.client import TraversabilityClient
-from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
+from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.experience import ProposalVerdict
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.store import Store
-
-OpenStore = Callable[[], Store]  # conftest.open_same_store
-
-
-def named_set(name: str) -> AnchorSet:
-    return AnchorSet.parse(
-        {
-            "name": name,
-            "anchors": [
-                {"concept": "water", "position": 0.0},
-                {"concept": f"terrain {name}", "position": 0.5},
-                {"concept": "road", "position": 1.0},
-            ],
-        }
-    )
+from store_fixtures import OpenStore
 
 
 class SharedStoreFleet:
@@ -116,7 +102,7 @@ def test_two_operators_setting_at_once_exactly_one_wins_the_other_exits_1_naming
         files = {}
         for name in ("left", "right"):
             files[name] = tmp_path / f"{name}.yaml"
-            named_set(name).save(files[name])
+            three_anchor_set(name).save(files[name])
         operators = {
             name: subprocess.Popen(
                 torch_free_gcdtrav("anchors", "set", str(path), "--expected", seen, *flags),
@@ -130,7 +116,7 @@ def test_two_operators_setting_at_once_exactly_one_wins_the_other_exits_1_naming
         assert sorted(code for code, _, _ in done.values()) == [0, 1], done
         winner = next(name for name, (code, _, _) in done.items() if code == 0)
         loser = next(name for name in done if name != winner)
-        version = named_set(winner).version
+        version = three_anchor_set(winner).version
         assert f"swapped: anchor set {version} active on" in done[winner][1]
         refusal = done[loser][2].splitlines()
         assert len(refusal) == 1 and refusal[0].startswith(f"gcdtrav anchors: lost to anchor set {version}: ")
@@ -143,7 +129,7 @@ def test_two_operators_setting_at_once_exactly_one_wins_the_other_exits_1_naming
 def test_a_set_applied_before_a_full_restart_is_active_after_it(
     tiny_backend: Any, tmp_path: Path, open_same_store: OpenStore
 ) -> None:
-    applied = named_set("applied")
+    applied = three_anchor_set("applied")
     with fleet_on_one_store(tiny_backend, tmp_path / "before", open_same_store, "box-a", "box-b") as (
         fleet,
         client,
@@ -173,7 +159,7 @@ def test_apply_by_version_applies_exactly_the_kept_proposal_or_refuses_in_one_li
     with fleet_on_one_store(tiny_backend, tmp_path, open_same_store, "box-a", "box-b") as (fleet, _, flags):
         store = fleet.running["box-a"][0].runtime.anchor_switch.store
         start = default_anchor_set()
-        reviewed, stale, forced = named_set("reviewed"), named_set("stale"), named_set("forced")
+        reviewed, stale, forced = three_anchor_set("reviewed"), three_anchor_set("stale"), three_anchor_set("forced")
         store.put_proposal(proposal_of(start, reviewed).model_copy(update={"verdict": better, "kept": True}), "box-b")
         store.put_proposal(proposal_of(start, stale).model_copy(update={"verdict": better, "kept": True}), "box-b")
 
