@@ -1,7 +1,7 @@
 """A fleet's store: one PostgreSQL database every instance shares (psycopg 3, in the ``gcdtrav[service]``
-extra). One connection per thread, autocommit with explicit transactions; a write transaction first takes a
-transaction-scoped advisory lock of its table group, so appends from every instance keep one fleet-wide
-order and bounds, and of two activations exactly one sees the other's result.
+extra). One connection per thread (``ThreadConnections``), autocommit with explicit transactions; a write
+transaction first takes a transaction-scoped advisory lock of its table group, so appends from every instance
+keep one fleet-wide order and bounds, and of two activations exactly one sees the other's result.
 
 A connection that fails is dropped and made again at the next call: a database restarted under a running
 fleet costs the calls made while it was down (``StoreUnavailable``), nothing else. The password is given to
@@ -10,14 +10,13 @@ libpq apart from the URL and scrubbed from any message that might echo it."""
 from __future__ import annotations
 
 import math
-import threading
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from typing import Any
 
 from gcdtrav.service.store.records import StoreError, StoreUnavailable
 from gcdtrav.service.store.schema import POSTGRESQL
-from gcdtrav.service.store.sql import Cursor, Lock, SqlStore
+from gcdtrav.service.store.sql import Cursor, Lock, SqlStore, ThreadConnections
 
 ADVISORY_CLASS = 0x6763  # 'gc': the first key of gcdtrav's advisory locks
 ADVISORY_KEYS: dict[Lock, int] = {"schema": 1, "pairs": 2, "anchors": 3}
@@ -42,22 +41,16 @@ class PostgresStore(SqlStore):
         self._password = password
         self._timeout = max(2, math.ceil(connect_timeout_s))  # libpq's connect_timeout: whole seconds, 2 at least
         self._psycopg = _psycopg()
-        self._local = threading.local()
-        self._connections: list[Any] = []
-        self._lock = threading.Lock()
-        self._closed = False
+        self._connections: ThreadConnections[Any] = ThreadConnections(
+            url, self._connect, self._close_quietly, usable=lambda c: not c.closed and not c.broken
+        )
         self._migrate()
 
     @property
     def location(self) -> str:
         return self.url  # holds no password: the settings refuse one in the URL
 
-    def _connection(self) -> Any:
-        connection = getattr(self._local, "connection", None)
-        if connection is not None and not connection.closed and not connection.broken:
-            return connection
-        if self._closed:
-            raise StoreError(f"the store {self.url} is closed")
+    def _connect(self) -> Any:
         extra = {"password": self._password} if self._password is not None else {}
         try:
             connection = self._psycopg.connect(
@@ -65,10 +58,11 @@ class PostgresStore(SqlStore):
             )
         except self._psycopg.Error as err:
             raise self._error(err) from None
-        with self._lock:
-            self._connections.append(connection)
-        self._local.connection = connection
         return connection
+
+    def _close_quietly(self, connection: Any) -> None:
+        with suppress(self._psycopg.Error):
+            connection.close()
 
     @contextmanager
     def _transaction(self, lock: Lock | None) -> Iterator[Cursor]:
@@ -86,33 +80,25 @@ class PostgresStore(SqlStore):
             if not isinstance(err, self._psycopg.Error):
                 raise
             if connection.broken or isinstance(err, self._psycopg.OperationalError):
-                self._forget(connection)
+                self._connections.forget(connection)
             raise self._error(err) from None
 
     def _begun(self) -> Any:
         """This thread's connection inside a new transaction; on a fresh connection if the kept one fails at
         BEGIN (the server restarted since it was used: nothing was done, so trying again is safe)."""
-        connection = self._connection()
+        connection = self._connections.get()
         try:
             connection.execute("BEGIN")
             return connection
         except self._psycopg.Error:
-            self._forget(connection)
-        connection = self._connection()
+            self._connections.forget(connection)
+        connection = self._connections.get()
         try:
             connection.execute("BEGIN")
         except self._psycopg.Error as err:
-            self._forget(connection)
+            self._connections.forget(connection)
             raise self._error(err) from None
         return connection
-
-    def _forget(self, connection: Any) -> None:
-        self._local.connection = None
-        with self._lock:
-            if connection in self._connections:
-                self._connections.remove(connection)
-        with suppress(self._psycopg.Error):
-            connection.close()
 
     def _error(self, err: Exception) -> StoreError:
         """One line, the password scrubbed; connection trouble is StoreUnavailable (retried later)."""
@@ -125,9 +111,4 @@ class PostgresStore(SqlStore):
         return StoreError(message)
 
     def close(self) -> None:
-        with self._lock:
-            self._closed = True
-            connections, self._connections = self._connections, []
-        for connection in connections:
-            with suppress(self._psycopg.Error):
-                connection.close()
+        self._connections.close()

@@ -1,18 +1,17 @@
 """The embedded store: one SQLite file in the state dir (the standard library's sqlite3, WAL), so a single box
-needs nothing set up. One connection per thread: under WAL a calibration's long read runs beside the outbox's
-appends, neither waiting for the other; writers take SQLite's one writer lock (BEGIN IMMEDIATE)."""
+needs nothing set up. One connection per thread (``ThreadConnections``); writers take SQLite's one writer lock
+(BEGIN IMMEDIATE)."""
 
 from __future__ import annotations
 
 import sqlite3
-import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 from gcdtrav.service.store.records import StoreError, StoreUnavailable
 from gcdtrav.service.store.schema import SQLITE
-from gcdtrav.service.store.sql import Cursor, Lock, SqlStore
+from gcdtrav.service.store.sql import Cursor, Lock, SqlStore, ThreadConnections
 
 BUSY_TIMEOUT_S = 30.0  # another writer (a second process on the same file) holds the lock this long at most
 
@@ -23,10 +22,7 @@ class SqliteStore(SqlStore):
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self._local = threading.local()
-        self._connections: list[sqlite3.Connection] = []
-        self._lock = threading.Lock()
-        self._closed = False
+        self._connections = ThreadConnections(str(path), self._connect, sqlite3.Connection.close)
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as err:
@@ -37,12 +33,7 @@ class SqliteStore(SqlStore):
     def location(self) -> str:
         return str(self.path)
 
-    def _connection(self) -> sqlite3.Connection:
-        connection: sqlite3.Connection | None = getattr(self._local, "connection", None)
-        if connection is not None:
-            return connection
-        if self._closed:
-            raise StoreError(f"the store {self.path} is closed")
+    def _connect(self) -> sqlite3.Connection:
         try:
             connection = sqlite3.connect(
                 self.path, timeout=BUSY_TIMEOUT_S, isolation_level=None, check_same_thread=False
@@ -52,14 +43,11 @@ class SqliteStore(SqlStore):
             connection.execute("PRAGMA foreign_keys=ON")
         except sqlite3.Error as err:
             raise _store_error(self.path, err) from None
-        with self._lock:
-            self._connections.append(connection)
-        self._local.connection = connection
         return connection
 
     @contextmanager
     def _transaction(self, lock: Lock | None) -> Iterator[Cursor]:
-        connection = self._connection()
+        connection = self._connections.get()
         try:
             cursor = connection.cursor()
             cursor.execute("BEGIN IMMEDIATE" if lock is not None else "BEGIN")
@@ -75,11 +63,7 @@ class SqliteStore(SqlStore):
             raise _store_error(self.path, err) from None
 
     def close(self) -> None:
-        with self._lock:
-            self._closed = True
-            connections, self._connections = self._connections, []
-        for connection in connections:
-            connection.close()
+        self._connections.close()
 
 
 def _store_error(path: Path, err: sqlite3.Error) -> StoreError:
