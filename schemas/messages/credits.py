@@ -9,12 +9,14 @@ from pydantic import Field
 
 # What freed a source's slot (CreditGrant.reason), each with what it means for the robot.
 TAKEN, UNCHANGED, REFRESH, STALE, REFUSED = "taken", "unchanged", "refresh", "stale", "refused"
+SUPERSEDED = "superseded"
 CREDIT_REASONS = {
     TAKEN: "the frame went to inference",
     UNCHANGED: "not inferred, its view had not changed: the last maps went out again",
     REFRESH: "an unchanged view past max_reuse_s waits for inference; later unchanged frames are answered meanwhile",
     STALE: "older than max_frame_age_s",
     REFUSED: "rejected at intake",
+    SUPERSEDED: "judged unchanged, but newer maps of a view it does not match went out before its answer: dropped",
 }
 
 

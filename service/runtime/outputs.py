@@ -35,6 +35,7 @@ from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.frames import PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.grids import FusedGrid, GridUpdate, SpeedUpdate
 from gcdtrav.service.runtime.triage.change import Glance
+from gcdtrav.service.runtime.triage.reuse import Republished
 from numpy.typing import NDArray
 
 Encoding = Literal["msgpack", "jpeg", "cdr"]
@@ -104,7 +105,8 @@ class FramePublisher:
     One ordering point per frame: its maps are kept for reuse, then ``kept`` is told (the glance's new
     reference), then they are put, all under one lock that reuse's answers take too. A frame glanced once
     the reference is set (a robot sends it the moment it sees the maps) is compared with this frame and
-    answered with its maps, never the previous frame's, and only after them (a client drops older maps)."""
+    answered with its maps, never the previous frame's, and only after them (a client drops older maps); one
+    glanced before but answered after must fit them too (``republish``'s ``fits``), else it is dropped."""
 
     def __init__(
         self,
@@ -128,17 +130,21 @@ class FramePublisher:
         self.published(done.source, done.image.stamp)
         return True
 
-    def republish(self, pending: PendingFrame, seen: Glance) -> bool:
-        """The source's last maps again for an unchanged frame (reuse); False (nothing put) once closed or
-        when no maps of the source are kept."""
+    def republish(self, pending: PendingFrame, seen: Glance, fits: Callable[[], bool] = lambda: True) -> Republished:
+        """The source's last maps again for an unchanged frame (reuse). ``fits()``, asked under the hand-off's
+        lock (the kept maps cannot change while it answers): whether the frame still matches the maps kept now
+        (newer maps may have been kept since it was judged); SUPERSEDED, nothing put, if not. NOT_PUT once
+        closed or when no maps of the source are kept."""
         compact = self.sink.wants_compact(pending.source)
         with self._out:
+            if not fits():
+                return Republished.SUPERSEDED
             outputs = self.builder.reused(pending, seen.stamp, seen.frame_id, compact)
             if not outputs or not self.sink.put(pending.source, outputs):
-                return False
+                return Republished.NOT_PUT
         self.published(pending.source, seen.stamp)
         self.unchanged(pending.source)
-        return True
+        return Republished.PUT
 
     def publish_speed(self, updates: list[SpeedUpdate]) -> bool:
         """Grids' speed outputs outside a frame (the safe mask of a stale grid, or at shutdown); False if the

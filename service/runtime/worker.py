@@ -28,8 +28,7 @@ from gcdtrav.service.runtime.intake.sources import SourceTracker
 from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.stats import ServiceStats
-from gcdtrav.service.runtime.triage.change import Glance
-from gcdtrav.service.runtime.triage.reuse import Triage
+from gcdtrav.service.runtime.triage.reuse import Reusable, Triage
 
 log = logging.getLogger("gcdtrav.service")
 _R = TypeVar("_R")
@@ -120,13 +119,13 @@ class FrameWorker:
             if reusable is not None:
                 # No beat: answering unchanged views is not inference's progress. A hung inference must
                 # still be seen (and its moving robots failed over) while parked ones are answered.
-                self._guarded(reusable[0], self._reuse, *reusable, beat=False)
+                self._guarded(reusable.pending, self._reuse, reusable, beat=False)
 
-    def _reuse(self, pending: PendingFrame, seen: Glance) -> None:
+    def _reuse(self, reusable: Reusable) -> None:
         """The source's last maps again, for an unchanged frame: checked like a frame about to be published."""
         assert self.triage is not None
-        check_stamp(seen.stamp)
-        self.triage.reuse(pending, seen, self.gate.before_publish(pending))
+        check_stamp(reusable.seen.stamp)
+        self.triage.reuse(reusable, self.gate.before_publish(reusable.pending))
 
     def _output_loop(self) -> None:
         while (item := self._inferred.get()) is not None:

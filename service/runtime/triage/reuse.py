@@ -44,6 +44,8 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from enum import Enum
+from typing import NamedTuple
 
 import numpy as np
 from gcdtrav.schemas.messages import Pose2D, credits
@@ -79,6 +81,7 @@ class Verdict:
     urgent: bool = False  # changed after the view had settled
     behind_refresh: bool = False  # reused past max_reuse_s because the source's refresh waits for its turn
     need: Need = NO_NEED  # the source's, as of this glance
+    reference: int = 0  # which of the source's references it was judged against (ReuseTracker.fits)
 
     @property
     def claim(self) -> Claim | None:
@@ -95,6 +98,7 @@ class _View:
     reference_pose: Pose2D | None = None
     reference_anchors: str = ""  # the anchor set version its maps were computed with
     reference_size: tuple[int, int] | None = None  # (width, height): the maps' scale is for this size
+    references: int = 0  # references set so far: a verdict names the one it was judged against
     inferred_at: float = -math.inf
     settled: bool = False  # the last frame judged was unchanged (reused, or its refresh inferred)
     previous: Thumbnail | None = None
@@ -143,7 +147,18 @@ class ReuseTracker:
             verdict = self._verdict(view, glance, pose, now, refresh_waiting)
             if verdict.reason in (UNCHANGED, MAX_REUSE, CHANGED, POSE, SIZE):
                 view.settled = verdict.reason in (UNCHANGED, MAX_REUSE)
-            return replace(verdict, need=Need(view.motion, view.ambiguity))
+            return replace(verdict, need=Need(view.motion, view.ambiguity), reference=view.references)
+
+    def fits(self, source: str, reference: int, pending: PendingFrame, glance: Glance) -> bool:
+        """Whether a frame judged reusable against the source's reference number ``reference`` is still
+        answered by the maps kept now: yes while that reference stands; after a newer one, only if the frame
+        is unchanged against it too (a parked robot's refresh landing meanwhile: the same view)."""
+        now, pose = self.clock(), self.pose_of(source, pending.stamp, pending.received_at)
+        with self._lock:
+            view = self._views.get(source)
+            if view is None:
+                return False
+            return view.references == reference or self._verdict(view, glance, pose, now, False).reuse
 
     def _verdict(self, view: _View, glance: Glance, pose: Pose2D | None, now: float, refresh_waiting: bool) -> Verdict:
         if view.reference is None:
@@ -201,6 +216,7 @@ class ReuseTracker:
             # Not glanced at (no triage for it, or its glance forgotten): from the decoded image, the same means.
             thumbnail = kept if kept is not None else thumbnail_of_rgb(image, self.settings.blocks)
             view.reference, view.reference_pose, view.inferred_at = thumbnail, pose, now
+            view.references += 1
             view.reference_anchors, view.ambiguity = anchors, ambiguity
             view.reference_size = (int(image.shape[1]), int(image.shape[0]))
 
@@ -214,7 +230,24 @@ class ReuseTracker:
             self._views.pop(source, None)
 
 
-Republish = Callable[[PendingFrame, Glance], bool]  # the source's last maps under this frame; False: not put
+class Republished(Enum):
+    """What became of an unchanged frame's answer."""
+
+    PUT = "put"
+    NOT_PUT = "not_put"  # closed (shutdown), or no maps of the source kept
+    SUPERSEDED = "superseded"  # newer maps were kept since it was judged, and it does not match them
+
+
+# The source's last maps under this frame, if the check (asked while the kept maps cannot change) says it fits them.
+Republish = Callable[[PendingFrame, Glance, Callable[[], bool]], Republished]
+
+
+class Reusable(NamedTuple):
+    """A frame to answer with the source's last maps: its glance, and the reference it was judged against."""
+
+    pending: PendingFrame
+    seen: Glance
+    reference: int
 
 
 class Triage:
@@ -234,7 +267,7 @@ class Triage:
         self.republish = republish
         self.on_freed = on_freed  # the credits: the source may send its next frame (service/runtime/fleet/credits.py)
 
-    def next_reusable(self, timeout: float) -> tuple[PendingFrame, Glance] | None:
+    def next_reusable(self, timeout: float) -> Reusable | None:
         """Glance at the next queued frame; the frame and its glance if it is to be reused (it has left the
         queue), None if it went on to inference (or nothing came within ``timeout``)."""
         item = self.frames.take_untriaged(timeout)
@@ -253,33 +286,41 @@ class Triage:
                 self.on_freed(pending, credits.REFRESH)
             return None
         if verdict.behind_refresh:
-            return self._in_line(source, pending, seen)
+            return self._in_line(source, pending, seen, verdict.reference)
         if not self.frames.settle(source, pending, None):
             return None  # replaced meanwhile: the newer frame is glanced at next
-        return pending, seen
+        return Reusable(pending, seen, verdict.reference)
 
-    def _in_line(self, source: str, pending: PendingFrame, seen: Glance) -> tuple[PendingFrame, Glance] | None:
+    def _in_line(self, source: str, pending: PendingFrame, seen: Glance, reference: int) -> Reusable | None:
         """An unchanged frame while the source's refresh waits: it takes the refresh's place in line (so the
         refresh infers the newest view, never one that waited into staleness); the frame it replaced, older,
         is answered with the last maps instead."""
         answered = self.frames.settle_in_line(source, pending)
         if answered is None or answered is pending:
-            return None if answered is None else (pending, seen)
+            return None if answered is None else Reusable(pending, seen, reference)
         settings = self.settings
         try:  # glanced once already: the same bytes give the same glance
-            return answered, glance(answered, settings.max_payload_bytes, settings.max_pixels, settings.reuse.blocks)
+            again = glance(answered, settings.max_payload_bytes, settings.max_pixels, settings.reuse.blocks)
+            return Reusable(answered, again, reference)
         except Exception as err:  # counted, never the triage thread's end
             self.stats.rejected(source, "processing_failed", repr(err)[:200], err)
             return None
 
-    def reuse(self, pending: PendingFrame, seen: Glance, map_age_s: float | None = None) -> None:
-        """Publish the source's last maps for this frame and count it unchanged (a shutdown's: dropped);
-        ``map_age_s``: the frame's age as judged before publishing."""
-        if not self.republish(pending, seen):
-            self.stats.dropped(pending.source, "shutdown")
-            return
-        self.stats.unchanged(pending.source, map_age_s)
-        self.on_freed(pending, credits.UNCHANGED)
+    def reuse(self, reusable: Reusable, map_age_s: float | None = None) -> None:
+        """Publish the source's last maps for this frame and count it unchanged; ``map_age_s``: the frame's age
+        as judged before publishing. Dropped instead at shutdown, or when newer maps it does not match were
+        kept since it was judged (a frame is never answered with the maps of another view)."""
+        pending, seen, reference = reusable
+        source = pending.source
+        answer = self.republish(pending, seen, lambda: self.tracker.fits(source, reference, pending, seen))
+        if answer is Republished.PUT:
+            self.stats.unchanged(source, map_age_s)
+            self.on_freed(pending, credits.UNCHANGED)
+        elif answer is Republished.SUPERSEDED:
+            self.stats.dropped(source, credits.SUPERSEDED)
+            self.on_freed(pending, credits.SUPERSEDED)
+        else:
+            self.stats.dropped(source, "shutdown")
 
     def inferred(self, done: ProcessedFrame) -> None:
         """A frame's maps are kept for reuse, about to go out: the source's new reference, with its ambiguity

@@ -13,6 +13,7 @@ from gcdtrav.schemas.settings import ReuseSettings, ServiceSettings
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.outputs import FramePublisher, Output, OutputBuilder
 from gcdtrav.service.runtime.triage.change import Glance
+from gcdtrav.service.runtime.triage.reuse import Republished
 
 LOG = __import__("logging").getLogger("test")
 GRID = {
@@ -100,9 +101,12 @@ def test_an_unchanged_frame_leaves_through_the_same_hand_off_and_tells_the_credi
     publish = FramePublisher(OutputBuilder(ServiceSettings(preview=False), "fake"), sink, lambda *a: told.append(a))
     later = png_frame("r1/front")
     seen = Glance(np.zeros((4, 4), np.float32), 99.5, "cam")
-    assert not publish.republish(later, seen) and told == []  # no maps of the source kept yet
+    assert publish.republish(later, seen) is Republished.NOT_PUT and told == []  # no maps of the source kept yet
     assert publish(processed("r1/front"))
-    assert publish.republish(later, seen) and told[-1] == ("r1/front", 99.5)
+    assert publish.republish(later, seen) is Republished.PUT and told[-1] == ("r1/front", 99.5)
     assert [o.key for o in sink.put_by_source["r1/front"]] == ["gcdtrav/out/r1/front/maps"]
+    answered = sink.put_by_source["r1/front"]
+    assert publish.republish(later, seen, fits=lambda: False) is Republished.SUPERSEDED  # nothing put, not told
+    assert sink.put_by_source["r1/front"] is answered and len(told) == 2
     publish.forget("r1/front")
-    assert not publish.republish(later, seen)
+    assert publish.republish(later, seen) is Republished.NOT_PUT

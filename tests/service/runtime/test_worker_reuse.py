@@ -23,7 +23,7 @@ from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.schedule.share import Claim, FrameClass, policy_for
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.triage.change import Glance
-from gcdtrav.service.runtime.triage.reuse import ReuseTracker, Triage
+from gcdtrav.service.runtime.triage.reuse import Republished, ReuseTracker, Triage
 from scenes import jpeg_frame, noisy, scene, with_person
 
 LOG = __import__("logging").getLogger("test")
@@ -36,9 +36,11 @@ class Outputs:
         self.reused: list[tuple[PendingFrame, Glance]] = []
         self.freed: list[str] = []
 
-    def republish(self, pending: PendingFrame, seen: Glance) -> bool:
+    def republish(self, pending: PendingFrame, seen: Glance, fits: Callable[[], bool]) -> Republished:
+        if not fits():
+            return Republished.SUPERSEDED
         self.reused.append((pending, seen))
-        return True
+        return Republished.PUT
 
 
 class Answers:
@@ -228,7 +230,7 @@ def test_unchanged_frames_take_a_waiting_refresh_s_place_and_the_replaced_one_is
         reusable = triage.next_reusable(0)
         assert reusable is not None
         answered.append(reusable[0])
-        triage.reuse(*reusable)
+        triage.reuse(reusable)
     assert answered == frames[1:5]  # each answered when the next one took its place
     assert [seen.stamp for _, seen in outputs.reused] == sorted(seen.stamp for _, seen in outputs.reused)
     taken = queue.take(0)
