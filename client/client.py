@@ -245,6 +245,12 @@ EARLY_END = 0.9  # a query that ended before this share of its timeout was ended
 CLOCK_STEP_BACK_S = 10.0  # over the service's max_frame_age_s (5 s): no fresh frame is stamped this much older
 
 
+def zenoh_timeout(err: zenoh.ReplyError | None) -> bool:
+    """Zenoh's own error reply when a query's time runs out with a queryable reached but no answer yet (a busy
+    service): "Timeout" as a zenoh string. The service's own errors are msgpack or JSON, never that."""
+    return err is not None and str(err.encoding) == "zenoh/string" and err.payload.to_bytes() == b"Timeout"
+
+
 def no_reply_message(key: str, timeout: float, waited: float) -> str:
     """Why a query got nothing. Zenoh ends a query at once when nothing it can reach serves the key: then
     saying 'within 5 s' after a second would send the user looking for a slow service."""
@@ -560,7 +566,7 @@ class TraversabilityClient:
                 answers.append(reply_type.unpack(reply.ok.payload.to_bytes()))
                 if not every_instance:
                     break
-            else:
+            elif not zenoh_timeout(reply.err):
                 errors.append(self._error_from(reply.err.payload.to_bytes() if reply.err is not None else b"", key))
         if not answers and not errors:
             raise QueryTimeout(no_reply_message(key, timeout, time.monotonic() - started))

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import threading
 import time
 
 import pytest
+import zenoh
 from gcdtrav.client import QueryTimeout, TraversabilityClient
 from gcdtrav.client.client import no_reply_message
 from gcdtrav.client.session.zenoh_args import zenoh_config
-from zenoh_helpers import free_port
+from zenoh_helpers import connecting_config, free_port, wait_until
 
 
 def test_a_query_ended_early_does_not_claim_the_whole_timeout() -> None:
@@ -26,3 +28,30 @@ def test_no_service_on_loopback_names_what_really_happened() -> None:
         waited = time.monotonic() - started
     message = str(raised.value)
     assert ("within 5 s" in message) == (waited >= 4.5), (waited, message)
+
+
+def test_a_service_too_busy_to_answer_in_time_is_a_timeout_not_a_service_error() -> None:
+    """Zenoh ends a query whose queryable was reached but did not answer in time with its own error reply
+    ("Timeout"): the client says QueryTimeout, as for no service at all, not ServiceError "error reply"."""
+    port = free_port()
+    listening = zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    release = threading.Event()
+    with zenoh.open(listening) as service:
+        busy = service.declare_queryable("gcdtrav/status", lambda query: release.wait(10))
+        try:
+            with TraversabilityClient(config=connecting_config(port), timeout=0.5) as client:
+                assert wait_until(lambda: queryable_known(client.session), 30)
+                with pytest.raises(QueryTimeout, match=r"within 0\.5 s"):
+                    client.status()
+        finally:
+            release.set()
+            busy.undeclare()
+
+
+def queryable_known(session: zenoh.Session) -> bool:
+    """Whether the session's queries of the status reach the busy queryable (a querier's matching status)."""
+    querier = session.declare_querier("gcdtrav/status")
+    try:
+        return bool(querier.matching_status.matching)
+    finally:
+        querier.undeclare()
