@@ -9,7 +9,7 @@ import sys
 import threading
 import time
 from types import FrameType
-from typing import NoReturn
+from typing import TYPE_CHECKING, NoReturn
 
 import numpy as np
 import zenoh
@@ -19,7 +19,10 @@ from gcdtrav.service.backends.cpus import set_torch_threads, usable_cpus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.fleet.state import load_anchor_state
 from gcdtrav.service.runtime.http_endpoints import Checks, HttpEndpoints
-from gcdtrav.service.store import StoreError, open_store
+from gcdtrav.service.store import Store, StoreError, StoreUnavailable, open_store
+
+if TYPE_CHECKING:
+    from gcdtrav.service.bus.node import TraversabilityService
 
 log = logging.getLogger("gcdtrav.service")
 MEASUREMENT_STOP_S = 5.0  # at shutdown, how long a background measurement may take to reach its next mode
@@ -29,11 +32,12 @@ JOIN_OBSERVE_S = 1.0
 WARM_UP_SIDE = 64  # the warm-up frame; the backend resizes every image to its input size anyway
 
 
-def starting_anchor_set(settings: ServiceSettings) -> AnchorSet:
+def starting_anchor_set(settings: ServiceSettings, store: Store | None = None) -> AnchorSet:
     """The fleet's active set (the store is its record) wins over a state file not yet imported, which wins over
     the configured file, which wins over the paper's set. The pipeline starts with it, so a restart computes
-    the text embeddings once; the anchor switch still reads the store again (it may have changed meanwhile)."""
-    active = stored_active_set(settings)
+    the text embeddings once; the anchor switch still reads the store again (it may have changed meanwhile).
+    ``store``: the store opened at start (``store_at_start``); None: opened here for this read, then closed."""
+    active = active_set_of(store) if store is not None else stored_active_set(settings)
     if active is not None:
         log.info("anchor set %s: the store's active set", active.version)
         return active
@@ -47,31 +51,51 @@ def starting_anchor_set(settings: ServiceSettings) -> AnchorSet:
     return default_anchor_set()
 
 
+def store_at_start(settings: ServiceSettings) -> Store | None:
+    """The store, opened once, before the model loads: its active set is the pipeline's first and the service
+    takes it over. None while it cannot be reached (the service starts with the configured set, its outbox
+    keeps trying). Refused (a newer schema, an unreadable password_file, psycopg missing): SettingsError, so
+    ``gcdtrav serve`` exits 2 before it loads the model."""
+    try:
+        return open_store(settings.store, settings.state_dir, settings.prefix)
+    except StoreUnavailable as err:
+        log.warning("store not reached at start (serving meanwhile; retried): %s", err)
+        return None
+    except StoreError as err:
+        raise SettingsError(str(err)) from None
+
+
 def stored_active_set(settings: ServiceSettings) -> AnchorSet | None:
-    """The store's active set; None for an empty store or one that cannot be read now (the service then starts
-    with the configured set, and the anchor switch installs the store's once it answers)."""
+    """The store's active set, the store opened for this read only; None for an empty store or one that cannot
+    be read now (the service then starts with the configured set, and the anchor switch installs the store's
+    once it answers)."""
     try:
         store = open_store(settings.store, settings.state_dir, settings.prefix)
     except StoreError as err:
         log.warning("anchor store not read at start: %s", err)
         return None
     try:
+        return active_set_of(store)
+    finally:
+        store.close()
+
+
+def active_set_of(store: Store) -> AnchorSet | None:
+    try:
         active = store.active()
     except StoreError as err:
         log.warning("anchor store not read at start: %s", err)
         return None
-    finally:
-        store.close()
     return None if active is None else active.anchor_set
 
 
-def build_service_pipeline(settings: ServiceSettings) -> Pipeline:
+def build_service_pipeline(settings: ServiceSettings, store: Store | None = None) -> Pipeline:
     """The model in the mode to serve with: ``precision: auto`` with no measurement cached for this machine
     serves fp32 at once (``run_service`` then measures in the background), unless measure_before_serving."""
     from gcdtrav.service.pipeline import clipseg_pipeline
 
     set_torch_threads(settings.threads)
-    anchors = starting_anchor_set(settings)
+    anchors = starting_anchor_set(settings, store)
     return clipseg_pipeline(
         settings.model,
         settings.precision,
@@ -131,14 +155,14 @@ def run_service(settings: ServiceSettings, config: zenoh.Config, fallback: zenoh
 def serve_with(
     http: HttpEndpoints, settings: ServiceSettings, config: zenoh.Config, fallback: zenoh.Config | None
 ) -> int:
-    from gcdtrav.service.bus.node import TraversabilityService
-
     settings = with_torch_threads(settings)
-    if settings.measure_before_serving and settings.precision == "auto":
-        http.starting("loading the model and measuring the modes (precision auto, measure_before_serving)")
-    pipeline = build_service_pipeline(settings)
-    http.starting("warming up")
-    warm_up(pipeline)
+    store = store_at_start(settings)
+    try:
+        service, session, pipeline = start_serving(http, settings, config, fallback, store)
+    except BaseException:
+        if store is not None:  # not handed over yet: the service closes it once it has it
+            store.close()
+        raise
     stop = threading.Event()
 
     def request_stop(signum: int, _frame: FrameType | None) -> None:
@@ -147,14 +171,6 @@ def serve_with(
 
     signal.signal(signal.SIGINT, request_stop)
     signal.signal(signal.SIGTERM, request_stop)
-    zenoh.init_log_from_env_or("error")
-    http.starting("opening the zenoh session")
-    session = open_session(config, fallback)
-    try:
-        service = TraversabilityService(session, pipeline, settings)
-    except SettingsError:
-        session.close()
-        raise
     http.serve(Checks(service.liveness, service.readiness, service.metrics.registry))
     measurement = None
     try:
@@ -174,6 +190,31 @@ def serve_with(
     if measurement is not None and not measurement.stop(left_s):
         leave_during_measurement()
     return 0
+
+
+def start_serving(
+    http: HttpEndpoints,
+    settings: ServiceSettings,
+    config: zenoh.Config,
+    fallback: zenoh.Config | None,
+    store: Store | None,
+) -> tuple[TraversabilityService, zenoh.Session, Pipeline]:
+    """The model loaded and warmed up, the session open, the service built on them (not started)."""
+    from gcdtrav.service.bus.node import TraversabilityService
+
+    if settings.measure_before_serving and settings.precision == "auto":
+        http.starting("loading the model and measuring the modes (precision auto, measure_before_serving)")
+    pipeline = build_service_pipeline(settings, store)
+    http.starting("warming up")
+    warm_up(pipeline)
+    zenoh.init_log_from_env_or("error")
+    http.starting("opening the zenoh session")
+    session = open_session(config, fallback)
+    try:
+        return TraversabilityService(session, pipeline, settings, store), session, pipeline
+    except BaseException:
+        session.close()
+        raise
 
 
 def leave_during_measurement() -> NoReturn:
