@@ -194,10 +194,7 @@ async def probe_by_parameter_and_by_point(url: str) -> dict[str, Any]:
                {"name": "probe/y", "value": 30.0}]  # fmt: skip
     await fox.send(op="setParameters", parameters=changes, id="probe")
     await fox.until(lambda: f"{TOPIC}/distribution" in fox.channels)
-    # foxglove-sdk 0.30.3 can advertise a new channel before it accepts subscriptions to it ("attempted to
-    # subscribe to unknown channel"): a client that subscribes within milliseconds may be refused
-    await asyncio.sleep(0.3)
-    await fox.subscribe(f"{TOPIC}/distribution")
+    await fox.subscribe(f"{TOPIC}/distribution")  # sent again if refused: the channel is brand new
     await fox.until(lambda: bool(fox.received(f"{TOPIC}/distribution")))
     # a published point, as Lichtblick v1.28.1 advertised and sent it (seen live, from its Publish panel; its 3D
     # panel's "Publish point" builds the same message in the display frame): a client channel, then JSON
