@@ -264,9 +264,9 @@ def test_a_camera_whose_every_frame_is_stale_is_shown_with_why_on_both_sides(tin
             assert "stale" in row and "refused" in row
             assert f"{SOURCE} (box-1): stale: captured 3600." in table.stdout
 
-            assert wait_until(lambda: bool(health) and (health[-1].problem or "").startswith("stale: captured"), 10)
+            assert wait_until(lambda: bool(health) and (health[-1].problem or "").startswith("stale: captured"), 30)
             for changes in (setup.changes, service_side, robot_side):  # the relay's, watch_freshness on both buses
-                assert wait_until(lambda seen=changes: any(said_stale(c) for c in seen), 10)
+                assert wait_until(lambda seen=changes: any(said_stale(c) for c in seen), 30)
             assert "stale: captured" in (watches[0].reason(SOURCE) or "")
         finally:
             camera.stop()
