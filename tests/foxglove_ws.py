@@ -98,12 +98,30 @@ class FoxgloveClient:
     async def send(self, **message: Any) -> None:
         await self.websocket.send(json.dumps(message))
 
-    async def subscribe(self, *topics: str) -> None:
-        pairs = []
+    async def subscribe(self, *topics: str, timeout: float = 20.0) -> None:
+        """Subscribe to ``topics``; returns once the server has taken each subscription.
+
+        foxglove-sdk 0.30.3 advertises a new channel a moment before it accepts subscriptions to it, and
+        refuses one sent in between with an error status "Unknown channel ID: N" (seen in most subscriptions
+        sent the instant a channel appears). The server handles a connection's messages in order and answers
+        on one queue, so a getParameters sent after the subscribe is a barrier: once its answer is in, each
+        subscription was either refused (its status came first) or taken. A refused one is sent again, in
+        answer to the refusal; one not taken within ``timeout`` fails the test."""
+        assert "parameters" in self.server_info.get("capabilities", []), "the barrier needs getParameters"
+        pending: dict[int, int] = {}  # channel id -> subscription id
         for topic in topics:
             self.subscriptions[topic] = len(self.subscriptions) + 1
-            pairs.append({"id": self.subscriptions[topic], "channelId": self.channels[topic]["id"]})
-        await self.send(op="subscribe", subscriptions=pairs)
+            pending[self.channels[topic]["id"]] = self.subscriptions[topic]
+        deadline = asyncio.get_running_loop().time() + timeout
+        while pending:
+            mark, barrier = len(self.ops), f"subscribed-{len(self.ops)}"
+            pairs = [{"id": subscription, "channelId": channel} for channel, subscription in pending.items()]
+            await self.send(op="subscribe", subscriptions=pairs)
+            await self.send(op="getParameters", parameterNames=[barrier], id=barrier)  # no such parameter
+            left = deadline - asyncio.get_running_loop().time()
+            await self.until(lambda b=barrier: bool(self.ops_named("parameterValues", b)), max(left, 0.001))
+            refused = {op["message"] for op in self.ops[mark:] if op["op"] == "status"}
+            pending = {c: s for c, s in pending.items() if f"Unknown channel ID: {c}" in refused}
 
     def received(self, topic: str) -> list[bytes]:
         return self.data[self.subscriptions[topic]]

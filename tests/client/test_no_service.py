@@ -27,7 +27,13 @@ def test_no_service_on_loopback_names_what_really_happened() -> None:
             client.status()
         waited = time.monotonic() - started
     message = str(raised.value)
-    assert ("within 5 s" in message) == (waited >= 4.5), (waited, message)
+    # The client times the query inside this wait, so what it says is at most what was seen here (a loaded
+    # machine may stretch the time around the query: compared with the client's own figure, not the window).
+    if "within 5 s" in message:
+        assert waited >= 4.5, (waited, message)  # it waited (nearly) the whole timeout
+    else:
+        said = float(message.split("the query ended after ")[1].split(" s)")[0])
+        assert said < 4.5 and said <= waited + 0.05, (waited, message)  # .1f rounding
 
 
 def test_a_service_too_busy_to_answer_in_time_is_a_timeout_not_a_service_error() -> None:

@@ -98,7 +98,7 @@ def test_history_and_rollback_survive_a_restart(tiny_backend, tmp_path: Path) ->
     with in_process_service(tiny_backend, settings) as (running, port):
         flags = ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
         with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
-            assert wait_until(lambda: service_reachable(client), 10)
+            assert wait_until(lambda: service_reachable(client), 30)
             client.set_anchors(puddles)
             client.set_anchors(two)
         history = gcdtrav("anchors", "history", *flags)

@@ -25,7 +25,7 @@ from gcdtrav.schemas.experience import (
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
-from zenoh_helpers import connecting_config
+from zenoh_helpers import connecting_config, wait_until
 
 from tools.loopback import in_process_service
 from tools.synthetic_scene import SceneBackend, start_anchors
@@ -125,10 +125,19 @@ def service(tmp_path: Path) -> Iterator[tuple[TraversabilityService, Traversabil
         yield running, client, ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
 
 
-def offering(client: TraversabilityClient, payload: dict[str, Any]) -> zenoh.Queryable[None]:
-    """A proposal queryable answering ``payload`` (a service without experience declares none)."""
+def offering(
+    running: TraversabilityService, client: TraversabilityClient, payload: dict[str, Any]
+) -> zenoh.Queryable[None]:
+    """A proposal queryable answering ``payload`` (a service without experience declares none), once the
+    service's session knows it: the command's query reaches it through the service (it connects there)."""
     key = Keys("gcdtrav").anchor_proposal
-    return client.session.declare_queryable(key, lambda query: query.reply(key, msgpack.packb(payload)))
+    queryable = client.session.declare_queryable(key, lambda query: query.reply(key, msgpack.packb(payload)))
+    querier = running.session.declare_querier(key, allowed_destination=zenoh.Locality.REMOTE)
+    try:
+        assert wait_until(lambda: querier.matching_status.matching, 30), "the proposal queryable was not seen"
+    finally:
+        querier.undeclare()
+    return queryable
 
 
 def gcdtrav(*args: str) -> subprocess.CompletedProcess[str]:
@@ -138,7 +147,7 @@ def gcdtrav(*args: str) -> subprocess.CompletedProcess[str]:
 def test_apply_refuses_a_worse_proposal_in_one_line_and_force_applies_it(service) -> None:  # type: ignore[no-untyped-def]
     running, client, flags = service
     worse = proposal(figures(0.316), figures(0.514))
-    offer = offering(client, worse.model_dump())
+    offer = offering(running, client, worse.model_dump())
     try:
         shown = gcdtrav("anchors", "propose", *flags)
         assert shown.returncode == 0, shown.stderr
@@ -165,7 +174,7 @@ def test_apply_refuses_a_worse_proposal_in_one_line_and_force_applies_it(service
 def test_an_older_services_proposal_is_judged_by_its_figures(service) -> None:  # type: ignore[no-untyped-def]
     running, client, flags = service
     better = proposal(figures(0.3), figures(0.1), held_out=40)  # better, on too few pairs
-    offer = offering(client, {k: v for k, v in better.model_dump().items() if k != "verdict"})
+    offer = offering(running, client, {k: v for k, v in better.model_dump().items() if k != "verdict"})
     try:
         refused = gcdtrav("anchors", "propose", "--apply", *flags)
         assert refused.returncode == 1 and "(judged here: the service sent no verdict)" in refused.stdout

@@ -149,7 +149,7 @@ def test_camera_to_costmap_through_a_ros2_relay(ros_domain: int, tiny_backend: A
 
             # A late subscriber gets the last costmap at once (transient local, depth 1).
             _, late = robot.subscribe(OccupancyGrid, "/r1/front/image_raw/gcdtrav/grid/costmap", latched)
-            assert wait_until(lambda: len(late) >= 1, 10), "the late subscriber got no latched costmap"
+            assert wait_until(lambda: len(late) >= 1, 30), "the late subscriber got no latched costmap"
             assert stamp_of(late.messages[0][0]) in set(front.stamps)  # the camera may have sent newer frames
 
             # The speed filter mask, as Nav2's SpeedFilter reads it: percent of the maximum speed per cell, 0 (no
@@ -163,7 +163,7 @@ def test_camera_to_costmap_through_a_ros2_relay(ros_domain: int, tiny_backend: A
             if importlib.util.find_spec("nav2_msgs") is None:  # the PyPI wheels: the info is Nav2's to put
                 assert log.count(f"{FRONT}: no nav2_msgs here: the speed mask is published") == 1
             _, late_mask = robot.subscribe(OccupancyGrid, "/r1/front/image_raw/gcdtrav/grid/speed_mask", latched)
-            assert wait_until(lambda: len(late_mask) >= 1, 10), "the late subscriber got no latched speed mask"
+            assert wait_until(lambda: len(late_mask) >= 1, 30), "the late subscriber got no latched speed mask"
             assert stamp_of(late_mask.messages[0][0]) in set(front.stamps)
 
             # Outputs cross the link only while a ROS subscriber exists: the rear camera's costmap never did,
@@ -172,16 +172,16 @@ def test_camera_to_costmap_through_a_ros2_relay(ros_domain: int, tiny_backend: A
             assert log.count("forwarding gcdtrav/out/r1/rear/grid/speed_mask") == 0
             assert log.count("forwarding gcdtrav/out/r1/front/grid/speed_mask") == 1
             robot.destroy(rear_sub)
-            assert wait_until(lambda: log.count("no longer forwarding gcdtrav/out/r1/rear/maps8") == 1, 10)
+            assert wait_until(lambda: log.count("no longer forwarding gcdtrav/out/r1/rear/maps8") == 1, 30)
 
             # Health on /diagnostics, named by the remapped node; the camera stopping shows up as silent.
             def front_health() -> dict[str, str] | None:
                 return diagnostic_values(diagnostics, FRONT)
 
-            assert wait_until(lambda: (front_health() or {}).get("owner") == "box-1", 10)
+            assert wait_until(lambda: (front_health() or {}).get("owner") == "box-1", 30)
             assert (front_health() or {})["name"] == f"relay_under_test: {FRONT}"
             front.stop()
-            assert wait_until(lambda: "cause.camera_silent" in (front_health() or {}), 15), front_health()
+            assert wait_until(lambda: "cause.camera_silent" in (front_health() or {}), 30), front_health()
             silent = front_health()
             assert silent is not None and silent["level"] == "2"  # ERROR: no maps can come
             assert "/r1/front/image_raw" in silent["cause.camera_silent"]
@@ -191,18 +191,18 @@ def test_camera_to_costmap_through_a_ros2_relay(ros_domain: int, tiny_backend: A
             # in /diagnostics and in the health over the link (the service's silent-robot alert pages nobody).
             parked = robot.publisher(Bool, "/r1/front/image_raw/gcdtrav/parked", latched)
             parked.publish(Bool(data=True))
-            assert wait_until(lambda: (front_health() or {}).get("parked") == "true", 15), front_health()
-            assert wait_until(lambda: "cause.camera_silent" not in (front_health() or {}), 10), front_health()
+            assert wait_until(lambda: (front_health() or {}).get("parked") == "true", 30), front_health()
+            assert wait_until(lambda: "cause.camera_silent" not in (front_health() or {}), 30), front_health()
             assert (front_health() or {})["message"].startswith("parked")
-            assert wait_until(lambda: service.runtime.presence.heard()[FRONT].parked is True, 10)
+            assert wait_until(lambda: service.runtime.presence.heard()[FRONT].parked is True, 30)
             assert log.count("camera parked (said on /r1/front/image_raw/gcdtrav/parked)") == 1
 
             # Said again, nothing changes; false: the camera runs again, and its silence is a cause once more.
             parked.publish(Bool(data=True))
             parked.publish(Bool(data=False))
-            assert wait_until(lambda: (front_health() or {}).get("parked") == "false", 15), front_health()
-            assert wait_until(lambda: service.runtime.presence.heard()[FRONT].parked is False, 10)
-            assert wait_until(lambda: "cause.camera_silent" in (front_health() or {}), 10), front_health()
+            assert wait_until(lambda: (front_health() or {}).get("parked") == "false", 30), front_health()
+            assert wait_until(lambda: service.runtime.presence.heard()[FRONT].parked is False, 30)
+            assert wait_until(lambda: "cause.camera_silent" in (front_health() or {}), 30), front_health()
             assert log.count("camera parked") == 1 and log.count("camera runs again") == 1
         finally:
             status = stop_process(relay)

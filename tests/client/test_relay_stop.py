@@ -60,8 +60,8 @@ def test_a_relay_stops_cleanly_while_everything_flows() -> None:
     try:
         for _ in range(20):
             relay = Relay(settings, link, local).start()
-            assert wait_until(lambda r=relay: r.forwarders[0].active and r.forwarders[0].downlink.total > 0, 10)
-            assert wait_until(lambda r=relay: r.camera(SOURCE).sent > 0, 10), "nothing sent"
+            assert wait_until(lambda r=relay: r.forwarders[0].active and r.forwarders[0].downlink.total > 0, 30)
+            assert wait_until(lambda r=relay: r.camera(SOURCE).sent > 0, 30), "nothing sent"
             relay.close()  # raised RuntimeError: Already borrowed
             assert not relay.forwarders[0].active
     finally:
@@ -89,7 +89,7 @@ def test_close_while_a_callback_forwards_an_output() -> None:
         {"cameras": [{"camera": CAMERA_KEY, "source": SOURCE}], "forward": ["maps8"]}
     )
     try:
-        assert wait_until(lambda: service.put(f"gcdtrav/out/{SOURCE}/maps8", OUTPUT) or bool(samples), 10)
+        assert wait_until(lambda: service.put(f"gcdtrav/out/{SOURCE}/maps8", OUTPUT) or bool(samples), 30)
         sample = samples[0]
         for _ in range(20):
             relay = Relay(settings, link, local).start()
@@ -107,7 +107,7 @@ def test_close_while_a_callback_forwards_an_output() -> None:
 
             thread = threading.Thread(target=deliver, daemon=True)
             thread.start()
-            assert wait_until(lambda forwarder=forwarder: forwarder.downlink.total > 0, 5)
+            assert wait_until(lambda forwarder=forwarder: forwarder.downlink.total > 0, 30)
             relay.close()
             stop.set()
             thread.join(5)

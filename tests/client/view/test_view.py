@@ -9,7 +9,6 @@ import json
 import signal
 import subprocess
 import sys
-import time
 from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,7 +17,7 @@ import cv2
 import numpy as np
 import pytest
 from conftest import camera_grid, textured_image, torch_free_gcdtrav
-from zenoh_helpers import connecting_config, service_reachable, wait_until
+from zenoh_helpers import connecting_config, frame_counted, service_reachable, subscribed_elsewhere, wait_until
 
 pytest.importorskip("torch")
 pytest.importorskip("foxglove", reason="the view extra: pip install 'gcdtrav[view]'")
@@ -53,11 +52,21 @@ def service(tiny_backend, tmp_path: Path) -> Iterator[tuple[TraversabilityServic
         yield running
 
 
+def inputs_known(client: TraversabilityClient) -> None:
+    """The service's pose and image subscriptions known to the client's session: what it puts arrives."""
+    assert subscribed_elsewhere(client.session, "robot/pose") and subscribed_elsewhere(client.session, "gcdtrav/in/cam")
+
+
 def drive(client: TraversabilityClient, step: int) -> None:
-    """One pose and one camera frame of source 'cam'."""
+    """One pose and one camera frame of source 'cam' (stamped 100 + step). The pose goes first on the same
+    session; the grid's fusion waits for a pose of the frame's stamp besides."""
     client.session.put("robot/pose", Pose2D(stamp=100.0 + step, x=0.25 * step, y=0.0, yaw=0.0).pack())
-    time.sleep(0.1)
     client.publish_image("cam", textured_image(60, 80, seed=step), stamp=100.0 + step, frame_id="front")
+
+
+def stamped(image: bytes) -> int:
+    """The seconds of a foxglove.CompressedImage's timestamp (field 1: Timestamp, its field 1 seconds)."""
+    return int(protobuf_fields(protobuf_fields(image)[1][0]).get(1, [0])[0])
 
 
 def layout_topics(path: Path) -> set[str]:
@@ -99,14 +108,12 @@ async def watch_and_steer(url: str, client: TraversabilityClient, running: Trave
     seen["capabilities"] = fox.server_info["capabilities"]
     drive(client, 0)
     topics = ["/gcdtrav/cam/traversability", "/gcdtrav/cam/grid", "/gcdtrav/log"]
-    await fox.until(lambda: all(topic in fox.channels for topic in topics))
-    await asyncio.sleep(0.3)  # foxglove-sdk 0.30.3 may refuse a subscription sent the instant a channel appears
+    await fox.until(lambda: all(topic in fox.channels for topic in topics))  # step 0's maps and grid shown
     await fox.subscribe(*topics)
-    await asyncio.sleep(0.3)
-    for step in (1, 2):
+    for step in (1, 2):  # the next frame once this one's T is shown: the viewer keeps only the latest maps
         await asyncio.to_thread(drive, client, step)
-        await asyncio.sleep(0.3)
-    await fox.until(lambda: bool(fox.received(topics[0])) and bool(fox.received(topics[1])))
+        await fox.until(lambda s=step: any(stamped(image) == 100 + s for image in fox.received(topics[0])))
+    await fox.until(lambda: bool(fox.received(topics[1])))
     seen["channels"] = {t: (c["encoding"], c["schemaName"], c["schemaEncoding"]) for t, c in fox.channels.items()}
     seen["t_image"] = protobuf_fields(fox.received(topics[0])[-1])
     seen["grid"] = protobuf_fields(fox.received(topics[1])[-1])
@@ -136,10 +143,14 @@ def test_foxglove_client_sees_maps_grid_and_steers_the_anchor_set(service, tmp_p
     record = tmp_path / "record"
     options = ViewOptions(port=0, record=record, record_file_bytes=64 * 1024, status_period_s=0.5)
     with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
-        assert wait_until(lambda: service_reachable(client), 10)
+        assert wait_until(lambda: service_reachable(client), 30)
+        inputs_known(client)
         grids: list[Grid] = []
         subscriber = client.subscribe_grid("cam", grids.append)
         with Viewer(client, options) as viewer:
+            # the viewer's (and the test's: the same session) subscriptions known to the service
+            for key in ("gcdtrav/out/cam/maps", "gcdtrav/out/cam/grid"):
+                assert subscribed_elsewhere(running.session, key), key
             seen = asyncio.run(watch_and_steer(viewer.url, client, running))
             logged = Counter(viewer.logged)
             files = list(viewer.recorder.files) if viewer.recorder else []
@@ -211,9 +222,23 @@ def gcdtrav_view(*args: str) -> subprocess.Popen[str]:
     return subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+async def two_maps_and_a_status_shown(url: str, client: TraversabilityClient) -> None:
+    """Step 0's maps, then step 1's, and a status, each sent by the viewer (to every sink: the MCAP file too)."""
+    fox = await FoxgloveClient.connect(url)
+    topics = ["/gcdtrav/cam/traversability", "/gcdtrav/status"]
+    await fox.until(lambda: bool(fox.server_info))
+    drive(client, 0)
+    await fox.until(lambda: all(topic in fox.channels for topic in topics))  # step 0's T sent as it appeared
+    await fox.subscribe(*topics)
+    await asyncio.to_thread(drive, client, 1)  # after step 0's was shown: the viewer keeps only the latest
+    await fox.until(lambda: any(stamped(image) == 101 for image in fox.received(topics[0])))
+    await fox.until(lambda: bool(fox.received(topics[1])))
+    await fox.close()
+
+
 @pytest.mark.parametrize("stop_signal", [signal.SIGTERM, signal.SIGINT])
 def test_gcdtrav_view_records_until_a_signal_and_closes_its_file(service, tmp_path: Path, stop_signal) -> None:  # type: ignore[no-untyped-def]
-    _, port = service
+    running, port = service
     record = tmp_path / "record"
     flags = ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
     view = gcdtrav_view("--port", "0", "--record", str(record), "--status-period", "0.3", *flags)
@@ -221,15 +246,11 @@ def test_gcdtrav_view_records_until_a_signal_and_closes_its_file(service, tmp_pa
         assert view.stdout is not None
         first = view.stdout.readline()
         assert first.startswith("gcdtrav view: Foxglove WebSocket at ws://localhost:"), first + view.stderr.read()
+        url = first.split(" at ")[1].split()[0]
+        assert subscribed_elsewhere(running.session, "gcdtrav/out/cam/maps"), "the viewer's maps subscription"
         with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
-            maps: list[object] = []
-            subscriber = client.subscribe_maps("cam", maps.append)
-            time.sleep(0.5)
-            for step in range(2):
-                drive(client, step)
-                assert wait_until(lambda n=step + 1: len(maps) >= n, 15)
-            subscriber.undeclare()
-        time.sleep(1.0)  # the viewer takes the last maps and a status
+            inputs_known(client)
+            asyncio.run(two_maps_and_a_status_shown(url, client))
         view.send_signal(stop_signal)
         out, err = view.communicate(timeout=30)
     finally:
@@ -266,12 +287,9 @@ def test_gcdtrav_view_layout_writes_a_tab_per_source_of_the_service(service, tmp
                            text=True, timeout=60)  # fmt: skip
     assert empty.returncode == 1 and "no sources yet" in empty.stderr and not layout.exists()
     with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
-        maps: list[object] = []
-        subscriber = client.subscribe_maps("cam", maps.append)
-        time.sleep(0.5)
+        inputs_known(client)
         drive(client, 0)
-        assert wait_until(lambda: bool(maps), 15)
-        subscriber.undeclare()
+        assert wait_until(lambda: frame_counted(client, "cam"), 30), "the service's status has no source cam"
     done = subprocess.run(torch_free_gcdtrav("view", "--layout", str(layout), *flags), capture_output=True,
                           text=True, timeout=60)  # fmt: skip
     assert done.returncode == 0, done.stderr

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import time
 from collections.abc import Iterator
 
 import cv2
@@ -46,13 +45,13 @@ async def anchors_seen_by_a_late_subscriber(url: str) -> dict:
     fox = await FoxgloveClient.connect(url)
     await fox.until(lambda: ANCHORS in fox.channels)
     await fox.subscribe(ANCHORS)
-    await fox.until(lambda: bool(fox.received(ANCHORS)), timeout=5.0)
+    await fox.until(lambda: bool(fox.received(ANCHORS)))
     await fox.close()
     return json.loads(fox.received(ANCHORS)[0])
 
 
 def test_a_client_that_subscribes_after_the_anchor_set_was_sent_still_gets_it(viewer: Viewer) -> None:
-    assert wait_until(lambda: viewer.logged[ANCHORS] == 1, 10)  # sent once; the next poll is 30 s away
+    assert wait_until(lambda: viewer.logged[ANCHORS] == 1, 30)  # sent once; the next poll is 30 s away
     reply = asyncio.run(anchors_seen_by_a_late_subscriber(viewer.url))
     assert reply["version"] == PAPER.version and len(reply["anchor_set"]["anchors"]) == len(PAPER)
 
@@ -61,7 +60,7 @@ def test_the_anchor_set_is_sent_again_periodically(fake: FakeClient, monkeypatch
     monkeypatch.setattr(viewer_module, "ANCHORS_REPEAT_S", 0.2)
     running = viewer_of(fake, status_period_s=0.1)
     try:
-        assert wait_until(lambda: running.logged[ANCHORS] >= 3, 10)  # unchanged, yet sent again
+        assert wait_until(lambda: running.logged[ANCHORS] >= 3, 30)  # unchanged, yet sent again
         assert fake.anchor_queries == 1  # from what the viewer holds: no query per repeat
     finally:
         running.close()
@@ -71,7 +70,6 @@ async def topics_and_picture(viewer: Viewer, fake: FakeClient) -> tuple[set[str]
     fox = await FoxgloveClient.connect(viewer.url)
     await fox.until(lambda: {"/gcdtrav/cam/traversability", "/gcdtrav/yard/grid"} <= set(fox.channels))
     await fox.subscribe("/gcdtrav/cam/traversability")
-    await asyncio.sleep(0.2)
     fake.session.put("gcdtrav/out/cam/maps", maps_payload("cam", (8, 8), (160, 80), seq=1))
     await fox.until(lambda: bool(fox.received("/gcdtrav/cam/traversability")))
     await fox.close()
@@ -105,8 +103,7 @@ def test_map_pictures_take_the_image_aspect_and_keep_whole_cells() -> None:
 def test_nothing_is_sent_before_the_anchor_set_is_known(fake: FakeClient) -> None:
     idle = Viewer(fake, ViewOptions(port=0))  # type: ignore[arg-type]
     try:
-        idle.send_anchors()
-        time.sleep(0.05)
+        idle.send_anchors()  # synchronous, and the idle viewer has no threads that could send it later
         assert idle.logged[ANCHORS] == 0
     finally:
         idle.close()

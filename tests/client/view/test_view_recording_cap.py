@@ -89,7 +89,7 @@ def recorded_camera_stamps(viewer_options: dict[str, object], tmp_path: Path, fr
         client.session.put("gcdtrav/out/cam/maps", maps_payload("cam", (4, 4), (8, 8)))
         for seq in range(frames):
             client.session.put("gcdtrav/in/cam", camera_payload(seq))
-            assert wait_until(lambda n=seq + 1: viewer.logged["/gcdtrav/cam/camera"] >= n, 10)
+            assert wait_until(lambda n=seq + 1: viewer.logged["/gcdtrav/cam/camera"] >= n, 30)
         files = list(viewer.recorder.files) if viewer.recorder else []
     stamps = []
     for path in files:

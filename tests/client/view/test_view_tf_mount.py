@@ -80,18 +80,18 @@ def camera_mounts(emitted: list[tuple[str, dict[str, Any]]]) -> list[dict[str, A
 def show_maps(viewer: Viewer, client: PlacingClient) -> None:
     before = viewer.shown["maps"]
     client.session.put("gcdtrav/out/cam/maps", maps_payload("cam", (4, 4), (160, 120), seq=before))
-    assert wait_until(lambda: viewer.shown["maps"] > before, 10)
+    assert wait_until(lambda: viewer.shown["maps"] > before, 30)
 
 
 def test_a_tf_mounted_camera_is_drawn_where_tf_puts_it_never_at_the_settings_mount(viewer: Any) -> None:
     view, client, emitted = viewer
-    assert wait_until(lambda: "cam" in view.grid_cameras, 10)  # the status says: no mount yet
+    assert wait_until(lambda: "cam" in view.grid_cameras, 30)  # the status says: no mount yet
     show_maps(view, client)
     scene = [entity for topic, m in emitted if topic == "/gcdtrav/cam/robot" for entity in m["entities"]]
     assert camera_mounts(emitted) == [] and scene == []  # not drawn at the settings' z = 1.0 while tf lacks it
 
     client.camera = GridCameraStatus(mount="tf", placement=TF_MOUNT)  # tf gave the grid its mount
-    assert wait_until(lambda: view.grid_cameras["cam"].placement is not None, 10)
+    assert wait_until(lambda: view.grid_cameras["cam"].placement is not None, 30)
     show_maps(view, client)
     (transform,) = camera_mounts(emitted)
     t = transform["translation"]
@@ -110,7 +110,7 @@ def test_the_grid_shows_the_pose_its_last_frame_was_fused_at(viewer: Any) -> Non
     message = GridMessage.unpack(grid_payload("cam", robot=(2.0, 1.0, 0.0)))
     header = message.header.model_copy(update={"capture_pose": (1.2, 1.0, 0.1)})
     client.session.put("gcdtrav/out/cam/grid", message.model_copy(update={"header": header}).pack())
-    assert wait_until(lambda: view.shown["grid"] == 1, 10)
+    assert wait_until(lambda: view.shown["grid"] == 1, 30)
     entities = {e["id"]: e for topic, m in emitted if topic == "/gcdtrav/cam/robot" for e in m["entities"]}
     capture = entities["cam/capture"]
     assert capture["frame_id"] == "odom"  # in the grid frame, where the robot was at the frame's capture
