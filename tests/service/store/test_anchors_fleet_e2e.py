@@ -121,7 +121,7 @@ def test_two_operators_setting_at_once_exactly_one_wins_the_other_exits_1_naming
         refusal = done[loser][2].splitlines()
         assert len(refusal) == 1 and refusal[0].startswith(f"gcdtrav anchors: lost to anchor set {version}: ")
         assert f"expected {seen} to be active: nothing swapped" in refusal[0]
-        assert wait_until(lambda: fleet.converged_on(version), 10), fleet.versions()
+        assert wait_until(lambda: fleet.converged_on(version), 60), fleet.versions()
         store = fleet.running["box-a"][0].runtime.anchor_switch.store
         assert [(entry.version, entry.how) for entry in store.history(5)] == [(version, "set"), (seen, "seeded")]
 
@@ -169,7 +169,7 @@ def test_apply_by_version_applies_exactly_the_kept_proposal_or_refuses_in_one_li
 
         applied = gcdtrav("anchors", "apply", reviewed.version, *flags)
         assert applied.returncode == 0, applied.stderr
-        assert wait_until(lambda: fleet.converged_on(reviewed.version), 10), fleet.versions()
+        assert wait_until(lambda: fleet.converged_on(reviewed.version), 60), fleet.versions()
         assert fleet.running["box-b"][0].pipeline.anchors == reviewed  # exactly the kept set
 
         # judged against the start set, which is no longer active: refused, naming the set that is
@@ -183,7 +183,7 @@ def test_apply_by_version_applies_exactly_the_kept_proposal_or_refuses_in_one_li
         assert fleet.converged_on(reviewed.version)
         forcing = gcdtrav("anchors", "apply", forced.version, "--force", *flags)
         assert forcing.returncode == 0, forcing.stderr
-        assert wait_until(lambda: fleet.converged_on(forced.version), 10), fleet.versions()
+        assert wait_until(lambda: fleet.converged_on(forced.version), 60), fleet.versions()
         history = gcdtrav("anchors", "history", *flags).stdout.splitlines()
         assert forced.version in history[1] and history[1].endswith("FORCED (against its verdict)")
         assert reviewed.version in history[2] and "proposal by box-" in history[2] and "FORCED" not in history[2]
