@@ -69,8 +69,9 @@ def serve_args(model: object, *extra: str) -> list[str]:
     return serve_command("--model", str(model), "--no-multicast-scouting", *extra)
 
 
-def service_reachable(client: object, timeout: float = 1.0) -> bool:
-    """True once a gcdtrav service answers the client's status query."""
+def service_reachable(client: object, timeout: float = 5.0) -> bool:
+    """True once a gcdtrav service answers the client's status query. ``timeout`` only matters while a service
+    is known and slow (a loaded host): with none, the query ends at once."""
     from gcdtrav.client import QueryTimeout
 
     try:
@@ -135,5 +136,10 @@ def first_frame_through(
 
 def frame_counted(client: object, source: str) -> bool:
     """True once some instance's status counts a processed frame of ``source``."""
-    statuses = client.statuses(timeout=1.0)  # type: ignore[attr-defined]
+    from gcdtrav.client import QueryTimeout
+
+    try:
+        statuses = client.statuses(timeout=5.0)  # type: ignore[attr-defined]
+    except QueryTimeout:  # no instance answered in time (a loaded host): not yet
+        return False
     return any(source in s.sources and s.sources[source].processed > 0 for s in statuses)
