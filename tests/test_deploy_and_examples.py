@@ -179,7 +179,7 @@ def test_container_health_check_finds_its_instance(tiny_backend, tmp_path: Path)
     from tools.loopback import in_process_service
 
     def health(*args: str) -> subprocess.CompletedProcess[str]:
-        command = [sys.executable, "-m", "gcdtrav.client.commands.health", "--timeout", "2", *args]
+        command = [sys.executable, "-m", "gcdtrav.client.commands.health", "--timeout", "10", *args]
         return subprocess.run(command, capture_output=True, text=True, timeout=60)
 
     settings = ServiceSettings(state_dir=tmp_path / "state")  # the default name: {hostname}-{pid}
