@@ -45,7 +45,7 @@ SLOW_MEASUREMENT = textwrap.dedent(
 
 def status_or_none(client: TraversabilityClient) -> ServiceStatus | None:
     try:
-        return client.status(timeout=1.0)
+        return client.status(timeout=5.0)  # a measuring, loaded service answers late
     except QueryTimeout:
         return None
 

@@ -24,7 +24,7 @@ from zenoh_helpers import client_config, free_port, start_router, wait_until
 pytest.importorskip("torch")
 
 from conftest import three_anchor_set
-from gcdtrav.client import TraversabilityClient
+from gcdtrav.client import QueryTimeout, TraversabilityClient
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.experience import ProposalVerdict
@@ -63,6 +63,15 @@ class SharedStoreFleet:
         self.running.clear()
 
 
+def answering(client: TraversabilityClient) -> int:
+    """How many instances answer a status query (none yet, while the router has not told the client of any
+    queryable: statuses raises QueryTimeout at once then)."""
+    try:
+        return len(client.statuses(timeout=5.0))
+    except QueryTimeout:
+        return 0
+
+
 @contextmanager
 def fleet_on_one_store(
     backend: Any, root: Path, open_store: OpenStore, *instances: str
@@ -74,7 +83,7 @@ def fleet_on_one_store(
     try:
         for name in instances:
             fleet.start(name)
-        assert wait_until(lambda: len(client.statuses(timeout=1.0)) == len(instances), 30)
+        assert wait_until(lambda: answering(client) == len(instances), 60)
         yield fleet, client, ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
     finally:
         client.close()
