@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import cv2
@@ -85,8 +84,11 @@ def test_robot_planner_and_operator_examples(tiny_backend, tmp_path: Path) -> No
     settings = ServiceSettings(state_dir=tmp_path / "state", instance="examples")
     with in_process_service(tiny_backend, settings) as (service, port):
         flags = ["-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
-        time.sleep(0.3)
-        robot = run_example("robot_stream_folder.py", str(folder), "--source", "r9/cam", "--fps", "4", *flags)
+        # No sleep: the service subscribed when it started, and a session knows its peer's subscriptions once
+        # open() returns; the example subscribes to its maps before its first image. --wait bounds a failure.
+        robot = run_example(
+            "robot_stream_folder.py", str(folder), "--source", "r9/cam", "--fps", "4", "--wait", "60", *flags
+        )
         assert robot.returncode == 0, robot.stderr
         assert "sent 2: 002.jpg" in robot.stdout and "maps r9/cam seq=" in robot.stdout
         planner = run_example("planner_probe.py", "--source", "r9/cam", "--x", "40", "--y", "30", *flags)
@@ -177,7 +179,7 @@ def test_container_health_check_finds_its_instance(tiny_backend, tmp_path: Path)
     from tools.loopback import in_process_service
 
     def health(*args: str) -> subprocess.CompletedProcess[str]:
-        command = [sys.executable, "-m", "gcdtrav.client.commands.health", "--timeout", "2", *args]
+        command = [sys.executable, "-m", "gcdtrav.client.commands.health", "--timeout", "10", *args]
         return subprocess.run(command, capture_output=True, text=True, timeout=60)
 
     settings = ServiceSettings(state_dir=tmp_path / "state")  # the default name: {hostname}-{pid}

@@ -69,8 +69,9 @@ def serve_args(model: object, *extra: str) -> list[str]:
     return serve_command("--model", str(model), "--no-multicast-scouting", *extra)
 
 
-def service_reachable(client: object, timeout: float = 1.0) -> bool:
-    """True once a gcdtrav service answers the client's status query."""
+def service_reachable(client: object, timeout: float = 5.0) -> bool:
+    """True once a gcdtrav service answers the client's status query. ``timeout`` only matters while a service
+    is known and slow (a loaded host): with none, the query ends at once."""
     from gcdtrav.client import QueryTimeout
 
     try:
@@ -80,18 +81,54 @@ def service_reachable(client: object, timeout: float = 1.0) -> bool:
         return False
 
 
+def input_subscribed(client: object, source: str, timeout: float = 30.0) -> bool:
+    """Whether the client's session comes to know the service's subscription to ``source``'s images within
+    ``timeout``: an image the client publishes from then on reaches the service (an in-process one or a
+    `gcdtrav serve` subprocess alike)."""
+    from gcdtrav.schemas.keys import input_key
+
+    return subscribed_elsewhere(client.session, input_key(client.input_prefix, source), timeout)  # type: ignore[attr-defined]
+
+
+class MapsInbox:
+    """The maps of ``selector``, subscribed now (unlike ``iter_maps``, a generator that subscribes only at its
+    first ``next``): declared before the client publishes an image, the subscription reaches the service
+    ahead of that image (zenoh sends a session's declarations ahead of its later data), so the service knows
+    it when it publishes the image's maps."""
+
+    def __init__(self, client: object, selector: str = "**") -> None:
+        import queue
+
+        self._inbox: queue.Queue[object] = queue.Queue()
+        self._subscriber = client.subscribe_maps(selector, self._inbox.put)  # type: ignore[attr-defined]
+
+    def next(self, timeout: float = 60.0):  # type: ignore[no-untyped-def]
+        """The next maps, waiting up to ``timeout`` (a failure's bound, not a measure): AssertionError if none."""
+        import queue
+
+        try:
+            return self._inbox.get(timeout=timeout)
+        except queue.Empty:
+            raise AssertionError(f"no maps within {timeout} s") from None
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+
 def first_frame_through(
-    client: object, source: str, image: object, timeout: float = 15.0, stamp: float | None = None
+    client: object, source: str, image: object, timeout: float = 60.0, stamp: float | None = None
 ) -> None:
     """Wait for the service, send one image as ``source`` (stamped ``stamp``, else bare), wait for its maps: the
-    service has a frame."""
-    assert wait_until(lambda: service_reachable(client), 10), "the service did not answer"
-    received: list[object] = []
-    subscriber = client.subscribe_maps(source, received.append)  # type: ignore[attr-defined]
-    time.sleep(0.3)  # let the subscription reach the service
-    client.publish_image(source, image, stamp=stamp)  # type: ignore[attr-defined]
-    assert wait_until(lambda: bool(received), timeout), "no maps received"
-    subscriber.undeclare()
+    service has a frame. Nothing here waits for time: the image is published once the service's input
+    subscription is known to the client, and the maps subscription is declared before it (``MapsInbox``)."""
+    assert wait_until(lambda: service_reachable(client), timeout), "the service did not answer"
+    inbox = MapsInbox(client, source)
+    try:
+        assert input_subscribed(client, source, timeout), "the service's input subscription never reached the client"
+        client.publish_image(source, image, stamp=stamp)  # type: ignore[attr-defined]
+        inbox.next(timeout)
+    finally:
+        inbox.close()
     # The maps go out just before the frame is counted: wait for the count too, so that
     # a status query right after this sees the frame even on a loaded machine.
     assert wait_until(lambda: frame_counted(client, source), timeout), "the frame was not counted"
@@ -99,5 +136,10 @@ def first_frame_through(
 
 def frame_counted(client: object, source: str) -> bool:
     """True once some instance's status counts a processed frame of ``source``."""
-    statuses = client.statuses(timeout=1.0)  # type: ignore[attr-defined]
+    from gcdtrav.client import QueryTimeout
+
+    try:
+        statuses = client.statuses(timeout=5.0)  # type: ignore[attr-defined]
+    except QueryTimeout:  # no instance answered in time (a loaded host): not yet
+        return False
     return any(source in s.sources and s.sources[source].processed > 0 for s in statuses)

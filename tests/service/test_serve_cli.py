@@ -9,7 +9,15 @@ from pathlib import Path
 
 import pytest
 from conftest import textured_image
-from zenoh_helpers import connecting_config, free_port, serve_args, service_reachable, wait_until
+from zenoh_helpers import (
+    MapsInbox,
+    connecting_config,
+    free_port,
+    input_subscribed,
+    serve_args,
+    service_reachable,
+    wait_until,
+)
 
 pytest.importorskip("torch")
 
@@ -32,7 +40,7 @@ def start(model: Path, state: Path, port: int) -> subprocess.Popen[str]:
 def stop(process: subprocess.Popen[str], signum: int) -> tuple[int, float, str]:
     began = time.monotonic()
     process.send_signal(signum)
-    output, _ = process.communicate(timeout=20)
+    output, _ = process.communicate(timeout=30)
     return process.returncode, time.monotonic() - began, output
 
 
@@ -42,15 +50,15 @@ def test_serve_stops_cleanly_and_restart_keeps_the_accepted_set(tiny_model_dir: 
     try:
         with TraversabilityClient(config=connecting_config(port), timeout=5.0) as client:
             assert wait_until(lambda: service_reachable(client), 60), "service did not come up"
-            maps = client.iter_maps("**", timeout=15, limit=1)
-            time.sleep(0.3)
+            maps = MapsInbox(client)  # subscribed before the image (iter_maps subscribed only at its next())
+            assert input_subscribed(client, "cam"), "the service's input subscription"
             client.publish_image("cam", textured_image(64, 64))
-            first = next(maps)
+            first = maps.next()
             assert first.header.instance == "cli-test"
             version = client.set_anchors(NEW_SET)
         code, seconds, output = stop(process, signal.SIGTERM)
         assert code == 0, output
-        assert seconds < 10
+        assert seconds < 10 + 5  # shutdown_grace_s (the exit's bound once the signal is seen), and slack
         assert "SIGTERM received" in output and "stopped" in output
     finally:
         if process.poll() is None:

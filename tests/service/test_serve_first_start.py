@@ -9,13 +9,12 @@ import signal
 import subprocess
 import sys
 import textwrap
-import time
 from pathlib import Path
 
 import pytest
 import zenoh
 from conftest import textured_image
-from zenoh_helpers import connecting_config, free_port, wait_until
+from zenoh_helpers import MapsInbox, connecting_config, free_port, input_subscribed, wait_until
 
 pytest.importorskip("torch")
 
@@ -46,7 +45,7 @@ SLOW_MEASUREMENT = textwrap.dedent(
 
 def status_or_none(client: TraversabilityClient) -> ServiceStatus | None:
     try:
-        return client.status(timeout=1.0)
+        return client.status(timeout=5.0)  # a measuring, loaded service answers late
     except QueryTimeout:
         return None
 
@@ -82,17 +81,17 @@ def test_serve_answers_at_once_while_auto_measures_then_switches(tiny_model_dir:
             assert first is not None and first.measuring and first.precision == "fp32", first
             assert "measuring in the background" in first.precision_reason
             assert alive_tokens(client.session) == ["gcdtrav/alive/fresh"]
-            maps = client.iter_maps("**", timeout=30, limit=2)
-            time.sleep(0.3)
+            maps = MapsInbox(client)  # subscribed before the image (iter_maps subscribed only at its next())
+            assert input_subscribed(client, "cam"), "the service's input subscription"
             client.publish_image("cam", textured_image(64, 64))
-            assert next(maps).header.instance == "fresh"  # frames are served while measuring
+            assert maps.next().header.instance == "fresh"  # frames are served while measuring
 
             release.touch()
             assert wait_until(lambda: not getattr(status_or_none(client), "measuring", True), 60)
             after = status_or_none(client)
             assert after is not None and after.precision == "int8", after
             client.publish_image("cam", textured_image(64, 64, seed=1)[::-1].copy())  # another view: inferred
-            after_switch = next(maps)
+            after_switch = maps.next()
             assert after_switch.header.seq >= 1 and not after_switch.reused  # and after the switch
         process.send_signal(signal.SIGTERM)
         output, _ = process.communicate(timeout=30)

@@ -6,13 +6,12 @@ from __future__ import annotations
 import os
 import socket
 import subprocess
-import time
 import urllib.request
 from pathlib import Path
 
 import pytest
 from conftest import textured_image
-from zenoh_helpers import connecting_config, free_port, serve_args, service_reachable, wait_until
+from zenoh_helpers import connecting_config, free_port, input_subscribed, serve_args, service_reachable, wait_until
 
 pytest.importorskip("torch")
 
@@ -46,6 +45,18 @@ def scrape(port: int) -> tuple[str, str]:
         return response.headers["Content-Type"], response.read().decode()
 
 
+def mine(maps: list[Maps], robot: str) -> int:
+    """How many of ``maps`` are ``robot``'s."""
+    return sum(m.header.source == robot for m in maps)
+
+
+def counted(text: str, robot: str) -> float:
+    """The robot's frames processed or reused, by the metrics' ``text``."""
+    labels = f'{{gcdtrav_instance="on",source="{robot}"}}'
+    series = tuple(f"gcdtrav_frames_{kind}_total{labels}" for kind in ("processed", "reused"))
+    return sum(float(line.split()[-1]) for line in text.splitlines() if line.startswith(series))
+
+
 def serve(model: Path, state: Path, zenoh_port: int, *extra: str) -> subprocess.Popen[str]:
     args = serve_args(model, "-l", f"tcp/127.0.0.1:{zenoh_port}", "--state-dir", str(state), *extra)
     environ = {k: v for k, v in os.environ.items() if not k.startswith("GCDTRAV_")}  # the defaults, not the shell's
@@ -66,15 +77,17 @@ def test_metrics_are_off_by_default_and_served_where_asked(tiny_model_dir: Path,
         with TraversabilityClient(config=connecting_config(on_port), timeout=5.0) as client:
             assert wait_until(lambda: service_reachable(client), 90), "the service did not come up"
             maps: list[Maps] = []
-            client.subscribe_maps("**", maps.append)
-            time.sleep(0.3)
+            client.subscribe_maps("**", maps.append)  # declared before the images: it reaches the service first
+            for robot in ROBOTS:
+                assert input_subscribed(client, robot), "the service's input subscription"
             for k in range(2):  # two robots, two frames each: established, so the fleet's table holds them
                 for robot in ROBOTS:
                     client.publish_image(robot, textured_image(48, 64, seed=k))
-                time.sleep(0.5)
-            assert wait_until(lambda: len(maps) == 4, 20), len(maps)
-            assert wait_until(lambda: "gcdtrav_frames_processed_total" in scrape(metrics_port)[1], 5)
-        assert wait_until(lambda: listening_ports(on.pid) == {on_port, metrics_port}, 10), listening_ports(on.pid)
+                # A round's maps before the next round's images: a frame still queued would be replaced.
+                assert wait_until(lambda k=k: len(maps) == 2 * (k + 1), 60), len(maps)
+            # The maps go out just before their frames are counted: wait for the counts to catch up.
+            assert wait_until(lambda: all(counted(scrape(metrics_port)[1], r) == mine(maps, r) for r in ROBOTS), 30)
+        assert wait_until(lambda: listening_ports(on.pid) == {on_port, metrics_port}, 30), listening_ports(on.pid)
         assert listening_ports(off.pid) == {off_port}  # metrics_port 0: nothing listens but zenoh
         content_type, text = scrape(metrics_port)
         assert content_type.startswith("text/plain") and "version=" in content_type
@@ -82,11 +95,9 @@ def test_metrics_are_off_by_default_and_served_where_asked(tiny_model_dir: Path,
         assert f"gcdtrav_healthy{named} 1.0" in text and 'gcdtrav_service_info{anchor_set_version="' in text
         assert 'name="on"' in text and f"gcdtrav_instances_live{named} 1.0" in text
         assert f"gcdtrav_sources_owned{named} 2.0" in text  # one instance: every robot is its own
+        assert len(maps) == 4
         for robot in ROBOTS:  # processed or reused, one map each
-            mine = sum(m.header.source == robot for m in maps)
-            labels = f'{{gcdtrav_instance="on",source="{robot}"}}'
-            counted = [f"gcdtrav_frames_{kind}_total{labels}" for kind in ("processed", "reused")]
-            assert mine == sum(float(line.split()[-1]) for line in text.splitlines() if line.startswith(tuple(counted)))
+            assert mine(maps, robot) == counted(text, robot)
     finally:
         for process in (off, on):
             process.terminate()

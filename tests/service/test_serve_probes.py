@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def get(port: int, path: str) -> tuple[int, str]:
     """Status and body; 0 when nothing listens."""
     try:
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=2) as reply:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}{path}", timeout=30) as reply:  # bounds a failure
             return reply.status, reply.read().decode()
     except urllib.error.HTTPError as err:
         return err.code, err.read().decode()

@@ -45,6 +45,7 @@ class FakeBackend:
     def __init__(self, delay_s: float = 0.0) -> None:
         self.delay_s = delay_s
         self.started = threading.Event()
+        self.release: threading.Event | None = None  # set it to an Event: each frame waits for it first
 
     def describe(self) -> BackendDescription:
         return BackendDescription(self.model_id)
@@ -54,6 +55,8 @@ class FakeBackend:
 
     def logits(self, image_rgb: NDArray[np.uint8], prepared: object) -> NDArray[np.float32]:
         self.started.set()
+        if self.release is not None:
+            assert self.release.wait(60), "the test never released the frame"
         time.sleep(self.delay_s)
         n = int(prepared)  # type: ignore[call-overload]
         grid = np.linspace(-2, 2, n * MAP_SIDE * MAP_SIDE, dtype=np.float32).reshape(n, MAP_SIDE, MAP_SIDE)

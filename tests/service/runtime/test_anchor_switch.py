@@ -57,7 +57,7 @@ def swap_and_wait(submit: object, *args: object) -> tuple[AnchorSet | None, Base
         reported.set()
 
     submit(*args, done)  # type: ignore[operator]
-    assert reported.wait(10), "the swap never reported"
+    assert reported.wait(60), "the swap never reported"
     return result[0], result[1], result[2]  # type: ignore[return-value]
 
 

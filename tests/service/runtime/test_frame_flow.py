@@ -56,7 +56,7 @@ def test_the_worker_fuses_the_grid_of_a_camera_and_hands_the_fused_grid_on() -> 
     try:
         queue.put("cam", png_frame("cam"))
         queue.put("other", png_frame("other"))
-        deadline = time.monotonic() + 10
+        deadline = time.monotonic() + 60  # a failure's bound
         while len(sink.put_by_source) < 2 and time.monotonic() < deadline:
             time.sleep(0.01)
     finally:

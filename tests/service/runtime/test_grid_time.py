@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 from dataclasses import replace
 
 import numpy as np
@@ -169,10 +168,18 @@ def test_fusion_waits_for_a_lagging_pose_stream_without_holding_the_grids_lock()
     grids = outputs(clock, wait_s=2.0, extrapolate_s=0.0)
     add_poses(grids, 0.0, 1.0)
     grid = grids.sources[CAMERA]
+    waiting = threading.Event()
+    real_wait = grid.poses.wait
+
+    def wait(stamp: float, timeout_s: float):  # type: ignore[no-untyped-def]
+        waiting.set()
+        return real_wait(stamp, timeout_s)
+
+    grid.poses.wait = wait  # type: ignore[method-assign]
     fused: list[bool] = []
     worker = threading.Thread(target=lambda: fused.append(fuse(grids, 1.5)))  # the stream has not reached 1.5
     worker.start()
-    time.sleep(0.2)  # let it wait (not an assertion on time: an early pose fuses the frame too)
+    assert waiting.wait(30)  # it is about to wait (a pose a moment early still fuses the frame)
     # Holding the grid's lock, the stream catches up: a worker that waited under that lock would time out.
     with grid.lock:
         add_poses(grids, 1.02, 2.0)

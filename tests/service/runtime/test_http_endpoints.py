@@ -35,7 +35,7 @@ def test_ready_only_when_progressing_in_the_fleet_and_not_draining(
 def get(url: str) -> tuple[int, str]:
     """Status and body; 0 when nothing listens."""
     try:
-        with urllib.request.urlopen(url, timeout=5) as reply:
+        with urllib.request.urlopen(url, timeout=30) as reply:  # bounds a failure
             return reply.status, reply.read().decode()
     except urllib.error.HTTPError as err:
         return err.code, err.read().decode()

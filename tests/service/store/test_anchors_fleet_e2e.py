@@ -24,7 +24,7 @@ from zenoh_helpers import client_config, free_port, start_router, wait_until
 pytest.importorskip("torch")
 
 from conftest import three_anchor_set
-from gcdtrav.client import TraversabilityClient
+from gcdtrav.client import QueryTimeout, TraversabilityClient
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.experience import ProposalVerdict
@@ -63,6 +63,15 @@ class SharedStoreFleet:
         self.running.clear()
 
 
+def answering(client: TraversabilityClient) -> int:
+    """How many instances answer a status query (none yet, while the router has not told the client of any
+    queryable: statuses raises QueryTimeout at once then)."""
+    try:
+        return len(client.statuses(timeout=5.0))
+    except QueryTimeout:
+        return 0
+
+
 @contextmanager
 def fleet_on_one_store(
     backend: Any, root: Path, open_store: OpenStore, *instances: str
@@ -74,7 +83,7 @@ def fleet_on_one_store(
     try:
         for name in instances:
             fleet.start(name)
-        assert wait_until(lambda: len(client.statuses(timeout=1.0)) == len(instances), 30)
+        assert wait_until(lambda: answering(client) == len(instances), 60)
         yield fleet, client, ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
     finally:
         client.close()
@@ -121,7 +130,7 @@ def test_two_operators_setting_at_once_exactly_one_wins_the_other_exits_1_naming
         refusal = done[loser][2].splitlines()
         assert len(refusal) == 1 and refusal[0].startswith(f"gcdtrav anchors: lost to anchor set {version}: ")
         assert f"expected {seen} to be active: nothing swapped" in refusal[0]
-        assert wait_until(lambda: fleet.converged_on(version), 10), fleet.versions()
+        assert wait_until(lambda: fleet.converged_on(version), 60), fleet.versions()
         store = fleet.running["box-a"][0].runtime.anchor_switch.store
         assert [(entry.version, entry.how) for entry in store.history(5)] == [(version, "set"), (seen, "seeded")]
 
@@ -169,7 +178,7 @@ def test_apply_by_version_applies_exactly_the_kept_proposal_or_refuses_in_one_li
 
         applied = gcdtrav("anchors", "apply", reviewed.version, *flags)
         assert applied.returncode == 0, applied.stderr
-        assert wait_until(lambda: fleet.converged_on(reviewed.version), 10), fleet.versions()
+        assert wait_until(lambda: fleet.converged_on(reviewed.version), 60), fleet.versions()
         assert fleet.running["box-b"][0].pipeline.anchors == reviewed  # exactly the kept set
 
         # judged against the start set, which is no longer active: refused, naming the set that is
@@ -183,7 +192,7 @@ def test_apply_by_version_applies_exactly_the_kept_proposal_or_refuses_in_one_li
         assert fleet.converged_on(reviewed.version)
         forcing = gcdtrav("anchors", "apply", forced.version, "--force", *flags)
         assert forcing.returncode == 0, forcing.stderr
-        assert wait_until(lambda: fleet.converged_on(forced.version), 10), fleet.versions()
+        assert wait_until(lambda: fleet.converged_on(forced.version), 60), fleet.versions()
         history = gcdtrav("anchors", "history", *flags).stdout.splitlines()
         assert forced.version in history[1] and history[1].endswith("FORCED (against its verdict)")
         assert reviewed.version in history[2] and "proposal by box-" in history[2] and "FORCED" not in history[2]

@@ -30,11 +30,11 @@ def test_a_swap_waiting_on_the_database_blocks_no_reader_of_the_active_set(clust
     try:
         blocker.execute("SELECT pg_advisory_xact_lock(%s, %s)", (ADVISORY_CLASS, ADVISORY_KEYS["anchors"]))
         switch.submit(other.to_json().encode(), lambda anchors, error: done.set())
-        assert wait_until(lambda: switch._lock.locked(), timeout=10)  # the swap is inside, waiting on the store
+        assert wait_until(lambda: switch._lock.locked(), timeout=60)  # the swap is inside, waiting on the store
         answered: list[str] = []  # what a frame's triage and a status ask meanwhile: answered, the start set
         reader = threading.Thread(target=lambda: answered.extend(switch.head().version for _ in range(100)))
         reader.start()
-        reader.join(timeout=10)
+        reader.join(timeout=60)
         assert answered == [start.version] * 100 and not done.is_set()
         blocker.rollback()
         assert done.wait(30) and switch.head().version == other.version

@@ -82,7 +82,7 @@ def test_put_never_waits_on_a_busy_store(cluster: PostgresCluster) -> None:
     try:
         blocker.execute("SELECT pg_advisory_xact_lock(%s, %s)", (ADVISORY_CLASS, ADVISORY_KEYS["pairs"]))
         outbox.put([pair(GRASS, 0)])
-        assert wait_until(lambda: outbox.state().pending == 1 and not outbox.flush(0.1), timeout=10)
+        assert wait_until(lambda: outbox.state().pending == 1 and not outbox.flush(0.1), timeout=60)
         for k in range(1, 200):  # the writer is stuck in its transaction: every put still returns
             assert outbox.put([pair(GRASS, k)]) == 1
         assert outbox.pending == 200

@@ -50,7 +50,7 @@ def test_defaults_import_the_old_pairs_into_sqlite_and_keep_them(tmp_path: Path)
         assert (state / f"gcdtrav.experience.msgpack{IMPORTED_SUFFIX}").is_file()
         assert not (state / "gcdtrav.experience.msgpack").exists()
         BusRobot(client, make_world(seed=0)).drive(8.0, seed=1)  # with the imported active set: its tuple
-        assert wait_until(lambda: client.status().store.written_pairs > 0, timeout=20)  # type: ignore[union-attr]
+        assert wait_until(lambda: client.status().store.written_pairs > 0, timeout=60)  # type: ignore[union-attr]
         service.experience.experience.flush(10.0)  # type: ignore[union-attr]
         total = client.status().experience.pairs  # type: ignore[union-attr]
         assert total > 1250 and client.calibration(CAMERA_SOURCE).figures.pairs == OLD_PAIRS_OF_THE_ACTIVE_TUPLE + (
