@@ -290,7 +290,7 @@ def said_stale(change: Staleness) -> bool:
 def readme_snippet(port: int) -> str:
     """The README's client example, as written, but on loopback without multicast scouting."""
     text = (REPO / "README.md").read_text("utf-8")
-    start = text.index("```python\nimport time")
+    start = text.index("```python\nimport queue")
     code = text[start + len("```python\n") : text.index("```", start + 10)]
     assert 'zenoh_config(mode="peer")' in code
     return code.replace('zenoh_config(mode="peer")', f"connecting_config({port})")
