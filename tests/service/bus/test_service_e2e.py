@@ -18,6 +18,7 @@ pytest.importorskip("torch")
 
 from gcdtrav.client import AnchorSetRejected, Maps, ServiceError, TraversabilityClient
 from gcdtrav.schemas.anchors import default_anchor_set
+from gcdtrav.schemas.keys import input_key
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.backends.cpus import usable_cpus
 from gcdtrav.service.bus.node import TraversabilityService
@@ -83,7 +84,7 @@ def running(tiny_backend, tmp_path: Path, request: pytest.FixtureRequest) -> Ite
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         received: list[Maps] = []
         subscriber = client.subscribe_maps("**", received.append)
-        assert wait_until(lambda: service_reachable(client), 10)
+        assert wait_until(lambda: service_reachable(client), 60)
         assert subscribed_elsewhere(service.session, service.keys.maps("probe")), "the maps subscription"
         yield Running(service, client, service.settings, received)
         subscriber.undeclare()
@@ -229,7 +230,7 @@ def test_bad_payloads_are_counted_and_the_next_frame_processed(running: Running)
     for count, (payload, encoding) in enumerate(payloads, start=1):
         session.put(key, payload, encoding=encoding)
         # One at a time: two frames in the latest-only queue at once would count one as dropped.
-        assert wait_until(lambda count=count: rejected() == count, 10)
+        assert wait_until(lambda count=count: rejected() == count, 60)
     maps = publish_and_wait(running, "bad", textured_image(48, 48))
     assert maps.header.source == "bad"
     status = running.client.status()
@@ -245,7 +246,9 @@ def test_latest_only_under_load(tiny_backend, tmp_path: Path, threads: int | Non
     with started_service(SlowBackend(tiny_backend, 0.08), tmp_path, threads=threads) as (service, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         try:
-            assert wait_until(lambda: service_reachable(client), 10)
+            assert wait_until(lambda: service_reachable(client), 60)
+            # the service's input subscription known to the client: none of the burst is held back
+            assert subscribed_elsewhere(client.session, input_key(client.input_prefix, "burst")), "the inputs"
             image = textured_image(64, 64)
             queued = []
             for index in range(50):
@@ -255,8 +258,13 @@ def test_latest_only_under_load(tiny_backend, tmp_path: Path, threads: int | Non
                 queued.append(len(service.runtime.queue))
                 time.sleep(0.005)
             assert max(queued) <= 4  # per source the newest arrival and the newest ready frame, whatever the rate
-            assert wait_until(lambda: len(service.runtime.queue) == 0 and not _busy(service), 10)
-            time.sleep(0.3)
+
+            def all_in_and_done() -> bool:  # every frame sent has arrived (50 + 5) and none is queued or in flight
+                sources = service.status().sources
+                arrived = sum(s.received for s in sources.values())
+                return arrived >= 55 and len(service.runtime.queue) == 0 and not _busy(service)
+
+            assert wait_until(all_in_and_done, 60)
             status = service.status()
             burst = status.sources["burst"]
             assert burst.received == 50
