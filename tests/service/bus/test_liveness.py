@@ -48,8 +48,17 @@ class HangingBackend:
         return self.inner.logits(image, prepared)
 
 
+def waits_before_dropping(config: zenoh.Config) -> zenoh.Config:
+    """``config``, waiting up to 1 s (5 s for a fragmented sample) for a free batch before dropping: the maps go
+    out with congestion control DROP, and zenoh's 1 ms (50 ms) lost a test's maps on a loaded 2-core machine,
+    whose sending thread is not run that soon."""
+    config.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", "1000000")
+    config.insert_json5("transport/link/tx/queue/congestion_control/drop/max_wait_before_drop_fragments", "5000000")
+    return config
+
+
 def start(backend: Any, port: int, instance: str, state_dir: Path) -> tuple[TraversabilityService, zenoh.Session]:
-    session = zenoh.open(client_config(port))
+    session = zenoh.open(waits_before_dropping(client_config(port)))
     settings = ServiceSettings(
         state_dir=state_dir, instance=instance, preview=False, stall_after_s=1.0, max_frame_age_s=1.5
     )
