@@ -187,12 +187,15 @@ def test_service_and_client_resume_after_a_router_restart(tiny_backend, tmp_path
         router = start_router(port)
         back_at = time.monotonic()
         resumed = None
-        while time.monotonic() - back_at < 15:
+        while time.monotonic() - back_at < 30:  # the bound of a failure only
             client.publish_image("r1", IMAGE)
             if wait_until(lambda: len(received) > 1, 0.25):
                 resumed = time.monotonic() - back_at
                 break
-        assert resumed is not None and resumed < 5.0, resumed
+        # zenoh's reconnection backoff (retry defaults: 1, 2, 4 s, at most 4 s apart): the sessions are back at
+        # most 4 s after the router, plus the handshake and a frame's inference; seen 0.05-3.1 s, loaded. 5 s
+        # left a loaded machine no margin; a session that never came back would still fail here.
+        assert resumed is not None and resumed < 10.0, resumed
         print(f"\nmaps again {resumed:.2f} s after the router came back")
         # The same service process, still counting (or answering the unchanged view with its kept maps).
         assert received[-1].header.seq >= 1 or received[-1].reused
