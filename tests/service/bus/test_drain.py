@@ -155,7 +155,7 @@ def test_a_stopping_instance_leaves_first_then_publishes_the_frame_in_flight(tin
         assert subscribed_elsewhere(a.session, a.keys.maps(source)), "the maps subscription"
         gated.gate.set()
         client.publish_image(source, IMAGE)
-        assert gated.waiting.wait(60), "the frame reached inference"
+        assert gated.waiting.wait(60), f"the frame did not reach inference: {a.status().sources}, {b.status().sources}"
         stopping.start()
         # The token went first: the other instance serves the source while the frame is still in flight.
         assert wait_until(lambda: b.membership.live() == {"box-b"}, 30)  # type: ignore[union-attr]

@@ -141,9 +141,14 @@ def test_two_instances_share_sources_and_take_over_when_one_dies(
         # The killed instance's link closes: its token goes at once and its sources move to box-a (docs: deploy/
         # README.md, failover bound). Timed on the membership, not on maps: the maps come after an inference,
         # seconds on a loaded machine (3.6-4.2 s to the first maps seen loaded, 0.4 s idle).
-        assert wait_until(lambda: service.membership.live() == {"box-a"}, 30)  # type: ignore[union-attr]
+        membership = service.membership
+        assert membership is not None
+
+        def moved_to_a() -> bool:  # its token gone and box-a's table giving box-a its sources
+            return membership.live() == {"box-a"} and all(membership.owner(s) == "box-a" for s in moved)
+
+        assert wait_until(moved_to_a, 30), {s: membership.owner(s) for s in moved}
         left_s = time.monotonic() - killed_at
-        assert all(service.membership.owner(s) == "box-a" for s in moved)  # type: ignore[union-attr]
         served_again: dict[str, float] = {}
         while time.monotonic() - killed_at < 60 and len(served_again) < len(moved):
             for source in moved:
