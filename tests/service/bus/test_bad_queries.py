@@ -13,7 +13,7 @@ from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.messages import AnchorSetRejection, ErrorReply, MessageError, Pose2D
 from gcdtrav.service.runtime.errors import QueryError
 from gcdtrav.service.runtime.queries import PATCH_FORMS, parameter_pairs, strict_parameters
-from zenoh_helpers import connecting_config, first_frame_through, wait_until
+from zenoh_helpers import connecting_config, first_frame_through, service_reachable, subscribed_elsewhere, wait_until
 
 TWO = [{"concept": "puddle", "position": 0.0}, {"concept": "road", "position": 1.0}]
 
@@ -129,11 +129,14 @@ def served(tiny_backend, tmp_path: Path) -> Iterator[tuple[TraversabilityService
     with in_process_service(tiny_backend, settings) as (service, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         try:
-            # The grid fuses a frame at the robot's pose at its capture stamp: the pose first, then the frame.
+            # The grid fuses a frame at the robot's pose at its capture stamp: the pose first, then the frame; the
+            # pose once the service's subscription is known to the client (put at once before, it could be lost).
+            assert wait_until(lambda: service_reachable(client), 60), "the service did not answer"
+            assert subscribed_elsewhere(client.session, "robot/pose"), "the pose subscription"
             client.session.put("robot/pose", Pose2D(stamp=0.5, frame_id="odom", x=0.0, y=0.0, yaw=0.0).pack())
             first_frame_through(client, "cam", textured_image(60, 80), stamp=0.5)
             # The maps go out before the frame is counted (and before its grid): wait for the count too.
-            assert wait_until(lambda: "cam" in client.status().sources and client.status().sources["cam"].processed, 10)
+            assert wait_until(lambda: "cam" in client.status().sources and client.status().sources["cam"].processed, 60)
             yield service, client
         finally:
             client.close()
@@ -205,6 +208,7 @@ def test_bad_poses_and_intrinsics_are_rejected_and_the_grid_keeps_the_last_good_
     service, client = served
     grids: list[Grid] = []
     subscriber = client.subscribe_grid("cam", grids.append)
+    assert subscribed_elsewhere(service.session, service.keys.grid("cam")), "the grid subscription"
     good = {"stamp": 1.0, "frame_id": "odom", "x": 2.0, "y": 0.0, "yaw": 0.0}
     client.session.put("robot/pose", msgpack.packb(good))
     bad_poses = [good | {"x": math.nan}, good | {"y": math.inf}, good | {"x": 1e300}, good | {"frame_id": "f" * 300}]
@@ -219,12 +223,12 @@ def test_bad_poses_and_intrinsics_are_rejected_and_the_grid_keeps_the_last_good_
     )  # fmt: skip
     client.session.put("robot/camera_info", bytes(ros.typestore().serialize_cdr(info, "sensor_msgs/msg/CameraInfo")))
     rejected = lambda: client.status().rejected_by_reason  # noqa: E731
-    assert wait_until(lambda: rejected().get("bad_pose") == 4 and rejected().get("bad_camera_info") == 1, 10)
+    assert wait_until(lambda: rejected().get("bad_pose") == 4 and rejected().get("bad_camera_info") == 1, 60)
     errors = " ".join(client.status().last_errors)
     assert "x: Value error, nan is not a finite number" in errors and "1e+300 m is beyond the limit" in errors
     assert "frame_id: String should have at most 256 characters" in errors and "finite intrinsics" in errors
     client.publish_image("cam", textured_image(60, 80, seed=3), stamp=1.0)  # taken at the good pose (moved 2 m)
-    assert wait_until(lambda: bool(grids), 15), "no grid after the bad inputs"
+    assert wait_until(lambda: bool(grids), 60), "no grid after the bad inputs"
     subscriber.undeclare()
     assert grids[-1].header.robot == (2.0, 0.0, 0.0) and grids[-1].header.known_cells > 0  # the last good pose
     assert "processing_failed" not in rejected()

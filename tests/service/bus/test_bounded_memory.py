@@ -10,12 +10,13 @@ import numpy as np
 import pytest
 from conftest import textured_image
 from gcdtrav.schemas.anchors import default_anchor_set
+from gcdtrav.schemas.keys import input_key
 from gcdtrav.service.runtime.errors import QueryError
 from gcdtrav.service.runtime.history import FrameHistory, FrameRecord
 from gcdtrav.service.runtime.intake.sources import SWEEP_INTERVAL_S, SourceTracker
 from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue, PendingBudgetExceeded
 from gcdtrav.service.runtime.stats import REFUSED_SOURCES
-from zenoh_helpers import connecting_config, service_reachable, wait_until
+from zenoh_helpers import connecting_config, service_reachable, subscribed_elsewhere, wait_until
 
 
 def record(seq: int, n: int = 4, side: int = 8) -> FrameRecord:
@@ -123,18 +124,25 @@ from tools.loopback import in_process_service  # noqa: E402
 
 
 def test_service_caps_sources_reports_them_and_forgets_idle_ones(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    # source_idle_s: the checks of the tracked sources below come within it (seconds on a loaded machine)
     settings = ServiceSettings(
-        state_dir=tmp_path, instance="bounded", max_sources=3, source_idle_s=1.5, reclaim_after_s=60, preview=False
+        state_dir=tmp_path,
+        instance="bounded",
+        max_sources=3,
+        source_idle_s=5.0,
+        reclaim_after_s=60,
+        preview=False,
     )
     with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (service, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         try:
-            assert wait_until(lambda: service_reachable(client), 10)
+            assert wait_until(lambda: service_reachable(client), 60)
+            assert subscribed_elsewhere(client.session, input_key(client.input_prefix, "r1/cam")), "the inputs"
             image = textured_image(48, 64)
             for k in range(5):  # a robot that names every frame anew
                 client.publish_image(f"r1/frame_{k:06d}", image)
                 time.sleep(0.05)
-            assert wait_until(lambda: sum(s.processed for s in client.status().sources.values()) == 3, 15)
+            assert wait_until(lambda: sum(s.processed for s in client.status().sources.values()) == 3, 60)
             status = client.status()
             assert status.tracked_sources == 3 and status.max_sources == 3
             assert status.rejected_by_reason.get("too_many_sources") == 2
@@ -143,14 +151,14 @@ def test_service_caps_sources_reports_them_and_forgets_idle_ones(tiny_backend, t
             assert 0 < status.history_bytes <= status.history_budget_bytes == 512_000_000
             assert client.patch("r1/frame_000000", 1, 1).seq == 0
             # Idle for longer than source_idle_s: forgotten, with history, counters and publishers.
-            assert wait_until(lambda: client.status().tracked_sources == 0, 10)
+            assert wait_until(lambda: client.status().tracked_sources == 0, 30)
             status = client.status()
             assert status.sources == {} and status.history_bytes == 0
             assert not service.outputs._publishers
             with pytest.raises(ServiceError, match=r"unknown source 'r1/frame_000000'.*evicted"):
                 client.patch("r1/frame_000000", 1, 1)
             client.publish_image("r1/frame_000004", image)  # room again: a new source is served
-            assert wait_until(lambda: "r1/frame_000004" in client.status().sources, 15)
+            assert wait_until(lambda: "r1/frame_000004" in client.status().sources, 60)
         finally:
             client.close()
 
@@ -161,11 +169,12 @@ def test_a_publisher_that_invents_names_is_capped(tiny_backend, tmp_path: Path) 
     with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (_, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         try:
-            assert wait_until(lambda: service_reachable(client), 10)
+            assert wait_until(lambda: service_reachable(client), 60)
+            assert subscribed_elsewhere(client.session, input_key(client.input_prefix, "r1/cam")), "the inputs"
             for k in range(4):
                 client.publish_image(f"r1/frame_{k}", textured_image(48, 64))
-            assert wait_until(lambda: client.status().rejected_by_reason.get("too_many_sources_per_publisher") == 2, 15)
-            assert wait_until(lambda: sum(s.processed for s in client.status().sources.values()) == 2, 15)
+            assert wait_until(lambda: client.status().rejected_by_reason.get("too_many_sources_per_publisher") == 2, 60)
+            assert wait_until(lambda: sum(s.processed for s in client.status().sources.values()) == 2, 60)
             assert sorted(client.status().sources) == ["r1/frame_0", "r1/frame_1"]
         finally:
             client.close()
@@ -178,12 +187,13 @@ def test_a_flood_of_undecodable_names_is_rejected_by_reason_and_a_robot_still_se
     with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (_, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         try:
-            assert wait_until(lambda: service_reachable(client), 10)
+            assert wait_until(lambda: service_reachable(client), 60)
+            assert subscribed_elsewhere(client.session, input_key(client.input_prefix, "r1/cam")), "the inputs"
             for k in range(200):  # raw puts without source info: not capped per publisher
                 client.session.put(f"gcdtrav/in/junk/{k}", b"\x89PNG not an image")
             client.publish_image("r1/cam", textured_image(48, 64))
-            assert wait_until(lambda: client.status().sources.get("r1/cam", None) is not None, 15)
-            assert wait_until(lambda: client.status().sources["r1/cam"].processed == 1, 15)
+            assert wait_until(lambda: client.status().sources.get("r1/cam", None) is not None, 60)
+            assert wait_until(lambda: client.status().sources["r1/cam"].processed == 1, 60)
             status = client.status()
             assert sum(status.rejected_by_reason.values()) == 200 and "candidate_evicted" in status.rejected_by_reason
             assert status.dropped_by_reason == {} and status.tracked_sources == 1

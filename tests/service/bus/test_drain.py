@@ -22,13 +22,14 @@ from typing import Any
 import pytest
 import zenoh
 from conftest import textured_image
-from zenoh_helpers import client_config, free_port, serve_args, start_router, wait_until
+from zenoh_helpers import client_config, free_port, serve_args, start_router, subscribed_elsewhere, wait_until
 
 pytest.importorskip("torch")
 
 from gcdtrav.client import Maps, QueryTimeout, TraversabilityClient
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
+from gcdtrav.schemas.keys import input_key
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.pipeline import Pipeline
@@ -56,8 +57,17 @@ class GatedBackend:
         return self.inner.logits(image, prepared)
 
 
+def waits_before_dropping(config: zenoh.Config) -> zenoh.Config:
+    """``config``, waiting up to 1 s (5 s for a fragmented sample) for a free batch before dropping: the maps go
+    out with congestion control DROP, and zenoh's 1 ms (50 ms) lost a test's maps on a loaded 2-core machine,
+    whose sending thread is not run that soon."""
+    config.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", "1000000")
+    config.insert_json5("transport/link/tx/queue/congestion_control/drop/max_wait_before_drop_fragments", "5000000")
+    return config
+
+
 def service(backend: Any, port: int, instance: str, state_dir: Path, **settings: Any) -> TraversabilityService:
-    session = zenoh.open(client_config(port))
+    session = zenoh.open(waits_before_dropping(client_config(port)))
     configured = ServiceSettings(state_dir=state_dir, instance=instance, preview=False, **settings)
     return TraversabilityService(session, Pipeline(backend, default_anchor_set(), EngineSettings()), configured)
 
@@ -134,24 +144,28 @@ def test_a_stopping_instance_leaves_first_then_publishes_the_frame_in_flight(tin
     try:
         a.start()
         b.start()
-        assert wait_until(lambda: b.membership.live() == {"box-a", "box-b"}, 20)  # type: ignore[union-attr]
+        assert wait_until(lambda: b.membership.live() == {"box-a", "box-b"}, 60)  # type: ignore[union-attr]
         assert probe(health_port, "/readyz") == (200, "ok\n")
         assert probe(health_port, "/livez") == (200, "ok\n")
         assert probe(health_port, "/metrics")[0] == 404
         source = next(f"r{i}/front" for i in range(50) if a.membership.owner(f"r{i}/front") == "box-a")  # type: ignore[union-attr]
+        # the services' input subscription known to the client, its maps subscription to box-a: the one frame
+        # goes out and its maps come back
+        assert subscribed_elsewhere(client.session, input_key(client.input_prefix, source)), "the inputs"
+        assert subscribed_elsewhere(a.session, a.keys.maps(source)), "the maps subscription"
         gated.gate.set()
         client.publish_image(source, IMAGE)
-        assert gated.waiting.wait(10), "the frame reached inference"
+        assert gated.waiting.wait(60), f"the frame did not reach inference: {a.status().sources}, {b.status().sources}"
         stopping.start()
         # The token went first: the other instance serves the source while the frame is still in flight.
-        assert wait_until(lambda: b.membership.live() == {"box-b"}, 5)  # type: ignore[union-attr]
+        assert wait_until(lambda: b.membership.live() == {"box-b"}, 30)  # type: ignore[union-attr]
         assert b.membership.owner(source) == "box-b"  # type: ignore[union-attr]
         status, reason = probe(health_port, "/readyz")
         assert status == 503 and reason.startswith("draining"), reason
         gated.release.set()
         stopping.join(15)
         assert not stopping.is_alive()
-        assert wait_until(lambda: any(m.header.source == source for m in received), 5), "the frame in flight"
+        assert wait_until(lambda: any(m.header.source == source for m in received), 30), "the frame in flight"
         assert [m.header.instance for m in received if m.header.source == source] == ["box-a"]
         assert "not_owner" not in a.status().dropped_by_reason
         http.close()
@@ -177,12 +191,17 @@ def test_stop_ends_within_the_grace_period_when_the_frame_in_flight_does_not(tin
     client = TraversabilityClient(config=client_config(router_port), timeout=3.0)
     try:
         a.start()
+        # the service's input subscription known to the client: the frame goes out (it was sent right after
+        # start() before, and could be lost)
+        assert subscribed_elsewhere(client.session, input_key(client.input_prefix, "r1/front")), "the inputs"
         gated.gate.set()
         client.publish_image("r1/front", IMAGE)
-        assert gated.waiting.wait(10)
+        assert gated.waiting.wait(60)
         began = time.monotonic()
         a.stop()
-        assert time.monotonic() - began < 2.0  # 0.5 s, plus closing; the stuck frame's outputs are dropped
+        # 0.5 s, plus closing (seconds on a loaded machine); the stuck frame's outputs are dropped. Without the
+        # grace, stop() would wait for the frame, held at the gate for 30 s (until the finally releases it).
+        assert time.monotonic() - began < 10.0
     finally:
         gated.release.set()
         client.close()
@@ -202,18 +221,20 @@ def test_a_starting_instance_joins_only_after_watching_the_inputs(tiny_backend: 
     client = TraversabilityClient(config=client_config(router_port), timeout=3.0)
     sources = [f"r{i}/front" for i in range(6)]
     robots = Robots(client, sources, 0.1)
-    starting = threading.Thread(target=new.start, kwargs={"observe_s": 1.5})
+    # observe_s long enough for the checks made while it watches, on a loaded machine
+    starting = threading.Thread(target=new.start, kwargs={"observe_s": 5.0})
     try:
         old.start()
         robots.start()
         time.sleep(0.5)
         starting.start()
-        assert wait_until(lambda: probe(health_port, "/readyz")[0] == 503, 5)
+        assert wait_until(lambda: probe(health_port, "/readyz")[0] == 503, 5)  # within observe_s
         assert probe(health_port, "/readyz")[1].startswith("starting")
         assert old.membership.live() == {"box-old"}  # type: ignore[union-attr]
-        starting.join(10)
+        starting.join(60)
+        assert not starting.is_alive()
         assert probe(health_port, "/readyz") == (200, "ok\n")
-        assert wait_until(lambda: old.membership.live() == {"box-old", "box-new"}, 5)  # type: ignore[union-attr]
+        assert wait_until(lambda: old.membership.live() == {"box-old", "box-new"}, 30)  # type: ignore[union-attr]
         # The moment it joined both tables agreed: every robot had one owner, none was left to neither.
         assert new.runtime.assignment.table() == old.runtime.assignment.table()
         assert set(new.runtime.assignment.table()) == set(sources)
@@ -226,6 +247,19 @@ def test_a_starting_instance_joins_only_after_watching_the_inputs(tiny_backend: 
         http.close()
         router.terminate()
         router.communicate(timeout=20)
+
+
+def logged_s(output: str, first: str, last: str) -> float:
+    """Seconds between the log lines of `gcdtrav serve` that end with ``first`` and ``last`` (the first of each),
+    by their asctime stamps (``2026-01-02 03:04:05,678 INFO ...``)."""
+    import datetime
+
+    def stamp_of(text: str) -> float:
+        line = next(line for line in output.splitlines() if line.rstrip().endswith(text))
+        day, clock = line.split()[:2]
+        return datetime.datetime.strptime(f"{day} {clock}", "%Y-%m-%d %H:%M:%S,%f").timestamp()
+
+    return stamp_of(last) - stamp_of(first)
 
 
 def test_sigterm_to_an_instance_serving_robots_leaves_no_robot_without_maps(
@@ -259,7 +293,7 @@ def test_sigterm_to_an_instance_serving_robots_leaves_no_robot_without_maps(
         time.sleep(1.0)
         terminated_at = time.monotonic()
         processes[1].send_signal(signal.SIGTERM)
-        output, _ = processes[1].communicate(timeout=grace_s + 10)
+        output, _ = processes[1].communicate(timeout=grace_s + 60)  # the bound of a failure only
         assert processes[1].returncode == 0, output[-2000:]
         exit_s = time.monotonic() - terminated_at
 
@@ -274,7 +308,13 @@ def test_sigterm_to_an_instance_serving_robots_leaves_no_robot_without_maps(
             times = [terminated_at - 1.0, *(at for at, _ in arrivals[source] if at >= terminated_at - 1.0)]
             gaps[source] = max(later - earlier for earlier, later in itertools.pairwise(times))
         print(f"\nSIGTERM to box-b: exited in {exit_s:.2f} s; longest gap per robot: {gaps}")
-        assert exit_s < grace_s + 3  # + the interpreter's exit
+        # From SIGTERM to "stopped" by the process's own log clock: the drain and the session's close, within the
+        # grace period (+ 1 s: the stamps are the log lines', the frame in flight is bounded by the grace). The
+        # interpreter's exit after it takes seconds more on a loaded machine (10.9 s in all seen): bounded loosely.
+        drain_s = logged_s(output, "SIGTERM received: finishing the frame in flight and shutting down", ": stopped")
+        print(f"box-b's log: SIGTERM to stopped in {drain_s:.2f} s")
+        assert drain_s < grace_s + 1, output[-2000:]
+        assert exit_s < grace_s + 30  # + the interpreter's exit
         assert max(gaps.values()) <= 2.0, gaps
         for source in sources:
             for _, maps in arrivals[source]:

@@ -31,7 +31,8 @@ import pytest
 from gcdtrav.client import Grid, TraversabilityClient
 from gcdtrav.schemas.messages import Pose2D
 from gcdtrav.schemas.settings import ServiceSettings
-from zenoh_helpers import connecting_config, service_reachable, wait_until
+from gcdtrav.service.bus.node import TraversabilityService
+from zenoh_helpers import connecting_config, service_reachable, subscribed_elsewhere, wait_until
 
 from benchmarks.placement import grid_settings, hazard_ahead, hazard_cells, scene_camera, unicycle
 from tools.loopback import in_process_service
@@ -145,21 +146,21 @@ class DrivingRobot:
 
 
 @pytest.fixture
-def service_and_client(tmp_path: Path) -> Iterator[TraversabilityClient]:
+def service_and_client(tmp_path: Path) -> Iterator[tuple[TraversabilityService, TraversabilityClient]]:
     grid = grid_settings(scene_camera()).model_copy(update={"pose_key": POSE_KEY, "pose_format": "gcdtrav"})
     # The service's defaults for live robots: max_frame_age_s 5 s, clock estimated (stamps are the wall clock).
     settings = ServiceSettings(state_dir=tmp_path, instance="drive", preview=False, grids=[grid])
     assert settings.max_frame_age_s is not None and settings.max_frame_age_s > 2 * LATENCY_S
     with (
-        in_process_service(SceneBackend(), settings, start_anchors()) as (_, port),
+        in_process_service(SceneBackend(), settings, start_anchors()) as (service, port),
         TraversabilityClient(config=connecting_config(port), timeout=5.0) as client,
     ):
-        assert wait_until(lambda: service_reachable(client), 15), "the service did not answer"
-        yield client
+        assert wait_until(lambda: service_reachable(client), 60), "the service did not answer"
+        yield service, client
 
 
 def drive_past(
-    client: TraversabilityClient, path: Path2D, link: Link = STEADY
+    service: TraversabilityService, client: TraversabilityClient, path: Path2D, link: Link = STEADY
 ) -> tuple[DrivingRobot, Hazard, list[Received]]:
     """Drive ``path`` with the hazard AHEAD_M ahead of where the captures end; the grids received until the
     last frame's (or a bounded wait on a loaded machine)."""
@@ -168,7 +169,9 @@ def drive_past(
     subscriber = client.subscribe_grid(CAMERA, lambda grid: received.append(Received(grid, time.time())))
     robot = DrivingRobot(client, path, hazard, scene_camera(), link)
     try:
-        assert wait_until(lambda: robot.poses.matching_status.matching, 10), "the service's pose subscriber is unseen"
+        assert wait_until(lambda: robot.poses.matching_status.matching, 30), "the service's pose subscriber is unseen"
+        # and the client's grid subscription known to the service: the first frames' grids are not lost
+        assert subscribed_elsewhere(service.session, service.keys.grid(CAMERA)), "the grid subscription is unseen"
         robot.run()
         time.sleep(DRIVE_S + max(link.frame(len(robot.captured)), link.pose_s))  # the captures, the last's link
         # Its grid, or until the grids stop coming: on a loaded machine the service may have dropped it (the
@@ -195,9 +198,9 @@ def placement_error(grid: Grid, hazard: Hazard) -> tuple[float, float]:
     ids=["straight", "turning", "straight-out-of-order", "turning-poses-behind"],
 )
 def test_a_hazard_lands_where_it_is_while_the_robot_drives_with_frames_in_flight(
-    service_and_client: TraversabilityClient, turn_rate: float, link: Link
+    service_and_client: tuple[TraversabilityService, TraversabilityClient], turn_rate: float, link: Link
 ) -> None:
-    robot, hazard, received = drive_past(service_and_client, unicycle(SPEED_MPS, turn_rate), link)
+    robot, hazard, received = drive_past(*service_and_client, unicycle(SPEED_MPS, turn_rate), link)
     fused = [r for r in received if r.grid.header.capture_stamp is not None]
     assert len(fused) >= 4, f"{len(fused)} grids of {len(robot.captured)} frames"  # a loaded box drops some
 

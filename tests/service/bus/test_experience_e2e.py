@@ -22,7 +22,7 @@ from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.commands.serve import starting_anchor_set
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.store.opening import sqlite_file
-from zenoh_helpers import connecting_config, free_port, wait_until
+from zenoh_helpers import connecting_config, free_port, service_reachable, wait_until
 
 from tools.loopback import in_process_service
 from tools.robot_drive import CAMERA_SOURCE, CMD_VEL_KEY, START_STAMP, BusRobot, experience_settings, grid_settings
@@ -54,6 +54,9 @@ def running(
         in_process_service(SceneBackend(), service_settings, anchors or start_anchors()) as (service, port),
         TraversabilityClient(config=connecting_config(port), timeout=5.0) as client,
     ):
+        # The service answers once it serves: its subscriptions (declared before its queryables, on the same
+        # link) are known to the client then, and the tests' first puts are not lost (they were put at once).
+        assert wait_until(lambda: service_reachable(client), 60), "the service did not answer"
         yield service, client, ["-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
 
 
@@ -86,7 +89,7 @@ def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> Non
         assert (tmp_path / "reliability.png").read_bytes()[:4] == b"\x89PNG"
 
         # Ambiguity persisted ahead (dirt against gravel, sand against dirt): one question, with its crop.
-        assert wait_until(lambda: questions, timeout=5)
+        assert wait_until(lambda: questions, 60)
         question = questions[0]
         assert question.source == CAMERA_SOURCE and question.crop_jpeg and question.crop_jpeg[:2] == b"\xff\xd8"
         status = gcdtrav("status", *flags).stdout
@@ -117,7 +120,7 @@ def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> Non
         assert proposal.kept and f"gcdtrav anchors apply {proposal.proposed_version} swaps in exactly" in dry
         reviewed = proposal.train_pairs + proposal.held_out_pairs
         end = robot.drive(20.0, seed=3, start_stamp=end + 5.0)  # pairs arrive between review and apply
-        assert wait_until(lambda: client.calibration(CAMERA_SOURCE).figures.pairs > reviewed, 10)
+        assert wait_until(lambda: client.calibration(CAMERA_SOURCE).figures.pairs > reviewed, 60)
         refit = client.anchor_proposal()  # what a refit at apply time would have swapped in
         assert refit.train_pairs + refit.held_out_pairs > reviewed
         assert refit.proposed_version != proposal.proposed_version
@@ -182,7 +185,7 @@ def test_bad_messages_are_rejected_counted_and_never_taken_for_images(tmp_path: 
             rejected = client.status().rejected_by_reason
             return all(rejected.get(reason) == n for reason, n in expected.items())
 
-        assert wait_until(counted, timeout=5), client.status().rejected_by_reason
+        assert wait_until(counted, 60), client.status().rejected_by_reason
         status = client.status()
         assert status.sources == {} and status.experience is not None  # no image source 'robot/cam/outcome'
         assert service.experience is not None  # the good path reached the experience: questions look along it
@@ -205,7 +208,7 @@ def test_experience_off_declares_nothing_and_changes_nothing(tmp_path: Path) -> 
         assert service.experience is None and client.status().experience is None
         BusRobot(client, make_world(seed=0)).drive(5.0, seed=1)  # images and grids flow as ever
         client.publish_outcome(CAMERA_SOURCE, TraversalOutcome(stamp=START_STAMP, x=0, y=0, score=1, kind="contact"))
-        assert wait_until(lambda: client.status().rejected_by_reason.get("experience_off") == 1, timeout=5)
+        assert wait_until(lambda: client.status().rejected_by_reason.get("experience_off") == 1, 60)
         assert set(client.status().sources) == {CAMERA_SOURCE}
         with pytest.raises(QueryTimeout):
             client.calibration(CAMERA_SOURCE, timeout=0.5)
@@ -261,7 +264,7 @@ def test_ros_topics_are_read_as_cdr_on_rmw_zenoh_keys(tmp_path: Path, caplog: py
             rejected, counts = status.rejected_by_reason, status.experience.counts  # type: ignore[union-attr]
             return rejected.get("bad_cmd_vel") == 1 and rejected.get("bad_odometry") == 1 and "outcomes" in counts
 
-        assert wait_until(seen, timeout=5), client.status()
+        assert wait_until(seen, 60), client.status()
 
 
 class OwnedLock:
@@ -337,7 +340,7 @@ def test_no_zenoh_call_runs_under_a_grid_lock_questions_included(tmp_path: Path)
                 questions: list[OperatorQuestion] = []
                 client.subscribe_questions("**", questions.append)
                 BusRobot(client, make_world(seed=0)).drive(90.0, seed=1)
-                assert wait_until(lambda: questions, timeout=5)  # the fusion asked one: the path ran
+                assert wait_until(lambda: questions, 60)  # the fusion asked one: the path ran
         finally:
             service.stop()
     assert session.calls_under_lock == []

@@ -57,21 +57,21 @@ def test_instances_converge_new_ones_adopt_and_rollback_ends_everywhere_on_one_s
     client = TraversabilityClient(config=client_config(port), timeout=5.0)
     try:
         a, b = fleet.start("box-a"), fleet.start("box-b")
-        assert wait_until(lambda: len(client.statuses(timeout=1.0)) == 2, 20)
+        assert wait_until(lambda: len(client.statuses(timeout=1.0)) == 2, 60)
         first = three_anchor_set("first")
         a.runtime.anchor_switch.swap(first)  # a swap that reached one instance only
-        assert wait_until(lambda: fleet.converged_on(first.version), 10), fleet.versions()
+        assert wait_until(lambda: fleet.converged_on(first.version), 60), fleet.versions()
         accepted = a.runtime.anchor_switch.head().accepted_at
         assert b.runtime.anchor_switch.head().accepted_at == accepted  # adopted, not re-accepted
         c = fleet.start("box-c")  # starts with the default set and an empty state dir
-        assert wait_until(lambda: fleet.converged_on(first.version), 10), fleet.versions()
-        assert wait_until(lambda: c.status().anchor_sets == dict.fromkeys(fleet.running, first.version), 5)
+        assert wait_until(lambda: fleet.converged_on(first.version), 60), fleet.versions()
+        assert wait_until(lambda: c.status().anchor_sets == dict.fromkeys(fleet.running, first.version), 60)
 
         second = three_anchor_set("second")
         assert client.set_anchors(second) == second.version
         assert fleet.converged_on(second.version)
         assert client.rollback_anchors(1) == first.version
-        assert wait_until(lambda: fleet.converged_on(first.version), 5), fleet.versions()
+        assert wait_until(lambda: fleet.converged_on(first.version), 60), fleet.versions()
         assert {s.anchor_set_version for s in client.statuses()} == {first.version}
     finally:
         client.close()
@@ -89,7 +89,7 @@ def test_a_swap_one_instance_refuses_names_each_instance_and_the_status_shows_th
     client = TraversabilityClient(config=client_config(port), timeout=5.0)
     try:
         a, b = fleet.start("box-a"), fleet.start("box-b")
-        assert wait_until(lambda: len(client.statuses(timeout=1.0)) == 2, 20)
+        assert wait_until(lambda: len(client.statuses(timeout=1.0)) == 2, 60)
 
         def unwritable(*_: object, **__: object) -> None:
             raise StoreUnavailable("the store b.sqlite3: disk I/O error")
@@ -102,7 +102,7 @@ def test_a_swap_one_instance_refuses_names_each_instance_and_the_status_shows_th
         assert f"anchor set {new.version} active on box-a; not on the others: box-b:" in str(partial.value)
         assert fleet.versions() == {"box-a": new.version, "box-b": default_anchor_set().version}
         status = a.status()
-        assert wait_until(lambda: a.status().anchor_sets == fleet.versions(), 5), status.anchor_sets
+        assert wait_until(lambda: a.status().anchor_sets == fleet.versions(), 60), status.anchor_sets
     finally:
         client.close()
         fleet.stop()

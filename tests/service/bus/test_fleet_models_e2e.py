@@ -10,7 +10,7 @@ from typing import Any
 import pytest
 import zenoh
 from conftest import build_tiny_clipseg, textured_image
-from zenoh_helpers import client_config, free_port, start_router, wait_until
+from zenoh_helpers import client_config, free_port, start_router, subscribed_elsewhere, wait_until
 
 pytest.importorskip("torch")
 
@@ -18,6 +18,7 @@ from gcdtrav.client import TraversabilityClient
 from gcdtrav.client.commands.operator import print_status
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
+from gcdtrav.schemas.keys import input_key
 from gcdtrav.schemas.settings import ServiceSettings, SettingsError
 from gcdtrav.service.backends.clipseg import ClipSegBackend
 from gcdtrav.service.bus.node import TraversabilityService
@@ -59,28 +60,33 @@ def test_another_checkpoint_takes_no_robot_says_why_and_shares_them_when_mixed_m
         with pytest.raises(SettingsError, match="in use by instance box-a"):  # never one state file for two
             start(other, port, "box-b", tmp_path / "a")
         b = start(other, port, "box-b", tmp_path / "b")
-        assert wait_until(lambda: a.membership and a.membership.live() == {"box-a", "box-b"}, 10)
+        assert wait_until(lambda: a.membership and a.membership.live() == {"box-a", "box-b"}, 60)
+        # both answer through the router: it knows their input subscriptions (declared before, on the same link);
+        # and the client knows of them: the images below are sent (they were sent at once before)
+        assert wait_until(lambda: len(client.statuses(timeout=1.0)) == 2, 60)
+        assert subscribed_elsewhere(client.session, input_key(client.input_prefix, SOURCES[0])), "the inputs"
         for _ in range(3):  # established sources: the bounded-load table, not only the highest weight
             for source in SOURCES:
                 client.publish_image(source, IMAGE)
-        assert wait_until(lambda: set(owners(a).values()) == {"box-a"} == set(owners(b).values()), 10), owners(b)
+        assert wait_until(lambda: set(owners(a).values()) == {"box-a"} == set(owners(b).values()), 60), owners(b)
         why = b.status().model_refused
         assert "differs from the fleet's" in why and "allow_mixed_models" in why and not a.status().model_refused
         assert any("box-b joined (model" in r.getMessage() for r in caplog.records)
         assert any("this instance takes no sources" in r.getMessage() for r in caplog.records)
-        assert wait_until(lambda: len(client.statuses(timeout=1.0)) == 2, 10)
+        assert wait_until(lambda: len(client.statuses(timeout=1.0)) == 2, 60)
         assert print_status(client) == 0
         table = capsys.readouterr().out
         assert "TAKES NO SOURCES box-b: model" in table and "MODELS DIFFER" in table, table
 
         stop(b)
-        assert wait_until(lambda: a.membership and a.membership.live() == {"box-a"}, 10)
+        assert wait_until(lambda: a.membership and a.membership.live() == {"box-a"}, 60)
         assert any("box-b left" in r.getMessage() for r in caplog.records)
         b = start(other, port, "box-b", tmp_path / "b", allow_mixed_models=True)
+        assert wait_until(lambda: len(client.statuses(timeout=1.0)) == 2, 60)  # the router routes to box-b again
         for source in SOURCES:
             client.publish_image(source, IMAGE)
         shared = lambda: set(owners(a).values()) == {"box-a", "box-b"} and owners(a) == owners(b)  # noqa: E731
-        assert wait_until(shared, 10), (owners(a), owners(b))
+        assert wait_until(shared, 60), (owners(a), owners(b))
         assert b.status().model_refused == ""
         stop(b)
     finally:
@@ -110,12 +116,14 @@ def test_two_instances_of_different_models_started_at_once_agree_on_the_one_that
     a, b = started["box-a"], started["box-b"]
     client = TraversabilityClient(config=client_config(port), timeout=3.0)
     try:
-        assert wait_until(lambda: a.membership and b.membership and len(b.membership.live()) == 2, 10)
+        assert wait_until(lambda: a.membership and b.membership and len(b.membership.live()) == 2, 60)
+        assert wait_until(lambda: len(client.statuses(timeout=1.0)) == 2, 60)  # the router knows both's inputs
+        assert subscribed_elsewhere(client.session, input_key(client.input_prefix, SOURCES[0])), "the inputs"
         for _ in range(3):
             for source in SOURCES:
                 client.publish_image(source, IMAGE)
         one_serves = lambda: len(set(owners(a).values())) == 1 and owners(a) == owners(b)  # noqa: E731
-        assert wait_until(one_serves, 10), (owners(a), owners(b))
+        assert wait_until(one_serves, 60), (owners(a), owners(b))
         serving = next(iter(set(owners(a).values())))
         refused = [s.instance for s in (a.status(), b.status()) if s.model_refused]
         assert refused == [name for name in ("box-a", "box-b") if name != serving]

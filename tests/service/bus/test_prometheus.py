@@ -28,12 +28,20 @@ import pytest
 import yaml
 from conftest import textured_image
 from real_components import require_prometheus
-from zenoh_helpers import client_config, connecting_config, free_port, serve_args, start_router, wait_until
+from zenoh_helpers import (
+    client_config,
+    connecting_config,
+    free_port,
+    serve_args,
+    start_router,
+    subscribed_elsewhere,
+    wait_until,
+)
 
 pytest.importorskip("torch")
 
 from gcdtrav.client import Maps, QueryTimeout, TraversabilityClient
-from gcdtrav.schemas.keys import Keys
+from gcdtrav.schemas.keys import Keys, input_key
 from gcdtrav.schemas.messages import RelayHealth
 from gcdtrav.schemas.settings import ServiceSettings
 
@@ -187,7 +195,7 @@ def fleet(tiny_model_dir: Path) -> Iterator[Fleet]:
         try:
             fleet.start("box-a")
             fleet.start("box-b")
-            assert wait_until(lambda: ready(fleet.prometheus_url), 30), "prometheus did not become ready"
+            assert wait_until(lambda: ready(fleet.prometheus_url), 60), "prometheus did not become ready"
             yield fleet
         finally:
             for process in [*fleet.processes.values(), prometheus, router]:
@@ -218,9 +226,9 @@ def robots(fleet: Fleet) -> Iterator[Robots]:
     subscriber = client.subscribe_maps("**", fleet_robots.on_maps)
     try:
         wait_for_statuses(client, 2, timeout_s=120)
-        assert wait_until(lambda: fleet.scalar("sum(gcdtrav_instances_live)") == 4, 30), "both see both"
+        assert wait_until(lambda: fleet.scalar("sum(gcdtrav_instances_live)") == 4, 60), "both see both"
         fleet_robots.start()
-        assert wait_until(lambda: all(fleet_robots.received(r, False) for r in ROBOTS), 30), "maps for every robot"
+        assert wait_until(lambda: all(fleet_robots.received(r, False) for r in ROBOTS), 60), "maps for every robot"
         client.publish_image(ROBOTS[0], IMAGE, stamp=time.time() - 60)  # dropped stale at intake
         client.session.put("gcdtrav/in/junk/cam", b"\x00 not an image")  # rejected
         assert wait_until(lambda: stale_and_junk_counted(fleet), 60), "the stale frame and the junk input scraped"
@@ -291,16 +299,16 @@ def test_an_instance_joins_and_leaves_mid_stream(fleet: Fleet, robots: Robots) -
         box_c = fleet.start("box-c")
         target_c = f"127.0.0.1:{fleet.ports['box-c']}"
         assert wait_until(lambda: fleet.by("gcdtrav_instances_live", "instance").get(target_c) == 3, 90), "joined"
-        assert wait_until(lambda: fleet.by("gcdtrav_sources_owned", "instance").get(target_c, 0) >= 1, 20)
-        assert wait_until(lambda: fleet.scalar("sum(gcdtrav_sources_owned)") == len(ROBOTS), 20)
-        assert wait_until(lambda: any("box-c" in robots.instances_serving(r) for r in ROBOTS), 20), "c serves"
+        assert wait_until(lambda: fleet.by("gcdtrav_sources_owned", "instance").get(target_c, 0) >= 1, 60)
+        assert wait_until(lambda: fleet.scalar("sum(gcdtrav_sources_owned)") == len(ROBOTS), 60)
+        assert wait_until(lambda: any("box-c" in robots.instances_serving(r) for r in ROBOTS), 60), "c serves"
         moved = [r for r in ROBOTS if "box-c" in robots.instances_serving(r)]
         box_c.send_signal(signal.SIGTERM)
         box_c.wait(30)
-        assert wait_until(lambda: fleet.by("up", "instance").get(target_c) == 0.0, 20)
-        assert wait_until(lambda: fleet.scalar("sum(gcdtrav_sources_owned)") == len(ROBOTS), 20)  # c's series stale
+        assert wait_until(lambda: fleet.by("up", "instance").get(target_c) == 0.0, 60)
+        assert wait_until(lambda: fleet.scalar("sum(gcdtrav_sources_owned)") == len(ROBOTS), 60)  # c's series stale
         # the others see c's token go at once, but their next scrape may come a second later
-        assert wait_until(lambda: set(fleet.by("gcdtrav_instances_live", "instance").values()) == {2.0}, 20)
+        assert wait_until(lambda: set(fleet.by("gcdtrav_instances_live", "instance").values()) == {2.0}, 60)
         # box-c's robots go back to the others: each is then served by c and by another instance
         assert wait_until(lambda: all(len(robots.instances_serving(r)) >= 2 for r in moved), 60), {
             r: robots.instances_serving(r) for r in moved
@@ -335,7 +343,7 @@ def test_an_instance_joins_and_leaves_mid_stream(fleet: Fleet, robots: Robots) -
                 return False
         return True
 
-    assert wait_until(counts_agree, 30), (
+    assert wait_until(counts_agree, 60), (
         fleet.by(processed, "source"),
         fleet.by(reused, "source"),
         robots.published(),
@@ -417,9 +425,11 @@ def test_every_query_of_the_dashboard_returns_data_and_no_nan_with_an_idle_insta
             experience_instance(fleet.ports["exp-1"], fleet.state / "exp-1"),
             TraversabilityClient(config=client_config(fleet.router_port), timeout=5.0) as client,
         ):
+            # the services' relay-health subscriptions known to this new session: its one put is not lost
+            assert subscribed_elsewhere(client.session, Keys().relay_health(ROBOTS[0])), "relay health unheard"
             client.session.put(Keys().relay_health(ROBOTS[0]), relay_health(ROBOTS[0], parked=False).pack())
             target = f"127.0.0.1:{fleet.ports['exp-1']}"
-            assert wait_until(lambda: fleet.by("gcdtrav_calibration_ece", "instance").get(target) is not None, 20)
+            assert wait_until(lambda: fleet.by("gcdtrav_calibration_ece", "instance").get(target) is not None, 60)
 
             def answers() -> list[tuple[str, str, list[Any]]]:
                 window = "2m"  # Grafana's $__rate_interval: at least four scrapes
@@ -428,7 +438,7 @@ def test_every_query_of_the_dashboard_returns_data_and_no_nan_with_an_idle_insta
             def empty() -> list[tuple[str, str, list[Any]]]:
                 return [(t, e, a) for t, e, a in answers() if not any(finite(sample) for sample in a)]
 
-            assert wait_until(lambda: not empty(), 20), empty()
+            assert wait_until(lambda: not empty(), 60), empty()
             nan = [(t, e, s) for t, e, a in answers() for s in a if math.isnan(float(s["value"][1]))]
             assert not nan, nan
             assert fleet.scalar(f"max_over_time({idle}[1m])") == 0  # it was idle all along
@@ -460,6 +470,9 @@ def test_a_silent_robot_fires_and_one_that_parked_and_said_so_does_not(fleet: Fl
     silent, parked, steady = "silent/front", "parked/front", "steady/front"
     keys = Keys()
     with TraversabilityClient(config=client_config(fleet.router_port), timeout=5.0) as client:
+        # the services' subscriptions known to this new session: its puts and first frames are not lost
+        assert subscribed_elsewhere(client.session, keys.relay_health(parked)), "relay health unheard"
+        assert subscribed_elsewhere(client.session, input_key(client.input_prefix, silent)), "the inputs"
         client.session.put(keys.relay_health(parked), relay_health(parked, parked=False).pack())
 
         def stream(sources: list[str], seconds: float) -> None:
@@ -471,19 +484,19 @@ def test_a_silent_robot_fires_and_one_that_parked_and_said_so_does_not(fleet: Fl
 
         stream([silent, parked, steady], 3.0)
         heard = "max by (source) (gcdtrav_source_last_frame_timestamp_seconds)"
-        assert wait_until(lambda: {silent, parked, steady} <= set(fleet.by(heard, "source")), 20), "all heard"
+        assert wait_until(lambda: {silent, parked, steady} <= set(fleet.by(heard, "source")), 60), "all heard"
         client.session.put(keys.relay_health(parked), relay_health(parked, parked=True).pack())  # then stops
-        assert wait_until(lambda: fleet.by("max by (source) (gcdtrav_source_parked)", "source").get(parked) == 1, 20)
-        deadline = time.monotonic() + 30
+        assert wait_until(lambda: fleet.by("max by (source) (gcdtrav_source_parked)", "source").get(parked) == 1, 60)
+        deadline = time.monotonic() + 60  # the bound of a failure only
         while silent not in firing_silent(fleet) and time.monotonic() < deadline:
             stream([steady], 1.0)
         firing = firing_silent(fleet)
-        assert silent in firing, f"not firing for the silent robot after 30 s: {firing}"
+        assert silent in firing, f"not firing for the silent robot after 60 s: {firing}"
         assert parked not in firing and steady not in firing, firing
         silence = fleet.by(f"time() - {heard}", "source")
         assert silence[parked] > SILENT_AFTER_S, silence  # silent as long: only its parking keeps it quiet
         client.session.put(keys.relay_health(parked), relay_health(parked, parked=False).pack())  # runs again, silent
-        assert wait_until(lambda: parked in firing_silent(fleet), 20), "fires once it no longer says parked"
+        assert wait_until(lambda: parked in firing_silent(fleet), 60), "fires once it no longer says parked"
 
 
 def finite(sample: dict[str, Any]) -> bool:

@@ -19,7 +19,7 @@ from gcdtrav.schemas.settings import AskSettings, ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.fleet.assignment import owner_of
-from zenoh_helpers import client_config, free_port, start_router, wait_until
+from zenoh_helpers import client_config, free_port, start_router, subscribed_elsewhere, wait_until
 
 from tools.robot_drive import CAMERA_SOURCE, BusRobot, experience_settings, grid_settings
 from tools.synthetic_scene import SceneBackend, make_world, start_anchors
@@ -84,11 +84,13 @@ def with_two_instances(tmp_path: Path, port: int, first: str, second: str) -> No
     ):
         questions: list[OperatorQuestion] = []
         client.subscribe_questions("**", questions.append)
+        # the client's questions subscription known to a's session: its first question is not lost
+        assert subscribed_elsewhere(a.session, a.keys.question(CAMERA_SOURCE)), "the questions subscription"
         robot = BusRobot(client, make_world(seed=0))
         stamp = drive_until_asked(robot, questions, 1, 1.7e9)
         with instance(second, tmp_path, port) as b:
             # b serves the grid's source, as both see it, before the robot drives on
-            assert wait_until(lambda: b.owns(CAMERA_SOURCE) and not a.owns(CAMERA_SOURCE), 20), "the source moved"
+            assert wait_until(lambda: b.owns(CAMERA_SOURCE) and not a.owns(CAMERA_SOURCE), 60), "the source moved"
             drive_until_asked(robot, questions, 2, stamp + 10.0)
             asked_by_a, asked_by_b = questions[0], questions[-1]
             assert asked_by_a.id != asked_by_b.id, (asked_by_a.id, asked_by_b.id)  # both were 'robot/cam-1'

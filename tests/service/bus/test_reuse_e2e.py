@@ -41,13 +41,13 @@ def test_a_repeated_view_is_answered_with_its_last_maps_and_changes_are_inferred
         received: list[Maps] = []
         subscriber = client.subscribe_maps("**", received.append)
         try:
-            assert wait_until(lambda: service_reachable(client), 10)
+            assert wait_until(lambda: service_reachable(client), 60)
             assert subscribed_elsewhere(service.session, service.keys.maps("parked")), "the maps subscription"
 
             def publish(image: np.ndarray, stamp: float) -> Maps:
                 before = len(received)
                 client.publish_image("parked", image, stamp=stamp, compression="jpeg")
-                assert wait_until(lambda: len(received) > before, 15), "no maps"
+                assert wait_until(lambda: len(received) > before, 60), "no maps"
                 return received[-1]
 
             first = publish(scene(1), 1000.0)

@@ -15,13 +15,14 @@ from pathlib import Path
 import pytest
 import zenoh
 from conftest import textured_image
-from zenoh_helpers import client_config, free_port, serve_args, start_router, wait_until
+from zenoh_helpers import client_config, free_port, serve_args, start_router, subscribed_elsewhere, wait_until
 
 pytest.importorskip("torch")
 
 from gcdtrav.client import AnchorSetRejected, Maps, QueryTimeout, ServiceError, TraversabilityClient
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
+from gcdtrav.schemas.keys import input_key
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.pipeline import Pipeline
@@ -48,8 +49,17 @@ def serve_process(model: Path, router_port: int, instance: str, state_dir: Path)
     return subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
+def waits_before_dropping(config: zenoh.Config) -> zenoh.Config:
+    """``config``, waiting up to 1 s (5 s for a fragmented sample) for a free batch before dropping: the maps go
+    out with congestion control DROP, and zenoh's 1 ms (50 ms) lost a test's maps on a loaded 2-core machine,
+    whose sending thread is not run that soon."""
+    config.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", "1000000")
+    config.insert_json5("transport/link/tx/queue/congestion_control/drop/max_wait_before_drop_fragments", "5000000")
+    return config
+
+
 def in_process_service(backend, router_port: int, instance: str, state_dir: Path):  # type: ignore[no-untyped-def]
-    session = zenoh.open(client_config(router_port))
+    session = zenoh.open(waits_before_dropping(client_config(router_port)))
     settings = ServiceSettings(state_dir=state_dir, instance=instance, preview=False)
     service = TraversabilityService(session, Pipeline(backend, default_anchor_set(), EngineSettings()), settings)
     service.start()
@@ -99,12 +109,16 @@ def test_two_instances_share_sources_and_take_over_when_one_dies(
     try:
         assert wait_until(lambda: instances_seen(client) == {"box-a", "box-b"}, 300), "both instances up"  # a bound
         assert wait_until(lambda: service.membership is not None and service.membership.live() == {"box-a", "box-b"})
-        time.sleep(0.5)
+        # Each instance declares its input subscriptions before the queryable that answered the status above (one
+        # link to the router, in order): the router knows both; the client must know of them too, or its first
+        # images are not sent.
+        for source in SOURCES:
+            assert subscribed_elsewhere(client.session, input_key(client.input_prefix, source)), source
         for _ in range(3):
             for source in SOURCES:
                 client.publish_image(source, IMAGE)
             time.sleep(0.4)
-        assert wait_until(lambda: all(by_source[s] for s in SOURCES), 20)
+        assert wait_until(lambda: all(by_source[s] for s in SOURCES), 60)
         owners = {source: service.membership.owner(source) for source in SOURCES}  # type: ignore[union-attr]
         assert sorted(owners.values()) == ["box-a"] * 3 + ["box-b"] * 3  # bounded loads: 3/3
         # every frame of the burst above finished (published or dropped) before the maps are read afresh
@@ -113,19 +127,30 @@ def test_two_instances_share_sources_and_take_over_when_one_dies(
             by_source[source].clear()
         for source in SOURCES:
             client.publish_image(source, IMAGE)
-        assert wait_until(lambda: all(by_source[s] for s in SOURCES), 20)
+        assert wait_until(lambda: all(by_source[s] for s in SOURCES), 60)
         for source in SOURCES:  # at steady state each source is processed by its owner only
             assert {m.header.instance for m in by_source[source]} == {owners[source]}, source
         b_source = next(s for s in SOURCES if owners[s] == "box-b")
         assert client.patch(b_source, 10, 10).source == b_source  # answered by the holder, through the same key
 
-        other.send_signal(signal.SIGKILL)
-        killed_at = time.monotonic()
         moved = [s for s in SOURCES if owners[s] == "box-b"]
-        served_again: dict[str, float] = {}
         for source in moved:
             by_source[source].clear()
-        while time.monotonic() - killed_at < 15 and len(served_again) < len(moved):
+        other.send_signal(signal.SIGKILL)
+        killed_at = time.monotonic()
+        # The killed instance's link closes: its token goes at once and its sources move to box-a (docs: deploy/
+        # README.md, failover bound). Timed on the membership, not on maps: the maps come after an inference,
+        # seconds on a loaded machine (3.6-4.2 s to the first maps seen loaded, 0.4 s idle).
+        membership = service.membership
+        assert membership is not None
+
+        def moved_to_a() -> bool:  # its token gone and box-a's table giving box-a its sources
+            return membership.live() == {"box-a"} and all(membership.owner(s) == "box-a" for s in moved)
+
+        assert wait_until(moved_to_a, 30), {s: membership.owner(s) for s in moved}
+        left_s = time.monotonic() - killed_at
+        served_again: dict[str, float] = {}
+        while time.monotonic() - killed_at < 60 and len(served_again) < len(moved):
             for source in moved:
                 client.publish_image(source, IMAGE)
             time.sleep(0.2)
@@ -133,8 +158,9 @@ def test_two_instances_share_sources_and_take_over_when_one_dies(
                 if source not in served_again and any(m.header.instance == "box-a" for m in by_source[source]):
                     served_again[source] = time.monotonic() - killed_at
         assert set(served_again) == set(moved), served_again
-        print(f"\ntakeover after SIGKILL of box-b: {', '.join(f'{s} {t:.2f} s' for s, t in served_again.items())}")
-        assert max(served_again.values()) < 5.0, served_again
+        served = ", ".join(f"{s} {t:.2f} s" for s, t in served_again.items())
+        print(f"\nbox-b left {left_s:.2f} s after its SIGKILL; its robots' maps from box-a after {served}")
+        assert left_s < 5.0, left_s
         assert client.patch(moved[0], 10, 10).source == moved[0]
     finally:
         subscriber.undeclare()
@@ -154,22 +180,27 @@ def test_service_and_client_resume_after_a_router_restart(tiny_backend, tmp_path
     received: list[Maps] = []
     subscriber = client.subscribe_maps("**", received.append)
     try:
-        assert wait_until(lambda: instances_seen(client) == {"box-r"}, 20)
-        time.sleep(0.3)
+        assert wait_until(lambda: instances_seen(client) == {"box-r"}, 60)
+        # the service's input subscription known to the client, the client's maps subscription to the service
+        assert subscribed_elsewhere(client.session, input_key(client.input_prefix, "r1")), "the input subscription"
+        assert subscribed_elsewhere(session, service.keys.maps("r1")), "the maps subscription"
         client.publish_image("r1", IMAGE)
-        assert wait_until(lambda: len(received) == 1, 10)
+        assert wait_until(lambda: len(received) == 1, 30)
         router.send_signal(signal.SIGKILL)
         router.communicate(timeout=20)
         time.sleep(1.0)
         router = start_router(port)
         back_at = time.monotonic()
         resumed = None
-        while time.monotonic() - back_at < 15:
+        while time.monotonic() - back_at < 30:  # the bound of a failure only
             client.publish_image("r1", IMAGE)
             if wait_until(lambda: len(received) > 1, 0.25):
                 resumed = time.monotonic() - back_at
                 break
-        assert resumed is not None and resumed < 5.0, resumed
+        # zenoh's reconnection backoff (retry defaults: 1, 2, 4 s, at most 4 s apart): the sessions are back at
+        # most 4 s after the router, plus the handshake and a frame's inference; seen 0.05-3.1 s, loaded. 5 s
+        # left a loaded machine no margin; a session that never came back would still fail here.
+        assert resumed is not None and resumed < 10.0, resumed
         print(f"\nmaps again {resumed:.2f} s after the router came back")
         # The same service process, still counting (or answering the unchanged view with its kept maps).
         assert received[-1].header.seq >= 1 or received[-1].reused
@@ -234,8 +265,13 @@ def test_sigkill_during_anchor_swaps_never_tears_the_state(tiny_model_dir: Path,
                     assert not list(tmp_path.glob(".*.tmp"))  # a restart clears interrupted writes
                     log.acknowledged, log.unanswered = loaded, []
                     worker = threading.Thread(target=log.swap_until_killed, args=(client, round_index * 10000))
+                    acknowledged_before = log.count
                     worker.start()
-                    time.sleep(0.4 + 0.15 * round_index)
+                    # a swap of this round landed (the kill comes between acknowledged swaps, not before the
+                    # first), then the kill lands at a different point of the swap loop each round
+                    assert wait_until(lambda n=acknowledged_before, w=worker: log.count > n or not w.is_alive(), 60)
+                    assert worker.is_alive(), "the swaps stopped before the kill"
+                    time.sleep(0.15 * round_index)
                     process.send_signal(signal.SIGKILL)
                     worker.join(20)
                     assert not worker.is_alive()

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import zenoh
 from conftest import textured_image
-from zenoh_helpers import free_port, service_reachable, wait_until
+from zenoh_helpers import free_port, service_reachable, subscribed_elsewhere, wait_until
 
 pytest.importorskip("torch")
 
@@ -19,6 +19,7 @@ from gcdtrav.client import QueryTimeout, TraversabilityClient
 from gcdtrav.client.session.zenoh_args import zenoh_config
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.config import EngineSettings
+from gcdtrav.schemas.keys import input_key
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.pipeline import Pipeline
@@ -56,12 +57,12 @@ def test_only_the_operator_can_change_the_anchor_set(tiny_backend, tmp_path: Pat
     service, session = start(tiny_backend, config, tmp_path)
     try:
         with TraversabilityClient(config=user_config(port, "robot", "robot-secret"), timeout=1.5) as robot:
-            assert wait_until(lambda: service_reachable(robot), 10)  # status and maps are open to robots
+            assert wait_until(lambda: service_reachable(robot), 60)  # status and maps are open to robots
             with pytest.raises(QueryTimeout):  # the service session's ACL drops the query: no reply at all
                 robot.set_anchors(NEW_SET)
             assert service.pipeline.anchors.version == default_anchor_set().version
         with TraversabilityClient(config=user_config(port, "operator", "operator-secret"), timeout=5.0) as operator:
-            assert wait_until(lambda: service_reachable(operator), 10)
+            assert wait_until(lambda: service_reachable(operator), 60)
             version = operator.set_anchors(NEW_SET)
             assert service.pipeline.anchors.version == version != default_anchor_set().version
         for user, password in ((None, None), ("robot", "wrong")):  # no session without valid credentials
@@ -86,11 +87,13 @@ def test_only_robots_can_put_frames(tiny_backend, tmp_path: Path) -> None:  # ty
             TraversabilityClient(config=user_config(port, "planner", "planner-secret"), timeout=5.0) as planner,
             TraversabilityClient(config=user_config(port, "robot", "robot-secret"), timeout=5.0) as robot,
         ):
-            assert wait_until(lambda: service_reachable(planner) and service_reachable(robot), 10)
+            assert wait_until(lambda: service_reachable(planner) and service_reachable(robot), 60)
             for _ in range(3):
                 planner.publish_image("intruder/cam", textured_image(48, 64))
+            # the service's input subscription known to the robot's session: its one frame is sent
+            assert subscribed_elsewhere(robot.session, input_key(robot.input_prefix, "r1/cam"))
             robot.publish_image("r1/cam", textured_image(48, 64))
-            assert wait_until(lambda: "r1/cam" in robot.status().sources, 15)
+            assert wait_until(lambda: "r1/cam" in robot.status().sources, 60)
             planner.publish_image("intruder/cam", textured_image(48, 64))
             time.sleep(0.5)
             status = robot.status()
@@ -179,7 +182,7 @@ def test_tls_example_with_mutual_authentication(tiny_backend, tmp_path: Path) ->
 
     try:
         with TraversabilityClient(config=tls_client(True), timeout=2.0) as trusted:
-            assert wait_until(lambda: service_reachable(trusted), 10)
+            assert wait_until(lambda: service_reachable(trusted), 60)
             assert trusted.status().instance == "secure"
         with TraversabilityClient(config=tls_client(False), timeout=1.0) as anonymous:
             time.sleep(0.5)

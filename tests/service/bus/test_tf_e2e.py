@@ -13,6 +13,7 @@ import pytest
 import zenoh
 from gcdtrav.client.session.zenoh_args import zenoh_config
 from gcdtrav.schemas.anchors import default_anchor_set
+from gcdtrav.schemas.keys import input_key
 from gcdtrav.schemas.messages import Pose2D
 from gcdtrav.schemas.settings import GridSettings
 from gcdtrav.service.bus.entities import undeclare_all
@@ -21,7 +22,7 @@ from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameRecord
 from gcdtrav.service.runtime.stats import ServiceStats
 from zenoh import ext
-from zenoh_helpers import connecting_config, free_port, wait_until
+from zenoh_helpers import connecting_config, free_port, subscribed_elsewhere, wait_until
 
 pytest.importorskip("rosbags")
 
@@ -108,10 +109,10 @@ def test_a_grid_from_tf_fuses_the_same_cells_as_the_same_mount_and_poses_in_yaml
     declared = declare_tf_inputs(session, tf_grids, stats)
     try:
         tf_camera, tree = tf_grids.sources["cam"].cameras["cam"], tf_grids.tf["cam"].tree
-        assert wait_until(lambda: "camera_optical_frame" in tree, 10), "the latched /tf_static never arrived"
+        assert wait_until(lambda: "camera_optical_frame" in tree, 60), "the latched /tf_static never arrived"
         assert tf_camera.mount_origin is None  # the camera's frame comes with its first image
         dynamic = robot.declare_publisher(key("/tf", layout), congestion_control=zenoh.CongestionControl.BLOCK)
-        assert wait_until(lambda: dynamic.matching_status.matching, 10), "the service's /tf subscriber is unseen"
+        assert wait_until(lambda: dynamic.matching_status.matching, 60), "the service's /tf subscriber is unseen"
         stamps = [10.0 + 0.05 * k for k in range(61)]
         for stamp in stamps:
             x, y, yaw = drive(stamp)
@@ -121,7 +122,7 @@ def test_a_grid_from_tf_fuses_the_same_cells_as_the_same_mount_and_poses_in_yaml
             dynamic.put(tf_message_cdr([odom]))
         dynamic.put(b"\x00\x01\x00\x00not a TFMessage")  # counted, nothing stops
         tf_poses = tf_grids.sources["cam"].poses
-        assert wait_until(lambda: tf_poses.received == len(stamps) and stats.rejected_by_reason["bad_tf"] == 1, 10), (
+        assert wait_until(lambda: tf_poses.received == len(stamps) and stats.rejected_by_reason["bad_tf"] == 1, 60), (
             tf_poses.received,
             dict(stats.rejected_by_reason),
             tf_grids.tf["cam"].waiting,
@@ -184,9 +185,11 @@ def test_the_service_fuses_a_grid_whose_mount_and_pose_come_from_the_robots_tf(t
         try:
             state = service.runtime.grids.sources["cam"]
             assert service.ros_graph is not None  # no ros_inputs, but rmw_zenoh tf keys: the graph lists them
-            assert wait_until(lambda: state.poses.received > 0, 10), "no pose from /tf"
+            assert wait_until(lambda: state.poses.received > 0, 60), "no pose from /tf"
+            # the client's own session knows the service's input subscription: its one frame is not lost
+            assert subscribed_elsewhere(client.session, input_key(client.input_prefix, "cam")), "the inputs"
             client.publish_image("cam", textured_image(60, 80))  # before /tf_static: no mount, and the status says why
-            assert wait_until(lambda: state.health.not_fused.get("no_mount") == 1, 15), state.health
+            assert wait_until(lambda: state.health.not_fused.get("no_mount") == 1, 60), state.health
             (grid,) = client.status().grids or []
             assert grid.cameras["cam"].mount is None and grid.not_fused_by_reason == {"no_mount": 1}
             assert grid.cameras["cam"].placement is None  # a viewer draws no camera yet
@@ -196,9 +199,9 @@ def test_the_service_fuses_a_grid_whose_mount_and_pose_come_from_the_robots_tf(t
                 sample_miss_detection=ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=0.5),
             )  # fmt: skip
             static.put(robot_static())
-            assert wait_until(lambda: "camera_optical_frame" in service.runtime.grids.tf["cam"].tree, 10)
+            assert wait_until(lambda: "camera_optical_frame" in service.runtime.grids.tf["cam"].tree, 60)
             client.publish_image("cam", textured_image(60, 80, seed=1))
-            assert wait_until(lambda: state.health.fused == 1, 15), state.health
+            assert wait_until(lambda: state.health.fused == 1, 60), state.health
             camera = state.cameras["cam"]
             assert camera.mount_origin == "tf" and camera.mount.z == pytest.approx(0.9)
             placement = (client.status().grids or [])[0].cameras["cam"].placement  # what a viewer draws
@@ -208,7 +211,7 @@ def test_the_service_fuses_a_grid_whose_mount_and_pose_come_from_the_robots_tf(t
             assert (state.fused_at.pose.x, state.fused_at.pose.y) == pytest.approx((2.0, 1.0))
             stop.set()
             streaming.join(5)
-            assert wait_until(lambda: client.status().rejected_by_reason.get("bad_tf") == 1, 10)
+            assert wait_until(lambda: client.status().rejected_by_reason.get("bad_tf") == 1, 60)
         finally:
             stop.set()
             if static is not None:

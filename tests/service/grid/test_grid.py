@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
 
 import numpy as np
@@ -119,10 +118,11 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
     from gcdtrav.client import Grid, TraversabilityClient
     from gcdtrav.client.commands.operator import status_table
     from gcdtrav.schemas.anchors import default_anchor_set
+    from gcdtrav.schemas.keys import input_key
     from gcdtrav.schemas.messages import Pose2D
     from gcdtrav.schemas.settings import ServiceSettings
     from gcdtrav.service.ros import cdr as ros
-    from zenoh_helpers import connecting_config, wait_until
+    from zenoh_helpers import connecting_config, service_reachable, subscribed_elsewhere, wait_until
 
     from tools.loopback import in_process_service
     from tools.ros_fixtures import decode_grid_map
@@ -136,7 +136,7 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
             "grids": [camera_grid(max_range_m=6.0, half_life_s=5.0, occupancy_grid=True, grid_map=True, costmap=True)],
         }
     )
-    with in_process_service(tiny_backend, settings) as (_, port):
+    with in_process_service(tiny_backend, settings) as (service, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         grids: list[Grid] = []
         occupancy: list[bytes] = []
@@ -154,13 +154,23 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
                 "gcdtrav/out/cam/grid/costmap", lambda s: costmaps.append(s.payload.to_bytes())
             ),
         ]
+
+        def put_pose(pose: Pose2D) -> None:  # and wait until the service holds it: the next frame fuses at it
+            held = service.status().grids[0].poses_held
+            client.session.put("robot/pose", pose.pack())
+            assert wait_until(lambda: service.status().grids[0].poses_held > held, 30), pose
+
         try:
-            time.sleep(0.5)
+            # the service's subscriptions known to the client (poses, images), the client's to the service
+            assert wait_until(lambda: service_reachable(client), 60)
+            for key in ("robot/pose", input_key(client.input_prefix, "cam")):
+                assert subscribed_elsewhere(client.session, key), key
+            for layer in ("", "occupancy", "gridmap", "costmap"):
+                assert subscribed_elsewhere(service.session, service.keys.grid("cam", layer)), layer
             for step in range(3):  # drive 0.5 m along x per frame
-                client.session.put("robot/pose", Pose2D(stamp=100.0 + step, x=0.5 * step, y=0.0, yaw=0.0).pack())
-                time.sleep(0.2)
+                put_pose(Pose2D(stamp=100.0 + step, x=0.5 * step, y=0.0, yaw=0.0))
                 client.publish_image("cam", textured_image(60, 80, seed=step), stamp=100.0 + step)
-                assert wait_until(lambda n=step + 1: len(grids) >= n and len(occupancy) >= n, 15)
+                assert wait_until(lambda n=step + 1: len(grids) >= n and len(occupancy) >= n, 60)
             grid = grids[-1]
             header = grid.header
             assert header.frame_id == "odom" and header.robot == (1.0, 0.0, 0.0) and header.seq == 2
@@ -194,7 +204,7 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
             expected = np.round((1 - grid.traversability[known]) * 100)
             assert np.abs(data[known] - expected).max() <= 1
             # The planner's layers: in the message, the GridMap and the Nav2 costmap alike.
-            assert wait_until(lambda: len(grid_maps) >= 3 and len(costmaps) >= 3, 10)
+            assert wait_until(lambda: len(grid_maps) >= 3 and len(costmaps) >= 3, 30)
             assert grid.cvar is not None and grid.p_below is not None and grid.age is not None
             assert (grid.cvar[known] <= grid.traversability[known] + 2 / 65535).all()
             assert header.alpha == 0.1 and header.tau == 0.3 and header.expired_cells == 0
@@ -213,16 +223,15 @@ def test_synthetic_drive_through_zenoh(tiny_backend, tmp_path: Path) -> None:  #
             assert len(unswapped.weights) == 13 and unswapped.anchor_set_version == header.anchor_set_version
             assert [a.concept for a in unswapped.anchors] == default_anchor_set().concepts
             # The robot stood still since: its pose at the frame's capture is known (frames fuse at it).
-            client.session.put("robot/pose", Pose2D(stamp=104.0, x=1.0, y=0.0, yaw=0.0).pack())
-            time.sleep(0.2)
+            put_pose(Pose2D(stamp=104.0, x=1.0, y=0.0, yaw=0.0))
             client.publish_image("cam", textured_image(60, 80, seed=9), stamp=104.0)
-            assert wait_until(lambda: grids[-1].header.resets == 1, 15)
+            assert wait_until(lambda: grids[-1].header.resets == 1, 60)
             assert "anchor set changed" in grids[-1].header.last_reset
             assert len(client.cell("cam", 2.7, 0.0).weights) == 2
             # A frame taken long after the last pose finds none: not fused, and the status says why.
             changed = np.full((60, 80, 3), 220, np.uint8)  # a new view (an unchanged one is reused, never fused)
             client.publish_image("cam", changed, stamp=110.0)
-            assert wait_until(lambda: client.status().grids[0].not_fused_by_reason == {"pose_too_old": 1}, 15)
+            assert wait_until(lambda: client.status().grids[0].not_fused_by_reason == {"pose_too_old": 1}, 60)
             status = client.status()
             grid_status = status.grids[0]
             assert grid_status.source == "cam" and grid_status.fused == 4 and grid_status.frame_id == "odom"
