@@ -10,12 +10,13 @@ from gcdtrav.client.session.zenoh_args import zenoh_config
 
 from tools.loopback import free_port as free_port  # re-exported: tests take it from here
 from tools.loopback import serve_command
+from tools.loopback import waits_before_dropping as waits_before_dropping  # re-exported
 
 
 def connecting_config(port: int, mode: str = "peer") -> zenoh.Config:
     conf = zenoh_config(mode=mode, connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
     conf.insert_json5("scouting/gossip/enabled", "false")
-    return conf
+    return waits_before_dropping(conf)
 
 
 def wait_until(condition: Callable[[], object], timeout: float = 10.0, interval: float = 0.05) -> bool:
@@ -61,7 +62,9 @@ def start_router(port: int):  # type: ignore[no-untyped-def]
 
 def client_config(port: int) -> zenoh.Config:
     """A client-mode session of the router on ``port``: it reconnects by itself when the router returns."""
-    return zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    return waits_before_dropping(
+        zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    )
 
 
 def serve_args(model: object, *extra: str) -> list[str]:

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import zenoh
 from gcdtrav.client import Maps, TraversabilityClient, zenoh_config
 from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings
@@ -40,6 +41,16 @@ def free_port() -> int:
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return int(sock.getsockname()[1])
+
+
+def waits_before_dropping(config: zenoh.Config) -> zenoh.Config:
+    """``config``, waiting up to 1 s (5 s for a fragmented sample) for a free batch before dropping a sample put
+    with congestion control DROP (the service's maps, a put's default) instead of zenoh's 1 ms (50 ms): on a
+    loaded 2-core machine the sending thread is not run that soon, and a test's one maps message, or a
+    client's one 400 kB put, was lost. For the sessions of tests and benchmarks on loopback, not the product's."""
+    config.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", "1000000")
+    config.insert_json5("transport/link/tx/queue/congestion_control/drop/max_wait_before_drop_fragments", "5000000")
+    return config
 
 
 def serve_command(*arguments: str) -> list[str]:
@@ -91,16 +102,17 @@ def wait_for_statuses(client: TraversabilityClient, instances: int, timeout_s: f
 def in_process_service(
     backend: SegmentationBackend, settings: ServiceSettings, anchors: AnchorSet | None = None
 ) -> Iterator[tuple[TraversabilityService, int]]:
-    """A started service in this process on its own session, listening on a free loopback port.
+    """A started service in this process on its own session, listening on a free loopback port, waiting before
+    it drops a sample (``waits_before_dropping``).
 
     Yields the service and the port; ``anchors`` defaults to the paper's set. Stopped and closed at exit.
     """
-    import zenoh
     from gcdtrav.service.bus.node import TraversabilityService
     from gcdtrav.service.pipeline import Pipeline
 
     port = free_port()
-    session = zenoh.open(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
+    config = zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    session = zenoh.open(waits_before_dropping(config))
     try:
         pipeline = Pipeline(backend, anchors if anchors is not None else default_anchor_set(), settings.engine)
         service = TraversabilityService(session, pipeline, settings)

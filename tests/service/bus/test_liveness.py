@@ -14,7 +14,14 @@ from typing import Any
 import pytest
 import zenoh
 from conftest import textured_image
-from zenoh_helpers import client_config, free_port, start_router, subscribed_elsewhere, wait_until
+from zenoh_helpers import (
+    client_config,
+    free_port,
+    start_router,
+    subscribed_elsewhere,
+    wait_until,
+    waits_before_dropping,
+)
 
 pytest.importorskip("torch")
 
@@ -46,15 +53,6 @@ class HangingBackend:
         if self.hang.is_set():
             self.release.wait(60)
         return self.inner.logits(image, prepared)
-
-
-def waits_before_dropping(config: zenoh.Config) -> zenoh.Config:
-    """``config``, waiting up to 1 s (5 s for a fragmented sample) for a free batch before dropping: the maps go
-    out with congestion control DROP, and zenoh's 1 ms (50 ms) lost a test's maps on a loaded 2-core machine,
-    whose sending thread is not run that soon."""
-    config.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", "1000000")
-    config.insert_json5("transport/link/tx/queue/congestion_control/drop/max_wait_before_drop_fragments", "5000000")
-    return config
 
 
 def start(backend: Any, port: int, instance: str, state_dir: Path) -> tuple[TraversabilityService, zenoh.Session]:

@@ -12,12 +12,17 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import TINY_INPUT_SIZE, textured_image
-from zenoh_helpers import connecting_config, free_port, service_reachable, subscribed_elsewhere, wait_until
+from zenoh_helpers import (
+    connecting_config,
+    service_reachable,
+    subscribed_elsewhere,
+    wait_until,
+    waits_before_dropping,
+)
 
 pytest.importorskip("torch")
 
 from gcdtrav.client import AnchorSetRejected, Maps, ServiceError, TraversabilityClient
-from gcdtrav.client.session.zenoh_args import zenoh_config
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.keys import input_key
 from gcdtrav.schemas.settings import ServiceSettings
@@ -25,7 +30,8 @@ from gcdtrav.service.backends.cpus import usable_cpus
 from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.commands.serve import starting_anchor_set
 from gcdtrav.service.engine import gcd
-from gcdtrav.service.pipeline import Pipeline
+
+from tools.loopback import in_process_service
 
 TWO_ANCHORS = {
     "name": "puddles",
@@ -58,35 +64,13 @@ class Running:
     received: list[Maps]
 
 
-def waits_before_dropping(config: zenoh.Config) -> zenoh.Config:
-    """``config``, waiting up to 1 s (5 s for a fragmented sample) for a free batch before dropping a sample put
-    with congestion control DROP (the service's maps; a put's default), not zenoh's 1 ms (50 ms). On a loaded
-    2-core machine the sending thread is not run that soon: a test's one maps message was lost (the frame
-    processed, last_seq 0, no maps in 60 s), and so was a client's one 400 kB put."""
-    config.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop", "1000000")
-    config.insert_json5("transport/link/tx/queue/congestion_control/drop/max_wait_before_drop_fragments", "5000000")
-    return config
-
-
 @contextmanager
 def started_service(backend, state_dir: Path, **settings_kw: object) -> Iterator[tuple[TraversabilityService, int]]:  # type: ignore[no-untyped-def]
     settings_kw.setdefault("max_frame_age_s", None)  # some frames are stamped in 1970
     settings_kw.setdefault("reuse", {"enabled": False})  # one image again and again: inferred each time here
     settings = ServiceSettings(state_dir=state_dir, instance="test-1", **settings_kw)  # type: ignore[arg-type]
-    # tools.loopback.in_process_service, on a session that waits longer before it drops (waits_before_dropping)
-    port = free_port()
-    config = zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
-    session = zenoh.open(waits_before_dropping(config))
-    try:
-        pipeline = Pipeline(backend, starting_anchor_set(settings), settings.engine)
-        service = TraversabilityService(session, pipeline, settings)
-        service.start()
-        try:
-            yield service, port
-        finally:
-            service.stop()
-    finally:
-        session.close()
+    with in_process_service(backend, settings, starting_anchor_set(settings)) as started:
+        yield started
 
 
 # threads=None: torch has every CPU, one thread does all per-frame work. threads=1 on a box with more CPUs:
