@@ -309,11 +309,11 @@ def test_sigterm_to_an_instance_serving_robots_leaves_no_robot_without_maps(
         print(f"\nSIGTERM to box-b: exited in {exit_s:.2f} s; longest gap per robot: {gaps}")
         # From SIGTERM to "stopped" by the process's own log clock: the drain and the session's close, within the
         # grace period (+ 1 s: the stamps are the log lines', the frame in flight is bounded by the grace). The
-        # interpreter's exit after it takes seconds more on a loaded machine (10.9 s in all seen): bounded loosely.
+        # process then exits without the interpreter's teardown (serve.exit_now: it took 9-11 s loaded).
         drain_s = logged_s(output, "SIGTERM received: finishing the frame in flight and shutting down", ": stopped")
         print(f"box-b's log: SIGTERM to stopped in {drain_s:.2f} s")
         assert drain_s < grace_s + 1, output[-2000:]
-        assert exit_s < grace_s + 30  # + the interpreter's exit
+        assert exit_s < grace_s + 3, exit_s
         assert max(gaps.values()) <= 2.0, gaps
         for source in sources:
             for _, maps in arrivals[source]:
