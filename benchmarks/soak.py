@@ -36,7 +36,14 @@ from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.messages import ServiceStatus
 from gcdtrav.service.commands.bench import bench_image, rss_mb
 
-from tools.loopback import INFER_EVERY_FRAME, SimulatedRobots, free_port, service_processes, wait_for_statuses
+from tools.loopback import (
+    INFER_EVERY_FRAME,
+    SimulatedRobots,
+    free_port,
+    service_processes,
+    wait_for_statuses,
+    waits_before_dropping,
+)
 
 
 class ChurningSources:
@@ -184,7 +191,11 @@ def main() -> int:
     scratch = tempfile.TemporaryDirectory()
     model = str(checkpoint_or_random(args.model, Path(scratch.name)))
     port = free_port()
-    router = zenoh.open(zenoh_config(mode="router", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
+    # The router and the robots stand in for other machines: on this loaded box they wait for their sending
+    # thread instead of dropping (waits_before_dropping); the services keep the product's settings.
+    router = zenoh.open(
+        waits_before_dropping(zenoh_config(mode="router", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
+    )
     common = ["--model", model, "-m", "client", "-e", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting"]
     common += ["--threads", str(args.threads), "--no-preview"]
     state = Path(scratch.name)
@@ -203,9 +214,8 @@ def main() -> int:
     stack.callback(scratch.cleanup)
     stack.callback(router.close)
     services = stack.enter_context(service_processes(arguments))  # stopped first, then the router
-    client = TraversabilityClient(
-        config=zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False), timeout=5.0
-    )
+    robots_config = zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
+    client = TraversabilityClient(config=waits_before_dropping(robots_config), timeout=5.0)
     rss_series: dict[str, list[tuple[float, float]]] = defaultdict(list)
     bounds_series: dict[str, list[dict[str, float]]] = defaultdict(list)
     report: dict[str, Any] = {}

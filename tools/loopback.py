@@ -137,7 +137,7 @@ def loopback_service(model_dir: Path, precision: str, instance: str = "bench") -
         )
         with in_process_service(backend, settings) as (_, port):
             config = zenoh_config(mode="peer", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False)
-            with TraversabilityClient(config=config) as client:
+            with TraversabilityClient(config=waits_before_dropping(config)) as client:
                 yield client
 
 
