@@ -29,7 +29,6 @@ from zenoh_helpers import (
     start_router,
     subscribed_elsewhere,
     wait_until,
-    waits_before_dropping,
 )
 
 pytest.importorskip("torch")
@@ -66,7 +65,7 @@ class GatedBackend:
 
 
 def service(backend: Any, port: int, instance: str, state_dir: Path, **settings: Any) -> TraversabilityService:
-    session = zenoh.open(waits_before_dropping(client_config(port)))
+    session = zenoh.open(client_config(port))
     configured = ServiceSettings(state_dir=state_dir, instance=instance, preview=False, **settings)
     return TraversabilityService(session, Pipeline(backend, default_anchor_set(), EngineSettings()), configured)
 

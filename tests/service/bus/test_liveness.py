@@ -20,7 +20,6 @@ from zenoh_helpers import (
     start_router,
     subscribed_elsewhere,
     wait_until,
-    waits_before_dropping,
 )
 
 pytest.importorskip("torch")
@@ -56,7 +55,7 @@ class HangingBackend:
 
 
 def start(backend: Any, port: int, instance: str, state_dir: Path) -> tuple[TraversabilityService, zenoh.Session]:
-    session = zenoh.open(waits_before_dropping(client_config(port)))
+    session = zenoh.open(client_config(port))
     settings = ServiceSettings(
         state_dir=state_dir, instance=instance, preview=False, stall_after_s=1.0, max_frame_age_s=1.5
     )

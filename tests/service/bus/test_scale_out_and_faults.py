@@ -22,7 +22,6 @@ from zenoh_helpers import (
     start_router,
     subscribed_elsewhere,
     wait_until,
-    waits_before_dropping,
 )
 
 pytest.importorskip("torch")
@@ -58,7 +57,7 @@ def serve_process(model: Path, router_port: int, instance: str, state_dir: Path)
 
 
 def in_process_service(backend, router_port: int, instance: str, state_dir: Path):  # type: ignore[no-untyped-def]
-    session = zenoh.open(waits_before_dropping(client_config(router_port)))
+    session = zenoh.open(client_config(router_port))
     settings = ServiceSettings(state_dir=state_dir, instance=instance, preview=False)
     service = TraversabilityService(session, Pipeline(backend, default_anchor_set(), EngineSettings()), settings)
     service.start()

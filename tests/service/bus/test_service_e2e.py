@@ -17,7 +17,6 @@ from zenoh_helpers import (
     service_reachable,
     subscribed_elsewhere,
     wait_until,
-    waits_before_dropping,
 )
 
 pytest.importorskip("torch")
@@ -87,7 +86,7 @@ def running(tiny_backend, tmp_path: Path, request: pytest.FixtureRequest) -> Ite
         tiny_backend, tmp_path, history=3, max_payload_bytes=300_000, full_resolution=True, threads=request.param
     ) as (service, port):
         assert service.runtime.worker.overlap_outputs == (request.param is not None)
-        client = TraversabilityClient(config=waits_before_dropping(connecting_config(port)), timeout=5.0)
+        client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         received: list[Maps] = []
         subscriber = client.subscribe_maps("**", received.append)
         assert wait_until(lambda: service_reachable(client), 60)
@@ -267,7 +266,7 @@ def test_bad_payloads_are_counted_and_the_next_frame_processed(running: Running)
 @pytest.mark.parametrize("threads", PIPELINES)
 def test_latest_only_under_load(tiny_backend, tmp_path: Path, threads: int | None) -> None:  # type: ignore[no-untyped-def]
     with started_service(SlowBackend(tiny_backend, 0.08), tmp_path, threads=threads) as (service, port):
-        client = TraversabilityClient(config=waits_before_dropping(connecting_config(port)), timeout=5.0)
+        client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         try:
             assert wait_until(lambda: service_reachable(client), 60)
             # the service's input subscription known to the client: none of the burst is held back
