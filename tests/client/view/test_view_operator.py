@@ -185,7 +185,7 @@ def decode_log(fox: FoxgloveClient, raw: bytes) -> str:
     return str(decode(channel["schemaName"], base64.b64decode(channel["schema"]), raw)["message"])
 
 
-async def probe_by_parameter_and_by_point(url: str) -> dict[str, Any]:
+async def probe_by_parameter_and_by_point(url: str, client: FakeClient) -> dict[str, Any]:
     fox = await FoxgloveClient.connect(url)
     await fox.until(lambda: f"{TOPIC}/grid" in fox.channels)
     # as Lichtblick's Parameters panel: updates of the names it lists
@@ -204,6 +204,8 @@ async def probe_by_parameter_and_by_point(url: str) -> dict[str, Any]:
     await fox.websocket.send(struct.pack("<BI", 1, 7) + point)
     await fox.until(lambda: any(p.get("value") == "cell" for op in fox.ops_named("parameterValues")
                                 for p in op["parameters"] if p["name"] == "probe/target"))  # fmt: skip
+    # the probe loop queries only while someone watches the distribution: before this viewer leaves
+    await fox.until(lambda: any(query[0] == "cell" for query in client.queries))
     # a refused anchor edit, sent as the Parameters panel does: the panel is told the active value again
     before = len(fox.ops_named("parameterValues"))
     await fox.send(op="setParameters", parameters=[{"name": "anchors/02/position", "value": 1.5}])
@@ -216,10 +218,9 @@ async def probe_by_parameter_and_by_point(url: str) -> dict[str, Any]:
 
 def test_the_probed_distribution_by_parameter_and_by_a_published_point(fed: tuple[Viewer, FakeClient]) -> None:
     viewer, client = fed
-    seen = asyncio.run(probe_by_parameter_and_by_point(viewer.url))
+    seen = asyncio.run(probe_by_parameter_and_by_point(viewer.url, client))
     assert ("patch", "cam", 40.0, 30.0) in client.queries
     x, y, yaw = ROBOT  # 1 m ahead of the robot, in odom
-    assert wait_until(lambda: any(query[0] == "cell" for query in client.queries), 30)  # the probe loop's query
     cell = next(query for query in client.queries if query[0] == "cell")
     assert cell[1] == "cam" and cell[2:] == pytest.approx((x + np.cos(yaw), y + np.sin(yaw)))
     fields = protobuf_fields(seen["picture"])
