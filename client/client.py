@@ -245,10 +245,17 @@ EARLY_END = 0.9  # a query that ended before this share of its timeout was ended
 CLOCK_STEP_BACK_S = 10.0  # over the service's max_frame_age_s (5 s): no fresh frame is stamped this much older
 
 
+ZENOH_TIMEOUT_ENCODINGS = ("zenoh/string", "zenoh/bytes")
+
+
 def zenoh_timeout(err: zenoh.ReplyError | None) -> bool:
     """Zenoh's own error reply when a query's time runs out with a queryable reached but no answer yet (a busy
-    service): "Timeout" as a zenoh string. The service's own errors are msgpack or JSON, never that."""
-    return err is not None and str(err.encoding) == "zenoh/string" and err.payload.to_bytes() == b"Timeout"
+    service): "Timeout", as a zenoh string from the querying session's own timer, or with the default encoding
+    from the routing of a session on the way (zenoh's dispatcher/queries.rs, QueryCleanup), whichever comes
+    first. The service's own errors are msgpack or JSON, never that."""
+    if err is None or err.payload.to_bytes() != b"Timeout":
+        return False
+    return str(err.encoding) in ZENOH_TIMEOUT_ENCODINGS
 
 
 def no_reply_message(key: str, timeout: float, waited: float) -> str:

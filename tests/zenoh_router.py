@@ -5,6 +5,7 @@ python tests/zenoh_router.py PORT
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
@@ -20,7 +21,13 @@ def main() -> None:
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     print("router ready", flush=True)
     stop.wait(600)  # bounded: a test that forgets it does not leave it running for long
-    session.close()
+    # Closed politely if it can be (the clients hear of it), but never for long: loaded, a router's close or its
+    # interpreter's exit once outlasted a test's 20 s teardown.
+    closing = threading.Thread(target=session.close, daemon=True)
+    closing.start()
+    closing.join(5.0)
+    sys.stdout.flush()
+    os._exit(0)
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ import time
 import pytest
 import zenoh
 from gcdtrav.client import QueryTimeout, TraversabilityClient
-from gcdtrav.client.client import no_reply_message
+from gcdtrav.client.client import no_reply_message, zenoh_timeout
 from gcdtrav.client.session.zenoh_args import zenoh_config
 from zenoh_helpers import connecting_config, free_port, wait_until
 
@@ -61,3 +61,23 @@ def queryable_known(session: zenoh.Session) -> bool:
         return bool(querier.matching_status.matching)
     finally:
         querier.undeclare()
+
+
+class FakeReplyError:
+    """A zenoh ReplyError's two fields the client reads."""
+
+    def __init__(self, payload: bytes, encoding: str) -> None:
+        self.payload, self.encoding = zenoh.ZBytes(payload), zenoh.Encoding(encoding)
+
+
+@pytest.mark.parametrize(
+    ("payload", "encoding", "timed_out"),
+    [
+        (b"Timeout", "zenoh/string", True),  # the querying session's own timer
+        (b"Timeout", "zenoh/bytes", True),  # a routing session's QueryCleanup (the default encoding), loaded
+        (b"Timeout", "application/msgpack", False),  # a replier's own error, whatever it says
+        (b"timeout", "zenoh/string", False),
+    ],
+)
+def test_zenoh_s_timeouts_from_either_side_are_timeouts(payload: bytes, encoding: str, timed_out: bool) -> None:
+    assert zenoh_timeout(FakeReplyError(payload, encoding)) is timed_out  # type: ignore[arg-type]

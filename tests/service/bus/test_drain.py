@@ -125,6 +125,12 @@ def instances_joined(client: TraversabilityClient) -> set[str]:
     return set.intersection(*(set(status.instances) for status in statuses)) if statuses else set()
 
 
+def tables_agree(*services: TraversabilityService) -> bool:
+    """Every instance's table gives the same owner to each of 50 sources, and more than one instance owns."""
+    owners = [[s.membership.owner(f"r{i}/front") for i in range(50)] for s in services]  # type: ignore[union-attr]
+    return all(table == owners[0] for table in owners) and len(set(owners[0])) == len(services)
+
+
 def test_a_stopping_instance_leaves_first_then_publishes_the_frame_in_flight(tiny_backend: Any, tmp_path: Path) -> None:
     """Before, stop() withdrew the token and the gate then refused the frame in flight (not_owner): its robot
     got nothing for it. Now the others see the instance leave while that frame is still being inferred, and
@@ -143,6 +149,8 @@ def test_a_stopping_instance_leaves_first_then_publishes_the_frame_in_flight(tin
         a.start()
         b.start()
         assert wait_until(lambda: b.membership.live() == {"box-a", "box-b"}, 60)  # type: ignore[union-attr]
+        # both tables hold both instances (each follows its live set a moment later): they agree on the owner
+        assert wait_until(lambda: tables_agree(a, b), 30)
         assert probe(health_port, "/readyz") == (200, "ok\n")
         assert probe(health_port, "/livez") == (200, "ok\n")
         assert probe(health_port, "/metrics")[0] == 404
@@ -157,7 +165,8 @@ def test_a_stopping_instance_leaves_first_then_publishes_the_frame_in_flight(tin
         stopping.start()
         # The token went first: the other instance serves the source while the frame is still in flight.
         assert wait_until(lambda: b.membership.live() == {"box-b"}, 30)  # type: ignore[union-attr]
-        assert b.membership.owner(source) == "box-b"  # type: ignore[union-attr]
+        # its table follows the live set a moment later (Membership._changed: live, then set_instances)
+        assert wait_until(lambda: b.membership.owner(source) == "box-b", 30)  # type: ignore[union-attr]
         status, reason = probe(health_port, "/readyz")
         assert status == 503 and reason.startswith("draining"), reason
         gated.release.set()

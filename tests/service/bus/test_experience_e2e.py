@@ -22,7 +22,7 @@ from gcdtrav.service.bus.node import TraversabilityService
 from gcdtrav.service.commands.serve import starting_anchor_set
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.store.opening import sqlite_file
-from zenoh_helpers import connecting_config, free_port, service_reachable, wait_until
+from zenoh_helpers import connecting_config, free_port, service_reachable, subscribed_elsewhere, wait_until
 
 from tools.loopback import in_process_service
 from tools.robot_drive import CAMERA_SOURCE, CMD_VEL_KEY, START_STAMP, BusRobot, experience_settings, grid_settings
@@ -253,6 +253,8 @@ def test_ros_topics_are_read_as_cdr_on_rmw_zenoh_keys(tmp_path: Path, caplog: py
         ) in serving
         twist = topic_key(RosTopic("/robot/cmd_vel", "geometry_msgs/msg/Twist", "rmw_zenoh", domain=7))
         odometry = topic_key(RosTopic("/robot/odom", "nav_msgs/msg/Odometry", "rmw_zenoh", domain=7))
+        for key in (twist, odometry):  # the service's ROS subscriptions known here: no put is lost
+            assert subscribed_elsewhere(client.session, key), key
         for k in range(40):  # 2 s at 0.5 m/s, commanded 1 m/s: outcomes every 0.3 m (no grid: no pairs)
             client.session.put(twist, twist_cdr(1.0))
             client.session.put(odometry, odometry_cdr(START_STAMP + 0.05 * k, 0.025 * k, 0.0, 0.0, 0.5))
