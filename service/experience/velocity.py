@@ -88,7 +88,9 @@ class VelocityTracker:
         s = self.settings
         with self._lock:
             command = self._command
-            fresh = command is not None and 0 <= received_at - self._command_received <= s.command_timeout_s
+            # A command recorded after this sample's receipt is in force too: zenoh runs each subscriber's
+            # callback on its own thread, so a newer command can land between the sample's receipt and here.
+            fresh = command is not None and received_at - self._command_received <= s.command_timeout_s
             commanded = math.hypot(command.vx, command.vy) if command is not None and fresh else 0.0
             if commanded <= s.min_command_mps:
                 self._window = None  # a stop, a turn on the spot or no command: nothing to grade

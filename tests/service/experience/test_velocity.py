@@ -54,6 +54,17 @@ def test_no_outcome_below_min_command_or_with_a_stale_command() -> None:
     assert tracker.counts["not_commanded"] == 100
 
 
+def test_a_command_recorded_after_the_samples_receipt_is_in_force() -> None:
+    """zenoh runs each subscriber's callback on its own thread: the next command can be recorded between an
+    odometry sample's receipt and its grading. Loaded, that reset every window and no outcome came."""
+    tracker, outcomes = VelocityTracker(SETTINGS), []
+    for k in range(40):  # 0.5 m/s commanded 1 m/s; each command lands 1 ms after the sample's receipt
+        tracker.on_command(Twist2D(vx=1.0), received_at=100.0 + 0.05 * k + 0.001)
+        outcomes.append(tracker.on_odometry(Odometry2D(stamp=0.05 * k, x=0.025 * k, y=0.0, vx=0.5), 100.0 + 0.05 * k))
+    assert "not_commanded" not in tracker.counts
+    assert [o.score for o in outcomes if o is not None] == pytest.approx([0.5] * 3)
+
+
 def test_ros_cdr_and_zenoh_forms_decode_alike() -> None:
     assert is_ros_topic("/cmd_vel") and not is_ros_topic("robot/cmd_vel")
     from_ros = decode_command(twist_cdr(0.8, 0.1, 0.3), ros=True)
