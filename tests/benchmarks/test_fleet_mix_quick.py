@@ -1,5 +1,7 @@
-"""benchmarks/fleet_mix.py --quick: the mixed fleet's two phases on a tiny model, for correctness only (the
-tiny model keeps up with every robot, so no rate is compared here; the lead times the real run)."""
+"""benchmarks/fleet_mix.py --quick: the mixed fleet's two phases on a tiny model, for correctness only. Nothing
+is compared across the phases: alone, the tiny model keeps up with every robot, but on a loaded machine round
+robin falls behind and both phases infer as fast as the machine lets them (a full run beside two other suites
+counted 341 inferences for need, 308 for round robin). The lead times the real run."""
 
 from __future__ import annotations
 
@@ -29,10 +31,8 @@ def test_quick_fleet_mix_reuses_parked_views_and_maps_their_changes(tmp_path: Pa
         assert need["maps_per_s"] > 0, result.stdout
         if rr["kind"] == "parked":  # answered at their rate, inferred far less
             assert need["service"]["unchanged"] > need["service"]["processed"], result.stdout
-            assert need["inferred_maps_per_s"] < rr["inferred_maps_per_s"], result.stdout
             assert need["change_to_map_s"] and None not in need["change_to_map_s"], result.stdout
         else:  # panning: inferred (a slow pan's frame may be reused while it is within the noise of the last)
             assert need["service"]["processed"] > need["service"]["unchanged"], result.stdout
     summary = report["summary"]
     assert summary["change_to_map_s"]["without_new_map"] == 0, result.stdout
-    assert summary["inferences"]["need"] < summary["inferences"]["round_robin"], result.stdout
