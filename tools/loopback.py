@@ -98,6 +98,19 @@ def wait_for_statuses(client: TraversabilityClient, instances: int, timeout_s: f
     raise RuntimeError(f"{instances} service instance(s) did not come up within {timeout_s:.0f} s")
 
 
+def anchor_set_at_start(settings: ServiceSettings) -> AnchorSet:
+    """The anchor set `gcdtrav serve` starts with for ``settings``: its store opened once for the read, as serve
+    opens it (``store_at_start``), then closed (``in_process_service`` builds its own service on it)."""
+    from gcdtrav.service.commands.serve import starting_anchor_set, store_at_start
+
+    store = store_at_start(settings)
+    try:
+        return starting_anchor_set(settings, store)
+    finally:
+        if store is not None:
+            store.close()
+
+
 @contextmanager
 def in_process_service(
     backend: SegmentationBackend, settings: ServiceSettings, anchors: AnchorSet | None = None

@@ -32,12 +32,13 @@ JOIN_OBSERVE_S = 1.0
 WARM_UP_SIDE = 64  # the warm-up frame; the backend resizes every image to its input size anyway
 
 
-def starting_anchor_set(settings: ServiceSettings, store: Store | None = None) -> AnchorSet:
+def starting_anchor_set(settings: ServiceSettings, store: Store | None) -> AnchorSet:
     """The fleet's active set (the store is its record) wins over a state file not yet imported, which wins over
     the configured file, which wins over the paper's set. The pipeline starts with it, so a restart computes
     the text embeddings once; the anchor switch still reads the store again (it may have changed meanwhile).
-    ``store``: the store opened at start (``store_at_start``); None: opened here for this read, then closed."""
-    active = active_set_of(store) if store is not None else stored_active_set(settings)
+    ``store``: the store opened at start (``store_at_start``); None while it is not reached (not tried again
+    here: the anchor switch installs its set once it answers)."""
+    active = None if store is None else active_set_of(store)
     if active is not None:
         log.info("anchor set %s: the store's active set", active.version)
         return active
@@ -65,22 +66,9 @@ def store_at_start(settings: ServiceSettings) -> Store | None:
         raise SettingsError(str(err)) from None
 
 
-def stored_active_set(settings: ServiceSettings) -> AnchorSet | None:
-    """The store's active set, the store opened for this read only; None for an empty store or one that cannot
-    be read now (the service then starts with the configured set, and the anchor switch installs the store's
-    once it answers)."""
-    try:
-        store = open_store(settings.store, settings.state_dir, settings.prefix)
-    except StoreError as err:
-        log.warning("anchor store not read at start: %s", err)
-        return None
-    try:
-        return active_set_of(store)
-    finally:
-        store.close()
-
-
 def active_set_of(store: Store) -> AnchorSet | None:
+    """The store's active set; None for an empty store or one that cannot be read now (the service then starts
+    with the configured set, and the anchor switch installs the store's once it answers)."""
     try:
         active = store.active()
     except StoreError as err:
@@ -89,7 +77,7 @@ def active_set_of(store: Store) -> AnchorSet | None:
     return None if active is None else active.anchor_set
 
 
-def build_service_pipeline(settings: ServiceSettings, store: Store | None = None) -> Pipeline:
+def build_service_pipeline(settings: ServiceSettings, store: Store | None) -> Pipeline:
     """The model in the mode to serve with: ``precision: auto`` with no measurement cached for this machine
     serves fp32 at once (``run_service`` then measures in the background), unless measure_before_serving."""
     from gcdtrav.service.pipeline import clipseg_pipeline

@@ -8,9 +8,10 @@ from pathlib import Path
 import pytest
 from conftest import three_anchor_set
 from gcdtrav.client.session.zenoh_args import zenoh_config
+from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings, SettingsError
 from gcdtrav.service.commands import serve
-from gcdtrav.service.store import Store, open_store
+from gcdtrav.service.store import Store, StoreUnavailable, open_store
 from gcdtrav.service.store import opening as store_opening
 from gcdtrav.service.store.sqlite import SqliteStore
 from zenoh_helpers import free_port
@@ -68,3 +69,21 @@ def test_the_store_is_opened_once_and_its_active_set_starts_the_pipeline(
     finally:
         service.stop()
         session.close()
+
+
+def test_a_store_not_reached_at_start_is_tried_once_and_the_configured_set_starts(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An unreachable PostgreSQL costs serve one connect timeout before the model loads, not one per reader."""
+    tries: list[object] = []
+
+    def unreachable(*args: object) -> Store:
+        tries.append(args)
+        raise StoreUnavailable("connection refused")
+
+    monkeypatch.setattr(serve, "open_store", unreachable)
+    settings = ServiceSettings(state_dir=tmp_path)
+    store = serve.store_at_start(settings)
+    assert store is None
+    assert serve.starting_anchor_set(settings, store).version == default_anchor_set().version
+    assert len(tries) == 1

@@ -118,9 +118,8 @@ pytest.importorskip("torch")
 
 from gcdtrav.client import ServiceError, TraversabilityClient  # noqa: E402
 from gcdtrav.schemas.settings import ServiceSettings  # noqa: E402
-from gcdtrav.service.commands.serve import starting_anchor_set  # noqa: E402
 
-from tools.loopback import in_process_service  # noqa: E402
+from tools.loopback import anchor_set_at_start, in_process_service  # noqa: E402
 
 
 def test_service_caps_sources_reports_them_and_forgets_idle_ones(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
@@ -133,7 +132,7 @@ def test_service_caps_sources_reports_them_and_forgets_idle_ones(tiny_backend, t
         reclaim_after_s=60,
         preview=False,
     )
-    with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (service, port):
+    with in_process_service(tiny_backend, settings, anchor_set_at_start(settings)) as (service, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         try:
             assert wait_until(lambda: service_reachable(client), 60)
@@ -166,7 +165,7 @@ def test_service_caps_sources_reports_them_and_forgets_idle_ones(tiny_backend, t
 def test_a_publisher_that_invents_names_is_capped(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     """Our client sets zenoh's source info on every frame: the service caps the sources of its session."""
     settings = ServiceSettings(state_dir=tmp_path, instance="capped", max_sources_per_publisher=2, preview=False)
-    with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (_, port):
+    with in_process_service(tiny_backend, settings, anchor_set_at_start(settings)) as (_, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         try:
             assert wait_until(lambda: service_reachable(client), 60)
@@ -184,7 +183,7 @@ def test_a_flood_of_undecodable_names_is_rejected_by_reason_and_a_robot_still_se
     tiny_backend, tmp_path: Path
 ) -> None:
     settings = ServiceSettings(state_dir=tmp_path, instance="flooded", max_sources=1, max_candidates=4, preview=False)
-    with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (_, port):
+    with in_process_service(tiny_backend, settings, anchor_set_at_start(settings)) as (_, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         try:
             assert wait_until(lambda: service_reachable(client), 60)

@@ -20,12 +20,11 @@ from gcdtrav.schemas.anchors import Anchor, AnchorSet
 from gcdtrav.schemas.experience import OperatorQuestion, TraversalOutcome
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
-from gcdtrav.service.commands.serve import starting_anchor_set
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.store.opening import sqlite_file
 from zenoh_helpers import connecting_config, free_port, service_reachable, subscribed_elsewhere, wait_until
 
-from tools.loopback import in_process_service
+from tools.loopback import anchor_set_at_start, in_process_service
 from tools.robot_drive import CAMERA_SOURCE, CMD_VEL_KEY, START_STAMP, BusRobot, experience_settings, grid_settings
 from tools.synthetic_scene import SceneBackend, make_world, start_anchors
 
@@ -139,7 +138,7 @@ def test_drive_calibrate_ask_answer_propose_apply_restart(tmp_path: Path) -> Non
     assert sqlite_file(state, "gcdtrav").is_file()
 
     restarted = settings(state)
-    with running(restarted, starting_anchor_set(restarted)) as (_, client, _flags):  # as `gcdtrav serve` starts
+    with running(restarted, anchor_set_at_start(restarted)) as (_, client, _flags):  # as `gcdtrav serve` starts
         report = client.calibration(CAMERA_SOURCE)
         assert report.figures.pairs == total and report.anchor_set_version == proposal.proposed.version
 

@@ -15,10 +15,9 @@ pytest.importorskip("torch")
 from gcdtrav.client import TraversabilityClient
 from gcdtrav.schemas.keys import input_key
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.commands.serve import starting_anchor_set
 from prometheus_client import generate_latest
 
-from tools.loopback import in_process_service
+from tools.loopback import anchor_set_at_start, in_process_service
 
 
 def series_of(registry: object, source: str) -> list[str]:
@@ -29,7 +28,7 @@ def series_of(registry: object, source: str) -> list[str]:
 def test_a_forgotten_source_leaves_the_metrics(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     settings = ServiceSettings(state_dir=tmp_path, instance="forgets", source_idle_s=2.0, preview=False)
     with (
-        in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (service, port),
+        in_process_service(tiny_backend, settings, anchor_set_at_start(settings)) as (service, port),
         TraversabilityClient(config=connecting_config(port), timeout=5.0) as client,
     ):
         registry = service.metrics.registry

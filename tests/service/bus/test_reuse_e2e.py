@@ -14,9 +14,8 @@ pytest.importorskip("torch")
 
 from gcdtrav.client import Maps, TraversabilityClient
 from gcdtrav.schemas.settings import ServiceSettings
-from gcdtrav.service.commands.serve import starting_anchor_set
 
-from tools.loopback import in_process_service
+from tools.loopback import anchor_set_at_start, in_process_service
 
 TWO_ANCHORS = {
     "name": "puddles",
@@ -36,7 +35,7 @@ def with_person(image: np.ndarray) -> np.ndarray:
 
 def test_a_repeated_view_is_answered_with_its_last_maps_and_changes_are_inferred(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     settings = ServiceSettings(state_dir=tmp_path, instance="reuse-1", max_frame_age_s=None, preview=False)
-    with in_process_service(tiny_backend, settings, starting_anchor_set(settings)) as (service, port):
+    with in_process_service(tiny_backend, settings, anchor_set_at_start(settings)) as (service, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         received: list[Maps] = []
         subscriber = client.subscribe_maps("**", received.append)

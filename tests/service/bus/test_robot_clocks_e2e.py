@@ -18,9 +18,8 @@ from gcdtrav.client import Maps, TraversabilityClient
 from gcdtrav.schemas.keys import input_key
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.node import TraversabilityService
-from gcdtrav.service.commands.serve import starting_anchor_set
 
-from tools.loopback import in_process_service
+from tools.loopback import anchor_set_at_start, in_process_service
 
 HOUR = 3600.0
 FRAMES = 6
@@ -37,7 +36,7 @@ class Serving:
 @contextmanager
 def serving(backend, state_dir: Path, **settings_kw: object) -> Iterator[Serving]:  # type: ignore[no-untyped-def]
     settings = ServiceSettings(state_dir=state_dir, instance="clocks-1", preview=False, **settings_kw)  # type: ignore[arg-type]
-    with in_process_service(backend, settings, starting_anchor_set(settings)) as (service, port):
+    with in_process_service(backend, settings, anchor_set_at_start(settings)) as (service, port):
         client = TraversabilityClient(config=connecting_config(port), timeout=5.0)
         received: list[Maps] = []
         subscriber = client.subscribe_maps("**", received.append)

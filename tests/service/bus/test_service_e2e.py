@@ -27,10 +27,9 @@ from gcdtrav.schemas.keys import input_key
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.backends.cpus import usable_cpus
 from gcdtrav.service.bus.node import TraversabilityService
-from gcdtrav.service.commands.serve import starting_anchor_set
 from gcdtrav.service.engine import gcd
 
-from tools.loopback import in_process_service
+from tools.loopback import anchor_set_at_start, in_process_service
 
 TWO_ANCHORS = {
     "name": "puddles",
@@ -68,7 +67,7 @@ def started_service(backend, state_dir: Path, **settings_kw: object) -> Iterator
     settings_kw.setdefault("max_frame_age_s", None)  # some frames are stamped in 1970
     settings_kw.setdefault("reuse", {"enabled": False})  # one image again and again: inferred each time here
     settings = ServiceSettings(state_dir=state_dir, instance="test-1", **settings_kw)  # type: ignore[arg-type]
-    with in_process_service(backend, settings, starting_anchor_set(settings)) as started:
+    with in_process_service(backend, settings, anchor_set_at_start(settings)) as started:
         yield started
 
 
@@ -214,7 +213,7 @@ def test_anchor_swap_applies_to_the_next_frames_and_persists(running: Running) -
     earlier = running.client.patch("r5", 3, 3, seq=0)  # kept frames keep the set they were made with
     assert len(earlier.weights) == 13 and earlier.anchor_set_version == old.version
     # The accepted set is on disk and a restarted service starts with it.
-    assert starting_anchor_set(running.settings).version == version
+    assert anchor_set_at_start(running.settings).version == version
 
 
 def test_invalid_anchor_set_is_rejected_and_the_old_one_stays(running: Running) -> None:

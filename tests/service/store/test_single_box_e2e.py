@@ -11,12 +11,11 @@ import pytest
 from gcdtrav.client import ServiceError, TraversabilityClient
 from gcdtrav.schemas.experience import CalibrationReport
 from gcdtrav.schemas.settings import load_settings
-from gcdtrav.service.commands.serve import starting_anchor_set
 from gcdtrav.service.store.legacy import IMPORTED_SUFFIX
 from gcdtrav.service.store.opening import sqlite_file
 from zenoh_helpers import connecting_config, wait_until
 
-from tools.loopback import in_process_service
+from tools.loopback import anchor_set_at_start, in_process_service
 from tools.robot_drive import CAMERA_SOURCE, BusRobot
 from tools.synthetic_scene import SceneBackend, make_world
 
@@ -34,7 +33,7 @@ def test_defaults_import_the_old_pairs_into_sqlite_and_keep_them(tmp_path: Path)
     settings = load_settings(SETTINGS, {"state_dir": str(state), "instance": "box"}, environ={})
     assert settings.store.url is None  # nothing about the store is set
     with (
-        in_process_service(SceneBackend(), settings, starting_anchor_set(settings)) as (service, port),
+        in_process_service(SceneBackend(), settings, anchor_set_at_start(settings)) as (service, port),
         TraversabilityClient(config=connecting_config(port), timeout=10.0) as client,
     ):
         status = client.status()
@@ -57,7 +56,7 @@ def test_defaults_import_the_old_pairs_into_sqlite_and_keep_them(tmp_path: Path)
             total - 1250
         )
     with (
-        in_process_service(SceneBackend(), settings, starting_anchor_set(settings)) as (_, port),
+        in_process_service(SceneBackend(), settings, anchor_set_at_start(settings)) as (_, port),
         TraversabilityClient(config=connecting_config(port), timeout=10.0) as client,
     ):
         assert client.status().experience.pairs == total  # type: ignore[union-attr]
