@@ -27,6 +27,14 @@ from numpy.typing import NDArray
 MAP_SIDE = 8
 
 
+def until(condition: Callable[[], bool], timeout_s: float = 60.0) -> None:
+    """Wait for a thread of the runtime to make ``condition`` true; the bound only ends a failure."""
+    deadline = time.monotonic() + timeout_s
+    while not condition() and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert condition()
+
+
 class Clock:
     """A clock the test moves: it reads ``now`` (seconds)."""
 

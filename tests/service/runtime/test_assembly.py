@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
 
 import pytest
-from fakes import Clock, assembled, image
+from fakes import Clock, assembled, image, until
 from gcdtrav.schemas.images import encode_png
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.runtime.assembly import Runtime
@@ -40,13 +39,6 @@ def answered_on_settle(runtime: Runtime) -> tuple[threading.Event, list[Claim | 
 
     runtime.queue.settle = settle_and_tell  # type: ignore[method-assign]
     return settled, claims
-
-
-def until(condition: Callable[[], bool], timeout_s: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition() and time.monotonic() < deadline:
-        time.sleep(0.01)
-    assert condition()
 
 
 def test_the_assembled_runtime_infers_a_frame_reuses_an_unchanged_one_and_grants_credits_for_both() -> None:

@@ -12,7 +12,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from fakes import Clock, RecordingCredits, RecordingSink, assembled, pipeline, processed
+from fakes import Clock, RecordingCredits, RecordingSink, assembled, pipeline, processed, until
 from gcdtrav.schemas.messages import MapsMessage
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.pipeline import Inference, Pipeline
@@ -67,13 +67,6 @@ def serving(run: Pipeline | None = None, **settings: object):  # type: ignore[no
     """The runtime as the service assembles it (the glance, the need share, the worker, the hand-off out)."""
     runtime, sink, credits = assembled(ServiceSettings.model_validate(settings), run)
     return runtime.worker, runtime.queue, runtime.stats, Answers(sink, credits)
-
-
-def until(condition: Callable[[], bool], timeout_s: float = 60.0) -> None:  # bounds a failure only
-    deadline = time.monotonic() + timeout_s
-    while not condition() and time.monotonic() < deadline:
-        time.sleep(0.005)
-    assert condition()
 
 
 def feed(queue: LatestFrameQueue[PendingFrame], outputs: Answers, frames: list[np.ndarray], source: str = "r1") -> None:
