@@ -15,10 +15,12 @@ from gcdtrav.schemas.strict import StrictModel
 from gcdtrav.schemas.yaml_file import load_mapping
 from pydantic import Field, ValidationError, field_validator, model_validator
 
-Output = Literal["maps", "maps8", "grid", "preview"]
-FORWARDABLE: tuple[Output, ...] = ("maps", "maps8", "grid", "preview")
+Output = Literal["maps", "maps8", "grid", "preview", "speed_mask", "costmap"]
+# speed_mask and costmap: the grid's nav_msgs/OccupancyGrid CDRs ({prefix}/out/{source}/grid/{kind})
+FORWARDABLE: tuple[Output, ...] = ("maps", "maps8", "grid", "preview", "speed_mask", "costmap")
 CLIPSEG_INPUT_SIDE = 352  # the model's input until a credit announces the service's
 _KEY_CHUNK = re.compile(r"^[^*$#?\s/]+$")
+MAX_SAFE_MASK_CELLS = 2000  # a side: 4 MB, the most a mask that is the same everywhere should cost
 
 
 class RelaySettingsError(ValueError):
@@ -29,6 +31,45 @@ def _literal_key(value: str, what: str) -> str:
     if not value or not all(_KEY_CHUNK.match(chunk) for chunk in value.split("/")):
         raise ValueError(f"{what} '{value}' must be a literal zenoh key (chunks without * $ # ? or spaces)")
     return value
+
+
+class SafeMaskSettings(StrictModel):
+    """The robot's own guard of the speed mask (client/relay/mask_guard.py; docs/ros2.md, "When the link dies"):
+    when the service goes quiet, the relay hands out the safe mask (the floor everywhere) around the robot."""
+
+    enabled: bool = Field(default=True, description="Guard the speed mask on the robot; false: never a safe mask.")
+    after_s: float = Field(
+        default=2.0,
+        gt=0,
+        le=60,
+        description="safe_after_s: nothing from the service about the source for this long (or a mask arriving "
+        "older than this) and the safe mask replaces the live one. Two periods of the service's default mask rate "
+        "(speed.rate_hz 1); keep it above 1 / rate_hz plus the service's latency.",
+    )
+    floor: float = Field(
+        default=0.3, ge=0.01, le=1, description="The safe mask's fraction of maximum speed: the grid's speed.floor."
+    )
+    max_speed_m_s: float = Field(default=1.5, gt=0, le=50, description="The robot's maximum speed.")
+    horizon_s: float = Field(
+        default=30.0,
+        gt=0,
+        le=600,
+        description="How long an operator may take to act: the safe mask reaches 2 x max_speed_m_s x horizon_s "
+        "each way from the robot (90 m by default), re-centred once it has driven half that.",
+    )
+    resolution_m: float = Field(
+        default=1.0, gt=0, le=100, description="The safe mask's cell size (it is the same everywhere: coarse)."
+    )
+
+    @model_validator(mode="after")
+    def _mask_bounded(self) -> SafeMaskSettings:
+        cells = 4 * self.max_speed_m_s * self.horizon_s / self.resolution_m
+        if cells > MAX_SAFE_MASK_CELLS:
+            raise ValueError(
+                f"safe_mask: {cells:.0f} cells a side (4 x max_speed_m_s x horizon_s / resolution_m) is over "
+                f"{MAX_SAFE_MASK_CELLS}: raise resolution_m"
+            )
+        return self
 
 
 class RelayCamera(StrictModel):
@@ -62,6 +103,14 @@ class RelayCamera(StrictModel):
         default=None,
         description="ROS 2 node only: the link key the CameraInfo goes to as CDR, on change and every "
         "camera_info_period_s (the service's grid camera_info_key); null: checked, not sent.",
+    )
+    frames: bool = Field(
+        default=True,
+        description="Send the camera's frames; false: only bring the outputs and guard the speed mask (a robot "
+        "whose frames reach the service another way, e.g. rmw_zenoh straight to it).",
+    )
+    safe_mask: SafeMaskSettings | None = Field(
+        default=None, description="This camera's guard of the speed mask [the relay's safe_mask]."
     )
 
     @field_validator("source")
@@ -144,6 +193,15 @@ class RelaySettings(StrictModel):
         description="A camera message larger than this is not decoded (camera_unusable: too_large).",
     )
     odometry: RelayOdometry | None = Field(default=None, description="ROS 2 node only: odometry to a pose key.")
+    safe_mask: SafeMaskSettings = Field(
+        default_factory=SafeMaskSettings,
+        description="The robot's own guard of the speed mask, for every camera without its own.",
+    )
+    pose_key: str | None = Field(
+        default=None,
+        description="zenoh relay only: the robot's pose on its bus, where the safe mask is centred (Pose2D msgpack, "
+        "or a nav_msgs/Odometry CDR: an rmw_zenoh odometry key); the ROS 2 node takes odometry.topic.",
+    )
     camera_info_period_s: float = Field(
         default=5.0, gt=0, description="ROS 2 node only: an unchanged CameraInfo is sent again after this long."
     )
@@ -173,11 +231,18 @@ class RelaySettings(StrictModel):
             raise ValueError(f"sources named twice: {', '.join(duplicates)}")
         return self
 
+    def safe_mask_of(self, camera: RelayCamera) -> SafeMaskSettings:
+        return camera.safe_mask or self.safe_mask
+
 
 def load_relay_settings(file: str | Path | None, overrides: dict[str, object] | None = None) -> RelaySettings:
     """A YAML file's settings with ``overrides`` (flags) on top; a RelaySettingsError naming every problem."""
     data: dict[str, object] = load_mapping(file, "relay settings", RelaySettingsError) if file is not None else {}
-    data |= {key: value for key, value in (overrides or {}).items() if value is not None}
+    for key, value in (overrides or {}).items():
+        if isinstance(value, dict) and isinstance(data.get(key), dict):  # a section: the flags on top of the file's
+            data[key] = {**data[key], **value}  # type: ignore[dict-item]
+        elif value is not None:
+            data[key] = value
     try:
         return RelaySettings.model_validate(data)
     except ValidationError as err:

@@ -28,7 +28,7 @@ def missing(component: str, how_to_install: str) -> NoReturn:
     message = f"{component} is not installed here ({how_to_install})"
     if component in required():
         pytest.fail(f"{message}, but {REQUIRE_ENV} requires it", pytrace=False)
-    pytest.skip(message)
+    pytest.skip(message, allow_module_level=True)  # also from a module's top (tests/client/test_relay_ros2*.py)
 
 
 def postgresql_bin() -> Path:

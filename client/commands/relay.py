@@ -58,6 +58,20 @@ def add_relay_command(commands: argparse._SubParsersAction) -> None:
     relay.add_argument("--credit-timeout", type=float, help=f"send without a credit after this long, s [{timeout:g}]")
     relay.add_argument("--stale-after", type=float, help="report maps older than this as stale, s [3]")
     relay.add_argument(
+        "--no-frames",
+        action="store_true",
+        help="send no frames (they reach the service another way, e.g. rmw_zenoh): only bring the outputs back and "
+        "guard the speed mask",
+    )
+    relay.add_argument(
+        "--safe-after", type=float, metavar="S", help="the safe speed mask after this long without the service [2]"
+    )
+    relay.add_argument("--safe-floor", type=float, metavar="F", help="the safe mask's fraction of max speed [0.3]")
+    relay.add_argument("--max-speed", type=float, metavar="M_S", help="the robot's maximum speed, m/s [1.5]")
+    relay.add_argument(
+        "--pose-key", metavar="KEY", help="the robot's pose on its bus (Pose2D or Odometry CDR): the safe mask's centre"
+    )
+    relay.add_argument(
         "--local-connect", action="append", metavar="ENDPOINT", help="the robot's router [tcp/127.0.0.1:7447]"
     )
     relay.add_argument("--local-mode", choices=["client", "peer"], help="the robot-side session's mode [client]")
@@ -98,9 +112,14 @@ def flag_overrides(args: argparse.Namespace) -> dict[str, object]:
         "stale_after_s": args.stale_after,
         "local_connect": args.local_connect,
         "local_mode": args.local_mode,
+        "pose_key": args.pose_key,
     }
+    safe = {"after_s": args.safe_after, "floor": args.safe_floor, "max_speed_m_s": args.max_speed}
+    if any(value is not None for value in safe.values()):
+        overrides["safe_mask"] = {name: value for name, value in safe.items() if value is not None}
+    frames = {"frames": False} if args.no_frames else {}
     if cameras:
-        overrides["cameras"] = [{"camera": c, "source": s} for c, s in zip(cameras, sources, strict=True)]
+        overrides["cameras"] = [{"camera": c, "source": s} | frames for c, s in zip(cameras, sources, strict=True)]
     return overrides
 
 

@@ -39,6 +39,7 @@ from typing import Any, Protocol
 import zenoh
 from gcdtrav.client.freshness import FreshnessWatch, Staleness
 from gcdtrav.client.relay.causes import CameraFacts, causes, change_key
+from gcdtrav.client.relay.mask_guard import SAFE, MaskGuard, SafeMask
 from gcdtrav.client.relay.ros_camera import ros_camera_key, ros_type_of_key
 from gcdtrav.client.relay.state import CameraClock, ClockEstimate, CreditWindow, RateWindow, downsized
 from gcdtrav.client.session.source_info import put_identified
@@ -52,17 +53,27 @@ from gcdtrav.schemas.messages import (
     ImageEnvelope,
     MessageError,
     PixelEncoding,
+    Pose2D,
     RelayHealth,
     peek_fields,
 )
-from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE, RelayCamera, RelaySettings
+from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE, FORWARDABLE, RelayCamera, RelaySettings
 from gcdtrav.schemas.ros_image import decode_ros_image
+from gcdtrav.schemas.ros_nav import RosNavError, occupancy_grid_cdr, occupancy_grid_geometry, odometry_pose, split_stamp
 
 log = logging.getLogger("gcdtrav.relay")
 MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
 MAX_CAMERA_PIXELS = 40_000_000
 STAMPED_OUTPUTS = ("maps", "maps8", "grid")  # their header's stamp is the capture stamp of the newest frame
-OUTPUT_ENCODINGS = {"maps": MSGPACK, "maps8": MSGPACK, "grid": MSGPACK, "preview": zenoh.Encoding.IMAGE_JPEG}
+GRID_CDRS = ("speed_mask", "costmap")  # the grid's nav_msgs/OccupancyGrid CDRs, under {prefix}/out/{source}/grid/
+OUTPUT_ENCODINGS = {
+    "maps": MSGPACK,
+    "maps8": MSGPACK,
+    "grid": MSGPACK,
+    "preview": zenoh.Encoding.IMAGE_JPEG,
+    **dict.fromkeys(GRID_CDRS, zenoh.Encoding.APPLICATION_CDR),
+}
+GUARD_PERIOD_S = 0.1  # how often the speed masks' guards are asked (client/relay/mask_guard.py)
 
 
 STAMPS_KEPT = 64  # exact ROS stamps of the frames last sent, to stamp the outputs that come back
@@ -112,7 +123,29 @@ class RobotSide(Protocol):
 
     def publish_health(self, health: RelayHealth) -> None: ...
 
+    def publish_safe_mask(self, mask: SafeMask) -> None:
+        """Put the relay's safe speed mask where the live one goes (client/relay/mask_guard.py)."""
+        ...
+
     def close(self) -> None: ...
+
+
+def output_key(keys: Keys, source: str, kind: str) -> str:
+    """Where the service publishes ``kind`` of ``source``: the grid's CDRs under its grid key."""
+    return keys.grid(source, kind) if kind in GRID_CDRS else keys.output(source, kind)
+
+
+def mask_age_s(link: CameraLink, stamp: float) -> float | None:
+    """How long ago (this host's clock) the frame a mask was made of was captured; None before the camera's clock
+    is learnt (a relay that sent no frame: it cannot tell)."""
+    if link.camera_clock.offset_s() is None:
+        return None
+    return time.time() - link.camera_clock.on_host_clock(stamp)
+
+
+def safe_mask_cdr(mask: SafeMask) -> bytes:
+    """The safe mask as a nav_msgs/OccupancyGrid, stamped now (this host's clock)."""
+    return occupancy_grid_cdr(split_stamp(time.time()), mask.frame_id, mask.resolution, mask.origin, mask.values())
 
 
 class Guarded:
@@ -172,15 +205,14 @@ class CameraLink:
         self._thread = threading.Thread(target=self._run, name=f"gcdtrav-relay-{self.source}", daemon=True)
 
     def start(self) -> list[Undeclarable]:
-        """Declare the camera subscriber (robot), the credit subscriber and frame publisher (link)."""
-        settings = self.relay.settings
-        frames_key = input_key(settings.input_prefix, self.source)
+        """Declare the camera subscriber (robot), the credit subscriber and frame publisher (link); a camera whose
+        frames reach the service another way (``frames: false``) only listens for credits."""
+        credits = Guarded(self.relay.link.declare_subscriber(self.relay.keys.credit(self.source), self.on_grant))
+        if not self.camera.frames:
+            return [credits]
+        frames_key = input_key(self.relay.settings.input_prefix, self.source)
         self._publisher = Guarded(self.relay.link.declare_publisher(frames_key, encoding=MSGPACK))
-        declared = [
-            *self.relay.robot.subscribe_camera(self),
-            Guarded(self.relay.link.declare_subscriber(self.relay.keys.credit(self.source), self.on_grant)),
-            self._publisher,
-        ]
+        declared = [*self.relay.robot.subscribe_camera(self), credits, self._publisher]
         self._thread.start()
         return declared
 
@@ -208,6 +240,7 @@ class CameraLink:
             log.warning("%s: ignoring a credit: %s", self.source, err)
             return
         self.clock.add(grant, arrived_at)
+        self.relay.heard(self.source)
         self.relay.grant_seen(self.source, grant)
         self.relay.freshness.note_reason(self.source, grant.problem)
         with self._cond:
@@ -315,13 +348,14 @@ class CameraLink:
     def stop(self) -> None:
         with self._cond:
             self._cond.notify_all()
-        self._thread.join(5)
+        if self._thread.is_alive():
+            self._thread.join(5)
 
     def facts(self, now: float, refusal: str | None) -> CameraFacts:
         silent_since = self.last_frame_at if self.last_frame_at is not None else self.relay.started_at
         return CameraFacts(
             self.camera_key,
-            now - silent_since,
+            now - silent_since if self.camera.frames else 0.0,  # frames: false: no camera to hear
             self.captured,
             self.window.unanswered,
             refusal,
@@ -355,6 +389,7 @@ class CameraLink:
             problem=self.unusable or freshness.reason(self.source),
             causes=found,
             parked=self.parked,
+            safe_mask=self.relay.safe_mask_reason(self.source),
         )
 
 
@@ -363,7 +398,7 @@ class OutputForwarder:
 
     def __init__(self, relay: Relay, local: zenoh.Session, source: str, kind: str) -> None:
         self.relay, self.source, self.kind = relay, source, kind
-        self.key = relay.keys.output(source, kind)
+        self.key = output_key(relay.keys, source, kind)
         self.downlink = RateWindow()
         self._wanted = False
         self._subscriber: Guarded | None = None
@@ -392,6 +427,9 @@ class OutputForwarder:
 
     def _on_output(self, sample: zenoh.Sample) -> None:
         payload = sample.payload
+        self.relay.heard(self.source)
+        if self.kind == "speed_mask" and not self.relay.mask_arrived(self.source, payload.to_bytes()):
+            return  # late, or not a mask: the guard's safe mask stays (or comes) instead
         if not self._publisher.put(payload, encoding=sample.encoding):
             return  # a callback under way when the relay closed
         self.downlink.add(len(payload))
@@ -402,6 +440,10 @@ class OutputForwarder:
             except (MessageError, KeyError, TypeError, ValueError):
                 return
             self.relay.observe_output(self.source, stamp)
+
+    def put_local(self, payload: bytes) -> None:
+        """On the robot's bus only (the relay's safe mask)."""
+        self._publisher.put(payload, encoding=OUTPUT_ENCODINGS[self.kind])
 
     def close(self) -> None:
         for entity in (self._subscriber, self._listener, self._publisher):
@@ -416,6 +458,9 @@ class ZenohRobotSide:
     def __init__(self, local: zenoh.Session) -> None:
         self.local = local
         self._health: dict[str, Guarded] = {}
+        self._masks: dict[str, OutputForwarder] = {}  # the speed mask's, where the safe mask goes too
+        self._pose: Guarded | None = None
+        self._bad_poses = 0
 
     def camera_name(self, camera: RelayCamera) -> str:
         if not camera.is_ros:
@@ -433,13 +478,41 @@ class ZenohRobotSide:
     def outputs(self, relay: Relay, source: str) -> list[Output]:
         key = relay.keys.relay_health(source)
         self._health[source] = Guarded(self.local.declare_publisher(key, encoding=MSGPACK))
-        return [OutputForwarder(relay, self.local, source, kind) for kind in relay.settings.forward]
+        kinds = set(relay.settings.forward) | ({"speed_mask"} if relay.guards.get(source) else set())
+        forwarders = [OutputForwarder(relay, self.local, source, kind) for kind in FORWARDABLE if kind in kinds]
+        self._masks.update({f.source: f for f in forwarders if f.kind == "speed_mask"})
+        if relay.settings.pose_key is not None and self._pose is None:
+            handler = partial(self._on_pose, relay)
+            self._pose = Guarded(self.local.declare_subscriber(relay.settings.pose_key, handler))
+        return list(forwarders)
+
+    def _on_pose(self, relay: Relay, sample: zenoh.Sample) -> None:
+        """The robot's pose on its bus: Pose2D msgpack, or an Odometry's CDR (rmw_zenoh)."""
+        payload = sample.payload.to_bytes()
+        try:
+            if payload[:1] == b"\x00":  # a CDR encapsulation header; msgpack maps start otherwise
+                odometry = odometry_pose(payload)
+                x, y, frame_id = odometry.x, odometry.y, odometry.frame_id
+            else:
+                pose = Pose2D.unpack(payload, max_bytes=4096)
+                x, y, frame_id = pose.x, pose.y, pose.frame_id
+        except (MessageError, RosNavError) as err:
+            if self._bad_poses == 0:
+                log.warning("pose on %s not usable (counted, said once): %s", sample.key_expr, err)
+            self._bad_poses += 1
+            return
+        relay.robot_pose(x, y, frame_id)
 
     def publish_health(self, health: RelayHealth) -> None:
         self._health[health.source].put(health.pack())
 
+    def publish_safe_mask(self, mask: SafeMask) -> None:
+        forwarder = self._masks.get(mask.source)
+        if forwarder is not None:
+            forwarder.put_local(safe_mask_cdr(mask))
+
     def close(self) -> None:
-        for publisher in self._health.values():
+        for publisher in [*self._health.values(), *([self._pose] if self._pose else [])]:
             publisher.undeclare()
         self._health.clear()
 
@@ -463,6 +536,11 @@ class Relay:
         self.settings, self.link, self.robot = settings, link, robot
         self.keys = Keys(settings.prefix)
         self.freshness = FreshnessWatch(settings.stale_after_s)
+        self.guards = {
+            camera.source: MaskGuard(camera.source, settings.safe_mask_of(camera))
+            for camera in settings.cameras
+            if settings.safe_mask_of(camera).enabled
+        }
         self.cameras = [CameraLink(self, camera) for camera in settings.cameras]
         self.forwarders: list[Output] = []
         self.stopping = False
@@ -473,6 +551,7 @@ class Relay:
         self._wake = threading.Event()
         self.started_at = time.time()
         self._told_causes: dict[str, dict[str, str]] = {}  # per source, change_key of the causes last logged
+        self._told_safe: dict[str, bool] = {}  # per source, whether the safe mask in force was logged
         self._thread = threading.Thread(target=self._control, name="gcdtrav-relay-control", daemon=True)
 
     def start(self) -> Relay:
@@ -514,6 +593,53 @@ class Relay:
     def camera(self, source: str) -> CameraLink:
         return next(camera for camera in self.cameras if camera.source == source)
 
+    # ---- the speed masks' guards (client/relay/mask_guard.py) ---------------------------------------------
+    def heard(self, source: str) -> None:
+        """A message of the service about ``source`` arrived (a credit, any output)."""
+        guard = self.guards.get(source)
+        if guard is not None:
+            guard.heard()
+
+    def robot_pose(self, x: float, y: float, frame_id: str) -> None:
+        """The robot's newest pose: where a safe mask is centred (every camera of the robot)."""
+        for guard in self.guards.values():
+            guard.pose(x, y, frame_id)
+
+    def mask_arrived(self, source: str, payload: bytes) -> bool:
+        """A live speed mask of ``source`` (OccupancyGrid CDR) arrived: whether to put it in force."""
+        guard = self.guards.get(source)
+        if guard is None:
+            return True
+        try:
+            geometry = occupancy_grid_geometry(payload)
+        except RosNavError as err:
+            log.warning("%s: a speed mask that is not one, not put in force: %s", source, err)
+            return False
+        accepted = guard.live_mask(geometry, mask_age_s(self.camera(source), geometry.stamp))
+        if accepted and guard.safe_masks and self._told_safe.get(source):
+            self._told_safe[source] = False
+            log.info("%s: a fresh speed mask from the service is in force again", source)
+        return accepted
+
+    def safe_mask_reason(self, source: str) -> str | None:
+        guard = self.guards.get(source)
+        return guard.reason if guard is not None and guard.state == SAFE else None
+
+    def _guard(self) -> None:
+        for guard in self.guards.values():
+            mask = guard.due()
+            if mask is None:
+                continue
+            if not self._told_safe.get(mask.source):
+                self._told_safe[mask.source] = True
+                log.warning(
+                    "%s: the safe speed mask (%d %% everywhere) is in force: %s", mask.source, mask.percent, mask.reason
+                )
+            try:
+                self.robot.publish_safe_mask(mask)
+            except zenoh.ZError as err:  # the robot's session is closing
+                log.debug("%s: the safe mask not put: %s", mask.source, err)
+
     def health(self, source: str) -> RelayHealth:
         downlink = sum(f.downlink.per_s() for f in self.forwarders if f.source == source)
         return self.camera(source).health(self.freshness, downlink, self.settings.stale_after_s)
@@ -524,10 +650,13 @@ class Relay:
         link_period = self.settings.link_health_period_s
         while not self.stopping:
             due = min(next_health, next_link) if link_period is not None else next_health
+            if self.guards:
+                due = min(due, time.monotonic() + GUARD_PERIOD_S)
             self._wake.wait(max(0.0, due - time.monotonic()))
             self._wake.clear()
             if self.stopping:
                 return
+            self._guard()
             for forwarder in self.forwarders:
                 forwarder.reconcile()
             if time.monotonic() >= next_health:

@@ -41,6 +41,7 @@ import logging
 import math
 import threading
 import time
+from array import array
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -57,6 +58,7 @@ from gcdtrav.client.relay.causes import (
     CAMERA_WRONG_TYPE,
     NO_INSTANCE,
 )
+from gcdtrav.client.relay.mask_guard import SafeMask
 from gcdtrav.client.relay.relay import MSGPACK, CameraLink, CapturedFrame, Guarded, Relay
 from gcdtrav.client.relay.ros_parameters import PARAMETERS, as_list, camera_info_topic, settings_overrides
 from gcdtrav.client.relay.state import RateWindow
@@ -255,6 +257,7 @@ class RosOutput:
 
     def _on_output(self, sample: zenoh.Sample) -> None:
         payload = sample.payload.to_bytes()
+        self.relay.heard(self.source)
         self.downlink.add(len(payload))
         try:
             stamp = self._publish(payload)
@@ -299,6 +302,8 @@ class SpeedTopics:
     def publish_mask(self, payload: bytes) -> float:
         grid = deserialize_message(payload, OccupancyGrid)
         stamp = stamp_seconds(grid.header.stamp)
+        if not self.link.relay.mask_arrived(self.link.source, payload):
+            return stamp  # late: the guard's safe mask stays (or comes) instead
         grid.header.stamp = ros_time(self.link.ros_stamp(stamp))
         if self.info is not None and self.info_type is not None and grid.header.frame_id != self._info_frame:
             self._info_frame = grid.header.frame_id
@@ -322,6 +327,16 @@ class SpeedTopics:
             self.limit.publish(limit)
         return stamp
 
+    def publish_safe(self, mask: SafeMask, now: Time) -> None:
+        """The relay's own safe mask (client/relay/mask_guard.py), where the live masks go."""
+        grid = OccupancyGrid(header=Header(stamp=now, frame_id=mask.frame_id))
+        grid.info.resolution = mask.resolution
+        grid.info.width = grid.info.height = mask.cells
+        grid.info.origin.position.x, grid.info.origin.position.y = mask.origin
+        grid.info.origin.orientation.w = 1.0
+        grid.data = array("b", mask.values().tobytes())
+        self.mask.publish(grid)
+
     def outputs(self, relay: Relay, source: str) -> list[RosOutput]:
         keys = relay.keys
         mask_publishers = [self.mask] if self.info is None else [self.mask, self.info]
@@ -340,18 +355,21 @@ class SpeedTopics:
 class OdometryLink:
     """The robot's odometry as a grid's pose stream: Pose2D msgpack, at most ``max_rate_hz``."""
 
-    def __init__(self, node: Node, settings: RelayOdometry, link: zenoh.Session) -> None:
-        self.settings = settings
+    def __init__(
+        self, node: Node, settings: RelayOdometry, link: zenoh.Session, on_pose: Callable[[float, float, str], None]
+    ) -> None:
+        self.settings, self.on_pose = settings, on_pose
         self.publisher = Guarded(link.declare_publisher(settings.key, encoding=MSGPACK))
         self.subscription = node.create_subscription(Odometry, settings.topic, self.on_odometry, SENSOR_QOS)
         self.sent = self.rejected = 0
         self._last = -math.inf
 
     def on_odometry(self, odometry: Odometry) -> None:
+        position, q = odometry.pose.pose.position, odometry.pose.pose.orientation
+        self.on_pose(position.x, position.y, odometry.header.frame_id)  # the safe mask's centre: every pose
         now = time.monotonic()
         if now - self._last < 1.0 / self.settings.max_rate_hz:
             return
-        position, q = odometry.pose.pose.position, odometry.pose.pose.orientation
         yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
         stamp = odometry.header.stamp.sec + odometry.header.stamp.nanosec * 1e-9
         try:
@@ -377,7 +395,10 @@ class RosRobotSide:
         self.cameras: dict[str, RosCamera] = {}
         self.ros_outputs: list[RosOutput] = []
         self.diagnostics = node.create_publisher(DiagnosticArray, "/diagnostics", IMAGE_QOS)
-        self.odometry = None if settings.odometry is None else OdometryLink(node, settings.odometry, link)
+        self.odometry = (
+            None if settings.odometry is None else OdometryLink(node, settings.odometry, link, self._on_pose)
+        )
+        self.speed: dict[str, SpeedTopics] = {}
         self._relay: Relay | None = None
         self._lock = threading.Lock()
         self._timer = node.create_timer(GRAPH_PERIOD_S, self._check_graph)
@@ -414,12 +435,13 @@ class RosRobotSide:
             return stamp
 
         keys = relay.keys
+        speed = self.speed[source] = SpeedTopics(self.node, topic, link)
         found = [
             RosOutput(
                 relay, source, "maps", keys.output(source, maps_kind), [traversability, uncertainty], publish_maps
             ),
             RosOutput(relay, source, "costmap", keys.grid(source, "costmap"), [costmap], publish_costmap),
-            *SpeedTopics(self.node, topic, link).outputs(relay, source),
+            *speed.outputs(relay, source),
         ]
         with self._lock:
             self.ros_outputs += found
@@ -434,9 +456,21 @@ class RosRobotSide:
         if any(changed) and self._relay is not None:
             self._relay.wake()
 
+    def _on_pose(self, x: float, y: float, frame_id: str) -> None:
+        if self._relay is not None:
+            self._relay.robot_pose(x, y, frame_id)
+
+    def publish_safe_mask(self, mask: SafeMask) -> None:
+        speed = self.speed.get(mask.source)
+        if speed is not None:
+            speed.publish_safe(mask, self.node.get_clock().now().to_msg())
+
     def publish_health(self, health: RelayHealth) -> None:
         camera = self.cameras.get(health.source)
+        relay = self._relay
         topic = camera.topic if camera is not None else health.source
+        if camera is None and relay is not None:  # frames: false, no camera subscribed
+            topic = self.node.resolve_topic_name(relay.camera(health.source).camera.camera)
         array = DiagnosticArray(status=[diagnostic_status(self.node.get_name(), topic, health)])
         array.header.stamp = self.node.get_clock().now().to_msg()  # ROS time: simulated with use_sim_time
         self.diagnostics.publish(array)
@@ -455,17 +489,19 @@ def diagnostic_status(node_name: str, topic: str, health: RelayHealth) -> Diagno
     causes = health.causes or {}
     if any(code in ERROR_CAUSES for code in causes):
         level = DiagnosticStatus.ERROR
-    elif causes or health.stale:
+    elif causes or health.stale or health.safe_mask is not None:
         level = DiagnosticStatus.WARN
     else:
         level = DiagnosticStatus.OK
     age = "no maps yet" if health.map_age_s is None else f"maps {health.map_age_s:.1f} s old"
     said = ["parked"] if health.parked else []  # stopped on purpose: its silence is no cause
+    said += [f"safe_mask: {health.safe_mask}"] if health.safe_mask is not None else []
     message = "; ".join([*said, age, *(f"{code}: {text}" for code, text in causes.items())])
     figures = {
         "source": health.source,
         "stale": str(health.stale).lower(),
         "parked": str(health.parked).lower(),
+        "safe_mask": health.safe_mask or "",
         "map_age_s": "" if health.map_age_s is None else f"{health.map_age_s:.3f}",
         "frames_captured": str(health.frames_captured),
         "frames_sent": str(health.frames_sent),

@@ -19,7 +19,12 @@ PARAMETERS = (
     "odometry_topic",
     "odometry_key",
     "connect",
+    "frames",
+    "safe_after_s",
+    "safe_floor",
+    "max_speed_m_s",
 )
+SAFE_MASK_PARAMETERS = {"safe_after_s": "after_s", "safe_floor": "floor", "max_speed_m_s": "max_speed_m_s"}
 
 
 def camera_info_topic(image_topic: str) -> str:
@@ -44,12 +49,20 @@ def settings_overrides(parameters: dict[str, Any]) -> dict[str, object]:
     if "camera" in parameters or "source" in parameters:
         cameras, sources = as_list(parameters.get("camera", [])), as_list(parameters.get("source", []))
         infos = as_list(parameters.get("camera_info_key", [None] * len(cameras)))
-        if not len(cameras) == len(sources) == len(infos):
-            raise ValueError(f"{len(cameras)} camera, {len(sources)} source, {len(infos)} camera_info_key parameters")
+        frames = as_list(parameters.get("frames", True))
+        frames = frames * len(cameras) if len(frames) == 1 else frames  # one bool for every camera, or one each
+        if not len(cameras) == len(sources) == len(infos) == len(frames):
+            raise ValueError(
+                f"{len(cameras)} camera, {len(sources)} source, {len(infos)} camera_info_key, {len(frames)} frames "
+                "parameters"
+            )
         overrides["cameras"] = [
-            {"camera": c, "source": s, "camera_info_key": i or None}  # '' in a list of keys: none for this camera
-            for c, s, i in zip(cameras, sources, infos, strict=True)
+            {"camera": c, "source": s, "camera_info_key": i or None, "frames": bool(f)}  # '' key: none for it
+            for c, s, i, f in zip(cameras, sources, infos, frames, strict=True)
         ]
+    safe = {field: parameters[name] for name, field in SAFE_MASK_PARAMETERS.items() if name in parameters}
+    if safe:
+        overrides["safe_mask"] = safe
     if "odometry_key" in parameters:
         overrides["odometry"] = {"key": parameters["odometry_key"]} | (
             {"topic": parameters["odometry_topic"]} if "odometry_topic" in parameters else {}

@@ -16,8 +16,9 @@ MSGPACK_ENCODING = "application/msgpack"
 # 1.0 was the integer 1 in MapsHeader only; 1.1 puts the version in every message and adds risk fields;
 # 1.2 adds ServiceStatus.measuring, MapsHeader.order, the status's health and anchor-set fleet fields, and the
 # grid's planner layers (GridMessage, GridHeader); 1.5 adds the grid's speed layer (GridMessage.speed_png,
-# GridStatus.speed_ago_s and speed_safe), RelayHealth.parked, the store's status and the anchor record (issue 46).
-SCHEMA_VERSION = "1.5"
+# GridStatus.speed_ago_s and speed_safe), RelayHealth.parked, the store's status and the anchor record (issue 46);
+# 1.6 adds RelayHealth.safe_mask (the relay's own safe speed mask, issue 55).
+SCHEMA_VERSION = "1.6"
 _VERSION = re.compile(r"^(\d+)(?:\.\d+)?$")
 
 

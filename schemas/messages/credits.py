@@ -87,6 +87,11 @@ class RelayHealth(Message):
         "the silent-robot alert stays quiet. The relay also sends its health over the link every "
         "link_health_period_s, so the service knows. Since 1.5.",
     )
+    safe_mask: str | None = Field(
+        default=None,
+        description="While the relay's own safe speed mask is in force (the service went quiet, or its mask "
+        "arrived late; client/relay/mask_guard.py), why; None: the live mask or none. Since 1.6.",
+    )
 
 
 class CameraParked(Message):

@@ -1,0 +1,143 @@
+"""nav_msgs in CDR with numpy only, for the robot's side (client/relay/), which has no ROS typestore: a
+``nav_msgs/msg/OccupancyGrid`` written (the relay's safe speed mask, client/relay/mask_guard.py) and its
+geometry read back (a live mask's frame and cells), and the pose of a ``nav_msgs/msg/Odometry``.
+
+Plain CDR, little-endian, as schemas/ros_image.py reads it: a 4-byte encapsulation header, then each field
+aligned to its size from the end of that header. Checked against ROS 2's own serialiser
+(tests/schemas/test_ros_nav.py, with the ROS 2 wheels) and rosbags'.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+from gcdtrav.schemas.ros_image import _Malformed, _Reader
+from numpy.typing import NDArray
+
+OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
+ODOMETRY = "nav_msgs/msg/Odometry"
+ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little-endian
+
+
+class RosNavError(ValueError):
+    """Not the nav_msgs message's CDR."""
+
+
+@dataclass(frozen=True)
+class GridGeometry:
+    """Where an OccupancyGrid lies: its frame, cell size, cells and the corner of cell (0, 0) (yaw 0)."""
+
+    frame_id: str
+    resolution: float
+    width: int
+    height: int
+    origin: tuple[float, float]
+    stamp: float  # the header's
+
+
+@dataclass(frozen=True)
+class OdometryPose:
+    stamp: float
+    frame_id: str
+    x: float
+    y: float
+    yaw: float
+
+
+class _Writer:
+    def __init__(self) -> None:
+        self.data = bytearray(ENCAPSULATION)
+
+    def number(self, code: str, value: float) -> None:
+        size = struct.calcsize(code)
+        self.data += bytes(-(len(self.data) - 4) % size)
+        self.data += struct.pack("<" + code, value)
+
+    def string(self, text: str) -> None:
+        raw = text.encode("utf-8") + b"\x00"
+        self.number("I", len(raw))
+        self.data += raw
+
+    def octets(self, raw: bytes) -> None:
+        self.number("I", len(raw))
+        self.data += raw
+
+    def done(self) -> bytes:
+        return bytes(self.data)  # unpadded at the end, as ROS 2's serialiser and rosbags' write it
+
+
+def seconds(sec_nanosec: tuple[int, int]) -> float:
+    return sec_nanosec[0] + sec_nanosec[1] * 1e-9
+
+
+def split_stamp(stamp: float) -> tuple[int, int]:
+    """A float stamp as (sec, nanosec), nanosec in [0, 1e9)."""
+    sec = math.floor(stamp)
+    return sec, min(round((stamp - sec) * 1e9), 999_999_999)
+
+
+def occupancy_grid_cdr(
+    stamp: tuple[int, int],
+    frame_id: str,
+    resolution: float,
+    origin: tuple[float, float],
+    cells: NDArray[np.int8],
+) -> bytes:
+    """An OccupancyGrid of ``cells`` (rows i = y, columns j = x), cell (0, 0)'s corner at ``origin``, yaw 0."""
+    height, width = cells.shape
+    writer = _Writer()
+    writer.number("i", stamp[0])
+    writer.number("I", stamp[1])
+    writer.string(frame_id)
+    writer.number("i", 0)  # info.map_load_time: never loaded from a file
+    writer.number("I", 0)
+    writer.number("f", resolution)
+    writer.number("I", width)
+    writer.number("I", height)
+    for value in (origin[0], origin[1], 0.0, 0.0, 0.0, 0.0, 1.0):  # position, then the identity quaternion
+        writer.number("d", value)
+    writer.octets(np.ascontiguousarray(cells, np.int8).tobytes())
+    return writer.done()
+
+
+def occupancy_grid_geometry(payload: bytes) -> GridGeometry:
+    """The geometry of an OccupancyGrid's CDR, without its cells; RosNavError when it is not one."""
+    try:
+        reader = _Reader(payload)
+        sec, nanosec, frame_id = reader.number("i"), reader.number("I"), reader.string()
+        reader.number("i"), reader.number("I")  # map_load_time
+        resolution = struct.unpack("<f", struct.pack("<I", reader.number("I")))[0]
+        width, height = reader.number("I"), reader.number("I")
+        x, y = _double(reader), _double(reader)
+        for _ in range(5):  # origin's z and orientation: a mask's centre is all the relay needs
+            _double(reader)
+        cells = reader.octets()
+    except _Malformed as err:
+        raise RosNavError(f"not an {OCCUPANCY_GRID}: {err}") from None
+    if len(cells) != width * height or not (resolution > 0 and math.isfinite(x) and math.isfinite(y)):
+        raise RosNavError(f"an {OCCUPANCY_GRID} of {width}x{height} cells of {resolution} m with {len(cells)} values")
+    return GridGeometry(frame_id, float(resolution), width, height, (x, y), seconds((sec, nanosec)))
+
+
+def odometry_pose(payload: bytes) -> OdometryPose:
+    """The stamp, frame and planar pose (x, y, yaw) of an Odometry's CDR; RosNavError when it is not one."""
+    try:
+        reader = _Reader(payload)
+        sec, nanosec, frame_id = reader.number("i"), reader.number("I"), reader.string()
+        reader.string()  # child_frame_id
+        x, y, _ = _double(reader), _double(reader), _double(reader)
+        qx, qy, qz, qw = (_double(reader) for _ in range(4))
+    except _Malformed as err:
+        raise RosNavError(f"not an {ODOMETRY}: {err}") from None
+    yaw = math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
+    if not all(math.isfinite(value) for value in (x, y, yaw)):
+        raise RosNavError(f"an {ODOMETRY} whose pose is not finite ({x}, {y}, {yaw})")
+    return OdometryPose(seconds((sec, nanosec)), frame_id, x, y, yaw)
+
+
+def _double(reader: _Reader) -> float:
+    low = reader.number("Q")
+    return float(struct.unpack("<d", struct.pack("<Q", low))[0])
