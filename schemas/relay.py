@@ -15,9 +15,10 @@ from gcdtrav.schemas.strict import StrictModel
 from gcdtrav.schemas.yaml_file import load_mapping
 from pydantic import Field, ValidationError, field_validator, model_validator
 
-Output = Literal["maps", "maps8", "grid", "preview", "speed_mask", "costmap"]
-# speed_mask and costmap: the grid's nav_msgs/OccupancyGrid CDRs ({prefix}/out/{source}/grid/{kind})
-FORWARDABLE: tuple[Output, ...] = ("maps", "maps8", "grid", "preview", "speed_mask", "costmap")
+Output = Literal["maps", "maps8", "grid", "preview", "speed_mask", "costmap", "nav2_costmap"]
+# speed_mask, costmap (nav_msgs/OccupancyGrid) and nav2_costmap (nav2_msgs/Costmap): the grid's CDRs, under
+# {prefix}/out/{source}/grid/{kind}
+FORWARDABLE: tuple[Output, ...] = ("maps", "maps8", "grid", "preview", "speed_mask", "costmap", "nav2_costmap")
 CLIPSEG_INPUT_SIDE = 352  # the model's input until a credit announces the service's
 _KEY_CHUNK = re.compile(r"^[^*$#?\s/]+$")
 MAX_SAFE_MASK_CELLS = 2000  # a side: 4 MB, the most a mask that is the same everywhere should cost
@@ -235,14 +236,22 @@ class RelaySettings(StrictModel):
         return camera.safe_mask or self.safe_mask
 
 
+def layered(below: dict[str, object], above: dict[str, object]) -> dict[str, object]:
+    """``above``'s values on top of ``below``'s (None: not given); a section (a dict in both) field by field."""
+    merged = dict(below)
+    for key, value in above.items():
+        lower = merged.get(key)
+        if isinstance(value, dict) and isinstance(lower, dict):
+            merged[key] = {**lower, **value}
+        elif value is not None:
+            merged[key] = value
+    return merged
+
+
 def load_relay_settings(file: str | Path | None, overrides: dict[str, object] | None = None) -> RelaySettings:
     """A YAML file's settings with ``overrides`` (flags) on top; a RelaySettingsError naming every problem."""
     data: dict[str, object] = load_mapping(file, "relay settings", RelaySettingsError) if file is not None else {}
-    for key, value in (overrides or {}).items():
-        if isinstance(value, dict) and isinstance(data.get(key), dict):  # a section: the flags on top of the file's
-            data[key] = {**data[key], **value}  # type: ignore[dict-item]
-        elif value is not None:
-            data[key] = value
+    data = layered(data, overrides or {})
     try:
         return RelaySettings.model_validate(data)
     except ValidationError as err:

@@ -8,10 +8,12 @@ from pathlib import Path
 
 import cv2
 import pytest
+import yaml
 import zenoh
 from conftest import textured_image
 
 ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
 
 
 def run_example(script: str, *args: str) -> subprocess.CompletedProcess[str]:
@@ -213,3 +215,38 @@ def test_planner_path_calls_a_cell_mostly_one_anchor_only_when_it_is() -> None:
     assert ground_of(cell) == "mixed: 'water' 12%, 'c0' 8%, 'c1' 8%"
     dominant = cell.model_copy(update={"weights": [0.02] * 11 + [0.78]})
     assert ground_of(dominant) == "mostly 'water' (78%)"
+
+
+# nav2_collision_monitor's parameter names as its sources read them (navigation2 main, 0148fcb3, read
+# 2026-11-28): the node's (collision_monitor_node.cpp getParameters), each source's (source.cpp
+# getCommonParameters; costmap.cpp getParameters), each polygon's (polygon.cpp getCommonParameters; circle.cpp).
+COLLISION_MONITOR_NODE = {
+    "base_frame_id", "odom_frame_id", "cmd_vel_in_topic", "cmd_vel_out_topic", "state_topic", "transform_tolerance",
+    "source_timeout", "base_shift_correction", "stop_pub_timeout", "collision_points_marker_3d", "polygons",
+    "observation_sources", "use_sim_time",
+}  # fmt: skip
+COSTMAP_SOURCE = {"type", "topic", "enabled", "source_timeout", "exclusion_zones", "cost_threshold",
+                  "treat_unknown_as_obstacle"}  # fmt: skip
+CIRCLE_POLYGON = {"type", "radius", "action_type", "enabled", "min_points", "slowdown_ratio", "linear_limit",
+                  "angular_limit", "time_before_collision", "simulation_time_step", "visualize",
+                  "polygon_pub_topic", "polygon_sub_topic", "footprint_topic"}  # fmt: skip
+
+
+def test_the_collision_monitor_example_names_only_nav2s_parameters_and_reads_gcdtravs_costmap() -> None:
+    from gcdtrav.schemas.settings import ServiceSettings
+
+    example = yaml.safe_load((EXAMPLES / "nav2" / "collision_monitor.yaml").read_text())
+    parameters = example["collision_monitor"]["ros__parameters"]
+    sources, polygons = parameters["observation_sources"], parameters["polygons"]
+    assert set(parameters) - set(sources) - set(polygons) <= COLLISION_MONITOR_NODE
+    for name in sources:
+        assert set(parameters[name]) <= COSTMAP_SOURCE and parameters[name]["type"] == "costmap"
+    for name in polygons:
+        assert set(parameters[name]) <= CIRCLE_POLYGON and parameters[name]["type"] == "circle"
+        assert parameters[name]["action_type"] in ("stop", "slowdown", "limit", "approach")
+    gcdtrav = parameters["gcdtrav"]
+    # the topic the service publishes the nav2_msgs/Costmap on, for the camera of examples/nav2/gcdtrav.yaml
+    template = ServiceSettings().ros_output.nav2_costmap_topic
+    assert gcdtrav["topic"] == "/" + template.replace("{topic}", "camera/front/image_raw")
+    assert 0 <= gcdtrav["cost_threshold"] <= 255 and gcdtrav["treat_unknown_as_obstacle"] is False
+    assert gcdtrav["source_timeout"] > 0  # 0 would never stop on stale data (sourceValid skips the check)

@@ -65,7 +65,7 @@ log = logging.getLogger("gcdtrav.relay")
 MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
 MAX_CAMERA_PIXELS = 40_000_000
 STAMPED_OUTPUTS = ("maps", "maps8", "grid")  # their header's stamp is the capture stamp of the newest frame
-GRID_CDRS = ("speed_mask", "costmap")  # the grid's nav_msgs/OccupancyGrid CDRs, under {prefix}/out/{source}/grid/
+GRID_CDRS = ("speed_mask", "costmap", "nav2_costmap")  # the grid's CDRs, under {prefix}/out/{source}/grid/
 OUTPUT_ENCODINGS = {
     "maps": MSGPACK,
     "maps8": MSGPACK,

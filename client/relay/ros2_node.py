@@ -89,6 +89,7 @@ MESSAGE_CLASSES: dict[str, Any] = {IMAGE: Image, COMPRESSED_IMAGE: CompressedIma
 ERROR_CAUSES = (CAMERA_SILENT, CAMERA_UNUSABLE, CAMERA_WRONG_TYPE, NO_INSTANCE)  # no maps can come at all
 # The service's outputs as ROS topics, under the camera's topic (the service's own ROS topics' names).
 TRAVERSABILITY, UNCERTAINTY, COSTMAP = "gcdtrav/traversability", "gcdtrav/uncertainty", "gcdtrav/grid/costmap"
+NAV2_COSTMAP = "gcdtrav/grid/nav2_costmap"  # nav2_msgs/Costmap: the collision monitor's source, where nav2_msgs is
 SPEED_MASK, SPEED_FILTER_INFO, SPEED_LIMIT = (
     "gcdtrav/grid/speed_mask",
     "gcdtrav/grid/speed_filter_info",
@@ -106,14 +107,14 @@ def stamp_seconds(stamp: Time) -> float:
     return float(stamp.sec + stamp.nanosec * 1e-9)
 
 
-def nav2_messages() -> tuple[Any, Any] | None:
-    """nav2_msgs' CostmapFilterInfo and SpeedLimit classes where the robot has them (one that runs Nav2 does);
-    None where not (the PyPI wheels): rclpy publishes only types whose type support it can load."""
+def nav2_messages() -> tuple[Any, Any, Any] | None:
+    """nav2_msgs' CostmapFilterInfo, SpeedLimit and Costmap classes where the robot has them (one that runs Nav2
+    does); None where not (the PyPI wheels): rclpy publishes only types whose type support it can load."""
     try:
         module = importlib.import_module("nav2_msgs.msg")
     except ImportError:
         return None
-    return module.CostmapFilterInfo, module.SpeedLimit
+    return module.CostmapFilterInfo, module.SpeedLimit, module.Costmap
 
 
 def float_image(values: NDArray[np.float32], header: Header) -> Image:
@@ -442,10 +443,28 @@ class RosRobotSide:
             ),
             RosOutput(relay, source, "costmap", keys.grid(source, "costmap"), [costmap], publish_costmap),
             *speed.outputs(relay, source),
+            *self._nav2_costmap(relay, source, topic, link),
         ]
         with self._lock:
             self.ros_outputs += found
         return list(found)
+
+    def _nav2_costmap(self, relay: Relay, source: str, topic: str, link: CameraLink) -> list[RosOutput]:
+        """The costmap as a nav2_msgs/Costmap, the collision monitor's source, where the robot has nav2_msgs."""
+        nav2 = nav2_messages()
+        if nav2 is None:
+            return []
+        costmap_type = nav2[2]
+        publisher = self.node.create_publisher(costmap_type, f"{topic}/{NAV2_COSTMAP}", LATCHED_QOS)
+
+        def publish(payload: bytes) -> float:
+            costmap = deserialize_message(payload, costmap_type)
+            stamp = stamp_seconds(costmap.header.stamp)
+            costmap.header.stamp = ros_time(link.ros_stamp(stamp))  # the capture stamp the monitor ages
+            publisher.publish(costmap)
+            return stamp
+
+        return [RosOutput(relay, source, "nav2_costmap", relay.keys.grid(source, "nav2_costmap"), [publisher], publish)]
 
     def _check_graph(self) -> None:
         with self._lock:
@@ -543,7 +562,7 @@ def run_node(
     settings (one line on stderr)."""
     import sys
 
-    from gcdtrav.schemas.relay import RelaySettingsError, load_relay_settings
+    from gcdtrav.schemas.relay import RelaySettingsError, layered, load_relay_settings
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
@@ -556,7 +575,7 @@ def run_node(
         node = Node(NODE_NAME, context=context)
         try:
             parameters = parameter_values(node)
-            overrides = flag_overrides | settings_overrides(parameters)
+            overrides = layered(flag_overrides, settings_overrides(parameters))
             if "connect" in parameters:
                 link_config.insert_json5("connect/endpoints", repr(as_list(parameters["connect"])).replace("'", '"'))
             settings = load_relay_settings(parameters.get("settings", settings_file), overrides)

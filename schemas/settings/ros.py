@@ -103,7 +103,11 @@ class RosOutput(StrictModel):
         default="{topic}/gcdtrav/grid/costmap",
         description="nav_msgs/OccupancyGrid graded for Nav2's static layer (grids with costmap; docs/grid.md).",
     )
-
+    nav2_costmap_topic: str = Field(
+        default="{topic}/gcdtrav/grid/nav2_costmap",
+        description="nav2_msgs/Costmap of the same costs, stamped with the newest fused frame's capture: Nav2's "
+        "collision monitor's costmap source, which stops the robot when it is older than its source_timeout.",
+    )
     speed_mask_topic: str = Field(
         default="{topic}/gcdtrav/grid/speed_mask",
         description="nav_msgs/OccupancyGrid speed filter mask, percent of maximum speed, 0 = no limit (grids with "
@@ -128,6 +132,7 @@ class RosOutput(StrictModel):
         "grid_uncertainty_topic",
         "gridmap_topic",
         "costmap_topic",
+        "nav2_costmap_topic",
         "speed_mask_topic",
         "speed_filter_info_topic",
         "speed_limit_topic",
@@ -144,6 +149,7 @@ class RosOutput(StrictModel):
             self.grid_uncertainty_topic,
             self.gridmap_topic,
             self.costmap_topic,
+            self.nav2_costmap_topic,
             self.speed_mask_topic,
             self.speed_filter_info_topic,
             self.speed_limit_topic,

@@ -27,6 +27,7 @@ from gcdtrav.schemas.ros_image import IMAGE as IMAGE
 from gcdtrav.service.grid.geometry import PinholeCamera
 from gcdtrav.service.ros.grid_map_msgs import GRID_MAP as GRID_MAP  # re-exported: the output types in one place
 from gcdtrav.service.ros.grid_map_msgs import register_types
+from gcdtrav.service.ros.nav2_msgs import COSTMAP as NAV2_COSTMAP  # re-exported: the output types in one place
 from gcdtrav.service.ros.nav2_msgs import COSTMAP_FILTER_INFO as COSTMAP_FILTER_INFO  # re-exported
 from gcdtrav.service.ros.nav2_msgs import SPEED_FILTER_PERCENT
 from gcdtrav.service.ros.nav2_msgs import SPEED_LIMIT as SPEED_LIMIT
@@ -292,6 +293,40 @@ def occupancy_values_cdr(header: GridHeader, data: NDArray[np.int8]) -> bytes:
     )
     message = types["nav_msgs/msg/OccupancyGrid"](header=ros_header, info=info, data=data.ravel())
     return bytes(typestore().serialize_cdr(message, "nav_msgs/msg/OccupancyGrid"))
+
+
+# Nav2's static layer reads an OccupancyGrid value v (nav2_costmap_2d/plugins/static_layer.cpp interpretValue,
+# trinary_costmap false): -1 as NO_INFORMATION 255, 100 (lethal_cost_threshold) as LETHAL 254, else v / 100 x 254
+NO_INFORMATION, LETHAL_OBSTACLE = 255, 254
+
+
+def nav2_cost_values(data: NDArray[np.int8]) -> NDArray[np.uint8]:
+    """The Nav2 costs of the costmap's OccupancyGrid values, as Nav2's static layer reads them."""
+    graded = (data.astype(np.int32) * 254 // 100).astype(np.uint8)
+    return np.where(data < 0, NO_INFORMATION, np.where(data >= 100, LETHAL_OBSTACLE, graded)).astype(np.uint8)
+
+
+def nav2_costmap_cdr(header: GridHeader, data: NDArray[np.int8]) -> bytes:
+    """nav2_msgs/Costmap of the grid's costmap values (its OccupancyGrid's, -1 .. 100), as Nav2 costs: what the
+    collision monitor's costmap source reads. Stamped as the costmap, with the capture stamp of the newest fused
+    frame: a source older than its ``source_timeout`` stops the robot (docs/ros2.md, "When the link dies")."""
+    types = typestore().types
+    ros_header = make_header(header.stamp, header.frame_id)
+    pose = types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=header.origin[0], y=header.origin[1], z=0.0),
+        orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+    )
+    metadata = types["nav2_msgs/msg/CostmapMetaData"](
+        map_load_time=ros_header.stamp,
+        update_time=ros_header.stamp,
+        layer="gcdtrav",
+        resolution=np.float32(header.resolution),
+        size_x=header.cells,
+        size_y=header.cells,
+        origin=pose,
+    )
+    message = types[NAV2_COSTMAP](header=ros_header, metadata=metadata, data=nav2_cost_values(data).ravel())
+    return bytes(typestore().serialize_cdr(message, NAV2_COSTMAP))
 
 
 # ---- the experience's inputs: velocity commands and odometry (docs/calibration.md) -----------------------

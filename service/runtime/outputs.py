@@ -320,6 +320,7 @@ class OutputBuilder:
             ("uncertainty", update.uncertainty, names.grid_uncertainty_topic, ros_io.OCCUPANCY_GRID),
             ("gridmap", update.grid_map, names.gridmap_topic, ros_io.GRID_MAP),
             ("costmap", update.costmap, names.costmap_topic, ros_io.OCCUPANCY_GRID),
+            ("nav2_costmap", update.nav2_costmap, names.nav2_costmap_topic, ros_io.NAV2_COSTMAP),
         )
         for layer, payload, template, msgtype in layers:
             if payload is None:

@@ -93,7 +93,7 @@ ENCODINGS: dict[str, str] = {
     "PathReply": "bb1eedee3874093d",
     "Pose2D": "8d8c2f26050aa8d8",
     "QuestionStatus": "34c954ab9f7e0fcd",
-    "RelayHealth": "9bff60dd6a7027a2",  # 1.5: parked (issue 47)
+    "RelayHealth": "a13dd987488e86de",  # 1.6: safe_mask (issue 55)
     "ServiceStatus": "4fe3a85238c98fd0",  # 1.5: its GridStatus; store (issue 46)
     "SourceStatus": "b8cb4513be01ecb6",
     "SourceView": "d16a2d24f70c230c",

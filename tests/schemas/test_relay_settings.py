@@ -20,7 +20,10 @@ def test_defaults_and_several_cameras(tmp_path: Path) -> None:
     settings = load_relay_settings(file, {"max_side": 640, "stale_after_s": None})
     assert [c.is_ros for c in settings.cameras] == [True, False, False]
     assert (settings.jpeg_quality, settings.max_side, settings.stale_after_s) == (60, 640, 3.0)
-    assert settings.forward == ["maps", "maps8", "grid", "preview"] and settings.max_side != "auto"
+    assert (
+        settings.forward == ["maps", "maps8", "grid", "preview", "speed_mask", "costmap", "nav2_costmap"]
+        and settings.max_side != "auto"
+    )
     assert RelaySettings(cameras=[{"camera": "a", "source": "b"}]).max_side == "auto"  # type: ignore[list-item]
 
 

@@ -14,6 +14,7 @@ from gcdtrav.service.grid import speed
 from gcdtrav.service.grid.layers import GridLayers, nav2_costs
 from gcdtrav.service.ros.cdr import (
     RosTopic,
+    nav2_costmap_cdr,
     occupancy_cdr,
     occupancy_values_cdr,
     speed_limit_cdr,
@@ -52,6 +53,7 @@ class GridUpdate:
     costmap: bytes | None = None
     ros: RosTopic | None = None
     speed: SpeedUpdate | None = None
+    nav2_costmap: bytes | None = None  # the costmap as a nav2_msgs/Costmap (the collision monitor's source)
 
 
 @dataclass(frozen=True)
@@ -77,7 +79,7 @@ def encode_update(
     """The payloads of one grid update (encoded outside the grid's lock)."""
     message = GridMessage.model_validate({"header": header, **encode_layers(layers.values())})
     known = layers.known
-    occupancy = uncertainty = grid_map = costmap = None
+    occupancy = uncertainty = grid_map = costmap = nav2_costmap = None
     if config.occupancy_grid:
         occupancy = occupancy_cdr(header, 1.0 - layers.traversability, known)
         uncertainty = occupancy_cdr(header, layers.uncertainty / 0.5, known)
@@ -86,10 +88,13 @@ def encode_update(
     if config.costmap:
         costs = nav2_costs(layers, config.lethal_probability, config.min_match)
         costmap = occupancy_values_cdr(header, costs)
+        nav2_costmap = nav2_costmap_cdr(header, costs)
     speed_update = None
     if config.speed is not None and layers.speed is not None:
         speed_update = speed_of(config, header, layers.speed, ros, speed_mask_due)
-    return GridUpdate(config.source, message, occupancy, uncertainty, grid_map, costmap, ros, speed_update)
+    return GridUpdate(
+        config.source, message, occupancy, uncertainty, grid_map, costmap, ros, speed_update, nav2_costmap
+    )
 
 
 def speed_of(

@@ -19,6 +19,9 @@ from tests.real_components import missing
 KILTED_HASHES = {
     nav2_msgs.COSTMAP_FILTER_INFO: "RIHS01_61ce391bf7690f76a331c01c9d5ce8ca71e6c99273b9fb75e48380f05c6dfdc8",
     nav2_msgs.SPEED_LIMIT: "RIHS01_83d8e4e842559f4d9a988b19d31b162216ec738536389f98438d1a166f91845a",
+    # navigation2 main's Costmap.msg and CostmapMetaData.msg (the collision monitor's costmap source), same generator
+    nav2_msgs.COSTMAP_META_DATA: "RIHS01_1a41ec8428d50c3b4cd3f9055e1adb0eaec72fb39ae11686b59218f6e0884cbd",
+    nav2_msgs.COSTMAP: "RIHS01_d51bf7aecafdbb3f8f98215de648abe6d53f8db69156d6e143125d2ad2bf0027",
 }
 
 
@@ -49,7 +52,7 @@ def official_hashes(tmp_path: Path) -> dict[str, str]:
         written = convert_msg_to_idl(package, "nav2_msgs", msg.relative_to(package), idl / "msg")
         tuples.append(f"{idl}:{written.relative_to(idl)}")
     arguments = tmp_path / "arguments.json"
-    includes = [f"{name}:{_share_of(name)}" for name in ("std_msgs", "builtin_interfaces")]
+    includes = [f"{name}:{_share_of(name)}" for name in ("std_msgs", "builtin_interfaces", "geometry_msgs")]
     arguments.write_text(
         json.dumps(
             {"package_name": "nav2_msgs", "output_dir": str(tmp_path / "out"), "idl_tuples": tuples,
@@ -95,3 +98,37 @@ def test_graph_token_names_the_type_and_its_hash(msgtype: str) -> None:
     name = msgtype.split("/")[-1]
     assert f"/nav2_msgs::msg::dds_::{name}_/{KILTED_HASHES[msgtype]}/" in entity.token
     assert cdr.topic_key(topic).endswith(f"nav2_msgs::msg::dds_::{name}_/{KILTED_HASHES[msgtype]}")
+
+
+def test_the_nav2_costmap_holds_the_costs_nav2s_static_layer_reads_from_the_occupancy_grid() -> None:
+    """-1 unknown -> NO_INFORMATION 255, 100 -> LETHAL 254, a grade v -> v / 100 x 254 truncated (static_layer.cpp
+    interpretValue, trinary_costmap false): the collision monitor sees what the costmap layer sees."""
+    import numpy as np
+    from gcdtrav.schemas.messages import GridHeader
+
+    values = np.array([[-1, 0, 1, 50], [97, 98, 99, 100]], np.int8)
+    assert cdr.nav2_cost_values(values).tolist() == [[255, 0, 2, 127], [246, 248, 251, 254]]
+    header = GridHeader(
+        source="r1/front",
+        seq=3,
+        stamp=12.5,
+        frame_id="odom",
+        origin=(-1.0, 2.0),
+        resolution=0.25,
+        cells=2,
+        anchor_set_version="v",
+        resets=0,
+        known_cells=3,
+        instance="box-1",
+    )
+    square = np.array([[-1, 100], [1, 98]], np.int8)
+    costmap = cdr.typestore().deserialize_cdr(cdr.nav2_costmap_cdr(header, square), nav2_msgs.COSTMAP)
+    assert (costmap.header.stamp.sec, costmap.header.stamp.nanosec, costmap.header.frame_id) == (
+        12,
+        500_000_000,
+        "odom",
+    )
+    meta = costmap.metadata
+    assert (meta.size_x, meta.size_y, meta.resolution, meta.layer) == (2, 2, 0.25, "gcdtrav")
+    assert (meta.origin.position.x, meta.origin.position.y, meta.update_time.sec) == (-1.0, 2.0, 12)
+    assert costmap.data.tolist() == [255, 254, 2, 248]
