@@ -15,10 +15,12 @@ is ever in force longer than ``after_s`` + 0.5 s past the last sign of the servi
 
 from __future__ import annotations
 
+import contextlib
 import random
 import signal
 import socket
 import subprocess
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
@@ -27,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import zenoh
 from conftest import textured_image
 from real_components import require_rclpy
 from zenoh_helpers import free_port, serve_args, start_router, wait_until
@@ -54,13 +57,14 @@ FLOOR = 0.25
 GRID_RESOLUTION, SAFE_RESOLUTION = 0.25, 1.0  # the relay's safe mask (its default cells) is told apart
 SLACK_S = 0.5  # the issue's bound: safe within after_s + 0.5 s
 NO_SHM = "transport/shared_memory/enabled:false"  # or payloads between processes of one host bypass the proxy
+CAMERA_INFO = "camera_info_key: robot/r1/front/camera_info"
 SERVICE_SETTINGS = f"""
 instance: box-1
 preview: false
 reuse: {{enabled: false}}
 grids:
   - source: {SOURCE}
-    camera_info_key: robot/r1/front/camera_info
+    {CAMERA_INFO}
     mount: {{z: 1.0, pitch: 0.6}}
     size_m: 8.0
     resolution_m: {GRID_RESOLUTION}
@@ -190,17 +194,47 @@ class Rig:
         return self.view.safe_since(fault_at)[0]
 
 
+@contextmanager
+def camera_straight_to_the_service(port: int) -> Iterator[None]:
+    """JPEG envelopes to the service's input key at 10 Hz over zenoh, not through the relay (rmw_zenoh's path)."""
+    from gcdtrav.client.session.zenoh_args import zenoh_config
+    from gcdtrav.schemas.images import encode_jpeg
+    from gcdtrav.schemas.keys import input_key
+    from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding
+
+    session = zenoh.open(zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
+    jpeg, stop = encode_jpeg(textured_image(120, 160)), threading.Event()
+
+    def run() -> None:
+        while not stop.wait(0.1):
+            envelope = ImageEnvelope(stamp=time.time(), encoding=PixelEncoding.JPEG, width=160, height=120, data=jpeg)
+            with contextlib.suppress(zenoh.ZError):  # the service killed: its frames go nowhere
+                session.put(input_key("gcdtrav/in", SOURCE), envelope.pack())
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(5)
+        session.close()
+
+
 def listening(port: int) -> bool:
     with socket.socket() as probe:
         return probe.connect_ex(("127.0.0.1", port)) == 0
 
 
 @contextmanager
-def rig(tmp_path: Path, model: Path, after_s: float, through: str) -> Iterator[Rig]:
+def rig(tmp_path: Path, model: Path, after_s: float, through: str, frames: bool = True) -> Iterator[Rig]:
     """The service, the relay and the robot; ``through``: "direct" (the relay connects to the service), "proxy"
-    (through a TCP proxy, ``link_port`` its port) or "router" (both connect to a router on ``link_port``)."""
+    (through a TCP proxy, ``link_port`` its port) or "router" (both connect to a router on ``link_port``).
+    ``frames`` False: the camera's frames go straight to the service (as an rmw_zenoh robot's do), the relay only
+    brings the outputs back and guards the mask (``frames: false``)."""
     settings = tmp_path / "service.yaml"
-    settings.write_text(SERVICE_SETTINGS)
+    intrinsics = "intrinsics: {fx: 100, fy: 100, cx: 80, cy: 60, width: 160, height: 120}"
+    settings.write_text(SERVICE_SETTINGS if frames else SERVICE_SETTINGS.replace(CAMERA_INFO, intrinsics))
     service_port = free_port()
     with ExitStack() as stack:
         robot = RosRobot("robot_under_test")
@@ -253,6 +287,8 @@ def rig(tmp_path: Path, model: Path, after_s: float, through: str) -> Iterator[R
                 "odometry_key:=robot/r1/pose",
                 "-p",
                 "max_speed_m_s:=1.0",
+                "-p",
+                f"frames:={str(frames).lower()}",
             ),
             stdout=subprocess.DEVNULL,
             stderr=handle.relay_log.handle,
@@ -260,6 +296,8 @@ def rig(tmp_path: Path, model: Path, after_s: float, through: str) -> Iterator[R
         stack.callback(lambda: stop_process(relay))
         if through == "proxy":
             handle.proxy = proxy
+        if not frames:
+            stack.enter_context(camera_straight_to_the_service(service_port))
         handle.wait_live(0.0, count=3, timeout_s=120)
         yield handle
 
@@ -367,3 +405,20 @@ def test_a_flapping_link_never_leaves_a_stale_live_mask_in_force(ros_domain: int
             assert any(mask.arrived < down_at + after_s + SLACK_S for mask in safe), (down_at, handle.logs())
             back = [m.arrived for m in handle.view.masks if not m.safe and down_at + 2.0 < m.arrived < down_at + 5.0]
             assert back, (down_at, handle.logs())
+
+
+def test_a_robot_whose_frames_go_straight_to_the_service_gets_the_same_guarantee(
+    ros_domain: int, model: Path, tmp_path: Path
+) -> None:
+    """rmw_zenoh straight to the service: the relay with ``frames: false`` brings the mask to the robot's graph and
+    guards it; Nav2's SpeedFilter reads the one topic, which turns safe when the service goes quiet."""
+    after_s = 2.0
+    with rig(tmp_path, model, after_s, "direct", frames=False) as handle:
+        assert handle.service is not None
+        handle.service.send_signal(signal.SIGKILL)
+        killed_at = time.time()
+        handle.service.wait(10)
+        safe = handle.wait_safe(killed_at, after_s)
+        assert safe.arrived - handle.view.last_sign_before(killed_at) <= after_s + SLACK_S, handle.logs()
+        handle.view.check_never_stale(after_s, time.time())
+        assert "camera_silent" not in handle.relay_log.text()  # no camera of its own to miss
