@@ -3,6 +3,7 @@
     python -m benchmarks.speed                       # 5 seeds x 3 routes; prints a Markdown table
     python -m benchmarks.speed --out benchmarks/speed-mine.json
     python -m benchmarks.speed --quick               # 1 seed, 1 short route: a smoke check
+    python -m benchmarks.speed --link-loss           # the link dies at a random moment (issue 55)
 
 The world (tools/synthetic_scene.py's concepts, anchors and camera): clear ground (paved or grassy, which the
 start anchor set knows well: U < 0.06) with patches of ambiguous ground, whose softmax is split between grass,
@@ -17,6 +18,13 @@ last row: a slow box or link); the grid
 mask reaches Nav2's SpeedFilter LINK_S after that, decoded from its nav_msgs/OccupancyGrid CDR; the SpeedFilter
 looks up the robot's cell in the last mask it has at 10 Hz, as nav2_costmap_2d's does (a cell off the mask
 keeps the last limit), and caps the controller's speed at that percent. Without the layer: V_MAX all the way.
+
+Link loss (``--link-loss``): the link dies at a random moment of the drive, after which nothing crosses it: no
+frame is fused, no mask reaches the robot. Three ways the robot's mask can end: none (the last live mask stays,
+as for a killed service), the service's own safe mask (sent when its grid goes stale, into the dead link: what
+a robot had before issue 55), and the relay's (client/relay/mask_guard.py, on the robot: the floor everywhere
+``after_s`` after the last message of the service). Off the mask, SpeedFilter gives no limit: Nav2's with a path
+(path lookahead, navigation2 main) does; without one it keeps its last limit. Run on hazards and on clear ground.
 
 A hazard contact: the robot enters a hazard's square faster than V_SAFE (a rock it rolls over at walking pace
 but not at full speed); each hazard counts once per drive. A stall: the robot slower than 0.05 m/s for more than
@@ -35,8 +43,10 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from gcdtrav.client.relay.mask_guard import MaskGuard
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.messages import Pose2D
+from gcdtrav.schemas.relay import SafeMaskSettings
 from gcdtrav.schemas.settings import GridSettings
 from gcdtrav.service.backends.cpus import cpu_name
 from gcdtrav.service.grid.geometry import ground_points, map_cell_pixels
@@ -61,6 +71,9 @@ ROUTE_M, QUICK_ROUTE_M, CLEAR_START_M = 40.0, 14.0, 5.0
 PATCH_M, HAZARD_M = 2.0, 0.5  # an ambiguous patch's side; a hazard's, inside a patch, on the route
 PATCHES_PER_10_M = 1
 STALL_MPS, STALL_S = 0.05, 1.0
+SAFE_AFTER_S, STALE_S = 2.0, 3.0  # the relay's safe_mask.after_s, the service's speed.stale_s
+HORIZON_S = 30.0  # the relay's safe mask reaches 2 x V_MAX x HORIZON_S = 90 m each way: never left on a route
+GUARDS = ("none", "service", "robot")
 NOISE = 0.1  # per logit, as SceneBackend
 
 ROWS = {  # what the backend's softmax says of each kind of ground (over the start set's concepts)
@@ -170,6 +183,63 @@ class Layer:
 LAYERS = (Layer(1.0, 0.0), Layer(1.0, LEAD_M), Layer(5.0, LEAD_M), Layer(1.0, LEAD_M, (2.0, 3.0)))
 
 
+@dataclass(frozen=True)
+class LinkLoss:
+    """The link dies at ``at_s`` (simulated); ``guard``: which safe mask may follow (GUARDS)."""
+
+    at_s: float
+    guard: str
+
+
+class LinkSide:
+    """What the link and the robot's relay make of the masks and frames, before and after a loss."""
+
+    def __init__(self, loss: LinkLoss | None) -> None:
+        self.loss = loss
+        settings = SafeMaskSettings(after_s=SAFE_AFTER_S, floor=FLOOR, max_speed_m_s=V_MAX, horizon_s=HORIZON_S)
+        self.now = 0.0
+        self.guard = MaskGuard("robot/cam", settings, clock=lambda: self.now)
+        self.last_fused = 0.0
+        self.service_safe_sent = False
+
+    def up(self, t: float) -> bool:
+        return self.loss is None or t < self.loss.at_s
+
+    def crossing(self, masks: list[Mask]) -> list[Mask]:
+        """The masks that reach the robot: those arriving while the link is up; each tells the relay's guard."""
+        arrived = [mask for mask in masks if self.up(mask.arrives_at)]
+        for mask in arrived:
+            self.last_fused = mask.arrives_at
+        return arrived
+
+    def safe_masks(self, t: float, robot: Robot) -> list[Mask]:
+        """The safe masks handed out at ``t``: the service's (its grid stale for STALE_S; it crosses only a live
+        link) and the relay's guard's (on the robot: always arrives)."""
+        if self.loss is None or self.loss.guard == "none":
+            return []
+        found = []
+        if not self.service_safe_sent and t - self.last_fused > STALE_S:
+            self.service_safe_sent = True  # put once, as the service does; a dead link loses it
+            if self.up(t):
+                found.append(uniform_mask(robot.x, 16.0, 0.2, t + LINK_S))
+        if self.loss.guard == "robot":
+            self.now = t
+            if t - self.last_fused < 1.0 / FRAME_HZ + 0.1:  # credits and maps at the frames' rate while up
+                self.guard.heard()
+            self.guard.pose(robot.x, 0.0, "odom")
+            safe = self.guard.due()
+            if safe is not None:
+                found.append(Mask(safe.values(), safe.origin, safe.resolution, t))
+        return found
+
+
+def uniform_mask(x: float, size_m: float, resolution: float, arrives_at: float) -> Mask:
+    """The floor everywhere on a square of ``size_m`` centred at (x, 0): the service's safe mask of its grid."""
+    cells = round(size_m / resolution)
+    values = np.full((cells, cells), round(FLOOR * 100), np.int8)
+    return Mask(values, (x - size_m / 2, -size_m / 2), resolution, arrives_at)
+
+
 @dataclass
 class Drive:
     """One drive's outcome."""
@@ -185,6 +255,8 @@ class Drive:
     mean_speed_ambiguous: float
     mean_speed_clear: float
     reached: bool
+    loss_at_s: float | None = None  # when the link died, if it did
+    fast_after_loss_m: float = 0.0  # metres driven above the floor's speed after the loss
 
 
 @dataclass
@@ -209,8 +281,10 @@ def grid_settings(scene: SceneCamera, layer: Layer) -> GridSettings:
     )  # fmt: skip
 
 
-def drive(ground: Ground, route_m: float, layer: Layer | None, seed: int, route: int) -> Drive:
-    """The robot along y = 0 to x = route_m; ``layer`` None: without the speed layer."""
+def drive(
+    ground: Ground, route_m: float, layer: Layer | None, seed: int, route: int, loss: LinkLoss | None = None
+) -> Drive:
+    """The robot along y = 0 to x = route_m; ``layer`` None: without the speed layer; ``loss``: the link dies."""
     rng = np.random.default_rng(seed * 1000 + route)
     scene, anchors = default_camera(), start_anchors()
     eyes = Eyes(scene, anchors, rng)
@@ -223,15 +297,20 @@ def drive(ground: Ground, route_m: float, layer: Layer | None, seed: int, route:
     dt, t, slow_since, stalls = 1.0 / POSE_HZ, 0.0, None, 0
     entered: dict[int, float] = {}  # hazard -> the speed it was entered at
     limit_deadline = 120.0 + route_m / (V_MAX * FLOOR)
+    link, fast_m = LinkSide(loss), 0.0
+    off_mask = "keep" if loss is None else "no_limit"
     while robot.x < route_m and t < limit_deadline:
         step = round(t * POSE_HZ)
         grids.add_pose(CAMERA, Pose2D(stamp=t, frame_id="odom", x=robot.x, y=0.0, yaw=0.0))
         if layer is not None:
-            if step % round(POSE_HZ / FRAME_HZ) == 0:
+            if step % round(POSE_HZ / FRAME_HZ) == 0 and link.up(t):
                 frames.append((t + float(rng.uniform(*layer.latency_s)), t, (robot.x, 0.0, 0.0)))
-            masks += fuse_due(grids, eyes, ground, frames, t, anchors, clock)
+            masks += link.crossing(fuse_due(grids, eyes, ground, frames, t, anchors, clock))
+            masks += link.safe_masks(t, robot)
             if step % round(POSE_HZ / FILTER_HZ) == 0:
-                robot.limit = filter_limit(masks, robot, t)
+                robot.limit = filter_limit(masks, robot, t, off_mask)
+        if loss is not None and t >= loss.at_s and robot.v > FLOOR * V_MAX + 1e-6:
+            fast_m += robot.v * dt
         kind = int(ground.kind(np.array(robot.x), np.array(0.0)))
         robot.samples[kind].append(robot.v)
         hazard = ground.hazard_at(robot.x, 0.0)
@@ -244,6 +323,7 @@ def drive(ground: Ground, route_m: float, layer: Layer | None, seed: int, route:
     return Drive(
         "off" if layer is None else layer.name, seed, route, t, sum(v > V_SAFE for v in entered.values()),
         len(ground.hazards), list(entered.values()), stalls, _mean(robot.samples[2]), _mean(clear), robot.x >= route_m,
+        None if loss is None else loss.at_s, fast_m,
     )  # fmt: skip
 
 
@@ -271,15 +351,16 @@ def fuse_due(
     return masks
 
 
-def filter_limit(masks: list[Mask], robot: Robot, t: float) -> float:
-    """Nav2's SpeedFilter: the newest mask arrived by ``t``, at the robot's cell; off the mask or none yet, the
-    last limit stays (the robot starts with none: full speed, as Nav2 before its first mask)."""
+def filter_limit(masks: list[Mask], robot: Robot, t: float, off_mask: str = "keep") -> float:
+    """Nav2's SpeedFilter: the newest mask arrived by ``t``, at the robot's cell; none yet, the last limit stays
+    (the robot starts with none: full speed, as Nav2 before its first mask); off the mask, ``off_mask``: "keep"
+    the last limit (Jazzy, Kilted, or main without a path) or "no_limit" (main's path lookahead)."""
     arrived = [mask for mask in masks if mask.arrives_at <= t]
     if not arrived:
         return robot.limit
     percent = arrived[-1].percent_at(robot.x, 0.0)
     if percent is None:
-        return robot.limit
+        return robot.limit if off_mask == "keep" else 1.0
     return 1.0 if percent == NO_LIMIT else percent / 100.0
 
 
@@ -306,6 +387,40 @@ def run(seeds: int, routes: int, route_m: float, layers: tuple[Layer, ...]) -> l
             for layer in (None, *layers):
                 drives.append(drive(ground, route_m, layer, seed, route))
     return drives
+
+
+def run_link_loss(seeds: int, routes: int, route_m: float) -> list[Drive]:
+    """Every seed's routes with the default layer, the link dying at a random moment while the robot approaches
+    the hazards (after the clear start, before the last third), once per guard; and the same on clear ground."""
+    layer, drives = LAYERS[1], []
+    for seed in range(seeds):
+        for route in range(routes):
+            rng = np.random.default_rng(seed * 100 + route + 7)
+            hazards = make_ground(route_m, np.random.default_rng(seed * 100 + route))
+            at_s = float(rng.uniform(CLEAR_START_M / V_MAX, 0.6 * route_m / V_MAX))
+            for name, ground in (("hazards", hazards), ("clear", Ground([], []))):
+                for guard in GUARDS:
+                    done = drive(ground, route_m, layer, seed, route, LinkLoss(at_s, guard))
+                    done.layer = f"{name}, safe mask: {guard}"
+                    drives.append(done)
+    return drives
+
+
+def link_loss_table(drives: list[Drive]) -> str:
+    lines = [
+        "| ground, safe mask after the loss | drives (reached) | time to goal, s (median) | hazard contacts / hazards "
+        "| m driven above the floor's speed after the loss (median / max) |",
+        "|---|---|---|---|---|",
+    ]
+    for layer in dict.fromkeys(d.layer for d in drives):
+        mine = [d for d in drives if d.layer == layer]
+        fast = [d.fast_after_loss_m for d in mine]
+        lines.append(
+            f"| {layer} | {len(mine)} ({sum(d.reached for d in mine)}) | "
+            f"{statistics.median(d.time_to_goal_s for d in mine):.1f} | {sum(d.contacts for d in mine)} / "
+            f"{sum(d.hazards for d in mine)} | {statistics.median(fast):.1f} / {max(fast):.1f} |"
+        )
+    return "\n".join(lines)
 
 
 def summary(drives: list[Drive]) -> list[dict[str, float | str | int]]:
@@ -347,8 +462,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=5, help="worlds [5]")
     parser.add_argument("--routes", type=int, default=3, help="routes per world [3]")
     parser.add_argument("--quick", action="store_true", help="1 seed, 1 short route, the default layer: a smoke check")
+    parser.add_argument("--link-loss", action="store_true", help="the link dies at a random moment (issue 55)")
     parser.add_argument("--out", type=Path, help="write the drives, the summary and the machine as JSON")
     args = parser.parse_args(argv)
+    if args.link_loss:
+        seeds, routes, route_m = (1, 1, QUICK_ROUTE_M) if args.quick else (args.seeds, args.routes, ROUTE_M)
+        drives = run_link_loss(seeds, routes, route_m)
+        print(f"cpu: {cpu_name()}, python {platform.python_version()}")
+        print(link_loss_table(drives))
+        if args.out is not None:
+            document = {"cpu": cpu_name(), "drives": [asdict(d) for d in drives]}
+            args.out.write_text(json.dumps(document, indent=1) + "\n")
+        return 0
     quick = (1, 1, QUICK_ROUTE_M, (LAYERS[1],))
     drives = run(*quick) if args.quick else run(args.seeds, args.routes, ROUTE_M, LAYERS)
     rows = summary(drives)

@@ -137,15 +137,19 @@ class RelayOdometry(StrictModel):
     700 of a nav_msgs/Odometry with its covariances)."""
 
     topic: str = Field(default="/odom", description="nav_msgs/Odometry topic on the robot.")
-    key: str = Field(description="The link key of the service grid's pose_key (pose_format: gcdtrav).")
+    key: str | None = Field(
+        default=None,
+        description="The link key of the service grid's pose_key (pose_format: gcdtrav); null: not sent, only "
+        "read for the safe mask's centre.",
+    )
     max_rate_hz: float = Field(
         default=10.0, gt=0, description="At most this many poses a second cross the link (the grid interpolates)."
     )
 
     @field_validator("key")
     @classmethod
-    def _key_is_literal(cls, value: str) -> str:
-        return _literal_key(value, "odometry key")
+    def _key_is_literal(cls, value: str | None) -> str | None:
+        return None if value is None else _literal_key(value, "odometry key")
 
 
 class RelaySettings(StrictModel):

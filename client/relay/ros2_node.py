@@ -360,7 +360,9 @@ class OdometryLink:
         self, node: Node, settings: RelayOdometry, link: zenoh.Session, on_pose: Callable[[float, float, str], None]
     ) -> None:
         self.settings, self.on_pose = settings, on_pose
-        self.publisher = Guarded(link.declare_publisher(settings.key, encoding=MSGPACK))
+        self.publisher = (
+            None if settings.key is None else Guarded(link.declare_publisher(settings.key, encoding=MSGPACK))
+        )
         self.subscription = node.create_subscription(Odometry, settings.topic, self.on_odometry, SENSOR_QOS)
         self.sent = self.rejected = 0
         self._last = -math.inf
@@ -369,7 +371,7 @@ class OdometryLink:
         position, q = odometry.pose.pose.position, odometry.pose.pose.orientation
         self.on_pose(position.x, position.y, odometry.header.frame_id)  # the safe mask's centre: every pose
         now = time.monotonic()
-        if now - self._last < 1.0 / self.settings.max_rate_hz:
+        if self.publisher is None or now - self._last < 1.0 / self.settings.max_rate_hz:
             return
         yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
         stamp = odometry.header.stamp.sec + odometry.header.stamp.nanosec * 1e-9
@@ -385,7 +387,8 @@ class OdometryLink:
         self.sent += 1
 
     def close(self) -> None:
-        self.publisher.undeclare()
+        if self.publisher is not None:
+            self.publisher.undeclare()
 
 
 class RosRobotSide:

@@ -63,8 +63,7 @@ def settings_overrides(parameters: dict[str, Any]) -> dict[str, object]:
     safe = {field: parameters[name] for name, field in SAFE_MASK_PARAMETERS.items() if name in parameters}
     if safe:
         overrides["safe_mask"] = safe
-    if "odometry_key" in parameters:
-        overrides["odometry"] = {"key": parameters["odometry_key"]} | (
-            {"topic": parameters["odometry_topic"]} if "odometry_topic" in parameters else {}
-        )
+    if "odometry_key" in parameters or "odometry_topic" in parameters:  # a topic alone: the safe mask's centre
+        odometry = {"key": parameters.get("odometry_key"), "topic": parameters.get("odometry_topic")}
+        overrides["odometry"] = {name: value for name, value in odometry.items() if value is not None}
     return overrides

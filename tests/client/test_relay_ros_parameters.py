@@ -112,3 +112,26 @@ def test_the_base_install_stays_ros_free() -> None:
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert result.returncode == 1, result.stderr
     assert "gcdtrav relay --ros: needs ROS 2's rclpy" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_the_guard_of_a_robot_whose_frames_go_straight_to_the_service_from_parameters() -> None:
+    """frames:=false for one camera or each, the safe mask's settings, odometry read without a key to send it to."""
+    overrides = settings_overrides(
+        {
+            "camera": ["/a/image_raw", "/b/image_raw"],
+            "source": ["r1/a", "r1/b"],
+            "frames": False,
+            "odometry_topic": "/odom",
+            "safe_after_s": 1.5,
+            "safe_floor": 0.2,
+            "max_speed_m_s": 2.0,
+        }
+    )
+    settings = RelaySettings.model_validate(overrides)
+    assert [camera.frames for camera in settings.cameras] == [False, False]
+    assert settings.odometry is not None and settings.odometry.key is None and settings.odometry.topic == "/odom"
+    assert (settings.safe_mask.after_s, settings.safe_mask.floor, settings.safe_mask.max_speed_m_s) == (1.5, 0.2, 2.0)
+    each = settings_overrides({"camera": ["/a", "/b"], "source": ["a", "b"], "frames": [True, False]})
+    assert [camera["frames"] for camera in each["cameras"]] == [True, False]  # type: ignore[index]
+    with pytest.raises(ValueError, match="3 frames"):
+        settings_overrides({"camera": ["/a", "/b"], "source": ["a", "b"], "frames": [True, False, True]})
