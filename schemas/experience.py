@@ -58,6 +58,20 @@ class TraversalOutcome(Message):
         return value
 
 
+MAX_BATCH_OUTCOMES = 1000  # a batch a second holds a few: 1000 is a relay that could not send for minutes
+
+
+class OutcomeBatch(Message):
+    """Outcomes measured on the robot by its relay (schemas/outcomes.py), sent together at most every
+    ``outcomes.batch_period_s``: {prefix}/in/{source}/outcomes, {source} the grid's. Since 1.6."""
+
+    outcomes: list[TraversalOutcome] = Field(max_length=MAX_BATCH_OUTCOMES)
+    sent_at: FiniteFloat = Field(description="The robot's clock when the batch left, s since the epoch.")
+    dropped: int = Field(
+        default=0, ge=0, description="Outcomes the relay dropped since its last batch: more than a batch holds."
+    )
+
+
 class Twist2D(Message):
     """A velocity command in msgpack or JSON (the zenoh form of geometry_msgs/Twist): base frame, m/s, rad/s."""
 

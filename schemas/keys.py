@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 OUTPUT_KINDS = ("maps", "maps8", "preview", "patch", "grid", "cell", "calibration", "question")
 # The last chunk of {prefix}/in/{source}/<kind> keys that carry messages, not images: never a camera source.
-INPUT_MESSAGE_KINDS = ("outcome", "answer", "planned_path")
+INPUT_MESSAGE_KINDS = ("outcome", "outcomes", "answer", "planned_path")
 NO_FINGERPRINT = "-"  # a member token's fingerprint chunk when the backend has none (key chunks cannot be empty)
 GRID_LAYERS = ("occupancy", "uncertainty", "gridmap", "costmap")  # the grid's CDR messages, under .../grid/
 
@@ -96,6 +96,10 @@ class Keys:
         """Where traversal outcomes of the grid ``source`` arrive (``**`` where subscribing)."""
         return f"{self.prefix}/in/{source}/outcome"
 
+    def outcomes(self, source: str) -> str:
+        """Where a relay's batches of outcomes measured on the robot arrive (``OutcomeBatch``; since 1.6)."""
+        return f"{self.prefix}/in/{source}/outcomes"
+
     def answer(self, source: str) -> str:
         """Where an operator's answers to ``source``'s questions arrive (put, or a query with the answer)."""
         return f"{self.prefix}/in/{source}/answer"
@@ -105,8 +109,9 @@ class Keys:
         return f"{self.prefix}/in/{source}/planned_path"
 
     def input_message(self, key: str) -> tuple[str, str] | None:
-        """(source, kind) of ``{prefix}/in/{source}/outcome``, ``.../answer`` or ``.../planned_path``; None for any
-        other key (an image's). Such keys are never read as images, whatever the inputs' expressions cover."""
+        """(source, kind) of ``{prefix}/in/{source}/outcome``, ``.../outcomes``, ``.../answer`` or
+        ``.../planned_path``; None for any other key (an image's). Such keys are never read as images, whatever the
+        inputs' expressions cover."""
         head = f"{self.prefix}/in/"
         source, _, kind = key[len(head) :].rpartition("/") if key.startswith(head) else ("", "", "")
         if kind not in INPUT_MESSAGE_KINDS or not source or "*" in source or "$" in source:

@@ -152,6 +152,64 @@ class RelayOdometry(StrictModel):
         return None if value is None else _literal_key(value, "odometry key")
 
 
+def _experience_default(name: str) -> float:
+    from gcdtrav.schemas.settings.experience import ExperienceSettings
+
+    return float(ExperienceSettings.model_fields[name].default)
+
+
+class RelayOutcomes(StrictModel):
+    """Outcomes measured on the robot by the service's own rules (schemas/outcomes.py) and sent over the link
+    in batches (docs/calibration.md, "Which robots teach"): velocity tracking from the robot's commands and
+    odometry at their full rate, contacts from a bumper, the robot's own TraversalOutcomes, its planned path."""
+
+    source: str | None = Field(
+        default=None,
+        description="The grid the outcomes belong to, as the service names it [the first camera's source].",
+    )
+    cmd_vel: str | None = Field(
+        default="/cmd_vel",
+        description="Velocity commands: a ROS topic (the ROS 2 node: geometry_msgs/Twist or TwistStamped, see "
+        "cmd_vel_stamped), or a key of the robot's zenoh bus (Twist2D msgpack or JSON, or an rmw_zenoh Twist key: "
+        "CDR); null: no velocity outcomes.",
+    )
+    cmd_vel_stamped: bool = Field(default=False, description="The commands are TwistStamped (Jazzy's Nav2 option).")
+    odometry: str | None = Field(
+        default=None,
+        description="zenoh relay: the robot's odometry key (Odometry2D msgpack or JSON, or an rmw_zenoh Odometry "
+        "key: CDR); the ROS 2 node reads odometry.topic.",
+    )
+    contact: str | None = Field(
+        default=None,
+        description="A bumper: std_msgs/Bool (a ROS topic, or an rmw_zenoh key: CDR; JSON true/false on a plain "
+        "key). Each press is one contact outcome, score 0, at the robot's pose.",
+    )
+    outcome: str | None = Field(
+        default=None,
+        description="zenoh relay: a key of the robot's bus where its own code puts TraversalOutcomes (msgpack or "
+        "JSON), sent on with the others.",
+    )
+    planned_path: str | None = Field(
+        default=None,
+        description="The robot's planned path: nav_msgs/Path (a ROS topic) or PlannedPath on a zenoh key; sent "
+        "when it changes, at most every batch_period_s, shortened to path_length_m ahead.",
+    )
+    path_length_m: float = Field(default=20.0, gt=0, le=1000, description="How much of the path ahead is sent.")
+    batch_period_s: float = Field(
+        default=1.0, gt=0, le=60, description="At most one batch of outcomes (and one path) this often."
+    )
+    footprint_m: float = Field(default_factory=lambda: _experience_default("footprint_m"), gt=0, le=10)
+    min_command_mps: float = Field(default_factory=lambda: _experience_default("min_command_mps"), ge=0)
+    command_timeout_s: float = Field(default_factory=lambda: _experience_default("command_timeout_s"), gt=0)
+    outcome_spacing_m: float = Field(default_factory=lambda: _experience_default("outcome_spacing_m"), gt=0)
+    outcome_period_s: float = Field(default_factory=lambda: _experience_default("outcome_period_s"), gt=0)
+
+    @field_validator("source")
+    @classmethod
+    def _source_is_literal(cls, value: str | None) -> str | None:
+        return None if value is None else _literal_key(value, "outcomes.source")
+
+
 class RelaySettings(StrictModel):
     cameras: list[RelayCamera] = Field(min_length=1, description="The robot's cameras, one source each.")
     prefix: str = Field(default="gcdtrav", description="The service's key prefix.")
@@ -202,6 +260,9 @@ class RelaySettings(StrictModel):
         default_factory=SafeMaskSettings,
         description="The robot's own guard of the speed mask, for every camera without its own.",
     )
+    outcomes: RelayOutcomes | None = Field(
+        default=None, description="Outcomes measured on the robot and sent to the service's experience; null: none."
+    )
     pose_key: str | None = Field(
         default=None,
         description="zenoh relay only: the robot's pose on its bus, where the safe mask is centred (Pose2D msgpack, "
@@ -235,6 +296,10 @@ class RelaySettings(StrictModel):
         if duplicates:
             raise ValueError(f"sources named twice: {', '.join(duplicates)}")
         return self
+
+    def outcome_source(self) -> str:
+        """The grid the outcomes belong to."""
+        return (self.outcomes.source if self.outcomes else None) or self.cameras[0].source
 
     def safe_mask_of(self, camera: RelayCamera) -> SafeMaskSettings:
         return camera.safe_mask or self.safe_mask

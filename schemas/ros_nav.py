@@ -1,6 +1,8 @@
 """nav_msgs in CDR with numpy only, for the robot's side (client/relay/), which has no ROS typestore: a
 ``nav_msgs/msg/OccupancyGrid`` written (the relay's safe speed mask, client/relay/mask_guard.py) and its
-geometry read back (a live mask's frame and cells), and the pose of a ``nav_msgs/msg/Odometry``.
+geometry read back (a live mask's frame and cells); the pose and velocity of a ``nav_msgs/msg/Odometry``, a
+``geometry_msgs/msg/Twist`` or ``TwistStamped`` and a ``std_msgs/msg/Bool`` (outcomes measured on the robot,
+client/relay/outcomes.py).
 
 Plain CDR, little-endian, as schemas/ros_image.py reads it: a 4-byte encapsulation header, then each field
 aligned to its size from the end of that header. Checked against ROS 2's own serialiser
@@ -14,11 +16,14 @@ import struct
 from dataclasses import dataclass
 
 import numpy as np
+from gcdtrav.schemas.experience import Odometry2D, Twist2D
 from gcdtrav.schemas.ros_image import _Malformed, _Reader
 from numpy.typing import NDArray
 
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 ODOMETRY = "nav_msgs/msg/Odometry"
+TWIST, TWIST_STAMPED, BOOL = "geometry_msgs/msg/Twist", "geometry_msgs/msg/TwistStamped", "std_msgs/msg/Bool"
+COVARIANCE = 36  # doubles of a PoseWithCovariance's or TwistWithCovariance's covariance
 ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little-endian
 
 
@@ -141,3 +146,39 @@ def odometry_pose(payload: bytes) -> OdometryPose:
 def _double(reader: _Reader) -> float:
     low = reader.number("Q")
     return float(struct.unpack("<d", struct.pack("<Q", low))[0])
+
+
+def odometry_motion(payload: bytes) -> Odometry2D:
+    """An Odometry's CDR as the velocity tracker reads it: its pose and its twist (in the child frame);
+    RosNavError when it is not one or a number is not finite."""
+    pose = odometry_pose(payload)
+    try:
+        reader = _Reader(payload)
+        reader.number("i"), reader.number("I"), reader.string(), reader.string()  # header, child_frame_id
+        for _ in range(7 + COVARIANCE):  # the pose read above, and its covariance
+            _double(reader)
+        vx, vy, _, _, _, wz = (_double(reader) for _ in range(6))
+        return Odometry2D(
+            stamp=pose.stamp, frame_id=pose.frame_id, x=pose.x, y=pose.y, yaw=pose.yaw, vx=vx, vy=vy, wz=wz
+        )
+    except (_Malformed, ValueError) as err:  # pydantic's ValidationError is a ValueError: a number not finite
+        raise RosNavError(f"not a usable {ODOMETRY}: {err}") from None
+
+
+def twist_command(payload: bytes, stamped: bool) -> Twist2D:
+    """A Twist's or TwistStamped's CDR as a velocity command; RosNavError when it is not one."""
+    try:
+        reader = _Reader(payload)
+        if stamped:
+            reader.number("i"), reader.number("I"), reader.string()
+        vx, vy, _, _, _, wz = (_double(reader) for _ in range(6))
+        return Twist2D(vx=vx, vy=vy, wz=wz)
+    except (_Malformed, ValueError) as err:
+        raise RosNavError(f"not a usable {TWIST_STAMPED if stamped else TWIST}: {err}") from None
+
+
+def bool_value(payload: bytes) -> bool:
+    """A std_msgs/Bool's CDR; RosNavError when it is not one."""
+    if len(payload) < 5 or payload[:2] not in (b"\x00\x00", b"\x00\x01") or payload[4] > 1:
+        raise RosNavError(f"not a {BOOL}: {payload[:8]!r}")
+    return bool(payload[4])

@@ -40,9 +40,18 @@ import zenoh
 from gcdtrav.client.freshness import FreshnessWatch, Staleness
 from gcdtrav.client.relay.causes import CameraFacts, causes, change_key
 from gcdtrav.client.relay.mask_guard import SAFE, MaskGuard, SafeMask
+from gcdtrav.client.relay.outcomes import (
+    INPUT_ERRORS,
+    OutcomeLink,
+    decode_command,
+    decode_contact,
+    decode_odometry,
+    robot_key,
+)
 from gcdtrav.client.relay.ros_camera import ros_camera_key, ros_type_of_key
 from gcdtrav.client.relay.state import CameraClock, ClockEstimate, CreditWindow, RateWindow, downsized
 from gcdtrav.client.session.source_info import put_identified
+from gcdtrav.schemas.experience import PlannedPath, TraversalOutcome
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.inputs import RejectedInput, decode_payload
 from gcdtrav.schemas.keys import Keys, input_key
@@ -57,7 +66,7 @@ from gcdtrav.schemas.messages import (
     RelayHealth,
     peek_fields,
 )
-from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE, FORWARDABLE, RelayCamera, RelaySettings
+from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE, FORWARDABLE, RelayCamera, RelayOutcomes, RelaySettings
 from gcdtrav.schemas.ros_image import decode_ros_image
 from gcdtrav.schemas.ros_nav import RosNavError, occupancy_grid_cdr, occupancy_grid_geometry, odometry_pose, split_stamp
 
@@ -125,6 +134,10 @@ class RobotSide(Protocol):
 
     def publish_safe_mask(self, mask: SafeMask) -> None:
         """Put the relay's safe speed mask where the live one goes (client/relay/mask_guard.py)."""
+        ...
+
+    def subscribe_outcomes(self, outcomes: OutcomeLink) -> Iterable[Undeclarable]:
+        """Feed ``outcomes`` with the robot's commands, odometry, contacts, own outcomes and planned path."""
         ...
 
     def close(self) -> None: ...
@@ -381,7 +394,7 @@ class CameraLink:
             frames_captured=self.captured,
             frames_sent=self.sent,
             credit_timeouts=self.window.timeouts,
-            uplink_bytes_per_s=self.uplink.per_s(),
+            uplink_bytes_per_s=self.uplink.per_s() + self.relay.outcome_uplink(self.source),
             downlink_bytes_per_s=downlink,
             owner=self.window.owner,
             clock_offset_s=None if best is None else best[1],
@@ -506,6 +519,24 @@ class ZenohRobotSide:
     def publish_health(self, health: RelayHealth) -> None:
         self._health[health.source].put(health.pack())
 
+    def subscribe_outcomes(self, outcomes: OutcomeLink) -> list[Guarded]:
+        """The robot's inputs of its outcomes on its bus: each a plain key (msgpack or JSON) or a ROS topic's
+        rmw_zenoh keys (CDR)."""
+        settings = outcomes.settings
+        kind = "cmd_vel_stamped" if settings.cmd_vel_stamped else "cmd_vel"
+        handlers: list[tuple[str | None, str, Callable[[bytes], None]]] = [
+            (settings.cmd_vel, kind, lambda p: outcomes.on_command(decode_command(p, settings.cmd_vel_stamped))),
+            (settings.odometry, "odometry", lambda p: outcomes.on_odometry(decode_odometry(p))),
+            (settings.contact, "contact", lambda p: outcomes.on_contact(decode_contact(p))),
+            (settings.outcome, "outcome", lambda p: outcomes.on_outcome(TraversalOutcome.decode(p, 4096))),
+            (settings.planned_path, "planned_path", partial(_path_into, outcomes)),
+        ]
+        return [
+            Guarded(self.local.declare_subscriber(robot_key(name, kind), partial(_decoded, outcomes, handle)))
+            for name, kind, handle in handlers
+            if name is not None
+        ]
+
     def publish_safe_mask(self, mask: SafeMask) -> None:
         forwarder = self._masks.get(mask.source)
         if forwarder is not None:
@@ -515,6 +546,21 @@ class ZenohRobotSide:
         for publisher in [*self._health.values(), *([self._pose] if self._pose else [])]:
             publisher.undeclare()
         self._health.clear()
+
+
+def _decoded(outcomes: OutcomeLink, handle: Callable[[bytes], None], sample: zenoh.Sample) -> None:
+    """An input of the outcomes, decoded and handed over; a bad one counted, said once."""
+    try:
+        handle(sample.payload.to_bytes())
+    except INPUT_ERRORS as err:
+        if outcomes.rejected == 0:
+            log.warning("%s not usable for outcomes (counted, said once): %s", sample.key_expr, err)
+        outcomes.rejected += 1
+
+
+def _path_into(outcomes: OutcomeLink, payload: bytes) -> None:
+    path = PlannedPath.decode(payload, 256 * 1024)
+    outcomes.on_path(path.frame_id, path.stamp, [(float(x), float(y)) for x, y in path.points])
 
 
 class Relay:
@@ -542,6 +588,7 @@ class Relay:
             if settings.safe_mask_of(camera).enabled
         }
         self.cameras = [CameraLink(self, camera) for camera in settings.cameras]
+        self.outcomes: OutcomeLink | None = None  # outcomes measured here (settings.outcomes), from start()
         self.forwarders: list[Output] = []
         self.stopping = False
         self._on_stale = on_stale
@@ -563,6 +610,8 @@ class Relay:
                 )
             self.forwarders += self.robot.outputs(self, camera.source)
             self._declared += camera.start()
+        if self.settings.outcomes is not None:
+            self._start_outcomes(self.settings.outcomes)
         self._thread.start()
         log.info(
             "relaying %s to %s (JPEG quality %d, max side %s)",
@@ -572,6 +621,21 @@ class Relay:
             self.settings.max_side,
         )
         return self
+
+    def _start_outcomes(self, settings: RelayOutcomes) -> None:
+        source = self.settings.outcome_source()
+        publishers = [
+            Guarded(self.link.declare_publisher(key, encoding=MSGPACK))
+            for key in (self.keys.outcomes(source), self.keys.planned_path(source))
+        ]
+        self.outcomes = OutcomeLink(settings, source, *publishers)
+        self._declared += [*publishers, *self.robot.subscribe_outcomes(self.outcomes)]
+        log.info("measuring outcomes of grid %s on the robot, sent every %g s at most", source, settings.batch_period_s)
+
+    def outcome_uplink(self, source: str) -> float:
+        """Bytes per second of outcomes sent for the grid ``source`` (a camera's health counts them)."""
+        outcomes = self.outcomes
+        return outcomes.uplink.per_s() if outcomes is not None and outcomes.source == source else 0.0
 
     def wake(self) -> None:
         self._wake.set()
@@ -652,6 +716,8 @@ class Relay:
             due = min(next_health, next_link) if link_period is not None else next_health
             if self.guards:
                 due = min(due, time.monotonic() + GUARD_PERIOD_S)
+            if self.outcomes is not None:
+                due = min(due, self.outcomes.send_due())
             self._wake.wait(max(0.0, due - time.monotonic()))
             self._wake.clear()
             if self.stopping:

@@ -43,6 +43,7 @@ import threading
 import time
 from array import array
 from collections.abc import Callable, Sequence
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -59,13 +60,16 @@ from gcdtrav.client.relay.causes import (
     NO_INSTANCE,
 )
 from gcdtrav.client.relay.mask_guard import SafeMask
+from gcdtrav.client.relay.outcomes import OutcomeLink
 from gcdtrav.client.relay.relay import MSGPACK, CameraLink, CapturedFrame, Guarded, Relay
 from gcdtrav.client.relay.ros_parameters import PARAMETERS, as_list, camera_info_topic, settings_overrides
 from gcdtrav.client.relay.state import RateWindow
+from gcdtrav.schemas.experience import Odometry2D, Twist2D
 from gcdtrav.schemas.messages import CameraParked, Pose2D, RelayHealth
 from gcdtrav.schemas.relay import RelayCamera, RelayOdometry, RelaySettings
 from gcdtrav.schemas.ros_image import COMPRESSED_IMAGE, IMAGE, SUPPORTED_TYPES
-from nav_msgs.msg import OccupancyGrid, Odometry
+from geometry_msgs.msg import Twist, TwistStamped
+from nav_msgs.msg import OccupancyGrid, Odometry, Path
 from numpy.typing import NDArray
 from pydantic import ValidationError
 from rclpy.node import Node
@@ -360,6 +364,7 @@ class OdometryLink:
         self, node: Node, settings: RelayOdometry, link: zenoh.Session, on_pose: Callable[[float, float, str], None]
     ) -> None:
         self.settings, self.on_pose = settings, on_pose
+        self.outcomes: OutcomeLink | None = None  # fed every sample, when the relay measures outcomes
         self.publisher = (
             None if settings.key is None else Guarded(link.declare_publisher(settings.key, encoding=MSGPACK))
         )
@@ -370,6 +375,8 @@ class OdometryLink:
     def on_odometry(self, odometry: Odometry) -> None:
         position, q = odometry.pose.pose.position, odometry.pose.pose.orientation
         self.on_pose(position.x, position.y, odometry.header.frame_id)  # the safe mask's centre: every pose
+        if self.outcomes is not None:
+            feed_odometry(self.outcomes, odometry)
         now = time.monotonic()
         if self.publisher is None or now - self._last < 1.0 / self.settings.max_rate_hz:
             return
@@ -389,6 +396,42 @@ class OdometryLink:
     def close(self) -> None:
         if self.publisher is not None:
             self.publisher.undeclare()
+
+
+def feed_odometry(outcomes: OutcomeLink, odometry: Odometry) -> None:
+    """An Odometry sample to the outcomes, as the service's tracker reads one (a bad one counted)."""
+    position, q, twist = odometry.pose.pose.position, odometry.pose.pose.orientation, odometry.twist.twist
+    try:
+        sample = Odometry2D(
+            stamp=stamp_seconds(odometry.header.stamp),
+            frame_id=odometry.header.frame_id[:256],
+            x=position.x,
+            y=position.y,
+            yaw=math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z)),
+            vx=twist.linear.x,
+            vy=twist.linear.y,
+            wz=twist.angular.z,
+        )
+    except ValidationError:
+        outcomes.rejected += 1
+        return
+    outcomes.on_odometry(sample)
+
+
+def feed_command(outcomes: OutcomeLink, message: Any) -> None:
+    """A Twist or TwistStamped command to the outcomes (a bad one counted)."""
+    twist = message.twist if hasattr(message, "twist") else message
+    try:
+        command = Twist2D(vx=twist.linear.x, vy=twist.linear.y, wz=twist.angular.z)
+    except ValidationError:
+        outcomes.rejected += 1
+        return
+    outcomes.on_command(command)
+
+
+def feed_path(outcomes: OutcomeLink, path: Path) -> None:
+    points = [(pose.pose.position.x, pose.pose.position.y) for pose in path.poses]
+    outcomes.on_path(path.header.frame_id[:256], stamp_seconds(path.header.stamp), points)
 
 
 class RosRobotSide:
@@ -477,6 +520,23 @@ class RosRobotSide:
         changed = [output.poll() for output in outputs]
         if any(changed) and self._relay is not None:
             self._relay.wake()
+
+    def subscribe_outcomes(self, outcomes: OutcomeLink) -> list[Guarded]:
+        """The robot's own commands, odometry (full rate), bumper and planned path, for the outcomes. Commands and
+        the bumper with the sensor-data QoS: best effort matches reliable and best-effort publishers alike."""
+        settings, node = outcomes.settings, self.node
+        if settings.cmd_vel is not None:
+            command_type = TwistStamped if settings.cmd_vel_stamped else Twist
+            node.create_subscription(command_type, settings.cmd_vel, partial(feed_command, outcomes), SENSOR_QOS)
+        if settings.contact is not None:
+            node.create_subscription(Bool, settings.contact, lambda m: outcomes.on_contact(bool(m.data)), SENSOR_QOS)
+        if settings.planned_path is not None:
+            node.create_subscription(Path, settings.planned_path, partial(feed_path, outcomes), IMAGE_QOS)
+        if self.odometry is not None:
+            self.odometry.outcomes = outcomes
+        else:  # no pose to send: odometry read for the outcomes only
+            node.create_subscription(Odometry, "/odom", partial(feed_odometry, outcomes), SENSOR_QOS)
+        return []
 
     def _on_pose(self, x: float, y: float, frame_id: str) -> None:
         if self._relay is not None:

@@ -23,8 +23,19 @@ PARAMETERS = (
     "safe_after_s",
     "safe_floor",
     "max_speed_m_s",
+    "outcomes",
+    "cmd_vel_topic",
+    "cmd_vel_stamped",
+    "contact_topic",
+    "planned_path_topic",
 )
 SAFE_MASK_PARAMETERS = {"safe_after_s": "after_s", "safe_floor": "floor", "max_speed_m_s": "max_speed_m_s"}
+OUTCOME_PARAMETERS = {
+    "cmd_vel_topic": "cmd_vel",
+    "cmd_vel_stamped": "cmd_vel_stamped",
+    "contact_topic": "contact",
+    "planned_path_topic": "planned_path",
+}
 
 
 def camera_info_topic(image_topic: str) -> str:
@@ -63,6 +74,9 @@ def settings_overrides(parameters: dict[str, Any]) -> dict[str, object]:
     safe = {field: parameters[name] for name, field in SAFE_MASK_PARAMETERS.items() if name in parameters}
     if safe:
         overrides["safe_mask"] = safe
+    measured = {field: parameters[name] for name, field in OUTCOME_PARAMETERS.items() if name in parameters}
+    if parameters.get("outcomes") or measured:  # outcomes:=true, or any of their topics: measured on the robot
+        overrides["outcomes"] = measured
     if "odometry_key" in parameters or "odometry_topic" in parameters:  # a topic alone: the safe mask's centre
         odometry = {"key": parameters.get("odometry_key"), "topic": parameters.get("odometry_topic")}
         overrides["odometry"] = {name: value for name, value in odometry.items() if value is not None}

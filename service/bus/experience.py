@@ -3,6 +3,7 @@
 Declared only with ``experience.enabled`` (off: nothing here runs, nothing changes):
 
   {prefix}/in/{source}/outcome        subscriber: TraversalOutcome (msgpack or JSON)
+  {prefix}/in/{source}/outcomes       subscriber: OutcomeBatch, outcomes a relay measured on the robot
   {prefix}/in/{source}/answer         subscriber (OperatorAnswer put) and queryable (the answer as payload,
                                       replied with an AnswerReply)
   experience.cmd_vel, .odometry       subscribers: Twist2D / Odometry2D on a zenoh key, or a ROS topic (CDR)
@@ -80,6 +81,7 @@ class ExperienceBus:
         """Declare the subscribers and queryables (returned, for the node to undeclare)."""
         declared: list[Any] = [
             self.session.declare_subscriber(self.keys.outcome("**"), self._on_outcome),
+            self.session.declare_subscriber(self.keys.outcomes("**"), self._on_outcomes),
             self.session.declare_subscriber(self.keys.answer("**"), self._on_answer_sample),
             self.session.declare_subscriber(self.keys.planned_path("**"), self._on_planned_path),
         ]
@@ -161,6 +163,15 @@ class ExperienceBus:
             return
         try:
             self.experience.on_outcome(sample.payload.to_bytes())
+        except OutcomeRejected as err:
+            self.stats.rejected(None, err.reason, f"{key}: {err}"[:200])
+
+    def _on_outcomes(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        if self._grid_source(key, "outcomes") is None:
+            return
+        try:
+            self.experience.on_outcomes(sample.payload.to_bytes())
         except OutcomeRejected as err:
             self.stats.rejected(None, err.reason, f"{key}: {err}"[:200])
 

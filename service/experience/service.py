@@ -25,19 +25,14 @@ from gcdtrav.schemas.experience import (
     PlannedPath,
 )
 from gcdtrav.schemas.messages import ExperienceStatus, Pose2D, QuestionStatus
+from gcdtrav.schemas.outcomes import VelocityTracker
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings, SettingsError
 from gcdtrav.service.experience.ask import Crop, OperatorAsker
 from gcdtrav.service.experience.crop import image_crop
 from gcdtrav.service.experience.fitter import BEST_IN_HISTORY, PAPER, FitOptions
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore
-from gcdtrav.service.experience.velocity import (
-    MAX_INPUT_BYTES,
-    VelocityTracker,
-    decode_command,
-    decode_odometry,
-    is_ros_topic,
-)
+from gcdtrav.service.experience.velocity import MAX_INPUT_BYTES, decode_command, decode_odometry, is_ros_topic
 from gcdtrav.service.grid.fusion import GroundGrid
 from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid
 from gcdtrav.service.store.outbox import PairOutbox
@@ -129,6 +124,11 @@ class Experience:
     def on_outcome(self, payload: bytes) -> int:
         """An outcome from the bus ({prefix}/in/{source}/outcome); OutcomeRejected (counted) for a bad one."""
         return self.store.ingest(payload, self.ring)
+
+    def on_outcomes(self, payload: bytes) -> int:
+        """A relay's batch of outcomes measured on the robot ({prefix}/in/{source}/outcomes), paired as outcomes
+        from the bus; OutcomeRejected (counted) for a bad batch."""
+        return self.store.ingest_batch(payload, self.ring)
 
     def on_answer(self, payload: bytes | OperatorAnswer, received_at: float) -> int:
         """An OperatorAnswer (msgpack or JSON, or decoded); the pairs its outcomes made. MessageError or ValueError

@@ -23,7 +23,14 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.experience import OUTCOME_KINDS, AnchorProposal, CalibrationReport, TraversalOutcome
+from gcdtrav.schemas.experience import (
+    MAX_BATCH_OUTCOMES,
+    OUTCOME_KINDS,
+    AnchorProposal,
+    CalibrationReport,
+    OutcomeBatch,
+    TraversalOutcome,
+)
 from gcdtrav.schemas.messages import MessageTooLarge
 from gcdtrav.service.experience.calibration import calibration_figures
 from gcdtrav.service.experience.fitter import FitOptions, propose
@@ -33,6 +40,7 @@ from gcdtrav.service.store import PairColumns, PairRecord, PairTotals, Store, St
 from gcdtrav.service.store.outbox import PairOutbox
 
 MAX_OUTCOME_BYTES = 4096  # an outcome is a few numbers; larger payloads are refused unread
+MAX_BATCH_BYTES = 128 * MAX_BATCH_OUTCOMES  # an outcome packs to about 90 bytes in a batch
 READ_OWN_WRITES_S = 2.0  # a report waits this long at most for this instance's queued pairs to be written
 
 
@@ -49,6 +57,16 @@ def decode_outcome(payload: bytes) -> TraversalOutcome:
     except MessageTooLarge as err:
         raise OutcomeRejected("oversized", str(err)) from None
     except ValueError as err:  # MessageError, or whatever else a bad value raised
+        raise OutcomeRejected("bad_outcome", str(err)) from None
+
+
+def decode_batch(payload: bytes) -> OutcomeBatch:
+    """A relay's OutcomeBatch (msgpack or JSON); OutcomeRejected with the reason."""
+    try:
+        return OutcomeBatch.decode(payload, MAX_BATCH_BYTES)
+    except MessageTooLarge as err:
+        raise OutcomeRejected("oversized", str(err)) from None
+    except ValueError as err:
         raise OutcomeRejected("bad_outcome", str(err)) from None
 
 
@@ -93,6 +111,21 @@ class ExperienceStore:
                 self._count(f"rejected_{err.reason}")
             raise
         return self.add(outcome, ring)
+
+    def ingest_batch(self, payload: bytes, ring: SnapshotRing) -> int:
+        """Decode a relay's batch and pair each of its outcomes as one from the bus; OutcomeRejected (counted) for a
+        bad batch. The outcomes the relay dropped are counted (``relay_dropped``)."""
+        try:
+            batch = decode_batch(payload)
+        except OutcomeRejected as err:
+            with self._lock:
+                self._count(f"rejected_{err.reason}")
+            raise
+        with self._lock:
+            self._count("relayed_outcomes", len(batch.outcomes))
+            if batch.dropped:
+                self._count("relay_dropped", batch.dropped)
+        return sum(self.add(outcome, ring) for outcome in batch.outcomes)
 
     def add(self, outcome: TraversalOutcome, ring: SnapshotRing) -> int:
         """Pair the outcome with every known cell in its footprint as ``ring`` held it ``lookahead_s`` before;

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from gcdtrav.schemas.experience import Odometry2D, Twist2D
 from gcdtrav.schemas.messages import MessageError
+from gcdtrav.schemas.outcomes import VelocityTracker
 from gcdtrav.schemas.settings import ExperienceSettings
 from gcdtrav.service.experience.snapshots import SnapshotRing
-from gcdtrav.service.experience.velocity import VelocityTracker, decode_command, decode_odometry, is_ros_topic
+from gcdtrav.service.experience.velocity import decode_command, decode_odometry, is_ros_topic
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 
 from tools.ros_fixtures import odometry_cdr, twist_cdr

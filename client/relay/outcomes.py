@@ -1,0 +1,167 @@
+"""Outcomes measured on the robot and sent over the link in a few bytes (docs/calibration.md, "Which robots teach").
+
+The robot has everything an outcome needs: its own velocity commands and odometry at their full rate, its bumper,
+its planned path. Sending those streams would cost more than the frames the relay shrinks; the outcomes they
+make cost a few bytes each. So the relay grades them here, by the service's own rules (schemas/outcomes.py),
+and sends what they make: every ``batch_period_s`` at most one ``OutcomeBatch`` on ``{prefix}/in/{source}/outcomes``
+(each outcome with its stamp, on the odometry's clock, which is the pose stream's and so the grid's, and the robot's
+position), and the planned path, when it changed, as a ``PlannedPath`` on ``{prefix}/in/{source}/planned_path``,
+shortened to ``path_length_m``. The service pairs them exactly as a robot's on its own bus. The robot sides
+(the zenoh bus, client/relay/relay.py; the ROS 2 graph, ros2_node.py) only decode and hand over.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any
+
+from gcdtrav.client.relay.state import RateWindow
+from gcdtrav.schemas.experience import (
+    MAX_BATCH_OUTCOMES,
+    Odometry2D,
+    OutcomeBatch,
+    PlannedPath,
+    TraversalOutcome,
+    Twist2D,
+)
+from gcdtrav.schemas.messages import MessageError
+from gcdtrav.schemas.outcomes import ContactWatch, VelocityTracker
+from gcdtrav.schemas.relay import RelayOutcomes
+from gcdtrav.schemas.ros_nav import RosNavError, bool_value, odometry_motion, twist_command
+
+PATH_SPACING_M = 0.25  # the path's vertices sent at least this far apart: the grid's cells are about this size
+MAX_INPUT_BYTES = 64 * 1024  # an Odometry CDR with its covariances is about 700 bytes
+CDR = (b"\x00\x00", b"\x00\x01")  # an encapsulation header's first bytes; msgpack and JSON start otherwise
+ROS_TYPES = {  # the rmw_zenoh key chunk of each type a zenoh relay reads as a ROS topic
+    "cmd_vel": "geometry_msgs::msg::dds_::Twist_",
+    "cmd_vel_stamped": "geometry_msgs::msg::dds_::TwistStamped_",
+    "odometry": "nav_msgs::msg::dds_::Odometry_",
+    "contact": "std_msgs::msg::dds_::Bool_",
+}
+
+
+def robot_key(name: str, kind: str) -> str:
+    """The key a zenoh relay reads an input on: a plain key as it is, a ROS topic ('/...') as its rmw_zenoh keys
+    (any domain, any type hash)."""
+    return name if not name.startswith("/") else f"*/{name.strip('/')}/{ROS_TYPES[kind]}/*"
+
+
+def decode_command(payload: bytes, stamped: bool) -> Twist2D:
+    """A Twist (or TwistStamped) CDR, or a Twist2D (msgpack or JSON); MessageError or RosNavError if unusable."""
+    return twist_command(payload, stamped) if payload[:2] in CDR else Twist2D.decode(payload, MAX_INPUT_BYTES)
+
+
+def decode_odometry(payload: bytes) -> Odometry2D:
+    """An Odometry CDR, or an Odometry2D (msgpack or JSON); MessageError or RosNavError if unusable."""
+    return odometry_motion(payload) if payload[:2] in CDR else Odometry2D.decode(payload, MAX_INPUT_BYTES)
+
+
+def decode_contact(payload: bytes) -> bool:
+    """A std_msgs/Bool CDR, or JSON true / false; RosNavError if neither."""
+    if payload[:2] in CDR:
+        return bool_value(payload)
+    text = payload.strip().lower()
+    if text not in (b"true", b"false"):
+        raise RosNavError(f"a contact is a std_msgs/Bool CDR or JSON true/false, not {payload[:20]!r}")
+    return text == b"true"
+
+
+INPUT_ERRORS = (MessageError, RosNavError)
+
+
+class OutcomeLink:
+    """One robot's outcomes: fed by the robot side's callbacks, sent by the relay's control thread (``send_due``).
+    Thread-safe."""
+
+    def __init__(self, settings: RelayOutcomes, source: str, publisher: Any, path_publisher: Any) -> None:
+        """``publisher``, ``path_publisher``: the link's (Guarded) publishers of the grid ``source``'s outcomes and
+        planned path (``Keys.outcomes``, ``Keys.planned_path``)."""
+        self.settings, self.source = settings, source
+        self.velocity, self.contacts = VelocityTracker(settings), ContactWatch(settings)
+        self._publisher, self._path_publisher = publisher, path_publisher
+        self._pending: list[TraversalOutcome] = []
+        self._path: PlannedPath | None = None  # the newest path, not yet sent
+        self._path_sent: list[tuple[float, float]] | None = None
+        self._dropped = 0
+        self._next_send = -math.inf
+        self._lock = threading.Lock()
+        self.uplink = RateWindow()
+        self.measured = self.sent = self.batches = self.bytes_sent = self.rejected = 0
+
+    # ---- from the robot side ---------------------------------------------------------------------------
+    def on_command(self, command: Twist2D) -> None:
+        self.velocity.on_command(command, time.monotonic())  # the command's age on this clock, as the service's
+
+    def on_odometry(self, odometry: Odometry2D) -> None:
+        self.contacts.on_odometry(odometry)
+        self._add(self.velocity.on_odometry(odometry, time.monotonic()))
+
+    def on_contact(self, pressed: bool) -> None:
+        self._add(self.contacts.on_contact(pressed))
+
+    def on_outcome(self, outcome: TraversalOutcome) -> None:
+        """An outcome the robot's own code measured."""
+        self._add(outcome)
+
+    def on_path(self, frame_id: str, stamp: float, points: Sequence[tuple[float, float]]) -> None:
+        """The robot's planned path (the grid's frame): kept to send, shortened, if it changed."""
+        kept = shortened(points, self.settings.path_length_m)
+        with self._lock:
+            if kept != self._path_sent:
+                self._path = PlannedPath(stamp=stamp, frame_id=frame_id, points=kept)
+
+    def _add(self, outcome: TraversalOutcome | None) -> None:
+        if outcome is None:
+            return
+        with self._lock:
+            self.measured += 1
+            self._pending.append(outcome)
+            if len(self._pending) > MAX_BATCH_OUTCOMES:  # the link could not take them: keep the newest
+                self._pending.pop(0)
+                self._dropped += 1
+
+    # ---- to the link -----------------------------------------------------------------------------------
+    def send_due(self, now: float | None = None) -> float:
+        """Send what waits if ``batch_period_s`` has passed since the last send; when to be asked next."""
+        now = time.monotonic() if now is None else now
+        with self._lock:
+            if now < self._next_send:
+                return self._next_send
+            outcomes, self._pending, dropped, self._dropped = self._pending, [], self._dropped, 0
+            path, self._path = self._path, None
+            if path is not None:
+                self._path_sent = [(float(x), float(y)) for x, y in path.points]
+            self._next_send = now + self.settings.batch_period_s
+        if outcomes or dropped:
+            payload = OutcomeBatch(outcomes=outcomes, sent_at=time.time(), dropped=dropped).pack()
+            self._put(self._publisher, payload)
+            self.sent += len(outcomes)
+            self.batches += 1
+        if path is not None:
+            self._put(self._path_publisher, path.pack())
+        return self._next_send
+
+    def _put(self, publisher: Any, payload: bytes) -> None:
+        publisher.put(payload)
+        self.uplink.add(len(payload))
+        self.bytes_sent += len(payload)
+
+
+def shortened(points: Sequence[tuple[float, float]], length_m: float) -> list[tuple[float, float]]:
+    """The path's first ``length_m`` (from its start: the robot), vertices at least PATH_SPACING_M apart."""
+    kept: list[tuple[float, float]] = []
+    travelled = 0.0
+    for x, y in points:
+        point = (float(x), float(y))
+        if kept:
+            step = math.hypot(point[0] - kept[-1][0], point[1] - kept[-1][1])
+            if step < PATH_SPACING_M:
+                continue
+            travelled += step
+        kept.append(point)
+        if travelled >= length_m:
+            break
+    return kept

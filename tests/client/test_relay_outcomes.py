@@ -1,0 +1,188 @@
+"""Outcomes measured on the robot (client/relay/outcomes.py): the service's own rules (one tracker in
+schemas/outcomes.py), batched at most every batch_period_s, a contact per press, the planned path shortened and
+sent when it changes; the robot's inputs decoded as CDR (checked against ROS 2's serialiser) or msgpack/JSON."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import pytest
+from gcdtrav.client.relay.outcomes import (
+    OutcomeLink,
+    decode_command,
+    decode_contact,
+    decode_odometry,
+    robot_key,
+    shortened,
+)
+from gcdtrav.schemas.experience import (
+    MAX_BATCH_OUTCOMES,
+    Odometry2D,
+    OutcomeBatch,
+    PlannedPath,
+    TraversalOutcome,
+    Twist2D,
+)
+from gcdtrav.schemas.messages import MessageError
+from gcdtrav.schemas.outcomes import VelocityTracker
+from gcdtrav.schemas.relay import RelayOutcomes
+from gcdtrav.schemas.ros_nav import RosNavError
+from gcdtrav.schemas.settings import ExperienceSettings
+
+SETTINGS = RelayOutcomes(batch_period_s=1.0)
+
+
+class Publisher:
+    def __init__(self) -> None:
+        self.payloads: list[bytes] = []
+
+    def put(self, payload: bytes) -> None:
+        self.payloads.append(payload)
+
+
+def link() -> tuple[OutcomeLink, Publisher, Publisher]:
+    outcomes, paths = Publisher(), Publisher()
+    return OutcomeLink(SETTINGS, "r1/front", outcomes, paths), outcomes, paths
+
+
+def drive(target: Any, command: float, speed: float, steps: int, start: float = 100.0) -> None:
+    """A robot told ``command`` m/s doing ``speed`` along x, 20 Hz odometry."""
+    for step in range(steps):
+        target.on_command(Twist2D(vx=command))
+        stamp = start + step * 0.05
+        target.on_odometry(Odometry2D(stamp=stamp, x=speed * step * 0.05, y=0.0, vx=speed))
+
+
+def test_the_relay_grades_by_the_services_rules_and_sends_a_batch_per_period() -> None:
+    relay, outcomes, _ = link()
+    drive(relay, command=1.0, speed=0.5, steps=100)  # 5 s at half the commanded speed: 2.5 m
+    assert relay.send_due(now=10.0) == 11.0 and len(outcomes.payloads) == 1
+    batch = OutcomeBatch.unpack(outcomes.payloads[0])
+    # the service's own tracker, on the service's settings with the same numbers, makes the same outcomes
+    service = VelocityTracker(ExperienceSettings(enabled=False))
+    expected = []
+    for step in range(100):
+        service.on_command(Twist2D(vx=1.0), step * 0.05)
+        made = service.on_odometry(
+            Odometry2D(stamp=100.0 + step * 0.05, x=0.5 * step * 0.05, y=0.0, vx=0.5), step * 0.05
+        )
+        expected += [made] if made is not None else []
+    assert batch.outcomes == expected and len(expected) >= 7
+    assert {outcome.score for outcome in batch.outcomes} == {0.5} and batch.dropped == 0
+    assert len(outcomes.payloads[0]) < 120 * len(batch.outcomes)  # a few bytes an outcome
+    drive(relay, command=1.0, speed=1.0, steps=20, start=106.0)
+    assert relay.send_due(now=10.5) == 11.0 and len(outcomes.payloads) == 1  # within the period: waits
+    relay.send_due(now=11.0)
+    assert len(outcomes.payloads) == 2 and relay.batches == 2 and relay.sent == relay.measured
+    relay.send_due(now=12.0)
+    assert len(outcomes.payloads) == 2  # nothing measured: nothing sent
+
+
+def test_a_contact_per_press_at_the_newest_pose_and_the_robots_own_outcomes() -> None:
+    relay, outcomes, _ = link()
+    relay.on_contact(True)  # before any pose: nowhere to put it
+    assert relay.contacts.without_pose == 1
+    relay.on_odometry(Odometry2D(stamp=5.0, x=2.0, y=-1.0, vx=0.0))
+    relay.on_contact(False)
+    relay.on_contact(True)
+    relay.on_contact(True)  # held: the same press
+    relay.on_outcome(TraversalOutcome(stamp=6.0, x=3.0, y=0.0, score=0.2, kind="contact"))
+    relay.send_due(now=0.0)
+    (payload,) = outcomes.payloads
+    press, own = OutcomeBatch.unpack(payload).outcomes
+    assert (press.kind, press.score, press.stamp, press.x, press.y) == ("contact", 0.0, 5.0, 2.0, -1.0)
+    assert press.radius_m == SETTINGS.footprint_m / 2 and own.score == 0.2
+
+
+def test_a_link_that_cannot_send_keeps_the_newest_and_says_how_many_it_dropped() -> None:
+    relay, outcomes, _ = link()
+    for index in range(MAX_BATCH_OUTCOMES + 5):
+        relay.on_outcome(TraversalOutcome(stamp=float(index), x=0.0, y=0.0, score=1.0, kind="velocity"))
+    relay.send_due(now=0.0)
+    batch = OutcomeBatch.unpack(outcomes.payloads[0])
+    assert len(batch.outcomes) == MAX_BATCH_OUTCOMES and batch.dropped == 5 and batch.outcomes[0].stamp == 5.0
+
+
+def test_the_planned_path_is_sent_shortened_and_only_when_it_changes() -> None:
+    relay, _, paths = link()
+    straight = [(0.1 * i, 0.0) for i in range(400)]  # 40 m, a vertex every 0.1 m
+    relay.on_path("odom", 1.0, straight)
+    relay.send_due(now=0.0)
+    sent = PlannedPath.unpack(paths.payloads[0])
+    assert sent.frame_id == "odom" and sent.points[0] == (0.0, 0.0)
+    assert 19.9 <= sent.points[-1][0] <= 20.5 and all(
+        b[0] - a[0] >= 0.25 - 1e-9 for a, b in zip(sent.points, sent.points[1:], strict=False)
+    )
+    relay.on_path("odom", 2.0, straight)  # the same path again: not sent
+    relay.send_due(now=1.0)
+    assert len(paths.payloads) == 1
+    relay.on_path("odom", 3.0, [(0.0, 0.0), (0.0, 5.0)])
+    relay.send_due(now=2.0)
+    assert len(paths.payloads) == 2
+
+
+@pytest.mark.parametrize(("length", "last"), [(0.1, (0.3, 0.0)), (1.0, (1.2, 0.0)), (100.0, (3.9, 0.0))])
+def test_shortened_at_its_edges(length: float, last: tuple[float, float]) -> None:
+    points = [(round(0.3 * i, 6), 0.0) for i in range(14)]
+    kept = shortened(points, length)
+    assert kept[0] == (0.0, 0.0) and kept[-1] == pytest.approx(last)
+    assert shortened([], 5.0) == [] and shortened([(1.0, 1.0)], 5.0) == [(1.0, 1.0)]
+
+
+def test_inputs_as_ros_2_serialises_them_and_as_msgpack_or_json() -> None:
+    from real_components import require_rclpy
+
+    require_rclpy()
+    from geometry_msgs.msg import Twist, TwistStamped
+    from nav_msgs.msg import Odometry
+    from rclpy.serialization import serialize_message
+    from std_msgs.msg import Bool
+
+    twist = Twist()
+    twist.linear.x, twist.linear.y, twist.angular.z = 0.8, -0.1, 0.3
+    assert decode_command(serialize_message(twist), stamped=False) == Twist2D(vx=0.8, vy=-0.1, wz=0.3)
+    stamped = TwistStamped()
+    stamped.header.frame_id, stamped.twist = "base_link", twist
+    assert decode_command(serialize_message(stamped), stamped=True) == Twist2D(vx=0.8, vy=-0.1, wz=0.3)
+    odometry = Odometry()
+    odometry.header.stamp.sec, odometry.header.frame_id = 12, "odom"
+    odometry.pose.pose.position.x, odometry.pose.pose.orientation.z = 4.0, math.sin(0.25)
+    odometry.pose.pose.orientation.w = math.cos(0.25)
+    odometry.pose.covariance[35] = 7.0
+    odometry.twist.twist.linear.x, odometry.twist.twist.angular.z = 1.25, -0.5
+    decoded = decode_odometry(serialize_message(odometry))
+    assert (decoded.stamp, decoded.frame_id, decoded.x, decoded.vx, decoded.wz) == (12.0, "odom", 4.0, 1.25, -0.5)
+    assert decoded.yaw == pytest.approx(0.5)
+    assert decode_contact(serialize_message(Bool(data=True))) and not decode_contact(
+        serialize_message(Bool(data=False))
+    )
+
+
+def test_plain_inputs_and_what_is_refused() -> None:
+    assert decode_command(Twist2D(vx=1.0).pack(), stamped=False).vx == 1.0
+    assert decode_command(b'{"vx": 0.5}', stamped=False).vx == 0.5
+    assert decode_odometry(Odometry2D(stamp=1.0, x=1.0, y=2.0, vx=0.3).pack()).vx == 0.3
+    assert decode_contact(b" true\n") and not decode_contact(b"false")
+    for bad in (b"maybe", b"\x00\x01\x00\x00\x07", b"\x00\x01"):
+        with pytest.raises(RosNavError):
+            decode_contact(bad)
+    with pytest.raises(RosNavError):
+        decode_command(b"\x00\x01\x00\x00" + b"\x00" * 8, stamped=False)  # truncated
+    with pytest.raises(MessageError):
+        decode_command(b'{"vx": "fast"}', stamped=False)
+    with pytest.raises((MessageError, RosNavError)):
+        decode_odometry(b"\x00\x01\x00\x00" + b"\xff" * 4)
+
+
+@pytest.mark.parametrize(
+    ("name", "kind", "key"),
+    [
+        ("robot/cmd_vel", "cmd_vel", "robot/cmd_vel"),
+        ("/cmd_vel", "cmd_vel", "*/cmd_vel/geometry_msgs::msg::dds_::Twist_/*"),
+        ("/r1/odom", "odometry", "*/r1/odom/nav_msgs::msg::dds_::Odometry_/*"),
+        ("/bumper", "contact", "*/bumper/std_msgs::msg::dds_::Bool_/*"),
+    ],
+)
+def test_a_ros_topic_is_read_on_its_rmw_zenoh_keys(name: str, kind: str, key: str) -> None:
+    assert robot_key(name, kind) == key
