@@ -6,7 +6,8 @@ service whose grid is ``grid_settings()`` and whose experience reads ``experienc
   image only after the service published the maps of the last one (inferred and fused into the grid, or
   reused for an unchanged view), so that the pose stream is ahead of every frame (the service fuses each
   frame at the pose of its capture stamp, docs/grid.md);
-- velocity commands (Twist2D, 1 m/s) at 10 Hz and odometry (Odometry2D) at 20 Hz.
+- velocity commands (Twist2D, 1 m/s) at 10 Hz and odometry (Odometry2D) at 20 Hz: to the service's bus, or
+  (``robot_bus``) to the robot's own bus, where a relay measures the outcomes (client/relay/outcomes.py).
 
 Simulated time runs faster than the wall clock, from a fixed stamp in the past like a replayed bag (the
 settings turn off the age and skew checks made for live robots).
@@ -20,6 +21,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+import zenoh
 from gcdtrav.client import Maps, TraversabilityClient
 from gcdtrav.schemas.experience import Odometry2D, Twist2D
 from gcdtrav.schemas.messages import MSGPACK_ENCODING, Pose2D
@@ -71,6 +73,8 @@ class BusRobot:
     # Called after every odometry sample with the robot and its stamp: where examples/experience_drive.py adds
     # a bumper's outcomes and prints its progress.
     after_step: Callable[[Robot, float], None] | None = None
+    # Where commands and odometry go: the service's bus (None), or the robot's own, behind a relay.
+    robot_bus: zenoh.Session | None = None
 
     def __post_init__(self) -> None:
         self.maps = MapsClock()
@@ -82,6 +86,12 @@ class BusRobot:
 
     def _put(self, key: str, payload: bytes) -> None:
         self.client.session.put(key, payload, encoding=self.encoding)
+
+    def _put_robot(self, key: str, payload: bytes) -> None:
+        if self.robot_bus is None:
+            self._put(key, payload)
+        else:
+            self.robot_bus.put(key, payload, encoding=self.encoding)
 
     def drive(self, seconds: float, seed: int, start_stamp: float = START_STAMP) -> float:
         """Drive ``seconds`` of simulated time on a route of ``seed``; the last stamp."""
@@ -97,10 +107,10 @@ class BusRobot:
                 self.client.publish_image(CAMERA_SOURCE, image, stamp=stamp, compression="png")
                 self.maps.wait_for(stamp, self.timeout_s)
             if step % COMMAND_EVERY == 0:
-                self._put(CMD_VEL_KEY, Twist2D(vx=COMMAND_MPS).pack())
+                self._put_robot(CMD_VEL_KEY, Twist2D(vx=COMMAND_MPS).pack())
             speed, rate = robot.step(ODOMETRY_DT)
             odometry = Odometry2D(stamp=stamp, x=robot.x, y=robot.y, yaw=robot.yaw, vx=speed, wz=rate)
-            self._put(ODOMETRY_KEY, odometry.pack())
+            self._put_robot(ODOMETRY_KEY, odometry.pack())
             if self.after_step is not None:
                 self.after_step(robot, stamp)
         return stamp

@@ -40,6 +40,14 @@ class ExperienceSettings(StrictModel):
         description="Outcomes pair with the cell's mixture as it stood this long before: from frames taken while "
         "the cell lay ahead, not under the robot.",
     )
+    late_s: float = Field(
+        default=30.0,
+        ge=0,
+        le=3600,
+        description="An outcome arriving up to this long after its stamp still finds the prediction it pairs with "
+        "(a relay's batches, a link that was down for a while): snapshots are kept for lookahead_s + late_s, within "
+        "snapshot_budget_mb. Later ones are counted ignored_no_prediction.",
+    )
     snapshot_every_s: float = Field(default=0.25, gt=0, description="Grid snapshots kept for the pairing, apart.")
     snapshot_budget_mb: float = Field(default=64, gt=0, description="Bytes of grid snapshots kept, MB.")
     max_pairs: int = Field(default=50_000, ge=1, description="Pairs kept, all concept tuples; the oldest go first.")

@@ -39,7 +39,6 @@ from gcdtrav.service.store.outbox import PairOutbox
 from numpy.typing import NDArray
 
 log = logging.getLogger("gcdtrav.service")
-SNAPSHOT_SLACK_S = 5.0  # snapshots kept beyond lookahead_s: outcomes arrive a little late
 ExperienceInput = tuple[str, bool, Callable[[bytes, float], None], str]  # key or topic, is ROS, handler, reason
 # Counts a bad input (the service's ServiceStats.rejected): source or None, reason, detail, the error.
 Rejected = Callable[[str | None, str, str, BaseException | None], None]
@@ -87,7 +86,7 @@ class Experience:
         self.settings, self.ask_settings, self.source, self.tau, self.clock = settings, ask, grid_source, tau, clock
         self.rejected = rejected or _logged
         self.ring = SnapshotRing(
-            settings.snapshot_every_s, int(settings.snapshot_budget_mb * 1e6), settings.lookahead_s + SNAPSHOT_SLACK_S
+            settings.snapshot_every_s, int(settings.snapshot_budget_mb * 1e6), settings.lookahead_s + settings.late_s
         )
         self.store = ExperienceStore(outbox, grid_source, settings.lookahead_s, instance, clock)
         self.tracker = VelocityTracker(settings)
