@@ -195,6 +195,13 @@ class RelayOutcomes(StrictModel):
         "when it changes, at most every batch_period_s, shortened to path_length_m ahead.",
     )
     path_length_m: float = Field(default=20.0, gt=0, le=1000, description="How much of the path ahead is sent.")
+    path_renew_s: float = Field(
+        default=2.0,
+        gt=0,
+        le=60,
+        description="An unchanged path is sent again this often: the service forgets one not renewed within its "
+        "ask.path_timeout_s (5 s).",
+    )
     batch_period_s: float = Field(
         default=1.0, gt=0, le=60, description="At most one batch of outcomes (and one path) this often."
     )

@@ -185,6 +185,7 @@ class Odometry:
         sec, nanosec = stamp_now()
         self.message.header.stamp.sec, self.message.header.stamp.nanosec = sec, nanosec
         self.message.pose.pose.position.x = self.speed * (time.monotonic() - self.began)
+        self.message.twist.twist.linear.x = self.speed  # what the robot achieved: the outcomes' tracking reads it
         self.publisher.publish(self.message)
 
     def stop(self) -> None:

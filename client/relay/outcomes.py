@@ -15,9 +15,10 @@ from __future__ import annotations
 import math
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
+import numpy as np
 from gcdtrav.client.relay.state import RateWindow
 from gcdtrav.schemas.experience import (
     MAX_BATCH_OUTCOMES,
@@ -32,7 +33,8 @@ from gcdtrav.schemas.outcomes import ContactWatch, VelocityTracker
 from gcdtrav.schemas.relay import RelayOutcomes
 from gcdtrav.schemas.ros_nav import RosNavError, bool_value, odometry_motion, twist_command
 
-PATH_SPACING_M = 0.25  # the path's vertices sent at least this far apart: the grid's cells are about this size
+PATH_SPACING_M = 0.5  # the path's vertices sent at least this far apart (a few grid cells: segments between)
+PATH_TOLERANCE_M = 0.5  # a new path whose nearer half keeps this close to the last one sent is the same path
 MAX_INPUT_BYTES = 64 * 1024  # an Odometry CDR with its covariances is about 700 bytes
 CDR = (b"\x00\x00", b"\x00\x01")  # an encapsulation header's first bytes; msgpack and JSON start otherwise
 ROS_TYPES = {  # the rmw_zenoh key chunk of each type a zenoh relay reads as a ROS topic
@@ -76,15 +78,23 @@ class OutcomeLink:
     """One robot's outcomes: fed by the robot side's callbacks, sent by the relay's control thread (``send_due``).
     Thread-safe."""
 
-    def __init__(self, settings: RelayOutcomes, source: str, publisher: Any, path_publisher: Any) -> None:
+    def __init__(
+        self,
+        settings: RelayOutcomes,
+        source: str,
+        publisher: Any,
+        path_publisher: Any,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         """``publisher``, ``path_publisher``: the link's (Guarded) publishers of the grid ``source``'s outcomes and
-        planned path (``Keys.outcomes``, ``Keys.planned_path``)."""
-        self.settings, self.source = settings, source
+        planned path (``Keys.outcomes``, ``Keys.planned_path``); ``clock``: the relay's monotonic clock."""
+        self.settings, self.source, self.clock = settings, source, clock
         self.velocity, self.contacts = VelocityTracker(settings), ContactWatch(settings)
         self._publisher, self._path_publisher = publisher, path_publisher
         self._pending: list[TraversalOutcome] = []
         self._path: PlannedPath | None = None  # the newest path, not yet sent
         self._path_sent: list[tuple[float, float]] | None = None
+        self._path_sent_at = -math.inf
         self._dropped = 0
         self._next_send = -math.inf
         self._lock = threading.Lock()
@@ -93,11 +103,11 @@ class OutcomeLink:
 
     # ---- from the robot side ---------------------------------------------------------------------------
     def on_command(self, command: Twist2D) -> None:
-        self.velocity.on_command(command, time.monotonic())  # the command's age on this clock, as the service's
+        self.velocity.on_command(command, self.clock())  # the command's age on this clock, as the service's
 
     def on_odometry(self, odometry: Odometry2D) -> None:
         self.contacts.on_odometry(odometry)
-        self._add(self.velocity.on_odometry(odometry, time.monotonic()))
+        self._add(self.velocity.on_odometry(odometry, self.clock()))
 
     def on_contact(self, pressed: bool) -> None:
         self._add(self.contacts.on_contact(pressed))
@@ -107,10 +117,13 @@ class OutcomeLink:
         self._add(outcome)
 
     def on_path(self, frame_id: str, stamp: float, points: Sequence[tuple[float, float]]) -> None:
-        """The robot's planned path (the grid's frame): kept to send, shortened, if it changed."""
+        """The robot's planned path (the grid's frame), shortened: kept to send if it changed (its nearer half left
+        the last one sent: a new plan, or the robot drove half of it) or the last was sent ``path_renew_s`` ago
+        (the service forgets a path not renewed within its ask.path_timeout_s)."""
         kept = shortened(points, self.settings.path_length_m)
         with self._lock:
-            if kept != self._path_sent:
+            due = self.clock() - self._path_sent_at >= self.settings.path_renew_s
+            if due or not follows(kept, self._path_sent, self.settings.path_length_m / 2):
                 self._path = PlannedPath(stamp=stamp, frame_id=frame_id, points=kept)
 
     def _add(self, outcome: TraversalOutcome | None) -> None:
@@ -124,9 +137,9 @@ class OutcomeLink:
                 self._dropped += 1
 
     # ---- to the link -----------------------------------------------------------------------------------
-    def send_due(self, now: float | None = None) -> float:
-        """Send what waits if ``batch_period_s`` has passed since the last send; when to be asked next."""
-        now = time.monotonic() if now is None else now
+    def send_due(self) -> float:
+        """Send what waits if ``batch_period_s`` has passed since the last send; when to be asked next (``clock``)."""
+        now = self.clock()
         with self._lock:
             if now < self._next_send:
                 return self._next_send
@@ -134,6 +147,7 @@ class OutcomeLink:
             path, self._path = self._path, None
             if path is not None:
                 self._path_sent = [(float(x), float(y)) for x, y in path.points]
+                self._path_sent_at = now
             self._next_send = now + self.settings.batch_period_s
         if outcomes or dropped:
             payload = OutcomeBatch(outcomes=outcomes, sent_at=time.time(), dropped=dropped).pack()
@@ -148,6 +162,25 @@ class OutcomeLink:
         publisher.put(payload)
         self.uplink.add(len(payload))
         self.bytes_sent += len(payload)
+
+
+def follows(path: list[tuple[float, float]], sent: list[tuple[float, float]] | None, length_m: float) -> bool:
+    """Whether ``path``'s vertices within ``length_m`` of its start keep within PATH_TOLERANCE_M of the polyline
+    ``sent``."""
+    if not sent or not path:
+        return not sent and not path
+    points = np.asarray(path, np.float64)
+    travelled = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(points, axis=0).T))])
+    near = points[travelled <= length_m]
+    line = np.asarray(sent, np.float64)
+    if len(line) == 1:
+        return bool(np.all(np.hypot(*(near - line[0]).T) <= PATH_TOLERANCE_M))
+    start, end = line[:-1], line[1:]
+    segment = end - start
+    lengths = np.maximum((segment**2).sum(axis=1), 1e-12)
+    along = np.clip(((near[:, None, :] - start[None]) * segment[None]).sum(axis=2) / lengths[None], 0.0, 1.0)
+    closest = start[None] + along[..., None] * segment[None]
+    return bool(np.all(np.hypot(*(near[:, None, :] - closest).transpose(2, 0, 1)).min(axis=1) <= PATH_TOLERANCE_M))
 
 
 def shortened(points: Sequence[tuple[float, float]], length_m: float) -> list[tuple[float, float]]:

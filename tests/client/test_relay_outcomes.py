@@ -13,6 +13,7 @@ from gcdtrav.client.relay.outcomes import (
     decode_command,
     decode_contact,
     decode_odometry,
+    follows,
     robot_key,
     shortened,
 )
@@ -41,9 +42,22 @@ class Publisher:
         self.payloads.append(payload)
 
 
-def link() -> tuple[OutcomeLink, Publisher, Publisher]:
-    outcomes, paths = Publisher(), Publisher()
-    return OutcomeLink(SETTINGS, "r1/front", outcomes, paths), outcomes, paths
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def link() -> tuple[OutcomeLink, Publisher, Publisher, Clock]:
+    outcomes, paths, clock = Publisher(), Publisher(), Clock()
+    return OutcomeLink(SETTINGS, "r1/front", outcomes, paths, clock), outcomes, paths, clock
+
+
+def send_at(relay: OutcomeLink, clock: Clock, now: float) -> float:
+    clock.now = now
+    return relay.send_due()
 
 
 def drive(target: Any, command: float, speed: float, steps: int, start: float = 100.0) -> None:
@@ -55,9 +69,9 @@ def drive(target: Any, command: float, speed: float, steps: int, start: float = 
 
 
 def test_the_relay_grades_by_the_services_rules_and_sends_a_batch_per_period() -> None:
-    relay, outcomes, _ = link()
+    relay, outcomes, _, clock = link()
     drive(relay, command=1.0, speed=0.5, steps=100)  # 5 s at half the commanded speed: 2.5 m
-    assert relay.send_due(now=10.0) == 11.0 and len(outcomes.payloads) == 1
+    assert send_at(relay, clock, 10.0) == 11.0 and len(outcomes.payloads) == 1
     batch = OutcomeBatch.unpack(outcomes.payloads[0])
     # the service's own tracker, on the service's settings with the same numbers, makes the same outcomes
     service = VelocityTracker(ExperienceSettings(enabled=False))
@@ -72,15 +86,15 @@ def test_the_relay_grades_by_the_services_rules_and_sends_a_batch_per_period() -
     assert {outcome.score for outcome in batch.outcomes} == {0.5} and batch.dropped == 0
     assert len(outcomes.payloads[0]) < 120 * len(batch.outcomes)  # a few bytes an outcome
     drive(relay, command=1.0, speed=1.0, steps=20, start=106.0)
-    assert relay.send_due(now=10.5) == 11.0 and len(outcomes.payloads) == 1  # within the period: waits
-    relay.send_due(now=11.0)
+    assert send_at(relay, clock, 10.5) == 11.0 and len(outcomes.payloads) == 1  # within the period: waits
+    send_at(relay, clock, 11.0)
     assert len(outcomes.payloads) == 2 and relay.batches == 2 and relay.sent == relay.measured
-    relay.send_due(now=12.0)
+    send_at(relay, clock, 12.0)
     assert len(outcomes.payloads) == 2  # nothing measured: nothing sent
 
 
 def test_a_contact_per_press_at_the_newest_pose_and_the_robots_own_outcomes() -> None:
-    relay, outcomes, _ = link()
+    relay, outcomes, _, clock = link()
     relay.on_contact(True)  # before any pose: nowhere to put it
     assert relay.contacts.without_pose == 1
     relay.on_odometry(Odometry2D(stamp=5.0, x=2.0, y=-1.0, vx=0.0))
@@ -88,7 +102,7 @@ def test_a_contact_per_press_at_the_newest_pose_and_the_robots_own_outcomes() ->
     relay.on_contact(True)
     relay.on_contact(True)  # held: the same press
     relay.on_outcome(TraversalOutcome(stamp=6.0, x=3.0, y=0.0, score=0.2, kind="contact"))
-    relay.send_due(now=0.0)
+    send_at(relay, clock, 0.0)
     (payload,) = outcomes.payloads
     press, own = OutcomeBatch.unpack(payload).outcomes
     assert (press.kind, press.score, press.stamp, press.x, press.y) == ("contact", 0.0, 5.0, 2.0, -1.0)
@@ -96,35 +110,50 @@ def test_a_contact_per_press_at_the_newest_pose_and_the_robots_own_outcomes() ->
 
 
 def test_a_link_that_cannot_send_keeps_the_newest_and_says_how_many_it_dropped() -> None:
-    relay, outcomes, _ = link()
+    relay, outcomes, _, clock = link()
     for index in range(MAX_BATCH_OUTCOMES + 5):
         relay.on_outcome(TraversalOutcome(stamp=float(index), x=0.0, y=0.0, score=1.0, kind="velocity"))
-    relay.send_due(now=0.0)
+    send_at(relay, clock, 0.0)
     batch = OutcomeBatch.unpack(outcomes.payloads[0])
     assert len(batch.outcomes) == MAX_BATCH_OUTCOMES and batch.dropped == 5 and batch.outcomes[0].stamp == 5.0
 
 
-def test_the_planned_path_is_sent_shortened_and_only_when_it_changes() -> None:
-    relay, _, paths = link()
+def test_the_planned_path_is_sent_shortened_when_it_changes_and_renewed_before_the_service_forgets_it() -> None:
+    relay, _, paths, clock = link()
     straight = [(0.1 * i, 0.0) for i in range(400)]  # 40 m, a vertex every 0.1 m
     relay.on_path("odom", 1.0, straight)
-    relay.send_due(now=0.0)
+    send_at(relay, clock, 0.0)
     sent = PlannedPath.unpack(paths.payloads[0])
     assert sent.frame_id == "odom" and sent.points[0] == (0.0, 0.0)
-    assert 19.9 <= sent.points[-1][0] <= 20.5 and all(
-        b[0] - a[0] >= 0.25 - 1e-9 for a, b in zip(sent.points, sent.points[1:], strict=False)
-    )
-    relay.on_path("odom", 2.0, straight)  # the same path again: not sent
-    relay.send_due(now=1.0)
+    assert 19.9 <= sent.points[-1][0] <= 20.6
+    assert all(b[0] - a[0] >= 0.5 - 1e-9 for a, b in zip(sent.points, sent.points[1:], strict=False))
+    clock.now = 1.0  # the robot drove 3 m along it: the same plan, not sent again
+    relay.on_path("odom", 2.0, straight[30:])
+    send_at(relay, clock, 1.0)
     assert len(paths.payloads) == 1
-    relay.on_path("odom", 3.0, [(0.0, 0.0), (0.0, 5.0)])
-    relay.send_due(now=2.0)
+    clock.now = SETTINGS.path_renew_s  # unchanged, but due: the service forgets a path after ask.path_timeout_s
+    relay.on_path("odom", 3.0, straight[30:])
+    send_at(relay, clock, SETTINGS.path_renew_s)
     assert len(paths.payloads) == 2
+    relay.on_path("odom", 4.0, [(3.0, 0.0), (3.0, 5.0)])  # a new plan: a turn
+    send_at(relay, clock, SETTINGS.path_renew_s + 1.0)
+    assert len(paths.payloads) == 3 and PlannedPath.unpack(paths.payloads[2]).points[-1] == (3.0, 5.0)
+    relay.on_path("odom", 5.0, [(3.0, 0.0), (3.3, 5.0)])  # the turn's end 0.3 m aside: the same plan
+    send_at(relay, clock, SETTINGS.path_renew_s + 2.0)
+    assert len(paths.payloads) == 3
 
 
-@pytest.mark.parametrize(("length", "last"), [(0.1, (0.3, 0.0)), (1.0, (1.2, 0.0)), (100.0, (3.9, 0.0))])
+def test_follows_at_its_edges() -> None:
+    assert follows([], None, 10.0) and not follows([(0.0, 0.0)], None, 10.0) and not follows([], [(0.0, 0.0)], 10.0)
+    assert follows([(0.2, 0.1)], [(0.0, 0.0)], 10.0) and not follows([(1.0, 0.0)], [(0.0, 0.0)], 10.0)
+    line = [(0.0, 0.0), (10.0, 0.0)]
+    assert follows([(2.0, 0.4), (9.0, -0.4)], line, 10.0) and not follows([(2.0, 0.6)], line, 10.0)
+    assert follows([(2.0, 0.0), (8.0, 0.0), (30.0, 9.0)], line, 7.0)  # past the nearer part: not compared
+
+
+@pytest.mark.parametrize(("length", "last"), [(0.1, (0.6, 0.0)), (1.0, (1.2, 0.0)), (100.0, (3.6, 0.0))])
 def test_shortened_at_its_edges(length: float, last: tuple[float, float]) -> None:
-    points = [(round(0.3 * i, 6), 0.0) for i in range(14)]
+    points = [(round(0.3 * i, 6), 0.0) for i in range(14)]  # every 0.3 m: every other kept (0.5 m apart at least)
     kept = shortened(points, length)
     assert kept[0] == (0.0, 0.0) and kept[-1] == pytest.approx(last)
     assert shortened([], 5.0) == [] and shortened([(1.0, 1.0)], 5.0) == [(1.0, 1.0)]
