@@ -68,6 +68,8 @@ from gcdtrav.schemas.experience import Odometry2D, Twist2D
 from gcdtrav.schemas.messages import CameraParked, Pose2D, RelayHealth
 from gcdtrav.schemas.relay import RelayCamera, RelayOdometry, RelaySettings
 from gcdtrav.schemas.ros_image import COMPRESSED_IMAGE, IMAGE, SUPPORTED_TYPES
+from gcdtrav.schemas.settings.ros import RosOutput as OutputTopics
+from gcdtrav.schemas.settings.ros import output_topic
 from geometry_msgs.msg import Twist, TwistStamped
 from nav_msgs.msg import OccupancyGrid, Odometry, Path
 from numpy.typing import NDArray
@@ -91,14 +93,7 @@ LATCHED_QOS = QoSProfile(
 )  # a map: a subscriber that joins later gets the last one
 MESSAGE_CLASSES: dict[str, Any] = {IMAGE: Image, COMPRESSED_IMAGE: CompressedImage}
 ERROR_CAUSES = (CAMERA_SILENT, CAMERA_UNUSABLE, CAMERA_WRONG_TYPE, NO_INSTANCE)  # no maps can come at all
-# The service's outputs as ROS topics, under the camera's topic (the service's own ROS topics' names).
-TRAVERSABILITY, UNCERTAINTY, COSTMAP = "gcdtrav/traversability", "gcdtrav/uncertainty", "gcdtrav/grid/costmap"
-NAV2_COSTMAP = "gcdtrav/grid/nav2_costmap"  # nav2_msgs/Costmap: the collision monitor's source, where nav2_msgs is
-SPEED_MASK, SPEED_FILTER_INFO, SPEED_LIMIT = (
-    "gcdtrav/grid/speed_mask",
-    "gcdtrav/grid/speed_filter_info",
-    "gcdtrav/grid/speed_limit",
-)
+NAMES = OutputTopics()  # the service's own output topics (their default templates): the relay publishes under them
 PARKED = "gcdtrav/parked"  # std_msgs/Bool from the robot's software: the camera is stopped on purpose
 SPEED_FILTER_PERCENT = 1  # CostmapFilterInfo.type: a mask value v is v percent of the maximum speed
 
@@ -286,15 +281,18 @@ class SpeedTopics:
 
     def __init__(self, node: Node, topic: str, link: CameraLink) -> None:
         self.link = link
-        self.mask_topic = f"{topic}/{SPEED_MASK}"
+        self.mask_topic = output_topic(NAMES.speed_mask_topic, topic)
         self.mask = node.create_publisher(OccupancyGrid, self.mask_topic, LATCHED_QOS)
         nav2 = nav2_messages()
         self.info_type: Any = None if nav2 is None else nav2[0]
         self.limit_type: Any = None if nav2 is None else nav2[1]
         self.info = (
-            None if nav2 is None else node.create_publisher(nav2[0], f"{topic}/{SPEED_FILTER_INFO}", LATCHED_QOS)
+            None
+            if nav2 is None
+            else node.create_publisher(nav2[0], output_topic(NAMES.speed_filter_info_topic, topic), LATCHED_QOS)
         )
-        self.limit = None if nav2 is None else node.create_publisher(nav2[1], f"{topic}/{SPEED_LIMIT}", IMAGE_QOS)
+        limit = output_topic(NAMES.speed_limit_topic, topic)
+        self.limit = None if nav2 is None else node.create_publisher(nav2[1], limit, IMAGE_QOS)
         self._info_frame: str | None = None
         if nav2 is None:
             log.info(
@@ -462,9 +460,9 @@ class RosRobotSide:
         self._relay = relay
         topic = self.node.resolve_topic_name(relay.camera(source).camera.camera)
         maps_kind = self.settings.ros_maps
-        traversability = self.node.create_publisher(Image, f"{topic}/{TRAVERSABILITY}", IMAGE_QOS)
-        uncertainty = self.node.create_publisher(Image, f"{topic}/{UNCERTAINTY}", IMAGE_QOS)
-        costmap = self.node.create_publisher(OccupancyGrid, f"{topic}/{COSTMAP}", LATCHED_QOS)
+        traversability = self.node.create_publisher(Image, output_topic(NAMES.traversability_topic, topic), IMAGE_QOS)
+        uncertainty = self.node.create_publisher(Image, output_topic(NAMES.uncertainty_topic, topic), IMAGE_QOS)
+        costmap = self.node.create_publisher(OccupancyGrid, output_topic(NAMES.costmap_topic, topic), LATCHED_QOS)
         link = relay.camera(source)
 
         def publish_maps(payload: bytes) -> float:
@@ -501,7 +499,7 @@ class RosRobotSide:
         if nav2 is None:
             return []
         costmap_type = nav2[2]
-        publisher = self.node.create_publisher(costmap_type, f"{topic}/{NAV2_COSTMAP}", LATCHED_QOS)
+        publisher = self.node.create_publisher(costmap_type, output_topic(NAMES.nav2_costmap_topic, topic), LATCHED_QOS)
 
         def publish(payload: bytes) -> float:
             costmap = deserialize_message(payload, costmap_type)

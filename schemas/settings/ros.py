@@ -78,6 +78,12 @@ def _topic_template(value: str) -> str:
     return value
 
 
+def output_topic(template: str, camera_topic: str) -> str:
+    """An output topic from its template: '{topic}/gcdtrav/traversability' -> '/cam/gcdtrav/traversability'. The
+    service's ROS outputs and the ROS relay's (client/relay/ros2_node.py) are named by this one rule."""
+    return "/" + template.replace("{topic}", camera_topic.strip("/")).strip("/")
+
+
 class RosOutput(StrictModel):
     """Maps as ROS 2 topics; ``{topic}`` in a topic stands for the camera's topic (without the leading slash)."""
 

@@ -24,6 +24,7 @@ from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
 from gcdtrav.schemas.messages import GridHeader, MessageError, Pose2D
 from gcdtrav.schemas.ros_image import COMPRESSED_IMAGE as COMPRESSED_IMAGE  # re-exported: the ROS types in one place
 from gcdtrav.schemas.ros_image import IMAGE as IMAGE
+from gcdtrav.schemas.settings.ros import output_topic as output_topic  # re-exported: the service's callers use it
 from gcdtrav.service.grid.geometry import PinholeCamera
 from gcdtrav.service.ros.grid_map_msgs import GRID_MAP as GRID_MAP  # re-exported: the output types in one place
 from gcdtrav.service.ros.grid_map_msgs import register_types
@@ -131,11 +132,6 @@ def topic_key(topic: RosTopic) -> str:
     else:
         key = f"{topic.domain}/{name}/{dds_type_name(topic.msgtype)}/{topic.type_hash or type_hash(topic.msgtype)}"
     return f"{topic.namespace}/{key}" if topic.namespace else key
-
-
-def output_topic(template: str, camera_topic: str) -> str:
-    """An output topic from its template: '{topic}/gcdtrav/traversability' -> '/cam/gcdtrav/traversability'."""
-    return "/" + template.replace("{topic}", camera_topic.strip("/")).strip("/")
 
 
 def is_output_topic(topic: str, templates: list[str]) -> bool:
