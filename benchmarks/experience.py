@@ -37,13 +37,13 @@ from typing import Any
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.experience import AnchorProposal, Odometry2D, TraversalOutcome, Twist2D
+from gcdtrav.schemas.outcomes import VelocityTracker, decode_command, decode_odometry
 from gcdtrav.schemas.settings import ExperienceSettings
 from gcdtrav.service.engine import gcd
 from gcdtrav.service.experience.calibration import calibration_figures
 from gcdtrav.service.experience.fitter import FitOptions, propose
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore
-from gcdtrav.service.experience.velocity import VelocityTracker, decode_command, decode_odometry
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.store.opening import sqlite_outbox
 
@@ -103,10 +103,10 @@ def drive(
             fuse(grid, weights, base, robot, stamp, anchors)
             ring.capture(grid)
         if step % COMMAND_EVERY == 0:
-            tracker.on_command(decode_command(Twist2D(vx=COMMAND_MPS).pack(), ros=False), stamp)
+            tracker.on_command(decode_command(Twist2D(vx=COMMAND_MPS).pack()), stamp)
         speed, rate = robot.step(ODOMETRY_DT)
         odometry = Odometry2D(stamp=stamp, x=robot.x, y=robot.y, yaw=robot.yaw, vx=speed, wz=rate)
-        outcome = tracker.on_odometry(decode_odometry(odometry.pack(), ros=False), stamp)
+        outcome = tracker.on_odometry(decode_odometry(odometry.pack()), stamp)
         if outcome is not None:
             store.ingest(TraversalOutcome.pack(outcome), ring)
     return stamp

@@ -1,6 +1,6 @@
 """Outcomes measured where the robot is: how well it kept the speed it was commanded, and what it hit. One
-implementation for the service (commands and odometry on its bus, service/experience/velocity.py decodes them)
-and for the relay on the robot (its own cmd_vel and odometry, client/relay/outcomes.py), so a relayed robot's
+implementation, with the inputs' decoders, for the service (commands and odometry on its bus) and for the relay on
+the robot (its own cmd_vel and odometry, client/relay/outcomes.py), so a relayed robot's
 outcomes are graded exactly as a robot's on the service's bus (docs/calibration.md, "Which robots teach").
 
 **Velocity.** While the command in force asks for more than ``min_command_mps``, each odometry sample scores
@@ -29,6 +29,34 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from gcdtrav.schemas.experience import Odometry2D, TraversalOutcome, Twist2D
+from gcdtrav.schemas.messages import check_size
+from gcdtrav.schemas.ros_nav import RosNavError, bool_value, odometry_motion, twist_command
+
+MAX_INPUT_BYTES = 64 * 1024  # an Odometry CDR with its covariances is about 700 bytes
+CDR = (b"\x00\x00", b"\x00\x01")  # an encapsulation header's first bytes; msgpack and JSON start otherwise
+
+
+def decode_command(payload: bytes, stamped: bool = False) -> Twist2D:
+    """A velocity command: a geometry_msgs Twist (``stamped``: TwistStamped) in CDR, or a Twist2D in msgpack or
+    JSON, told apart by their first bytes; MessageError (RosNavError is one) when unusable."""
+    check_size("a velocity command", payload, MAX_INPUT_BYTES)
+    return twist_command(payload, stamped) if payload[:2] in CDR else Twist2D.decode(payload)
+
+
+def decode_odometry(payload: bytes) -> Odometry2D:
+    """Odometry: a nav_msgs Odometry in CDR, or an Odometry2D in msgpack or JSON; MessageError when unusable."""
+    check_size("odometry", payload, MAX_INPUT_BYTES)
+    return odometry_motion(payload) if payload[:2] in CDR else Odometry2D.decode(payload)
+
+
+def decode_contact(payload: bytes) -> bool:
+    """A bumper: a std_msgs Bool in CDR, or JSON true / false; RosNavError if neither."""
+    if payload[:2] in CDR:
+        return bool_value(payload)
+    text = payload.strip().lower()
+    if text not in (b"true", b"false"):
+        raise RosNavError(f"a contact is a std_msgs/Bool CDR or JSON true/false, not {payload[:20]!r}")
+    return text == b"true"
 
 
 class TrackingSettings(Protocol):

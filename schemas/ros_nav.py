@@ -1,8 +1,8 @@
-"""nav_msgs in CDR with numpy only, for the robot's side (client/relay/), which has no ROS typestore: a
-``nav_msgs/msg/OccupancyGrid`` written (the relay's safe speed mask, client/relay/mask_guard.py) and its
-geometry read back (a live mask's frame and cells); the pose and velocity of a ``nav_msgs/msg/Odometry``, a
-``geometry_msgs/msg/Twist`` or ``TwistStamped`` and a ``std_msgs/msg/Bool`` (outcomes measured on the robot,
-client/relay/outcomes.py).
+"""The ROS facts the service and the relay share, in CDR with numpy only (the relay has no ROS typestore, and
+both must agree): a ``nav_msgs/msg/OccupancyGrid`` written (the relay's safe speed mask) and its geometry read
+back; Nav2's speed filter info (``CostmapFilterInfo``); a stamped message's header restamped; the one rule from
+a ``nav_msgs/msg/Odometry`` to a pose (a grid's pose stream, the safe mask's centre) and its velocity (the
+outcomes); a ``geometry_msgs/msg/Twist`` or ``TwistStamped`` and a ``std_msgs/msg/Bool``.
 
 Plain CDR, little-endian, as schemas/ros_image.py reads it: a 4-byte encapsulation header, then each field
 aligned to its size from the end of that header. Checked against ROS 2's own serialiser
@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from gcdtrav.schemas.experience import Odometry2D, Twist2D
+from gcdtrav.schemas.messages import MessageError, Pose2D
 from gcdtrav.schemas.ros_image import _Malformed, _Reader
 from numpy.typing import NDArray
 
@@ -27,8 +28,13 @@ COVARIANCE = 36  # doubles of a PoseWithCovariance's or TwistWithCovariance's co
 ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little-endian
 
 
-class RosNavError(ValueError):
-    """Not the nav_msgs message's CDR."""
+COSTMAP_FILTER_INFO = "nav2_msgs/msg/CostmapFilterInfo"
+SPEED_FILTER_PERCENT = 1  # CostmapFilterInfo.type: a mask value v is v percent of the maximum speed (filter_values.hpp)
+DEFAULT_ODOMETRY_FRAME = "odom"  # an Odometry whose header names no frame: REP 105's odometry frame
+
+
+class RosNavError(MessageError):
+    """Not the ROS message's CDR, or a value in it not usable."""
 
 
 @dataclass(frozen=True)
@@ -41,15 +47,6 @@ class GridGeometry:
     height: int
     origin: tuple[float, float]
     stamp: float  # the header's
-
-
-@dataclass(frozen=True)
-class OdometryPose:
-    stamp: float
-    frame_id: str
-    x: float
-    y: float
-    yaw: float
 
 
 class _Writer:
@@ -108,6 +105,35 @@ def occupancy_grid_cdr(
     return writer.done()
 
 
+def costmap_filter_info_cdr(frame_id: str, mask_topic: str) -> bytes:
+    """nav2_msgs/CostmapFilterInfo of a speed mask in percent (type 1, base 0, multiplier 1: a mask value v is v
+    percent). Stamped 0: the same bytes for the same mask topic, so the info is put once, not with every mask
+    (each new info makes Nav2's SpeedFilter drop its mask and subscribe afresh)."""
+    writer = _Writer()
+    writer.number("i", 0)
+    writer.number("I", 0)
+    writer.string(frame_id)
+    writer.number("B", SPEED_FILTER_PERCENT)
+    writer.string(mask_topic)
+    writer.number("f", 0.0)  # base
+    writer.number("f", 1.0)  # multiplier
+    return writer.done()
+
+
+def restamped(payload: bytes, stamp: tuple[int, int]) -> bytes:
+    """A stamped message's CDR (its std_msgs/Header first) with the header's stamp replaced; RosNavError if it is
+    not CDR. The relay stamps the service's outputs with the camera frame's exact stamp (a float loses it)."""
+    if len(payload) < 12 or payload[:2] not in (b"\x00\x00", b"\x00\x01"):
+        raise RosNavError(f"not a stamped message's CDR: {payload[:12]!r}")
+    order = "<" if payload[1] == 1 else ">"
+    return payload[:4] + struct.pack(order + "iI", *stamp) + payload[12:]
+
+
+def yaw_of_quaternion(x: float, y: float, z: float, w: float) -> float:
+    """The heading (rotation about z) of a unit quaternion: the one conversion, for odometry and tf."""
+    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
 def occupancy_grid_geometry(payload: bytes) -> GridGeometry:
     """The geometry of an OccupancyGrid's CDR, without its cells; RosNavError when it is not one."""
     try:
@@ -127,8 +153,9 @@ def occupancy_grid_geometry(payload: bytes) -> GridGeometry:
     return GridGeometry(frame_id, float(resolution), width, height, (x, y), seconds((sec, nanosec)))
 
 
-def odometry_pose(payload: bytes) -> OdometryPose:
-    """The stamp, frame and planar pose (x, y, yaw) of an Odometry's CDR; RosNavError when it is not one."""
+def odometry_pose(payload: bytes) -> Pose2D:
+    """The pose of an Odometry's CDR (its stamp, frame, x, y, yaw), as a grid's pose stream and the relay read
+    it: an empty frame id is ``odom``; RosNavError when it is not one or the pose is not usable."""
     try:
         reader = _Reader(payload)
         sec, nanosec, frame_id = reader.number("i"), reader.number("I"), reader.string()
@@ -137,10 +164,13 @@ def odometry_pose(payload: bytes) -> OdometryPose:
         qx, qy, qz, qw = (_double(reader) for _ in range(4))
     except _Malformed as err:
         raise RosNavError(f"not an {ODOMETRY}: {err}") from None
-    yaw = math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
-    if not all(math.isfinite(value) for value in (x, y, yaw)):
-        raise RosNavError(f"an {ODOMETRY} whose pose is not finite ({x}, {y}, {yaw})")
-    return OdometryPose(seconds((sec, nanosec)), frame_id, x, y, yaw)
+    fields = {"x": x, "y": y, "yaw": yaw_of_quaternion(qx, qy, qz, qw)}
+    try:
+        return Pose2D.validated(
+            {"stamp": seconds((sec, nanosec)), "frame_id": frame_id or DEFAULT_ODOMETRY_FRAME, **fields}
+        )
+    except MessageError as err:
+        raise RosNavError(f"an {ODOMETRY} whose pose is not usable: {err}") from None
 
 
 def _double(reader: _Reader) -> float:

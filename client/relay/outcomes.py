@@ -31,12 +31,9 @@ from gcdtrav.schemas.experience import (
 from gcdtrav.schemas.messages import MessageError
 from gcdtrav.schemas.outcomes import ContactWatch, VelocityTracker
 from gcdtrav.schemas.relay import RelayOutcomes
-from gcdtrav.schemas.ros_nav import RosNavError, bool_value, odometry_motion, twist_command
 
 PATH_SPACING_M = 0.5  # the path's vertices sent at least this far apart (a few grid cells: segments between)
 PATH_TOLERANCE_M = 0.5  # a new path whose nearer half keeps this close to the last one sent is the same path
-MAX_INPUT_BYTES = 64 * 1024  # an Odometry CDR with its covariances is about 700 bytes
-CDR = (b"\x00\x00", b"\x00\x01")  # an encapsulation header's first bytes; msgpack and JSON start otherwise
 ROS_TYPES = {  # the rmw_zenoh key chunk of each type a zenoh relay reads as a ROS topic
     "cmd_vel": "geometry_msgs::msg::dds_::Twist_",
     "cmd_vel_stamped": "geometry_msgs::msg::dds_::TwistStamped_",
@@ -51,27 +48,7 @@ def robot_key(name: str, kind: str) -> str:
     return name if not name.startswith("/") else f"*/{name.strip('/')}/{ROS_TYPES[kind]}/*"
 
 
-def decode_command(payload: bytes, stamped: bool) -> Twist2D:
-    """A Twist (or TwistStamped) CDR, or a Twist2D (msgpack or JSON); MessageError or RosNavError if unusable."""
-    return twist_command(payload, stamped) if payload[:2] in CDR else Twist2D.decode(payload, MAX_INPUT_BYTES)
-
-
-def decode_odometry(payload: bytes) -> Odometry2D:
-    """An Odometry CDR, or an Odometry2D (msgpack or JSON); MessageError or RosNavError if unusable."""
-    return odometry_motion(payload) if payload[:2] in CDR else Odometry2D.decode(payload, MAX_INPUT_BYTES)
-
-
-def decode_contact(payload: bytes) -> bool:
-    """A std_msgs/Bool CDR, or JSON true / false; RosNavError if neither."""
-    if payload[:2] in CDR:
-        return bool_value(payload)
-    text = payload.strip().lower()
-    if text not in (b"true", b"false"):
-        raise RosNavError(f"a contact is a std_msgs/Bool CDR or JSON true/false, not {payload[:20]!r}")
-    return text == b"true"
-
-
-INPUT_ERRORS = (MessageError, RosNavError)
+INPUT_ERRORS = (MessageError,)  # a bad input of the outcomes (RosNavError is a MessageError)
 
 
 class OutcomeLink:

@@ -40,14 +40,7 @@ import zenoh
 from gcdtrav.client.freshness import FreshnessWatch, Staleness
 from gcdtrav.client.relay.causes import CameraFacts, causes, change_key
 from gcdtrav.client.relay.mask_guard import SAFE, MaskGuard, SafeMask
-from gcdtrav.client.relay.outcomes import (
-    INPUT_ERRORS,
-    OutcomeLink,
-    decode_command,
-    decode_contact,
-    decode_odometry,
-    robot_key,
-)
+from gcdtrav.client.relay.outcomes import INPUT_ERRORS, OutcomeLink, robot_key
 from gcdtrav.client.relay.ros_camera import ros_camera_key, ros_type_of_key
 from gcdtrav.client.relay.state import CameraClock, ClockEstimate, CreditWindow, RateWindow, downsized
 from gcdtrav.client.session.source_info import put_identified
@@ -66,6 +59,7 @@ from gcdtrav.schemas.messages import (
     RelayHealth,
     peek_fields,
 )
+from gcdtrav.schemas.outcomes import decode_command, decode_contact, decode_odometry
 from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE, FORWARDABLE, RelayCamera, RelayOutcomes, RelaySettings
 from gcdtrav.schemas.ros_image import decode_ros_image
 from gcdtrav.schemas.ros_nav import RosNavError, occupancy_grid_cdr, occupancy_grid_geometry, odometry_pose, split_stamp

@@ -25,14 +25,13 @@ from gcdtrav.schemas.experience import (
     PlannedPath,
 )
 from gcdtrav.schemas.messages import ExperienceStatus, Pose2D, QuestionStatus
-from gcdtrav.schemas.outcomes import VelocityTracker
+from gcdtrav.schemas.outcomes import MAX_INPUT_BYTES, VelocityTracker, decode_command, decode_odometry
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings, SettingsError
 from gcdtrav.service.experience.ask import Crop, OperatorAsker
 from gcdtrav.service.experience.crop import image_crop
 from gcdtrav.service.experience.fitter import BEST_IN_HISTORY, PAPER, FitOptions
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore
-from gcdtrav.service.experience.velocity import MAX_INPUT_BYTES, decode_command, decode_odometry, is_ros_topic
 from gcdtrav.service.grid.fusion import GroundGrid
 from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid
 from gcdtrav.service.store.outbox import PairOutbox
@@ -42,6 +41,11 @@ log = logging.getLogger("gcdtrav.service")
 ExperienceInput = tuple[str, bool, Callable[[bytes, float], None], str]  # key or topic, is ROS, handler, reason
 # Counts a bad input (the service's ServiceStats.rejected): source or None, reason, detail, the error.
 Rejected = Callable[[str | None, str, str, BaseException | None], None]
+
+
+def is_ros_topic(name: str) -> bool:
+    """Settings name a ROS topic with a leading '/' (read on its rmw_zenoh keys), a zenoh key without."""
+    return name.startswith("/")
 
 
 def decode_answer(payload: bytes) -> OperatorAnswer:
@@ -111,12 +115,12 @@ class Experience:
     def on_command(self, payload: bytes, received_at: float) -> None:
         """A velocity command; MessageError for a bad one (the bus counts it)."""
         assert self.settings.cmd_vel is not None
-        self.tracker.on_command(decode_command(payload, is_ros_topic(self.settings.cmd_vel)), received_at)
+        self.tracker.on_command(decode_command(payload), received_at)  # CDR or msgpack/JSON, by their first bytes
 
     def on_odometry(self, payload: bytes, received_at: float) -> None:
         """An odometry sample; the outcome it closes is paired at once. MessageError for a bad one."""
         assert self.settings.odometry is not None
-        outcome = self.tracker.on_odometry(decode_odometry(payload, is_ros_topic(self.settings.odometry)), received_at)
+        outcome = self.tracker.on_odometry(decode_odometry(payload), received_at)
         if outcome is not None:
             self.store.add(outcome, self.ring)
 

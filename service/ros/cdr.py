@@ -11,7 +11,6 @@ The payload is the CDR-serialised message (with its 4-byte encapsulation header)
 
 from __future__ import annotations
 
-import math
 import re
 from dataclasses import dataclass
 from functools import cache
@@ -24,13 +23,15 @@ from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
 from gcdtrav.schemas.messages import GridHeader, MessageError, Pose2D
 from gcdtrav.schemas.ros_image import COMPRESSED_IMAGE as COMPRESSED_IMAGE  # re-exported: the ROS types in one place
 from gcdtrav.schemas.ros_image import IMAGE as IMAGE
+from gcdtrav.schemas.ros_nav import costmap_filter_info_cdr as costmap_filter_info_cdr  # re-exported, as below
+from gcdtrav.schemas.ros_nav import odometry_pose
+from gcdtrav.schemas.ros_nav import yaw_of_quaternion as yaw_of_quaternion  # re-exported: tf's too
 from gcdtrav.schemas.settings.ros import output_topic as output_topic  # re-exported: the service's callers use it
 from gcdtrav.service.grid.geometry import PinholeCamera
 from gcdtrav.service.ros.grid_map_msgs import GRID_MAP as GRID_MAP  # re-exported: the output types in one place
 from gcdtrav.service.ros.grid_map_msgs import register_types
 from gcdtrav.service.ros.nav2_msgs import COSTMAP as NAV2_COSTMAP  # re-exported: the output types in one place
 from gcdtrav.service.ros.nav2_msgs import COSTMAP_FILTER_INFO as COSTMAP_FILTER_INFO  # re-exported
-from gcdtrav.service.ros.nav2_msgs import SPEED_FILTER_PERCENT
 from gcdtrav.service.ros.nav2_msgs import SPEED_LIMIT as SPEED_LIMIT
 from gcdtrav.service.ros.nav2_msgs import register_types as register_nav2_types
 from numpy.typing import NDArray
@@ -210,26 +211,9 @@ def header_of(sec: int, nanosec: int, frame_id: str) -> Any:
 # ---- the ground grid's inputs and output -------------------------------------------------------------------
 
 
-def yaw_of_quaternion(x: float, y: float, z: float, w: float) -> float:
-    """The heading (rotation about z) of a unit quaternion: the one conversion, for odometry and tf."""
-    return math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-
-
 def decode_pose(payload: bytes, fmt: str) -> Pose2D:
-    if fmt == "gcdtrav":
-        return Pose2D.unpack(payload)
-    try:
-        odometry = typestore().deserialize_cdr(payload, "nav_msgs/msg/Odometry")
-    except Exception as err:  # rosbags raises assorted errors on bad CDR
-        raise MessageError(f"not a nav_msgs/msg/Odometry: {type(err).__name__}: {err}") from None
-    pose = odometry.pose.pose
-    q = pose.orientation
-    stamp = odometry.header.stamp.sec + odometry.header.stamp.nanosec * 1e-9
-    yaw = yaw_of_quaternion(q.x, q.y, q.z, q.w)
-    frame_id = str(odometry.header.frame_id) or "odom"
-    return Pose2D.validated(
-        {"stamp": stamp, "frame_id": frame_id, "x": float(pose.position.x), "y": float(pose.position.y), "yaw": yaw}
-    )
+    """A grid's pose stream: a Pose2D (``gcdtrav``) or an Odometry's CDR (the relay's rule, schemas/ros_nav.py)."""
+    return Pose2D.unpack(payload) if fmt == "gcdtrav" else odometry_pose(payload)
 
 
 def decode_camera_info_frame(payload: bytes) -> tuple[PinholeCamera, str]:
@@ -325,48 +309,7 @@ def nav2_costmap_cdr(header: GridHeader, data: NDArray[np.int8]) -> bytes:
     return bytes(typestore().serialize_cdr(message, NAV2_COSTMAP))
 
 
-# ---- the experience's inputs: velocity commands and odometry (docs/calibration.md) -----------------------
-
-
-def decode_twist(payload: bytes) -> tuple[float, float, float]:
-    """geometry_msgs/msg/Twist CDR -> (vx, vy, wz) in the base frame; MessageError if it does not decode or
-    holds a number that is not finite."""
-    try:
-        twist = typestore().deserialize_cdr(payload, "geometry_msgs/msg/Twist")
-    except Exception as err:  # rosbags raises assorted errors on bad CDR
-        raise MessageError(f"not a geometry_msgs/msg/Twist: {type(err).__name__}: {err}") from None
-    values = (float(twist.linear.x), float(twist.linear.y), float(twist.angular.z))
-    if not all(math.isfinite(v) for v in values):
-        raise MessageError(f"Twist with a number that is not finite: {values}")
-    return values
-
-
-def decode_odometry_motion(payload: bytes) -> tuple[Pose2D, tuple[float, float, float]]:
-    """nav_msgs/msg/Odometry CDR -> its pose (as the grid reads it) and twist (vx, vy, wz) in the child frame."""
-    pose = decode_pose(payload, "odometry")
-    odometry = typestore().deserialize_cdr(payload, "nav_msgs/msg/Odometry")  # decoded once already: cannot fail
-    twist = odometry.twist.twist
-    values = (float(twist.linear.x), float(twist.linear.y), float(twist.angular.z))
-    if not all(math.isfinite(v) for v in values):
-        raise MessageError(f"Odometry twist with a number that is not finite: {values}")
-    return pose, values
-
-
 # ---- Nav2's speed filter: its info and the speed limit (docs/grid.md, "Speed from uncertainty") ------------
-
-
-def costmap_filter_info_cdr(frame_id: str, mask_topic: str) -> bytes:
-    """nav2_msgs/CostmapFilterInfo of a speed mask in percent (type 1, base 0, multiplier 1: a mask value v is v
-    percent). Stamped 0: the same bytes for the same mask topic, so the info is put once, not with every mask
-    (each new info makes Nav2's SpeedFilter drop its mask and subscribe afresh)."""
-    message = typestore().types[COSTMAP_FILTER_INFO](
-        header=make_header(0.0, frame_id),
-        type=SPEED_FILTER_PERCENT,
-        filter_mask_topic=mask_topic,
-        base=np.float32(0.0),
-        multiplier=np.float32(1.0),
-    )
-    return bytes(typestore().serialize_cdr(message, COSTMAP_FILTER_INFO))
 
 
 def speed_limit_cdr(stamp: float, frame_id: str, percent: float) -> bytes:

@@ -17,7 +17,6 @@ COSTMAP_FILTER_INFO = "nav2_msgs/msg/CostmapFilterInfo"
 SPEED_LIMIT = "nav2_msgs/msg/SpeedLimit"
 COSTMAP = "nav2_msgs/msg/Costmap"
 COSTMAP_META_DATA = "nav2_msgs/msg/CostmapMetaData"
-SPEED_FILTER_PERCENT = 1  # CostmapFilterInfo.type: speed limit in percent of the maximum speed (filter_values.hpp)
 
 COSTMAP_FILTER_INFO_MSG = """\
 std_msgs/Header header

@@ -8,15 +8,7 @@ import math
 from typing import Any
 
 import pytest
-from gcdtrav.client.relay.outcomes import (
-    OutcomeLink,
-    decode_command,
-    decode_contact,
-    decode_odometry,
-    follows,
-    robot_key,
-    shortened,
-)
+from gcdtrav.client.relay.outcomes import OutcomeLink, follows, robot_key, shortened
 from gcdtrav.schemas.experience import (
     MAX_BATCH_OUTCOMES,
     Odometry2D,
@@ -26,7 +18,7 @@ from gcdtrav.schemas.experience import (
     Twist2D,
 )
 from gcdtrav.schemas.messages import MessageError
-from gcdtrav.schemas.outcomes import VelocityTracker
+from gcdtrav.schemas.outcomes import VelocityTracker, decode_command, decode_contact, decode_odometry
 from gcdtrav.schemas.relay import RelayOutcomes
 from gcdtrav.schemas.ros_nav import RosNavError
 from gcdtrav.schemas.settings import ExperienceSettings

@@ -20,7 +20,7 @@ from typing import Any
 import cv2
 import numpy as np
 import pytest
-from gcdtrav.schemas import ros_image
+from gcdtrav.schemas import ros_image, ros_nav
 from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
 from gcdtrav.schemas.messages import GridHeader
 from gcdtrav.service.ros import cdr, tf
@@ -439,11 +439,12 @@ def test_we_read_official_odometry_exactly(
             covariance=covariance,
         ),
     )
-    pose, motion = cdr.decode_odometry_motion(serialize(message))
-    assert (pose.frame_id, pose.x, pose.y) == (frame_id or "odom", position[0], position[1])  # unset: odom
-    assert pose.stamp == sec + nanosec * 1e-9
-    assert pose.yaw == cdr.yaw_of_quaternion(*q)
-    assert motion == (twist[0], twist[1], twist[5])
+    odometry = ros_nav.odometry_motion(serialize(message))  # the service's and the relay's one reader
+    assert (odometry.frame_id, odometry.x, odometry.y) == (frame_id or "odom", position[0], position[1])  # unset: odom
+    assert odometry.stamp == sec + nanosec * 1e-9
+    assert odometry.yaw == ros_nav.yaw_of_quaternion(*q)
+    assert (odometry.vx, odometry.vy, odometry.wz) == (twist[0], twist[1], twist[5])
+    assert cdr.decode_pose(serialize(message), "odometry") == ros_nav.odometry_pose(serialize(message))
 
 
 @given(
@@ -489,7 +490,8 @@ def test_we_read_an_official_twist_exactly(
     message = Twist(
         linear=Vector3(x=linear[0], y=linear[1], z=linear[2]), angular=Vector3(x=angular[0], y=angular[1], z=angular[2])
     )
-    assert cdr.decode_twist(serialize(message)) == (linear[0], linear[1], angular[2])
+    command = ros_nav.twist_command(serialize(message), stamped=False)
+    assert (command.vx, command.vy, command.wz) == (linear[0], linear[1], angular[2])
 
 
 def grid_header(stamp: float, frame_id: str, origin: tuple[float, float], resolution: float, cells: int) -> GridHeader:

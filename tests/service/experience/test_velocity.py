@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 from gcdtrav.schemas.experience import Odometry2D, Twist2D
 from gcdtrav.schemas.messages import MessageError
-from gcdtrav.schemas.outcomes import VelocityTracker
+from gcdtrav.schemas.outcomes import VelocityTracker, decode_command, decode_odometry
 from gcdtrav.schemas.settings import ExperienceSettings
+from gcdtrav.service.experience.service import is_ros_topic
 from gcdtrav.service.experience.snapshots import SnapshotRing
-from gcdtrav.service.experience.velocity import decode_command, decode_odometry, is_ros_topic
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 
 from tools.ros_fixtures import odometry_cdr, twist_cdr
@@ -68,32 +68,32 @@ def test_a_command_recorded_after_the_samples_receipt_is_in_force() -> None:
 
 def test_ros_cdr_and_zenoh_forms_decode_alike() -> None:
     assert is_ros_topic("/cmd_vel") and not is_ros_topic("robot/cmd_vel")
-    from_ros = decode_command(twist_cdr(0.8, 0.1, 0.3), ros=True)
+    from_ros = decode_command(twist_cdr(0.8, 0.1, 0.3))
     assert (from_ros.vx, from_ros.vy, from_ros.wz) == pytest.approx((0.8, 0.1, 0.3))
-    assert decode_command(Twist2D(vx=0.8).pack(), ros=False).vx == 0.8
-    assert decode_command(json.dumps({"vx": 0.8, "future": 1}).encode(), ros=False).vx == 0.8
-    odometry = decode_odometry(odometry_cdr(1.7e9 + 0.25, 1.0, 2.0, 0.5, 0.7), ros=True)
+    assert decode_command(Twist2D(vx=0.8).pack()).vx == 0.8
+    assert decode_command(json.dumps({"vx": 0.8, "future": 1}).encode()).vx == 0.8
+    odometry = decode_odometry(odometry_cdr(1.7e9 + 0.25, 1.0, 2.0, 0.5, 0.7))
     assert (odometry.stamp, odometry.x, odometry.y, odometry.yaw, odometry.vx) == pytest.approx(
         (1.7e9 + 0.25, 1.0, 2.0, 0.5, 0.7)
     )
-    assert decode_odometry(json.dumps({"stamp": 1.0, "x": 1, "y": 2, "vx": 0.5}).encode(), ros=False).vx == 0.5
+    assert decode_odometry(json.dumps({"stamp": 1.0, "x": 1, "y": 2, "vx": 0.5}).encode()).vx == 0.5
 
 
 @pytest.mark.parametrize(
-    ("payload", "ros", "decoder"),
+    ("payload", "decoder"),
     [
-        (b"\x00\x01\x00\x00\x01", True, decode_command),  # truncated CDR
-        (twist_cdr(0.5)[:-8], True, decode_odometry),
-        (b'{"vx": NaN}', False, decode_command),
-        (b'{"vx": "fast"}', False, decode_command),
-        (b"{not json", False, decode_command),
-        (json.dumps({"stamp": 1.0, "x": 1e9, "y": 0, "vx": 0}).encode(), False, decode_odometry),
-        (b"x" * 70_000, False, decode_odometry),
+        (b"\x00\x01\x00\x00\x01", decode_command),  # truncated CDR
+        (twist_cdr(0.5)[:-8], decode_odometry),
+        (b'{"vx": NaN}', decode_command),
+        (b'{"vx": "fast"}', decode_command),
+        (b"{not json", decode_command),
+        (json.dumps({"stamp": 1.0, "x": 1e9, "y": 0, "vx": 0}).encode(), decode_odometry),
+        (b"x" * 70_000, decode_odometry),
     ],
 )
-def test_bad_inputs_are_message_errors(payload: bytes, ros: bool, decoder: object) -> None:
+def test_bad_inputs_are_message_errors(payload: bytes, decoder: object) -> None:
     with pytest.raises(MessageError):
-        decoder(payload, ros)  # type: ignore[operator]
+        decoder(payload)  # type: ignore[operator]
 
 
 def test_the_snapshot_ring_stays_within_its_budget_and_restarts_on_a_replayed_bag() -> None:
