@@ -39,43 +39,30 @@ from typing import Any, Protocol
 import zenoh
 from gcdtrav.client.freshness import FreshnessWatch, Staleness
 from gcdtrav.client.relay.causes import CameraFacts, causes, change_key
+from gcdtrav.client.relay.link import MSGPACK, Guarded, OnDemand, Undeclarable
 from gcdtrav.client.relay.mask_guard import SAFE, MaskGuard, SafeMask
-from gcdtrav.client.relay.outcomes import INPUT_ERRORS, OutcomeLink, robot_key
-from gcdtrav.client.relay.ros_camera import ros_camera_key, ros_type_of_key
+from gcdtrav.client.relay.outcomes import OutcomeLink
+from gcdtrav.client.relay.ros_camera import ros_type_of_key
 from gcdtrav.client.relay.state import CameraClock, ClockEstimate, CreditWindow, RateWindow, downsized
+from gcdtrav.client.relay.zenoh_side import ZenohRobotSide
 from gcdtrav.client.session.source_info import put_identified
-from gcdtrav.schemas.experience import PlannedPath, TraversalOutcome
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.inputs import RejectedInput, decode_payload
 from gcdtrav.schemas.keys import Keys, input_key
 from gcdtrav.schemas.messages import (
-    MSGPACK_ENCODING,
     CameraParked,
     CreditGrant,
     ImageEnvelope,
     MessageError,
     PixelEncoding,
-    Pose2D,
     RelayHealth,
-    peek_fields,
 )
-from gcdtrav.schemas.outcomes import decode_command, decode_contact, decode_odometry
-from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE, FORWARDABLE, RelayCamera, RelayOutcomes, RelaySettings
+from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE, RelayCamera, RelayOutcomes, RelaySettings
 from gcdtrav.schemas.ros_image import decode_ros_image
-from gcdtrav.schemas.ros_nav import RosNavError, occupancy_grid_cdr, occupancy_grid_geometry, odometry_pose, split_stamp
+from gcdtrav.schemas.ros_nav import RosNavError, occupancy_grid_geometry
 
 log = logging.getLogger("gcdtrav.relay")
-MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
 MAX_CAMERA_PIXELS = 40_000_000
-STAMPED_OUTPUTS = ("maps", "maps8", "grid")  # their header's stamp is the capture stamp of the newest frame
-GRID_CDRS = ("speed_mask", "costmap", "nav2_costmap")  # the grid's CDRs, under {prefix}/out/{source}/grid/
-OUTPUT_ENCODINGS = {
-    "maps": MSGPACK,
-    "maps8": MSGPACK,
-    "grid": MSGPACK,
-    "preview": zenoh.Encoding.IMAGE_JPEG,
-    **dict.fromkeys(GRID_CDRS, zenoh.Encoding.APPLICATION_CDR),
-}
 GUARD_PERIOD_S = 0.1  # how often the speed masks' guards are asked (client/relay/mask_guard.py)
 
 
@@ -91,25 +78,6 @@ class CapturedFrame:
     ros_type: str | None = None  # a message of the robot's ROS graph (the ROS 2 node): its type
 
 
-class Undeclarable(Protocol):
-    def undeclare(self) -> None: ...
-
-
-class Output(Protocol):
-    """One output of one source on the robot's side, brought over the link only while someone there wants it."""
-
-    source: str
-    kind: str
-    downlink: RateWindow
-
-    @property
-    def active(self) -> bool: ...
-
-    def reconcile(self) -> None: ...
-
-    def close(self) -> None: ...
-
-
 class RobotSide(Protocol):
     """Where the cameras are and the outputs go: the robot's zenoh bus (``ZenohRobotSide``), or its ROS 2 graph
     through rclpy (client/relay/ros2_node.py)."""
@@ -122,7 +90,7 @@ class RobotSide(Protocol):
         """Feed ``link.keep`` with the camera's frames."""
         ...
 
-    def outputs(self, relay: Relay, source: str) -> Sequence[Output]: ...
+    def outputs(self, relay: Relay, source: str) -> Sequence[OnDemand]: ...
 
     def publish_health(self, health: RelayHealth) -> None: ...
 
@@ -137,57 +105,12 @@ class RobotSide(Protocol):
     def close(self) -> None: ...
 
 
-def output_key(keys: Keys, source: str, kind: str) -> str:
-    """Where the service publishes ``kind`` of ``source``: the grid's CDRs under its grid key."""
-    return keys.grid(source, kind) if kind in GRID_CDRS else keys.output(source, kind)
-
-
 def mask_age_s(link: CameraLink, stamp: float) -> float | None:
     """How long ago (this host's clock) the frame a mask was made of was captured; None before the camera's clock
     is learnt (a relay that sent no frame: it cannot tell)."""
     if link.camera_clock.offset_s() is None:
         return None
     return time.time() - link.camera_clock.on_host_clock(stamp)
-
-
-def safe_mask_cdr(mask: SafeMask) -> bytes:
-    """The safe mask as a nav_msgs/OccupancyGrid, stamped now (this host's clock)."""
-    return occupancy_grid_cdr(split_stamp(time.time()), mask.frame_id, mask.resolution, mask.origin, mask.values())
-
-
-class Guarded:
-    """A zenoh entity that one thread uses while another may undeclare it (a zenoh callback's put, the relay's
-    close). zenoh-python's entities are pyo3 objects: ``put`` borrows the publisher while zenoh works with the
-    GIL released, ``undeclare`` borrows it mutably, and the two at once raise ``RuntimeError: Already
-    borrowed``; zenoh's undeclare of a subscriber does not wait for its callbacks under way either. So every
-    use and the undeclare take one lock, and after ``undeclare`` a use is skipped."""
-
-    def __init__(self, entity: Any) -> None:
-        self._entity = entity
-        self._lock = threading.Lock()
-        self._undeclared = False
-
-    def use(self, action: Callable[[Any], object]) -> bool:
-        """``action(entity)`` unless undeclared; False if skipped."""
-        with self._lock:
-            if self._undeclared:
-                return False
-            action(self._entity)
-            return True
-
-    def put(self, payload: Any, **options: Any) -> bool:
-        """A publisher's ``put``, unless undeclared; False if skipped."""
-        return self.use(lambda publisher: publisher.put(payload, **options))
-
-    def undeclare(self) -> None:
-        with self._lock:
-            if self._undeclared:
-                return
-            self._undeclared = True
-            try:
-                self._entity.undeclare()
-            except zenoh.ZError as err:  # the session may be closing
-                log.debug("undeclare failed: %s", err)
 
 
 class CameraLink:
@@ -400,163 +323,6 @@ class CameraLink:
         )
 
 
-class OutputForwarder:
-    """One output of one source, brought over the link only while a consumer on the robot's bus wants it."""
-
-    def __init__(self, relay: Relay, local: zenoh.Session, source: str, kind: str) -> None:
-        self.relay, self.source, self.kind = relay, source, kind
-        self.key = output_key(relay.keys, source, kind)
-        self.downlink = RateWindow()
-        self._wanted = False
-        self._subscriber: Guarded | None = None
-        publisher = local.declare_publisher(
-            self.key, encoding=OUTPUT_ENCODINGS[kind], congestion_control=zenoh.CongestionControl.DROP
-        )
-        self._listener = Guarded(publisher.declare_matching_listener(self._on_matching))
-        self._publisher = Guarded(publisher)  # zenoh's callbacks put on it while close() may undeclare it
-
-    @property
-    def active(self) -> bool:
-        return self._subscriber is not None
-
-    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
-        self._wanted = status.matching
-        self.relay.wake()  # (un)declared on the relay's thread, not in zenoh's callback
-
-    def reconcile(self) -> None:
-        if self._wanted and self._subscriber is None:
-            self._subscriber = Guarded(self.relay.link.declare_subscriber(self.key, self._on_output))
-            log.info("forwarding %s: a consumer on the robot subscribes", self.key)
-        elif not self._wanted and self._subscriber is not None:
-            self._subscriber.undeclare()
-            self._subscriber = None
-            log.info("no longer forwarding %s: no consumer on the robot", self.key)
-
-    def _on_output(self, sample: zenoh.Sample) -> None:
-        payload = sample.payload
-        self.relay.heard(self.source)
-        if self.kind == "speed_mask" and not self.relay.mask_arrived(self.source, payload.to_bytes()):
-            return  # late, or not a mask: the guard's safe mask stays (or comes) instead
-        if not self._publisher.put(payload, encoding=sample.encoding):
-            return  # a callback under way when the relay closed
-        self.downlink.add(len(payload))
-        if self.kind in STAMPED_OUTPUTS:
-            try:
-                header = peek_fields(payload.to_bytes(), ("header",)).get("header")
-                stamp = float(header["stamp"]) if isinstance(header, dict) else math.nan
-            except (MessageError, KeyError, TypeError, ValueError):
-                return
-            self.relay.observe_output(self.source, stamp)
-
-    def put_local(self, payload: bytes) -> None:
-        """On the robot's bus only (the relay's safe mask)."""
-        self._publisher.put(payload, encoding=OUTPUT_ENCODINGS[self.kind])
-
-    def close(self) -> None:
-        for entity in (self._subscriber, self._listener, self._publisher):
-            if entity is not None:
-                entity.undeclare()
-        self._subscriber = None
-
-
-class ZenohRobotSide:
-    """The robot's zenoh bus (its own router: rmw_zenoh, zenoh-bridge-ros2dds, or plain keys of images)."""
-
-    def __init__(self, local: zenoh.Session) -> None:
-        self.local = local
-        self._health: dict[str, Guarded] = {}
-        self._masks: dict[str, OutputForwarder] = {}  # the speed mask's, where the safe mask goes too
-        self._pose: Guarded | None = None
-        self._bad_poses = 0
-
-    def camera_name(self, camera: RelayCamera) -> str:
-        if not camera.is_ros:
-            return camera.camera
-        return ros_camera_key(camera.camera, camera.ros_layout, camera.ros_domain, camera.zenoh_namespace)
-
-    def subscribe_camera(self, link: CameraLink) -> list[Guarded]:
-        """The camera's frames, and the robot's word that it parked the camera (``CameraParked``)."""
-        parked = link.relay.keys.relay_parked(link.source)
-        return [
-            Guarded(self.local.declare_subscriber(link.camera_key, link.on_frame)),
-            Guarded(self.local.declare_subscriber(parked, link.on_parked)),
-        ]
-
-    def outputs(self, relay: Relay, source: str) -> list[Output]:
-        key = relay.keys.relay_health(source)
-        self._health[source] = Guarded(self.local.declare_publisher(key, encoding=MSGPACK))
-        kinds = set(relay.settings.forward) | ({"speed_mask"} if relay.guards.get(source) else set())
-        forwarders = [OutputForwarder(relay, self.local, source, kind) for kind in FORWARDABLE if kind in kinds]
-        self._masks.update({f.source: f for f in forwarders if f.kind == "speed_mask"})
-        if relay.settings.pose_key is not None and self._pose is None:
-            handler = partial(self._on_pose, relay)
-            self._pose = Guarded(self.local.declare_subscriber(relay.settings.pose_key, handler))
-        return list(forwarders)
-
-    def _on_pose(self, relay: Relay, sample: zenoh.Sample) -> None:
-        """The robot's pose on its bus: Pose2D msgpack, or an Odometry's CDR (rmw_zenoh)."""
-        payload = sample.payload.to_bytes()
-        try:
-            if payload[:1] == b"\x00":  # a CDR encapsulation header; msgpack maps start otherwise
-                odometry = odometry_pose(payload)
-                x, y, frame_id = odometry.x, odometry.y, odometry.frame_id
-            else:
-                pose = Pose2D.unpack(payload, max_bytes=4096)
-                x, y, frame_id = pose.x, pose.y, pose.frame_id
-        except (MessageError, RosNavError) as err:
-            if self._bad_poses == 0:
-                log.warning("pose on %s not usable (counted, said once): %s", sample.key_expr, err)
-            self._bad_poses += 1
-            return
-        relay.robot_pose(x, y, frame_id)
-
-    def publish_health(self, health: RelayHealth) -> None:
-        self._health[health.source].put(health.pack())
-
-    def subscribe_outcomes(self, outcomes: OutcomeLink) -> list[Guarded]:
-        """The robot's inputs of its outcomes on its bus: each a plain key (msgpack or JSON) or a ROS topic's
-        rmw_zenoh keys (CDR)."""
-        settings = outcomes.settings
-        kind = "cmd_vel_stamped" if settings.cmd_vel_stamped else "cmd_vel"
-        handlers: list[tuple[str | None, str, Callable[[bytes], None]]] = [
-            (settings.cmd_vel, kind, lambda p: outcomes.on_command(decode_command(p, settings.cmd_vel_stamped))),
-            (settings.odometry, "odometry", lambda p: outcomes.on_odometry(decode_odometry(p))),
-            (settings.contact, "contact", lambda p: outcomes.on_contact(decode_contact(p))),
-            (settings.outcome, "outcome", lambda p: outcomes.on_outcome(TraversalOutcome.decode(p, 4096))),
-            (settings.planned_path, "planned_path", partial(_path_into, outcomes)),
-        ]
-        return [
-            Guarded(self.local.declare_subscriber(robot_key(name, kind), partial(_decoded, outcomes, handle)))
-            for name, kind, handle in handlers
-            if name is not None
-        ]
-
-    def publish_safe_mask(self, mask: SafeMask) -> None:
-        forwarder = self._masks.get(mask.source)
-        if forwarder is not None:
-            forwarder.put_local(safe_mask_cdr(mask))
-
-    def close(self) -> None:
-        for publisher in [*self._health.values(), *([self._pose] if self._pose else [])]:
-            publisher.undeclare()
-        self._health.clear()
-
-
-def _decoded(outcomes: OutcomeLink, handle: Callable[[bytes], None], sample: zenoh.Sample) -> None:
-    """An input of the outcomes, decoded and handed over; a bad one counted, said once."""
-    try:
-        handle(sample.payload.to_bytes())
-    except INPUT_ERRORS as err:
-        if outcomes.rejected == 0:
-            log.warning("%s not usable for outcomes (counted, said once): %s", sample.key_expr, err)
-        outcomes.rejected += 1
-
-
-def _path_into(outcomes: OutcomeLink, payload: bytes) -> None:
-    path = PlannedPath.decode(payload, 256 * 1024)
-    outcomes.on_path(path.frame_id, path.stamp, [(float(x), float(y)) for x, y in path.points])
-
-
 class Relay:
     """Every camera of one robot; ``start()``, then ``close()``. The sessions stay the caller's. The robot's side
     is its zenoh bus (``local``), or ``robot``: its ROS 2 graph (client/relay/ros2_node.py)."""
@@ -583,7 +349,7 @@ class Relay:
         }
         self.cameras = [CameraLink(self, camera) for camera in settings.cameras]
         self.outcomes: OutcomeLink | None = None  # outcomes measured here (settings.outcomes), from start()
-        self.forwarders: list[Output] = []
+        self.forwarders: list[OnDemand] = []
         self.stopping = False
         self._on_stale = on_stale
         self._declared: list[Undeclarable] = []

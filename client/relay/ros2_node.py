@@ -41,7 +41,6 @@ import logging
 import math
 import threading
 import time
-from array import array
 from collections.abc import Callable, Sequence
 from functools import partial
 from typing import Any
@@ -59,25 +58,32 @@ from gcdtrav.client.relay.causes import (
     CAMERA_WRONG_TYPE,
     NO_INSTANCE,
 )
+from gcdtrav.client.relay.link import MSGPACK, Guarded, OnDemand
 from gcdtrav.client.relay.mask_guard import SafeMask
 from gcdtrav.client.relay.outcomes import OutcomeLink
-from gcdtrav.client.relay.relay import MSGPACK, CameraLink, CapturedFrame, Guarded, Relay
+from gcdtrav.client.relay.relay import CameraLink, CapturedFrame, Relay
 from gcdtrav.client.relay.ros_parameters import PARAMETERS, as_list, camera_info_topic, settings_overrides
-from gcdtrav.client.relay.state import RateWindow
-from gcdtrav.schemas.experience import Odometry2D, Twist2D
-from gcdtrav.schemas.messages import CameraParked, Pose2D, RelayHealth
+from gcdtrav.schemas.messages import CameraParked, MessageError, Pose2D, RelayHealth
+from gcdtrav.schemas.outcomes import decode_command, decode_contact
 from gcdtrav.schemas.relay import RelayCamera, RelayOdometry, RelaySettings
-from gcdtrav.schemas.ros_image import COMPRESSED_IMAGE, IMAGE, SUPPORTED_TYPES
+from gcdtrav.schemas.ros_image import COMPRESSED_IMAGE, IMAGE, SUPPORTED_TYPES, peek_stamp
+from gcdtrav.schemas.ros_nav import (
+    RosNavError,
+    costmap_filter_info_cdr,
+    occupancy_grid_cdr,
+    occupancy_grid_geometry,
+    odometry_motion,
+    restamped,
+)
 from gcdtrav.schemas.settings.ros import RosOutput as OutputTopics
 from gcdtrav.schemas.settings.ros import output_topic
 from geometry_msgs.msg import Twist, TwistStamped
 from nav_msgs.msg import OccupancyGrid, Odometry, Path
 from numpy.typing import NDArray
-from pydantic import ValidationError
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-from rclpy.serialization import deserialize_message, serialize_message
+from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Bool, Header
 
@@ -95,7 +101,6 @@ MESSAGE_CLASSES: dict[str, Any] = {IMAGE: Image, COMPRESSED_IMAGE: CompressedIma
 ERROR_CAUSES = (CAMERA_SILENT, CAMERA_UNUSABLE, CAMERA_WRONG_TYPE, NO_INSTANCE)  # no maps can come at all
 NAMES = OutputTopics()  # the service's own output topics (their default templates): the relay publishes under them
 PARKED = "gcdtrav/parked"  # std_msgs/Bool from the robot's software: the camera is stopped on purpose
-SPEED_FILTER_PERCENT = 1  # CostmapFilterInfo.type: a mask value v is v percent of the maximum speed
 
 
 def ros_time(sec_nanosec: tuple[int, int]) -> Time:
@@ -217,61 +222,44 @@ class RosCamera:
             self._info_publisher.undeclare()
 
 
-class RosOutput:
+class RosOutput(OnDemand):
     """One output of one source as ROS topics, fetched over the link only while a ROS subscriber exists."""
 
-    def __init__(
-        self,
-        relay: Relay,
-        source: str,
-        kind: str,
-        key: str,
-        publishers: Sequence[Publisher],
-        publish: Callable[[bytes], float],
-    ) -> None:
-        self.relay, self.source, self.kind, self.key = relay, source, kind, key
-        self.publishers, self._publish = publishers, publish
-        self.downlink = RateWindow()
-        self._wanted = False
-        self._told_bad = False
-        self._subscriber: Guarded | None = None
+    wanted_by = "a ROS subscriber on the robot"
 
-    @property
-    def active(self) -> bool:
-        return self._subscriber is not None
+    def __init__(
+        self, relay: Relay, source: str, kind: str, publishers: Sequence[Publisher], publish: Callable[[bytes], float]
+    ) -> None:
+        super().__init__(relay, source, kind)
+        self.publishers, self._publish = publishers, publish
+        self._told_bad = False
 
     def poll(self) -> bool:
         """Whether anyone subscribes now; True when that changed."""
-        wanted = any(publisher.get_subscription_count() > 0 for publisher in self.publishers)
-        changed, self._wanted = wanted != self._wanted, wanted
-        return changed
+        return self.want(any(publisher.get_subscription_count() > 0 for publisher in self.publishers))
 
-    def reconcile(self) -> None:
-        if self._wanted and self._subscriber is None:
-            self._subscriber = Guarded(self.relay.link.declare_subscriber(self.key, self._on_output))
-            log.info("forwarding %s: a ROS subscriber on the robot", self.key)
-        elif not self._wanted and self._subscriber is not None:
-            self._subscriber.undeclare()
-            self._subscriber = None
-            log.info("no longer forwarding %s: no ROS subscriber", self.key)
-
-    def _on_output(self, sample: zenoh.Sample) -> None:
-        payload = sample.payload.to_bytes()
-        self.relay.heard(self.source)
-        self.downlink.add(len(payload))
+    def deliver(self, sample: zenoh.Sample) -> float | None:
         try:
-            stamp = self._publish(payload)
-        except Exception as err:  # bad bytes from the link: msgpack, PNG and rclpy raise their own error types
+            return self._publish(sample.payload.to_bytes())
+        except Exception as err:  # bad bytes from the link: msgpack, PNG, CDR and rclpy raise their own error types
             if not self._told_bad:
                 log.warning("%s: not published on the robot, not readable: %s", self.key, err)
             self._told_bad = True
-            return
-        self.relay.observe_output(self.source, stamp)
+            return None
 
-    def close(self) -> None:
-        if self._subscriber is not None:
-            self._subscriber.undeclare()
-            self._subscriber = None
+
+def restamping(publisher: Publisher, link: CameraLink) -> Callable[[bytes], float]:
+    """Publish a stamped message's CDR as it came, stamped with the camera frame's exact stamp (a float loses its
+    nanoseconds); return the stamp."""
+
+    def publish(payload: bytes) -> float:
+        stamp = peek_stamp(payload)
+        if stamp is None:
+            raise RosNavError(f"not a stamped message's CDR: {payload[:12]!r}")
+        publisher.publish(restamped(payload, link.ros_stamp(stamp)))
+        return stamp
+
+    return publish
 
 
 class SpeedTopics:
@@ -284,16 +272,14 @@ class SpeedTopics:
         self.mask_topic = output_topic(NAMES.speed_mask_topic, topic)
         self.mask = node.create_publisher(OccupancyGrid, self.mask_topic, LATCHED_QOS)
         nav2 = nav2_messages()
-        self.info_type: Any = None if nav2 is None else nav2[0]
-        self.limit_type: Any = None if nav2 is None else nav2[1]
-        self.info = (
-            None
-            if nav2 is None
-            else node.create_publisher(nav2[0], output_topic(NAMES.speed_filter_info_topic, topic), LATCHED_QOS)
+        info_topic, limit_topic = (
+            output_topic(NAMES.speed_filter_info_topic, topic),
+            output_topic(NAMES.speed_limit_topic, topic),
         )
-        limit = output_topic(NAMES.speed_limit_topic, topic)
-        self.limit = None if nav2 is None else node.create_publisher(nav2[1], limit, IMAGE_QOS)
+        self.info = None if nav2 is None else node.create_publisher(nav2[0], info_topic, LATCHED_QOS)
+        self.limit = None if nav2 is None else node.create_publisher(nav2[1], limit_topic, IMAGE_QOS)
         self._info_frame: str | None = None
+        self._publish_mask = restamping(self.mask, link)
         if nav2 is None:
             log.info(
                 "%s: no nav2_msgs here: the speed mask is published on %s, its CostmapFilterInfo and SpeedLimit "
@@ -303,91 +289,56 @@ class SpeedTopics:
             )
 
     def publish_mask(self, payload: bytes) -> float:
-        grid = deserialize_message(payload, OccupancyGrid)
-        stamp = stamp_seconds(grid.header.stamp)
-        if not self.link.relay.mask_arrived(self.link.source, payload):
-            return stamp  # late: the guard's safe mask stays (or comes) instead
-        grid.header.stamp = ros_time(self.link.ros_stamp(stamp))
-        if self.info is not None and self.info_type is not None and grid.header.frame_id != self._info_frame:
-            self._info_frame = grid.header.frame_id
-            self.info.publish(
-                self.info_type(
-                    header=Header(frame_id=grid.header.frame_id),
-                    type=SPEED_FILTER_PERCENT,
-                    filter_mask_topic=self.mask_topic,
-                    base=0.0,
-                    multiplier=1.0,
-                )
-            )
-        self.mask.publish(grid)
-        return stamp
+        frame_id = occupancy_grid_geometry(payload).frame_id
+        if self.info is not None and frame_id != self._info_frame:
+            self._info_frame = frame_id
+            self.info.publish(costmap_filter_info_cdr(frame_id, self.mask_topic))
+        return self._publish_mask(payload)
 
-    def publish_limit(self, payload: bytes) -> float:
-        limit = deserialize_message(payload, self.limit_type)
-        stamp = stamp_seconds(limit.header.stamp)
-        limit.header.stamp = ros_time(self.link.ros_stamp(stamp))
-        if self.limit is not None:
-            self.limit.publish(limit)
-        return stamp
-
-    def publish_safe(self, mask: SafeMask, now: Time) -> None:
+    def publish_safe(self, mask: SafeMask, now: tuple[int, int]) -> None:
         """The relay's own safe mask (client/relay/mask_guard.py), where the live masks go."""
-        grid = OccupancyGrid(header=Header(stamp=now, frame_id=mask.frame_id))
-        grid.info.resolution = mask.resolution
-        grid.info.width = grid.info.height = mask.cells
-        grid.info.origin.position.x, grid.info.origin.position.y = mask.origin
-        grid.info.origin.orientation.w = 1.0
-        grid.data = array("b", mask.values().tobytes())
-        self.mask.publish(grid)
+        self.mask.publish(occupancy_grid_cdr(now, mask.frame_id, mask.resolution, mask.origin, mask.values()))
 
     def outputs(self, relay: Relay, source: str) -> list[RosOutput]:
-        keys = relay.keys
         mask_publishers = [self.mask] if self.info is None else [self.mask, self.info]
-        found = [
-            RosOutput(relay, source, "speed_mask", keys.grid(source, "speed_mask"), mask_publishers, self.publish_mask)
-        ]
+        found = [RosOutput(relay, source, "speed_mask", mask_publishers, self.publish_mask)]
         if self.limit is not None:
-            found.append(
-                RosOutput(
-                    relay, source, "speed_limit", keys.grid(source, "speed_limit"), [self.limit], self.publish_limit
-                )
-            )
+            found.append(RosOutput(relay, source, "speed_limit", [self.limit], restamping(self.limit, self.link)))
         return found
 
 
 class OdometryLink:
-    """The robot's odometry as a grid's pose stream: Pose2D msgpack, at most ``max_rate_hz``."""
+    """The robot's odometry, every sample: the safe mask's centre, the outcomes' (with them), and, at most
+    ``max_rate_hz``, a grid's pose stream (Pose2D msgpack) when ``key`` is set. Read as CDR by the one rule
+    (schemas/ros_nav.py)."""
 
     def __init__(
         self, node: Node, settings: RelayOdometry, link: zenoh.Session, on_pose: Callable[[float, float, str], None]
     ) -> None:
         self.settings, self.on_pose = settings, on_pose
         self.outcomes: OutcomeLink | None = None  # fed every sample, when the relay measures outcomes
-        self.publisher = (
-            None if settings.key is None else Guarded(link.declare_publisher(settings.key, encoding=MSGPACK))
-        )
-        self.subscription = node.create_subscription(Odometry, settings.topic, self.on_odometry, SENSOR_QOS)
+        key = settings.key
+        self.publisher = None if key is None else Guarded(link.declare_publisher(key, encoding=MSGPACK))
+        self.subscription = node.create_subscription(Odometry, settings.topic, self.on_odometry, SENSOR_QOS, raw=True)
         self.sent = self.rejected = 0
         self._last = -math.inf
 
-    def on_odometry(self, odometry: Odometry) -> None:
-        position, q = odometry.pose.pose.position, odometry.pose.pose.orientation
-        self.on_pose(position.x, position.y, odometry.header.frame_id)  # the safe mask's centre: every pose
-        if self.outcomes is not None:
-            feed_odometry(self.outcomes, odometry)
-        now = time.monotonic()
-        if self.publisher is None or now - self._last < 1.0 / self.settings.max_rate_hz:
-            return
-        yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
-        stamp = odometry.header.stamp.sec + odometry.header.stamp.nanosec * 1e-9
+    def on_odometry(self, data: bytes) -> None:
         try:
-            pose = Pose2D(stamp=stamp, frame_id=odometry.header.frame_id, x=position.x, y=position.y, yaw=yaw)
-        except ValidationError as err:
+            odometry = odometry_motion(data)
+        except MessageError as err:
             if self.rejected == 0:
                 log.warning("odometry on %s not usable (counted, said once): %s", self.settings.topic, err)
             self.rejected += 1
             return
+        self.on_pose(odometry.x, odometry.y, odometry.frame_id)
+        if self.outcomes is not None:
+            self.outcomes.on_odometry(odometry)
+        now = time.monotonic()
+        if self.publisher is None or now - self._last < 1.0 / self.settings.max_rate_hz:
+            return
         self._last = now
+        pose = Pose2D(stamp=odometry.stamp, frame_id=odometry.frame_id, x=odometry.x, y=odometry.y, yaw=odometry.yaw)
         self.publisher.put(pose.pack())
         self.sent += 1
 
@@ -396,35 +347,12 @@ class OdometryLink:
             self.publisher.undeclare()
 
 
-def feed_odometry(outcomes: OutcomeLink, odometry: Odometry) -> None:
-    """An Odometry sample to the outcomes, as the service's tracker reads one (a bad one counted)."""
-    position, q, twist = odometry.pose.pose.position, odometry.pose.pose.orientation, odometry.twist.twist
+def decoded(outcomes: OutcomeLink, handle: Callable[[bytes], None], data: bytes) -> None:
+    """An input of the outcomes (a message's CDR) decoded and handed over; a bad one counted."""
     try:
-        sample = Odometry2D(
-            stamp=stamp_seconds(odometry.header.stamp),
-            frame_id=odometry.header.frame_id[:256],
-            x=position.x,
-            y=position.y,
-            yaw=math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z)),
-            vx=twist.linear.x,
-            vy=twist.linear.y,
-            wz=twist.angular.z,
-        )
-    except ValidationError:
+        handle(data)
+    except MessageError:
         outcomes.rejected += 1
-        return
-    outcomes.on_odometry(sample)
-
-
-def feed_command(outcomes: OutcomeLink, message: Any) -> None:
-    """A Twist or TwistStamped command to the outcomes (a bad one counted)."""
-    twist = message.twist if hasattr(message, "twist") else message
-    try:
-        command = Twist2D(vx=twist.linear.x, vy=twist.linear.y, wz=twist.angular.z)
-    except ValidationError:
-        outcomes.rejected += 1
-        return
-    outcomes.on_command(command)
 
 
 def feed_path(outcomes: OutcomeLink, path: Path) -> None:
@@ -472,20 +400,10 @@ class RosRobotSide:
             uncertainty.publish(float_image(maps.uncertainty, header))
             return maps.header.stamp
 
-        def publish_costmap(payload: bytes) -> float:
-            grid = deserialize_message(payload, OccupancyGrid)
-            stamp = stamp_seconds(grid.header.stamp)
-            grid.header.stamp = ros_time(link.ros_stamp(stamp))  # the camera frame's, to the nanosecond
-            costmap.publish(grid)
-            return stamp
-
-        keys = relay.keys
         speed = self.speed[source] = SpeedTopics(self.node, topic, link)
         found = [
-            RosOutput(
-                relay, source, "maps", keys.output(source, maps_kind), [traversability, uncertainty], publish_maps
-            ),
-            RosOutput(relay, source, "costmap", keys.grid(source, "costmap"), [costmap], publish_costmap),
+            RosOutput(relay, source, maps_kind, [traversability, uncertainty], publish_maps),
+            RosOutput(relay, source, "costmap", [costmap], restamping(costmap, link)),
             *speed.outputs(relay, source),
             *self._nav2_costmap(relay, source, topic, link),
         ]
@@ -498,17 +416,8 @@ class RosRobotSide:
         nav2 = nav2_messages()
         if nav2 is None:
             return []
-        costmap_type = nav2[2]
-        publisher = self.node.create_publisher(costmap_type, output_topic(NAMES.nav2_costmap_topic, topic), LATCHED_QOS)
-
-        def publish(payload: bytes) -> float:
-            costmap = deserialize_message(payload, costmap_type)
-            stamp = stamp_seconds(costmap.header.stamp)
-            costmap.header.stamp = ros_time(link.ros_stamp(stamp))  # the capture stamp the monitor ages
-            publisher.publish(costmap)
-            return stamp
-
-        return [RosOutput(relay, source, "nav2_costmap", relay.keys.grid(source, "nav2_costmap"), [publisher], publish)]
+        publisher = self.node.create_publisher(nav2[2], output_topic(NAMES.nav2_costmap_topic, topic), LATCHED_QOS)
+        return [RosOutput(relay, source, "nav2_costmap", [publisher], restamping(publisher, link))]
 
     def _check_graph(self) -> None:
         with self._lock:
@@ -523,17 +432,20 @@ class RosRobotSide:
         """The robot's own commands, odometry (full rate), bumper and planned path, for the outcomes. Commands and
         the bumper with the sensor-data QoS: best effort matches reliable and best-effort publishers alike."""
         settings, node = outcomes.settings, self.node
+        stamped = settings.cmd_vel_stamped
         if settings.cmd_vel is not None:
-            command_type = TwistStamped if settings.cmd_vel_stamped else Twist
-            node.create_subscription(command_type, settings.cmd_vel, partial(feed_command, outcomes), SENSOR_QOS)
+            command = partial(decoded, outcomes, lambda data: outcomes.on_command(decode_command(data, stamped)))
+            node.create_subscription(
+                TwistStamped if stamped else Twist, settings.cmd_vel, command, SENSOR_QOS, raw=True
+            )
         if settings.contact is not None:
-            node.create_subscription(Bool, settings.contact, lambda m: outcomes.on_contact(bool(m.data)), SENSOR_QOS)
+            contact = partial(decoded, outcomes, lambda data: outcomes.on_contact(decode_contact(data)))
+            node.create_subscription(Bool, settings.contact, contact, SENSOR_QOS, raw=True)
         if settings.planned_path is not None:
             node.create_subscription(Path, settings.planned_path, partial(feed_path, outcomes), IMAGE_QOS)
-        if self.odometry is not None:
-            self.odometry.outcomes = outcomes
-        else:  # no pose to send: odometry read for the outcomes only
-            node.create_subscription(Odometry, "/odom", partial(feed_odometry, outcomes), SENSOR_QOS)
+        if self.odometry is None:  # no pose to send: odometry read for the safe mask and the outcomes only
+            self.odometry = OdometryLink(node, RelayOdometry(), self.link, self._on_pose)
+        self.odometry.outcomes = outcomes
         return []
 
     def _on_pose(self, x: float, y: float, frame_id: str) -> None:
@@ -543,7 +455,8 @@ class RosRobotSide:
     def publish_safe_mask(self, mask: SafeMask) -> None:
         speed = self.speed.get(mask.source)
         if speed is not None:
-            speed.publish_safe(mask, self.node.get_clock().now().to_msg())
+            now = self.node.get_clock().now().seconds_nanoseconds()  # ROS time: simulated with use_sim_time
+            speed.publish_safe(mask, (int(now[0]), int(now[1])))
 
     def publish_health(self, health: RelayHealth) -> None:
         camera = self.cameras.get(health.source)

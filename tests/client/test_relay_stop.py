@@ -100,7 +100,7 @@ def test_close_while_a_callback_forwards_an_output() -> None:
             def deliver(forwarder=forwarder, errors=errors, stop=stop) -> None:  # type: ignore[no-untyped-def]
                 while not stop.is_set():
                     try:
-                        forwarder._on_output(sample)
+                        forwarder._arrived(sample)
                     except BaseException as err:  # what zenoh's callback thread would swallow
                         errors.append(err)
                         return
