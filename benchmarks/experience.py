@@ -45,8 +45,8 @@ from gcdtrav.service.experience.fitter import FitOptions, propose
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
-from gcdtrav.service.store.opening import sqlite_outbox
 
+from tools.loopback import sqlite_outbox
 from tools.synthetic_scene import (
     COMMAND_MPS,
     TRUTH,

@@ -39,6 +39,7 @@ from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameRecord
 
+from tools.loopback import grid_update
 from tools.synthetic_scene import Hazard, SceneCamera, hazard_view, start_anchors
 
 SPEEDS = (0.5, 1.0, 2.0)
@@ -102,7 +103,7 @@ def drive(
         stamp = captured if at_capture else (next_pose - 1) / POSE_HZ
         weights = hazard_view(scene, hazard, path(captured), anchors.concepts).astype(np.float16)
         size = (scene.camera.width, scene.camera.height)
-        update = grids.on_frame(CAMERA, FrameRecord(0, stamp, "", weights, anchors, size), weights)
+        update = grid_update(grids, CAMERA, FrameRecord(0, stamp, "", weights, anchors, size), weights)
     assert update is not None, "no frame was fused"
     return Grid.from_payload(update.message.pack())
 

@@ -240,3 +240,35 @@ def robots_throughput(
         "latency_median_ms": statistics.median(latency) if latency else float("nan"),
         "latency_p95_ms": float(np.percentile(latency, 95)) if latency else float("nan"),
     }
+
+
+def sqlite_outbox(path: Path, max_pairs: int, max_bytes: int, bound: int = 100_000) -> Any:
+    """An opened and started outbox over a SQLite file: a single process's store (tests, benchmarks)."""
+    from gcdtrav.service.store.outbox import PairOutbox
+    from gcdtrav.service.store.sqlite import SqliteStore
+
+    outbox = PairOutbox(lambda: SqliteStore(path), "sqlite", str(path), bound, max_pairs, max_bytes)
+    outbox.open_now()
+    outbox.start()
+    return outbox
+
+
+def admit(tracker: Any, source: str) -> bool:
+    """A frame of ``source`` noted by a SourceTracker, admitting it if new and there is room (as the intake
+    does: note, else promote); False if there is none."""
+    from gcdtrav.service.runtime.intake.sources import SourcesFull
+
+    if tracker.note(source):
+        return True
+    try:
+        tracker.promote(source)
+    except SourcesFull:
+        return False
+    return True
+
+
+def grid_update(grids: Any, source: str, record: Any, weights: Any, **fuse: Any) -> Any:
+    """A frame fused into ``grids`` (GridOutputs) and encoded at once, as the worker and the outputs do it in
+    two steps; None when not fused (not a grid's camera, or no intrinsics, mount or pose)."""
+    fused = grids.fuse(source, record, weights, **fuse)
+    return fused.encode() if fused is not None else None

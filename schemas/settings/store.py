@@ -59,7 +59,3 @@ class StoreSettings(StrictModel):
                 f"the environment variable {PASSWORD_ENV}"
             )
         return value
-
-    @property
-    def is_postgresql(self) -> bool:
-        return self.url is not None

@@ -282,7 +282,8 @@ class Bench:
                 anchors=self.anchors,
                 image_size=(640, 480),
             )
-            return outputs.on_frame("bench", record, weights)
+            fused = outputs.fuse("bench", record, weights)
+            return fused.encode() if fused is not None else None
 
         times, peak = time_call(frame, self.runs * 2)
         self.add(make_row("ground grid: project, fuse, encode", "grid", times, peak, "20 m at 0.1 m, 352x352 cells in"))

@@ -5,7 +5,6 @@ the state dir (the default) and PostgreSQL (a fleet's shared database). Imports 
 from gcdtrav.service.store.base import Store
 from gcdtrav.service.store.opening import open_store, sqlite_file, store_password
 from gcdtrav.service.store.records import (
-    HOW_ACTIVATED,
     PAIR_OVERHEAD_BYTES,
     Activation,
     AppendResult,
@@ -22,7 +21,6 @@ from gcdtrav.service.store.records import (
 )
 
 __all__ = [
-    "HOW_ACTIVATED",
     "PAIR_OVERHEAD_BYTES",
     "Activation",
     "AppendResult",

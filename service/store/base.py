@@ -33,10 +33,6 @@ class Store(ABC):
     def location(self) -> str:
         """Where it is, for logs and status: a file path, or a URL without any password."""
 
-    @abstractmethod
-    def schema_version(self) -> int:
-        """The schema version the store holds (equal to schema.SCHEMA_VERSION once opened)."""
-
     # ---- experience pairs ------------------------------------------------------------------------------
     @abstractmethod
     def append_pairs(self, pairs: Sequence[PairRecord], max_pairs: int, max_bytes: int) -> AppendResult:
@@ -92,10 +88,6 @@ class Store(ABC):
     @abstractmethod
     def proposal(self, version: str) -> StoredProposal | None:
         """The kept proposal of that proposed version; None if there is none (or it was pruned)."""
-
-    @abstractmethod
-    def proposals(self, limit: int = 20) -> list[StoredProposal]:
-        """The latest kept proposals, newest first."""
 
     # ---- lifetime --------------------------------------------------------------------------------------
     @abstractmethod

@@ -84,13 +84,3 @@ def service_outbox(settings: ServiceSettings, opened: Store | None = None) -> Pa
                         settings.experience.max_bytes, settings.store.retry_s)  # fmt: skip
     outbox.open_now()
     return outbox
-
-
-def sqlite_outbox(path: Path, max_pairs: int, max_bytes: int, bound: int = 100_000) -> PairOutbox:
-    """An opened and started outbox over a SQLite file: a single process's store (tools, benchmarks, tests)."""
-    from gcdtrav.service.store.sqlite import SqliteStore
-
-    outbox = PairOutbox(lambda: SqliteStore(path), "sqlite", str(path), bound, max_pairs, max_bytes)
-    outbox.open_now()
-    outbox.start()
-    return outbox

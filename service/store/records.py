@@ -5,7 +5,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
@@ -97,11 +96,6 @@ class AppendResult:
 
 
 # ---- anchor sets ----------------------------------------------------------------------------------------------
-
-# How a set came into the history: the start set seeding an empty store, an operator's set, an applied proposal,
-# a rollback, or imported from an instance's anchor state file at its first start with a store.
-HowActivated = Literal["seeded", "set", "proposal", "rollback", "imported"]
-HOW_ACTIVATED: tuple[str, ...] = ("seeded", "set", "proposal", "rollback", "imported")
 
 
 @dataclass(frozen=True)

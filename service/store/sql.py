@@ -138,10 +138,6 @@ class SqlStore(Store):
             elif found < SCHEMA_VERSION:
                 self._run(cursor, "UPDATE schema_version SET version = ? WHERE singleton = 1", (SCHEMA_VERSION,))
 
-    def schema_version(self) -> int:
-        with self._transaction(None) as cursor:
-            return int(self._run(cursor, "SELECT version FROM schema_version WHERE singleton = 1").fetchone()[0])
-
     # ---- pairs -----------------------------------------------------------------------------------------
     def append_pairs(self, pairs: Sequence[PairRecord], max_pairs: int, max_bytes: int) -> AppendResult:
         if not pairs:
@@ -310,15 +306,6 @@ class SqlStore(Store):
                 (version,),
             ).fetchone()
         return _stored_proposal(row) if row is not None else None
-
-    def proposals(self, limit: int = 20) -> list[StoredProposal]:
-        with self._transaction(None) as cursor:
-            rows = self._run(
-                cursor,
-                "SELECT version, proposal, stored_at, instance FROM anchor_proposals ORDER BY id DESC LIMIT ?",
-                (limit,),
-            ).fetchall()
-        return [_stored_proposal(row) for row in rows]
 
 
 def _rowcount(cursor: Cursor) -> int:

@@ -38,7 +38,7 @@ from gcdtrav.service.ros.cdr import (
     decode_pose,
 )
 from gcdtrav.service.runtime.grids import answers
-from gcdtrav.service.runtime.grids.encoding import FusedGrid, GridUpdate, SpeedUpdate, grid_header, safe_speed
+from gcdtrav.service.runtime.grids.encoding import FusedGrid, SpeedUpdate, grid_header, safe_speed
 from gcdtrav.service.runtime.grids.health import NO_INTRINSICS, NO_MOUNT
 from gcdtrav.service.runtime.grids.state import CameraState, SourceGrid, grid_spec, grid_status
 from gcdtrav.service.runtime.grids.tf import GridTf
@@ -186,19 +186,6 @@ class GridOutputs:
         grid = self.camera_grids[camera]
         with grid.lock:
             grid.cameras[camera].depth = depth
-
-    def on_frame(
-        self,
-        source: str,
-        record: FrameRecord,
-        weights: NDArray[np.floating],
-        match: NDArray[np.floating] | None = None,
-        ros: RosTopic | None = None,
-        image: NDArray[np.uint8] | None = None,
-    ) -> GridUpdate | None:
-        """``fuse``, then encode: for tools and tests (the service fuses in the worker, encodes in the outputs)."""
-        fused = self.fuse(source, record, weights, match, ros, image)
-        return fused.encode() if fused is not None else None
 
     def fuse(
         self,

@@ -100,9 +100,6 @@ class Freshness:
             return IntakeAge(lag, stale)
         return IntakeAge(lag, None)
 
-    def age_s(self, lag_s: float | None, received_at: float, now: float) -> float:
-        return _age(lag_s, now - received_at)
-
     def check(self, pending: PendingFrame, now: float, when: str) -> float:
         """The frame's age at ``now``; raise Dropped (``stale``) if it is older than max_frame_age_s."""
         return self._check_age(pending.lag_s, now - pending.received_at, when, None)

@@ -42,16 +42,6 @@ class SourceTracker:
         self._next_sweep = clock() + SWEEP_INTERVAL_S
         self._lock = threading.Lock()
 
-    def admit(self, source: str) -> bool:
-        """Note a frame from ``source``, admitting it if new and there is room; False if there is none."""
-        if self.note(source):
-            return True
-        try:
-            self.promote(source)
-        except SourcesFull:
-            return False
-        return True
-
     def note(self, source: str) -> bool:
         """Note a frame from a tracked ``source``; False (nothing noted) if it is not tracked."""
         with self._lock:

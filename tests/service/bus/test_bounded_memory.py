@@ -101,14 +101,14 @@ class FakeClock:
 def test_tracker_caps_new_sources_forgets_idle_ones_and_never_evicts_active_ones() -> None:
     clock, forgotten = FakeClock(), []
     tracker = SourceTracker(max_sources=2, idle_s=10.0, on_forget=[forgotten.append], clock=clock)
-    assert tracker.admit("a") and tracker.admit("b")
-    assert not tracker.admit("c")  # over the cap: refused, "a" and "b" untouched
+    assert admit(tracker, "a") and admit(tracker, "b")
+    assert not admit(tracker, "c")  # over the cap: refused, "a" and "b" untouched
     assert "a" in tracker and "c" not in tracker and len(tracker) == 2
     clock.now += 6.0
-    assert tracker.admit("a")  # "a" stays active
+    assert admit(tracker, "a")  # "a" stays active
     clock.now += 6.0  # "b" idle for 12 s, "a" for 6 s
     assert tracker.sweep() == ["b"] and forgotten == ["b"]
-    assert tracker.admit("c") and len(tracker) == 2
+    assert admit(tracker, "c") and len(tracker) == 2
     assert tracker.sweep() == []  # at most once a second
     clock.now += SWEEP_INTERVAL_S + 10.5
     assert sorted(tracker.sweep()) == ["a", "c"] and len(tracker) == 0
@@ -119,7 +119,7 @@ pytest.importorskip("torch")
 from gcdtrav.client import ServiceError, TraversabilityClient  # noqa: E402
 from gcdtrav.schemas.settings import ServiceSettings  # noqa: E402
 
-from tools.loopback import anchor_set_at_start, in_process_service  # noqa: E402
+from tools.loopback import admit, anchor_set_at_start, in_process_service  # noqa: E402
 
 
 def test_service_caps_sources_reports_them_and_forgets_idle_ones(tiny_backend, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]

@@ -15,7 +15,8 @@ from gcdtrav.schemas.settings import AskSettings
 from gcdtrav.service.experience.ask import OperatorAsker, corridor
 from gcdtrav.service.experience.store import ExperienceStore
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
-from gcdtrav.service.store.opening import sqlite_outbox
+
+from tools.loopback import sqlite_outbox
 
 ANCHORS = AnchorSet(anchors=[Anchor(concept="mud", position=0.1), Anchor(concept="grass", position=0.8)])
 SETTINGS = AskSettings(enabled=True, range_m=3.0, width_m=1.0, persist_s=1.0, min_cells=3, min_interval_s=10.0)

@@ -15,9 +15,10 @@ from gcdtrav.service.experience.service import Experience, service_experience
 from gcdtrav.service.experience.store import OutcomeRejected
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.runtime.grids import GridOutputs
-from gcdtrav.service.store.opening import service_outbox, sqlite_file, sqlite_outbox
+from gcdtrav.service.store.opening import service_outbox, sqlite_file
 from gcdtrav.service.store.outbox import PairOutbox
 
+from tools.loopback import sqlite_outbox
 from tools.ros_fixtures import twist_cdr
 
 ANCHORS = AnchorSet(anchors=[Anchor(concept="mud", position=0.1), Anchor(concept="grass", position=0.8)])

@@ -16,7 +16,8 @@ from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.experience.store import ExperienceStore, OutcomeRejected
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
-from gcdtrav.service.store.opening import sqlite_outbox
+
+from tools.loopback import sqlite_outbox
 
 A = AnchorSet(anchors=[Anchor(concept="mud", position=0.1), Anchor(concept="grass", position=0.5)])
 B = AnchorSet(anchors=[Anchor(concept="sand", position=0.2), Anchor(concept="asphalt", position=0.9)])

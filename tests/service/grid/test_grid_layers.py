@@ -24,6 +24,8 @@ from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameRecord
 from pydantic import ValidationError
 
+from tools.loopback import grid_update
+
 # water 0.0 and road 1.0, point masses (the paper's kind), and a mid Gaussian
 THREE = AnchorSet(
     anchors=[
@@ -284,7 +286,7 @@ def counts(config: dict[str, Any], frames: list[tuple[str, float, np.ndarray]]) 
         grids.set_camera_info(camera, info_cdr())
     update = None
     for source, stamp, weights in frames:
-        update = grids.on_frame(source, frame(stamp, weights), weights) or update
+        update = grid_update(grids, source, frame(stamp, weights), weights) or update
     assert update is not None
     from gcdtrav.client.client import Grid
 
@@ -323,9 +325,9 @@ def test_two_overlapping_cameras_fuse_into_one_grid() -> None:
 
 def test_a_grid_of_several_cameras_publishes_under_its_name_and_waits_for_each_camera() -> None:
     grids = GridOutputs([GridSettings.model_validate(two_cameras(source="both"))], len(ANCHORS), "test")
-    assert grids.on_frame("both", frame(1.0, weights_on(0)), weights_on(0)) is None  # not a camera
-    assert grids.on_frame("right", frame(1.0, weights_on(0)), weights_on(0)) is None  # no CameraInfo yet
-    update = grids.on_frame("left", frame(1.0, weights_on(0)), weights_on(0))
+    assert grid_update(grids, "both", frame(1.0, weights_on(0)), weights_on(0)) is None  # not a camera
+    assert grid_update(grids, "right", frame(1.0, weights_on(0)), weights_on(0)) is None  # no CameraInfo yet
+    update = grid_update(grids, "left", frame(1.0, weights_on(0)), weights_on(0))
     assert update is not None and update.source == "both" and update.message.header.source == "both"
     inputs = {(key, source, reason) for key, source, _, reason in grids.inputs()}
     assert inputs == {("r/info", "right", "bad_camera_info")}
@@ -338,12 +340,12 @@ def test_grid_outputs_say_their_levels_age_and_expired_cells() -> None:
         [GridSettings.model_validate(config)], len(ANCHORS), "t", RiskSettings(alpha=0.3, tau=0.2), lambda: now[0]
     )
     grids.set_camera_info("right", info_cdr())
-    first = grids.on_frame("left", frame(10.0, weights_on(0)), weights_on(0), match=np.full((MAP_H, MAP_W), 0.25))
+    first = grid_update(grids, "left", frame(10.0, weights_on(0)), weights_on(0), match=np.full((MAP_H, MAP_W), 0.25))
     assert first is not None
     header = first.message.header
     assert (header.alpha, header.tau, header.expired_cells, header.age_s) == (0.3, 0.2, 0, 90.0)
     assert None not in (first.occupancy, first.uncertainty, first.grid_map, first.costmap)
-    later = grids.on_frame("right", frame(11.0, weights_on(0)), weights_on(0))
+    later = grid_update(grids, "right", frame(11.0, weights_on(0)), weights_on(0))
     assert later is not None
     from gcdtrav.client.client import Grid
 

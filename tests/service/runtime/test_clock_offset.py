@@ -209,10 +209,11 @@ def test_replayed_bags_without_an_age_limit_are_served_through_loops_and_learnt(
 
 
 def test_the_age_later_adds_the_time_waited_here_and_a_negative_lag_ages_nothing() -> None:
-    rule = estimated()
-    assert rule.age_s(2.0, received_at=100.0, now=101.5) == 3.5
-    assert rule.age_s(-3.0, received_at=100.0, now=101.5) == 1.5
-    assert rule.age_s(None, received_at=100.0, now=101.5) == 1.5
+    from gcdtrav.service.runtime.intake.freshness import _age
+
+    assert _age(2.0, waited_s=1.5) == 3.5
+    assert _age(-3.0, waited_s=1.5) == 1.5
+    assert _age(None, waited_s=1.5) == 1.5
 
 
 @pytest.mark.parametrize("limit", [0.0, -1.0])

@@ -31,6 +31,7 @@ from benchmarks.placement import (
     scene_camera,
     unicycle,
 )
+from tools.loopback import grid_update
 from tools.synthetic_scene import Hazard, start_anchors
 
 ANCHORS = start_anchors()
@@ -107,7 +108,7 @@ def test_the_header_carries_the_capture_stamp_and_the_pose_it_was_fused_at() -> 
     grids = outputs(clock)
     add_poses(grids, 0.0, 2.0)
     record, weights = frame(1.01)
-    update = grids.on_frame(CAMERA, record, weights)
+    update = grid_update(grids, CAMERA, record, weights)
     assert update is not None
     header = update.message.header
     assert header.capture_stamp == 1.01 and header.capture_pose == pytest.approx((1.01, 0.0, 0.0))

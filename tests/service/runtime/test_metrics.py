@@ -28,11 +28,12 @@ from gcdtrav.service.runtime.progress import ProgressMonitor
 from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.stats import REFUSED_SOURCES, ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
-from gcdtrav.service.store.opening import sqlite_outbox
 from gcdtrav.service.store.outbox import store_status
 from gcdtrav.service.store.sqlite import SqliteStore
 from prometheus_client import generate_latest
 from prometheus_client.parser import text_string_to_metric_families
+
+from tools.loopback import admit, sqlite_outbox
 
 DOCS = Path(__file__).resolve().parents[3] / "docs" / "metrics.md"
 
@@ -63,7 +64,7 @@ class Service:
 
     def frame(self, source: str, map_age_s: float = 0.3, reused: bool = False) -> None:
         """A frame received, taken and published."""
-        self.sources.admit(source)
+        admit(self.sources, source)
         self.queue.put(source, b"x", 1)
         self.queue.take(0)
         self.stats.waited(0.02)
@@ -153,7 +154,7 @@ def test_series_stay_bounded_by_max_sources_and_the_refused_list(tmp_path: Path)
     service = Service(tmp_path, max_sources=256)
     for k in range(300):
         source = f"robot{k}/front"
-        if service.sources.admit(source):
+        if admit(service.sources, source):
             service.frame(source)
             service.stats.stale(source)
         else:  # no slot: refused, listed (bounded) with why

@@ -20,6 +20,8 @@ from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
 from gcdtrav.service.store.sqlite import SqliteStore
 
+from tools.loopback import admit
+
 TWO = AnchorSet.parse(
     {"name": "two", "anchors": [{"concept": "lake", "position": 0.0}, {"concept": "road", "position": 1.0}]}
 )
@@ -52,7 +54,7 @@ def test_the_status_follows_each_part(tmp_path: Path) -> None:
     board = parts(tmp_path, clock)
     board.anchors.swap(TWO)
     board.queue.put("r1/front", b"x" * 40, 40)
-    board.sources.admit("r1/front")
+    admit(board.sources, "r1/front")
     board.stats.rejected("r2/rear", "bad_stamp", "a NaN stamp")
     clock.now = 5.0  # a frame queued and no beat for 5 s > stall_after_s
     board.progress.check(len(board.queue))

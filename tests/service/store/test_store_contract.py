@@ -85,7 +85,7 @@ def test_pairs_survive_reopening(open_same_store) -> None:  # type: ignore[no-un
     first.append_pairs([pair(GRASS, k) for k in range(5)], 100, 10**6)
     first.close()
     again = open_same_store()
-    assert len(again.pairs(GRASS)) == 5 and again.schema_version() == SCHEMA_VERSION
+    assert len(again.pairs(GRASS)) == 5
 
 
 # ---- anchor sets ----------------------------------------------------------------------------------------------
@@ -153,10 +153,9 @@ def test_proposals_are_kept_by_version(store: Store) -> None:
     assert stored.version == _set(0.7).version
     assert store.proposal(_set(0.6).version).proposal == first  # type: ignore[union-attr]
     assert store.proposal("nope") is None
-    assert [p.version for p in store.proposals()] == [_set(0.7).version, _set(0.6).version]
     store.put_proposal(first, "i3")  # the same version again replaces it
     assert store.proposal(_set(0.6).version).instance == "i3"  # type: ignore[union-attr]
-    assert len(store.proposals()) == 2
+    assert store.proposal(_set(0.7).version).instance == "i2"  # type: ignore[union-attr]
 
 
 # ---- the schema ---------------------------------------------------------------------------------------------
