@@ -14,7 +14,6 @@ Everything else is the real `gcdtrav serve`.
 
 from __future__ import annotations
 
-import errno
 import os
 import sys
 import time
@@ -50,27 +49,20 @@ def fixed_frame_cost(seconds: float) -> None:
 
 
 def fail_writes_under(directory: Path) -> None:
-    from gcdtrav.service.runtime.fleet import state
     from gcdtrav.service.store import StoreUnavailable
     from gcdtrav.service.store.sqlite import SqliteStore
 
-    real_write, real_transaction = state.write_atomically, SqliteStore._transaction
+    real_transaction = SqliteStore._transaction
 
     def under(path: Path) -> bool:
         return Path(path).resolve().is_relative_to(directory.resolve())
-
-    def write_atomically(path: Path, text: str | bytes) -> None:
-        if under(path):
-            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
-        real_write(path, text)
 
     def transaction(self: SqliteStore, lock: Any) -> Any:
         if lock is not None and under(self.path):  # a write: what SQLite says on a full disk
             raise StoreUnavailable(f"the store {self.path}: database or disk is full")
         return real_transaction(self, lock)
 
-    state.write_atomically = write_atomically  # the files still written there (e.g. experience)
-    setattr(SqliteStore, "_transaction", transaction)  # noqa: B010 (as above): the anchor store's writes
+    setattr(SqliteStore, "_transaction", transaction)  # noqa: B010 (as above): the store's writes, the only ones
 
 
 def main() -> int:

@@ -91,17 +91,8 @@ class TraversabilityService:
             raise SettingsError(str(err)) from None
         experience = service_experience(settings, self.stats.rejected, self.store)  # None when off; asks at fusion
         asks = experience.after_fusion if experience is not None else None
-        self.runtime = Runtime.build(
-            settings,
-            pipeline,
-            self.outputs,
-            self.credits,
-            self.owns,
-            self.stats,
-            time.time(),
-            after_fusion=asks,
-            store=self._open_store,
-        )
+        build = (settings, pipeline, self.outputs, self.credits, self.owns, self._open_store, self.stats, time.time())
+        self.runtime = Runtime.build(*build, after_fusion=asks)
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
         switch = self.runtime.anchor_switch  # proposals are judged against its history and kept in its store

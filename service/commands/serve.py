@@ -17,9 +17,9 @@ from gcdtrav.schemas.anchors import AnchorSet, default_anchor_set
 from gcdtrav.schemas.settings import ServiceSettings, SettingsError
 from gcdtrav.service.backends.cpus import set_torch_threads, usable_cpus
 from gcdtrav.service.pipeline import Pipeline
-from gcdtrav.service.runtime.fleet.state import load_anchor_state
 from gcdtrav.service.runtime.http_endpoints import Checks, HttpEndpoints
 from gcdtrav.service.store import Store, StoreError, StoreUnavailable, open_store
+from gcdtrav.service.store.opening import import_legacy_files
 
 if TYPE_CHECKING:
     from gcdtrav.service.bus.node import TraversabilityService
@@ -33,8 +33,8 @@ WARM_UP_SIDE = 64  # the warm-up frame; the backend resizes every image to its i
 
 
 def starting_anchor_set(settings: ServiceSettings, store: Store | None) -> AnchorSet:
-    """The fleet's active set (the store is its record) wins over a state file not yet imported, which wins over
-    the configured file, which wins over the paper's set. The pipeline starts with it, so a restart computes
+    """The fleet's active set (the store is its record, an old state file imported into it at its first open)
+    wins over the configured file, which wins over the paper's set. The pipeline starts with it, so a restart computes
     the text embeddings once; the anchor switch still reads the store again (it may have changed meanwhile).
     ``store``: the store opened at start (``store_at_start``); None while it is not reached (not tried again
     here: the anchor switch installs its set once it answers)."""
@@ -42,23 +42,26 @@ def starting_anchor_set(settings: ServiceSettings, store: Store | None) -> Ancho
     if active is not None:
         log.info("anchor set %s: the store's active set", active.version)
         return active
-    persisted = load_anchor_state(settings.state_file)
-    if persisted is not None:
-        log.info("anchor set %s from the state file %s (imported into the store at start)", persisted.version,
-                 settings.state_file)  # fmt: skip
-        return persisted
     if settings.anchors_file is not None:
         return AnchorSet.load(settings.anchors_file)
     return default_anchor_set()
 
 
 def store_at_start(settings: ServiceSettings) -> Store | None:
-    """The store, opened once, before the model loads: its active set is the pipeline's first and the service
-    takes it over. None while it cannot be reached (the service starts with the configured set, its outbox
-    keeps trying). Refused (a newer schema, an unreadable password_file, psycopg missing): SettingsError, so
-    ``gcdtrav serve`` exits 2 before it loads the model."""
+    """The store, opened once, before the model loads, with a gcdtrav's files from before the store imported
+    into it (service/store/legacy.py: the old anchor state is read there, once): its active set is the
+    pipeline's first and the service takes it over. None while it cannot be reached (the service starts with
+    the configured set, its outbox keeps trying and imports the files at its first open). Refused (a newer
+    schema, an unreadable password_file, psycopg missing): SettingsError, so ``gcdtrav serve`` exits 2 before
+    it loads the model."""
     try:
-        return open_store(settings.store, settings.state_dir, settings.prefix)
+        store = open_store(settings.store, settings.state_dir, settings.prefix)
+        try:
+            import_legacy_files(store, settings)
+        except BaseException:
+            store.close()
+            raise
+        return store
     except StoreUnavailable as err:
         log.warning("store not reached at start (serving meanwhile; retried): %s", err)
         return None

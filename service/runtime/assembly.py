@@ -37,7 +37,7 @@ from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.runtime.status import StatusParts
 from gcdtrav.service.runtime.triage.reuse import ReuseTracker, Triage
 from gcdtrav.service.runtime.worker import FrameWorker
-from gcdtrav.service.store import Store, open_store
+from gcdtrav.service.store import Store
 
 log = logging.getLogger("gcdtrav.service")
 
@@ -79,21 +79,19 @@ class Runtime:
         sink: Sink,
         credit_sink: CreditSink,
         owns: Callable[[str], bool],
+        store: Store | Callable[[], Store],
         stats: ServiceStats | None = None,
         started_at: float | None = None,
         clock: Callable[[], float] = time.monotonic,
         after_fusion: AfterFusion | None = None,
-        store: Store | Callable[[], Store] | None = None,
     ) -> Runtime:
         """The runtime of ``settings``; ``stats``: shared with the bus (its refusals are counted there too);
         ``started_at``: wall-clock seconds, for the status's uptime (None: now); ``clock``: the sources'
         idleness is timed by it (monotonic seconds); ``after_fusion``: the experience's, called by the grids
         under their lock (``Experience.after_fusion``: its question leaves with the frame's outputs); ``store``: the
-        fleet's store, or what returns it once open (the service's outbox); None: the one ``settings.store``
-        names, opened here."""
+        fleet's store, or what returns it once open (the service's outbox: the store is opened in one place)."""
         stats = stats or ServiceStats(log, settings.source_idle_s)
         history = FrameHistory(settings.history, round(settings.history_budget_mb * 1e6))
-        store = store or open_store(settings.store, settings.state_dir, settings.prefix)
         switch = AnchorSwitch(pipeline, store, settings.instance, settings.max_anchor_set_bytes)
         grids = (
             GridOutputs(

@@ -52,14 +52,14 @@ def location_of(settings: StoreSettings, state_dir: Path, prefix: str) -> tuple[
     return "postgresql", settings.url
 
 
-def import_legacy_files(store: Store, settings: ServiceSettings, rename_anchor_files: bool = False) -> None:
-    """The files of a gcdtrav before the store, imported once (service/store/legacy.py): the msgpack pairs (as
-    pairs of the experience's grid) and the anchor state with its history (only into a store without an active
-    set). The anchor files are renamed with ``rename_anchor_files`` (the service: the store is their record)."""
+def import_legacy_files(store: Store, settings: ServiceSettings) -> None:
+    """The files of a gcdtrav before the store, imported once (service/store/legacy.py) and renamed (the store is
+    their record): the msgpack pairs (as pairs of the experience's grid) and the anchor state with its history
+    (only into a store without an active set)."""
     grid = settings.experience.grid or (settings.grids[0].source if settings.grids else "")
     legacy.import_experience_file(store, legacy.experience_file(settings.state_dir, settings.prefix), grid,
                                   settings.instance)  # fmt: skip
-    legacy.import_anchor_state(store, settings.state_file, settings.instance, rename=rename_anchor_files)
+    legacy.import_anchor_state(store, settings.state_file, settings.instance)
 
 
 def service_outbox(settings: ServiceSettings, opened: Store | None = None) -> PairOutbox:
@@ -74,7 +74,7 @@ def service_outbox(settings: ServiceSettings, opened: Store | None = None) -> Pa
     def opener() -> Store:
         store = opened or open_store(settings.store, settings.state_dir, settings.prefix)
         try:
-            import_legacy_files(store, settings, rename_anchor_files=True)
+            import_legacy_files(store, settings)
         except BaseException:
             store.close()
             raise

@@ -22,6 +22,7 @@ from gcdtrav.service.runtime.assembly import Runtime
 from gcdtrav.service.runtime.frames import InferredFrame, PendingFrame, ProcessedFrame
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.outputs import Output
+from gcdtrav.service.store import open_store
 from numpy.typing import NDArray
 
 MAP_SIDE = 8
@@ -156,7 +157,8 @@ def assembled(
     if "state_dir" not in settings.model_fields_set:
         settings = settings.model_copy(update={"state_dir": Path(tempfile.mkdtemp(prefix="gcdtrav-test-state-"))})
     sink, credits = RecordingSink(settings.prefix), RecordingCredits()
-    return Runtime.build(settings, run or pipeline(), sink, credits, owns, clock=clock), sink, credits
+    store = open_store(settings.store, settings.state_dir, settings.prefix)  # as `gcdtrav serve` opens it
+    return Runtime.build(settings, run or pipeline(), sink, credits, owns, clock=clock, store=store), sink, credits
 
 
 def offer(runtime: Runtime, pending: PendingFrame, publisher: str | None = None) -> bool:

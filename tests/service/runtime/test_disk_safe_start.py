@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 from fakes import pipeline
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError, default_anchor_set
-from gcdtrav.service.runtime.fleet import state
 from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
 from gcdtrav.service.store import StoreUnavailable
+from gcdtrav.service.store.legacy import import_anchor_state
 from gcdtrav.service.store.sqlite import SqliteStore
 
 TWO = AnchorSet.model_validate(
@@ -51,19 +51,20 @@ def test_a_store_that_does_not_answer_at_start_serves_the_start_set_and_refuses_
     store.close()
 
 
-def test_a_state_dir_that_is_itself_a_file_or_holds_garbage_is_one_log_line(
+def test_an_old_state_file_that_is_garbage_or_not_a_file_is_one_log_line_and_not_imported(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
+    store = SqliteStore(tmp_path / "store.sqlite3")
     as_file = tmp_path / "state"
     as_file.write_text("x")
-    with caplog.at_level(logging.ERROR):
-        assert state.load_anchor_state(as_file / "gcdtrav.anchors.json") is None
+    assert import_anchor_state(store, as_file / "gcdtrav.anchors.json", "box-1") == 0  # its folder is a file
     corrupt = tmp_path / "ok" / "gcdtrav.anchors.json"
     corrupt.parent.mkdir()
     corrupt.write_bytes(b"\xff\xfe{ not json")
     with caplog.at_level(logging.ERROR):
-        assert state.load_anchor_state(corrupt) is None
-    assert "ignoring the anchor state file" in caplog.text
+        assert import_anchor_state(store, corrupt, "box-1") == 0
+    assert "cannot import the anchor state" in caplog.text and corrupt.is_file()  # left in place
     directory = tmp_path / "dir" / "gcdtrav.anchors.json"
     directory.mkdir(parents=True)  # something that is not a file where the state file goes
-    assert state.load_anchor_state(directory) is None
+    assert import_anchor_state(store, directory, "box-1") == 0 and store.active() is None
+    store.close()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
@@ -15,7 +14,6 @@ from gcdtrav.schemas.inputs import RejectedInput, decode_payload
 from gcdtrav.schemas.keys import input_source_of, literal_head
 from gcdtrav.schemas.messages import ImageEnvelope, MapsMessage, MessageError, PixelEncoding
 from gcdtrav.schemas.settings import SettingsError, load_settings
-from gcdtrav.service.runtime.fleet.state import load_anchor_state, save_anchor_state, write_atomically
 from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 
 LIMITS = {"received_at": 1.0, "max_bytes": 10_000_000, "max_pixels": 10_000_000}
@@ -164,35 +162,15 @@ def test_settings_reject_unknown_and_invalid(tmp_path: Path) -> None:
         load_settings(tmp_path / "missing.yaml", environ={})
 
 
-def test_state_file_is_written_atomically(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    path = tmp_path / "state" / "gcdtrav.anchors.json"
-    first = default_anchor_set()
-    save_anchor_state(path, first)
-    assert load_anchor_state(path) == first
+def test_an_unusable_old_state_file_is_not_imported(tmp_path: Path) -> None:
+    from gcdtrav.service.store.legacy import import_anchor_state
+    from gcdtrav.service.store.sqlite import SqliteStore
 
-    def crash(*_: object) -> None:
-        raise OSError("power cut")
-
-    monkeypatch.setattr(os, "replace", crash)
-    with pytest.raises(OSError, match="power cut"):
-        write_atomically(path, "{ torn")
-    assert load_anchor_state(path) == first  # the old file is intact
-    assert list(path.parent.iterdir()) == [path]  # no temporary left behind
-
-
-def test_interrupted_writes_are_cleaned_at_start(tmp_path: Path) -> None:
-    path = tmp_path / "gcdtrav.anchors.json"
-    save_anchor_state(path, default_anchor_set())
-    stale = tmp_path / ".gcdtrav.anchors.json.abc123.tmp"
-    stale.write_text("{ half")
-    assert load_anchor_state(path) == default_anchor_set()
-    assert not stale.exists()
-
-
-def test_unusable_state_file_is_ignored(tmp_path: Path) -> None:
     path = tmp_path / "s.json"
     path.write_text('{"anchors": []}')
-    assert load_anchor_state(path) is None
+    store = SqliteStore(tmp_path / "store.sqlite3")
+    assert import_anchor_state(store, path, "box-1") == 0 and store.active() is None and path.is_file()
+    store.close()
 
 
 def test_history_numbers_frames_per_source_and_restarts_a_forgotten_one() -> None:

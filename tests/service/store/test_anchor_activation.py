@@ -17,7 +17,6 @@ from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply
 from gcdtrav.service.backends.base import BackendDescription
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.fleet.anchor_switch import ActivationLost, AnchorSwitch
-from gcdtrav.service.runtime.fleet.state import save_anchor_state
 from gcdtrav.service.store.legacy import history_file_of, import_anchor_state
 from numpy.typing import NDArray
 from store_fixtures import OpenStore
@@ -153,7 +152,7 @@ def test_an_instance_state_from_before_the_store_is_imported_once(open_same_stor
         AnchorHistoryEntry(accepted_at=1000.0, version=older.version, anchor_set=older),
     ]
     state_file.parent.mkdir()
-    save_anchor_state(state_file, newer)
+    state_file.write_text(newer.to_json() + "\n")  # as a gcdtrav before the store left it
     history_file_of(state_file).write_text(AnchorHistoryReply(instance="old", entries=entries).model_dump_json())
     a = instance(open_same_store, "box-a", legacy=state_file)
     assert a.pipeline.anchors.version == newer.version
@@ -161,7 +160,7 @@ def test_an_instance_state_from_before_the_store_is_imported_once(open_same_stor
     assert recorded == [(newer.version, 2000.0, "imported"), (older.version, 1000.0, "imported")]
     assert not state_file.exists() and state_file.with_name(state_file.name + ".imported").is_file()
     a.close()
-    save_anchor_state(state_file, three_anchor_set("stale"))  # a state file appearing later: the store is the record
+    state_file.write_text(three_anchor_set("stale").to_json())  # a state file appearing later: the store is the record
     again = instance(open_same_store, "box-a", legacy=state_file)
     assert [e.version for e in again.history().entries] == [newer.version, older.version]
     again.close()
