@@ -29,16 +29,15 @@ from collections.abc import Callable
 from typing import Any
 
 import zenoh
-from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.experience import AnchorProposal, AnswerReply, CalibrationFigures
+from gcdtrav.schemas.experience import AnchorProposal, AnswerReply, CalibrationFigures, CalibrationReport
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import ExperienceStatus, MessageError
 from gcdtrav.schemas.settings import RosInput, ServiceSettings
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus.guard import answering
+from gcdtrav.service.bus.queryables import answer_later
 from gcdtrav.service.experience.service import Experience, decode_answer
 from gcdtrav.service.experience.store import OutcomeRejected
-from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros.cdr import dds_type_name
 from gcdtrav.service.runtime.errors import QueryError
 from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
@@ -65,16 +64,17 @@ class ExperienceBus:
         self,
         session: zenoh.Session,
         settings: ServiceSettings,
-        pipeline: Pipeline,
         experience: Experience,
         stats: ServiceStats,
         owns: Callable[[str], bool],
-        anchors: AnchorSwitch | None = None,
+        anchors: AnchorSwitch,
     ) -> None:
-        self.session, self.settings, self.pipeline, self.stats, self.owns = session, settings, pipeline, stats, owns
+        self.session, self.settings, self.stats, self.owns = session, settings, stats, owns
         self.keys = Keys(settings.prefix)
         self.experience = experience  # the grids were given its after_fusion: its questions leave with their maps
-        self.anchors = anchors  # the history a proposal is judged against, the store it is kept in
+        # the active set graded, the history a proposal is judged against, the store it is kept in; its reader
+        # runs the store's reads and the fits, never a zenoh callback thread
+        self.anchors = anchors
 
     # ---- lifecycle -----------------------------------------------------------------------------------
     def start(self) -> list[Any]:
@@ -131,7 +131,7 @@ class ExperienceBus:
         """The active anchor set graded by the fleet's pairs (the metrics' ECE and coverage); None while the
         store cannot be read."""
         try:
-            return self.experience.report(self.pipeline.anchors).figures
+            return self.experience.report(self.anchors.head().anchor_set).figures
         except StoreError as err:
             log.warning("no calibration figures for the metrics: %s", err)
             return None
@@ -235,11 +235,15 @@ class ExperienceBus:
             raise QueryError(f"unknown parameter(s) {dict(params)}; give by_source=true or none")
         if source != self.experience.source:
             raise QueryError(f"no experience of '{source}': this service collects grid '{self.experience.source}'")
-        try:
-            report = self.experience.report(self.pipeline.anchors, params.get("by_source") == "true")
-        except StoreError as err:
-            raise QueryError(f"cannot read the pairs: {err}") from None
-        replies.reply(query, key, report)
+        by_source = params.get("by_source") == "true"
+
+        def report() -> CalibrationReport:
+            try:
+                return self.experience.report(self.anchors.head().anchor_set, by_source)
+            except StoreError as err:
+                raise QueryError(f"cannot read the pairs: {err}") from None
+
+        self.anchors.read_later(report, answer_later(query, key, self.stats))
 
     def _on_question(self, query: zenoh.Query) -> None:
         key = str(query.key_expr)
@@ -261,44 +265,30 @@ class ExperienceBus:
         source = params.get("source", self.experience.source)
         if source != self.experience.source or not self.owns(source):
             return  # another instance's experience
+        self.anchors.read_later(self._proposal, answer_later(query, self.keys.anchor_proposal, self.stats))
+
+    def _proposal(self) -> AnchorProposal:
+        """Fitted and judged against the active set and the history's (the verdict's "best in history" is among
+        them), then kept in the store: on the anchor switch's reader."""
+        past = [entry.anchor_set for entry in self.anchors.history().entries]
         try:
-            proposal = self.experience.proposal(self.pipeline.anchors, self._past_sets())
+            proposal = self.experience.proposal(self.anchors.head().anchor_set, past)
         except ValueError as err:
             raise QueryError(str(err)) from None
         except StoreError as err:
             raise QueryError(f"cannot read the pairs: {err}") from None
-        replies.reply(query, self.keys.anchor_proposal, self._kept(proposal))
-
-    def _past_sets(self) -> list[AnchorSet]:
-        """The history's sets (the verdict's "best in history" is among them)."""
-        if self.anchors is None:
-            return []
-        return [entry.anchor_set for entry in self.anchors.history().entries]
-
-    def _kept(self, proposal: AnchorProposal) -> AnchorProposal:
-        """The proposal kept in the store, so that what the operator reviews is what `anchors apply` applies;
-        unkept (said so in the reply) when the store does not answer."""
-        if self.anchors is None:
-            return proposal
-        kept = proposal.model_copy(update={"kept": True})
-        try:
-            self.anchors.store.put_proposal(kept, self.settings.instance)
-        except StoreError as err:
-            log.error("proposal %s not kept: the store does not answer (%s)", proposal.proposed_version, err)
-            return proposal
-        return kept
+        return self.anchors.keep_proposal(proposal)
 
 
 def experience_bus(
     session: zenoh.Session,
     settings: ServiceSettings,
-    pipeline: Pipeline,
     experience: Experience | None,
     stats: ServiceStats,
     owns: Callable[[str], bool],
-    anchors: AnchorSwitch | None = None,
+    anchors: AnchorSwitch,
 ) -> ExperienceBus | None:
     """The experience's wiring, or None when ``experience.enabled`` is off (no experience)."""
     if experience is None:
         return None
-    return ExperienceBus(session, settings, pipeline, experience, stats, owns, anchors)
+    return ExperienceBus(session, settings, experience, stats, owns, anchors)

@@ -43,6 +43,16 @@ def guarded(query: zenoh.Query, stats: ServiceStats, respond: QueryHandler) -> N
         _reply(query, ErrorReply(error=f"internal error: {type(err).__name__}; see the service log"))
 
 
+def answered_later(query: zenoh.Query, stats: ServiceStats, respond: QueryHandler) -> None:
+    """``guarded``, from another thread than the query's callback (a swap's answer from the anchor switch's worker,
+    a store read's from its reader), then the query dropped: only then does the querier learn that no more replies
+    come (else a client collecting the fleet's replies waits for its whole timeout)."""
+    try:
+        guarded(query, stats, respond)
+    finally:
+        query.drop()
+
+
 def _reply(query: zenoh.Query, error: ErrorReply) -> None:
     try:
         reply_error(query, error)

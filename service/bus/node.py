@@ -96,7 +96,7 @@ class TraversabilityService:
         self._watchdog = threading.Thread(target=self._watch_progress, name="gcdtrav-watchdog", daemon=True)
         self._check_inputs()
         switch = self.runtime.anchor_switch  # proposals are judged against its history and kept in its store
-        self.experience = experience_bus(session, settings, pipeline, experience, self.stats, self.owns, switch)
+        self.experience = experience_bus(session, settings, experience, self.stats, self.owns, switch)
         calibration = self.experience.calibration if self.experience is not None else None
         heard = self.runtime.presence.heard  # the robots heard: the silent-robot alert's series
         self.metrics.collect(MetricsSources(self.status, self._owned, settings.max_frame_age_s, calibration, heard))

@@ -9,17 +9,16 @@ from collections.abc import Callable
 import zenoh
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
 from gcdtrav.schemas.keys import Keys
-from gcdtrav.schemas.messages import AnchorSetRejection, AnchorSetReply
+from gcdtrav.schemas.messages import AnchorSetRejection, AnchorSetReply, Message
 from gcdtrav.schemas.settings import RiskSettings
 from gcdtrav.service.bus import replies
-from gcdtrav.service.bus.guard import guarded
+from gcdtrav.service.bus.guard import answered_later
 from gcdtrav.service.runtime.errors import QueryError
 from gcdtrav.service.runtime.fleet.anchor_switch import ActivationLost, AnchorSwitch, SwapDone
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.history import FrameHistory
 from gcdtrav.service.runtime.queries import PATCH_FORMS, answer_patch_query, parse_number, strict_parameters
 from gcdtrav.service.runtime.stats import ServiceStats
-from gcdtrav.service.store import StoreError
 
 ROLLBACK_FORM = (
     "steps=N (1 = the set before the active one)[;instance=NAME (only that instance rolls back)]"
@@ -29,6 +28,21 @@ SWAP_FORM = (
     "[expected=VERSION (only if that set is active)] with a payload, or proposal=VERSION[;expected=V][;force=true]"
 )
 SWAP_PARAMETERS = {"expected", "force", "proposal"}
+
+
+def answer_later(
+    query: zenoh.Query, key: str, stats: ServiceStats
+) -> Callable[[Message | None, BaseException | None], None]:
+    """Reply to ``query`` once a job on the anchor switch's reader is done: its message, or its error as the
+    query's error reply (``guarded``: a QueryError is the caller's sentence, anything else an internal error)."""
+
+    def respond(query: zenoh.Query, message: Message | None, error: BaseException | None) -> None:
+        if error is not None:
+            raise error
+        assert message is not None
+        replies.reply(query, key, message)
+
+    return lambda message, error: answered_later(query, stats, lambda query: respond(query, message, error))
 
 
 def parse_flag(text: str, name: str) -> bool:
@@ -97,7 +111,7 @@ class AnchorQueries:
         if "proposal" in params:
             if payload:
                 raise QueryError("give either an anchor set as payload or proposal=VERSION, not both")
-            self._apply_proposal(params["proposal"], expected, force, done)
+            self.switch.submit_proposal(params["proposal"], expected, force, done)
         elif payload:
             if force:
                 raise QueryError("force=true goes with proposal=VERSION (a set of your own needs no force)")
@@ -107,27 +121,6 @@ class AnchorQueries:
         else:
             active = self.switch.head().anchor_set
             replies.reply(query, self.keys.anchors, self._set_reply(active))
-
-    def _apply_proposal(self, version: str, expected: str | None, force: bool, done: SwapDone) -> None:
-        """The kept proposal's proposed set, exactly as the operator reviewed it (never refitted), compared
-        against the set it was judged against unless ``expected`` names another; refused if gone, or if not
-        judged better without ``force`` (then marked forced in the history)."""
-        try:
-            kept = self.switch.store.proposal(version)
-        except StoreError as err:
-            raise QueryError(f"the anchor store is unreachable ({err}): nothing applied") from None
-        if kept is None:
-            message = f"no kept proposal {version}: it is gone (pruned, or never made); gcdtrav anchors propose"
-            done(None, AnchorSetError([message]))
-            return
-        verdict = kept.proposal.judged()
-        if not verdict.applicable and not force:
-            done(
-                None, AnchorSetError([f"proposal {version} is not applied: {verdict.reason()}; force=true applies it"])
-            )
-            return
-        expected = expected or kept.proposal.current_version
-        self.switch.submit_set(kept.proposal.proposed, done, expected, "proposal", forced=not verdict.applicable)
 
     def on_rollback(self, query: zenoh.Query) -> None:
         replies.check_format(query)
@@ -142,7 +135,7 @@ class AnchorQueries:
 
     def on_history(self, query: zenoh.Query) -> None:
         replies.check_no_parameters(query)
-        replies.reply(query, self.keys.anchor_history, self.switch.history())
+        self.switch.read_later(self.switch.history, answer_later(query, self.keys.anchor_history, self.stats))
 
     def _set_reply(self, anchors: AnchorSet) -> AnchorSetReply:
         head = self.switch.head()
@@ -155,7 +148,7 @@ class AnchorQueries:
         """Reply to a swap or rollback query once the switch's worker is done with it."""
 
         def answer(anchors: AnchorSet | None, error: BaseException | None) -> None:
-            guarded(query, self.stats, lambda query: respond(query, anchors, error))
+            answered_later(query, self.stats, lambda query: respond(query, anchors, error))
 
         def respond(query: zenoh.Query, anchors: AnchorSet | None, error: BaseException | None) -> None:
             if anchors is not None:

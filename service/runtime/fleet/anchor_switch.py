@@ -19,13 +19,16 @@ import logging
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
+from typing import TypeVar
 
 from gcdtrav.schemas.anchors import AnchorSet, AnchorSetError
+from gcdtrav.schemas.experience import AnchorProposal
 from gcdtrav.schemas.messages import AnchorHistoryEntry, AnchorHistoryReply
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.fleet.fleet_anchors import ActiveSet
 from gcdtrav.service.store import HistoryRecord, Store, StoreError
 
+T = TypeVar("T")
 log = logging.getLogger("gcdtrav.service")
 
 HISTORY_LENGTH = 20
@@ -68,6 +71,9 @@ class AnchorSwitch:
         self._synced = False  # the store's active set was read (or seeded) once
         self._lock = threading.Lock()
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gcdtrav-anchors")
+        # the store's reads for queries (history, calibration, a proposal's fit and keeping): off zenoh's callback
+        # threads, and never holding up a swap on the worker
+        self._reader = ThreadPoolExecutor(max_workers=1, thread_name_prefix="gcdtrav-anchor-reads")
         self._listeners: list[Callable[[AnchorHistoryEntry], None]] = []
         start = pipeline.anchors
         self._head = AnchorHistoryEntry(accepted_at=0.0, version=start.version, anchor_set=start)
@@ -121,6 +127,48 @@ class AnchorSwitch:
     def submit_set(self, anchors: AnchorSet, done: SwapDone, expected: str | None, how: str, forced: bool) -> None:
         """Swap to ``anchors`` (e.g. a kept proposal's set) on the worker, compared against ``expected``."""
         self._run(lambda: self.swap(anchors, expected, how, forced), done)
+
+    def submit_proposal(self, version: str, expected: str | None, force: bool, done: SwapDone) -> None:
+        """Apply the kept proposal ``version`` on the worker: its proposed set, exactly as the operator reviewed it
+        (never refitted), compared against the set it was judged against unless ``expected`` names another;
+        refused if gone, or if not judged better without ``force`` (then marked forced in the history)."""
+
+        def apply() -> AnchorSet:
+            try:
+                kept = self.store.proposal(version)
+            except StoreError as err:
+                raise AnchorSetError([f"the anchor store is unreachable ({err}): nothing applied"]) from None
+            if kept is None:
+                gone = f"no kept proposal {version}: it is gone (pruned, or never made); gcdtrav anchors propose"
+                raise AnchorSetError([gone])
+            verdict = kept.proposal.judged()
+            if not verdict.applicable and not force:
+                refused = f"proposal {version} is not applied: {verdict.reason()}; force=true applies it"
+                raise AnchorSetError([refused])
+            expected_version = expected or kept.proposal.current_version
+            return self.swap(kept.proposal.proposed, expected_version, "proposal", forced=not verdict.applicable)
+
+        self._run(apply, done)
+
+    def read_later(self, job: Callable[[], T], done: Callable[[T | None, BaseException | None], None]) -> None:
+        """``job`` (a read of the store, a proposal's fit) on the switch's reader, then ``done(result, error)``."""
+
+        def report(future: Future[T]) -> None:
+            error = future.exception()
+            done(None if error is not None else future.result(), error)
+
+        self._reader.submit(job).add_done_callback(report)
+
+    def keep_proposal(self, proposal: AnchorProposal) -> AnchorProposal:
+        """The proposal kept in the store, so that what the operator reviews is what `anchors apply` applies;
+        unkept (said so in the reply) when the store does not answer."""
+        kept = proposal.model_copy(update={"kept": True})
+        try:
+            self.store.put_proposal(kept, self.instance)
+        except StoreError as err:
+            log.error("proposal %s not kept: the store does not answer (%s)", proposal.proposed_version, err)
+            return proposal
+        return kept
 
     def submit_rollback(self, steps: int, done: SwapDone, expected: str | None = None) -> None:
         """Swap back to the set ``steps`` entries before the active one of the store's history, on the worker."""
@@ -261,4 +309,5 @@ class AnchorSwitch:
         return entries[steps].anchor_set, entries[0].version
 
     def close(self) -> None:
+        self._reader.shutdown(wait=True)
         self._worker.shutdown(wait=True)

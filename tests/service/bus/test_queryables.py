@@ -48,6 +48,19 @@ class FakeQuery:
         self.errors.append(payload)
         self.answered.set()
 
+    def drop(self) -> None:
+        """An answer sent later drops the query: the querier learns no more replies come."""
+        self.dropped = True
+
+
+def wait_for_drop(query: FakeQuery) -> bool:
+    import time
+
+    deadline = time.monotonic() + 5
+    while not getattr(query, "dropped", False) and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return getattr(query, "dropped", False)
+
 
 def history_with_a_frame() -> FrameHistory:
     history = FrameHistory(2)
@@ -114,5 +127,6 @@ def test_a_swap_reply_that_raises_still_answers_the_query(stats: ServiceStats, m
     query = FakeQuery(KEYS.anchors, "", ANCHORS.to_json().encode())
     answering(handlers.on_anchors, stats)(query)  # type: ignore[arg-type]
     assert query.answered.wait(5), "the swap's query was never answered"
+    assert wait_for_drop(query), "an answer sent later must drop the query"
     assert "internal error: RuntimeError" in msgpack.unpackb(query.errors[0])["error"]
     assert stats.snapshot({}).rejected_by_reason == {"query_failed": 1}
