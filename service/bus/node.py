@@ -14,7 +14,6 @@ from dataclasses import replace
 from typing import Any
 
 import zenoh
-from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.inputs import RejectedInput
 from gcdtrav.schemas.keys import Keys, input_source_of, literal_head
 from gcdtrav.schemas.messages import MessageError, ServiceStatus
@@ -37,13 +36,12 @@ from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.ros import cdr as ros_io
 from gcdtrav.service.runtime.assembly import Runtime
 from gcdtrav.service.runtime.fleet.state_lock import StateLock
-from gcdtrav.service.runtime.http_endpoints import ready
 from gcdtrav.service.runtime.metrics import MetricsSources, ServiceMetrics
 from gcdtrav.service.runtime.progress import Health
 from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.store import Store, StoreError, StoreUnavailable
 from gcdtrav.service.store.opening import service_outbox
-from gcdtrav.service.store.outbox import store_status
+from gcdtrav.service.store.outbox import PairOutbox, store_status
 
 log = logging.getLogger("gcdtrav.service")
 WATCHDOG_INTERVAL_S = 0.25
@@ -70,7 +68,8 @@ class TraversabilityService:
     def __init__(
         self, session: zenoh.Session, pipeline: Pipeline, settings: ServiceSettings, store: Store | None = None
     ) -> None:
-        """``store``: the fleet's store (service/store); None: the one ``settings.store`` names, opened here."""
+        """``store``: the fleet's store, opened by `gcdtrav serve` (service/store); None: the outbox opens the one
+        ``settings.store`` names."""
         self.session, self.pipeline, self.settings = session, pipeline, settings
         self.prefix, self.keys = settings.prefix, Keys(settings.prefix)
         self.metrics = ServiceMetrics(settings.instance)  # its histograms see every frame the stats count
@@ -80,15 +79,10 @@ class TraversabilityService:
         self.membership: Membership | None = None
         self._leaving: Callable[[str], bool] | None = None  # after stop(): what it owned when it left
         self.anchor_sync: AnchorSync | None = None
-        self.state_lock = StateLock(settings.state_file, settings.instance)  # one service per state file
         self.ros_graph = RosGraph(session, settings, self.stats.rejected) if graph_inputs(settings) else None
         self.outputs = FrameOutputs(session, self.keys, self.ros_graph)  # the runtime's sinks: they only put
         self.credits = CreditPublisher(session, self.keys)
-        try:  # the store of pairs and anchor history: reachable or not, the service serves; refused: no start
-            self.store = service_outbox(settings, store)
-        except StoreError as err:
-            self.state_lock.release()
-            raise SettingsError(str(err)) from None
+        self.store = self._locked_outbox(store)
         experience = service_experience(settings, self.stats.rejected, self.store)  # None when off; asks at fusion
         asks = experience.after_fusion if experience is not None else None
         build = (settings, pipeline, self.outputs, self.credits, self.owns, self._open_store, self.stats, time.time())
@@ -97,9 +91,23 @@ class TraversabilityService:
         self._check_inputs()
         switch = self.runtime.anchor_switch  # proposals are judged against its history and kept in its store
         self.experience = experience_bus(session, settings, experience, self.stats, self.owns, switch)
+        self._collect_metrics()
+
+    def _locked_outbox(self, store: Store | None) -> PairOutbox:
+        """The state dir locked for this instance, and the outbox to the store of pairs and anchor history:
+        reachable or not, the service serves; refused (SettingsError), no start and the lock released."""
+        self.state_lock = StateLock(self.settings.state_file, self.settings.instance)  # one service per state file
+        try:
+            return service_outbox(self.settings, store)
+        except StoreError as err:
+            self.state_lock.release()
+            raise SettingsError(str(err)) from None
+
+    def _collect_metrics(self) -> None:
         calibration = self.experience.calibration if self.experience is not None else None
         heard = self.runtime.presence.heard  # the robots heard: the silent-robot alert's series
-        self.metrics.collect(MetricsSources(self.status, self._owned, settings.max_frame_age_s, calibration, heard))
+        sources = MetricsSources(self.status, self._owned, self.settings.max_frame_age_s, calibration, heard)
+        self.metrics.collect(sources)
 
     def _check_inputs(self) -> None:
         own = zenoh.KeyExpr(self.keys.outputs)
@@ -190,7 +198,7 @@ class TraversabilityService:
             log.warning("the frame in flight did not finish within %.1f s; its outputs are dropped", timeout)
         if self.membership is not None:
             self.membership.close()
-        self._safe_speed(stale_only=False)  # no mask outlives the service: the frame in flight is out, no other comes
+        self.runtime.publish_safe_speed(stale_only=False)  # no mask outlives the service: the last frame is out
         self.outputs.close()  # before the session's entities: a late frame is refused, not put on a dead key
         self.credits.close()
         undeclare_all(self._declared)
@@ -258,7 +266,7 @@ class TraversabilityService:
     def readiness(self) -> Health:
         """In the fleet and serving (the /readyz probe)."""
         in_fleet = self.membership is not None and not self.membership.withdrawn
-        return ready(self.runtime.progress.health(), self._stopping.is_set(), in_fleet)
+        return self.runtime.readiness(self._stopping.is_set(), in_fleet)
 
     def _open_store(self) -> Store:
         """The store, for the anchor switch; StoreUnavailable while it was never reached."""
@@ -271,9 +279,7 @@ class TraversabilityService:
         """Withdraw from the fleet while the worker is stalled, rejoin when it progresses again; serve the
         store's anchor set once a store away at start answers."""
         while not self._stopping.wait(WATCHDOG_INTERVAL_S):
-            self.runtime.anchor_switch.sync(self._synced_anchors)
-            self._safe_speed(stale_only=True)
-            change = self.runtime.progress.check(len(self.runtime.queue))
+            change = self.runtime.tick()
             if change is None or self.membership is None:
                 continue
             if change.health.healthy:
@@ -282,18 +288,6 @@ class TraversabilityService:
             else:
                 log.error("worker %s: withdrawing from the fleet (its sources fail over)", change.health.reason)
                 self.membership.withdraw()
-
-    @staticmethod
-    def _synced_anchors(anchors: AnchorSet | None, error: BaseException | None) -> None:
-        if error is not None:
-            log.error("anchor set from the store: %s", error)
-
-    def _safe_speed(self, stale_only: bool) -> None:
-        """Put the safe speed mask (the floor everywhere) of every grid whose live mask went stale or, when
-        stopping, of every grid that has one (docs/grid.md, "Speed from uncertainty")."""
-        grids = self.runtime.grids
-        if grids is not None:
-            self.runtime.publisher.publish_speed(grids.safe_speed(stale_only))
 
     def _enqueue(self, source: str, sample: zenoh.Sample, ros: ros_io.RosTopic | None, publisher: str | None) -> None:
         if self.membership is not None:

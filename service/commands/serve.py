@@ -18,8 +18,8 @@ from gcdtrav.schemas.settings import ServiceSettings, SettingsError
 from gcdtrav.service.backends.cpus import set_torch_threads, usable_cpus
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.http_endpoints import Checks, HttpEndpoints
-from gcdtrav.service.store import Store, StoreError, StoreUnavailable, open_store
-from gcdtrav.service.store.opening import import_legacy_files
+from gcdtrav.service.store import Store, StoreError, StoreUnavailable
+from gcdtrav.service.store.opening import service_store
 
 if TYPE_CHECKING:
     from gcdtrav.service.bus.node import TraversabilityService
@@ -55,13 +55,7 @@ def store_at_start(settings: ServiceSettings) -> Store | None:
     schema, an unreadable password_file, psycopg missing): SettingsError, so ``gcdtrav serve`` exits 2 before
     it loads the model."""
     try:
-        store = open_store(settings.store, settings.state_dir, settings.prefix)
-        try:
-            import_legacy_files(store, settings)
-        except BaseException:
-            store.close()
-            raise
-        return store
+        return service_store(settings)
     except StoreUnavailable as err:
         log.warning("store not reached at start (serving meanwhile; retried): %s", err)
         return None

@@ -16,6 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
+from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.pipeline import Pipeline
 from gcdtrav.service.runtime.fleet.anchor_switch import AnchorSwitch
@@ -25,12 +26,13 @@ from gcdtrav.service.runtime.frames import PendingFrame
 from gcdtrav.service.runtime.grids import GridOutputs
 from gcdtrav.service.runtime.grids.outputs import AfterFusion
 from gcdtrav.service.runtime.history import FrameHistory
+from gcdtrav.service.runtime.http_endpoints import ready
 from gcdtrav.service.runtime.intake.admission import Admission
 from gcdtrav.service.runtime.intake.freshness import FrameGate, Freshness
 from gcdtrav.service.runtime.intake.presence import SourcePresence
 from gcdtrav.service.runtime.intake.sources import SourceTracker
 from gcdtrav.service.runtime.outputs import FramePublisher, OutputBuilder, OutputSink
-from gcdtrav.service.runtime.progress import ProgressMonitor
+from gcdtrav.service.runtime.progress import Change, Health, ProgressMonitor
 from gcdtrav.service.runtime.schedule.latest_queue import LatestFrameQueue
 from gcdtrav.service.runtime.schedule.share import policy_for
 from gcdtrav.service.runtime.stats import ServiceStats
@@ -126,7 +128,7 @@ class Runtime:
             settings.max_sources, settings.source_idle_s, forget, clock, reclaim_after_s=settings.reclaim_after_s
         )
         admission = Admission(settings, sources, queue, stats, credits.freed, freshness)
-        progress = ProgressMonitor(settings.stall_after_s)
+        progress = ProgressMonitor(settings.stall_after_s, clock)
         status_parts = StatusParts(
             settings.instance,
             time.time() if started_at is None else started_at,
@@ -178,6 +180,30 @@ class Runtime:
             worker,
             SourcePresence(settings.max_sources, settings.source_idle_s),
         )
+
+    # ---- the watchdog's jobs, zenoh-free (the bus's watchdog thread calls ``tick``) ------------------------
+    def tick(self) -> Change | None:
+        """Every WATCHDOG_INTERVAL_S: serve the store's anchor set once a store away at start answers, replace
+        the live speed mask of every grid gone stale with the safe one, and check the worker's progress; the
+        change of health, if any (the bus withdraws from the fleet or rejoins on it)."""
+        self.anchor_switch.sync(_synced)
+        self.publish_safe_speed(stale_only=True)
+        return self.progress.check(len(self.queue))
+
+    def publish_safe_speed(self, stale_only: bool) -> None:
+        """The safe speed mask (the floor everywhere) of every grid whose live mask went stale or, when the
+        service stops, of every grid that has one (docs/grid.md, "Speed from uncertainty")."""
+        if self.grids is not None:
+            self.publisher.publish_speed(self.grids.safe_speed(stale_only))
+
+    def readiness(self, draining: bool, in_fleet: bool) -> Health:
+        """In the fleet and serving (the /readyz probe)."""
+        return ready(self.progress.health(), draining, in_fleet)
+
+
+def _synced(anchors: AnchorSet | None, error: BaseException | None) -> None:
+    if error is not None:
+        log.error("anchor set from the store: %s", error)
 
 
 def _schedule(

@@ -62,6 +62,19 @@ def import_legacy_files(store: Store, settings: ServiceSettings) -> None:
     legacy.import_anchor_state(store, settings.state_file, settings.instance)
 
 
+def service_store(settings: ServiceSettings, opened: Store | None = None) -> Store:
+    """The service's store (``opened``, or the one the settings name), with a gcdtrav's files from before the store
+    imported into it at its first open: `gcdtrav serve` opens it once at start, the outbox again only until it
+    answers. StoreUnavailable while it cannot be reached; another StoreError if it is refused."""
+    store = opened or open_store(settings.store, settings.state_dir, settings.prefix)
+    try:
+        import_legacy_files(store, settings)
+    except BaseException:
+        store.close()
+        raise
+    return store
+
+
 def service_outbox(settings: ServiceSettings, opened: Store | None = None) -> PairOutbox:
     """The service's way to its store, opened now if it can be (the old files imported at the first open);
     else the outbox's writer keeps trying and the service serves meanwhile. StoreError (SchemaTooNew, a bad
@@ -72,13 +85,7 @@ def service_outbox(settings: ServiceSettings, opened: Store | None = None) -> Pa
         backend, location = opened.backend, opened.location
 
     def opener() -> Store:
-        store = opened or open_store(settings.store, settings.state_dir, settings.prefix)
-        try:
-            import_legacy_files(store, settings)
-        except BaseException:
-            store.close()
-            raise
-        return store
+        return service_store(settings, opened)
 
     outbox = PairOutbox(opener, backend, location, settings.store.outbox_pairs, settings.experience.max_pairs,
                         settings.experience.max_bytes, settings.store.retry_s)  # fmt: skip

@@ -58,8 +58,7 @@ def test_the_store_is_opened_once_and_its_active_set_starts_the_pipeline(
         opened.append(open_store(*args))  # type: ignore[arg-type]
         return opened[-1]
 
-    monkeypatch.setattr(serve, "open_store", counted)
-    monkeypatch.setattr(store_opening, "open_store", counted)
+    monkeypatch.setattr(store_opening, "open_store", counted)  # the one place the service opens its store
     config = zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{free_port()}"], multicast_scouting=False)
     store = serve.store_at_start(settings)
     service, session, pipeline = serve.start_serving(Http(), settings, config, None, store)  # type: ignore[arg-type]
@@ -81,7 +80,7 @@ def test_a_store_not_reached_at_start_is_tried_once_and_the_configured_set_start
         tries.append(args)
         raise StoreUnavailable("connection refused")
 
-    monkeypatch.setattr(serve, "open_store", unreachable)
+    monkeypatch.setattr(store_opening, "open_store", unreachable)
     settings = ServiceSettings(state_dir=tmp_path)
     store = serve.store_at_start(settings)
     assert store is None

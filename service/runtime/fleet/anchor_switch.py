@@ -124,10 +124,6 @@ class AnchorSwitch:
         the active version; ``done(set, error)`` reports."""
         self._run(lambda: self.swap(self.parse(body), expected, how, forced), done)
 
-    def submit_set(self, anchors: AnchorSet, done: SwapDone, expected: str | None, how: str, forced: bool) -> None:
-        """Swap to ``anchors`` (e.g. a kept proposal's set) on the worker, compared against ``expected``."""
-        self._run(lambda: self.swap(anchors, expected, how, forced), done)
-
     def submit_proposal(self, version: str, expected: str | None, force: bool, done: SwapDone) -> None:
         """Apply the kept proposal ``version`` on the worker: its proposed set, exactly as the operator reviewed it
         (never refitted), compared against the set it was judged against unless ``expected`` names another;

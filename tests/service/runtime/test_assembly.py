@@ -157,3 +157,30 @@ def test_a_forgotten_source_leaves_the_bus_sinks_too() -> None:
     clock.now = settings.source_idle_s + 1
     assert runtime.sources.sweep() == ["r1"] and sink.forgotten == ["r1"]
     assert runtime.credits.ledger.freed("r1", "taken").grant == 0  # numbered afresh
+
+
+def test_the_watchdogs_tick_puts_the_safe_mask_of_a_stale_grid_once_and_tells_a_stalled_worker() -> None:
+    """Runtime.tick, zenoh-free: the jobs the bus's watchdog runs four times a second."""
+    from gcdtrav.schemas.settings import GridSettings
+
+    grid = GridSettings.model_validate(
+        {"source": "r1", "intrinsics": {"fx": 50, "fy": 50, "cx": 16, "cy": 16, "width": 32, "height": 32},
+         "mount": {"z": 1.0, "pitch": 0.6}, "speed": {"stale_s": 1.0}}
+    )  # fmt: skip
+    clock = Clock(100.0)
+    runtime, sink, _ = assembled(ServiceSettings(grids=[grid], stall_after_s=0.5), clock=clock)
+    assert runtime.tick() is None and sink.put_by_source == []  # nothing stale or stalled, no mask ever handed out
+    state = runtime.grids.sources["r1"]  # type: ignore[union-attr]
+    state.speed_mask_at, state.speed_safe = time.time() - 5.0, False  # a live mask, 5 s old: stale
+    assert runtime.tick() is None
+    keys = [output.key for _, outputs in sink.put_by_source for output in outputs]
+    assert "gcdtrav/out/r1/grid/speed_mask" in keys and "gcdtrav/out/r1/grid/speed_limit" in keys
+    assert state.speed_safe
+    before = len(sink.put_by_source)
+    runtime.tick()
+    assert len(sink.put_by_source) == before  # put once: the safe mask stays until a live one replaces it
+    assert offer(runtime, "r1")  # a frame waits, the worker never started: no beat for longer than stall_after_s
+    clock.now += 1.0
+    change = runtime.tick()
+    assert change is not None and not change.health.healthy
+    assert not runtime.readiness(draining=False, in_fleet=True).healthy
