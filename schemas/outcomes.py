@@ -26,11 +26,11 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass
-from typing import Protocol
 
 from gcdtrav.schemas.experience import Odometry2D, TraversalOutcome, Twist2D
 from gcdtrav.schemas.messages import check_size
 from gcdtrav.schemas.ros_nav import RosNavError, bool_value, odometry_motion, twist_command
+from gcdtrav.schemas.settings.experience import TrackingSettings
 
 MAX_INPUT_BYTES = 64 * 1024  # an Odometry CDR with its covariances is about 700 bytes
 CDR = (b"\x00\x00", b"\x00\x01")  # an encapsulation header's first bytes; msgpack and JSON start otherwise
@@ -57,25 +57,6 @@ def decode_contact(payload: bytes) -> bool:
     if text not in (b"true", b"false"):
         raise RosNavError(f"a contact is a std_msgs/Bool CDR or JSON true/false, not {payload[:20]!r}")
     return text == b"true"
-
-
-class TrackingSettings(Protocol):
-    """What the trackers read: the service's ExperienceSettings and the relay's RelayOutcomes both have it."""
-
-    @property
-    def footprint_m(self) -> float: ...
-
-    @property
-    def min_command_mps(self) -> float: ...
-
-    @property
-    def command_timeout_s(self) -> float: ...
-
-    @property
-    def outcome_spacing_m(self) -> float: ...
-
-    @property
-    def outcome_period_s(self) -> float: ...
 
 
 @dataclass

@@ -11,6 +11,7 @@ import re
 from pathlib import Path
 from typing import Literal
 
+from gcdtrav.schemas.settings.experience import TrackingSettings
 from gcdtrav.schemas.strict import StrictModel
 from gcdtrav.schemas.yaml_file import load_mapping
 from pydantic import Field, ValidationError, field_validator, model_validator
@@ -152,13 +153,7 @@ class RelayOdometry(StrictModel):
         return None if value is None else _literal_key(value, "odometry key")
 
 
-def _experience_default(name: str) -> float:
-    from gcdtrav.schemas.settings.experience import ExperienceSettings
-
-    return float(ExperienceSettings.model_fields[name].default)
-
-
-class RelayOutcomes(StrictModel):
+class RelayOutcomes(TrackingSettings):
     """Outcomes measured on the robot by the service's own rules (schemas/outcomes.py) and sent over the link
     in batches (docs/calibration.md, "Which robots teach"): velocity tracking from the robot's commands and
     odometry at their full rate, contacts from a bumper, the robot's own TraversalOutcomes, its planned path."""
@@ -205,11 +200,6 @@ class RelayOutcomes(StrictModel):
     batch_period_s: float = Field(
         default=1.0, gt=0, le=60, description="At most one batch of outcomes (and one path) this often."
     )
-    footprint_m: float = Field(default_factory=lambda: _experience_default("footprint_m"), gt=0, le=10)
-    min_command_mps: float = Field(default_factory=lambda: _experience_default("min_command_mps"), ge=0)
-    command_timeout_s: float = Field(default_factory=lambda: _experience_default("command_timeout_s"), gt=0)
-    outcome_spacing_m: float = Field(default_factory=lambda: _experience_default("outcome_spacing_m"), gt=0)
-    outcome_period_s: float = Field(default_factory=lambda: _experience_default("outcome_period_s"), gt=0)
 
     @field_validator("source")
     @classmethod

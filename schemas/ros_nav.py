@@ -94,8 +94,8 @@ def occupancy_grid_cdr(
     writer.number("i", stamp[0])
     writer.number("I", stamp[1])
     writer.string(frame_id)
-    writer.number("i", 0)  # info.map_load_time: never loaded from a file
-    writer.number("I", 0)
+    writer.number("i", stamp[0])  # info.map_load_time: made now, as the header says
+    writer.number("I", stamp[1])
     writer.number("f", resolution)
     writer.number("I", width)
     writer.number("I", height)
@@ -135,7 +135,12 @@ def yaw_of_quaternion(x: float, y: float, z: float, w: float) -> float:
 
 
 def occupancy_grid_geometry(payload: bytes) -> GridGeometry:
-    """The geometry of an OccupancyGrid's CDR, without its cells; RosNavError when it is not one."""
+    """The geometry of an OccupancyGrid's CDR; RosNavError when it is not one."""
+    return read_occupancy_grid(payload)[0]
+
+
+def read_occupancy_grid(payload: bytes) -> tuple[GridGeometry, NDArray[np.int8]]:
+    """An OccupancyGrid's CDR: its geometry and its cells (rows i = y, a copy); RosNavError when it is not one."""
     try:
         reader = _Reader(payload)
         sec, nanosec, frame_id = reader.number("i"), reader.number("I"), reader.string()
@@ -147,10 +152,11 @@ def occupancy_grid_geometry(payload: bytes) -> GridGeometry:
             _double(reader)
         cells = reader.octets()
     except _Malformed as err:
-        raise RosNavError(f"not an {OCCUPANCY_GRID}: {err}") from None
+        raise RosNavError(f"not a {OCCUPANCY_GRID}: {err}") from None
     if len(cells) != width * height or not (resolution > 0 and math.isfinite(x) and math.isfinite(y)):
-        raise RosNavError(f"an {OCCUPANCY_GRID} of {width}x{height} cells of {resolution} m with {len(cells)} values")
-    return GridGeometry(frame_id, float(resolution), width, height, (x, y), seconds((sec, nanosec)))
+        raise RosNavError(f"a {OCCUPANCY_GRID} of {width}x{height} cells of {resolution} m with {len(cells)} values")
+    geometry = GridGeometry(frame_id, float(resolution), width, height, (x, y), seconds((sec, nanosec)))
+    return geometry, np.frombuffer(cells, np.int8).reshape(height, width).copy()
 
 
 def odometry_pose(payload: bytes) -> Pose2D:
@@ -163,14 +169,14 @@ def odometry_pose(payload: bytes) -> Pose2D:
         x, y, _ = _double(reader), _double(reader), _double(reader)
         qx, qy, qz, qw = (_double(reader) for _ in range(4))
     except _Malformed as err:
-        raise RosNavError(f"not an {ODOMETRY}: {err}") from None
+        raise RosNavError(f"not a {ODOMETRY}: {err}") from None
     fields = {"x": x, "y": y, "yaw": yaw_of_quaternion(qx, qy, qz, qw)}
     try:
         return Pose2D.validated(
             {"stamp": seconds((sec, nanosec)), "frame_id": frame_id or DEFAULT_ODOMETRY_FRAME, **fields}
         )
     except MessageError as err:
-        raise RosNavError(f"an {ODOMETRY} whose pose is not usable: {err}") from None
+        raise RosNavError(f"a {ODOMETRY} whose pose is not usable: {err}") from None
 
 
 def _double(reader: _Reader) -> float:

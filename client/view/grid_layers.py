@@ -5,7 +5,6 @@ here without ROS."""
 
 from __future__ import annotations
 
-import struct
 from dataclasses import dataclass
 from typing import cast
 
@@ -16,6 +15,7 @@ from gcdtrav.client.view import pictures
 from gcdtrav.client.view.pictures import MapKind
 from gcdtrav.schemas.grid_layers import GRID_LAYERS
 from gcdtrav.schemas.messages import GridHeader
+from gcdtrav.schemas.ros_nav import read_occupancy_grid
 from numpy.typing import NDArray
 
 # (channel name, colour scale) of every layer the table draws: T, U, CVaR, P(T < tau), match and age; layers a
@@ -93,45 +93,11 @@ class OccupancyGrid:
         return np.where(self.data < 0, np.nan, self.data.astype(np.float32)).astype(np.float32)
 
 
-class _CdrReader:
-    """Little-endian CDR as rosbags writes it: alignment counts from after the 4-byte encapsulation header."""
-
-    def __init__(self, payload: bytes) -> None:
-        if len(payload) < 4 or payload[1] != 1:  # 0x0001: CDR_LE
-            raise ValueError("not little-endian CDR (encapsulation header 00 01 expected)")
-        self.data, self.position = memoryview(payload)[4:], 0
-
-    def read(self, form: str) -> tuple[object, ...]:
-        size = struct.calcsize("<" + form[0])
-        self.position += -self.position % size
-        values = struct.unpack_from("<" + form, self.data, self.position)
-        self.position += struct.calcsize("<" + form)
-        return values
-
-    def string(self) -> str:
-        (length,) = self.read("I")
-        raw = bytes(self.data[self.position : self.position + int(length)])  # type: ignore[call-overload]
-        if len(raw) != length:
-            raise ValueError("string runs past the end of the message")
-        self.position += len(raw)
-        return raw.rstrip(b"\0").decode()
-
-
 def decode_occupancy_grid(payload: bytes) -> OccupancyGrid:
-    """A nav_msgs/msg/OccupancyGrid from its CDR; ValueError (or struct.error) for anything else."""
-    reader = _CdrReader(payload)
-    seconds, nanoseconds = reader.read("iI")
-    frame_id = reader.string()
-    reader.read("iI")  # map_load_time
-    resolution, width, height = reader.read("fII")
-    x, y, _z, _qx, _qy, _qz, _qw = reader.read("ddddddd")
-    (count,) = reader.read("I")
-    width, height, count = int(width), int(height), int(count)  # type: ignore[call-overload]
-    if count != width * height or len(reader.data) - reader.position < count:
-        raise ValueError(f"OccupancyGrid of {width} x {height} cells holds {count} values")
-    data = np.frombuffer(reader.data, np.int8, count, reader.position).reshape(height, width)
-    stamp = float(seconds) + float(nanoseconds) * 1e-9  # type: ignore[arg-type]
-    return OccupancyGrid(stamp, frame_id, float(resolution), (float(x), float(y)), data.copy())  # type: ignore[arg-type]
+    """A nav_msgs/msg/OccupancyGrid from its CDR (schemas/ros_nav.py); RosNavError (a ValueError) for anything
+    else."""
+    geometry, cells = read_occupancy_grid(payload)
+    return OccupancyGrid(geometry.stamp, geometry.frame_id, geometry.resolution, geometry.origin, cells)
 
 
 def costmap_header(costmap: OccupancyGrid) -> GridHeader:

@@ -8,7 +8,24 @@ from gcdtrav.schemas.strict import StrictModel
 from pydantic import Field, field_validator, model_validator
 
 
-class ExperienceSettings(StrictModel):
+class TrackingSettings(StrictModel):
+    """How outcomes are measured (schemas/outcomes.py), by the service's experience and by a relay on the robot
+    (``outcomes:`` of its settings): the same fields, the same defaults."""
+
+    footprint_m: float = Field(default=0.6, gt=0, le=2 * MAX_OUTCOME_RADIUS_M, description="Robot width, m.")
+    min_command_mps: float = Field(
+        default=0.1, ge=0, description="Only commands faster than this are graded (a robot told to stop is not slow)."
+    )
+    command_timeout_s: float = Field(default=0.5, gt=0, description="A command older than this is not in force.")
+    outcome_spacing_m: float = Field(
+        default=0.3, gt=0, description="One velocity outcome per this distance driven: the mean score over it."
+    )
+    outcome_period_s: float = Field(
+        default=2.0, gt=0, description="At the latest this long after the last one (a robot that barely moves)."
+    )
+
+
+class ExperienceSettings(TrackingSettings):
     """``experience:``: traversal outcomes, their pairs with earlier predictions, calibration (docs/calibration.md)."""
 
     enabled: bool = Field(default=False, description="Collect outcomes and pairs; off: nothing changes.")
@@ -23,17 +40,6 @@ class ExperienceSettings(StrictModel):
         "(nav_msgs/msg/Odometry CDR).",
     )
     grid: str | None = Field(default=None, description="The grid (its source) the outcomes belong to [the first].")
-    footprint_m: float = Field(default=0.6, gt=0, le=2 * MAX_OUTCOME_RADIUS_M, description="Robot width, m.")
-    min_command_mps: float = Field(
-        default=0.1, ge=0, description="Only commands faster than this are graded (a robot told to stop is not slow)."
-    )
-    command_timeout_s: float = Field(default=0.5, gt=0, description="A command older than this is not in force.")
-    outcome_spacing_m: float = Field(
-        default=0.3, gt=0, description="One velocity outcome per this distance driven: the mean score over it."
-    )
-    outcome_period_s: float = Field(
-        default=2.0, gt=0, description="At the latest this long after the last one (a robot that barely moves)."
-    )
     lookahead_s: float = Field(
         default=2.0,
         ge=0,

@@ -24,7 +24,7 @@ from gcdtrav.schemas.messages import GridHeader, MessageError, Pose2D
 from gcdtrav.schemas.ros_image import COMPRESSED_IMAGE as COMPRESSED_IMAGE  # re-exported: the ROS types in one place
 from gcdtrav.schemas.ros_image import IMAGE as IMAGE
 from gcdtrav.schemas.ros_nav import costmap_filter_info_cdr as costmap_filter_info_cdr  # re-exported, as below
-from gcdtrav.schemas.ros_nav import odometry_pose
+from gcdtrav.schemas.ros_nav import occupancy_grid_cdr, odometry_pose, split_stamp
 from gcdtrav.schemas.ros_nav import yaw_of_quaternion as yaw_of_quaternion  # re-exported: tf's too
 from gcdtrav.schemas.settings.ros import output_topic as output_topic  # re-exported: the service's callers use it
 from gcdtrav.service.grid.geometry import PinholeCamera
@@ -196,8 +196,8 @@ def compressed_jpeg_cdr(header: Any, jpeg: bytes) -> bytes:
 
 
 def make_header(stamp: float, frame_id: str) -> Any:
-    sec = int(stamp)
-    return header_of(sec, round((stamp - sec) * 1e9) % 1_000_000_000, frame_id)
+    sec, nanosec = split_stamp(stamp)
+    return header_of(sec, nanosec, frame_id)
 
 
 def header_of(sec: int, nanosec: int, frame_id: str) -> Any:
@@ -257,22 +257,10 @@ def occupancy_cdr(header: GridHeader, values: NDArray[np.floating], known: NDArr
 
 
 def occupancy_values_cdr(header: GridHeader, data: NDArray[np.int8]) -> bytes:
-    """nav_msgs/OccupancyGrid of the grid's cells, given their values (row i = y, column j = x, as the grid)."""
-    types = typestore().types
-    ros_header = make_header(header.stamp, header.frame_id)
-    pose = types["geometry_msgs/msg/Pose"](
-        position=types["geometry_msgs/msg/Point"](x=header.origin[0], y=header.origin[1], z=0.0),
-        orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
-    )
-    info = types["nav_msgs/msg/MapMetaData"](
-        map_load_time=ros_header.stamp,
-        resolution=header.resolution,
-        width=header.cells,
-        height=header.cells,
-        origin=pose,
-    )
-    message = types["nav_msgs/msg/OccupancyGrid"](header=ros_header, info=info, data=data.ravel())
-    return bytes(typestore().serialize_cdr(message, "nav_msgs/msg/OccupancyGrid"))
+    """nav_msgs/OccupancyGrid of the grid's cells, given their values (row i = y, column j = x, as the grid):
+    written as the relay writes its safe mask (schemas/ros_nav.py)."""
+    cells = np.asarray(data, np.int8).reshape(header.cells, header.cells)
+    return occupancy_grid_cdr(split_stamp(header.stamp), header.frame_id, header.resolution, header.origin, cells)
 
 
 # Nav2's static layer reads an OccupancyGrid value v (nav2_costmap_2d/plugins/static_layer.cpp interpretValue,

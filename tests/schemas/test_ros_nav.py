@@ -36,7 +36,7 @@ def test_an_occupancy_grid_is_what_rosbags_writes(frame_id: str) -> None:
         message(
             header=header(stamp=time(sec=12, nanosec=345), frame_id=frame_id),
             info=meta(
-                map_load_time=time(sec=0, nanosec=0),
+                map_load_time=time(sec=12, nanosec=345),
                 resolution=np.float32(0.25),
                 width=5,
                 height=3,

@@ -82,7 +82,7 @@ def test_the_costmap_is_read_from_the_services_own_cdr() -> None:
     assert costmap.stamp == pytest.approx(5.0) and np.array_equal(costmap.data, data)
     values = costmap.values()
     assert np.isnan(values[0, 0]) and values[1, 0] == 100 and values[0, 3] == 98
-    with pytest.raises(ValueError, match="CDR"):
+    with pytest.raises(ValueError, match="OccupancyGrid"):
         grid_layers.decode_occupancy_grid(b"\x00\x00\x00\x00rest")
     with pytest.raises((ValueError, Exception)):
         grid_layers.decode_occupancy_grid(occupancy_values_cdr(HEADER, data)[:-5])  # truncated
