@@ -1,7 +1,7 @@
 """Launch `gcdtrav relay --ros` on a robot with a ROS 2 workspace (docs/ros2.md):
 
     source /opt/ros/jazzy/setup.bash          # the robot's own rclpy, on its own RMW (Fast DDS, Cyclone, ...)
-    pip install gcdtrav                        # the base install: no torch
+    python -m pip install dist/gcdtrav-*.whl   # the base install's wheel (docs/ros2.md): no torch
     ros2 launch examples/ros2/relay.launch.py offboard:=tcp/192.168.1.20:7447
 
 The relay is a console script, not a ROS package: launch_ros runs the executable found on PATH (no
