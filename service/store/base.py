@@ -35,9 +35,13 @@ class Store(ABC):
 
     # ---- experience pairs ------------------------------------------------------------------------------
     @abstractmethod
-    def append_pairs(self, pairs: Sequence[PairRecord], max_pairs: int, max_bytes: int) -> AppendResult:
+    def append_pairs(
+        self, pairs: Sequence[PairRecord], max_pairs: int, max_bytes: int, batch_id: str | None = None
+    ) -> AppendResult:
         """Append in one transaction (inserts only), then delete the oldest pairs of the whole store, any tuple
-        and source, until at most ``max_pairs`` pairs and ``max_bytes`` bytes (records.pair_bytes) remain."""
+        and source, until at most ``max_pairs`` pairs and ``max_bytes`` bytes (records.pair_bytes) remain. A
+        ``batch_id`` the store already holds (the batch was committed, its answer lost, and it comes again)
+        stores nothing: ``AppendResult(0, 0, replayed=True)``."""
 
     @abstractmethod
     def pairs(self, concepts: Sequence[str], source: str | None = None) -> PairColumns:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+import uuid
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -65,6 +66,9 @@ class PairOutbox:
         self._totals = PairTotals(0, 0)  # the whole store's, read by the writer: status never waits on the store
         self._totals_at = -float("inf")
         self._writing = 0  # pairs taken from the queue into the transaction under way
+        # a batch whose transaction failed, with its id: written again as it was, before any other (its commit
+        # may have happened and only the answer been lost: the store then stores nothing twice)
+        self._retry: tuple[str, list[PairRecord]] | None = None
         self._stopping = False
         self._thread = threading.Thread(target=self._write_forever, name="gcdtrav-store", daemon=True)
 
@@ -72,7 +76,7 @@ class PairOutbox:
     def put(self, pairs: Sequence[PairRecord]) -> int:
         """Queue pairs for the store without waiting; the number accepted (the rest counted dropped)."""
         with self._changed:
-            room = max(0, self.bound - len(self._pending) - self._writing)
+            room = max(0, self.bound - len(self._pending) - self._writing - self._retried())
             accepted = list(pairs[:room])
             self._pending.extend(accepted)
             self._dropped += len(pairs) - len(accepted)
@@ -112,7 +116,7 @@ class PairOutbox:
         deadline = time.monotonic() + timeout_s
         with self._changed:
             self._changed.notify_all()
-            while self._pending or self._writing:
+            while self._pending or self._writing or self._retry:
                 left = deadline - time.monotonic()
                 if left <= 0 or not self._thread.is_alive():
                     return False
@@ -134,7 +138,7 @@ class PairOutbox:
     @property
     def pending(self) -> int:
         with self._changed:
-            return len(self._pending) + self._writing
+            return len(self._pending) + self._writing + self._retried()
 
     def state(self) -> OutboxState:
         with self._changed:
@@ -144,7 +148,7 @@ class PairOutbox:
                 reachable=self._unreachable_since is None and self._store is not None,
                 unreachable_since=self._unreachable_since,
                 error=self._error,
-                pending=len(self._pending) + self._writing,
+                pending=len(self._pending) + self._writing + self._retried(),
                 written=self._written,
                 dropped=self._dropped,
                 evicted=self._evicted,
@@ -156,22 +160,27 @@ class PairOutbox:
             with self._changed:
                 if self._stopping:
                     return
-                if not self._pending or self._unreachable_since is not None:
+                if not (self._pending or self._retry) or self._unreachable_since is not None:
                     self._changed.wait(self.retry_s if self._unreachable_since is not None else WRITE_EVERY_S)
                 if self._stopping:
                     return
-                batch = [self._pending.popleft() for _ in range(min(BATCH_PAIRS, len(self._pending)))]
+                if self._retry is not None:
+                    batch_id, batch = self._retry
+                    self._retry = None
+                else:
+                    batch_id = uuid.uuid4().hex
+                    batch = [self._pending.popleft() for _ in range(min(BATCH_PAIRS, len(self._pending)))]
                 self._writing = len(batch)
-            self._write(batch)
+            self._write(batch_id, batch)
 
-    def _write(self, batch: list[PairRecord]) -> None:
+    def _write(self, batch_id: str, batch: list[PairRecord]) -> None:
         try:
             store = self._store or self._opened(self._opener())
-            result = store.append_pairs(batch, self.max_pairs, self.max_bytes) if batch else None
+            result = store.append_pairs(batch, self.max_pairs, self.max_bytes, batch_id) if batch else None
         except StoreUnavailable as err:
             self._failed(err)
             with self._changed:
-                self._pending.extendleft(reversed(batch))  # back at the front: the order stays oldest first
+                self._retry = (batch_id, batch)  # again first, whole, under its id
                 self._writing = 0
                 self._changed.notify_all()
             return
@@ -185,7 +194,7 @@ class PairOutbox:
         totals = self._read_totals(store, force=bool(batch))
         with self._changed:
             if result is not None:
-                self._written += result.stored
+                self._written += len(batch) if result.replayed else result.stored  # a replay: written before
                 self._evicted += result.evicted
             if totals is not None:
                 self._totals, self._totals_at = totals, time.monotonic()
@@ -194,6 +203,9 @@ class PairOutbox:
                 log.info("store %s reachable again; %d pairs waiting", self.location, len(self._pending))
             self._unreachable_since, self._error = None, None
             self._changed.notify_all()
+
+    def _retried(self) -> int:
+        return len(self._retry[1]) if self._retry is not None else 0
 
     def _read_totals(self, store: Store, force: bool) -> PairTotals | None:
         """The store's totals, after a write or when the last read is older than TOTALS_EVERY_S; None if not

@@ -93,6 +93,7 @@ class PairTotals:
 class AppendResult:
     stored: int  # the pairs appended
     evicted: int  # the oldest pairs deleted to keep the bounds (fleet-wide)
+    replayed: bool = False  # the batch's id was appended before: nothing stored again
 
 
 # ---- anchor sets ----------------------------------------------------------------------------------------------

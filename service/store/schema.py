@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -53,6 +53,11 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
         "entry BIGINT NOT NULL REFERENCES anchor_history (entry))",
         "CREATE TABLE anchor_proposals (id {id}, version TEXT NOT NULL UNIQUE, proposal TEXT NOT NULL, "
         "stored_at {float} NOT NULL, instance TEXT NOT NULL)",
+    ),
+    # 1 -> 2: the batches appended, by id: a batch replayed after its commit's answer was lost stores nothing.
+    (
+        "CREATE TABLE appended_batches (id TEXT PRIMARY KEY, appended_at {float} NOT NULL)",
+        "CREATE INDEX appended_batches_by_time ON appended_batches (appended_at)",
     ),
 )
 assert len(MIGRATIONS) == SCHEMA_VERSION

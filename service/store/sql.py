@@ -35,10 +35,13 @@ from gcdtrav.service.store.records import (
 from gcdtrav.service.store.schema import MIGRATIONS, SCHEMA_VERSION, VERSION_TABLE, Dialect
 
 Lock = Literal["schema", "pairs", "anchors"]
+BATCH_IDS_KEPT_S = 86_400.0  # a batch's id is remembered a day: its replays come within the outbox's retries
 EVICT_CHUNK = 10_000  # oldest rows looked at per step while finding where the bounds are kept
 
 
 class Cursor(Protocol):
+    rowcount: int
+
     def execute(self, sql: str, params: Sequence[Any] = ..., /) -> Any: ...
     def executemany(self, sql: str, params: Sequence[Sequence[Any]], /) -> Any: ...
     def fetchone(self) -> Any: ...
@@ -139,10 +142,14 @@ class SqlStore(Store):
                 self._run(cursor, "UPDATE schema_version SET version = ? WHERE singleton = 1", (SCHEMA_VERSION,))
 
     # ---- pairs -----------------------------------------------------------------------------------------
-    def append_pairs(self, pairs: Sequence[PairRecord], max_pairs: int, max_bytes: int) -> AppendResult:
+    def append_pairs(
+        self, pairs: Sequence[PairRecord], max_pairs: int, max_bytes: int, batch_id: str | None = None
+    ) -> AppendResult:
         if not pairs:
             return AppendResult(0, 0)
         with self._transaction("pairs") as cursor:
+            if batch_id is not None and not self._first_append(cursor, batch_id):
+                return AppendResult(0, 0, replayed=True)
             tuple_ids = {key: self._tuple_id(cursor, key) for key in {p.concepts for p in pairs}}
             rows = [
                 (tuple_ids[p.concepts], p.source, p.anchor_version, p.kind, float(p.stamp), float(p.outcome),
@@ -164,6 +171,18 @@ class SqlStore(Store):
             )
             evicted = self._evict(cursor, max_pairs, max_bytes)
         return AppendResult(len(rows), evicted)
+
+    def _first_append(self, cursor: Cursor, batch_id: str) -> bool:
+        """Record the batch's id; False when it was recorded before (a replay). Ids older than a day go: a
+        replay comes within the outbox's retry, seconds or minutes later."""
+        now = time.time()
+        self._run(cursor, "DELETE FROM appended_batches WHERE appended_at < ?", (now - BATCH_IDS_KEPT_S,))
+        self._run(
+            cursor,
+            "INSERT INTO appended_batches (id, appended_at) VALUES (?, ?) ON CONFLICT (id) DO NOTHING",
+            (batch_id, now),
+        )
+        return bool(cursor.rowcount == 1)
 
     def _tuple_id(self, cursor: Cursor, concepts: tuple[str, ...]) -> int:
         text = json.dumps(list(concepts))

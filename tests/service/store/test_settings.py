@@ -12,6 +12,7 @@ from gcdtrav.schemas.settings.store import PASSWORD_ENV
 from gcdtrav.service.store import SchemaTooNew, StoreError, StoreUnavailable, open_store, store_password
 from gcdtrav.service.store.opening import service_outbox
 from gcdtrav.service.store.outbox import store_status
+from gcdtrav.service.store.schema import SCHEMA_VERSION
 from gcdtrav.service.store.sqlite import SqliteStore
 from postgres_cluster import PostgresCluster
 
@@ -97,9 +98,10 @@ def test_a_store_of_a_newer_schema_stops_the_start_in_one_line(tmp_path: Path) -
     first = service_outbox(settings)
     assert first.store is not None
     with first.store._transaction("schema") as cursor:  # type: ignore[attr-defined]
-        cursor.execute("UPDATE schema_version SET version = 2")  # as a newer gcdtrav would leave it
+        cursor.execute(f"UPDATE schema_version SET version = {SCHEMA_VERSION + 1}")  # as a newer gcdtrav would
     first.close()
-    with pytest.raises(SchemaTooNew, match=r"schema version 2, this gcdtrav knows up to 1: run a newer gcdtrav"):
+    newer = rf"schema version {SCHEMA_VERSION + 1}, this gcdtrav knows up to {SCHEMA_VERSION}: run a newer gcdtrav"
+    with pytest.raises(SchemaTooNew, match=newer):
         service_outbox(settings)
 
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from gcdtrav.schemas.anchors import Anchor, AnchorSet, default_anchor_set
 from gcdtrav.service.store import PairRecord, SchemaTooNew, Store, pair_bytes
+from gcdtrav.service.store.records import AppendResult
 from gcdtrav.service.store.schema import SCHEMA_VERSION
 from store_test_helpers import pair, proposal_of
 
@@ -179,3 +180,14 @@ def test_pair_record_weights_keep_float32(store: Store) -> None:
     record = PairRecord(GRASS, np.array([0.1, 0.2, 0.7], np.float32), 0.5, 1.0, 0, "v", "cam")
     store.append_pairs([record], 10, 10**6)
     assert store.pairs(GRASS).weights.dtype == np.float32
+
+
+def test_a_batch_appended_again_under_its_id_stores_nothing(store: Store) -> None:
+    """The outbox's replay of a batch whose commit's answer was lost (tests/service/store/test_replayed_batch.py
+    cuts it for real): the second append under the same id stores nothing, another id stores again."""
+    batch = [pair(GRASS, k) for k in range(5)]
+    assert store.append_pairs(batch, 100, 10**6, batch_id="b1") == AppendResult(5, 0)
+    assert store.append_pairs(batch, 100, 10**6, batch_id="b1") == AppendResult(0, 0, replayed=True)
+    assert store.append_pairs(batch, 100, 10**6, batch_id="b2").stored == 5
+    assert store.append_pairs(batch, 100, 10**6).stored == 5  # no id: no check (the legacy import)
+    assert len(store.pairs(GRASS)) == 15 and store.totals().pairs == 15
