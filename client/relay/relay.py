@@ -384,12 +384,10 @@ class Relay:
 
     def _start_outcomes(self, settings: RelayOutcomes) -> None:
         source = self.settings.outcome_source()
-        publishers = [
-            Guarded(self.link.declare_publisher(key, encoding=MSGPACK))
-            for key in (self.keys.outcomes(source), self.keys.planned_path(source))
-        ]
-        self.outcomes = OutcomeLink(settings, source, *publishers)
-        self._declared += [*publishers, *self.robot.subscribe_outcomes(self.outcomes)]
+        outcomes = Guarded(self.link.declare_publisher(self.keys.outcomes(source), encoding=MSGPACK))
+        path = Guarded(self.link.declare_publisher(self.keys.planned_path(source), encoding=MSGPACK))
+        self.outcomes = OutcomeLink(settings, source, outcomes, path)
+        self._declared += [outcomes, path, *self.robot.subscribe_outcomes(self.outcomes)]
         log.info("measuring outcomes of grid %s on the robot, sent every %g s at most", source, settings.batch_period_s)
 
     def outcome_uplink(self, source: str) -> float:

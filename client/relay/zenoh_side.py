@@ -34,8 +34,10 @@ log = logging.getLogger("gcdtrav.relay")
 class CameraFeed(Protocol):
     """What the robot side uses of a camera's link (client/relay/relay.py ``CameraLink``)."""
 
-    relay: RelayView
     source: str
+
+    @property
+    def relay(self) -> RelayView: ...
 
     @property
     def camera_key(self) -> str: ...
