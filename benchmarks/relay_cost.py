@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -22,7 +21,7 @@ import zenoh
 from gcdtrav.schemas.messages import ImageEnvelope
 from gcdtrav.service.backends.cpus import cpu_name
 
-from tools.loopback import free_port
+from tools.loopback import free_port, listening
 from tools.random_clipseg import save_random_clipseg
 
 TICKS = os.sysconf("SC_CLK_TCK")
@@ -43,9 +42,8 @@ def rss_mb(pid: int) -> float:
 def wait_for_port(port: int, timeout_s: float = 60.0) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        with socket.socket() as probe:
-            if probe.connect_ex(("127.0.0.1", port)) == 0:
-                return
+        if listening(port):
+            return
         time.sleep(0.2)
     raise SystemExit(f"nothing listens on port {port}")
 

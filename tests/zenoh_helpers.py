@@ -9,6 +9,7 @@ import zenoh
 from gcdtrav.client.session.zenoh_args import zenoh_config
 
 from tools.loopback import free_port as free_port  # re-exported: tests take it from here
+from tools.loopback import listening as listening  # re-exported
 from tools.loopback import serve_command
 from tools.loopback import waits_before_dropping as waits_before_dropping  # re-exported
 

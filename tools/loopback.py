@@ -43,6 +43,12 @@ def free_port() -> int:
         return int(sock.getsockname()[1])
 
 
+def listening(port: int) -> bool:
+    """Whether something accepts TCP on the loopback ``port`` (a service or a router that came up)."""
+    with socket.socket() as probe:
+        return probe.connect_ex(("127.0.0.1", port)) == 0
+
+
 def waits_before_dropping(config: zenoh.Config) -> zenoh.Config:
     """``config``, waiting up to 1 s (5 s for a fragmented sample) for a free batch before dropping a sample put
     with congestion control DROP (the service's maps, a put's default) instead of zenoh's 1 ms (50 ms): on a

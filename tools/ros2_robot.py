@@ -232,3 +232,18 @@ def stop_process(process: subprocess.Popen[Any], timeout_s: float = 15.0) -> int
             process.wait()
             return -9
     return int(process.returncode)
+
+
+NO_SHM = "transport/shared_memory/enabled:false"  # or payloads between processes of one host bypass a proxy
+
+
+def relayed_service_yaml(source: str, camera: str, grid: str = "", rest: str = "", resolution_m: float = 0.25) -> str:
+    """A `gcdtrav serve` settings file for one relayed robot's grid (as examples/ros2/service.yaml, every frame
+    inferred): ``camera`` the line that gives its intrinsics, ``grid`` more of the grid's lines, ``rest`` more
+    top-level sections; indented as YAML under the grid."""
+    lines = [
+        "instance: box-1", "preview: false", "reuse: {enabled: false}", "grids:", f"  - source: {source}",
+        f"    {camera}", "    mount: {z: 1.0, pitch: 0.6}", "    size_m: 8.0", f"    resolution_m: {resolution_m}",
+        "    pose_key: robot/r1/pose", *(f"    {line}" for line in grid.splitlines() if line.strip()),
+    ]  # fmt: skip
+    return "\n".join(lines) + "\n" + rest

@@ -18,7 +18,6 @@ from __future__ import annotations
 import contextlib
 import random
 import signal
-import socket
 import subprocess
 import threading
 import time
@@ -32,17 +31,19 @@ import pytest
 import zenoh
 from conftest import textured_image
 from real_components import require_rclpy
-from zenoh_helpers import free_port, serve_args, start_router, wait_until
+from zenoh_helpers import free_port, listening, serve_args, start_router, wait_until
 
 pytest.importorskip("torch")
 require_rclpy()
 
 from tools.ros2_robot import (  # noqa: E402
+    NO_SHM,
     Camera,
     LogFile,
     Odometry,
     RosRobot,
     relay_command,
+    relayed_service_yaml,
     ros_environment,
     stop_process,
 )
@@ -56,22 +57,10 @@ T_TOPIC = f"{CAMERA}/gcdtrav/traversability"
 FLOOR = 0.25
 GRID_RESOLUTION, SAFE_RESOLUTION = 0.25, 1.0  # the relay's safe mask (its default cells) is told apart
 SLACK_S = 0.5  # the issue's bound: safe within after_s + 0.5 s
-NO_SHM = "transport/shared_memory/enabled:false"  # or payloads between processes of one host bypass the proxy
 CAMERA_INFO = "camera_info_key: robot/r1/front/camera_info"
-SERVICE_SETTINGS = f"""
-instance: box-1
-preview: false
-reuse: {{enabled: false}}
-grids:
-  - source: {SOURCE}
-    {CAMERA_INFO}
-    mount: {{z: 1.0, pitch: 0.6}}
-    size_m: 8.0
-    resolution_m: {GRID_RESOLUTION}
-    pose_key: robot/r1/pose
-    costmap: true
-    speed: {{floor: {FLOOR}, rate_hz: 10.0}}
-"""
+SERVICE_SETTINGS = relayed_service_yaml(
+    SOURCE, CAMERA_INFO, f"costmap: true\nspeed: {{floor: {FLOOR}, rate_hz: 10.0}}", resolution_m=GRID_RESOLUTION
+)
 
 
 @pytest.fixture(scope="module")
@@ -219,11 +208,6 @@ def camera_straight_to_the_service(port: int) -> Iterator[None]:
         stop.set()
         thread.join(5)
         session.close()
-
-
-def listening(port: int) -> bool:
-    with socket.socket() as probe:
-        return probe.connect_ex(("127.0.0.1", port)) == 0
 
 
 @contextmanager

@@ -21,7 +21,15 @@ import numpy as np
 import pytest
 import zenoh
 from conftest import textured_image
-from zenoh_helpers import client_config, free_port, serve_args, start_router, subscribed_elsewhere, wait_until
+from zenoh_helpers import (
+    client_config,
+    free_port,
+    listening,
+    serve_args,
+    start_router,
+    subscribed_elsewhere,
+    wait_until,
+)
 
 pytest.importorskip("torch")
 
@@ -29,26 +37,17 @@ from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.messages import ImageEnvelope, PixelEncoding, Pose2D
 from gcdtrav.schemas.ros_nav import occupancy_grid_geometry
 
-from tools.ros2_robot import LogFile, relay_command, stop_process
+from tools.ros2_robot import NO_SHM, LogFile, relay_command, relayed_service_yaml, stop_process
 
 SOURCE, CAMERA_KEY = "r1/front", "robot/r1/front/jpeg"
 POSE_KEY, ODOMETRY_KEY = "robot/r1/pose", "0/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_test"
 MASK_KEY = f"gcdtrav/out/{SOURCE}/grid/speed_mask"
 FLOOR, AFTER_S, SLACK_S = 0.4, 1.5, 0.5
-NO_SHM = "transport/shared_memory/enabled:false"
-SERVICE_SETTINGS = f"""
-instance: box-1
-preview: false
-reuse: {{enabled: false}}
-grids:
-  - source: {SOURCE}
-    intrinsics: {{fx: 200, fy: 200, cx: 160, cy: 120, width: 320, height: 240}}
-    mount: {{z: 1.0, pitch: 0.6}}
-    size_m: 8.0
-    resolution_m: 0.25
-    pose_key: {POSE_KEY}
-    speed: {{floor: {FLOOR}, rate_hz: 10.0}}
-"""
+SERVICE_SETTINGS = relayed_service_yaml(
+    SOURCE,
+    "intrinsics: {fx: 200, fy: 200, cx: 160, cy: 120, width: 320, height: 240}",
+    f"speed: {{floor: {FLOOR}, rate_hz: 10.0}}",
+)
 
 
 def odometry_cdr(x: float, stamp: float) -> bytes:
@@ -128,7 +127,7 @@ def test_the_zenoh_relay_puts_the_safe_mask_on_the_robots_bus_when_the_service_d
     bus = zenoh.open(client_config(robot_port))
     relay = None
     try:
-        assert wait_until(lambda: service_is_listening(service_port), 60), service_log.text()
+        assert wait_until(lambda: listening(service_port), 60), service_log.text()
         relay = subprocess.Popen(
             relay_command(
                 *("--camera", CAMERA_KEY, "--source", SOURCE, "-e", f"tcp/127.0.0.1:{service_port}"),
@@ -165,10 +164,3 @@ def test_the_zenoh_relay_puts_the_safe_mask_on_the_robots_bus_when_the_service_d
         bus.close()
         stop_process(router)
     assert "Traceback" not in relay_log.text()
-
-
-def service_is_listening(port: int) -> bool:
-    import socket
-
-    with socket.socket() as probe:
-        return probe.connect_ex(("127.0.0.1", port)) == 0

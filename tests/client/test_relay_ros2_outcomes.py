@@ -6,7 +6,6 @@ calibration` grades them, and a proposal is made from them."""
 from __future__ import annotations
 
 import random
-import socket
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
@@ -15,44 +14,41 @@ from typing import Any
 import pytest
 from conftest import textured_image, torch_free_gcdtrav
 from real_components import require_rclpy
-from zenoh_helpers import client_config, free_port, serve_args, wait_until
+from zenoh_helpers import client_config, free_port, listening, serve_args, wait_until
 
 pytest.importorskip("torch")
 require_rclpy()
 
 from gcdtrav.client import QueryTimeout, ServiceError, TraversabilityClient  # noqa: E402
 
-from tools.ros2_robot import Camera, LogFile, Odometry, RosRobot, relay_command, ros_environment, stop_process  # noqa: E402
+from tools.ros2_robot import (  # noqa: E402
+    Camera,
+    LogFile,
+    Odometry,
+    RosRobot,
+    relay_command,
+    relayed_service_yaml,
+    ros_environment,
+    stop_process,
+)
 
 DOMAIN = random.randint(100, 200)
 SOURCE, CAMERA = "r1/front", "/r1/front/image_raw"
-SERVICE_SETTINGS = f"""
-instance: box-1
-preview: false
-reuse: {{enabled: false}}
-grids:
-  - source: {SOURCE}
-    camera_info_key: robot/r1/front/camera_info
-    mount: {{z: 1.0, pitch: 0.6}}
-    size_m: 8.0
-    resolution_m: 0.25
-    pose_key: robot/r1/pose
-experience:
+SERVICE_SETTINGS = relayed_service_yaml(
+    SOURCE,
+    "camera_info_key: robot/r1/front/camera_info",
+    rest="""experience:
   enabled: true                     # no cmd_vel or odometry here: the outcomes come from the robot's relay
   lookahead_s: 1.0
   min_pairs_per_anchor: 1
-"""
+""",
+)
 
 
 @pytest.fixture(scope="module")
 def ros_domain() -> Iterator[int]:
     with ros_environment(DOMAIN):
         yield DOMAIN
-
-
-def listening(port: int) -> bool:
-    with socket.socket() as probe:
-        return probe.connect_ex(("127.0.0.1", port)) == 0
 
 
 def test_outcomes_measured_behind_a_ros_relay_are_paired_graded_and_proposed_from(

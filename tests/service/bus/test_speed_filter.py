@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
-from zenoh_helpers import connecting_config, wait_until
+from zenoh_helpers import connecting_config, listening, wait_until
 
 pytest.importorskip("rosbags")
 pytest.importorskip("xxhash")
@@ -252,7 +252,7 @@ def test_sigterm_to_gcdtrav_serve_leaves_nav2_the_safe_mask(tiny_model_dir: Path
     process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     nav2 = None
     try:
-        assert wait_until(lambda: _listening(port), 60), "gcdtrav serve did not start"
+        assert wait_until(lambda: listening(port), 60), "gcdtrav serve did not start"
         nav2 = Nav2Side(port)
         sent = [0.0]
 
@@ -278,10 +278,3 @@ def test_sigterm_to_gcdtrav_serve_leaves_nav2_the_safe_mask(tiny_model_dir: Path
             process.communicate()
         if nav2 is not None:
             nav2.close()
-
-
-def _listening(port: int) -> bool:
-    import socket
-
-    with socket.socket() as probe:
-        return probe.connect_ex(("127.0.0.1", port)) == 0
