@@ -1,6 +1,6 @@
 """`gcdtrav doctor`: what to run first on a new box. The CPU and its features, the versions that matter,
-whether the weights are found, every precision mode's time and parity here, the mode auto picks, and
-the frames/s to expect."""
+whether the weights are found, this machine's floor for a frame (service/backends/floor.py), every precision
+mode's time (and its multiple of the floor) and parity here, the mode auto picks, and the frames/s to expect."""
 
 from __future__ import annotations
 
@@ -104,14 +104,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"\nfigures of an earlier measurement on this machine, cached in {backend.cache_dir / 'precision'}")
         print("(gcdtrav doctor --measure measures again)")
     measured = choice.measurements
-    print(f"\n| mode | ms per frame | frames/s | p99 abs dT vs fp32 | parity (<= {PARITY_P99_DT_LIMIT}) |")
-    print("|---|---:|---:|---:|---|")
+    floor_ms = print_floor(backend, modes)
+    print(f"\n| mode | ms per frame | x floor | frames/s | p99 abs dT vs fp32 | parity (<= {PARITY_P99_DT_LIMIT}) |")
+    print("|---|---:|---:|---:|---:|---|")
     for m in measured:
         if m.ms_per_frame is None or m.p99_dT is None:
-            print(f"| {m.mode} | - | - | - | cannot run here: {m.error} |")
+            print(f"| {m.mode} | - | - | - | - | cannot run here: {m.error} |")
             continue
         verdict = "passes" if m.passes else "FAILS"
-        print(f"| {m.mode} | {m.ms_per_frame:.0f} | {1000 / m.ms_per_frame:.2f} | {m.p99_dT:.4f} | {verdict} |")
+        multiple = f"{m.ms_per_frame / floor_ms:.1f}" if floor_ms else "-"
+        frame = f"{m.ms_per_frame:.0f} | {multiple} | {1000 / m.ms_per_frame:.2f}"
+        print(f"| {m.mode} | {frame} | {m.p99_dT:.4f} | {verdict} |")
     best = next(m for m in measured if m.mode == choice.mode)
     print(f"\nprecision auto picks {choice.mode} here.")
     if best.ms_per_frame:
@@ -120,3 +123,25 @@ def run(args: argparse.Namespace) -> int:
             "(the GCD engine, decoding and encoding add a few ms per frame; gcdtrav bench measures them)."
         )
     return EXIT_OK
+
+
+def print_floor(backend: Any, modes: list[str]) -> float | None:
+    """Print this machine's floor for a frame's ViT products, per arithmetic the modes use; the lowest, ms."""
+    import torch
+    from gcdtrav.service.backends.floor import measure_floors, trunk_shape
+    from gcdtrav.service.backends.modes import runtime_mode
+
+    shape = trunk_shape(backend.model.config, backend.vision_tokens)
+    floors = measure_floors(shape, {runtime_mode(mode).trunk for mode in modes}, torch.get_num_threads())
+    print(
+        f"\nfloor        {shape.matmul_flops / 1e9:.3g} GFLOP of ViT matrix products a frame ({shape.layers} layers, "
+        f"{shape.tokens} tokens),\n             at this machine's rate for the model's "
+        f"{shape.tokens}x{shape.hidden}x{shape.mlp} product ({torch.get_num_threads()} threads):"
+    )
+    for floor in floors:
+        rate = f"{floor.operations_per_s / 1e9:,.0f} G{'OP' if floor.arithmetic == 'int8' else 'FLOP'}/s"
+        print(f"             {floor.arithmetic:<5} ({floor.runtime}) {rate} -> {floor.ms(shape):.3g} ms")
+    lowest = min((floor.ms(shape) for floor in floors), default=None)
+    if lowest is not None:
+        print(f"             x floor below: a mode's frame over the lowest, {lowest:.3g} ms")
+    return lowest

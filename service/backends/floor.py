@@ -1,0 +1,113 @@
+"""This machine's floor for a frame (issue 60): the matrix products of the ViT layers a frame runs, divided by the
+rate at which this machine multiplies matrices of the model's own shape, for each arithmetic it can run.
+
+The products are the trunk's: per layer the Q, K, V and output projections, the two MLP products and the
+attention's two token-by-token products, for the layers up to the last one the decoder reads (10 of 12 in
+rd64-refined). The decoder, the upsampling and the engine are left out: the floor is what no runtime can beat,
+not an estimate of a frame. A rate is measured on the MLP's first product (tokens x hidden x mlp), with the
+threads the caller set: fp32 and bf16 by torch, int8 by ONNX Runtime's MatMulInteger (the op its dynamic
+quantization runs). Medians of a few repeats: a floor, not a benchmark.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from gcdtrav.service.backends.modes import Arithmetic
+
+WARMUP, REPEATS = 2, 7
+
+
+@dataclass(frozen=True)
+class TrunkShape:
+    tokens: int  # one per patch, plus the class token
+    hidden: int
+    mlp: int
+    layers: int  # layers a frame runs: up to the last one the decoder reads
+
+    @property
+    def matmul_flops(self) -> float:
+        """Floating-point operations (a multiply and an add each count one) of the products of the layers run."""
+        projections = 2 * self.tokens * self.hidden * (4 * self.hidden + 2 * self.mlp)
+        attention = 2 * 2 * self.tokens * self.tokens * self.hidden  # scores and the weighted values
+        return float(self.layers * (projections + attention))
+
+
+def trunk_shape(config: Any, tokens: int) -> TrunkShape:
+    """The trunk's shape from a CLIPSeg config (``transformers.CLIPSegConfig``) at ``tokens`` tokens."""
+    vision = config.vision_config
+    layers = max(config.extract_layers) + 1
+    return TrunkShape(tokens, int(vision.hidden_size), int(vision.intermediate_size), layers)
+
+
+@dataclass(frozen=True)
+class Floor:
+    arithmetic: Arithmetic
+    runtime: str
+    operations_per_s: float  # of the model's own product shape, on this machine's threads
+
+    def ms(self, shape: TrunkShape) -> float:
+        return 1000.0 * shape.matmul_flops / self.operations_per_s
+
+
+def _median_s(run: Callable[[], object]) -> float:
+    for _ in range(WARMUP):
+        run()
+    times = []
+    for _ in range(REPEATS):
+        start = time.perf_counter()
+        run()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def _torch_rate(shape: TrunkShape, dtype_name: str) -> float:
+    import torch
+
+    dtype = getattr(torch, dtype_name)
+    left = torch.randn(shape.tokens, shape.hidden, dtype=dtype)
+    right = torch.randn(shape.hidden, shape.mlp, dtype=dtype)
+    with torch.inference_mode():
+        seconds = _median_s(lambda: torch.matmul(left, right))
+    return 2.0 * shape.tokens * shape.hidden * shape.mlp / seconds
+
+
+def _onnx_int8_rate(shape: TrunkShape, threads: int) -> float:
+    import numpy as np
+    import onnxruntime
+    from onnx import TensorProto, helper, numpy_helper
+
+    weights = np.random.default_rng(0).integers(-127, 128, (shape.hidden, shape.mlp), dtype=np.int8)
+    graph = helper.make_graph(
+        [helper.make_node("MatMulInteger", ["a", "b", "a_zero"], ["y"])],
+        "product",
+        [helper.make_tensor_value_info("a", TensorProto.UINT8, [shape.tokens, shape.hidden])],
+        [helper.make_tensor_value_info("y", TensorProto.INT32, [shape.tokens, shape.mlp])],
+        [numpy_helper.from_array(weights, "b"), numpy_helper.from_array(np.array(128, np.uint8), "a_zero")],
+    )
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
+    session = onnxruntime.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+    activations = np.random.default_rng(1).integers(0, 256, (shape.tokens, shape.hidden), dtype=np.uint8)
+    seconds = _median_s(lambda: session.run(None, {"a": activations}))
+    return 2.0 * shape.tokens * shape.hidden * shape.mlp / seconds
+
+
+def measure_floors(shape: TrunkShape, arithmetics: set[Arithmetic], threads: int) -> list[Floor]:
+    """One floor per arithmetic in ``arithmetics`` this machine can measure (int8 needs onnxruntime and onnx)."""
+    floors = []
+    for arithmetic in sorted(arithmetics):
+        if arithmetic == "int8":
+            try:
+                floors.append(Floor("int8", "onnxruntime", _onnx_int8_rate(shape, threads)))
+            except ImportError:
+                continue
+        else:
+            dtype = "float32" if arithmetic == "fp32" else "bfloat16"
+            floors.append(Floor(arithmetic, "torch", _torch_rate(shape, dtype)))
+    return floors
