@@ -1,10 +1,12 @@
 """`gcdtrav bench`: per-frame cost of every backend mode of your checkpoint on this machine, in one process.
 
 Rows: transformers' naive forward; the fast path in every precision this machine runs; attention and
-thread variants; cost against the number of anchors and the input size; the GCD engine and map encoding
-alone. Parity of each fast mode against fp32 is measured on logits brought to a trained model's scale
-(see ``parity``). The repository's ``benchmarks/bench.py`` runs the same on random weights of the real
-architecture and adds the service rows (zenoh on loopback, simulated robots)."""
+thread variants; cost against the number of anchors and the input size; one frame in its stages
+(preprocessing, vision transformer, decoder and upsampling, engine, encoding) with each one's share, and
+this machine's floor for the frame's ViT products; the GCD engine and map encoding alone. Parity of each
+fast mode against fp32 is measured on logits brought to a trained model's scale (see ``parity``). The
+repository's ``benchmarks/bench.py`` runs the same on random weights of the real architecture and adds the
+service rows (zenoh on loopback, simulated robots)."""
 
 from __future__ import annotations
 
@@ -201,6 +203,37 @@ class Bench:
             finally:
                 torch.set_num_threads(threads)
 
+    def run_stages(self, precision: str) -> None:
+        """One frame of ``precision`` in its stages, timed in turns (service/backends/timing.py), each with its
+        share of their sum, and the machine's floor for the frame's ViT products beside it (issue 60). The
+        decoder's row holds its upsampling: ONNX Runtime runs both in one graph."""
+        import torch
+        from gcdtrav.service.backends.floor import measure_floors, trunk_shape
+
+        backend = self.backend(precision)
+        prepared = backend.prepare(self.anchors.concepts)
+        pixels = backend.preprocess(self.image)
+        activations = backend.vision_activations(pixels)
+        logits = backend.decode(activations, prepared).numpy()
+        maps = compute_maps(logits, self.anchors, EngineSettings())
+        stages: dict[str, Callable[[], object]] = {
+            "preprocessing": lambda: backend.preprocess(self.image),
+            "vision transformer": lambda: backend.vision_activations(pixels),
+            "decoder and upsampling": lambda: backend.decode(activations, prepared),
+            "GCD engine (T and U)": lambda: compute_maps(logits, self.anchors, EngineSettings()),
+            "encoding T and U (PNG)": lambda: encode_maps_png16(maps.traversability, maps.uncertainty),
+        }
+        with torch.inference_mode(), RssSampler() as rss:
+            times = interleaved_ms(stages, self.runs, warmup=1)
+        total = sum(statistics.median(t) for t in times.values())
+        for name, stage_times in times.items():
+            share = f"{100 * statistics.median(stage_times) / total:.0f} % of the frame's stages"
+            self.add(make_row(f"{name} ({precision})", "stage", stage_times, rss.peak, share))
+        shape = trunk_shape(backend.model.config, backend.vision_tokens)
+        for floor in measure_floors(shape, {runtime_mode(precision).trunk}, torch.get_num_threads()):
+            note = f"{shape.matmul_flops / 1e9:.3g} GFLOP at {floor.operations_per_s / 1e9:,.0f} G/s ({floor.runtime})"
+            self.add(make_row(f"floor: ViT products in {floor.arithmetic}", "floor", [floor.ms(shape)], 0.0, note))
+
     def fastest_within_parity(self) -> str:
         """What precision auto picks, from this run's rows: the fastest mode within the parity gate."""
         timed = {r.name[len("fast path ") :]: r.median_ms for r in self.rows if r.name.startswith("fast path ")}
@@ -321,7 +354,7 @@ def build_parser(parser: argparse.ArgumentParser | None = None) -> argparse.Argu
     parser.add_argument("--runs", type=int, default=7, help="timed runs per row (after one warm-up) [7]")
     parser.add_argument("--naive-runs", type=int, default=5, help="timed runs of the slow naive forward [5]")
     parser.add_argument("--modes", default="", help="fast modes compared with fp32 [every mode this machine can run]")
-    parser.add_argument("--skip", default="", help="comma list of parts to skip: modes,sweeps,engine")
+    parser.add_argument("--skip", default="", help="comma list of parts to skip: modes,sweeps,stages,engine")
     parser.add_argument("--out", type=Path, default=Path("gcdtrav-bench.json"), help="JSON output [gcdtrav-bench.json]")
     return parser
 
@@ -352,6 +385,9 @@ def run(args: argparse.Namespace, cache_dir: Path | None = None, more_rows: More
     if "sweeps" not in skip:
         log_line(f"cost against anchors and input size ({default_precision}):")
         bench.run_sweeps(default_precision)
+    if "stages" not in skip:
+        log_line(f"one frame in stages ({default_precision}), and this machine's floor for it:")
+        bench.run_stages(default_precision)
     if "engine" not in skip:
         log_line("engine and encoding alone:")
         bench.run_engine()
@@ -369,6 +405,9 @@ def run(args: argparse.Namespace, cache_dir: Path | None = None, more_rows: More
     fast = next((r for r in bench.rows if r.name == f"fast path {default_precision}"), None)
     if naive and fast:
         summary["speedup_default_vs_naive"] = round(naive.median_ms / fast.median_ms, 1)
+    floor = next((r for r in bench.rows if r.group == "floor"), None)
+    if fast and floor:
+        summary["default_vs_floor"] = round(fast.median_ms / floor.median_ms, 2)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(summary, indent=2) + "\n", "utf-8")
     print(machine_header(info))
@@ -386,6 +425,8 @@ def run(args: argparse.Namespace, cache_dir: Path | None = None, more_rows: More
                     f"  {row.name[len('fast path ') :]:<14} {fp32.median_ms / row.median_ms:5.2f}x fp32, "
                     f"{naive.median_ms / row.median_ms:6.1f}x naive"
                 )
+    if floor and "default_vs_floor" in summary:
+        print(f"\ndefault ({default_precision}): {summary['default_vs_floor']}x this machine's floor ({floor.name})")
     if "speedup_default_vs_naive" in summary:
         print(
             f"\ndefault ({default_precision}) vs transformers' naive forward: "

@@ -61,3 +61,30 @@ def test_shipped_bench_times_the_given_checkpoint_without_service_rows(tiny_mode
     assert not {"zenoh", "robots"} & {row["group"] for row in rows}  # those need the repository's tools/
     with pytest.raises(SystemExit):  # the service options belong to benchmarks/bench.py
         bench.main([*argv, "--robots", "1"])
+
+
+def test_bench_breaks_a_frame_into_stages_and_names_the_floor(tiny_model_dir: Path, tmp_path: Path) -> None:
+    from gcdtrav.service.commands import bench
+
+    out = tmp_path / "bench.json"
+    argv = ["--model", str(tiny_model_dir), "--runs", "2", "--naive-runs", "1", "--modes", "int8"]
+    assert bench.main([*argv, "--skip", "sweeps,engine", "--out", str(out)]) == 0
+    summary = json.loads(out.read_text("utf-8"))
+    precision = summary["default_precision"]
+    stages = [row for row in summary["rows"] if row["group"] == "stage"]
+    assert [row["name"] for row in stages] == [
+        f"{stage} ({precision})"
+        for stage in (
+            "preprocessing",
+            "vision transformer",
+            "decoder and upsampling",
+            "GCD engine (T and U)",
+            "encoding T and U (PNG)",
+        )
+    ]
+    shares = [float(row["note"].split(" %")[0]) for row in stages]
+    assert sum(shares) == pytest.approx(100, abs=len(shares))  # each rounded to a whole per cent
+    (floor,) = [row for row in summary["rows"] if row["group"] == "floor"]
+    assert floor["name"].startswith("floor: ViT products in ") and floor["median_ms"] > 0
+    fast = next(row for row in summary["rows"] if row["name"] == f"fast path {precision}")
+    assert summary["default_vs_floor"] == pytest.approx(fast["median_ms"] / floor["median_ms"], rel=0.01)
