@@ -12,12 +12,12 @@ quantization runs). Medians of a few repeats: a floor, not a benchmark.
 from __future__ import annotations
 
 import statistics
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from gcdtrav.service.backends.modes import Arithmetic
+from gcdtrav.service.backends.timing import interleaved_ms
 
 WARMUP, REPEATS = 2, 7
 
@@ -55,14 +55,7 @@ class Floor:
 
 
 def _median_s(run: Callable[[], object]) -> float:
-    for _ in range(WARMUP):
-        run()
-    times = []
-    for _ in range(REPEATS):
-        start = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return statistics.median(interleaved_ms({"product": run}, REPEATS, WARMUP)["product"]) / 1000.0
 
 
 def _torch_rate(shape: TrunkShape, dtype_name: str) -> float:
