@@ -30,6 +30,8 @@ ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little-endian
 
 COSTMAP_FILTER_INFO = "nav2_msgs/msg/CostmapFilterInfo"
 SPEED_FILTER_PERCENT = 1  # CostmapFilterInfo.type: a mask value v is v percent of the maximum speed (filter_values.hpp)
+NO_LIMIT = 0  # a speed mask value (and SpeedLimit.speed_limit) Nav2 reads as "no limit"
+LOWEST_PERCENT, HIGHEST_PERCENT = 1, 100
 DEFAULT_ODOMETRY_FRAME = "odom"  # an Odometry whose header names no frame: REP 105's odometry frame
 
 
@@ -103,6 +105,14 @@ def occupancy_grid_cdr(
         writer.number("d", value)
     writer.octets(np.ascontiguousarray(cells, np.int8).tobytes())
     return writer.done()
+
+
+def speed_mask_values(fractions: NDArray[np.floating]) -> NDArray[np.int8]:
+    """The speed filter mask's nav_msgs/OccupancyGrid values for fractions of maximum speed: percent, 1..100,
+    and 0 (no limit) at full speed; never -1 (SpeedFilter keeps its old limit on it); not a number: the lowest.
+    The service's grids and the relay's safe mask both write these."""
+    percent = np.clip(np.round(np.nan_to_num(fractions, nan=0.0) * 100), LOWEST_PERCENT, HIGHEST_PERCENT)
+    return np.where(percent >= HIGHEST_PERCENT, NO_LIMIT, percent).astype(np.int8)
 
 
 def costmap_filter_info_cdr(frame_id: str, mask_topic: str) -> bytes:

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from gcdtrav.schemas.relay import SafeMaskSettings
-from gcdtrav.schemas.ros_nav import GridGeometry
+from gcdtrav.schemas.ros_nav import GridGeometry, speed_mask_values
 from numpy.typing import NDArray
 
 LIVE, SAFE, WAITING = "live", "safe", "waiting"  # WAITING: no live mask yet, and the service not quiet yet
@@ -63,9 +63,8 @@ class SafeMask:
 
 
 def floor_percent(floor: float) -> int:
-    """The floor as a mask value, as the service writes it (service/grid/speed.py): 1..99, 0 for "no limit"."""
-    percent = int(np.clip(round(floor * 100), 1, 100))
-    return 0 if percent >= 100 else percent
+    """The floor as a mask value, as the service writes it: 1..99, 0 for "no limit"."""
+    return int(speed_mask_values(np.array(floor))[()])
 
 
 class MaskGuard:

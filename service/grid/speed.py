@@ -21,12 +21,10 @@ import math
 
 import cv2
 import numpy as np
+from gcdtrav.schemas.ros_nav import HIGHEST_PERCENT, LOWEST_PERCENT, NO_LIMIT
 from gcdtrav.schemas.settings import GridSpeedSettings
 from gcdtrav.service.grid.layers import GridLayers
 from numpy.typing import NDArray
-
-NO_LIMIT = 0  # a mask value (and SpeedLimit.speed_limit) Nav2 reads as "no limit"
-LOWEST_PERCENT, HIGHEST_PERCENT = 1, 100
 
 
 def ramp(values: NDArray[np.floating], start: float, end: float) -> NDArray[np.float32]:
@@ -59,13 +57,6 @@ def lead_in(fractions: NDArray[np.float32], lead_m: float, resolution_m: float) 
         return fractions
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
     return np.asarray(cv2.erode(fractions, disc, borderType=cv2.BORDER_REPLICATE), np.float32)
-
-
-def mask_values(fractions: NDArray[np.floating]) -> NDArray[np.int8]:
-    """The speed filter mask's nav_msgs/OccupancyGrid values: percent of maximum speed, 1..100, and 0 (no
-    limit) at full speed; never -1."""
-    percent = np.clip(np.round(np.nan_to_num(fractions, nan=0.0) * 100), LOWEST_PERCENT, HIGHEST_PERCENT)
-    return np.where(percent >= HIGHEST_PERCENT, NO_LIMIT, percent).astype(np.int8)
 
 
 def limit_percent(fraction: float) -> float:

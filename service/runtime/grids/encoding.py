@@ -9,6 +9,7 @@ import numpy as np
 from gcdtrav.schemas.experience import OperatorQuestion
 from gcdtrav.schemas.grid_layers import encode_layers
 from gcdtrav.schemas.messages import GridHeader, GridMessage
+from gcdtrav.schemas.ros_nav import speed_mask_values
 from gcdtrav.schemas.settings import GridSettings, RiskSettings
 from gcdtrav.service.grid import speed
 from gcdtrav.service.grid.layers import GridLayers, nav2_costs
@@ -112,7 +113,7 @@ def speed_of(
     at = None if robot is None else speed.fraction_at(fractions, header.origin, header.resolution, robot[0], robot[1])
     fraction = speed.safe_fraction(config.speed) if at is None else at
     limit = speed_limit_cdr(header.stamp, header.frame_id, speed.limit_percent(fraction))
-    mask = occupancy_values_cdr(header, speed.mask_values(fractions)) if with_mask else None
+    mask = occupancy_values_cdr(header, speed_mask_values(fractions)) if with_mask else None
     return SpeedUpdate(config.source, mask, limit, header.frame_id, ros, safe)
 
 

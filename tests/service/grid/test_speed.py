@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from gcdtrav.schemas.ros_nav import speed_mask_values as mask_values
 from gcdtrav.schemas.settings import GridSettings, GridSpeedSettings
 from gcdtrav.service.grid import speed
 from gcdtrav.service.grid.layers import GridLayers
-from gcdtrav.service.grid.speed import fraction_at, lead_in, limit_percent, mask_values
+from gcdtrav.service.grid.speed import fraction_at, lead_in, limit_percent
 from pydantic import ValidationError
 
 U_MAX = 0.5  # the largest std of a mixture over [0, 1] with zero widths (half at 0, half at 1)
