@@ -76,7 +76,7 @@ class PairOutbox:
     def put(self, pairs: Sequence[PairRecord]) -> int:
         """Queue pairs for the store without waiting; the number accepted (the rest counted dropped)."""
         with self._changed:
-            room = max(0, self.bound - len(self._pending) - self._writing - self._retried())
+            room = max(0, self.bound - self._held())
             accepted = list(pairs[:room])
             self._pending.extend(accepted)
             self._dropped += len(pairs) - len(accepted)
@@ -116,7 +116,7 @@ class PairOutbox:
         deadline = time.monotonic() + timeout_s
         with self._changed:
             self._changed.notify_all()
-            while self._pending or self._writing or self._retry:
+            while self._held():
                 left = deadline - time.monotonic()
                 if left <= 0 or not self._thread.is_alive():
                     return False
@@ -138,7 +138,7 @@ class PairOutbox:
     @property
     def pending(self) -> int:
         with self._changed:
-            return len(self._pending) + self._writing + self._retried()
+            return self._held()
 
     def state(self) -> OutboxState:
         with self._changed:
@@ -148,7 +148,7 @@ class PairOutbox:
                 reachable=self._unreachable_since is None and self._store is not None,
                 unreachable_since=self._unreachable_since,
                 error=self._error,
-                pending=len(self._pending) + self._writing + self._retried(),
+                pending=self._held(),
                 written=self._written,
                 dropped=self._dropped,
                 evicted=self._evicted,
@@ -180,7 +180,7 @@ class PairOutbox:
         except StoreUnavailable as err:
             self._failed(err)
             with self._changed:
-                self._retry = (batch_id, batch)  # again first, whole, under its id
+                self._retry = (batch_id, batch) if batch else None  # again first, whole, under its id
                 self._writing = 0
                 self._changed.notify_all()
             return
@@ -204,8 +204,9 @@ class PairOutbox:
             self._unreachable_since, self._error = None, None
             self._changed.notify_all()
 
-    def _retried(self) -> int:
-        return len(self._retry[1]) if self._retry is not None else 0
+    def _held(self) -> int:
+        """Pairs not yet in the store: queued, in the transaction under way, or waiting to be retried (lock held)."""
+        return len(self._pending) + self._writing + (len(self._retry[1]) if self._retry is not None else 0)
 
     def _read_totals(self, store: Store, force: bool) -> PairTotals | None:
         """The store's totals, after a write or when the last read is older than TOTALS_EVERY_S; None if not
