@@ -1,7 +1,7 @@
 """The `gcdtrav` command: `infer` (offline), `serve` (Zenoh service), `bench` (benchmarks), `doctor` (this
 machine's modes: the first thing to run on a new box), and the torch-free operator commands `status` and
-`anchors` (gcdtrav.client.commands.operator), `view` (Foxglove, gcdtrav.client.view) and `relay` (on the robot,
-gcdtrav.client.commands.relay)."""
+`anchors` (gcdtrav.client.commands.operator), `view` (Foxglove, gcdtrav.client.view), `relay` (on the robot,
+gcdtrav.client.commands.relay) and `identity` (certificates and access control, gcdtrav.client.commands.identity)."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from gcdtrav.client.commands import identity as identity_command
 from gcdtrav.client.commands import operator
 from gcdtrav.client.commands import relay as relay_command
 from gcdtrav.client.commands import view as view_command
@@ -243,6 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
     operator.add_operator_commands(commands)
     view_command.add_view_command(commands)
     relay_command.add_relay_command(commands)
+    identity_command.add_identity_command(commands)
     return parser
 
 
@@ -418,6 +420,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return view_command.run(args)
     if args.command == "relay":  # torch-free: the robot's side of a slow link
         return relay_command.run(args)
+    if args.command == "identity":  # torch-free: certificates and the routers' access control
+        return identity_command.run(args)
     handlers = {"infer": cmd_infer, "serve": cmd_serve, "bench": cmd_bench, "eval": cmd_eval, "doctor": cmd_doctor}
     from gcdtrav.service.backends.base import ModelUnavailableError
 
