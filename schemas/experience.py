@@ -167,6 +167,13 @@ class CalibrationReport(Message):
     by_source: dict[str, CalibrationFigures] | None = Field(
         default=None, description="Each source's own figures, when asked (by_source=true); else None. Since 1.5."
     )
+    share_by_robot: dict[str, float] = Field(
+        default_factory=dict,
+        description="Each robot's share of the graded pairs, after the cap (experience.max_robot_share). Since 1.7.",
+    )
+    excluded_robots: list[str] = Field(
+        default_factory=list, description="Robots whose pairs an operator excluded (not graded). Since 1.7."
+    )
 
 
 # ---- anchor proposals -----------------------------------------------------------------------------------
@@ -336,6 +343,13 @@ class AnchorProposal(Message):
     pairs_from: float | None = Field(default=None, description="The first pair's stamp, s. Since 1.5.")
     pairs_until: float | None = Field(
         default=None, description="The last pair's stamp, s: pairs that came later are not in it. Since 1.5."
+    )
+    share_by_robot: dict[str, float] = Field(
+        default_factory=dict,
+        description="Each robot's share of the pairs fitted and judged, after the cap. Since 1.7.",
+    )
+    excluded_robots: list[str] = Field(
+        default_factory=list, description="Robots whose pairs an operator excluded (not used). Since 1.7."
     )
 
     def judged(self) -> ProposalVerdict:

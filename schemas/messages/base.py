@@ -18,7 +18,8 @@ MSGPACK_ENCODING = "application/msgpack"
 # grid's planner layers (GridMessage, GridHeader); 1.5 adds the grid's speed layer (GridMessage.speed_png,
 # GridStatus.speed_ago_s and speed_safe), RelayHealth.parked, the store's status and the anchor record (issue 46);
 # 1.6 adds RelayHealth.safe_mask (the relay's own safe speed mask, issue 55).
-SCHEMA_VERSION = "1.6"
+# 1.7 adds CalibrationReport/AnchorProposal.share_by_robot and excluded_robots, the exclusions' messages (58).
+SCHEMA_VERSION = "1.7"
 _VERSION = re.compile(r"^(\d+)(?:\.\d+)?$")
 
 

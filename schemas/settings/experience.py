@@ -62,6 +62,13 @@ class ExperienceSettings(TrackingSettings):
         default=20, ge=0, description="Fits hold anchors with less weight mass than this near the current set."
     )
     held_out_fraction: float = Field(default=0.3, gt=0, lt=1, description="The latest pairs, kept out of fits.")
+    max_robot_share: float = Field(
+        default=0.25,
+        gt=0,
+        le=1,
+        description="At most this share of the pairs graded or fitted comes from one robot (a source's first "
+        "chunk): a larger robot's pairs are sampled down. Fewer robots than 1/share: equal shares. 1: no cap.",
+    )
 
     @model_validator(mode="after")
     def _sources_given(self) -> ExperienceSettings:

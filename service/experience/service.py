@@ -92,7 +92,9 @@ class Experience:
         self.ring = SnapshotRing(
             settings.snapshot_every_s, int(settings.snapshot_budget_mb * 1e6), settings.lookahead_s + settings.late_s
         )
-        self.store = ExperienceStore(outbox, grid_source, settings.lookahead_s, instance, clock)
+        self.store = ExperienceStore(
+            outbox, grid_source, settings.lookahead_s, instance, clock, settings.max_robot_share
+        )
         self.tracker = VelocityTracker(settings)
         self.askers: dict[str, OperatorAsker] = {}
         # source -> (receipt, vertices): a planner's path ahead. Written by zenoh's callbacks, read by the worker;

@@ -20,6 +20,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
@@ -35,8 +36,17 @@ from gcdtrav.schemas.messages import MessageTooLarge
 from gcdtrav.service.experience.calibration import calibration_figures
 from gcdtrav.service.experience.fitter import FitOptions, propose
 from gcdtrav.service.experience.pairs import Pairs
+from gcdtrav.service.experience.sharing import fleet_mask
 from gcdtrav.service.experience.snapshots import SnapshotRing
-from gcdtrav.service.store import PairColumns, PairRecord, PairTotals, Store, StoreUnavailable, concept_key
+from gcdtrav.service.store import (
+    Exclusion,
+    PairColumns,
+    PairRecord,
+    PairTotals,
+    Store,
+    StoreUnavailable,
+    concept_key,
+)
 from gcdtrav.service.store.outbox import PairOutbox
 
 MAX_OUTCOME_BYTES = 4096  # an outcome is a few numbers; larger payloads are refused unread
@@ -84,11 +94,14 @@ class ExperienceStore:
         lookahead_s: float,
         instance: str = "",
         clock: Callable[[], float] = time.time,
+        max_robot_share: float = 1.0,
     ) -> None:
-        """``source``: the grid the pairs belong to (a robot's); ``instance``: who paired them."""
+        """``source``: the grid the pairs belong to (a robot's); ``instance``: who paired them;
+        ``max_robot_share``: the most of the graded or fitted pairs one robot may hold (sharing.py)."""
         self.outbox, self.source, self.lookahead_s, self.instance, self.clock = (
             outbox, source, lookahead_s, instance, clock
         )  # fmt: skip
+        self.max_robot_share = max_robot_share
         self.counts: dict[str, int] = {}
         self._lock = threading.Lock()  # the counters only: never held across a store call
 
@@ -180,6 +193,24 @@ class ExperienceStore:
     def pairs(self, concepts: Sequence[str], source: str | None = None) -> Pairs:
         return as_pairs(self.columns(concepts, source))
 
+    def fleet_columns(self, concepts: Sequence[str]) -> FleetPairs:
+        """The fleet's pairs of this tuple that count: excluded robots' out, each robot's share capped."""
+        columns = self.columns(concepts)
+        excluded = [e.robot for e in self._store().exclusions() if e.excluded]
+        mask, shares = fleet_mask(columns.sources, self.max_robot_share, excluded)
+        return FleetPairs(as_pairs(columns).select(mask), tuple(np.asarray(columns.sources, object)[mask]), shares,
+                          excluded)  # fmt: skip
+
+    # ---- exclusions ------------------------------------------------------------------------------------
+    def exclude(self, robot: str, excluded: bool, actor: str = "", reason: str = "") -> list[Exclusion]:
+        """Record an operator's exclusion of ``robot``'s pairs (or its inclusion again); the words in force."""
+        store = self._store()
+        store.exclude(Exclusion(robot, excluded, round(self.clock(), 3), actor, reason, self.instance))
+        return store.exclusions()
+
+    def exclusions(self) -> list[Exclusion]:
+        return self._store().exclusions()
+
     def _store(self) -> Store:
         store = self.outbox.store
         if store is None:
@@ -190,13 +221,13 @@ class ExperienceStore:
     def report(self, anchors: AnchorSet, tau: float, by_source: bool = False) -> CalibrationReport:
         """The active set graded by the fleet's pairs of its tuple (every source's); ``by_source``: each
         source's figures too."""
-        columns = self.columns(anchors.concepts)
-        pairs = as_pairs(columns)
+        fleet = self.fleet_columns(anchors.concepts)
+        pairs = fleet.pairs
         figures = calibration_figures(pairs.weights_for(anchors), pairs.outcomes, anchors, tau)
-        counts_by_source = dict(sorted(Counter(columns.sources).items()))
+        counts_by_source = dict(sorted(Counter(fleet.sources).items()))
         breakdown = None
         if by_source:
-            of_source = np.asarray(columns.sources, object)
+            of_source = np.asarray(fleet.sources, object)
             breakdown = {
                 name: calibration_figures(chosen.weights_for(anchors), chosen.outcomes, anchors, tau)
                 for name in counts_by_source
@@ -216,6 +247,8 @@ class ExperienceStore:
             counts=counts,
             pairs_by_source=counts_by_source,
             by_source=breakdown,
+            share_by_robot=fleet.shares,
+            excluded_robots=fleet.excluded,
         )
 
     def propose(
@@ -223,4 +256,16 @@ class ExperienceStore:
     ) -> AnchorProposal:
         """An AnchorProposal fitted on the fleet's pairs of this tuple, judged on the latest of them, also against
         ``baselines`` (ValueError without pairs)."""
-        return propose(self.pairs(anchors.concepts), anchors, options, source, self.clock(), baselines)
+        fleet = self.fleet_columns(anchors.concepts)
+        proposal = propose(fleet.pairs, anchors, options, source, self.clock(), baselines)
+        return proposal.model_copy(update={"share_by_robot": fleet.shares, "excluded_robots": fleet.excluded})
+
+
+@dataclass(frozen=True)
+class FleetPairs:
+    """The pairs that count for the fleet (sharing.py), their sources, each robot's share, the excluded robots."""
+
+    pairs: Pairs
+    sources: tuple[str, ...]
+    shares: dict[str, float]
+    excluded: list[str]

@@ -17,6 +17,7 @@ from gcdtrav.schemas.experience import AnchorProposal
 from gcdtrav.service.store.records import (
     Activation,
     AppendResult,
+    Exclusion,
     HistoryRecord,
     PairColumns,
     PairRecord,
@@ -92,6 +93,15 @@ class Store(ABC):
     @abstractmethod
     def proposal(self, version: str) -> StoredProposal | None:
         """The kept proposal of that proposed version; None if there is none (or it was pruned)."""
+
+    # ---- exclusions ------------------------------------------------------------------------------------
+    @abstractmethod
+    def exclude(self, exclusion: Exclusion) -> None:
+        """Record an operator's exclusion (or inclusion again) of a robot's pairs."""
+
+    @abstractmethod
+    def exclusions(self) -> list[Exclusion]:
+        """The word in force per robot (its newest), excluded or included again, by robot."""
 
     # ---- lifetime --------------------------------------------------------------------------------------
     @abstractmethod

@@ -130,3 +130,16 @@ class StoredProposal:
     proposal: AnchorProposal
     stored_at: float
     instance: str
+
+
+@dataclass(frozen=True)
+class Exclusion:
+    """An operator's word on one robot's pairs (its sources ``robot`` and ``robot/*``): excluded from calibration
+    and fits, or included again. Every word is kept; the newest per robot is in force."""
+
+    robot: str
+    excluded: bool
+    at: float  # s since the epoch
+    actor: str  # who asked, free text
+    reason: str
+    instance: str  # the instance that wrote it

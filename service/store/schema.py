@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -58,6 +58,11 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
     (
         "CREATE TABLE appended_batches (id TEXT PRIMARY KEY, appended_at {float} NOT NULL)",
         "CREATE INDEX appended_batches_by_time ON appended_batches (appended_at)",
+    ),
+    # 2 -> 3: operators' exclusions of a robot's pairs (issue 58), every word kept, the newest in force.
+    (
+        "CREATE TABLE robot_exclusions (entry {id}, robot TEXT NOT NULL, excluded BOOLEAN NOT NULL, "
+        "at {float} NOT NULL, actor TEXT NOT NULL, reason TEXT NOT NULL, instance TEXT NOT NULL)",
     ),
 )
 assert len(MIGRATIONS) == SCHEMA_VERSION

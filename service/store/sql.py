@@ -22,6 +22,7 @@ from gcdtrav.service.store.base import Store
 from gcdtrav.service.store.records import (
     Activation,
     AppendResult,
+    Exclusion,
     HistoryRecord,
     PairColumns,
     PairRecord,
@@ -326,6 +327,25 @@ class SqlStore(Store):
                 (version,),
             ).fetchone()
         return _stored_proposal(row) if row is not None else None
+
+    # ---- exclusions ------------------------------------------------------------------------------------
+    def exclude(self, exclusion: Exclusion) -> None:
+        with self._transaction("anchors") as cursor:
+            self._run(
+                cursor,
+                "INSERT INTO robot_exclusions (robot, excluded, at, actor, reason, instance) VALUES (?, ?, ?, ?, ?, ?)",
+                (exclusion.robot, exclusion.excluded, exclusion.at, exclusion.actor, exclusion.reason,
+                 exclusion.instance),
+            )  # fmt: skip
+
+    def exclusions(self) -> list[Exclusion]:
+        with self._transaction(None) as cursor:
+            rows = self._run(
+                cursor,
+                "SELECT robot, excluded, at, actor, reason, instance FROM robot_exclusions e WHERE entry = "
+                "(SELECT MAX(entry) FROM robot_exclusions WHERE robot = e.robot) ORDER BY robot",
+            ).fetchall()
+        return [Exclusion(str(r), bool(x), float(at), str(a), str(why), str(i)) for r, x, at, a, why, i in rows]
 
 
 def _rowcount(cursor: Cursor) -> int:

@@ -191,3 +191,17 @@ def test_a_batch_appended_again_under_its_id_stores_nothing(store: Store) -> Non
     assert store.append_pairs(batch, 100, 10**6, batch_id="b2").stored == 5
     assert store.append_pairs(batch, 100, 10**6).stored == 5  # no id: no check (the legacy import)
     assert len(store.pairs(GRASS)) == 15 and store.totals().pairs == 15
+
+
+def test_exclusions_are_recorded_and_the_newest_word_per_robot_is_in_force(open_same_store) -> None:  # type: ignore[no-untyped-def]
+    from gcdtrav.service.store import Exclusion
+
+    one, two = open_same_store(), open_same_store()  # another instance sees the same words
+    assert one.exclusions() == []
+    one.exclude(Exclusion("r7", True, 10.0, "alice", "invented outcomes", "i1"))
+    one.exclude(Exclusion("r8", True, 11.0, "alice", "", "i1"))
+    two.exclude(Exclusion("r8", False, 12.0, "bob", "fixed", "i2"))
+    assert [(e.robot, e.excluded, e.actor, e.reason, e.instance) for e in one.exclusions()] == [
+        ("r7", True, "alice", "invented outcomes", "i1"),
+        ("r8", False, "bob", "fixed", "i2"),
+    ]
