@@ -24,6 +24,8 @@ from gcdtrav.schemas.experience import (
     AnchorProposal,
     AnswerReply,
     CalibrationReport,
+    ExclusionList,
+    ExclusionRequest,
     OperatorAnswer,
     OperatorQuestion,
     PlannedPath,
@@ -860,6 +862,21 @@ class TraversabilityClient:
         """Answer an OperatorQuestion: ``score`` 1 drivable, 0 blocked; its cells become operator outcomes."""
         answer = OperatorAnswer(id=question_id, source=source, score=score, operator=operator)
         return self._query(self.keys.answer(source), AnswerReply, payload=answer.pack(), timeout=timeout)
+
+    def exclusions(
+        self,
+        robot: str | None = None,
+        excluded: bool = True,
+        actor: str = "",
+        reason: str = "",
+        timeout: float | None = None,
+    ) -> ExclusionList:
+        """The robots whose pairs calibration and fits leave out; with ``robot``, first exclude it (or include
+        it again, ``excluded=False``), recorded in the fleet's store with ``actor`` and ``reason``."""
+        request = None if robot is None else ExclusionRequest(robot=robot, excluded=excluded, actor=actor,
+                                                              reason=reason)  # fmt: skip
+        payload = request.pack() if request is not None else None
+        return self._query(self.keys.exclusions, ExclusionList, payload=payload, timeout=timeout)
 
     def question(self, source: str, timeout: float | None = None) -> OperatorQuestion:
         """The open OperatorQuestion about the grid ``source``, crop included; ServiceError when none is open."""

@@ -358,6 +358,38 @@ class AnchorProposal(Message):
         return self.verdict or judge_proposal(self.before, self.after, self.held_out_pairs)
 
 
+# ---- exclusions --------------------------------------------------------------------------------------
+
+
+class ExclusionRequest(Message):
+    """{prefix}/config/experience/exclusions (a query's payload): exclude a robot's pairs from calibration and
+    fits, or include them again. A robot is a source's first chunk (``r7`` for r7/front). Since 1.7."""
+
+    robot: str = Field(pattern=r"^[^/*$#?]+$", max_length=64, description="The robot: a source's first chunk.")
+    excluded: bool = True
+    actor: str = Field(default="", max_length=200, description="Who asks (kept with the word).")
+    reason: str = Field(default="", max_length=500)
+
+
+class ExclusionWord(WireModel):
+    robot: str
+    excluded: bool
+    at: float = Field(description="When it was said, s since the epoch.")
+    actor: str
+    reason: str
+    instance: str = Field(description="The instance that recorded it.")
+
+
+class ExclusionList(Message):
+    """The reply: the word in force per robot (excluded, or included again), by robot. Since 1.7."""
+
+    words: list[ExclusionWord] = Field(default_factory=list)
+
+    @property
+    def excluded(self) -> list[str]:
+        return [w.robot for w in self.words if w.excluded]
+
+
 # ---- asking the operator -----------------------------------------------------------------------------
 
 

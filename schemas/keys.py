@@ -15,6 +15,8 @@ A service with prefix ``gcdtrav`` (the default) answers and publishes on:
   {prefix}/config/anchors/history            queryable: the last accepted sets
   {prefix}/config/anchors/rollback           queryable: go back N sets
   {prefix}/config/anchors/proposal           queryable: AnchorProposal fitted on the experience (never applied)
+  {prefix}/config/experience/exclusions      queryable: the robots excluded from the experience (ExclusionList), or
+                                             an ExclusionRequest as payload: exclude or include one (since 1.7)
   {prefix}/status                            queryable: ServiceStatus
   {prefix}/alive/{instance}                  liveliness token
   {prefix}/member/{instance}/{fingerprint}/{state}/{millis}  liveliness token: the instance's model fingerprint and
@@ -133,6 +135,11 @@ class Keys:
     @property
     def anchor_proposal(self) -> str:
         return f"{self.anchors}/proposal"
+
+    @property
+    def exclusions(self) -> str:
+        """Operators' exclusions of a robot's pairs from calibration and fits (operator-only, like config/**)."""
+        return f"{self.prefix}/config/experience/exclusions"
 
     @property
     def status(self) -> str:

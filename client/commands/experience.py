@@ -4,6 +4,9 @@
   gcdtrav answer SOURCE [drivable|blocked|SCORE]    show the open question of SOURCE (or --question ID), its
                                                     crop (--save-crop FILE, --show), then answer it
 
+  gcdtrav exclusions [--exclude ROBOT | --include ROBOT] [--reason TEXT] [--operator NAME]
+                                                    the robots whose pairs calibration and fits leave out
+
 and the text both they and `gcdtrav anchors propose` and `gcdtrav status` print.
 """
 
@@ -28,7 +31,7 @@ from gcdtrav.schemas.experience import (
 )
 from gcdtrav.schemas.messages import ServiceStatus, StoreStatus
 
-COMMANDS = ("calibration", "answer")
+COMMANDS = ("calibration", "answer", "exclusions")
 FIGURES_ROW = "{:<22} {:>6} {:>7} {:>7} {:>20} {:>6} {:>7} {:>8}"
 # `gcdtrav calibration`'s verdict (docs/calibration.md, "For operators"): how far a figure may stray before the
 # set is called over- or under-confident.
@@ -55,7 +58,13 @@ def add_experience_commands(commands: argparse._SubParsersAction) -> list[argpar
     answer.add_argument("--save-crop", type=Path, metavar="FILE", help="first save the question's crop (JPEG) here")
     answer.add_argument("--show", action="store_true", help="first draw the crop in the terminal (24-bit colour)")
     answer.add_argument("--operator", default="", help="who answers (kept with the answer)")
-    return [calibration, answer]
+    exclusions = commands.add_parser("exclusions", help="the robots whose pairs calibration and fits leave out")
+    which = exclusions.add_mutually_exclusive_group()
+    which.add_argument("--exclude", metavar="ROBOT", help="leave ROBOT's pairs out (ROBOT: a source's first chunk)")
+    which.add_argument("--include", metavar="ROBOT", help="count ROBOT's pairs again")
+    exclusions.add_argument("--reason", default="", help="why (kept with the word)")
+    exclusions.add_argument("--operator", default="", help="who asks (kept with the word)")
+    return [calibration, answer, exclusions]
 
 
 def answer_argument(text: str) -> str:
@@ -70,7 +79,21 @@ def answer_argument(text: str) -> str:
 def run_command(client: TraversabilityClient, args: argparse.Namespace) -> int:
     if args.command == "calibration":
         return calibration(client, args.source, args.png, args.by_source)
+    if args.command == "exclusions":
+        return exclusions(client, args)
     return answer(client, args)
+
+
+def exclusions(client: TraversabilityClient, args: argparse.Namespace) -> int:
+    robot = args.exclude or args.include
+    found = client.exclusions(robot, excluded=args.exclude is not None, actor=args.operator, reason=args.reason)
+    for word in found.words:
+        state = "excluded" if word.excluded else "included"
+        when = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(word.at))
+        print(f"{word.robot:<16} {state:<9} {when}  by {word.actor or '-'}: {word.reason or '-'}")
+    if not found.words:
+        print("no robot excluded: every robot's pairs count (each at most experience.max_robot_share)")
+    return 0
 
 
 def experience_source(client: TraversabilityClient) -> str:
@@ -111,6 +134,12 @@ def figures_lines(rows: list[tuple[str, CalibrationFigures]]) -> list[str]:
     return lines
 
 
+def share_lines(shares: dict[str, float], excluded: list[str]) -> list[str]:
+    """Each robot's share of the pairs used (capped: experience.max_robot_share) and who is left out."""
+    lines = ["share by robot: " + ", ".join(f"{r} {share:.0%}" for r, share in shares.items())] if shares else []
+    return lines + ([f"excluded by an operator: {', '.join(excluded)}"] if excluded else [])
+
+
 def report_lines(report: CalibrationReport) -> list[str]:
     f = report.figures
     kinds = ", ".join(f"{kind} {n}" for kind, n in sorted(report.pairs_by_kind.items())) or "none"
@@ -119,6 +148,7 @@ def report_lines(report: CalibrationReport) -> list[str]:
         f"pairs by kind: {kinds}; by anchor-set version: "
         + (", ".join(f"{v} {n}" for v, n in sorted(report.pairs_by_version.items())) or "none"),
         "the fleet's pairs by source: " + (", ".join(f"{s} {n}" for s, n in report.pairs_by_source.items()) or "-"),
+        *share_lines(report.share_by_robot, report.excluded_robots),
         "",
         *figures_lines([("active set", f), *sorted((report.by_source or {}).items())]),
         "",
@@ -221,6 +251,7 @@ def proposal_lines(proposal: AnchorProposal) -> list[str]:
     lines += [
         "",
         f"fitted on {proposal.train_pairs} pairs; graded on the {proposal.held_out_pairs} later ones:",
+        *share_lines(proposal.share_by_robot, proposal.excluded_robots),
         *figures_lines([("before (current set)", proposal.before), ("after (proposed set)", proposal.after)]),
         "",
         f"verdict: {verdict.reason()}{judged_here}",

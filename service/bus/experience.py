@@ -10,6 +10,8 @@ Declared only with ``experience.enabled`` (off: nothing here runs, nothing chang
   {prefix}/out/{source}/calibration   queryable: CalibrationReport of the active anchor set over the fleet's
                                       pairs (``by_source=true``: each source's figures too)
   {prefix}/config/anchors/proposal    queryable: AnchorProposal (``source=`` optional), never applied here
+  {prefix}/config/experience/exclusions  queryable: ExclusionList; with an ExclusionRequest as payload, the
+                                      robot excluded (or included again) first, recorded in the store
   {prefix}/out/{source}/question      queryable: the open OperatorQuestion (`gcdtrav answer` shows its crop
                                       before answering); a new one is published with the grid update that asked
                                       it, by the runtime's outputs like every payload (``Experience.after_fusion``)
@@ -29,7 +31,15 @@ from collections.abc import Callable
 from typing import Any
 
 import zenoh
-from gcdtrav.schemas.experience import AnchorProposal, AnswerReply, CalibrationFigures, CalibrationReport
+from gcdtrav.schemas.experience import (
+    AnchorProposal,
+    AnswerReply,
+    CalibrationFigures,
+    CalibrationReport,
+    ExclusionList,
+    ExclusionRequest,
+    ExclusionWord,
+)
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import ExperienceStatus, MessageError
 from gcdtrav.schemas.settings import RosInput, ServiceSettings
@@ -46,6 +56,7 @@ from gcdtrav.service.runtime.stats import ServiceStats
 from gcdtrav.service.store import StoreError
 
 log = logging.getLogger("gcdtrav.service")
+MAX_EXCLUSION_BYTES = 4096  # a robot's name, who and why
 CLOSE_FLUSH_S = 5.0  # at shutdown, this instance's queued pairs get this long to reach the store
 TWIST, ODOMETRY = "geometry_msgs/msg/Twist", "nav_msgs/msg/Odometry"
 
@@ -94,6 +105,7 @@ class ExperienceBus:
             (self.keys.calibration("**"), self._on_calibration, False),
             (self.keys.anchor_proposal, self._on_proposal, False),
             (self.keys.question("**"), self._on_question, False),
+            (self.keys.exclusions, self._on_exclusions, True),
         )
         for key, respond, complete in queryables:
             declared.append(self.session.declare_queryable(key, answering(respond, self.stats), complete=complete))
@@ -266,6 +278,33 @@ class ExperienceBus:
         if source != self.experience.source or not self.owns(source):
             return  # another instance's experience
         self.anchors.read_later(self._proposal, answer_later(query, self.keys.anchor_proposal, self.stats))
+
+    def _on_exclusions(self, query: zenoh.Query) -> None:
+        replies.check_format(query)
+        strict_parameters(replies.without_format(query), "none (the request, if any, is the payload)")
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        try:
+            request = ExclusionRequest.decode(payload, MAX_EXCLUSION_BYTES) if payload else None
+        except (MessageError, ValueError) as err:
+            self.stats.rejected(None, "bad_exclusion", str(err)[:200])
+            raise QueryError(f"not an ExclusionRequest: {err}") from None
+
+        def words() -> ExclusionList:
+            store = self.experience.store
+            try:
+                found = (
+                    store.exclusions()
+                    if request is None
+                    else store.exclude(request.robot, request.excluded, request.actor, request.reason)
+                )
+            except StoreError as err:
+                raise QueryError(f"cannot reach the store: {err}") from None
+            if request is not None:
+                said = "excluded" if request.excluded else "included again"
+                log.info("experience: robot %s %s by %r (%s)", request.robot, said, request.actor, request.reason)
+            return ExclusionList(words=[ExclusionWord(**vars(word)) for word in found])
+
+        self.anchors.read_later(words, answer_later(query, self.keys.exclusions, self.stats))
 
     def _proposal(self) -> AnchorProposal:
         """Fitted and judged against the active set and the history's (the verdict's "best in history" is among

@@ -152,6 +152,10 @@ SAMPLES.update(
         ),
         e.OperatorAnswer: e.OperatorAnswer(id="q1", source="cam", score=1.0, stamp=3.0, operator="ada"),
         e.AnswerReply: e.AnswerReply(id="q1", source="cam", score=0.0, pairs=4),
+        e.ExclusionRequest: e.ExclusionRequest(robot="r7", actor="alice", reason="invented outcomes"),
+        e.ExclusionList: e.ExclusionList(
+            words=[e.ExclusionWord(robot="r7", excluded=True, at=1.0, actor="alice", reason="", instance="i1")]
+        ),
         e.PlannedPath: e.PlannedPath(stamp=2.0, frame_id="odom", points=[(0.0, 0.0), (1.5, -0.5)]),
         e.OutcomeBatch: e.OutcomeBatch(
             outcomes=[e.TraversalOutcome(stamp=1.0, x=1.0, y=-2.0, score=0.8, kind="velocity", radius_m=0.3)],

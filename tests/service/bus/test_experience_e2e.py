@@ -353,3 +353,21 @@ def test_no_zenoh_call_runs_under_a_grid_lock_questions_included(tmp_path: Path)
         finally:
             service.stop()
     assert session.calls_under_lock == []
+
+
+def test_an_operator_excludes_a_robot_and_includes_it_again_from_the_command(tmp_path: Path) -> None:
+    """`gcdtrav exclusions --exclude ROBOT` (torch-free) records the word in the store, the next calibration
+    names the robot excluded, a bad request is refused and counted, `--include` counts it again."""
+    with running(settings(tmp_path)) as (service, client, flags):
+        robot = CAMERA_SOURCE.split("/")[0]
+        assert "no robot excluded" in gcdtrav("exclusions", *flags).stdout
+        said = gcdtrav("exclusions", "--exclude", robot, "--reason", "invented outcomes", "--operator", "alice", *flags)
+        assert f"{robot}" in said.stdout and "excluded" in said.stdout and "alice: invented outcomes" in said.stdout
+        assert client.calibration(CAMERA_SOURCE).excluded_robots == [robot]
+        assert service.experience is not None  # the word is in the store, for every instance
+        assert [w.robot for w in service.experience.experience.store.exclusions() if w.excluded] == [robot]
+        client.session.get(client.keys.exclusions, payload=b'{"robot": "a/b"}', timeout=2.0)  # not one chunk
+        assert wait_until(lambda: client.status().rejected_by_reason.get("bad_exclusion") == 1, 30)
+        again = client.exclusions(robot, excluded=False, actor="bob")
+        assert again.excluded == [] and again.words[0].actor == "bob"
+        assert client.calibration(CAMERA_SOURCE).excluded_robots == []
