@@ -57,6 +57,10 @@ class FleetIdentities(StrictModel):
     """The identity list (``identities.yaml``): who holds a certificate of the fleet's CA, by role."""
 
     prefix: str = Field(default="gcdtrav", description="The service's key prefix (settings zenoh.prefix).")
+    endpoint: str = Field(
+        default="tls/gcdtrav-router-public:7448",
+        description="The routers' identity endpoint, as the identities' session configs name it.",
+    )
     ros_domains: list[int] = Field(
         default=[0], description="ROS_DOMAIN_IDs whose rmw_zenoh keys robots may use (D/<robot>/**)."
     )

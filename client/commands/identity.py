@@ -27,9 +27,9 @@ from pathlib import Path
 
 import yaml
 from gcdtrav.schemas.access import ROLES, FleetIdentities, access_control, common_name
+from pydantic import ValidationError
 
 COMMANDS = ("identity",)
-DEFAULT_ENDPOINT = "tls/gcdtrav-router-public:7448"  # router.yaml: the identity endpoint (mTLS)
 LOGINS = {"robot": "robot", "planner": "planner", "operator": "operator"}  # credentials.txt: admission only
 CLOCK_SKEW = dt.timedelta(minutes=5)  # a certificate is valid from a little before now: routers' clocks differ
 
@@ -56,7 +56,9 @@ def add_identity_command(commands: argparse._SubParsersAction) -> None:
 
 def add_validity(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--valid-hours", type=float, default=24.0, help="certificate lifetime [default: 24]")
-    parser.add_argument("--endpoint", default=DEFAULT_ENDPOINT, help=f"in the session config [{DEFAULT_ENDPOINT}]")
+    parser.add_argument(
+        "--endpoint", help="the routers' identity endpoint, kept in identities.yaml [tls/gcdtrav-router-public:7448]"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -74,15 +76,17 @@ def act(args: argparse.Namespace) -> list[str]:
     if args.action == "list":
         return listing(folder, identities)
     valid = dt.timedelta(hours=args.valid_hours)
+    if args.endpoint:
+        identities = identities.model_copy(update={"endpoint": args.endpoint})
     if args.action == "add":
         identities = added(identities, args.role, args.name)
-        issue(folder, args.role, args.name, valid, args.endpoint)
+        issue(folder, args.role, args.name, valid, identities.endpoint)
         done = [f"issued {folder / 'identities' / common_name(args.role, args.name)}.crt, valid {valid}"]
     elif args.action == "revoke":
         identities = revoked(identities, args.role, args.name)
         done = [f"revoked {common_name(args.role, args.name)}: refused on the routers' rollout, else at expiry"]
     else:
-        done = [renewed(folder, identities, role, name, valid, args.endpoint) for role, name in active(identities)]
+        done = [renewed(folder, role, name, valid, identities.endpoint) for role, name in active(identities)]
     save(folder, identities)
     return [*done, f"wrote {folder / 'access-control.json5'}: apply it to the routers (docs/kubernetes.md)"]
 
@@ -93,8 +97,15 @@ def load(folder: Path) -> FleetIdentities:
     path = folder / "identities.yaml"
     try:
         return FleetIdentities.model_validate(yaml.safe_load(path.read_text("utf-8")) or {} if path.exists() else {})
-    except ValueError as err:
-        raise IdentityError(f"{path}: {err}") from None
+    except (ValueError, yaml.YAMLError) as err:
+        raise IdentityError(f"{path}: {one_line(err)}") from None
+
+
+def one_line(err: Exception) -> str:
+    """A validation error as the operator reads it: each field and what is wrong, on one line."""
+    if isinstance(err, ValidationError):
+        return "; ".join(f"{'.'.join(map(str, e['loc'])) or 'identities'}: {e['msg']}" for e in err.errors())
+    return str(err).replace("\n", " ")
 
 
 def save(folder: Path, identities: FleetIdentities) -> None:
@@ -115,7 +126,7 @@ def added(identities: FleetIdentities, role: str, name: str) -> FleetIdentities:
     try:
         return FleetIdentities.model_validate({**identities.model_dump(), **fields, "revoked": revoked_names})
     except ValueError as err:
-        raise IdentityError(str(err)) from None
+        raise IdentityError(one_line(err)) from None
 
 
 def revoked(identities: FleetIdentities, role: str, name: str) -> FleetIdentities:
@@ -125,7 +136,7 @@ def revoked(identities: FleetIdentities, role: str, name: str) -> FleetIdentitie
     return identities.model_copy(update={"revoked": revoked_names})
 
 
-def renewed(folder: Path, identities: FleetIdentities, role: str, name: str, valid: dt.timedelta, endpoint: str) -> str:
+def renewed(folder: Path, role: str, name: str, valid: dt.timedelta, endpoint: str) -> str:
     issue(folder, role, name, valid, endpoint)
     return f"renewed {common_name(role, name)}"
 

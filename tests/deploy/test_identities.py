@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import re
+import shlex
 import shutil
 import subprocess
 import time
@@ -21,6 +23,7 @@ from typing import Any
 
 import pytest
 import zenoh
+from conftest import torch_free_gcdtrav
 from gcdtrav.client.commands import identity
 from zenoh_helpers import free_port, wait_until
 
@@ -221,3 +224,54 @@ def test_a_revoked_robot_is_refused_when_its_certificate_expires_and_the_others_
     assert arrivals["r7"][0] < expires - lifetime_s / 2  # it worked until then
     gaps = [b - a for a, b in zip(arrivals["r8"], arrivals["r8"][1:], strict=False)]
     assert arrivals["r8"][-1] > expires + 5.0 and max(gaps) < 1.0, max(gaps)
+
+
+def doc_commands() -> list[list[str]]:
+    """The commands of docs/kubernetes.md's identity-commands block, comments dropped."""
+    text = (ROOT / "docs" / "kubernetes.md").read_text("utf-8")
+    block = re.search(
+        r"<!-- identity-commands: begin -->\s*```bash\n(.*?)```\s*<!-- identity-commands: end -->", text, re.S
+    )
+    assert block is not None, "docs/kubernetes.md lost its identity-commands block"
+    return [shlex.split(line) for line in block.group(1).splitlines() if line.strip() and not line.startswith("#")]
+
+
+def test_adding_and_revoking_a_robot_are_one_command_each_as_the_docs_say(tmp_path: Path) -> None:
+    """docs/kubernetes.md's commands, in order, from the operator's torch-free install: add writes r7's
+    certificate, key and session config and a rule set naming it; revoke drops its rules and renew skips it."""
+    if shutil.which("openssl") is None:
+        pytest.skip("needs the openssl command (.ci/run installs it)")
+    commands = doc_commands()
+    assert [c[:3] for c in commands] == [["gcdtrav", "identity", w] for w in ("add", "revoke", "renew", "list")]
+    subprocess.run(["sh", str(MAKE_CERTIFICATES), "tls-out"], check=True, capture_output=True, cwd=tmp_path)
+    issued = tmp_path / "tls-out" / "identities"
+    outputs = []
+    for command in commands:
+        done = subprocess.run(torch_free_gcdtrav(*command[1:]), capture_output=True, text=True, cwd=tmp_path)
+        assert done.returncode == 0, done.stderr
+        outputs.append(done.stdout)
+        rules = json.loads((tmp_path / "tls-out" / "access-control.json5").read_text("utf-8"))
+        subjects = [s["id"] for s in rules["subjects"]]
+        if command[2] == "add":
+            assert {p.name for p in issued.iterdir()} == {"robot-r7.crt", "robot-r7.key", "robot-r7.json5"}
+            assert "robot-r7" in subjects
+            added_at = (issued / "robot-r7.crt").stat().st_mtime_ns
+        else:
+            assert "robot-r7" not in subjects and subjects == ["trusted", "other-routers"]
+    assert (issued / "robot-r7.crt").stat().st_mtime_ns == added_at  # renew skipped the revoked robot
+    assert "robot-r7" in outputs[-1] and "revoked" in outputs[-1]
+
+
+def test_bad_identities_are_refused_with_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    if shutil.which("openssl") is None:
+        pytest.skip("needs the openssl command (.ci/run installs it)")
+    assert gcdtrav_identity("add", str(tmp_path / "nowhere"), "robot", "r7") == 1  # no CA there
+    subprocess.run(["sh", str(MAKE_CERTIFICATES), str(tmp_path / "tls")], check=True, capture_output=True)
+    assert gcdtrav_identity("add", str(tmp_path / "tls"), "robot", "r7/front") == 1  # not one key chunk
+    assert gcdtrav_identity("add", str(tmp_path / "tls"), "robot", "**") == 1
+    assert gcdtrav_identity("revoke", str(tmp_path / "tls"), "robot", "r9") == 1  # never added
+    (tmp_path / "tls" / "identities.yaml").write_text("robots: [r1]\nrobtos: [r2]\n", "utf-8")  # strict
+    assert gcdtrav_identity("list", str(tmp_path / "tls")) == 1
+    errors = capsys.readouterr().err.splitlines()
+    assert len(errors) == 5 and all(line.startswith("gcdtrav identity: ") for line in errors), errors
+    assert "robtos: Extra inputs are not permitted" in errors[-1]
