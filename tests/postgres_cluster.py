@@ -34,9 +34,9 @@ def free_port() -> int:
 class PostgresCluster:
     """One server; ``stop`` and ``start`` keep its data and port (an outage), ``destroy`` removes it all."""
 
-    def __init__(self, bin_dir: Path, durable: bool = False) -> None:
+    def __init__(self, bin_dir: Path, durable: bool = False, max_connections: int = 60) -> None:
         """``durable``: fsync as a production server does (benchmarks); off in tests, which never crash it."""
-        self.bin_dir, self.durable = bin_dir, durable
+        self.bin_dir, self.durable, self.max_connections = bin_dir, durable, max_connections
         self.root = Path(tempfile.mkdtemp(prefix="gcdtrav-pg-"))
         self.data, self.sockets, self.log = self.root / "data", self.root / "sockets", self.root / "server.log"
         self.port = free_port()
@@ -75,7 +75,7 @@ class PostgresCluster:
     def start(self) -> None:
         fsync = "on" if self.durable else "off"
         options = (f"-c listen_addresses=127.0.0.1 -p {self.port} -k {self.sockets} -c fsync={fsync} "
-                   "-c max_connections=60")  # fmt: skip
+                   f"-c max_connections={self.max_connections} -c superuser_reserved_connections=0")  # fmt: skip
         self._run("pg_ctl", "-D", str(self.data), "-l", str(self.log), "-w", "-t", "60", "-o", options, "start")
 
     def stop(self) -> None:
@@ -100,10 +100,10 @@ class PostgresCluster:
 
 
 @contextlib.contextmanager
-def postgres_cluster(durable: bool = False) -> Iterator[PostgresCluster]:
+def postgres_cluster(durable: bool = False, max_connections: int = 60) -> Iterator[PostgresCluster]:
     if importlib.util.find_spec("psycopg") is None:
         missing("postgresql", "psycopg: pip install 'gcdtrav[service]'")
-    cluster = PostgresCluster(postgresql_bin(), durable)
+    cluster = PostgresCluster(postgresql_bin(), durable, max_connections)
     try:
         cluster.start()
         yield cluster

@@ -37,6 +37,16 @@ class StoreSettings(StrictModel):
     retry_s: float = Field(
         default=2.0, gt=0, le=600, description="How often an unreachable store is tried again, at most, s."
     )
+    pool_size: int = Field(
+        default=3,
+        ge=1,
+        le=64,
+        description="PostgreSQL: connections this instance holds at most (the outbox's writer, the anchor switch's "
+        "reader and worker); a server needs max_connections >= instances x pool_size + its reserved ones.",
+    )
+    pool_wait_s: float = Field(
+        default=10.0, gt=0, le=600, description="PostgreSQL: how long a call waits for a free pooled connection, s."
+    )
 
     @field_validator("url")
     @classmethod

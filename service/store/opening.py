@@ -42,7 +42,9 @@ def open_store(settings: StoreSettings, state_dir: Path, prefix: str) -> Store:
         return SqliteStore(sqlite_file(state_dir, prefix))
     from gcdtrav.service.store.postgres import PostgresStore
 
-    return PostgresStore(settings.url, store_password(settings), settings.connect_timeout_s)
+    return PostgresStore(
+        settings.url, store_password(settings), settings.connect_timeout_s, settings.pool_size, settings.pool_wait_s
+    )
 
 
 def location_of(settings: StoreSettings, state_dir: Path, prefix: str) -> tuple[str, str]:

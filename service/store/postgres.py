@@ -1,5 +1,7 @@
 """A fleet's store: one PostgreSQL database every instance shares (psycopg 3, in the ``gcdtrav[service]``
-extra). One connection per thread (``ThreadConnections``), autocommit with explicit transactions; a write
+extra). A small pool per instance (``ConnectionPool``, ``store.pool_size``, 3): a connection is lent for one
+transaction, so the server sees at most instances x pool_size connections from the fleet, whatever the threads
+(docs/kubernetes.md gives max_connections). Autocommit with explicit transactions; a write
 transaction first takes a transaction-scoped advisory lock of its table group, so appends from every instance
 keep one fleet-wide order and bounds, and of two activations exactly one sees the other's result.
 
@@ -14,9 +16,10 @@ from collections.abc import Iterator
 from contextlib import contextmanager, suppress
 from typing import Any
 
+from gcdtrav.service.store.pool import ConnectionPool, Lent
 from gcdtrav.service.store.records import StoreError, StoreUnavailable
 from gcdtrav.service.store.schema import POSTGRESQL
-from gcdtrav.service.store.sql import Cursor, Lock, SqlStore, ThreadConnections
+from gcdtrav.service.store.sql import Cursor, Lock, SqlStore
 
 ADVISORY_CLASS = 0x6763  # 'gc': the first key of gcdtrav's advisory locks
 ADVISORY_KEYS: dict[Lock, int] = {"schema": 1, "pairs": 2, "anchors": 3}
@@ -36,13 +39,20 @@ class PostgresStore(SqlStore):
     backend = "postgresql"
     dialect = POSTGRESQL
 
-    def __init__(self, url: str, password: str | None, connect_timeout_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        url: str,
+        password: str | None,
+        connect_timeout_s: float = 5.0,
+        pool_size: int = 3,
+        pool_wait_s: float = 10.0,
+    ) -> None:
         self.url = url
         self._password = password
         self._timeout = max(2, math.ceil(connect_timeout_s))  # libpq's connect_timeout: whole seconds, 2 at least
         self._psycopg = _psycopg()
-        self._connections: ThreadConnections[Any] = ThreadConnections(
-            url, self._connect, self._close_quietly, usable=lambda c: not c.closed and not c.broken
+        self._pool: ConnectionPool[Any] = ConnectionPool(
+            url, self._connect, self._close_quietly, lambda c: not c.closed and not c.broken, pool_size, pool_wait_s
         )
         self._migrate()
 
@@ -66,39 +76,38 @@ class PostgresStore(SqlStore):
 
     @contextmanager
     def _transaction(self, lock: Lock | None) -> Iterator[Cursor]:
-        connection = self._begun()
-        try:
-            with connection.cursor() as cursor:
-                if lock is not None:
-                    cursor.execute("SELECT pg_advisory_xact_lock(%s, %s)", (ADVISORY_CLASS, ADVISORY_KEYS[lock]))
-                yield cursor
-            connection.execute("COMMIT")
-        except BaseException as err:
-            if not connection.broken:
-                with suppress(self._psycopg.Error):
-                    connection.execute("ROLLBACK")
-            if not isinstance(err, self._psycopg.Error):
-                raise
-            if connection.broken or isinstance(err, self._psycopg.OperationalError):
-                self._connections.forget(connection)
-            raise self._error(err) from None
+        with self._pool.lent() as lent:
+            connection = self._begun(lent)
+            try:
+                with connection.cursor() as cursor:
+                    if lock is not None:
+                        cursor.execute("SELECT pg_advisory_xact_lock(%s, %s)", (ADVISORY_CLASS, ADVISORY_KEYS[lock]))
+                    yield cursor
+                connection.execute("COMMIT")
+            except BaseException as err:
+                if not connection.broken:
+                    with suppress(self._psycopg.Error):
+                        connection.execute("ROLLBACK")
+                if not isinstance(err, self._psycopg.Error):
+                    raise
+                if connection.broken or isinstance(err, self._psycopg.OperationalError):
+                    lent.forget()
+                raise self._error(err) from None
 
-    def _begun(self) -> Any:
-        """This thread's connection inside a new transaction; on a fresh connection if the kept one fails at
-        BEGIN (the server restarted since it was used: nothing was done, so trying again is safe)."""
-        connection = self._connections.get()
+    def _begun(self, lent: Lent[Any]) -> Any:
+        """The lent connection inside a new transaction; on a fresh connection if the kept one fails at BEGIN
+        (the server restarted since it was used: nothing was done, so trying again is safe)."""
         try:
-            connection.execute("BEGIN")
-            return connection
+            lent.connection.execute("BEGIN")
+            return lent.connection
         except self._psycopg.Error:
-            self._connections.forget(connection)
-        connection = self._connections.get()
+            lent.forget()
         try:
-            connection.execute("BEGIN")
+            lent.connection.execute("BEGIN")
         except self._psycopg.Error as err:
-            self._connections.forget(connection)
+            lent.forget()
             raise self._error(err) from None
-        return connection
+        return lent.connection
 
     def _error(self, err: Exception) -> StoreError:
         """One line, the password scrubbed; connection trouble is StoreUnavailable (retried later)."""
@@ -111,4 +120,4 @@ class PostgresStore(SqlStore):
         return StoreError(message)
 
     def close(self) -> None:
-        self._connections.close()
+        self._pool.close()
