@@ -31,13 +31,7 @@ from gcdtrav.schemas.experience import (
     TraversalOutcome,
 )
 from gcdtrav.schemas.grid_layers import decode_layers
-from gcdtrav.schemas.images import (
-    decode_map_png8,
-    decode_map_png16,
-    encode_jpeg,
-    encode_png,
-    peek_image_size,
-)
+from gcdtrav.schemas.images import decode_map_png8, decode_map_png16, encode_jpeg, encode_png, peek_image_size
 from gcdtrav.schemas.keys import Keys, input_key
 from gcdtrav.schemas.messages import (
     MSGPACK_ENCODING,

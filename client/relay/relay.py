@@ -48,14 +48,7 @@ from gcdtrav.client.session.source_info import put_identified
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.inputs import RejectedInput, decode_payload
 from gcdtrav.schemas.keys import Keys, input_key
-from gcdtrav.schemas.messages import (
-    CameraParked,
-    CreditGrant,
-    ImageEnvelope,
-    MessageError,
-    PixelEncoding,
-    RelayHealth,
-)
+from gcdtrav.schemas.messages import CameraParked, CreditGrant, ImageEnvelope, MessageError, PixelEncoding, RelayHealth
 from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE, RelayCamera, RelayOutcomes, RelaySettings
 from gcdtrav.schemas.ros_image import decode_ros_image
 from gcdtrav.schemas.ros_nav import RosNavError, occupancy_grid_geometry, split_stamp
