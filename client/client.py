@@ -6,6 +6,7 @@ No torch: robots and planners install only the base package.
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import queue
 import threading
@@ -13,7 +14,7 @@ import time
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import zenoh
@@ -32,13 +33,7 @@ from gcdtrav.schemas.experience import (
     TraversalOutcome,
 )
 from gcdtrav.schemas.grid_layers import decode_layers
-from gcdtrav.schemas.images import (
-    decode_map_png8,
-    decode_map_png16,
-    encode_jpeg,
-    encode_png,
-    peek_image_size,
-)
+from gcdtrav.schemas.images import decode_map_png8, decode_map_png16, encode_jpeg, encode_png, peek_image_size
 from gcdtrav.schemas.keys import Keys, input_key
 from gcdtrav.schemas.messages import (
     MSGPACK_ENCODING,
@@ -243,6 +238,7 @@ class Grid:
         return int((y - self.header.origin[1]) // r), int((x - self.header.origin[0]) // r)
 
 
+R = TypeVar("R", AnchorHistoryReply, ServiceStatus)  # the replies every instance gives, each naming it
 EARLY_END = 0.9  # a query that ended before this share of its timeout was ended by zenoh: nothing to ask
 CLOCK_STEP_BACK_S = 10.0  # over the service's max_frame_age_s (5 s): no fresh frame is stamped this much older
 
@@ -724,12 +720,8 @@ class TraversabilityClient:
         winner. Services before 1.5 (no ``accepted_at`` in their AnchorSetReply) refuse it as a parameter."""
         if isinstance(anchor_set, AnchorSet):
             text = anchor_set.to_json()
-        elif isinstance(anchor_set, str):
-            text = anchor_set
         else:
-            import json
-
-            text = json.dumps(dict(anchor_set))
+            text = anchor_set if isinstance(anchor_set, str) else json.dumps(dict(anchor_set))
         # Every instance of the prefix swaps, so that all sources use the same set.
         params = {"expected": expected_version} if expected_version else None
         answers, errors = self._replies(
@@ -773,12 +765,7 @@ class TraversabilityClient:
 
     def anchor_history(self, timeout: float | None = None) -> list[AnchorHistoryReply]:
         """Every instance's last accepted anchor sets, newest (the active one) first."""
-        answers, errors = self._replies(
-            self.keys.anchor_history, AnchorHistoryReply, timeout=timeout, every_instance=True
-        )
-        if not answers and errors:
-            raise errors[0]
-        return sorted(answers, key=lambda history: history.instance)
+        return self._every_instance(self.keys.anchor_history, AnchorHistoryReply, timeout)
 
     def rollback(self, steps: int = 1, timeout: float | None = None) -> tuple[AnchorHistoryEntry, AnchorSetReply]:
         """Roll the fleet back ``steps`` sets: the server's rollback, asked of the instance whose active set is
@@ -826,10 +813,14 @@ class TraversabilityClient:
 
     def statuses(self, timeout: float | None = None) -> list[ServiceStatus]:
         """The status of every live instance that answers within ``timeout``."""
-        answers, errors = self._replies(self.keys.status, ServiceStatus, timeout=timeout, every_instance=True)
+        return self._every_instance(self.keys.status, ServiceStatus, timeout)
+
+    def _every_instance(self, key: str, reply_type: type[R], timeout: float | None) -> list[R]:
+        """Every instance's answer, by instance name; the first error when none answered."""
+        answers, errors = self._replies(key, reply_type, timeout=timeout, every_instance=True)
         if not answers and errors:
             raise errors[0]
-        return sorted(answers, key=lambda status: status.instance)
+        return sorted(answers, key=lambda answer: answer.instance)
 
     # ---- experience (docs/calibration.md) ------------------------------------------------------------
     def publish_outcome(self, source: str, outcome: TraversalOutcome) -> None:

@@ -162,25 +162,15 @@ class Keys:
 
     def relay_health_source_of(self, key: str) -> str | None:
         """The source in ``{prefix}/relay/{source}/health``; None when the key is not of that form."""
-        head, tail = f"{self.prefix}/relay/", "/health"
-        if not (key.startswith(head) and key.endswith(tail)) or len(key) <= len(head) + len(tail):
-            return None
-        source = key[len(head) : -len(tail)]
-        return source if "*" not in source and "$" not in source else None
+        return _literal_between(key, f"{self.prefix}/relay/", "/health")
 
     def credit_source_of(self, key: str) -> str | None:
         """The source in ``{prefix}/credit/{source}``; None when the key is not of that form."""
-        head = f"{self.prefix}/credit/"
-        source = key[len(head) :] if key.startswith(head) else ""
-        return source if source and "*" not in source and "$" not in source else None
+        return _literal_between(key, f"{self.prefix}/credit/", "")
 
     def source_of(self, key: str, kind: str) -> str | None:
         """The source in ``{prefix}/out/{source}/{kind}``; None when the key is not of that form."""
-        head, tail = f"{self.prefix}/out/", f"/{kind}"
-        if not (key.startswith(head) and key.endswith(tail)) or len(key) <= len(head) + len(tail):
-            return None
-        source = key[len(head) : -len(tail)]
-        return source if "*" not in source and "$" not in source else None
+        return _literal_between(key, f"{self.prefix}/out/", f"/{kind}")
 
     def active_anchors(self, instance: str = "*", millis: str = "*", version: str = "*") -> str:
         """The liveliness token announcing an instance's active anchor set (``**`` for all: instance names may
@@ -216,6 +206,14 @@ class Keys:
     def instance_of(self, alive_key: str) -> str | None:
         head = f"{self.prefix}/alive/"
         return alive_key[len(head) :] if alive_key.startswith(head) and len(alive_key) > len(head) else None
+
+
+def _literal_between(key: str, head: str, tail: str) -> str | None:
+    """The non-empty part of ``key`` between ``head`` and ``tail``; None if not of that form, or a wildcard."""
+    if not (key.startswith(head) and key.endswith(tail)) or len(key) <= len(head) + len(tail):
+        return None
+    source = key[len(head) : len(key) - len(tail)]
+    return source if "*" not in source and "$" not in source else None
 
 
 def input_key(input_prefix: str, source: str) -> str:

@@ -36,6 +36,14 @@ RAW_ENCODINGS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "mono
 MAX_PADDING = 3  # bytes after the message: CDR pads to 4 (rosbags refuses more)
 
 
+def ros_type_name(dds_name: str) -> str | None:
+    """sensor_msgs::msg::dds_::Image_ (an rmw_zenoh key chunk) -> sensor_msgs/msg/Image; None otherwise."""
+    parts = dds_name.split("::")
+    if len(parts) == 4 and parts[2] == "dds_" and parts[3].endswith("_"):
+        return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
+    return None
+
+
 class _Malformed(ValueError):
     """Not the message's CDR: reported as ``bad_cdr``."""
 

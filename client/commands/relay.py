@@ -85,7 +85,6 @@ def add_relay_command(commands: argparse._SubParsersAction) -> None:
     relay.add_argument(
         "--ros-args",
         nargs=argparse.REMAINDER,
-        dest="ros_args",
         help="the rest goes to ROS 2 (implies --ros): -p name:=value, -r from:=to, -r __ns:=/robot1, ...",
     )
 

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from gcdtrav.schemas.relay import SafeMaskSettings
-from gcdtrav.schemas.ros_nav import GridGeometry, speed_mask_values
+from gcdtrav.schemas.ros_nav import GridGeometry, occupancy_grid_cdr, speed_mask_values
 from numpy.typing import NDArray
 
 LIVE, SAFE, WAITING = "live", "safe", "waiting"  # WAITING: no live mask yet, and the service not quiet yet
@@ -60,6 +60,10 @@ class SafeMask:
 
     def values(self) -> NDArray[np.int8]:
         return np.full((self.cells, self.cells), self.percent, np.int8)
+
+    def cdr(self, stamp: tuple[int, int]) -> bytes:
+        """The mask as a nav_msgs/OccupancyGrid's CDR, stamped (sec, nanosec)."""
+        return occupancy_grid_cdr(stamp, self.frame_id, self.resolution, self.origin, self.values())
 
 
 def floor_percent(floor: float) -> int:

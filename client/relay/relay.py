@@ -27,7 +27,6 @@ not stale forever.
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections import OrderedDict
@@ -49,17 +48,10 @@ from gcdtrav.client.session.source_info import put_identified
 from gcdtrav.schemas.images import encode_jpeg
 from gcdtrav.schemas.inputs import RejectedInput, decode_payload
 from gcdtrav.schemas.keys import Keys, input_key
-from gcdtrav.schemas.messages import (
-    CameraParked,
-    CreditGrant,
-    ImageEnvelope,
-    MessageError,
-    PixelEncoding,
-    RelayHealth,
-)
+from gcdtrav.schemas.messages import CameraParked, CreditGrant, ImageEnvelope, MessageError, PixelEncoding, RelayHealth
 from gcdtrav.schemas.relay import CLIPSEG_INPUT_SIDE, RelayCamera, RelayOutcomes, RelaySettings
 from gcdtrav.schemas.ros_image import decode_ros_image
-from gcdtrav.schemas.ros_nav import RosNavError, occupancy_grid_geometry
+from gcdtrav.schemas.ros_nav import RosNavError, occupancy_grid_geometry, split_stamp
 
 log = logging.getLogger("gcdtrav.relay")
 MAX_CAMERA_PIXELS = 40_000_000
@@ -272,8 +264,7 @@ class CameraLink:
             near = min(self._ros_stamps, key=lambda sent: abs(sent - stamp), default=None)
             if near is not None and abs(near - stamp) < 1e-6:
                 return self._ros_stamps[near]
-        sec = math.floor(stamp)
-        return sec, min(round((stamp - sec) * 1e9), 999_999_999)
+        return split_stamp(stamp)
 
     def stop(self) -> None:
         with self._cond:

@@ -70,7 +70,6 @@ from gcdtrav.schemas.ros_image import COMPRESSED_IMAGE, IMAGE, SUPPORTED_TYPES, 
 from gcdtrav.schemas.ros_nav import (
     RosNavError,
     costmap_filter_info_cdr,
-    occupancy_grid_cdr,
     occupancy_grid_geometry,
     odometry_motion,
     restamped,
@@ -297,7 +296,7 @@ class SpeedTopics:
 
     def publish_safe(self, mask: SafeMask, now: tuple[int, int]) -> None:
         """The relay's own safe mask (client/relay/mask_guard.py), where the live masks go."""
-        self.mask.publish(occupancy_grid_cdr(now, mask.frame_id, mask.resolution, mask.origin, mask.values()))
+        self.mask.publish(mask.cdr(now))
 
     def outputs(self, relay: Relay, source: str) -> list[RosOutput]:
         mask_publishers = [self.mask] if self.info is None else [self.mask, self.info]

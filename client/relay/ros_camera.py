@@ -5,13 +5,7 @@ the reader the service uses too.
 
 from __future__ import annotations
 
-
-def ros_type_of_chunk(chunk: str) -> str | None:
-    """sensor_msgs::msg::dds_::Image_ (an rmw_zenoh key chunk) -> sensor_msgs/msg/Image; None otherwise."""
-    parts = chunk.split("::")
-    if len(parts) == 4 and parts[2] == "dds_" and parts[3].endswith("_"):
-        return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
-    return None
+from gcdtrav.schemas.ros_image import ros_type_name
 
 
 def ros_camera_key(topic: str, layout: str, domain: int = 0, namespace: str = "") -> str:
@@ -25,4 +19,4 @@ def ros_camera_key(topic: str, layout: str, domain: int = 0, namespace: str = ""
 def ros_type_of_key(key: str) -> str | None:
     """The message type an rmw_zenoh key names (its second-to-last chunk)."""
     chunks = key.split("/")
-    return ros_type_of_chunk(chunks[-2]) if len(chunks) >= 3 else None
+    return ros_type_name(chunks[-2]) if len(chunks) >= 3 else None

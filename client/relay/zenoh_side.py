@@ -5,6 +5,7 @@ safe speed mask, the robot's pose and the inputs of its outcomes. The ROS 2 grap
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 from functools import partial
 from typing import Protocol
@@ -26,7 +27,7 @@ from gcdtrav.schemas.experience import PlannedPath, TraversalOutcome
 from gcdtrav.schemas.messages import MessageError, Pose2D, RelayHealth
 from gcdtrav.schemas.outcomes import decode_command, decode_contact, decode_odometry
 from gcdtrav.schemas.relay import FORWARDABLE, RelayCamera
-from gcdtrav.schemas.ros_nav import occupancy_grid_cdr, odometry_pose, split_stamp
+from gcdtrav.schemas.ros_nav import odometry_pose, split_stamp
 
 log = logging.getLogger("gcdtrav.relay")
 
@@ -45,13 +46,6 @@ class CameraFeed(Protocol):
     def on_frame(self, sample: zenoh.Sample) -> None: ...
 
     def on_parked(self, sample: zenoh.Sample) -> None: ...
-
-
-def safe_mask_cdr(mask: SafeMask) -> bytes:
-    """The safe mask as a nav_msgs/OccupancyGrid, stamped now (this host's clock)."""
-    import time
-
-    return occupancy_grid_cdr(split_stamp(time.time()), mask.frame_id, mask.resolution, mask.origin, mask.values())
 
 
 class OutputForwarder(OnDemand):
@@ -156,7 +150,7 @@ class ZenohRobotSide:
     def publish_safe_mask(self, mask: SafeMask) -> None:
         forwarder = self._masks.get(mask.source)
         if forwarder is not None:
-            forwarder.put_local(safe_mask_cdr(mask))
+            forwarder.put_local(mask.cdr(split_stamp(time.time())))  # stamped now, this host's clock
 
     def close(self) -> None:
         for publisher in [*self._health.values(), *([self._pose] if self._pose else [])]:

@@ -14,48 +14,25 @@ import zenoh
 def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("zenoh")
     group.add_argument(
-        "--mode",
-        "-m",
-        dest="mode",
-        choices=["peer", "client", "router"],
-        type=str,
-        help="The zenoh session mode [default: peer].",
+        "--mode", "-m", choices=["peer", "client", "router"], help="The zenoh session mode [default: peer]."
     )
     group.add_argument(
         "--connect",
         "-e",
-        dest="connect",
         metavar="ENDPOINT",
         action="append",
-        type=str,
         help="Endpoints to connect to, e.g. tcp/192.168.1.10:7447.",
     )
     group.add_argument(
-        "--listen",
-        "-l",
-        dest="listen",
-        metavar="ENDPOINT",
-        action="append",
-        type=str,
-        help="Endpoints to listen on, e.g. tcp/0.0.0.0:7447.",
+        "--listen", "-l", metavar="ENDPOINT", action="append", help="Endpoints to listen on, e.g. tcp/0.0.0.0:7447."
     )
-    group.add_argument(
-        "--config", "-c", dest="config", metavar="FILE", type=str, help="A zenoh configuration file (JSON5)."
-    )
-    group.add_argument(
-        "--no-multicast-scouting",
-        dest="no_multicast_scouting",
-        default=False,
-        action="store_true",
-        help="Disable multicast scouting.",
-    )
+    group.add_argument("--config", "-c", metavar="FILE", help="A zenoh configuration file (JSON5).")
+    group.add_argument("--no-multicast-scouting", action="store_true", help="Disable multicast scouting.")
     group.add_argument(
         "--cfg",
-        dest="cfg",
         metavar="CFG",
         default=[],
         action="append",
-        type=str,
         help="Arbitrary configuration changes as KEY:VALUE pairs, where KEY is a config path and "
         "VALUE a JSON5 value. Example: --cfg='transport/unicast/max_links:2'.",
     )

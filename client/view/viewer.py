@@ -103,10 +103,6 @@ class ViewOptions:
     message_backlog: int = 64  # per browser: the oldest message is dropped beyond this
 
 
-def now_ns() -> int:
-    return time.time_ns()
-
-
 def stamp(seconds: float) -> Timestamp:
     return Timestamp.from_epoch_secs(max(seconds, 0.0))
 
@@ -343,7 +339,7 @@ class Viewer:
     def emit(self, channel: Any, message: Any, log_time: int | None = None) -> None:
         """Log one message to every sink (browsers, the MCAP file); rotate the file when it is full."""
         with self._emit_lock:
-            channel.log(message, log_time=log_time or now_ns())
+            channel.log(message, log_time=log_time or time.time_ns())
             recorded = " (recorded)" if channel.metadata() == RECORDED else ""  # the camera's MCAP-only twin
             self.logged[channel.topic() + recorded] += 1
             if self.recorder is not None:

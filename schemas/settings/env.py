@@ -9,10 +9,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from gcdtrav.schemas.settings.base import (
-    ENV_PREFIX,
-    SettingsError,
-)
+from gcdtrav.schemas.settings.base import ENV_PREFIX, SettingsError
 from gcdtrav.schemas.settings.service import ServiceSettings
 from gcdtrav.schemas.settings.store import PASSWORD_ENV
 from gcdtrav.schemas.yaml_file import load_mapping

@@ -5,9 +5,7 @@ from __future__ import annotations
 import re
 from typing import Literal
 
-from gcdtrav.schemas.settings.base import (
-    KEY_CHUNK,
-)
+from gcdtrav.schemas.settings.base import KEY_CHUNK
 from gcdtrav.schemas.strict import StrictModel
 from pydantic import Field, field_validator, model_validator
 

@@ -12,11 +12,7 @@ from typing import Literal
 from gcdtrav.schemas.config import EngineSettings
 from gcdtrav.schemas.limits import DEFAULT_MAX_ANCHOR_SET_BYTES
 from gcdtrav.schemas.paths import default_cache_dir, default_state_dir, expanded
-from gcdtrav.schemas.settings.base import (
-    KEY_CHUNK,
-    Precision,
-    default_instance_name,
-)
+from gcdtrav.schemas.settings.base import KEY_CHUNK, Precision, default_instance_name
 from gcdtrav.schemas.settings.experience import AskSettings, ExperienceSettings
 from gcdtrav.schemas.settings.grids import GridSettings, one_grid_per_camera
 from gcdtrav.schemas.settings.risk import RiskSettings

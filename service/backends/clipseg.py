@@ -40,12 +40,7 @@ from gcdtrav.service.backends.hub import cached_in_hub_cache, hub_offline
 from gcdtrav.service.backends.machine import available_precisions, machine_has
 from gcdtrav.service.backends.modes import AUTO, RuntimeMode, missing_requirement, runtime_mode
 from gcdtrav.service.backends.onednn import QuickGeluMLP, clip_encoder_layer, fused_mlp_pays
-from gcdtrav.service.backends.onnx_runtime import (
-    ExportError,
-    OrtCompute,
-    exported_model,
-    model_fingerprint,
-)
+from gcdtrav.service.backends.onnx_runtime import ExportError, OrtCompute, exported_model, model_fingerprint
 from numpy.typing import NDArray
 
 log = logging.getLogger(__name__)

@@ -11,6 +11,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from functools import partial
 from typing import Any
 
 import zenoh
@@ -151,9 +152,10 @@ class TraversabilityService:
         )
         for expression in self.settings.inputs:
             head = literal_head(expression)
-            self._declared.append(self.session.declare_subscriber(expression, self._image_handler(head)))
+            self._declared.append(self.session.declare_subscriber(expression, partial(self._on_image, head=head)))
         for ros_input in self.settings.ros_inputs:
-            self._declared.append(self.session.declare_subscriber(ros_input.key, self._ros_handler(ros_input)))
+            handler = partial(self._on_ros_image, ros_input=ros_input)
+            self._declared.append(self.session.declare_subscriber(ros_input.key, handler))
         if self.ros_graph is not None:
             self.ros_graph.start()
         self._declare_grid_inputs()
@@ -214,9 +216,6 @@ class TraversabilityService:
             self.ros_graph.close()
 
     # ---- input ---------------------------------------------------------------------------------------
-    def _image_handler(self, head: str) -> Callable[[zenoh.Sample], None]:
-        return lambda sample: self._on_image(sample, head)
-
     def _on_image(self, sample: zenoh.Sample, head: str) -> None:
         """Runs on zenoh's thread: only rate-check, size-check and enqueue; decoding happens in the worker."""
         if self._stopping.is_set():
@@ -229,9 +228,6 @@ class TraversabilityService:
         if not self.runtime.admission.admit(publisher := publisher_of(sample)):
             return
         self._enqueue(input_source_of(key, head), sample, None, publisher)
-
-    def _ros_handler(self, ros_input: RosInput) -> Callable[[zenoh.Sample], None]:
-        return lambda sample: self._on_ros_image(sample, ros_input)
 
     def _on_ros_image(self, sample: zenoh.Sample, ros_input: RosInput) -> None:
         if self._stopping.is_set() or not self.runtime.admission.admit(publisher := publisher_of(sample)):
@@ -319,20 +315,17 @@ class TraversabilityService:
         if grids is None:
             return
         for key, source, setter, reason in grids.inputs():  # poses by grid, CameraInfo and depth by camera
-            handler = self._grid_input_handler(source, setter, reason)
+            handler = partial(self._on_grid_input, source, setter, reason)
             self._declared.append(self.session.declare_subscriber(key, handler))
         self._declared += declare_tf_inputs(self.session, grids, self.stats)  # mounts and poses from tf
 
-    def _grid_input_handler(
-        self, source: str, setter: Callable[[str, bytes], None], reason: str
-    ) -> Callable[[zenoh.Sample], None]:
-        def handle(sample: zenoh.Sample) -> None:
-            try:
-                setter(source, sample.payload.to_bytes())
-            except (MessageError, ValueError) as err:
-                self.stats.rejected(source, reason, str(err)[:200])
-
-        return handle
+    def _on_grid_input(
+        self, source: str, setter: Callable[[str, bytes], None], reason: str, sample: zenoh.Sample
+    ) -> None:
+        try:
+            setter(source, sample.payload.to_bytes())
+        except (MessageError, ValueError) as err:
+            self.stats.rejected(source, reason, str(err)[:200])
 
     def status(self) -> ServiceStatus:
         live = sorted(self.membership.live()) if self.membership else None

@@ -23,6 +23,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from typing import Any, Literal
 
 import zenoh
@@ -242,7 +243,7 @@ class RosGraph:
             )
             if expression not in watched:
                 watched.add(expression)
-                handler = self._token_handler(ros_input.zenoh_namespace)
+                handler = partial(self._on_token, zenoh_namespace=ros_input.zenoh_namespace)
                 self._watchers.append(self.session.liveliness().declare_subscriber(expression, handler, history=True))
 
     def close(self) -> None:
@@ -329,9 +330,6 @@ class RosGraph:
         )
 
     # ---- discovery -----------------------------------------------------------------------------------
-    def _token_handler(self, zenoh_namespace: str) -> Any:
-        return lambda sample: self._on_token(sample, zenoh_namespace)
-
     def _on_token(self, sample: zenoh.Sample, zenoh_namespace: str) -> None:
         """A camera's (or tf's) publisher token came or went: subscribe while one matching an input lives."""
         key = str(sample.key_expr)

@@ -58,11 +58,10 @@ def load_anchors(path: str | None) -> AnchorSet:
 def add_model_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--model",
-        default=None,
         help="CLIPSeg checkpoint: a local directory (Hugging Face layout) or a hub id "
         "[env GCDTRAV_MODEL, default CIDAS/clipseg-rd64-refined]",
     )
-    parser.add_argument("--anchors", default=None, help="anchor-set file (JSON or YAML) [default: the paper's set]")
+    parser.add_argument("--anchors", help="anchor-set file (JSON or YAML) [default: the paper's set]")
     parser.add_argument(
         "--method",
         choices=[m.value for m in Method],
@@ -75,13 +74,8 @@ def add_model_arguments(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="divide U by the largest sigma the anchor set can produce, so U spans [0, 1]",
     )
-    parser.add_argument(
-        "--precision",
-        choices=PRECISIONS,
-        default="auto",
-        help=PRECISION_HELP + " [auto]",
-    )
-    parser.add_argument("--cache-dir", type=Path, default=None, help=CACHE_DIR_HELP)
+    parser.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP + " [auto]")
+    parser.add_argument("--cache-dir", type=Path, help=CACHE_DIR_HELP)
 
 
 DESCRIPTION = (
@@ -132,32 +126,29 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_zenoh_arguments(serve)
     group = serve.add_argument_group("service")
-    group.add_argument("--settings", default=None, metavar="FILE", help="service settings (YAML)")
-    group.add_argument("--prefix", default=None, help="key prefix of the service's keys [default: gcdtrav]")
+    group.add_argument("--settings", metavar="FILE", help="service settings (YAML)")
+    group.add_argument("--prefix", help="key prefix of the service's keys [default: gcdtrav]")
     group.add_argument(
         "--input",
         dest="inputs",
         action="append",
-        default=None,
         metavar="KEYEXPR",
         help="image key expression to subscribe to (repeatable) [default: gcdtrav/in/**]",
     )
-    group.add_argument("--model", default=None, help="CLIPSeg directory or hub id [env GCDTRAV_MODEL]")
+    group.add_argument("--model", help="CLIPSeg directory or hub id [env GCDTRAV_MODEL]")
     group.add_argument(
         "--anchors",
         dest="anchors_file",
-        default=None,
         help="anchor set to start with; a set accepted at runtime (state file) takes precedence",
     )
-    group.add_argument("--method", choices=[m.value for m in Method], default=None)
-    group.add_argument("--history", type=int, default=None, help="frames per source kept for queries [8]")
+    group.add_argument("--method", choices=[m.value for m in Method])
+    group.add_argument("--history", type=int, help="frames per source kept for queries [8]")
     group.add_argument(
         "--state-dir",
-        default=None,
         help="where the accepted anchor set is kept [$XDG_STATE_HOME/gcdtrav, else ~/.local/state/gcdtrav]",
     )
-    group.add_argument("--cache-dir", default=None, help=CACHE_DIR_HELP)
-    group.add_argument("--instance", default=None, help="instance name [default: host-pid]")
+    group.add_argument("--cache-dir", help=CACHE_DIR_HELP)
+    group.add_argument("--instance", help="instance name [default: host-pid]")
     group.add_argument(
         "--full-resolution", action="store_true", default=None, help="also publish T and U at the input image's size"
     )
@@ -168,26 +159,16 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="don't publish the colourised JPEG preview",
     )
-    group.add_argument("--max-payload-bytes", type=int, default=None, help="larger inputs are rejected [20 MB]")
-    group.add_argument(
-        "--threads", type=int, default=None, help="torch threads [the usable CPUs, within a container's CPU quota]"
-    )
-    group.add_argument(
-        "--precision",
-        choices=PRECISIONS,
-        default=None,
-        help=PRECISION_HELP + " [auto]",
-    )
+    group.add_argument("--max-payload-bytes", type=int, help="larger inputs are rejected [20 MB]")
+    group.add_argument("--threads", type=int, help="torch threads [the usable CPUs, within a container's CPU quota]")
+    group.add_argument("--precision", choices=PRECISIONS, help=PRECISION_HELP + " [auto]")
     group.add_argument(
         "--metrics-port",
         type=int,
-        default=None,
         metavar="PORT",
         help="serve Prometheus metrics on http://ADDRESS:PORT/metrics (docs/metrics.md); 0: off [0]",
     )
-    group.add_argument(
-        "--metrics-address", default=None, metavar="ADDRESS", help="address of the metrics port [0.0.0.0]"
-    )
+    group.add_argument("--metrics-address", metavar="ADDRESS", help="address of the metrics port [0.0.0.0]")
     group.add_argument(
         "--measure-first",
         dest="measure_before_serving",
@@ -204,21 +185,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     evaluate.add_argument("--dataset", choices=["goose", "rugd", "generic"], required=True)
     evaluate.add_argument("--root", type=Path, required=True, help="the dataset's root folder")
-    evaluate.add_argument("--split", default=None, help="goose: val|train|test [val]; rugd: comma list of sequences")
+    evaluate.add_argument("--split", help="goose: val|train|test [val]; rugd: comma list of sequences")
     evaluate.add_argument("--methods", default="gcd,argmax,gaussian", help="comma list [gcd,argmax,gaussian]")
     evaluate.add_argument(
-        "--mapping",
-        default=None,
-        help="label -> traversability YAML [the shipped one for goose and rugd; required for generic]",
+        "--mapping", help="label -> traversability YAML [the shipped one for goose and rugd; required for generic]"
     )
-    evaluate.add_argument("--model", default=None, help="CLIPSeg directory or hub id [env GCDTRAV_MODEL]")
-    evaluate.add_argument("--anchors", default=None, help="anchor-set file [the paper's set]")
+    evaluate.add_argument("--model", help="CLIPSeg directory or hub id [env GCDTRAV_MODEL]")
+    evaluate.add_argument("--anchors", help="anchor-set file [the paper's set]")
     evaluate.add_argument("--precision", choices=PRECISIONS, default="auto", help=PRECISION_HELP + " [auto]")
-    evaluate.add_argument("--cache-dir", type=Path, default=None, help=CACHE_DIR_HELP)
+    evaluate.add_argument("--cache-dir", type=Path, help=CACHE_DIR_HELP)
     evaluate.add_argument("--temperature", type=float, default=1.0)
     evaluate.add_argument("--grid", type=int, default=8, help="sample every GRID-th pixel in x and y [8]")
     evaluate.add_argument("--out", type=Path, default=Path("eval_out"), help="output folder [eval_out]")
-    evaluate.add_argument("--limit", type=int, default=None, help="only the first N images")
+    evaluate.add_argument("--limit", type=int, help="only the first N images")
     evaluate.add_argument("--no-figures", action="store_true")
     evaluate.add_argument(
         "--fit-anchors",

@@ -21,14 +21,11 @@ PACKAGES = ("torch", "transformers", "onnxruntime", "onnx", "eclipse-zenoh", "nu
 
 
 def build_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    parser.add_argument(
-        "--model", default=None, help="CLIPSeg checkpoint directory or hub id [env GCDTRAV_MODEL, else the hub id]"
-    )
+    parser.add_argument("--model", help="CLIPSeg checkpoint directory or hub id [env GCDTRAV_MODEL, else the hub id]")
     parser.add_argument("--runs", type=int, default=3, help="timed frames per mode [3]")
     parser.add_argument(
         "--cache-dir",
         type=Path,
-        default=None,
         help="where ONNX exports and the measurement are kept, shared with infer and serve "
         "[$XDG_CACHE_HOME/gcdtrav, else ~/.cache/gcdtrav]",
     )

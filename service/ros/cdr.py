@@ -23,6 +23,7 @@ from gcdtrav.schemas.limits import MAX_FRAME_ID_CHARS
 from gcdtrav.schemas.messages import GridHeader, MessageError, Pose2D
 from gcdtrav.schemas.ros_image import COMPRESSED_IMAGE as COMPRESSED_IMAGE  # re-exported: the ROS types in one place
 from gcdtrav.schemas.ros_image import IMAGE as IMAGE
+from gcdtrav.schemas.ros_image import ros_type_name as ros_type_name  # re-exported: the bus's graph reads it
 from gcdtrav.schemas.ros_nav import costmap_filter_info_cdr as costmap_filter_info_cdr  # re-exported, as below
 from gcdtrav.schemas.ros_nav import occupancy_grid_cdr, odometry_pose, split_stamp
 from gcdtrav.schemas.ros_nav import yaw_of_quaternion as yaw_of_quaternion  # re-exported: tf's too
@@ -59,13 +60,6 @@ def dds_type_name(msgtype: str) -> str:
     """sensor_msgs/msg/Image -> sensor_msgs::msg::dds_::Image_ (rmw_zenoh's key chunk)."""
     package, kind, name = msgtype.split("/")
     return f"{package}::{kind}::dds_::{name}_"
-
-
-def ros_type_name(dds_name: str) -> str | None:
-    parts = dds_name.split("::")
-    if len(parts) == 4 and parts[2] == "dds_" and parts[3].endswith("_"):
-        return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
-    return None
 
 
 def type_hash(msgtype: str) -> str:

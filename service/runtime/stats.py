@@ -22,12 +22,12 @@ LAST_ERRORS = 20
 REFUSED_SOURCES = 32  # untracked sources shown with their counts (a camera whose every frame fails), newest kept
 
 
-def percentiles(values: deque[float]) -> dict[str, float]:
+def percentiles(values: deque[float], levels: tuple[int, ...] = (50, 90, 99)) -> dict[str, float]:
+    """{"p50": ..., ...} at ``levels``, rounded to 0.01; {} for no values."""
     if not values:
         return {}
-    data = np.fromiter(values, dtype=np.float64)
-    p50, p90, p99 = np.percentile(data, [50, 90, 99])
-    return {"p50": round(float(p50), 2), "p90": round(float(p90), 2), "p99": round(float(p99), 2)}
+    found = np.percentile(np.fromiter(values, dtype=np.float64), levels)
+    return {f"p{level}": round(float(value), 2) for level, value in zip(levels, found, strict=True)}
 
 
 @dataclass
@@ -69,13 +69,6 @@ class SourceStats:
         # Over the window, or over what the capped deque still holds of it at high frame rates.
         span = RATE_WINDOW_S if len(self.arrivals) < LATENCY_WINDOW else max(now - self.arrivals[0][0], 1e-3)
         return round(sum(n for _, n in self.arrivals) / span, 1)
-
-
-def age_percentiles(values: deque[float]) -> dict[str, float]:
-    if not values:
-        return {}
-    p50, p95 = np.percentile(np.fromiter(values, dtype=np.float64), [50, 95])
-    return {"p50": round(float(p50), 2), "p95": round(float(p95), 2)}
 
 
 class FrameEvents(Protocol):
@@ -312,7 +305,7 @@ class ServiceStats:
             inference_ms=percentiles(stats.inference_ms),
             stale=stats.stale,
             bytes_per_s=stats.bytes_per_s(time.monotonic()),
-            frame_age_ms=age_percentiles(stats.age_ms),
+            frame_age_ms=percentiles(stats.age_ms, (50, 95)),
             credits=stats.credits,
             clock_offset_s=None if clock_offset_s is None else round(clock_offset_s, 3),
             dropped_by_reason=self._dropped_by(stats, queued),

@@ -13,13 +13,7 @@ from gcdtrav.schemas.ros_nav import speed_mask_values
 from gcdtrav.schemas.settings import GridSettings, RiskSettings
 from gcdtrav.service.grid import speed
 from gcdtrav.service.grid.layers import GridLayers, nav2_costs
-from gcdtrav.service.ros.cdr import (
-    RosTopic,
-    nav2_costmap_cdr,
-    occupancy_cdr,
-    occupancy_values_cdr,
-    speed_limit_cdr,
-)
+from gcdtrav.service.ros.cdr import RosTopic, nav2_costmap_cdr, occupancy_cdr, occupancy_values_cdr, speed_limit_cdr
 from gcdtrav.service.ros.grid_map import grid_map_cdr
 from gcdtrav.service.runtime.grids.state import SourceGrid
 from numpy.typing import NDArray

@@ -31,12 +31,7 @@ from gcdtrav.service.grid.geometry import CameraMount
 from gcdtrav.service.grid.layers import grid_layers
 from gcdtrav.service.grid.poses import PoseAt
 from gcdtrav.service.grid.speed import speed_fractions
-from gcdtrav.service.ros.cdr import (
-    RosTopic,
-    decode_camera_info_frame,
-    decode_depth,
-    decode_pose,
-)
+from gcdtrav.service.ros.cdr import RosTopic, decode_camera_info_frame, decode_depth, decode_pose
 from gcdtrav.service.runtime.grids import answers
 from gcdtrav.service.runtime.grids.encoding import FusedGrid, SpeedUpdate, grid_header, safe_speed
 from gcdtrav.service.runtime.grids.health import NO_INTRINSICS, NO_MOUNT

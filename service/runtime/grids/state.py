@@ -18,9 +18,7 @@ from gcdtrav.schemas.settings import GridCamera, GridSettings
 from gcdtrav.service.grid.fusion import GridSpec, GroundGrid
 from gcdtrav.service.grid.geometry import CameraMount, PinholeCamera, depth_points, ground_points, map_cell_pixels
 from gcdtrav.service.grid.poses import PoseAt, PoseBuffer
-from gcdtrav.service.ros.cdr import (
-    RosTopic,
-)
+from gcdtrav.service.ros.cdr import RosTopic
 from gcdtrav.service.runtime.errors import QueryError
 from gcdtrav.service.runtime.grids.health import GridHealth
 from numpy.typing import NDArray
