@@ -28,6 +28,7 @@ import contextlib
 import logging
 import time
 from collections.abc import Callable
+from functools import partial
 from typing import Any
 
 import zenoh
@@ -91,8 +92,12 @@ class ExperienceBus:
     def start(self) -> list[Any]:
         """Declare the subscribers and queryables (returned, for the node to undeclare)."""
         declared: list[Any] = [
-            self.session.declare_subscriber(self.keys.outcome("**"), self._on_outcome),
-            self.session.declare_subscriber(self.keys.outcomes("**"), self._on_outcomes),
+            self.session.declare_subscriber(
+                self.keys.outcome("**"), partial(self._on_outcomes, "outcome", self.experience.on_outcome)
+            ),
+            self.session.declare_subscriber(
+                self.keys.outcomes("**"), partial(self._on_outcomes, "outcomes", self.experience.on_outcomes)
+            ),
             self.session.declare_subscriber(self.keys.answer("**"), self._on_answer_sample),
             self.session.declare_subscriber(self.keys.planned_path("**"), self._on_planned_path),
         ]
@@ -169,21 +174,13 @@ class ExperienceBus:
             return None
         return parsed[0]
 
-    def _on_outcome(self, sample: zenoh.Sample) -> None:
+    def _on_outcomes(self, kind: str, take: Callable[[bytes], int], sample: zenoh.Sample) -> None:
+        """An outcome (``kind`` outcome) or a relay's batch (outcomes) for ``take``; a bad one counted."""
         key = str(sample.key_expr)
-        if self._grid_source(key, "outcome") is None:
+        if self._grid_source(key, kind) is None:
             return
         try:
-            self.experience.on_outcome(sample.payload.to_bytes())
-        except OutcomeRejected as err:
-            self.stats.rejected(None, err.reason, f"{key}: {err}"[:200])
-
-    def _on_outcomes(self, sample: zenoh.Sample) -> None:
-        key = str(sample.key_expr)
-        if self._grid_source(key, "outcomes") is None:
-            return
-        try:
-            self.experience.on_outcomes(sample.payload.to_bytes())
+            take(sample.payload.to_bytes())
         except OutcomeRejected as err:
             self.stats.rejected(None, err.reason, f"{key}: {err}"[:200])
 

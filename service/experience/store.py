@@ -21,6 +21,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
@@ -54,29 +55,23 @@ MAX_BATCH_BYTES = 128 * MAX_BATCH_OUTCOMES  # an outcome packs to about 90 bytes
 READ_OWN_WRITES_S = 2.0  # a report waits this long at most for this instance's queued pairs to be written
 
 
+Decoded = TypeVar("Decoded", TraversalOutcome, OutcomeBatch)
+
+
 class OutcomeRejected(ValueError):
     def __init__(self, reason: str, detail: str) -> None:
         self.reason, self.detail = reason, detail
         super().__init__(f"{reason}: {detail}")
 
 
-def decode_outcome(payload: bytes) -> TraversalOutcome:
-    """A TraversalOutcome from msgpack or JSON (a payload starting with '{'); OutcomeRejected with the reason."""
+def decode_outcomes(kind: type[Decoded], payload: bytes) -> Decoded:
+    """A TraversalOutcome or a relay's OutcomeBatch from msgpack or JSON (a payload starting with '{');
+    OutcomeRejected with the reason."""
     try:
-        return TraversalOutcome.decode(payload, MAX_OUTCOME_BYTES)
+        return kind.decode(payload, MAX_OUTCOME_BYTES if kind is TraversalOutcome else MAX_BATCH_BYTES)
     except MessageTooLarge as err:
         raise OutcomeRejected("oversized", str(err)) from None
     except ValueError as err:  # MessageError, or whatever else a bad value raised
-        raise OutcomeRejected("bad_outcome", str(err)) from None
-
-
-def decode_batch(payload: bytes) -> OutcomeBatch:
-    """A relay's OutcomeBatch (msgpack or JSON); OutcomeRejected with the reason."""
-    try:
-        return OutcomeBatch.decode(payload, MAX_BATCH_BYTES)
-    except MessageTooLarge as err:
-        raise OutcomeRejected("oversized", str(err)) from None
-    except ValueError as err:
         raise OutcomeRejected("bad_outcome", str(err)) from None
 
 
@@ -117,28 +112,25 @@ class ExperienceStore:
     # ---- outcomes in -----------------------------------------------------------------------------------
     def ingest(self, payload: bytes, ring: SnapshotRing) -> int:
         """Decode an outcome payload and pair it; OutcomeRejected (counted) for a bad one."""
-        try:
-            outcome = decode_outcome(payload)
-        except OutcomeRejected as err:
-            with self._lock:
-                self._count(f"rejected_{err.reason}")
-            raise
-        return self.add(outcome, ring)
+        return self.add(self._decoded(TraversalOutcome, payload), ring)
 
     def ingest_batch(self, payload: bytes, ring: SnapshotRing) -> int:
         """Decode a relay's batch and pair each of its outcomes as one from the bus; OutcomeRejected (counted) for a
         bad batch. The outcomes the relay dropped are counted (``relay_dropped``)."""
-        try:
-            batch = decode_batch(payload)
-        except OutcomeRejected as err:
-            with self._lock:
-                self._count(f"rejected_{err.reason}")
-            raise
+        batch = self._decoded(OutcomeBatch, payload)
         with self._lock:
             self._count("relayed_outcomes", len(batch.outcomes))
             if batch.dropped:
                 self._count("relay_dropped", batch.dropped)
         return sum(self.add(outcome, ring) for outcome in batch.outcomes)
+
+    def _decoded(self, kind: type[Decoded], payload: bytes) -> Decoded:
+        try:
+            return decode_outcomes(kind, payload)
+        except OutcomeRejected as err:
+            with self._lock:
+                self._count(f"rejected_{err.reason}")
+            raise
 
     def add(self, outcome: TraversalOutcome, ring: SnapshotRing) -> int:
         """Pair the outcome with every known cell in its footprint as ``ring`` held it ``lookahead_s`` before;
