@@ -8,12 +8,11 @@ active pointer are read and changed by one writer at a time and a compare-and-sw
 from __future__ import annotations
 
 import json
-import threading
 import time
 from abc import abstractmethod
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from contextlib import AbstractContextManager
-from typing import Any, Generic, Literal, Protocol, TypeVar
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
@@ -29,7 +28,6 @@ from gcdtrav.service.store.records import (
     PairTotals,
     SchemaTooNew,
     StoredProposal,
-    StoreError,
     concept_key,
     pair_bytes,
 )
@@ -48,67 +46,6 @@ class Cursor(Protocol):
     def executemany(self, sql: str, params: Sequence[Sequence[Any]], /) -> Any: ...
     def fetchone(self) -> Any: ...
     def fetchall(self) -> list[Any]: ...
-
-
-Connection = TypeVar("Connection")
-
-
-class ThreadConnections(Generic[Connection]):
-    """One connection per thread, each closed with the store: under SQLite's WAL and in PostgreSQL a
-    calibration's long read runs beside the outbox's appends, neither waiting for the other. The backend says
-    how a connection is made and closed, and whether a kept one may be used again."""
-
-    def __init__(
-        self,
-        location: str,
-        open_connection: Callable[[], Connection],
-        close_connection: Callable[[Connection], None],
-        usable: Callable[[Connection], bool] = lambda _: True,
-    ) -> None:
-        self._location = location
-        self._open = open_connection
-        self._close = close_connection
-        self._usable = usable
-        self._local = threading.local()
-        self._every: list[Connection] = []
-        self._lock = threading.Lock()
-        self._closed = False
-
-    def get(self) -> Connection:
-        """This thread's connection, made now if it has none (or its last became unusable)."""
-        connection: Connection | None = getattr(self._local, "connection", None)
-        if connection is not None and self._usable(connection):
-            return connection
-        self._refuse_if_closed()
-        connection = self._open()
-        with self._lock:
-            kept = not self._closed
-            if kept:
-                self._every.append(connection)
-        if not kept:  # closed while this one was being made
-            self._close(connection)
-            self._refuse_if_closed()
-        self._local.connection = connection
-        return connection
-
-    def forget(self, connection: Connection) -> None:
-        """Drop a failed connection: the thread's next call makes a new one."""
-        self._local.connection = None
-        with self._lock:
-            if connection in self._every:
-                self._every.remove(connection)
-        self._close(connection)
-
-    def close(self) -> None:
-        with self._lock:
-            self._closed = True
-            connections, self._every = self._every, []
-        for connection in connections:
-            self._close(connection)
-
-    def _refuse_if_closed(self) -> None:
-        if self._closed:
-            raise StoreError(f"the store {self._location} is closed")
 
 
 class SqlStore(Store):

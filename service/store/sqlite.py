@@ -1,6 +1,6 @@
 """The embedded store: one SQLite file in the state dir (the standard library's sqlite3, WAL), so a single box
-needs nothing set up. One connection per thread (``ThreadConnections``); writers take SQLite's one writer lock
-(BEGIN IMMEDIATE)."""
+needs nothing set up. Connections lent per transaction from a small pool (``pool.ConnectionPool``, as for
+PostgreSQL); writers take SQLite's one writer lock (BEGIN IMMEDIATE), readers run beside them (WAL)."""
 
 from __future__ import annotations
 
@@ -9,11 +9,13 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from gcdtrav.service.store.pool import ConnectionPool
 from gcdtrav.service.store.records import StoreError, StoreUnavailable
 from gcdtrav.service.store.schema import SQLITE
-from gcdtrav.service.store.sql import Cursor, Lock, SqlStore, ThreadConnections
+from gcdtrav.service.store.sql import Cursor, Lock, SqlStore
 
 BUSY_TIMEOUT_S = 30.0  # another writer (a second process on the same file) holds the lock this long at most
+POOL_SIZE = 4  # the outbox's writer, the anchor switch's reader and worker, one more (a status, a tool)
 
 
 class SqliteStore(SqlStore):
@@ -22,7 +24,9 @@ class SqliteStore(SqlStore):
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self._connections = ThreadConnections(str(path), self._connect, sqlite3.Connection.close)
+        self._pool = ConnectionPool(
+            str(path), self._connect, sqlite3.Connection.close, lambda _: True, POOL_SIZE, BUSY_TIMEOUT_S
+        )
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as err:
@@ -47,23 +51,24 @@ class SqliteStore(SqlStore):
 
     @contextmanager
     def _transaction(self, lock: Lock | None) -> Iterator[Cursor]:
-        connection = self._connections.get()
-        try:
-            cursor = connection.cursor()
-            cursor.execute("BEGIN IMMEDIATE" if lock is not None else "BEGIN")
+        with self._pool.lent() as lent:
+            connection = lent.connection
             try:
-                yield cursor
-            except BaseException:
-                connection.rollback()
-                raise
-            connection.commit()
-        except sqlite3.Error as err:
-            if connection.in_transaction:
-                connection.rollback()
-            raise _store_error(self.path, err) from None
+                cursor = connection.cursor()
+                cursor.execute("BEGIN IMMEDIATE" if lock is not None else "BEGIN")
+                try:
+                    yield cursor
+                except BaseException:
+                    connection.rollback()
+                    raise
+                connection.commit()
+            except sqlite3.Error as err:
+                if connection.in_transaction:
+                    connection.rollback()
+                raise _store_error(self.path, err) from None
 
     def close(self) -> None:
-        self._connections.close()
+        self._pool.close()
 
 
 def _store_error(path: Path, err: sqlite3.Error) -> StoreError:
