@@ -35,92 +35,139 @@ def calibration_figures(
     alphas: Sequence[float] = CALIBRATION_ALPHAS,
     bins: int = RELIABILITY_BINS,
 ) -> CalibrationFigures:
-    """The figures of ``anchors`` over pairs: ``weights`` (m, n) in the set's concept order, ``outcomes`` (m,)."""
+    """The figures of ``anchors`` over pairs: ``weights`` (m, n) in the set's concept order, ``outcomes`` (m,).
+    Every figure but AUSE and Spearman's rho is a sum over pairs (``pair_sums``): the store keeps those sums as
+    pairs arrive, and ``figures_from_sums`` is the one place they become figures."""
     w = np.asarray(weights, np.float64).reshape(-1, len(anchors))
     y = np.asarray(outcomes, np.float64).reshape(-1)
     if len(w) != len(y):
         raise ValueError(f"{len(w)} weight rows for {len(y)} outcomes")
+    ause, spearman = ranked_figures(w, y, anchors)
+    sums = pair_sums(w, y, anchors, tau, alphas, bins).sum(axis=0)
+    return figures_from_sums(sums, anchors, tau, ause, spearman, alphas, bins)
+
+
+def sums_length(concepts: int, alphas: int = len(CALIBRATION_ALPHAS), bins: int = RELIABILITY_BINS) -> int:
+    """count, sum of T - y, sum of |T - y|, coverage counts per alpha, per reliability bin (count, predicted,
+    observed), per anchor (weight mass, dominant pairs, their outcomes)."""
+    return 3 + alphas + 3 * bins + 3 * concepts
+
+
+def pair_sums(
+    weights: NDArray[np.float64],
+    outcomes: NDArray[np.float64],
+    anchors: AnchorSet,
+    tau: float,
+    alphas: Sequence[float] = CALIBRATION_ALPHAS,
+    bins: int = RELIABILITY_BINS,
+) -> NDArray[np.float64]:
+    """Each pair's addends of the figures (m, sums_length): summed over any set of pairs, they give its figures."""
+    w, y = np.asarray(weights, np.float64), np.asarray(outcomes, np.float64)
+    m, n = w.shape
+    out = np.zeros((m, sums_length(n, len(alphas), bins)))
+    if m == 0:
+        return out
     positions, widths = np.asarray(anchors.positions), np.asarray(anchors.widths)
     by_anchor = w.T  # the engine's layout: anchors on axis 0
-    count = len(y)
-    if count == 0:
-        return _empty(anchors, tau, alphas, bins)
-    t, u = (values.astype(np.float64) for values in gcd.mixture_mean_std(by_anchor, positions, widths))
-    error = t - y
-    coverage: dict[str, float | None] = {
-        alpha_key(alpha): float(np.mean(y >= risk.quantile(by_anchor, positions, widths, alpha) - QUANTILE_TOLERANCE))
-        for alpha in alphas
-    }
+    t, _ = (values.astype(np.float64) for values in gcd.mixture_mean_std(by_anchor, positions, widths))
+    out[:, 0], out[:, 1], out[:, 2] = 1.0, t - y, np.abs(t - y)
+    for k, alpha in enumerate(alphas):
+        out[:, 3 + k] = y >= risk.quantile(by_anchor, positions, widths, alpha) - QUANTILE_TOLERANCE
     below = risk.p_below(by_anchor, positions, widths, tau).astype(np.float64)
-    reliability, ece = reliability_bins(below, y < tau, bins)
+    index = np.clip(np.floor(below * bins).astype(int), 0, bins - 1)
+    at = 3 + len(alphas)
+    rows = np.arange(m)
+    out[rows, at + index] = 1.0
+    out[rows, at + bins + index] = below
+    out[rows, at + 2 * bins + index] = y < tau
+    at += 3 * bins
+    out[:, at : at + n] = w
+    dominant = np.argmax(w, axis=1)
+    out[rows, at + n + dominant] = 1.0
+    out[rows, at + 2 * n + dominant] = y
+    return out
+
+
+def figures_from_sums(
+    sums: NDArray[np.float64],
+    anchors: AnchorSet,
+    tau: float,
+    ause: float | None = None,
+    spearman: float | None = None,
+    alphas: Sequence[float] = CALIBRATION_ALPHAS,
+    bins: int = RELIABILITY_BINS,
+) -> CalibrationFigures:
+    """The figures of summed ``pair_sums`` (weighted sums too: a robot's pairs may count less, sharing.py)."""
+    count, n = float(sums[0]), len(anchors)
+    if count <= 0:
+        return _empty(anchors, tau, alphas, bins)
+    at = 3 + len(alphas)
+    counts, predicted, observed = (sums[at + k * bins : at + (k + 1) * bins] for k in range(3))
+    reliability, ece = [], 0.0
+    for b in range(bins):
+        filled = counts[b] > 0
+        mean_predicted = float(predicted[b] / counts[b]) if filled else None
+        seen = float(observed[b] / counts[b]) if filled else None
+        if mean_predicted is not None and seen is not None:
+            ece += counts[b] / count * abs(seen - mean_predicted)
+        reliability.append(ReliabilityBin(low=b / bins, high=(b + 1) / bins, count=round(float(counts[b])),
+                                          predicted=mean_predicted, observed=seen))  # fmt: skip
+    at += 3 * bins
+    mass, dominant, dominant_outcomes = (sums[at + k * n : at + (k + 1) * n] for k in range(3))
     return CalibrationFigures(
-        pairs=count,
-        mae=float(np.mean(np.abs(error))),
-        bias=float(np.mean(error)),
-        coverage=coverage,
+        pairs=round(count),
+        mae=float(sums[2] / count),
+        bias=float(sums[1] / count),
+        coverage={alpha_key(alpha): float(sums[3 + k] / count) for k, alpha in enumerate(alphas)},
         tau=tau,
         reliability=reliability,
-        ece=ece,
-        ause=_number(metrics.ause(error, u)["ause"]),
-        spearman_u_error=_number(metrics.spearman(u, np.abs(error))),
-        anchors=anchor_figures(w, y, anchors),
-    )
-
-
-def reliability_bins(
-    predicted: NDArray[np.float64], happened: NDArray[np.bool_], bins: int
-) -> tuple[list[ReliabilityBin], float | None]:
-    """Equal-width bins of the predicted probability; ECE = sum over bins of share x |observed - predicted|."""
-    index = np.clip(np.floor(predicted * bins).astype(int), 0, bins - 1)
-    result, ece = [], 0.0
-    for b in range(bins):
-        members = index == b
-        n = int(members.sum())
-        mean_predicted = float(predicted[members].mean()) if n else None
-        observed = float(happened[members].mean()) if n else None
-        if mean_predicted is not None and observed is not None:
-            ece += n / len(predicted) * abs(observed - mean_predicted)
-        result.append(
-            ReliabilityBin(low=b / bins, high=(b + 1) / bins, count=n, predicted=mean_predicted, observed=observed)
-        )
-    return result, (ece if len(predicted) else None)
-
-
-def anchor_figures(
-    weights: NDArray[np.float64], outcomes: NDArray[np.float64], anchors: AnchorSet
-) -> list[AnchorFigures]:
-    mass = weights.sum(axis=0) if len(weights) else np.zeros(len(anchors))
-    dominant = np.argmax(weights, axis=1) if len(weights) else np.zeros(0, int)
-    figures = []
-    for k, (concept, position, width) in enumerate(
-        zip(anchors.concepts, anchors.positions, anchors.widths, strict=True)
-    ):
-        where = dominant == k
-        n = int(where.sum())
-        figures.append(
+        ece=float(ece),
+        ause=ause,
+        spearman_u_error=spearman,
+        anchors=[
             AnchorFigures(
                 concept=concept,
                 position=position,
                 width=width,
                 weight_mass=float(mass[k]),
-                dominant_pairs=n,
-                dominant_mean_outcome=float(outcomes[where].mean()) if n else None,
+                dominant_pairs=round(float(dominant[k])),
+                dominant_mean_outcome=float(dominant_outcomes[k] / dominant[k]) if dominant[k] > 0 else None,
             )
-        )
-    return figures
+            for k, (concept, position, width) in enumerate(
+                zip(anchors.concepts, anchors.positions, anchors.widths, strict=True)
+            )
+        ],
+    )
+
+
+def ranked_figures(
+    weights: NDArray[np.float64], outcomes: NDArray[np.float64], anchors: AnchorSet
+) -> tuple[float | None, float | None]:
+    """AUSE and Spearman's rho of U against |T - outcome|: they rank every pair, so no sum keeps them."""
+    if len(outcomes) == 0:
+        return None, None
+    positions, widths = np.asarray(anchors.positions), np.asarray(anchors.widths)
+    t, u = (v.astype(np.float64) for v in gcd.mixture_mean_std(weights.T, positions, widths))
+    error = t - outcomes
+    return _number(metrics.ause(error, u)["ause"]), _number(metrics.spearman(u, np.abs(error)))
 
 
 def _empty(anchors: AnchorSet, tau: float, alphas: Sequence[float], bins: int) -> CalibrationFigures:
-    reliability, _ = reliability_bins(np.zeros(0), np.zeros(0, bool), bins)
     return CalibrationFigures(
         pairs=0,
         mae=None,
         bias=None,
         coverage={alpha_key(alpha): None for alpha in alphas},
         tau=tau,
-        reliability=reliability,
+        reliability=[
+            ReliabilityBin(low=b / bins, high=(b + 1) / bins, count=0, predicted=None, observed=None)
+            for b in range(bins)
+        ],
         ece=None,
         ause=None,
         spearman_u_error=None,
-        anchors=anchor_figures(np.zeros((0, len(anchors))), np.zeros(0), anchors),
+        anchors=[
+            AnchorFigures(concept=c, position=p, width=w, weight_mass=0.0, dominant_pairs=0, dominant_mean_outcome=None)
+            for c, p, w in zip(anchors.concepts, anchors.positions, anchors.widths, strict=True)
+        ],
     )
