@@ -93,7 +93,7 @@ class Experience:
             settings.snapshot_every_s, int(settings.snapshot_budget_mb * 1e6), settings.lookahead_s + settings.late_s
         )
         self.store = ExperienceStore(
-            outbox, grid_source, settings.lookahead_s, instance, clock, settings.max_robot_share
+            outbox, grid_source, settings.lookahead_s, instance, clock, settings.max_robot_share, tau
         )
         self.tracker = VelocityTracker(settings)
         self.askers: dict[str, OperatorAsker] = {}

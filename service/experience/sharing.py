@@ -60,3 +60,18 @@ def fleet_mask(
         {robot: round(float((robots[mask] == robot).sum()) / total, 4) for robot in sorted(counts)} if total else {}
     )
     return mask, shares
+
+
+def source_factors(counts: dict[str, float], max_share: float, excluded: Collection[str] = ()) -> dict[str, float]:
+    """What each source's pairs count for in summed figures: 0 for an excluded robot's, else its robot's kept
+    share of its pairs (kept_counts), so that no robot holds more than ``max_share`` of the weight."""
+    by_robot: Counter[str] = Counter()
+    for source, count in counts.items():
+        by_robot[robot_of(source)] += round(count)
+    included = {robot: n for robot, n in by_robot.items() if robot not in excluded and n > 0}
+    kept = kept_counts(included, max_share)
+    return {
+        source: kept[robot] / included[robot] if robot in included else 0.0
+        for source in counts
+        for robot in (robot_of(source),)
+    }

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
@@ -34,10 +33,11 @@ from gcdtrav.schemas.experience import (
     TraversalOutcome,
 )
 from gcdtrav.schemas.messages import MessageTooLarge
-from gcdtrav.service.experience.calibration import calibration_figures
+from gcdtrav.service.experience.calibration import figures_from_sums, pair_sums, ranked_figures
 from gcdtrav.service.experience.fitter import FitOptions, propose
+from gcdtrav.service.experience.graded import RANKED_PAIRS, GradedSums, catch_up, grading_key, set_order_weights
 from gcdtrav.service.experience.pairs import Pairs
-from gcdtrav.service.experience.sharing import fleet_mask
+from gcdtrav.service.experience.sharing import fleet_mask, robot_of, source_factors
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.store import (
     Exclusion,
@@ -49,6 +49,7 @@ from gcdtrav.service.store import (
     concept_key,
 )
 from gcdtrav.service.store.outbox import PairOutbox
+from numpy.typing import NDArray
 
 MAX_OUTCOME_BYTES = 4096  # an outcome is a few numbers; larger payloads are refused unread
 MAX_BATCH_BYTES = 128 * MAX_BATCH_OUTCOMES  # an outcome packs to about 90 bytes in a batch
@@ -90,13 +91,16 @@ class ExperienceStore:
         instance: str = "",
         clock: Callable[[], float] = time.time,
         max_robot_share: float = 1.0,
+        tau: float | None = None,
     ) -> None:
         """``source``: the grid the pairs belong to (a robot's); ``instance``: who paired them;
-        ``max_robot_share``: the most of the graded or fitted pairs one robot may hold (sharing.py)."""
+        ``max_robot_share``: the most of the graded or fitted pairs one robot may hold (sharing.py); ``tau``:
+        pairs are graded as they are made, under the set that predicted them, for the reports' sums (graded.py);
+        None: graded at the first report (the catch-up)."""
         self.outbox, self.source, self.lookahead_s, self.instance, self.clock = (
             outbox, source, lookahead_s, instance, clock
         )  # fmt: skip
-        self.max_robot_share = max_robot_share
+        self.max_robot_share, self.tau = max_robot_share, tau
         self.counts: dict[str, int] = {}
         self._lock = threading.Lock()  # the counters only: never held across a store call
 
@@ -155,12 +159,16 @@ class ExperienceStore:
         key = concept_key(anchors.concepts)
         column = [anchors.concepts.index(c) for c in key]
         kind = OUTCOME_KINDS.index(outcome.kind)
-        records = []
-        for row in np.asarray(weights, np.float32)[:, column]:
-            total = float(row.sum())
-            if total > 0:
-                records.append(PairRecord(key, row / total, outcome.score, outcome.stamp, kind, anchors.version,
-                                          self.source, self.instance))  # fmt: skip
+        cells = np.asarray(weights, np.float64)
+        cells = cells[cells.sum(axis=1) > 0]
+        stored = (cells / cells.sum(axis=1, keepdims=True)).astype(np.float32)  # graded as the store keeps them
+        graded = None if self.tau is None else grading_key(anchors, self.tau)
+        sums = None if self.tau is None else pair_sums(stored, np.full(len(stored), outcome.score), anchors, self.tau)
+        records = [
+            PairRecord(key, stored[i, column], outcome.score, outcome.stamp, kind, anchors.version, self.source,
+                       self.instance, None if sums is None else sums[i], graded)
+            for i in range(len(stored))
+        ]  # fmt: skip
         accepted = self.outbox.put(records) if records else 0
         with self._lock:
             self._count("outcomes")
@@ -210,37 +218,54 @@ class ExperienceStore:
             raise StoreUnavailable(f"the store {state.location} has been unreachable since this start: {state.error}")
         return store
 
-    def report(self, anchors: AnchorSet, tau: float, by_source: bool = False) -> CalibrationReport:
-        """The active set graded by the fleet's pairs of its tuple (every source's); ``by_source``: each
-        source's figures too."""
-        fleet = self.fleet_columns(anchors.concepts)
-        pairs = fleet.pairs
-        figures = calibration_figures(pairs.weights_for(anchors), pairs.outcomes, anchors, tau)
-        counts_by_source = dict(sorted(Counter(fleet.sources).items()))
+    def report(self, anchors: AnchorSet, tau: float, by_source: bool = False, window: str = "all") -> CalibrationReport:
+        """The active set graded by the fleet's pairs of its tuple (every source's, each robot's share capped,
+        excluded robots' out), from the sums the store keeps (graded.py): the catch-up first adds the pairs
+        the set has not graded yet. ``window``: all, hour or day (by the hour the pairs were appended);
+        ``by_source``: each source's figures too."""
+        self.outbox.flush(READ_OWN_WRITES_S)
+        store, now = self._store(), self.clock()
+        catch_up(store, anchors, tau)
+        graded = GradedSums.read(store, grading_key(anchors, tau), len(anchors), window, store.clock())
+        excluded = [e.robot for e in store.exclusions() if e.excluded]
+        counts = {source: float(sums[0]) for source, sums in graded.by_source.items()}
+        factors = source_factors(counts, self.max_robot_share, excluded)
+        newest = store.pairs(anchors.concepts, limit=RANKED_PAIRS, newest_first=True)
+        newest_weights, newest_sources = set_order_weights(newest, anchors), np.asarray(newest.sources, object)
+
+        def ranked(chosen: NDArray[np.bool_]) -> tuple[float | None, float | None]:
+            return ranked_figures(newest_weights[chosen], newest.outcomes[chosen], anchors)
+
+        counted = np.asarray([factors.get(s, 1.0) > 0 for s in newest.sources], bool)
+        figures = figures_from_sums(graded.total(factors), anchors, tau, *ranked(counted))
         breakdown = None
         if by_source:
-            of_source = np.asarray(fleet.sources, object)
             breakdown = {
-                name: calibration_figures(chosen.weights_for(anchors), chosen.outcomes, anchors, tau)
-                for name in counts_by_source
-                for chosen in (pairs.select(of_source == name),)
+                source: figures_from_sums(sums, anchors, tau, *ranked(newest_sources == source))
+                for source, sums in sorted(graded.by_source.items())
+                if factors.get(source, 1.0) > 0
             }
+        weight = {source: factors[source] * count for source, count in counts.items() if factors[source] > 0}
+        total_weight = sum(weight.values())
+        shares: dict[str, float] = {}
+        for source, w in weight.items():
+            shares[robot_of(source)] = shares.get(robot_of(source), 0.0) + w / total_weight
         totals = self.totals()
         with self._lock:
-            counts = {**self.counts, "stored_pairs": totals.pairs, "stored_bytes": totals.bytes}
+            kept = {**self.counts, "stored_pairs": totals.pairs, "stored_bytes": totals.bytes}
         return CalibrationReport(
             source=self.source,
-            stamp=self.clock(),
+            stamp=now,
             anchor_set_version=anchors.version,
             concepts=anchors.concepts,
             figures=figures,
-            pairs_by_kind=pairs.count_by_kind(),
-            pairs_by_version=pairs.count_by_version(),
-            counts=counts,
-            pairs_by_source=counts_by_source,
+            pairs_by_kind=graded.by_kind,
+            pairs_by_version=graded.by_version,
+            counts=kept,
+            pairs_by_source={s: round(c) for s, c in sorted(counts.items()) if factors[s] > 0},
             by_source=breakdown,
-            share_by_robot=fleet.shares,
-            excluded_robots=fleet.excluded,
+            share_by_robot={robot: round(share, 4) for robot, share in sorted(shares.items())},
+            excluded_robots=excluded,
         )
 
     def propose(

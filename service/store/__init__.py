@@ -17,6 +17,7 @@ from gcdtrav.service.store.records import (
     StoredProposal,
     StoreError,
     StoreUnavailable,
+    SumsRow,
     concept_key,
     pair_bytes,
 )
@@ -35,6 +36,7 @@ __all__ = [
     "StoreError",
     "StoreUnavailable",
     "StoredProposal",
+    "SumsRow",
     "concept_key",
     "open_store",
     "pair_bytes",

@@ -9,8 +9,9 @@ later); a store of a newer schema raises ``SchemaTooNew`` at opening.
 
 from __future__ import annotations
 
+import time
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.experience import AnchorProposal
@@ -23,11 +24,13 @@ from gcdtrav.service.store.records import (
     PairRecord,
     PairTotals,
     StoredProposal,
+    SumsRow,
 )
 
 
 class Store(ABC):
     backend: str  # "sqlite" or "postgresql"
+    clock: Callable[[], float] = staticmethod(time.time)  # when pairs are appended: the windows' clock
 
     @property
     @abstractmethod
@@ -45,9 +48,32 @@ class Store(ABC):
         stores nothing: ``AppendResult(0, 0, replayed=True)``."""
 
     @abstractmethod
-    def pairs(self, concepts: Sequence[str], source: str | None = None) -> PairColumns:
+    def pairs(
+        self,
+        concepts: Sequence[str],
+        source: str | None = None,
+        after_id: int = 0,
+        limit: int | None = None,
+        newest_first: bool = False,
+    ) -> PairColumns:
         """The pairs of this concept tuple (concepts in any order; columns in concept_key order), oldest first;
-        only ``source``'s when given."""
+        only ``source``'s when given, only those after ``after_id``; ``limit`` of them, the newest with
+        ``newest_first`` (still returned oldest first)."""
+
+    # ---- calibration sums ------------------------------------------------------------------------------
+    @abstractmethod
+    def add_sums(self, graded: str, rows: Sequence[SumsRow], from_id: int, upto_id: int) -> bool:
+        """Add calibration sums under the grading key ``graded`` (each row to its hour and to all hours) and
+        move its watermark from ``from_id`` to ``upto_id`` (the catch-up), in one transaction; False, with
+        nothing added, when the watermark is no longer ``from_id`` (another instance added them)."""
+
+    @abstractmethod
+    def sums(self, graded: str, since_hour: int | None = None) -> list[SumsRow]:
+        """The sums graded by ``graded``: of all hours (None), or the hourly rows since ``since_hour``."""
+
+    @abstractmethod
+    def graded_upto(self, graded: str) -> int:
+        """The last pair id the catch-up has added to ``graded``'s sums (0: none yet)."""
 
     @abstractmethod
     def tuples(self) -> list[tuple[str, ...]]:

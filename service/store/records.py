@@ -57,6 +57,27 @@ class PairRecord:
     anchor_version: str  # the anchor set whose fusion made the prediction
     source: str  # the grid (robot) the outcome belongs to
     instance: str = ""  # the instance that paired it
+    # Its addends of the calibration figures (experience/calibration.py pair_sums) under the grading key
+    # ``graded`` (experience/graded.py), added to that key's sums in the append's transaction; None: graded
+    # later, by the catch-up.
+    sums: NDArray[np.float64] | None = None
+    graded: str | None = None
+
+
+@dataclass(frozen=True)
+class SumsRow:
+    """Calibration sums of one anchor-set version (the set that grades) over the pairs of one (predicting
+    version, source, kind) appended in one hour (``hour`` = appended_at // 3600; ALL_HOURS: every hour)."""
+
+    predicted: str
+    source: str
+    kind: int
+    hour: int
+    sums: NDArray[np.float64]
+
+
+ALL_HOURS = -1  # the row that holds every hour's sums: the whole history, kept after the pairs go
+HOURS_KEPT = 48  # hourly rows are kept this long: windows of the last hour and day
 
 
 @dataclass(frozen=True)
@@ -71,6 +92,8 @@ class PairColumns:
     kinds: NDArray[np.uint8]
     versions: tuple[str, ...]
     sources: tuple[str, ...]
+    appended_at: NDArray[np.float64] | None = None  # when each was appended (the writer's clock); 0: before 4
+    graded: tuple[str | None, ...] = ()  # the version whose sums each was added to at append; None: none
 
     def __len__(self) -> int:
         return len(self.outcomes)
@@ -78,7 +101,7 @@ class PairColumns:
     @classmethod
     def empty(cls, concepts: tuple[str, ...]) -> PairColumns:
         return cls(concepts, np.zeros(0, np.int64), np.zeros((0, len(concepts)), np.float32), np.zeros(0),
-                   np.zeros(0), np.zeros(0, np.uint8), (), ())  # fmt: skip
+                   np.zeros(0), np.zeros(0, np.uint8), (), (), np.zeros(0), ())  # fmt: skip
 
 
 @dataclass(frozen=True)

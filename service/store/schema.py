@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 
 
 @dataclass(frozen=True)
@@ -63,6 +63,17 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
     (
         "CREATE TABLE robot_exclusions (entry {id}, robot TEXT NOT NULL, excluded BOOLEAN NOT NULL, "
         "at {float} NOT NULL, actor TEXT NOT NULL, reason TEXT NOT NULL, instance TEXT NOT NULL)",
+    ),
+    # 3 -> 4: calibration kept as sums (issue 57): per grading version, predicting version, source, kind and
+    # hour of appending (hour -1: all hours), updated in the append's transaction; how far the catch-up of a
+    # version's sums over older pairs came; when a pair was appended and which version graded it then.
+    (
+        "ALTER TABLE pairs ADD COLUMN appended_at {float} NOT NULL DEFAULT 0",
+        "ALTER TABLE pairs ADD COLUMN graded TEXT",
+        "CREATE TABLE calibration_sums (graded TEXT NOT NULL, predicted TEXT NOT NULL, source TEXT NOT NULL, "
+        "kind SMALLINT NOT NULL, hour BIGINT NOT NULL, sums {blob} NOT NULL, "
+        "PRIMARY KEY (graded, hour, predicted, source, kind))",
+        "CREATE TABLE calibration_progress (graded TEXT PRIMARY KEY, upto_id BIGINT NOT NULL)",
     ),
 )
 assert len(MIGRATIONS) == SCHEMA_VERSION

@@ -19,6 +19,8 @@ from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.experience import AnchorProposal
 from gcdtrav.service.store.base import Store
 from gcdtrav.service.store.records import (
+    ALL_HOURS,
+    HOURS_KEPT,
     Activation,
     AppendResult,
     Exclusion,
@@ -28,10 +30,12 @@ from gcdtrav.service.store.records import (
     PairTotals,
     SchemaTooNew,
     StoredProposal,
+    SumsRow,
     concept_key,
     pair_bytes,
 )
 from gcdtrav.service.store.schema import MIGRATIONS, SCHEMA_VERSION, VERSION_TABLE, Dialect
+from numpy.typing import NDArray
 
 Lock = Literal["schema", "pairs", "anchors"]
 BATCH_IDS_KEPT_S = 86_400.0  # a batch's id is remembered a day: its replays come within the outbox's retries
@@ -90,18 +94,27 @@ class SqlStore(Store):
             if batch_id is not None and not self._first_append(cursor, batch_id):
                 return AppendResult(0, 0, replayed=True)
             tuple_ids = {key: self._tuple_id(cursor, key) for key in {p.concepts for p in pairs}}
+            now = self.clock()
             rows = [
                 (tuple_ids[p.concepts], p.source, p.anchor_version, p.kind, float(p.stamp), float(p.outcome),
-                 np.asarray(p.weights, "<f4").tobytes(), pair_bytes(len(p.concepts)), p.instance)
+                 np.asarray(p.weights, "<f4").tobytes(), pair_bytes(len(p.concepts)), p.instance, now,
+                 p.graded if p.sums is not None else None)
                 for p in pairs
             ]  # fmt: skip
             cursor.executemany(
                 self.dialect.sql(
                     "INSERT INTO pairs (tuple_id, source, anchor_version, kind, stamp, outcome, weights, nbytes, "
-                    "instance) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)"
+                    "instance, appended_at, graded) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)"
                 ),
                 rows,
             )
+            graded: dict[tuple[str, str, str, int], list[NDArray[np.float64]]] = {}
+            for p in pairs:
+                if p.sums is not None and p.graded is not None:
+                    graded.setdefault((p.graded, p.anchor_version, p.source, p.kind), []).append(p.sums)
+            hour = int(now // 3600)
+            for (key, version, source, kind), sums in graded.items():
+                self._add_sums(cursor, key, [SumsRow(version, source, kind, hour, np.sum(sums, axis=0))])
             added = sum(row[7] for row in rows)
             self._run(
                 cursor,
@@ -152,23 +165,86 @@ class SqlStore(Store):
         )
         return removed
 
-    def pairs(self, concepts: Sequence[str], source: str | None = None) -> PairColumns:
+    def pairs(
+        self,
+        concepts: Sequence[str],
+        source: str | None = None,
+        after_id: int = 0,
+        limit: int | None = None,
+        newest_first: bool = False,
+    ) -> PairColumns:
         key = concept_key(concepts)
         with self._transaction(None) as cursor:
             row = self._run(cursor, "SELECT id FROM concept_tuples WHERE concepts = ?", (json.dumps(list(key)),))
             found = row.fetchone()
             if found is None:
                 return PairColumns.empty(key)
-            where, params = "tuple_id = ?", list[Any]([int(found[0])])
+            where, params = "tuple_id = ? AND id > ?", list[Any]([int(found[0]), after_id])
             if source is not None:
                 where, params = where + " AND source = ?", [*params, source]
+            order = "id DESC" if newest_first else "id"
+            tail = f" LIMIT {int(limit)}" if limit is not None else ""
             rows = self._run(
                 cursor,
-                f"SELECT id, weights, outcome, stamp, kind, anchor_version, source FROM pairs WHERE {where} "
-                "ORDER BY id",
+                "SELECT id, weights, outcome, stamp, kind, anchor_version, source, appended_at, graded FROM pairs "
+                f"WHERE {where} ORDER BY {order}{tail}",
                 params,
             ).fetchall()
-        return _columns(key, rows)
+        return _columns(key, rows[::-1] if newest_first else rows)
+
+    # ---- calibration sums ------------------------------------------------------------------------------
+    def _add_sums(self, cursor: Cursor, graded: str, rows: Sequence[SumsRow]) -> None:
+        """Add each row to its hour's sums (none for an hour below 0) and to the all-hours sums (read, add,
+        write: writers hold the pairs lock, so no two add at once); hourly rows older than HOURS_KEPT go."""
+        for row in rows:
+            for hour in (row.hour, ALL_HOURS) if row.hour >= 0 else (ALL_HOURS,):
+                key = (graded, hour, row.predicted, row.source, row.kind)
+                found = self._run(
+                    cursor,
+                    "SELECT sums FROM calibration_sums WHERE graded = ? AND hour = ? AND predicted = ? AND source = ? "
+                    "AND kind = ?",
+                    key,
+                ).fetchone()
+                total = row.sums + (np.frombuffer(bytes(found[0]), "<f8") if found is not None else 0.0)
+                self._run(
+                    cursor,
+                    "INSERT INTO calibration_sums (graded, hour, predicted, source, kind, sums) "
+                    "VALUES (?, ?, ?, ?, ?, ?) ON CONFLICT (graded, hour, predicted, source, kind) "
+                    "DO UPDATE SET sums = excluded.sums",
+                    (*key, np.asarray(total, "<f8").tobytes()),
+                )
+        oldest = int(self.clock() // 3600) - HOURS_KEPT
+        self._run(cursor, "DELETE FROM calibration_sums WHERE hour >= 0 AND hour < ?", (oldest,))
+
+    def add_sums(self, graded: str, rows: Sequence[SumsRow], from_id: int, upto_id: int) -> bool:
+        with self._transaction("pairs") as cursor:
+            found = self._run(cursor, "SELECT upto_id FROM calibration_progress WHERE graded = ?", (graded,))
+            row = found.fetchone()
+            if (int(row[0]) if row is not None else 0) != from_id:
+                return False  # another instance caught up first
+            self._add_sums(cursor, graded, rows)
+            self._run(
+                cursor,
+                "INSERT INTO calibration_progress (graded, upto_id) VALUES (?, ?) "
+                "ON CONFLICT (graded) DO UPDATE SET upto_id = excluded.upto_id",
+                (graded, upto_id),
+            )
+        return True
+
+    def sums(self, graded: str, since_hour: int | None = None) -> list[SumsRow]:
+        where, params = ("hour = ?", [ALL_HOURS]) if since_hour is None else ("hour >= ?", [since_hour])
+        with self._transaction(None) as cursor:
+            rows = self._run(
+                cursor,
+                f"SELECT predicted, source, kind, hour, sums FROM calibration_sums WHERE graded = ? AND {where}",
+                [graded, *params],
+            ).fetchall()
+        return [SumsRow(str(v), str(s), int(k), int(h), np.frombuffer(bytes(b), "<f8")) for v, s, k, h, b in rows]
+
+    def graded_upto(self, graded: str) -> int:
+        with self._transaction(None) as cursor:
+            row = self._run(cursor, "SELECT upto_id FROM calibration_progress WHERE graded = ?", (graded,)).fetchone()
+        return int(row[0]) if row is not None else 0
 
     def tuples(self) -> list[tuple[str, ...]]:
         with self._transaction(None) as cursor:
@@ -292,7 +368,7 @@ def _rowcount(cursor: Cursor) -> int:
 def _columns(key: tuple[str, ...], rows: list[Any]) -> PairColumns:
     if not rows:
         return PairColumns.empty(key)
-    ids, blobs, outcomes, stamps, kinds, versions, sources = zip(*rows, strict=True)
+    ids, blobs, outcomes, stamps, kinds, versions, sources, appended, graded = zip(*rows, strict=True)
     weights = np.frombuffer(b"".join(bytes(b) for b in blobs), "<f4").reshape(len(rows), len(key))
     return PairColumns(
         concepts=key,
@@ -303,6 +379,8 @@ def _columns(key: tuple[str, ...], rows: list[Any]) -> PairColumns:
         kinds=np.asarray(kinds, np.uint8),
         versions=tuple(versions),
         sources=tuple(sources),
+        appended_at=np.asarray(appended, np.float64),
+        graded=tuple(graded),
     )
 
 

@@ -205,3 +205,25 @@ def test_exclusions_are_recorded_and_the_newest_word_per_robot_is_in_force(open_
         ("r7", True, "alice", "invented outcomes", "i1"),
         ("r8", False, "bob", "fixed", "i2"),
     ]
+
+
+def test_calibration_sums_add_up_per_hour_and_for_all_hours_behind_a_watermark(open_same_store) -> None:  # type: ignore[no-untyped-def]
+    from gcdtrav.service.store import SumsRow
+    from gcdtrav.service.store.records import ALL_HOURS, HOURS_KEPT
+
+    one, two = open_same_store(), open_same_store()
+    hour = int(one.clock() // 3600)
+    rows = [SumsRow("v1", "r1", 0, hour, np.array([1.0, 2.0])), SumsRow("v1", "r1", 0, hour - 1, np.array([3.0, 4.0]))]
+    assert one.graded_upto("v2@0.3") == 0
+    assert one.add_sums("v2@0.3", rows, from_id=0, upto_id=7)
+    assert not two.add_sums("v2@0.3", rows, from_id=0, upto_id=7)  # the other instance came first: nothing added
+    assert two.graded_upto("v2@0.3") == 7
+    everything = two.sums("v2@0.3")
+    assert [(r.hour, list(r.sums)) for r in everything] == [(ALL_HOURS, [4.0, 6.0])]
+    assert sorted((r.hour, list(r.sums)) for r in two.sums("v2@0.3", since_hour=hour)) == [(hour, [1.0, 2.0])]
+    assert two.add_sums("v2@0.3", [SumsRow("v1", "r1", 0, -2, np.array([1.0, 1.0]))], from_id=7, upto_id=9)  # all only
+    old = SumsRow("v1", "r2", 1, hour - HOURS_KEPT - 5, np.array([1.0, 1.0]))
+    assert two.add_sums("v2@0.3", [old], from_id=9, upto_id=10)
+    assert {(r.source, r.hour) for r in two.sums("v2@0.3", since_hour=0)} == {("r1", hour), ("r1", hour - 1)}
+    assert sorted(list(r.sums) for r in two.sums("v2@0.3")) == [[1.0, 1.0], [5.0, 7.0]]
+    assert two.sums("other@0.3") == []
