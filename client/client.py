@@ -835,11 +835,16 @@ class TraversabilityClient:
         path = PlannedPath(stamp=time.time() if stamp is None else stamp, frame_id=frame_id, points=list(points))
         self.session.put(self.keys.planned_path(source), path.pack(), encoding=MSGPACK)
 
-    def calibration(self, source: str, timeout: float | None = None, by_source: bool = False) -> CalibrationReport:
+    def calibration(
+        self, source: str, timeout: float | None = None, by_source: bool = False, window: str = "all"
+    ) -> CalibrationReport:
         """The active anchor set graded by the fleet's stored outcomes of the grid ``source``'s concept tuple;
-        ``by_source``: each source's (robot's) figures too."""
-        params = {"by_source": "true"} if by_source else None
-        return self._query(self.keys.calibration(source), CalibrationReport, params, timeout=timeout)
+        ``by_source``: each source's (robot's) figures too; ``window``: all, or the pairs of the last day or hour
+        (a service before 1.7 knows only all)."""
+        params = {"by_source": "true"} if by_source else {}
+        if window != "all":
+            params["window"] = window
+        return self._query(self.keys.calibration(source), CalibrationReport, params or None, timeout=timeout)
 
     def anchor_proposal(self, source: str | None = None, timeout: float | None = None) -> AnchorProposal:
         """An anchor set fitted on the experience (of ``source``'s grid; default the service's), never applied:

@@ -1,6 +1,7 @@
 """The experience's operator commands (docs/calibration.md), torch-free like the rest of operator.py:
 
-  gcdtrav calibration [SOURCE] [--by-source] [--png FILE]   the active set graded by the fleet's outcomes
+  gcdtrav calibration [SOURCE] [--by-source] [--window all|day|hour] [--png FILE]
+                                                    the active set graded by the fleet's outcomes
   gcdtrav answer SOURCE [drivable|blocked|SCORE]    show the open question of SOURCE (or --question ID), its
                                                     crop (--save-crop FILE, --show), then answer it
 
@@ -46,6 +47,9 @@ def add_experience_commands(commands: argparse._SubParsersAction) -> list[argpar
     calibration.add_argument("source", nargs="?", help="the grid's source [the one the service collects]")
     calibration.add_argument("--png", type=Path, help="also draw the reliability diagram (needs matplotlib)")
     calibration.add_argument("--by-source", action="store_true", help="also each source's (robot's) own figures")
+    calibration.add_argument(
+        "--window", choices=("all", "day", "hour"), default="all", help="the pairs appended in it [all]"
+    )
     answer = commands.add_parser("answer", help="answer the question a service asked about the ground ahead")
     answer.add_argument("source", help="the grid's source the question is about")
     answer.add_argument(
@@ -78,7 +82,7 @@ def answer_argument(text: str) -> str:
 
 def run_command(client: TraversabilityClient, args: argparse.Namespace) -> int:
     if args.command == "calibration":
-        return calibration(client, args.source, args.png, args.by_source)
+        return calibration(client, args.source, args.png, args.by_source, args.window)
     if args.command == "exclusions":
         return exclusions(client, args)
     return answer(client, args)
@@ -107,8 +111,10 @@ def experience_source(client: TraversabilityClient) -> str:
 # ---- calibration ---------------------------------------------------------------------------------------
 
 
-def calibration(client: TraversabilityClient, source: str | None, png: Path | None, by_source: bool = False) -> int:
-    report = client.calibration(source or experience_source(client), by_source=by_source)
+def calibration(
+    client: TraversabilityClient, source: str | None, png: Path | None, by_source: bool = False, window: str = "all"
+) -> int:
+    report = client.calibration(source or experience_source(client), by_source=by_source, window=window)
     print("\n".join([*report_lines(report), "", *verdict_lines(report.figures)]))
     if png is not None:
         draw_reliability(report, png)

@@ -8,7 +8,8 @@ Declared only with ``experience.enabled`` (off: nothing here runs, nothing chang
                                       replied with an AnswerReply)
   experience.cmd_vel, .odometry       subscribers: Twist2D / Odometry2D on a zenoh key, or a ROS topic (CDR)
   {prefix}/out/{source}/calibration   queryable: CalibrationReport of the active anchor set over the fleet's
-                                      pairs (``by_source=true``: each source's figures too)
+                                      pairs (``by_source=true``: each source's figures too; ``window=day|hour``:
+                                      the pairs appended in the last day or hour)
   {prefix}/config/anchors/proposal    queryable: AnchorProposal (``source=`` optional), never applied here
   {prefix}/config/experience/exclusions  queryable: ExclusionList; with an ExclusionRequest as payload, the
                                       robot excluded (or included again) first, recorded in the store
@@ -47,6 +48,7 @@ from gcdtrav.schemas.settings import RosInput, ServiceSettings
 from gcdtrav.service.bus import replies
 from gcdtrav.service.bus.guard import answering
 from gcdtrav.service.bus.queryables import answer_later
+from gcdtrav.service.experience.graded import WINDOW_HOURS
 from gcdtrav.service.experience.service import Experience, decode_answer
 from gcdtrav.service.experience.store import OutcomeRejected
 from gcdtrav.service.ros.cdr import dds_type_name
@@ -239,16 +241,19 @@ class ExperienceBus:
         if not self.owns(source):
             return
         replies.check_format(query)
-        params = strict_parameters(replies.without_format(query), "by_source=true (optional)")
-        if set(params) - {"by_source"} or params.get("by_source", "false") not in ("true", "false"):
-            raise QueryError(f"unknown parameter(s) {dict(params)}; give by_source=true or none")
+        params = strict_parameters(replies.without_format(query), "by_source=true, window=all|day|hour (optional)")
+        window = params.get("window", "all")
+        if set(params) - {"by_source", "window"} or params.get("by_source", "false") not in ("true", "false"):
+            raise QueryError(f"unknown parameter(s) {dict(params)}; give by_source=true, window=all|day|hour or none")
+        if window not in WINDOW_HOURS:
+            raise QueryError(f"window={window}: one of {', '.join(WINDOW_HOURS)}")
         if source != self.experience.source:
             raise QueryError(f"no experience of '{source}': this service collects grid '{self.experience.source}'")
         by_source = params.get("by_source") == "true"
 
         def report() -> CalibrationReport:
             try:
-                return self.experience.report(self.anchors.head().anchor_set, by_source)
+                return self.experience.report(self.anchors.head().anchor_set, by_source, window)
             except StoreError as err:
                 raise QueryError(f"cannot read the pairs: {err}") from None
 

@@ -191,9 +191,10 @@ class Experience:
         return asker.update(grid, pose, crop, self.path_ahead(source))
 
     # ---- answers -------------------------------------------------------------------------------------
-    def report(self, anchors: AnchorSet, by_source: bool = False) -> CalibrationReport:
-        """The fleet's pairs of the set's tuple graded; StoreUnavailable if the store cannot be read."""
-        return self.store.report(anchors, self.tau, by_source)
+    def report(self, anchors: AnchorSet, by_source: bool = False, window: str = "all") -> CalibrationReport:
+        """The fleet's pairs of the set's tuple graded (``window``: all, day or hour); StoreUnavailable if the
+        store cannot be read."""
+        return self.store.report(anchors, self.tau, by_source, window)
 
     def proposal(self, anchors: AnchorSet, history: Sequence[AnchorSet] = ()) -> AnchorProposal:
         """Fitted to the pairs, judged against ``anchors`` (the active set), the paper's set and the best of

@@ -371,3 +371,12 @@ def test_an_operator_excludes_a_robot_and_includes_it_again_from_the_command(tmp
         again = client.exclusions(robot, excluded=False, actor="bob")
         assert again.excluded == [] and again.words[0].actor == "bob"
         assert client.calibration(CAMERA_SOURCE).excluded_robots == []
+
+
+def test_calibration_windows_over_the_bus_and_a_bad_window_refused(tmp_path: Path) -> None:
+    with running(settings(tmp_path)) as (_service, client, flags):
+        for window in ("all", "day", "hour"):
+            assert client.calibration(CAMERA_SOURCE, window=window).figures.pairs == 0
+        with pytest.raises(ServiceError, match="window=week: one of all, hour, day"):
+            client.calibration(CAMERA_SOURCE, window="week")
+        assert "calibration of" in gcdtrav("calibration", CAMERA_SOURCE, "--window", "day", *flags).stdout
