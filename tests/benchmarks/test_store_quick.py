@@ -19,5 +19,7 @@ def test_quick_measures_appends_bytes_and_the_read_calibration_and_fit_times(bac
     assert all(rate > 0 for rate in row["append_pairs_per_s"].values())
     for size in row["sizes"].values():
         assert 4 * 8 < size["bytes_per_pair"] < 2_000  # the 8 weights at least; never a rewrite's worth
-        assert size["read_s"] > 0 and size["calibration_s"] > 0 and size["fit_s"] > 0
+        assert size["read_s"] > 0 and size["direct_calibration_s"] > 0 and size["fit_s"] > 0
+        assert size["report_all_s"] > 0 and size["report_hour_s"] > 0 and size["report_by_source_s"] > 0
+        assert size["catch_up_s"] > 0
     assert f"| {backend} |" in table(result) and "load average" in table(result)
