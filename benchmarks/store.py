@@ -110,7 +110,7 @@ def reporter(store: Store) -> ExperienceStore:
 
 def swapped(count: int) -> AnchorSet:
     """A set of the same concepts that has graded nothing yet (its first anchor moved a little)."""
-    anchors = [a.model_copy(update={"position": a.position + 1e-6 * count}) if k == 0 else a
+    anchors = [a.model_copy(update={"position": a.position + 1e-6 * len(str(count))}) if k == 0 else a
                for k, a in enumerate(ANCHORS.anchors)]  # fmt: skip
     return AnchorSet(anchors=anchors)
 

@@ -25,8 +25,7 @@ def average_ranks(values: NDArray[np.floating]) -> NDArray[np.float64]:
     boundaries = np.flatnonzero(np.diff(sorted_values)) + 1
     starts = np.concatenate([[0], boundaries])
     ends = np.concatenate([boundaries, [len(values)]])
-    for start, end in zip(starts, ends, strict=True):
-        ranks[order[start:end]] = (start + end + 1) / 2.0
+    ranks[order] = np.repeat((starts + ends + 1) / 2.0, ends - starts)  # each tie group its average rank
     return ranks
 
 
