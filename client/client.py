@@ -30,6 +30,7 @@ from gcdtrav.schemas.experience import (
     OperatorAnswer,
     OperatorQuestion,
     PlannedPath,
+    StoreContents,
     TraversalOutcome,
 )
 from gcdtrav.schemas.grid_layers import decode_layers
@@ -873,6 +874,10 @@ class TraversabilityClient:
                                                               reason=reason)  # fmt: skip
         payload = request.pack() if request is not None else None
         return self._query(self.keys.exclusions, ExclusionList, payload=payload, timeout=timeout)
+
+    def kept(self, timeout: float | None = None) -> StoreContents:
+        """What the fleet's store keeps: each source's raw pairs (oldest, newest, bytes), the calibration sums."""
+        return self._query(self.keys.kept, StoreContents, timeout=timeout)
 
     def question(self, source: str, timeout: float | None = None) -> OperatorQuestion:
         """The open OperatorQuestion about the grid ``source``, crop included; ServiceError when none is open."""

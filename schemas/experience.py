@@ -390,6 +390,31 @@ class ExclusionList(Message):
         return [w.robot for w in self.words if w.excluded]
 
 
+class KeptSource(WireModel):
+    source: str
+    pairs: int
+    bytes: int = Field(description="Their bytes as the bounds count them (records.pair_bytes).")
+    oldest: float = Field(description="When the oldest kept pair was appended, s since the epoch (0: before 1.7).")
+    newest: float
+
+
+class StoreContents(Message):
+    """{prefix}/config/experience/kept: what the fleet's store keeps (`gcdtrav kept`). Since 1.7."""
+
+    backend: str
+    location: str
+    pairs: int
+    bytes: int
+    max_pairs: int
+    max_bytes: int
+    max_age_days: float | None = None
+    sources: list[KeptSource] = Field(default_factory=list)
+    graded: dict[str, int] = Field(
+        default_factory=dict,
+        description="Calibration sums kept (they outlive the raw pairs): pairs graded per version@tau.",
+    )
+
+
 # ---- asking the operator -----------------------------------------------------------------------------
 
 

@@ -17,6 +17,7 @@ A service with prefix ``gcdtrav`` (the default) answers and publishes on:
   {prefix}/config/anchors/proposal           queryable: AnchorProposal fitted on the experience (never applied)
   {prefix}/config/experience/exclusions      queryable: the robots excluded from the experience (ExclusionList), or
                                              an ExclusionRequest as payload: exclude or include one (since 1.7)
+  {prefix}/config/experience/kept            queryable: StoreContents, what the fleet's store keeps (since 1.7)
   {prefix}/status                            queryable: ServiceStatus
   {prefix}/alive/{instance}                  liveliness token
   {prefix}/member/{instance}/{fingerprint}/{state}/{millis}  liveliness token: the instance's model fingerprint and
@@ -140,6 +141,11 @@ class Keys:
     def exclusions(self) -> str:
         """Operators' exclusions of a robot's pairs from calibration and fits (operator-only, like config/**)."""
         return f"{self.prefix}/config/experience/exclusions"
+
+    @property
+    def kept(self) -> str:
+        """What the fleet's store keeps: raw pairs per source, calibration sums (operator-only, like config/**)."""
+        return f"{self.prefix}/config/experience/kept"
 
     @property
     def status(self) -> str:

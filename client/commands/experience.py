@@ -7,6 +7,7 @@
 
   gcdtrav exclusions [--exclude ROBOT | --include ROBOT] [--reason TEXT] [--operator NAME]
                                                     the robots whose pairs calibration and fits leave out
+  gcdtrav kept                                      what the fleet's store keeps: raw pairs per source, sums
 
 and the text both they and `gcdtrav anchors propose` and `gcdtrav status` print.
 """
@@ -27,12 +28,13 @@ from gcdtrav.schemas.experience import (
     CalibrationReport,
     OperatorQuestion,
     ProposalVerdict,
+    StoreContents,
     answer_score,
     coverage_shortfall,
 )
 from gcdtrav.schemas.messages import ServiceStatus, StoreStatus
 
-COMMANDS = ("calibration", "answer", "exclusions")
+COMMANDS = ("calibration", "answer", "exclusions", "kept")
 FIGURES_ROW = "{:<22} {:>6} {:>7} {:>7} {:>20} {:>6} {:>7} {:>8}"
 # `gcdtrav calibration`'s verdict (docs/calibration.md, "For operators"): how far a figure may stray before the
 # set is called over- or under-confident.
@@ -68,7 +70,8 @@ def add_experience_commands(commands: argparse._SubParsersAction) -> list[argpar
     which.add_argument("--include", metavar="ROBOT", help="count ROBOT's pairs again")
     exclusions.add_argument("--reason", default="", help="why (kept with the word)")
     exclusions.add_argument("--operator", default="", help="who asks (kept with the word)")
-    return [calibration, answer, exclusions]
+    kept = commands.add_parser("kept", help="what the fleet's store keeps: raw pairs per source, calibration sums")
+    return [calibration, answer, exclusions, kept]
 
 
 def answer_argument(text: str) -> str:
@@ -85,6 +88,9 @@ def run_command(client: TraversabilityClient, args: argparse.Namespace) -> int:
         return calibration(client, args.source, args.png, args.by_source, args.window)
     if args.command == "exclusions":
         return exclusions(client, args)
+    if args.command == "kept":
+        print("\n".join(kept_lines(client.kept())))
+        return 0
     return answer(client, args)
 
 
@@ -369,3 +375,22 @@ def store_line(instance: str, store: StoreStatus) -> str:
         f"STORE UNREACHABLE from {instance} since {since}: {store.backend} {store.location}; "
         f"{store.pending_pairs} pairs waiting in memory, {store.dropped_pairs} dropped; {store.error or ''}"
     ).rstrip("; ")
+
+
+def kept_lines(contents: StoreContents) -> list[str]:
+    def when(stamp: float) -> str:
+        return time.strftime("%Y-%m-%d %H:%M", time.localtime(stamp)) if stamp > 0 else "before 1.7"
+
+    age = "-" if contents.max_age_days is None else f"{contents.max_age_days:g} days"
+    lines = [
+        f"store: {contents.backend} {contents.location}",
+        f"raw pairs: {contents.pairs:,} of max_pairs {contents.max_pairs:,}; {contents.bytes:,} bytes of max_bytes "
+        f"{contents.max_bytes:,}; max_age {age}",
+        "",
+        f"{'source':<24} {'pairs':>10} {'bytes':>12}  oldest            newest",
+    ]
+    lines += [f"{k.source[:24]:<24} {k.pairs:>10,} {k.bytes:>12,}  {when(k.oldest):<17} {when(k.newest)}"
+              for k in contents.sources]  # fmt: skip
+    lines += ["", "calibration sums (kept after the raw pairs go), pairs graded per set@tau:"]
+    lines += [f"  {key}: {count:,}" for key, count in contents.graded.items()] or ["  none yet"]
+    return lines

@@ -58,6 +58,12 @@ class ExperienceSettings(TrackingSettings):
     snapshot_budget_mb: float = Field(default=64, gt=0, description="Bytes of grid snapshots kept, MB.")
     max_pairs: int = Field(default=50_000, ge=1, description="Pairs kept, all concept tuples; the oldest go first.")
     max_bytes: int = Field(default=16_000_000, ge=1024, description="Bytes of stored pairs (their file).")
+    max_age_days: float | None = Field(
+        default=None,
+        gt=0,
+        description="Raw pairs appended longer ago go (calibration's sums stay); none: only max_pairs and "
+        "max_bytes bound them.",
+    )
     min_pairs_per_anchor: float = Field(
         default=20, ge=0, description="Fits hold anchors with less weight mass than this near the current set."
     )

@@ -13,6 +13,7 @@ Declared only with ``experience.enabled`` (off: nothing here runs, nothing chang
   {prefix}/config/anchors/proposal    queryable: AnchorProposal (``source=`` optional), never applied here
   {prefix}/config/experience/exclusions  queryable: ExclusionList; with an ExclusionRequest as payload, the
                                       robot excluded (or included again) first, recorded in the store
+  {prefix}/config/experience/kept     queryable: StoreContents (`gcdtrav kept`)
   {prefix}/out/{source}/question      queryable: the open OperatorQuestion (`gcdtrav answer` shows its crop
                                       before answering); a new one is published with the grid update that asked
                                       it, by the runtime's outputs like every payload (``Experience.after_fusion``)
@@ -41,6 +42,7 @@ from gcdtrav.schemas.experience import (
     ExclusionList,
     ExclusionRequest,
     ExclusionWord,
+    StoreContents,
 )
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import ExperienceStatus, MessageError
@@ -113,6 +115,7 @@ class ExperienceBus:
             (self.keys.anchor_proposal, self._on_proposal, False),
             (self.keys.question("**"), self._on_question, False),
             (self.keys.exclusions, self._on_exclusions, True),
+            (self.keys.kept, self._on_kept, True),
         )
         for key, respond, complete in queryables:
             declared.append(self.session.declare_queryable(key, answering(respond, self.stats), complete=complete))
@@ -307,6 +310,17 @@ class ExperienceBus:
             return ExclusionList(words=[ExclusionWord(**vars(word)) for word in found])
 
         self.anchors.read_later(words, answer_later(query, self.keys.exclusions, self.stats))
+
+    def _on_kept(self, query: zenoh.Query) -> None:
+        replies.check_no_parameters(query)
+
+        def contents() -> StoreContents:
+            try:
+                return self.experience.store.contents()
+            except StoreError as err:
+                raise QueryError(f"cannot read the store: {err}") from None
+
+        self.anchors.read_later(contents, answer_later(query, self.keys.kept, self.stats))
 
     def _proposal(self) -> AnchorProposal:
         """Fitted and judged against the active set and the history's (the verdict's "best in history" is among

@@ -29,7 +29,9 @@ from gcdtrav.schemas.experience import (
     OUTCOME_KINDS,
     AnchorProposal,
     CalibrationReport,
+    KeptSource,
     OutcomeBatch,
+    StoreContents,
     TraversalOutcome,
 )
 from gcdtrav.schemas.messages import MessageTooLarge
@@ -210,6 +212,22 @@ class ExperienceStore:
 
     def exclusions(self) -> list[Exclusion]:
         return self._store().exclusions()
+
+    def contents(self) -> StoreContents:
+        """What the fleet's store keeps: each source's raw pairs (a scan), the calibration sums."""
+        store, totals = self._store(), self._store().totals()
+        age = self.outbox.max_age_s
+        return StoreContents(
+            backend=self.outbox.backend,
+            location=self.outbox.location,
+            pairs=totals.pairs,
+            bytes=totals.bytes,
+            max_pairs=self.outbox.max_pairs,
+            max_bytes=self.outbox.max_bytes,
+            max_age_days=None if age is None else age / 86_400.0,
+            sources=[KeptSource(**vars(kept)) for kept in store.contents()],
+            graded=store.graded_keys(),
+        )
 
     def _store(self) -> Store:
         store = self.outbox.store

@@ -23,6 +23,7 @@ from gcdtrav.service.store.records import (
     PairColumns,
     PairRecord,
     PairTotals,
+    SourceContents,
     StoredProposal,
     SumsRow,
 )
@@ -40,10 +41,16 @@ class Store(ABC):
     # ---- experience pairs ------------------------------------------------------------------------------
     @abstractmethod
     def append_pairs(
-        self, pairs: Sequence[PairRecord], max_pairs: int, max_bytes: int, batch_id: str | None = None
+        self,
+        pairs: Sequence[PairRecord],
+        max_pairs: int,
+        max_bytes: int,
+        batch_id: str | None = None,
+        max_age_s: float | None = None,
     ) -> AppendResult:
         """Append in one transaction (inserts only), then delete the oldest pairs of the whole store, any tuple
-        and source, until at most ``max_pairs`` pairs and ``max_bytes`` bytes (records.pair_bytes) remain. A
+        and source, until at most ``max_pairs`` pairs and ``max_bytes`` bytes (records.pair_bytes) remain, and
+        those appended more than ``max_age_s`` ago (calibration's sums stay). A
         ``batch_id`` the store already holds (the batch was committed, its answer lost, and it comes again)
         stores nothing: ``AppendResult(0, 0, replayed=True)``."""
 
@@ -70,6 +77,14 @@ class Store(ABC):
     @abstractmethod
     def sums(self, graded: str, since_hour: int | None = None) -> list[SumsRow]:
         """The sums graded by ``graded``: of all hours (None), or the hourly rows since ``since_hour``."""
+
+    @abstractmethod
+    def contents(self) -> list[SourceContents]:
+        """What is kept of each source's raw pairs (a scan of the pairs: an operator's question, not a report's)."""
+
+    @abstractmethod
+    def graded_keys(self) -> dict[str, int]:
+        """The calibration sums kept: pairs graded per grading key (``version@tau``)."""
 
     @abstractmethod
     def graded_upto(self, graded: str) -> int:

@@ -89,7 +89,9 @@ def service_outbox(settings: ServiceSettings, opened: Store | None = None) -> Pa
     def opener() -> Store:
         return service_store(settings, opened)
 
+    age_days = settings.experience.max_age_days
     outbox = PairOutbox(opener, backend, location, settings.store.outbox_pairs, settings.experience.max_pairs,
-                        settings.experience.max_bytes, settings.store.retry_s)  # fmt: skip
+                        settings.experience.max_bytes, settings.store.retry_s,
+                        max_age_s=None if age_days is None else age_days * 86_400.0)  # fmt: skip
     outbox.open_now()
     return outbox

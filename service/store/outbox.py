@@ -50,13 +50,15 @@ class PairOutbox:
         max_bytes: int,
         retry_s: float = 2.0,
         clock: Callable[[], float] = time.time,
+        max_age_s: float | None = None,
     ) -> None:
         """``opener`` opens the store (it may raise StoreUnavailable: retried); ``backend`` and ``location``
-        name it before it is open."""
+        name it before it is open; ``max_pairs``, ``max_bytes`` and ``max_age_s`` bound the raw pairs."""
         self._opener, self.backend, self.location = opener, backend, location
         self.bound, self.max_pairs, self.max_bytes, self.retry_s, self.clock = (
             bound, max_pairs, max_bytes, retry_s, clock
         )  # fmt: skip
+        self.max_age_s = max_age_s
         self._pending: deque[PairRecord] = deque()
         self._changed = threading.Condition()
         self._store: Store | None = None
@@ -176,7 +178,9 @@ class PairOutbox:
     def _write(self, batch_id: str, batch: list[PairRecord]) -> None:
         try:
             store = self._store or self._opened(self._opener())
-            result = store.append_pairs(batch, self.max_pairs, self.max_bytes, batch_id) if batch else None
+            result = (
+                store.append_pairs(batch, self.max_pairs, self.max_bytes, batch_id, self.max_age_s) if batch else None
+            )
         except StoreUnavailable as err:
             self._failed(err)
             with self._changed:

@@ -166,3 +166,14 @@ class Exclusion:
     actor: str  # who asked, free text
     reason: str
     instance: str  # the instance that wrote it
+
+
+@dataclass(frozen=True)
+class SourceContents:
+    """What the store keeps of one source: its raw pairs, their bytes, when the oldest and newest came."""
+
+    source: str
+    pairs: int
+    bytes: int
+    oldest: float  # appended_at of the oldest kept pair, s since the epoch (0: appended before schema 4)
+    newest: float

@@ -70,6 +70,7 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
     (
         "ALTER TABLE pairs ADD COLUMN appended_at {float} NOT NULL DEFAULT 0",
         "ALTER TABLE pairs ADD COLUMN graded TEXT",
+        "CREATE INDEX pairs_by_appended ON pairs (appended_at)",
         "CREATE TABLE calibration_sums (graded TEXT NOT NULL, predicted TEXT NOT NULL, source TEXT NOT NULL, "
         "kind SMALLINT NOT NULL, hour BIGINT NOT NULL, sums {blob} NOT NULL, "
         "PRIMARY KEY (graded, hour, predicted, source, kind))",

@@ -29,6 +29,7 @@ from gcdtrav.service.store.records import (
     PairRecord,
     PairTotals,
     SchemaTooNew,
+    SourceContents,
     StoredProposal,
     SumsRow,
     concept_key,
@@ -86,7 +87,12 @@ class SqlStore(Store):
 
     # ---- pairs -----------------------------------------------------------------------------------------
     def append_pairs(
-        self, pairs: Sequence[PairRecord], max_pairs: int, max_bytes: int, batch_id: str | None = None
+        self,
+        pairs: Sequence[PairRecord],
+        max_pairs: int,
+        max_bytes: int,
+        batch_id: str | None = None,
+        max_age_s: float | None = None,
     ) -> AppendResult:
         if not pairs:
             return AppendResult(0, 0)
@@ -122,7 +128,43 @@ class SqlStore(Store):
                 (len(rows), added),
             )
             evicted = self._evict(cursor, max_pairs, max_bytes)
+            if max_age_s is not None:
+                evicted += self._evict_older(cursor, now - max_age_s)
         return AppendResult(len(rows), evicted)
+
+    def _evict_older(self, cursor: Cursor, before: float) -> int:
+        """Delete the pairs appended before ``before`` (the age bound); how many went."""
+        count, size = self._run(
+            cursor, "SELECT count(*), coalesce(sum(nbytes), 0) FROM pairs WHERE appended_at < ?", (before,)
+        ).fetchone()
+        if int(count) == 0:
+            return 0
+        self._run(cursor, "DELETE FROM pairs WHERE appended_at < ?", (before,))
+        self._run(
+            cursor,
+            "UPDATE pair_totals SET pairs = pairs - ?, bytes = bytes - ? WHERE singleton = 1",
+            (int(count), int(size)),
+        )
+        return int(count)
+
+    def contents(self) -> list[SourceContents]:
+        with self._transaction(None) as cursor:
+            rows = self._run(
+                cursor,
+                "SELECT source, count(*), sum(nbytes), min(appended_at), max(appended_at) FROM pairs "
+                "GROUP BY source ORDER BY source",
+            ).fetchall()
+        return [SourceContents(str(s), int(n), int(b), float(lo), float(hi)) for s, n, b, lo, hi in rows]
+
+    def graded_keys(self) -> dict[str, int]:
+        with self._transaction(None) as cursor:
+            rows = self._run(
+                cursor, "SELECT graded, sums FROM calibration_sums WHERE hour = ?", (ALL_HOURS,)
+            ).fetchall()
+        counts: dict[str, int] = {}
+        for key, blob in rows:
+            counts[str(key)] = counts.get(str(key), 0) + round(float(np.frombuffer(bytes(blob), "<f8")[0]))
+        return dict(sorted(counts.items()))
 
     def _first_append(self, cursor: Cursor, batch_id: str) -> bool:
         """Record the batch's id; False when it was recorded before (a replay). Ids older than a day go: a

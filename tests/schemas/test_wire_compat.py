@@ -153,6 +153,11 @@ SAMPLES.update(
         e.OperatorAnswer: e.OperatorAnswer(id="q1", source="cam", score=1.0, stamp=3.0, operator="ada"),
         e.AnswerReply: e.AnswerReply(id="q1", source="cam", score=0.0, pairs=4),
         e.ExclusionRequest: e.ExclusionRequest(robot="r7", actor="alice", reason="invented outcomes"),
+        e.StoreContents: e.StoreContents(
+            backend="sqlite", location="/state/gcdtrav.store.sqlite3", pairs=3, bytes=180, max_pairs=50_000,
+            max_bytes=16_000_000, sources=[e.KeptSource(source="r1", pairs=3, bytes=180, oldest=1.0, newest=2.0)],
+            graded={"v1@0.3": 3},
+        ),
         e.ExclusionList: e.ExclusionList(
             words=[e.ExclusionWord(robot="r7", excluded=True, at=1.0, actor="alice", reason="", instance="i1")]
         ),

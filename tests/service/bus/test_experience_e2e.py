@@ -380,3 +380,14 @@ def test_calibration_windows_over_the_bus_and_a_bad_window_refused(tmp_path: Pat
         with pytest.raises(ServiceError, match="window=week: one of all, hour, day"):
             client.calibration(CAMERA_SOURCE, window="week")
         assert "calibration of" in gcdtrav("calibration", CAMERA_SOURCE, "--window", "day", *flags).stdout
+
+
+def test_an_operator_sees_what_the_store_keeps(tmp_path: Path) -> None:
+    with running(settings(tmp_path)) as (_service, client, flags):
+        BusRobot(client, make_world(seed=0)).drive(8.0, seed=1)
+        assert wait_until(lambda: client.kept().pairs > 0, 60)
+        contents = client.kept()
+        assert [k.source for k in contents.sources] == [CAMERA_SOURCE] and contents.sources[0].pairs == contents.pairs
+        assert contents.max_pairs == 50_000 and contents.max_age_days is None
+        text = gcdtrav("kept", *flags).stdout
+        assert CAMERA_SOURCE in text and "raw pairs:" in text and "calibration sums" in text

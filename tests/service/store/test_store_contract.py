@@ -227,3 +227,17 @@ def test_calibration_sums_add_up_per_hour_and_for_all_hours_behind_a_watermark(o
     assert {(r.source, r.hour) for r in two.sums("v2@0.3", since_hour=0)} == {("r1", hour), ("r1", hour - 1)}
     assert sorted(list(r.sums) for r in two.sums("v2@0.3")) == [[1.0, 1.0], [5.0, 7.0]]
     assert two.sums("other@0.3") == []
+
+
+def test_pairs_older_than_the_age_bound_go_and_contents_say_what_is_kept(store: Store) -> None:
+    now = store.clock()
+    store.clock = lambda: now - 10 * 86_400.0  # type: ignore[method-assign]
+    store.append_pairs([pair(GRASS, k, source="r1") for k in range(4)], 100, 10**6)
+    store.clock = lambda: now  # type: ignore[method-assign]
+    result = store.append_pairs([pair(GRASS, 10 + k, source="r2") for k in range(3)], 100, 10**6, max_age_s=86_400.0)
+    assert result.evicted == 4 and store.totals().pairs == 3 and store.totals().bytes == 3 * pair_bytes(3)
+    [kept] = store.contents()
+    assert (kept.source, kept.pairs, kept.bytes) == ("r2", 3, 3 * pair_bytes(3))
+    assert abs(kept.oldest - now) < 1 and abs(kept.newest - now) < 1
+    assert store.append_pairs([pair(GRASS, 20)], 100, 10**6, max_age_s=86_400.0).evicted == 0
+    assert store.graded_keys() == {}
