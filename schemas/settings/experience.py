@@ -68,6 +68,12 @@ class ExperienceSettings(TrackingSettings):
         default=20, ge=0, description="Fits hold anchors with less weight mass than this near the current set."
     )
     held_out_fraction: float = Field(default=0.3, gt=0, lt=1, description="The latest pairs, kept out of fits.")
+    sample_per_source: int = Field(
+        default=5_000,
+        ge=1,
+        description="Fits use a uniform sample of each source's whole history, this many pairs per source and "
+        "concept tuple (kept after the raw pairs go).",
+    )
     max_robot_share: float = Field(
         default=0.25,
         gt=0,

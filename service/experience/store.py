@@ -195,9 +195,14 @@ class ExperienceStore:
     def pairs(self, concepts: Sequence[str], source: str | None = None) -> Pairs:
         return as_pairs(self.columns(concepts, source))
 
-    def fleet_columns(self, concepts: Sequence[str]) -> FleetPairs:
-        """The fleet's pairs of this tuple that count: excluded robots' out, each robot's share capped."""
+    def fleet_columns(self, concepts: Sequence[str], sample: bool = False) -> FleetPairs:
+        """The fleet's pairs of this tuple that count: excluded robots' out, each robot's share capped. With
+        ``sample``: from the fitting sample (each source's whole history), or the retained pairs where it has
+        none of this tuple (a store written before the sample existed)."""
         columns = self.columns(concepts)
+        if sample:
+            sampled = self._store().sample(concepts)
+            columns = sampled if len(sampled) else columns
         excluded = [e.robot for e in self._store().exclusions() if e.excluded]
         mask, shares = fleet_mask(columns.sources, self.max_robot_share, excluded)
         return FleetPairs(as_pairs(columns).select(mask), tuple(np.asarray(columns.sources, object)[mask]), shares,
@@ -289,9 +294,9 @@ class ExperienceStore:
     def propose(
         self, source: str, anchors: AnchorSet, options: FitOptions, baselines: Sequence[tuple[str, AnchorSet]] = ()
     ) -> AnchorProposal:
-        """An AnchorProposal fitted on the fleet's pairs of this tuple, judged on the latest of them, also against
-        ``baselines`` (ValueError without pairs)."""
-        fleet = self.fleet_columns(anchors.concepts)
+        """An AnchorProposal fitted on the fitting sample of this tuple (each source's whole history), judged on
+        the latest of it, also against ``baselines`` (ValueError without pairs)."""
+        fleet = self.fleet_columns(anchors.concepts, sample=True)
         proposal = propose(fleet.pairs, anchors, options, source, self.clock(), baselines)
         return proposal.model_copy(update={"share_by_robot": fleet.shares, "excluded_robots": fleet.excluded})
 

@@ -47,10 +47,12 @@ class Store(ABC):
         max_bytes: int,
         batch_id: str | None = None,
         max_age_s: float | None = None,
+        sample_size: int = 0,
     ) -> AppendResult:
         """Append in one transaction (inserts only), then delete the oldest pairs of the whole store, any tuple
         and source, until at most ``max_pairs`` pairs and ``max_bytes`` bytes (records.pair_bytes) remain, and
-        those appended more than ``max_age_s`` ago (calibration's sums stay). A
+        those appended more than ``max_age_s`` ago (calibration's sums stay). With ``sample_size``, each pair
+        may also enter its (tuple, source)'s fitting sample (``sample``). A
         ``batch_id`` the store already holds (the batch was committed, its answer lost, and it comes again)
         stores nothing: ``AppendResult(0, 0, replayed=True)``."""
 
@@ -89,6 +91,11 @@ class Store(ABC):
     @abstractmethod
     def graded_upto(self, graded: str) -> int:
         """The last pair id the catch-up has added to ``graded``'s sums (0: none yet)."""
+
+    @abstractmethod
+    def sample(self, concepts: Sequence[str]) -> PairColumns:
+        """The fitting sample of this tuple: per source a uniform sample of its whole history (kept after the raw
+        pairs go), by stamp; ``ids`` are slots, not pair ids."""
 
     @abstractmethod
     def tuples(self) -> list[tuple[str, ...]]:

@@ -92,6 +92,7 @@ def service_outbox(settings: ServiceSettings, opened: Store | None = None) -> Pa
     age_days = settings.experience.max_age_days
     outbox = PairOutbox(opener, backend, location, settings.store.outbox_pairs, settings.experience.max_pairs,
                         settings.experience.max_bytes, settings.store.retry_s,
-                        max_age_s=None if age_days is None else age_days * 86_400.0)  # fmt: skip
+                        max_age_s=None if age_days is None else age_days * 86_400.0,
+                        sample_size=settings.experience.sample_per_source)  # fmt: skip
     outbox.open_now()
     return outbox

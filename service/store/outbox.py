@@ -51,6 +51,7 @@ class PairOutbox:
         retry_s: float = 2.0,
         clock: Callable[[], float] = time.time,
         max_age_s: float | None = None,
+        sample_size: int = 0,
     ) -> None:
         """``opener`` opens the store (it may raise StoreUnavailable: retried); ``backend`` and ``location``
         name it before it is open; ``max_pairs``, ``max_bytes`` and ``max_age_s`` bound the raw pairs."""
@@ -58,7 +59,7 @@ class PairOutbox:
         self.bound, self.max_pairs, self.max_bytes, self.retry_s, self.clock = (
             bound, max_pairs, max_bytes, retry_s, clock
         )  # fmt: skip
-        self.max_age_s = max_age_s
+        self.max_age_s, self.sample_size = max_age_s, sample_size
         self._pending: deque[PairRecord] = deque()
         self._changed = threading.Condition()
         self._store: Store | None = None
@@ -179,7 +180,9 @@ class PairOutbox:
         try:
             store = self._store or self._opened(self._opener())
             result = (
-                store.append_pairs(batch, self.max_pairs, self.max_bytes, batch_id, self.max_age_s) if batch else None
+                store.append_pairs(batch, self.max_pairs, self.max_bytes, batch_id, self.max_age_s, self.sample_size)
+                if batch
+                else None
             )
         except StoreUnavailable as err:
             self._failed(err)

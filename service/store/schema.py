@@ -75,6 +75,12 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
         "kind SMALLINT NOT NULL, hour BIGINT NOT NULL, sums {blob} NOT NULL, "
         "PRIMARY KEY (graded, hour, predicted, source, kind))",
         "CREATE TABLE calibration_progress (graded TEXT PRIMARY KEY, upto_id BIGINT NOT NULL)",
+        # the fitting sample: a uniform reservoir of each (tuple, source)'s whole history, pairs copied in
+        "CREATE TABLE fit_sample (tuple_id BIGINT NOT NULL, source TEXT NOT NULL, slot INTEGER NOT NULL, "
+        "anchor_version TEXT NOT NULL, kind SMALLINT NOT NULL, stamp {float} NOT NULL, outcome {float} NOT NULL, "
+        "weights {blob} NOT NULL, PRIMARY KEY (tuple_id, source, slot))",
+        "CREATE TABLE fit_sample_seen (tuple_id BIGINT NOT NULL, source TEXT NOT NULL, seen BIGINT NOT NULL, "
+        "PRIMARY KEY (tuple_id, source))",
     ),
 )
 assert len(MIGRATIONS) == SCHEMA_VERSION

@@ -8,6 +8,7 @@ active pointer are read and changed by one writer at a time and a compare-and-sw
 from __future__ import annotations
 
 import json
+import random
 import time
 from abc import abstractmethod
 from collections.abc import Sequence
@@ -40,7 +41,8 @@ from numpy.typing import NDArray
 
 Lock = Literal["schema", "pairs", "anchors"]
 BATCH_IDS_KEPT_S = 86_400.0  # a batch's id is remembered a day: its replays come within the outbox's retries
-EVICT_CHUNK = 10_000  # oldest rows looked at per step while finding where the bounds are kept
+EVICT_CHUNK = 10_000
+_RANDOM = random.Random()  # oldest rows looked at per step while finding where the bounds are kept
 
 
 class Cursor(Protocol):
@@ -93,6 +95,7 @@ class SqlStore(Store):
         max_bytes: int,
         batch_id: str | None = None,
         max_age_s: float | None = None,
+        sample_size: int = 0,
     ) -> AppendResult:
         if not pairs:
             return AppendResult(0, 0)
@@ -127,10 +130,58 @@ class SqlStore(Store):
                 "UPDATE pair_totals SET pairs = pairs + ?, bytes = bytes + ? WHERE singleton = 1",
                 (len(rows), added),
             )
+            if sample_size > 0:
+                self._sample(cursor, [(tuple_ids[p.concepts], p) for p in pairs], sample_size)
             evicted = self._evict(cursor, max_pairs, max_bytes)
             if max_age_s is not None:
                 evicted += self._evict_older(cursor, now - max_age_s)
         return AppendResult(len(rows), evicted)
+
+    def _sample(self, cursor: Cursor, pairs: Sequence[tuple[int, PairRecord]], size: int) -> None:
+        """Reservoir sampling (Vitter's algorithm R) per (tuple, source): after n pairs each is in the sample
+        with probability size / n, so the sample spans the whole history, not its last minutes."""
+        seen: dict[tuple[int, str], int] = {}
+        for key in {(tuple_id, p.source) for tuple_id, p in pairs}:
+            row = self._run(
+                cursor, "SELECT seen FROM fit_sample_seen WHERE tuple_id = ? AND source = ?", key
+            ).fetchone()
+            seen[key] = int(row[0]) if row is not None else 0
+        slots: dict[tuple[int, str, int], PairRecord] = {}
+        for tuple_id, p in pairs:
+            key = (tuple_id, p.source)
+            seen[key] += 1
+            slot = seen[key] - 1 if seen[key] <= size else _RANDOM.randrange(seen[key])
+            if slot < size:
+                slots[(tuple_id, p.source, slot)] = p
+        cursor.executemany(
+            self.dialect.sql(
+                "INSERT INTO fit_sample (tuple_id, source, slot, anchor_version, kind, stamp, outcome, weights) "
+                "VALUES (?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT (tuple_id, source, slot) DO UPDATE SET "
+                "anchor_version = excluded.anchor_version, kind = excluded.kind, stamp = excluded.stamp, "
+                "outcome = excluded.outcome, weights = excluded.weights"
+            ),
+            [(t, s, slot, p.anchor_version, p.kind, float(p.stamp), float(p.outcome),
+              np.asarray(p.weights, "<f4").tobytes()) for (t, s, slot), p in slots.items()],
+        )  # fmt: skip
+        cursor.executemany(
+            self.dialect.sql(
+                "INSERT INTO fit_sample_seen (tuple_id, source, seen) VALUES (?, ?, ?) "
+                "ON CONFLICT (tuple_id, source) DO UPDATE SET seen = excluded.seen"
+            ),
+            [(t, s, n) for (t, s), n in seen.items()],
+        )
+
+    def sample(self, concepts: Sequence[str]) -> PairColumns:
+        key = concept_key(concepts)
+        with self._transaction(None) as cursor:
+            rows = self._run(
+                cursor,
+                "SELECT f.slot, f.weights, f.outcome, f.stamp, f.kind, f.anchor_version, f.source, 0, NULL "
+                "FROM fit_sample f JOIN concept_tuples t ON t.id = f.tuple_id WHERE t.concepts = ? "
+                "ORDER BY f.stamp, f.source, f.slot",
+                (json.dumps(list(key)),),
+            ).fetchall()
+        return _columns(key, rows)
 
     def _evict_older(self, cursor: Cursor, before: float) -> int:
         """Delete the pairs appended before ``before`` (the age bound); how many went."""

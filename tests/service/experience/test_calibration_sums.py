@@ -101,3 +101,21 @@ def test_windows_count_the_pairs_appended_within_them(tmp_path: Path) -> None:
     drive(store, A, 11, seed=8)
     counts = {window: store.report(A, TAU, window=window).figures.pairs for window in ("all", "day", "hour")}
     assert counts == {"all": 69, "day": 54, "hour": 33}
+
+
+def test_a_proposal_is_fitted_on_the_sample_of_the_whole_history(tmp_path: Path) -> None:
+    """The raw pairs keep the last 90; the fit and its judgement use the 600-pair sample of all 900."""
+    from gcdtrav.service.experience.fitter import FitOptions
+    from gcdtrav.service.store.outbox import PairOutbox
+    from gcdtrav.service.store.sqlite import SqliteStore
+
+    path = tmp_path / "s.sqlite3"
+    outbox = PairOutbox(lambda: SqliteStore(path), "sqlite", str(path), 100_000, 90, 10**9, sample_size=600)
+    outbox.open_now()
+    outbox.start()
+    store = ExperienceStore(outbox, "r1", 2.0, "i1", clock=lambda: 9.0, tau=TAU)
+    drive(store, A, 300, seed=9)  # 900 pairs, stamps 100..399
+    proposal = store.propose("r1", A, FitOptions(tau=TAU, held_out_fraction=0.3, min_pairs_per_anchor=5))
+    assert len(store.columns(A.concepts)) == 90
+    assert proposal.train_pairs + proposal.held_out_pairs == 600
+    assert proposal.pairs_from is not None and proposal.pairs_from < 200  # reaches back before the kept 30 s
