@@ -9,7 +9,6 @@ from dataclasses import dataclass
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
-from gcdtrav.schemas.experience import OUTCOME_KINDS
 from gcdtrav.service.store.records import concept_key
 from numpy.typing import NDArray
 
@@ -64,13 +63,3 @@ class Pairs:
         held = round(len(self) * held_out_fraction)
         cut = len(self) - held
         return self.select(order[:cut]), self.select(order[cut:])
-
-    def count_by_kind(self) -> dict[str, int]:
-        counts = np.bincount(self.kinds, minlength=len(OUTCOME_KINDS))
-        return {kind: int(n) for kind, n in zip(OUTCOME_KINDS, counts, strict=True) if n}
-
-    def count_by_version(self) -> dict[str, int]:
-        found: dict[str, int] = {}
-        for version in self.versions:
-            found[version] = found.get(version, 0) + 1
-        return found

@@ -205,8 +205,7 @@ class ExperienceStore:
             columns = sampled if len(sampled) else columns
         excluded = [e.robot for e in self._store().exclusions() if e.excluded]
         mask, shares = fleet_mask(columns.sources, self.max_robot_share, excluded)
-        return FleetPairs(as_pairs(columns).select(mask), tuple(np.asarray(columns.sources, object)[mask]), shares,
-                          excluded)  # fmt: skip
+        return FleetPairs(as_pairs(columns).select(mask), shares, excluded)
 
     # ---- exclusions ------------------------------------------------------------------------------------
     def exclude(self, robot: str, excluded: bool, actor: str = "", reason: str = "") -> list[Exclusion]:
@@ -303,9 +302,8 @@ class ExperienceStore:
 
 @dataclass(frozen=True)
 class FleetPairs:
-    """The pairs that count for the fleet (sharing.py), their sources, each robot's share, the excluded robots."""
+    """The pairs that count for the fleet (sharing.py), each robot's share, the excluded robots."""
 
     pairs: Pairs
-    sources: tuple[str, ...]
     shares: dict[str, float]
     excluded: list[str]
