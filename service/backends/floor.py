@@ -82,7 +82,9 @@ def _onnx_int8_rate(shape: TrunkShape, threads: int) -> float:
         [helper.make_tensor_value_info("y", TensorProto.INT32, [shape.tokens, shape.mlp])],
         [numpy_helper.from_array(weights, "b"), numpy_helper.from_array(np.array(128, np.uint8), "a_zero")],
     )
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)])
+    # IR version 8 (onnx 1.10), not the installed onnx's newest: an older onnxruntime refuses a newer IR
+    # ("Unsupported model IR version: 14, max supported IR version: 13": onnx 1.23 beside onnxruntime 1.30).
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)], ir_version=8)
     options = onnxruntime.SessionOptions()
     options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
     session = onnxruntime.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
