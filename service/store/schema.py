@@ -19,6 +19,10 @@ class Dialect:
     float: str
     blob: str
     placeholder: str
+    # Run before reading a tuple's first or last N pairs: PostgreSQL's planner, with statistics behind a fast
+    # growing table (autovacuum analyses a minute later), took a bitmap scan and sorted every pair of the tuple
+    # (113 ms at 3 x 10^5 pairs) where the (tuple_id, id) index gives them in order (4 ms).
+    ordered_read: tuple[str, ...] = ()
 
     def sql(self, statement: str) -> str:
         """A statement written with ``?`` placeholders and {id}/{float}/{blob} types, in this dialect."""
@@ -27,7 +31,10 @@ class Dialect:
 
 
 SQLITE = Dialect("sqlite", "INTEGER PRIMARY KEY AUTOINCREMENT", "REAL", "BLOB", "?")
-POSTGRESQL = Dialect("postgresql", "BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY", "DOUBLE PRECISION", "BYTEA", "%s")
+POSTGRESQL = Dialect(
+    "postgresql", "BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY", "DOUBLE PRECISION", "BYTEA", "%s",
+    ("SET LOCAL enable_bitmapscan = off",),
+)  # fmt: skip
 
 VERSION_TABLE = (
     "CREATE TABLE IF NOT EXISTS schema_version "

@@ -277,6 +277,8 @@ class SqlStore(Store):
                 where, params = where + " AND source = ?", [*params, source]
             order = "id DESC" if newest_first else "id"
             tail = f" LIMIT {int(limit)}" if limit is not None else ""
+            for statement in self.dialect.ordered_read if limit is not None else ():
+                self._run(cursor, statement)
             rows = self._run(
                 cursor,
                 "SELECT id, weights, outcome, stamp, kind, anchor_version, source, appended_at, graded FROM pairs "
