@@ -501,10 +501,16 @@ class TraversabilityClient:
                 if health.source in sources:
                     watch.note_reason(health.source, health.problem)
 
+        # Each source's own keys, not **: a robot on the routers' identity endpoint may read only its own
+        # (schemas/access.py), and a subscription to ** would be refused whole.
         subscribers = [
-            self.session.declare_subscriber(self.maps_key("**", compact), observe),
-            self.session.declare_subscriber(self.keys.credit("**"), hear_credit),
-            self.session.declare_subscriber(self.keys.relay_health("**"), hear_relay),
+            subscriber
+            for source in sources
+            for subscriber in (
+                self.session.declare_subscriber(self.maps_key(source, compact), observe),
+                self.session.declare_subscriber(self.keys.credit(source), hear_credit),
+                self.session.declare_subscriber(self.keys.relay_health(source), hear_relay),
+            )
         ]
         return MapsFreshness(watch, subscribers, on_change, period_s)
 

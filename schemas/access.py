@@ -15,7 +15,8 @@ What each role may do, per key (P = the service's prefix, R = the robot's name, 
   subscribe to and query its own outputs P/out/R/**, its credits P/credit/R/**; watch the service's
   liveliness; ROS graph tokens of namespace /R only; queryables only on its ROS keys. The routers send it
   nothing else (egress rules), so a subscription to ``**`` gets only its own keys.
-- a planner: put planned paths for any robot; subscribe to and query every output.
+- a planner: put planned paths for any robot; subscribe to and query every output, the credits and relays'
+  health (why a robot's maps are stale), the service's status.
 - an operator: query and swap the anchor set (P/config/**), answer questions, read every key under P.
 """
 
@@ -104,6 +105,7 @@ def robot_rules(name: str, identities: FleetIdentities) -> list[dict[str, Any]]:
     keys, rid = Keys(identities.prefix), f"robot-{name}"
     ros = [f"{d}/{name}/**" for d in identities.ros_domains]
     ros_tokens = [f"@ros2_lv/{d}/*/*/*/*/*/%{name}/**" for d in identities.ros_domains]  # namespace /name
+    graph = [f"@ros2_lv/{d}/**" for d in identities.ros_domains]
     inputs = [f"{keys.prefix}/in/{name}/**", f"{keys.prefix}/relay/{name}/**"]
     outputs = [f"{keys.prefix}/out/{name}/**", keys.credit(f"{name}/**")]
     liveliness = [keys.alive("**"), keys.member("**"), keys.active_anchors("**")]
@@ -111,7 +113,8 @@ def robot_rules(name: str, identities: FleetIdentities) -> list[dict[str, Any]]:
         _rule(f"{rid}-puts", ["ingress"], ["put", "delete"], inputs + ros),
         _rule(f"{rid}-reads", ["ingress"], ["declare_subscriber", "query"], outputs + inputs + ros),
         _rule(f"{rid}-ros", ["ingress"], ["declare_queryable", "reply", "liveliness_token"], ros + ros_tokens),
-        _rule(f"{rid}-watch", ["ingress"], ["declare_liveliness_subscriber", "liveliness_query"], liveliness),
+        # rmw_zenoh's graph: it may watch the whole ROS graph's tokens; it is sent only its own (egress below)
+        _rule(f"{rid}-watch", ["ingress"], ["declare_liveliness_subscriber", "liveliness_query"], liveliness + graph),
         _rule(f"{rid}-sent", ["egress"], DATA, outputs + inputs + ros),
         _rule(f"{rid}-tokens", ["egress"], ["liveliness_token", "liveliness_query"], liveliness + ros_tokens),
         _rule(f"{rid}-declarations", ["egress"], DECLARATIONS, ["**"]),
@@ -120,10 +123,12 @@ def robot_rules(name: str, identities: FleetIdentities) -> list[dict[str, Any]]:
 
 def planner_rules(name: str, identities: FleetIdentities) -> list[dict[str, Any]]:
     keys, pid = Keys(identities.prefix), f"planner-{name}"
+    # every robot's outputs, and what says why they are stale (credits, relays' health), the service's status
+    reads = [keys.outputs, keys.credit("**"), keys.relay_health("**"), keys.status]
     return [
         _rule(f"{pid}-paths", ["ingress"], ["put", "delete"], [keys.planned_path("**")]),
-        _rule(f"{pid}-reads", ["ingress"], WATCH, [keys.outputs, keys.alive("**"), keys.member("**")]),
-        _rule(f"{pid}-sent", ["egress"], DATA, [keys.outputs, keys.planned_path("**")]),
+        _rule(f"{pid}-reads", ["ingress"], WATCH, [*reads, keys.alive("**"), keys.member("**")]),
+        _rule(f"{pid}-sent", ["egress"], DATA, [*reads, keys.planned_path("**")]),
         _rule(
             f"{pid}-tokens", ["egress"], ["liveliness_token", "liveliness_query"], [keys.alive("**"), keys.member("**")]
         ),

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -150,13 +151,16 @@ def issue(folder: Path, role: str, name: str, valid: dt.timedelta, endpoint: str
         work = Path(scratch)
         (work / "index.txt").write_text("", "utf-8")
         (work / "ca.cnf").write_text(CA_CONFIG.format(ca=folder.resolve(), work=work), "utf-8")
-        key, request = out / f"{subject}.key", work / "request.csr"
+        key, request, certificate = work / "key.pem", work / "request.csr", work / "certificate.pem"
         openssl("req", "-newkey", "rsa:2048", "-nodes", "-subj", f"/CN={subject}", "-keyout", key, "-out", request)
         key.chmod(0o600)
         openssl(
-            "ca", "-batch", "-notext", "-config", work / "ca.cnf", "-in", request, "-out", out / f"{subject}.crt",
+            "ca", "-batch", "-notext", "-config", work / "ca.cnf", "-in", request, "-out", certificate,
             "-startdate", stamp(now - CLOCK_SKEW), "-enddate", stamp(now + valid),
         )  # fmt: skip
+        # the pair moves in only once signed: a failed signing leaves the identity's old key and certificate
+        shutil.move(key, out / f"{subject}.key")
+        shutil.move(certificate, out / f"{subject}.crt")
     (out / f"{subject}.json5").write_text(session_config(folder, subject, role, endpoint), "utf-8")
 
 

@@ -17,12 +17,14 @@ source, kind and hour of appending, and for all hours; they outlive the pairs, w
 from __future__ import annotations
 
 from collections import defaultdict
+from collections.abc import Collection
 from dataclasses import dataclass, field
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.experience import OUTCOME_KINDS
 from gcdtrav.service.experience.calibration import pair_sums, sums_length
+from gcdtrav.service.experience.sharing import robot_of
 from gcdtrav.service.store import PairColumns, Store, SumsRow
 from gcdtrav.service.store.records import HOURS_KEPT
 from numpy.typing import NDArray
@@ -78,18 +80,25 @@ class GradedSums:
     """A key's sums over one window, added up per source, and the pair counts by kind and predicting version."""
 
     length: int
+    since: float = 0.0  # the window's start, s since the epoch (0: all)
     by_source: dict[str, NDArray[np.float64]] = field(default_factory=dict)
     by_kind: dict[str, int] = field(default_factory=dict)
     by_version: dict[str, int] = field(default_factory=dict)
 
     @classmethod
-    def read(cls, store: Store, key: str, concepts: int, window: str, now: float) -> GradedSums:
+    def read(
+        cls, store: Store, key: str, concepts: int, window: str, now: float, excluded: Collection[str] = ()
+    ) -> GradedSums:
+        """The sums of ``window``, excluded robots' left out."""
         hours = WINDOW_HOURS[window]
-        rows = store.sums(key, None if hours is None else int(now // 3600) - hours)
-        graded = cls(sums_length(concepts))
+        since_hour = None if hours is None else int(now // 3600) - hours
+        rows = store.sums(key, since_hour)
+        graded = cls(sums_length(concepts), 0.0 if since_hour is None else 3600.0 * since_hour)
         by_kind: dict[str, int] = defaultdict(int)
         by_version: dict[str, int] = defaultdict(int)
         for row in rows:
+            if robot_of(row.source) in excluded:
+                continue
             if row.source in graded.by_source:
                 graded.by_source[row.source] = graded.by_source[row.source] + row.sums
             else:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TypeVar
@@ -197,12 +198,11 @@ class ExperienceStore:
 
     def fleet_columns(self, concepts: Sequence[str], sample: bool = False) -> FleetPairs:
         """The fleet's pairs of this tuple that count: excluded robots' out, each robot's share capped. With
-        ``sample``: from the fitting sample (each source's whole history), or the retained pairs where it has
-        none of this tuple (a store written before the sample existed)."""
+        ``sample``: each source's fitting sample (its whole history), or its retained pairs where the sample
+        holds fewer (a source whose pairs came before the sample existed)."""
         columns = self.columns(concepts)
         if sample:
-            sampled = self._store().sample(concepts)
-            columns = sampled if len(sampled) else columns
+            columns = sampled_history(columns, self._store().sample(concepts), self.outbox.sample_size)
         excluded = [e.robot for e in self._store().exclusions() if e.excluded]
         mask, shares = fleet_mask(columns.sources, self.max_robot_share, excluded)
         return FleetPairs(as_pairs(columns).select(mask), shares, excluded)
@@ -248,26 +248,28 @@ class ExperienceStore:
         self.outbox.flush(READ_OWN_WRITES_S)
         store, now = self._store(), self.clock()
         catch_up(store, anchors, tau)
-        graded = GradedSums.read(store, grading_key(anchors, tau), len(anchors), window, store.clock())
         excluded = [e.robot for e in store.exclusions() if e.excluded]
+        graded = GradedSums.read(store, grading_key(anchors, tau), len(anchors), window, store.clock(), excluded)
         counts = {source: float(sums[0]) for source, sums in graded.by_source.items()}
         factors = source_factors(counts, self.max_robot_share, excluded)
+        # AUSE and Spearman: the newest pairs in the window, excluded robots out, each robot's share capped
         newest = store.pairs(anchors.concepts, limit=RANKED_PAIRS, newest_first=True)
         newest_weights, newest_sources = set_order_weights(newest, anchors), np.asarray(newest.sources, object)
+        in_window = newest.appended_at >= graded.since if newest.appended_at is not None else np.ones(len(newest))
+        counted, _ = fleet_mask(newest.sources, self.max_robot_share, excluded)
+        counted &= np.asarray(in_window, bool)
 
         def ranked(chosen: NDArray[np.bool_]) -> tuple[float | None, float | None]:
             return ranked_figures(newest_weights[chosen], newest.outcomes[chosen], anchors)
 
-        counted = np.asarray([factors.get(s, 1.0) > 0 for s in newest.sources], bool)
         figures = figures_from_sums(graded.total(factors), anchors, tau, *ranked(counted))
         breakdown = None
         if by_source:
             breakdown = {
-                source: figures_from_sums(sums, anchors, tau, *ranked(newest_sources == source))
+                source: figures_from_sums(sums, anchors, tau, *ranked((newest_sources == source) & in_window))
                 for source, sums in sorted(graded.by_source.items())
-                if factors.get(source, 1.0) > 0
             }
-        weight = {source: factors[source] * count for source, count in counts.items() if factors[source] > 0}
+        weight = {source: factors[source] * count for source, count in counts.items()}
         total_weight = sum(weight.values())
         shares: dict[str, float] = {}
         for source, w in weight.items():
@@ -284,7 +286,7 @@ class ExperienceStore:
             pairs_by_kind=graded.by_kind,
             pairs_by_version=graded.by_version,
             counts=kept,
-            pairs_by_source={s: round(c) for s, c in sorted(counts.items()) if factors[s] > 0},
+            pairs_by_source={s: round(c) for s, c in sorted(counts.items())},
             by_source=breakdown,
             share_by_robot={robot: round(share, 4) for robot, share in sorted(shares.items())},
             excluded_robots=excluded,
@@ -307,3 +309,26 @@ class FleetPairs:
     pairs: Pairs
     shares: dict[str, float]
     excluded: list[str]
+
+
+def sampled_history(retained: PairColumns, sample: PairColumns, size: int) -> PairColumns:
+    """Per source, its fitting sample where that is full (``size``) or holds at least its retained pairs, else its
+    retained pairs: after an upgrade, a source's older pairs are not in the sample yet."""
+    retained_count, sampled_count = Counter(retained.sources), Counter(sample.sources)
+    from_sample = {
+        s for s in retained_count | sampled_count if sampled_count[s] >= min(retained_count[s], size or 1 << 62)
+    }
+    keep_sample = np.asarray([s in from_sample for s in sample.sources], bool)
+    keep_retained = np.asarray([s not in from_sample for s in retained.sources], bool)
+    return PairColumns(
+        concepts=retained.concepts,
+        ids=np.concatenate([sample.ids[keep_sample], retained.ids[keep_retained]]),
+        weights=np.concatenate([sample.weights[keep_sample], retained.weights[keep_retained]]),
+        outcomes=np.concatenate([sample.outcomes[keep_sample], retained.outcomes[keep_retained]]),
+        stamps=np.concatenate([sample.stamps[keep_sample], retained.stamps[keep_retained]]),
+        kinds=np.concatenate([sample.kinds[keep_sample], retained.kinds[keep_retained]]),
+        versions=tuple(np.asarray(sample.versions, object)[keep_sample])
+        + tuple(np.asarray(retained.versions, object)[keep_retained]),
+        sources=tuple(np.asarray(sample.sources, object)[keep_sample])
+        + tuple(np.asarray(retained.sources, object)[keep_retained]),
+    )

@@ -23,17 +23,19 @@ class Dialect:
     # growing table (autovacuum analyses a minute later), took a bitmap scan and sorted every pair of the tuple
     # (113 ms at 3 x 10^5 pairs) where the (tuple_id, id) index gives them in order (4 ms).
     ordered_read: tuple[str, ...] = ()
+    now: str = "CAST(strftime('%s', 'now') AS REAL)"
 
     def sql(self, statement: str) -> str:
-        """A statement written with ``?`` placeholders and {id}/{float}/{blob} types, in this dialect."""
-        typed = statement.format(id=self.id, float=self.float, blob=self.blob)
+        """A statement written with ``?`` placeholders, {id}/{float}/{blob} types and {now} (the server's time,
+        s since the epoch), in this dialect."""
+        typed = statement.format(id=self.id, float=self.float, blob=self.blob, now=self.now)
         return typed.replace("?", self.placeholder) if self.placeholder != "?" else typed
 
 
 SQLITE = Dialect("sqlite", "INTEGER PRIMARY KEY AUTOINCREMENT", "REAL", "BLOB", "?")
 POSTGRESQL = Dialect(
     "postgresql", "BIGINT GENERATED ALWAYS AS IDENTITY PRIMARY KEY", "DOUBLE PRECISION", "BYTEA", "%s",
-    ("SET LOCAL enable_bitmapscan = off",),
+    ("SET LOCAL enable_bitmapscan = off",), "EXTRACT(EPOCH FROM now())",
 )  # fmt: skip
 
 VERSION_TABLE = (
@@ -76,11 +78,13 @@ MIGRATIONS: tuple[tuple[str, ...], ...] = (
     # version's sums over older pairs came; when a pair was appended and which version graded it then.
     (
         "ALTER TABLE pairs ADD COLUMN appended_at {float} NOT NULL DEFAULT 0",
+        "UPDATE pairs SET appended_at = {now}",  # the pairs already kept: appended (at the latest) now
         "ALTER TABLE pairs ADD COLUMN graded TEXT",
         "CREATE INDEX pairs_by_appended ON pairs (appended_at)",
         "CREATE TABLE calibration_sums (graded TEXT NOT NULL, predicted TEXT NOT NULL, source TEXT NOT NULL, "
         "kind SMALLINT NOT NULL, hour BIGINT NOT NULL, sums {blob} NOT NULL, "
         "PRIMARY KEY (graded, hour, predicted, source, kind))",
+        "CREATE INDEX calibration_sums_by_hour ON calibration_sums (hour)",  # old hourly rows found, not scanned
         "CREATE TABLE calibration_progress (graded TEXT PRIMARY KEY, upto_id BIGINT NOT NULL)",
         # the fitting sample: a uniform reservoir of each (tuple, source)'s whole history, pairs copied in
         "CREATE TABLE fit_sample (tuple_id BIGINT NOT NULL, source TEXT NOT NULL, slot INTEGER NOT NULL, "

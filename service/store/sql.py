@@ -185,12 +185,14 @@ class SqlStore(Store):
 
     def _evict_older(self, cursor: Cursor, before: float) -> int:
         """Delete the pairs appended before ``before`` (the age bound); how many went."""
+        # 0: written by an instance still running a gcdtrav before 1.7 beside the fleet (its time unknown)
+        where = "appended_at > 0 AND appended_at < ?"
         count, size = self._run(
-            cursor, "SELECT count(*), coalesce(sum(nbytes), 0) FROM pairs WHERE appended_at < ?", (before,)
+            cursor, f"SELECT count(*), coalesce(sum(nbytes), 0) FROM pairs WHERE {where}", (before,)
         ).fetchone()
         if int(count) == 0:
             return 0
-        self._run(cursor, "DELETE FROM pairs WHERE appended_at < ?", (before,))
+        self._run(cursor, f"DELETE FROM pairs WHERE {where}", (before,))
         self._run(
             cursor,
             "UPDATE pair_totals SET pairs = pairs - ?, bytes = bytes - ? WHERE singleton = 1",

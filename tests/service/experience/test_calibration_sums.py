@@ -4,6 +4,7 @@ the pairs the bounds evict, counts each pair once with two instances catching up
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -119,3 +120,21 @@ def test_a_proposal_is_fitted_on_the_sample_of_the_whole_history(tmp_path: Path)
     assert len(store.columns(A.concepts)) == 90
     assert proposal.train_pairs + proposal.held_out_pairs == 600
     assert proposal.pairs_from is not None and proposal.pairs_from < 200  # reaches back before the kept 30 s
+
+
+def test_after_an_upgrade_a_source_is_fitted_on_its_retained_pairs_until_its_sample_holds_as_many() -> None:
+    from gcdtrav.service.experience.store import sampled_history
+    from gcdtrav.service.store import PairColumns
+
+    def columns(sources: list[str]) -> PairColumns:
+        n = len(sources)
+        weights = np.full((n, 2), 0.5, np.float32)
+        stamps = np.arange(n, dtype=float)
+        return PairColumns(("a", "b"), np.arange(n), weights, np.zeros(n), stamps, np.zeros(n, np.uint8), ("v",) * n,
+                           tuple(sources))  # fmt: skip
+
+    retained = columns(["r1"] * 100 + ["r2"] * 300 + ["r3"] * 10)
+    sample = columns(["r1"] * 5 + ["r2"] * 50 + ["r3"] * 10 + ["r4"] * 7)  # r1 sampled only since the upgrade
+    chosen = sampled_history(retained, sample, size=50)
+    assert Counter(chosen.sources) == {"r1": 100, "r2": 50, "r3": 10, "r4": 7}
+    assert len(sampled_history(retained, columns([]), size=0)) == len(retained)  # no sample: the retained pairs
