@@ -1,12 +1,13 @@
 """Inference beside grading (issue 57, docs/calibration.md "At fleet scale"): the frame time of one instance's
-pipeline while another thread of the same process grades calibration in a loop (as a metrics scrape or an
-operator's watch would), three ways in one run:
+pipeline while another thread of the same process grades calibration once every ``--period`` s (a report
+that takes longer starts the next at once: back to back), as a metrics scrape or an operator's watch would,
+three ways in one run:
 
 - **none**: no grading;
 - **sums**: the report as the service answers it now (the kept sums, AUSE and Spearman over 20,000 pairs);
 - **direct**: the figures computed over every raw pair, as a report did before the sums.
 
-    python -m benchmarks.grading_load --model /tmp/rd64-random --pairs 1000000 --frames 30
+    python -m benchmarks.grading_load --model /tmp/rd64-random --pairs 1000000 --frames 30 --period 1
 
 The store is SQLite (benchmarks/store.py's pairs); the model random weights of the real architecture
 (``tools.random_clipseg``), in the precision given (ort-int8: auto's pick on AVX512 EPYCs). Medians and p95 of
@@ -47,15 +48,19 @@ def frames(process: Callable[[], object], count: int) -> list[float]:
     return times
 
 
-def beside(grade: Callable[[], object] | None, process: Callable[[], object], count: int) -> dict[str, float]:
-    """The frames' median and p95 (ms) while ``grade`` runs in a loop on another thread; its reports/s."""
+def beside(
+    grade: Callable[[], object] | None, process: Callable[[], object], count: int, period_s: float
+) -> dict[str, float]:
+    """The frames' median and p95 (ms) while ``grade`` runs every ``period_s`` on another thread; its reports/s."""
     stop, graded = threading.Event(), [0]
 
     def loop() -> None:
         while not stop.is_set():
+            began = time.perf_counter()
             assert grade is not None
             grade()
             graded[0] += 1
+            stop.wait(max(0.0, period_s - (time.perf_counter() - began)))
 
     worker = threading.Thread(target=loop, daemon=True) if grade is not None else None
     began = time.perf_counter()
@@ -73,7 +78,7 @@ def beside(grade: Callable[[], object] | None, process: Callable[[], object], co
     }
 
 
-def run(model: str, precision: str, pairs: int, count: int) -> dict[str, Any]:
+def run(model: str, precision: str, pairs: int, count: int, period_s: float) -> dict[str, Any]:
     set_torch_threads(None)
     pipeline = clipseg_pipeline(model, precision, default_anchor_set(), EngineSettings())
     image = np.random.default_rng(0).integers(0, 256, (480, 640, 3), np.uint8)
@@ -89,9 +94,10 @@ def run(model: str, precision: str, pairs: int, count: int) -> dict[str, Any]:
             "precision": precision,
             "pairs": pairs,
             "frames": count,
-            "none": beside(None, process, count),
-            "sums": beside(lambda: reports.report(ANCHORS, TAU), process, count),
-            "direct": beside(lambda: calibrate(store), process, count),
+            "period_s": period_s,
+            "none": beside(None, process, count, period_s),
+            "sums": beside(lambda: reports.report(ANCHORS, TAU), process, count, period_s),
+            "direct": beside(lambda: calibrate(store), process, count, period_s),
         }
         store.close()
     return result
@@ -101,7 +107,7 @@ def table(result: dict[str, Any]) -> str:
     m = result["machine"]
     lines = [
         f"{m['cpu']}, {m['cores']} cores; {result['precision']}; {result['pairs']:,} pairs; "
-        f"{result['frames']} frames per row",
+        f"{result['frames']} frames per row; a report every {result['period_s']:g} s (or back to back)",
         "",
         "| grading beside inference | frame median, ms | frame p95, ms | reports/s |",
         "|---|---:|---:|---:|",
@@ -118,9 +124,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--precision", default="ort-int8")
     parser.add_argument("--pairs", type=int, default=1_000_000)
     parser.add_argument("--frames", type=int, default=30)
+    parser.add_argument("--period", type=float, default=1.0, help="a report every PERIOD s [1]")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args(argv)
-    result = run(args.model, args.precision, args.pairs, args.frames)
+    result = run(args.model, args.precision, args.pairs, args.frames, args.period)
     print(table(result))
     if args.out is not None:
         args.out.write_text(json.dumps(result, indent=1), "utf-8")
