@@ -4,7 +4,7 @@ that takes longer starts the next at once: back to back), as a metrics scrape or
 three ways in one run:
 
 - **none**: no grading;
-- **sums**: the report as the service answers it now (the kept sums, AUSE and Spearman over 20,000 pairs);
+- **sums**: the report as the service answers it now (the kept sums, AUSE and Spearman over 10,000 pairs);
 - **direct**: the figures computed over every raw pair, as a report did before the sums.
 
     python -m benchmarks.grading_load --model /tmp/rd64-random --pairs 1000000 --frames 30 --period 1

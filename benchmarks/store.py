@@ -6,7 +6,7 @@
 - **bytes per pair** on disk (SQLite: the file after a checkpoint; PostgreSQL: the table with its index);
 - at 10^4 ... 10^7 pairs of the paper's 8 concepts: a **calibration** report as the service answers it
   (``ExperienceStore.report``: the sums the store keeps, the catch-up, AUSE and Spearman over the newest
-  20,000 pairs; issue 57), for all pairs, the last hour and by source; the **catch-up** after a swap (a new set
+  10,000 pairs; issue 57), for all pairs, the last hour and by source; the **catch-up** after a swap (a new set
   grading every retained pair once); up to 10^6 also the time to **read** one tuple's pairs, the **direct**
   calibration over them (what a report cost before the sums) and a **fit** (``propose``).
 

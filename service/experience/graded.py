@@ -29,7 +29,7 @@ from gcdtrav.service.store import PairColumns, Store, SumsRow
 from gcdtrav.service.store.records import HOURS_KEPT
 from numpy.typing import NDArray
 
-RANKED_PAIRS = 20_000  # AUSE and Spearman's rho: over the newest pairs of the tuple
+RANKED_PAIRS = 10_000  # AUSE and Spearman's rho: over the newest pairs of the tuple (half the cost of a report)
 CATCH_UP_CHUNK = 50_000  # pairs read and graded per transaction by the catch-up
 WINDOW_HOURS = {"all": None, "hour": 1, "day": 24}  # a report's windows, by the hour the pairs were appended
 

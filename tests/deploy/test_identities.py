@@ -223,7 +223,9 @@ def test_a_revoked_robot_is_refused_when_its_certificate_expires_and_the_others_
     assert arrivals["r7"] and arrivals["r7"][-1] <= expires + 1.5, (arrivals["r7"][-1:], expires)
     assert arrivals["r7"][0] < expires - lifetime_s / 2  # it worked until then
     gaps = [b - a for a, b in zip(arrivals["r8"], arrivals["r8"][1:], strict=False)]
-    assert arrivals["r8"][-1] > expires + 5.0 and max(gaps) < 1.0, max(gaps)
+    assert arrivals["r8"][-1] > expires + 5.0 and max(gaps) < 2.0, max(
+        gaps
+    )  # r8 puts every 0.2 s; a reconnect would take longer
 
 
 def doc_commands() -> list[list[str]]:
