@@ -44,7 +44,7 @@ def test_defaults_import_the_old_pairs_into_sqlite_and_keep_them(tmp_path: Path)
         assert report.figures.pairs == OLD_PAIRS_OF_THE_ACTIVE_TUPLE and report.pairs_by_source == {"robot/cam": 350}
         split = client.calibration(CAMERA_SOURCE, by_source=True)  # gcdtrav calibration --by-source
         assert split.by_source == {"robot/cam": report.figures} and report.by_source is None
-        with pytest.raises(ServiceError, match="by_source=true or none"):
+        with pytest.raises(ServiceError, match=r"give by_source=true, window=all\|day\|hour or none"):
             client._query(client.keys.calibration(CAMERA_SOURCE), CalibrationReport, {"by_source": "maybe"})
         assert (state / f"gcdtrav.experience.msgpack{IMPORTED_SUFFIX}").is_file()
         assert not (state / "gcdtrav.experience.msgpack").exists()
