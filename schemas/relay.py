@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Literal
 
 from gcdtrav.schemas.settings.experience import TrackingSettings
-from gcdtrav.schemas.strict import StrictModel
+from gcdtrav.schemas.strict import StrictModel, problems
 from gcdtrav.schemas.yaml_file import load_mapping
 from pydantic import Field, ValidationError, field_validator, model_validator
 
@@ -321,6 +321,5 @@ def load_relay_settings(file: str | Path | None, overrides: dict[str, object] | 
     try:
         return RelaySettings.model_validate(data)
     except ValidationError as err:
-        problems = [f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in err.errors()]
         where = f"{file}: " if file is not None else ""
-        raise RelaySettingsError(where + "invalid relay settings: " + "; ".join(problems)) from None
+        raise RelaySettingsError(where + "invalid relay settings: " + problems(err)) from None

@@ -11,7 +11,7 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 
 class StrictModel(BaseModel):
@@ -30,3 +30,10 @@ class WireModel(BaseModel):
     """A message or a part of one on the bus: fields a newer sender added are ignored (and not kept)."""
 
     model_config = ConfigDict(extra="ignore")
+
+
+def problems(err: ValidationError, most: int | None = None) -> str:
+    """A validation error on one line: each field and what is wrong with it (the first ``most`` of them)."""
+    return "; ".join(
+        f"{'.'.join(map(str, e['loc']))}: {e['msg']}" if e["loc"] else e["msg"] for e in err.errors()[:most]
+    )

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import yaml
 from gcdtrav.schemas.access import ROLES, FleetIdentities, access_control, common_name
+from gcdtrav.schemas.strict import problems
 from pydantic import ValidationError
 
 COMMANDS = ("identity",)
@@ -104,9 +105,7 @@ def load(folder: Path) -> FleetIdentities:
 
 def one_line(err: Exception) -> str:
     """A validation error as the operator reads it: each field and what is wrong, on one line."""
-    if isinstance(err, ValidationError):
-        return "; ".join(f"{'.'.join(map(str, e['loc'])) or 'identities'}: {e['msg']}" for e in err.errors())
-    return str(err).replace("\n", " ")
+    return problems(err) if isinstance(err, ValidationError) else str(err).replace("\n", " ")
 
 
 def save(folder: Path, identities: FleetIdentities) -> None:

@@ -7,7 +7,7 @@ import re
 from typing import Any, TypeVar
 
 import msgpack
-from gcdtrav.schemas.strict import WireModel
+from gcdtrav.schemas.strict import WireModel, problems
 from pydantic import Field, ValidationError
 
 MSGPACK_ENCODING = "application/msgpack"
@@ -102,8 +102,7 @@ class Message(WireModel):
         try:
             return cls.model_validate(data)
         except ValidationError as err:
-            problems = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in err.errors()[:5])
-            raise MessageError(f"invalid {cls.__name__}: {problems}") from None
+            raise MessageError(f"invalid {cls.__name__}: {problems(err, most=5)}") from None
 
 
 M = TypeVar("M", bound=Message)

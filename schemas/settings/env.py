@@ -12,6 +12,7 @@ from typing import Any
 from gcdtrav.schemas.settings.base import ENV_PREFIX, SettingsError
 from gcdtrav.schemas.settings.service import ServiceSettings
 from gcdtrav.schemas.settings.store import PASSWORD_ENV
+from gcdtrav.schemas.strict import problems
 from gcdtrav.schemas.yaml_file import load_mapping
 from pydantic import BaseModel, ValidationError
 
@@ -83,6 +84,5 @@ def load_settings(
     try:
         return ServiceSettings.model_validate(data)
     except ValidationError as err:
-        problems = [f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in err.errors()]
         where = f"{file}: " if file else ""
-        raise SettingsError(where + "invalid settings: " + "; ".join(problems)) from None
+        raise SettingsError(where + "invalid settings: " + problems(err)) from None
