@@ -26,7 +26,6 @@ from gcdtrav.schemas.experience import OUTCOME_KINDS
 from gcdtrav.service.experience.calibration import pair_sums, sums_length
 from gcdtrav.service.experience.sharing import robot_of
 from gcdtrav.service.store import PairColumns, Store, SumsRow
-from gcdtrav.service.store.records import HOURS_KEPT
 from numpy.typing import NDArray
 
 RANKED_PAIRS = 10_000  # AUSE and Spearman's rho: over the newest pairs of the tuple (half the cost of a report)
@@ -57,7 +56,6 @@ def grouped(sums: NDArray[np.float64], predicted: list[str], sources: list[str],
 def catch_up(store: Store, anchors: AnchorSet, tau: float) -> int:
     """Add to the key's sums every retained pair of the set's tuple it does not hold yet; how many."""
     key, added = grading_key(anchors, tau), 0
-    oldest_hour = int(store.clock() // 3600) - HOURS_KEPT
     while True:
         upto = store.graded_upto(key)
         chunk = store.pairs(anchors.concepts, after_id=upto, limit=CATCH_UP_CHUNK)
@@ -68,7 +66,7 @@ def catch_up(store: Store, anchors: AnchorSet, tau: float) -> int:
         if len(todo):
             sums = pair_sums(set_order_weights(chunk, anchors)[todo], chunk.outcomes[todo], anchors, tau)
             appended = chunk.appended_at if chunk.appended_at is not None else np.zeros(len(chunk))
-            hours = [int(h) if h >= oldest_hour else -2 for h in (appended[todo] // 3600)]  # -2: all hours only
+            hours = [int(h) for h in appended[todo] // 3600]  # the store keeps recent hours, all in all hours
             rows = grouped(sums, [chunk.versions[i] for i in todo], [chunk.sources[i] for i in todo],
                            [int(chunk.kinds[i]) for i in todo], hours)  # fmt: skip
         if store.add_sums(key, rows, from_id=upto, upto_id=int(chunk.ids[-1])):

@@ -62,16 +62,20 @@ def fleet_mask(
     return mask, shares
 
 
-def source_factors(counts: dict[str, float], max_share: float, excluded: Collection[str] = ()) -> dict[str, float]:
-    """What each source's pairs count for in summed figures: 0 for an excluded robot's, else its robot's kept
-    share of its pairs (kept_counts), so that no robot holds more than ``max_share`` of the weight."""
+def source_factors(
+    counts: dict[str, float], max_share: float, excluded: Collection[str] = ()
+) -> tuple[dict[str, float], dict[str, float]]:
+    """What each source's pairs count for in summed figures (0 for an excluded robot's, else its robot's kept
+    share of its pairs: kept_counts), and each robot's share of the weight, none above ``max_share``."""
     by_robot: Counter[str] = Counter()
     for source, count in counts.items():
         by_robot[robot_of(source)] += round(count)
     included = {robot: n for robot, n in by_robot.items() if robot not in excluded and n > 0}
     kept = kept_counts(included, max_share)
-    return {
+    factors = {
         source: kept[robot] / included[robot] if robot in included else 0.0
         for source in counts
         for robot in (robot_of(source),)
     }
+    total = sum(kept.values())
+    return factors, {robot: round(n / total, 4) for robot, n in sorted(kept.items())} if total else {}

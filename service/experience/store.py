@@ -40,7 +40,7 @@ from gcdtrav.service.experience.calibration import figures_from_sums, pair_sums,
 from gcdtrav.service.experience.fitter import FitOptions, propose
 from gcdtrav.service.experience.graded import RANKED_PAIRS, GradedSums, catch_up, grading_key, set_order_weights
 from gcdtrav.service.experience.pairs import Pairs
-from gcdtrav.service.experience.sharing import fleet_mask, robot_of, source_factors
+from gcdtrav.service.experience.sharing import fleet_mask, source_factors
 from gcdtrav.service.experience.snapshots import SnapshotRing
 from gcdtrav.service.store import (
     Exclusion,
@@ -203,7 +203,7 @@ class ExperienceStore:
         columns = self.columns(concepts)
         if sample:
             columns = sampled_history(columns, self._store().sample(concepts), self.outbox.sample_size)
-        excluded = [e.robot for e in self._store().exclusions() if e.excluded]
+        excluded = excluded_robots(self._store())
         mask, shares = fleet_mask(columns.sources, self.max_robot_share, excluded)
         return FleetPairs(as_pairs(columns).select(mask), shares, excluded)
 
@@ -219,8 +219,8 @@ class ExperienceStore:
 
     def contents(self) -> StoreContents:
         """What the fleet's store keeps: each source's raw pairs (a scan), the calibration sums."""
-        store, totals = self._store(), self._store().totals()
-        age = self.outbox.max_age_s
+        store = self._store()
+        totals, age = store.totals(), self.outbox.max_age_s
         return StoreContents(
             backend=self.outbox.backend,
             location=self.outbox.location,
@@ -248,10 +248,10 @@ class ExperienceStore:
         self.outbox.flush(READ_OWN_WRITES_S)
         store, now = self._store(), self.clock()
         catch_up(store, anchors, tau)
-        excluded = [e.robot for e in store.exclusions() if e.excluded]
+        excluded = excluded_robots(store)
         graded = GradedSums.read(store, grading_key(anchors, tau), len(anchors), window, store.clock(), excluded)
         counts = {source: float(sums[0]) for source, sums in graded.by_source.items()}
-        factors = source_factors(counts, self.max_robot_share, excluded)
+        factors, shares = source_factors(counts, self.max_robot_share, excluded)
         # AUSE and Spearman: the newest pairs in the window, excluded robots out, each robot's share capped
         newest = store.pairs(anchors.concepts, limit=RANKED_PAIRS, newest_first=True)
         newest_weights, newest_sources = set_order_weights(newest, anchors), np.asarray(newest.sources, object)
@@ -269,11 +269,6 @@ class ExperienceStore:
                 source: figures_from_sums(sums, anchors, tau, *ranked((newest_sources == source) & in_window))
                 for source, sums in sorted(graded.by_source.items())
             }
-        weight = {source: factors[source] * count for source, count in counts.items()}
-        total_weight = sum(weight.values())
-        shares: dict[str, float] = {}
-        for source, w in weight.items():
-            shares[robot_of(source)] = shares.get(robot_of(source), 0.0) + w / total_weight
         totals = self.totals()
         with self._lock:
             kept = {**self.counts, "stored_pairs": totals.pairs, "stored_bytes": totals.bytes}
@@ -288,7 +283,7 @@ class ExperienceStore:
             counts=kept,
             pairs_by_source={s: round(c) for s, c in sorted(counts.items())},
             by_source=breakdown,
-            share_by_robot={robot: round(share, 4) for robot, share in sorted(shares.items())},
+            share_by_robot=shares,
             excluded_robots=excluded,
         )
 
@@ -309,6 +304,11 @@ class FleetPairs:
     pairs: Pairs
     shares: dict[str, float]
     excluded: list[str]
+
+
+def excluded_robots(store: Store) -> list[str]:
+    """The robots an operator's word in force leaves out."""
+    return [word.robot for word in store.exclusions() if word.excluded]
 
 
 def sampled_history(retained: PairColumns, sample: PairColumns, size: int) -> PairColumns:

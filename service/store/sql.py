@@ -41,8 +41,8 @@ from numpy.typing import NDArray
 
 Lock = Literal["schema", "pairs", "anchors"]
 BATCH_IDS_KEPT_S = 86_400.0  # a batch's id is remembered a day: its replays come within the outbox's retries
-EVICT_CHUNK = 10_000
-_RANDOM = random.Random()  # oldest rows looked at per step while finding where the bounds are kept
+EVICT_CHUNK = 10_000  # oldest rows looked at per step while finding where the bounds are kept
+_RANDOM = random.Random()  # the fitting sample's reservoir draws
 
 
 class Cursor(Protocol):
@@ -216,7 +216,7 @@ class SqlStore(Store):
             ).fetchall()
         counts: dict[str, int] = {}
         for key, blob in rows:
-            counts[str(key)] = counts.get(str(key), 0) + round(float(np.frombuffer(bytes(blob), "<f8")[0]))
+            counts[str(key)] = counts.get(str(key), 0) + round(float(_floats(blob)[0]))
         return dict(sorted(counts.items()))
 
     def _first_append(self, cursor: Cursor, batch_id: str) -> bool:
@@ -291,10 +291,11 @@ class SqlStore(Store):
 
     # ---- calibration sums ------------------------------------------------------------------------------
     def _add_sums(self, cursor: Cursor, graded: str, rows: Sequence[SumsRow]) -> None:
-        """Add each row to its hour's sums (none for an hour below 0) and to the all-hours sums (read, add,
-        write: writers hold the pairs lock, so no two add at once); hourly rows older than HOURS_KEPT go."""
+        """Add each row to the all-hours sums and, within the last HOURS_KEPT hours, to its hour's (read, add,
+        write: writers hold the pairs lock, so no two add at once); older hourly rows go."""
+        oldest = int(self.clock() // 3600) - HOURS_KEPT
         for row in rows:
-            for hour in (row.hour, ALL_HOURS) if row.hour >= 0 else (ALL_HOURS,):
+            for hour in (row.hour, ALL_HOURS) if row.hour >= oldest else (ALL_HOURS,):
                 key = (graded, hour, row.predicted, row.source, row.kind)
                 found = self._run(
                     cursor,
@@ -302,7 +303,7 @@ class SqlStore(Store):
                     "AND kind = ?",
                     key,
                 ).fetchone()
-                total = row.sums + (np.frombuffer(bytes(found[0]), "<f8") if found is not None else 0.0)
+                total = row.sums + (_floats(found[0]) if found is not None else 0.0)
                 self._run(
                     cursor,
                     "INSERT INTO calibration_sums (graded, hour, predicted, source, kind, sums) "
@@ -310,7 +311,6 @@ class SqlStore(Store):
                     "DO UPDATE SET sums = excluded.sums",
                     (*key, np.asarray(total, "<f8").tobytes()),
                 )
-        oldest = int(self.clock() // 3600) - HOURS_KEPT
         self._run(cursor, "DELETE FROM calibration_sums WHERE hour >= 0 AND hour < ?", (oldest,))
 
     def add_sums(self, graded: str, rows: Sequence[SumsRow], from_id: int, upto_id: int) -> bool:
@@ -336,7 +336,7 @@ class SqlStore(Store):
                 f"SELECT predicted, source, kind, hour, sums FROM calibration_sums WHERE graded = ? AND {where}",
                 [graded, *params],
             ).fetchall()
-        return [SumsRow(str(v), str(s), int(k), int(h), np.frombuffer(bytes(b), "<f8")) for v, s, k, h, b in rows]
+        return [SumsRow(str(v), str(s), int(k), int(h), _floats(b)) for v, s, k, h, b in rows]
 
     def graded_upto(self, graded: str) -> int:
         with self._transaction(None) as cursor:
@@ -456,6 +456,11 @@ class SqlStore(Store):
                 "(SELECT MAX(entry) FROM robot_exclusions WHERE robot = e.robot) ORDER BY robot",
             ).fetchall()
         return [Exclusion(str(r), bool(x), float(at), str(a), str(why), str(i)) for r, x, at, a, why, i in rows]
+
+
+def _floats(blob: Any) -> NDArray[np.float64]:
+    """Calibration sums as stored (little-endian float64)."""
+    return np.frombuffer(bytes(blob), "<f8")
 
 
 def _rowcount(cursor: Cursor) -> int:
