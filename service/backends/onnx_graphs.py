@@ -9,14 +9,47 @@ The decoder's linear layers take 2-D inputs (concepts x tokens, width): a 2-D ``
 three passes over the (concepts x tokens x 2048) intermediate (measured: 27 of 170 ms on an AVX2 EPYC).
 They are called as modules so the exported nodes carry their names (``.../mlp/fc1/Gemm``): the int8
 decoder quantises the MLPs by name.
+
+Attention, in the trunk and in the decoder, is one ``com.microsoft.MultiHeadAttention`` node: ONNX Runtime's
+CPU kernel (MLAS flash attention) takes the projections as (batch, tokens, width), so the scores are never
+written out and no head transposes run. Measured on a 2-core AVX512 EPYC against the exporter's
+MatMul-Softmax-MatMul with its transposes: the int8 trunk 77.4 -> 73.0 ms, the int8 decoder (13 concepts)
+45.3 -> 42.8 ms.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import torch
 from gcdtrav.service.backends.decoder import PatchwiseUpsampler
+
+
+class FusedAttention(torch.autograd.Function):
+    """Multi-head scaled dot-product attention on (batch, tokens, width) projections, exported as one node."""
+
+    @staticmethod
+    def forward(ctx: Any, query: torch.Tensor, key: torch.Tensor, value: torch.Tensor, heads: int, scale: float) -> Any:
+        batch, tokens, width = query.shape
+
+        def split(projected: torch.Tensor) -> torch.Tensor:  # (b, L, d) -> (b, heads, L, d/heads)
+            return projected.reshape(batch, tokens, heads, width // heads).transpose(1, 2)
+
+        context = torch.nn.functional.scaled_dot_product_attention(split(query), split(key), split(value), scale=scale)
+        return context.transpose(1, 2).reshape(batch, tokens, width)
+
+    @staticmethod
+    def symbolic(graph: Any, query: Any, key: Any, value: Any, heads: int, scale: float) -> Any:
+        fused = graph.op("com.microsoft::MultiHeadAttention", query, key, value, num_heads_i=heads, scale_f=scale)
+        return fused.setType(query.type())
+
+
+def attention_context(attention: Any, rows: torch.Tensor, shape: Sequence[int]) -> torch.Tensor:
+    """A transformers CLIP attention module's context for ``rows`` (its input in 2-D or 3-D), in ``shape``."""
+    projections = (attention.q_proj(rows), attention.k_proj(rows), attention.v_proj(rows))
+    query, key, value = (projected.reshape(shape) for projected in projections)
+    return FusedAttention.apply(query, key, value, attention.num_heads, float(attention.scale))
 
 
 class TrunkGraph(torch.nn.Module):
@@ -32,11 +65,18 @@ class TrunkGraph(torch.nn.Module):
         hidden = self.pre_layrnorm(self.embeddings(pixels, interpolate_pos_encoding=True))
         kept = []
         for index, layer in enumerate(self.layers):
-            out = layer(hidden, None)
-            hidden = out[0] if isinstance(out, tuple) else out  # a tuple in older transformers
+            hidden = self._layer(layer, hidden)
             if index in self.extract_layers:
                 kept.append(hidden)
         return tuple(kept)
+
+    @staticmethod
+    def _layer(layer: Any, hidden: torch.Tensor) -> torch.Tensor:
+        """CLIPEncoderLayer (pre-norm attention, then the MLP) on (1, L, D) tokens."""
+        attention = layer.self_attn
+        context = attention_context(attention, layer.layer_norm1(hidden), hidden.shape)
+        hidden = hidden + attention.out_proj(context)
+        return hidden + layer.mlp(layer.layer_norm2(hidden))
 
 
 class DecoderGraph(torch.nn.Module):
@@ -69,16 +109,8 @@ class DecoderGraph(torch.nn.Module):
         """CLIPSegDecoderLayer (post-norm attention, then the ReLU MLP) on (n, L, d) tokens, linears in 2-D."""
         attention = layer.self_attn
         concepts, tokens, width = hidden.shape
-        heads = attention.num_heads
         rows = hidden.reshape(concepts * tokens, width)
-
-        def split(projected: torch.Tensor) -> torch.Tensor:  # (n*L, d) -> (n, heads, L, d/heads)
-            return projected.reshape(concepts, tokens, heads, width // heads).transpose(1, 2)
-
-        query = split(attention.q_proj(rows) * attention.scale)
-        key, value = split(attention.k_proj(rows)), split(attention.v_proj(rows))
-        weights = torch.softmax(query @ key.transpose(-1, -2), dim=-1)
-        context = (weights @ value).transpose(1, 2).reshape(concepts * tokens, width)
+        context = attention_context(attention, rows, hidden.shape).reshape(concepts * tokens, width)
         rows = layer.layer_norm1(rows + attention.out_proj(context))
         mlp = layer.mlp
         expanded = mlp.activation_fn(mlp.fc1(rows))

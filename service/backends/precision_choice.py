@@ -160,7 +160,7 @@ def pick(measurements: list[ModeMeasurement]) -> PrecisionChoice:
 def choice_key(backend: Any, modes: list[str]) -> dict[str, Any]:
     import torch
     from gcdtrav.service.backends.cpus import cpu_features
-    from gcdtrav.service.backends.onnx_runtime import checkpoint_digests
+    from gcdtrav.service.backends.onnx_runtime import EXPORT_FORMAT, checkpoint_digests
 
     checkpoint = backend.checkpoint_dir
     files = checkpoint_digests(checkpoint) if checkpoint is not None else {}
@@ -171,6 +171,7 @@ def choice_key(backend: Any, modes: list[str]) -> dict[str, Any]:
         "input_size": backend.preprocess.size,
         "threads": torch.get_num_threads(),
         "torch": torch.__version__,
+        "onnx_export": EXPORT_FORMAT,  # a faster export of the same model can change the pick
         "cpu": cpu_features(),
     }
 
