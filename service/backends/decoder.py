@@ -99,9 +99,16 @@ class PatchwiseUpsampler:
         """(n, C, h, w) -> (n, C_out, h * prod(kh), w * prod(kw)), as the module would return."""
         if self.fallback is not None:
             return self.fallback(grid)
+        return blocks_to_image(self.blocks(grid)) if self.nests_blocks else self.head(grid)
+
+    @property
+    def nests_blocks(self) -> bool:
+        """Whether ``blocks`` applies: a stride-equals-kernel tail, and no fallback."""
+        return self.fallback is None and bool(self.steps)
+
+    def blocks(self, grid: torch.Tensor) -> torch.Tensor:
+        """The tail's output before it is put in image order: (n, h, w, kh1, kw1, kh2, kw2, ..., C_out)."""
         grid = self.head(grid)
-        if not self.steps:
-            return grid
         n, channels, h, w = grid.shape
         values = grid.permute(0, 2, 3, 1).reshape(-1, channels)
         for step in self.steps:
@@ -109,16 +116,18 @@ class PatchwiseUpsampler:
             if step.relu:
                 values = torch.relu_(values)
             values = values.reshape(-1, step.out_channels)  # one row per output pixel, blocks nested in pixels
-        blocks = [step.block for step in self.steps]
-        out_channels = self.steps[-1].out_channels
-        # rows are ordered (n, h, w, kh1, kw1, kh2, kw2, ...); image rows are (h, kh1, kh2, ...)
-        nested = values.reshape([n, h, w, *[size for block in blocks for size in block], out_channels])
-        rows = [3 + 2 * i for i in range(len(blocks))]
-        cols = [4 + 2 * i for i in range(len(blocks))]
-        order = [0, nested.dim() - 1, 1, *rows, 2, *cols]
-        height = h * math.prod(block[0] for block in blocks)
-        width = w * math.prod(block[1] for block in blocks)
-        return nested.permute(order).reshape(n, out_channels, height, width)
+        return values.reshape([n, h, w, *[size for step in self.steps for size in step.block], values.shape[1]])
+
+
+def blocks_to_image(nested: torch.Tensor) -> torch.Tensor:
+    """(n, h, w, kh1, kw1, ..., khk, kwk, C) -> (n, C, h * kh1 * ... * khk, w * kw1 * ... * kwk).
+
+    Image rows are (h, kh1, kh2, ...) and columns (w, kw1, kw2, ...): one permuting copy."""
+    n, h, w, *blocks, channels = nested.shape
+    rows = [3 + 2 * i for i in range(len(blocks) // 2)]
+    order = [0, nested.dim() - 1, 1, *rows, 2, *[row + 1 for row in rows]]
+    height, width = h * math.prod(blocks[0::2]), w * math.prod(blocks[1::2])
+    return nested.permute(order).reshape(n, channels, height, width)
 
 
 class FastDecoder:

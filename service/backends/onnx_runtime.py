@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 from gcdtrav.service.backends.cpus import cpu_features
+from gcdtrav.service.backends.decoder import blocks_to_image
 from gcdtrav.service.backends.expected_warnings import expected_torch_warnings
 
 log = logging.getLogger(__name__)
@@ -40,7 +41,7 @@ log = logging.getLogger(__name__)
 # the user set it. Every import of onnxruntime in gcdtrav goes through this module.
 os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
 
-EXPORT_FORMAT = 3  # bump when the exported graphs change
+EXPORT_FORMAT = 4  # bump when the exported graphs change
 TRUNK, TRUNK_INT8, DECODER, DECODER_INT8 = "trunk.onnx", "trunk-int8.onnx", "decoder.onnx", "decoder-int8.onnx"
 EXPORTED_FILES = (TRUNK, TRUNK_INT8, DECODER, DECODER_INT8)
 DECODER_INPUTS = ["first", "second", "third", "conditional"]
@@ -271,4 +272,5 @@ class OrtCompute:
         for start in range(0, concepts.shape[0], ORT_DECODER_CHUNK):
             feeds["conditional"] = concepts[start : start + ORT_DECODER_CHUNK]
             chunks.append(np.asarray(self.decoder.run(None, feeds)[0]))
-        return torch.from_numpy(np.concatenate(chunks))
+        logits = torch.from_numpy(np.concatenate(chunks))
+        return logits if logits.dim() == 3 else blocks_to_image(logits).squeeze(1)
