@@ -45,6 +45,23 @@ def test_onnx_runtime_modes_match_torch_fp32(tiny_model_dir: Path, tiny_backend,
     assert not [layer for layer in backend.model.clip.vision_model.encoder.layers]  # the torch ViT was released
 
 
+def test_the_export_runs_each_attention_as_one_fused_node(tiny_model_dir: Path, tmp_path: Path) -> None:
+    """Every layer's attention is one MultiHeadAttention node (no Softmax of its own); the decoder leaves its
+    upsampled blocks nested, for OrtCompute.decode to put in image order once a frame."""
+    import onnx
+    from gcdtrav.service.backends.onnx_runtime import DECODER, TRUNK
+
+    backend = ClipSegBackend(str(tiny_model_dir), precision="ort-fp32", cache_dir=tmp_path)
+    [exported] = export_dirs(tmp_path)
+    config = backend.model.config
+    for name, layers in ((TRUNK, max(config.extract_layers) + 1), (DECODER, len(config.extract_layers))):
+        graph = onnx.load(str(exported / name)).graph
+        ops = [node.op_type for node in graph.node]
+        assert ops.count("MultiHeadAttention") == layers and "Softmax" not in ops, name
+    decoder_output = onnx.load(str(exported / DECODER)).graph.output[0].type.tensor_type.shape
+    assert len(decoder_output.dim) > 3  # (concepts, h, w, kh1, kw1, ..., 1): nested blocks
+
+
 def test_the_export_is_cached_and_a_corrupt_one_rebuilt(
     tiny_model_dir: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -1,0 +1,97 @@
+"""Two ONNX exports of the same checkpoint, int8 trunk and decoder, timed frame by frame in one process.
+
+    python -m benchmarks.export_ab BEFORE_DIR AFTER_DIR [--before-chunk 8] [--after-chunk 4] [--rounds 15]
+
+Each directory is an export as the service caches it (``<cache>/onnx/<key>/``, holding trunk-int8.onnx and
+decoder-int8.onnx), for example one made by an older commit in a worktree. A round runs one frame of each
+in turn (the trunk once, the decoder over 13 concepts in its chunks, logits put in image order as
+``OrtCompute.decode`` does), so drift of the machine hits both alike; the first round is a warm-up. The
+inputs are random: the cost does not depend on the values. Prints medians and the ratio after / before.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+from gcdtrav.service.backends.cpus import cpu_features, cpu_name
+from gcdtrav.service.backends.decoder import blocks_to_image
+from gcdtrav.service.backends.onnx_runtime import DECODER_INPUTS, DECODER_INT8, TRUNK_INT8
+
+CONCEPTS, CONDITIONAL_WIDTH, SIZE = 13, 512, 352
+
+
+def _session(path: Path, threads: int) -> object:
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def frame_runner(directory: Path, chunk: int, threads: int) -> dict[str, Callable[[], object]]:
+    """The export's trunk and decoder as two callables on fixed random inputs."""
+    trunk, decoder = _session(directory / TRUNK_INT8, threads), _session(directory / DECODER_INT8, threads)
+    rng = np.random.default_rng(0)
+    pixels = rng.standard_normal((1, 3, SIZE, SIZE)).astype(np.float32)
+    conditional = rng.standard_normal((CONCEPTS, CONDITIONAL_WIDTH)).astype(np.float32)
+    activations = trunk.run(None, {"pixels": pixels})  # type: ignore[attr-defined]
+
+    def decode() -> object:
+        feeds = dict(zip(DECODER_INPUTS, activations, strict=False))
+        chunks = []
+        for start in range(0, CONCEPTS, chunk):
+            feeds["conditional"] = conditional[start : start + chunk]
+            chunks.append(decoder.run(None, feeds)[0])  # type: ignore[attr-defined]
+        logits = torch.from_numpy(np.concatenate(chunks))
+        return logits if logits.dim() == 3 else blocks_to_image(logits).squeeze(1)
+
+    return {"trunk": lambda: trunk.run(None, {"pixels": pixels}), "decoder": decode}  # type: ignore[attr-defined]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("before", type=Path)
+    parser.add_argument("after", type=Path)
+    parser.add_argument("--before-chunk", type=int, default=8)
+    parser.add_argument("--after-chunk", type=int, default=4)
+    parser.add_argument("--rounds", type=int, default=15)
+    parser.add_argument("--threads", type=int, default=2)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    runners = {
+        "before": frame_runner(args.before, args.before_chunk, args.threads),
+        "after": frame_runner(args.after, args.after_chunk, args.threads),
+    }
+    times: dict[tuple[str, str], list[float]] = {}
+    for round_index in range(args.rounds + 1):
+        for name, parts in runners.items():
+            for part, run in parts.items():
+                start = time.perf_counter()
+                run()
+                if round_index:  # the first round warms up
+                    times.setdefault((name, part), []).append((time.perf_counter() - start) * 1e3)
+    print(f"cpu: {cpu_name()} ({' '.join(cpu_features())}), {args.threads} threads, {args.rounds} rounds")
+    for part in ("trunk", "decoder", "frame"):
+        medians = {}
+        for name in runners:
+            series = (
+                [a + b for a, b in zip(times[(name, "trunk")], times[(name, "decoder")], strict=True)]
+                if part == "frame"
+                else times[(name, part)]
+            )
+            medians[name] = statistics.median(series)
+        ratio = medians["after"] / medians["before"]
+        print(f"{part:8s} before {medians['before']:7.1f} ms  after {medians['after']:7.1f} ms  after/before {ratio:.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
