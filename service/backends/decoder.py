@@ -20,8 +20,9 @@ from typing import Any, TypeGuard
 import torch
 from gcdtrav.service.backends.onednn import LinearReLU, linear_then_relu, measured_linear_relu
 
-# Concepts per decoder run in torch (ONNX Runtime has its own, onnx_runtime.ORT_DECODER_CHUNK): the MLP's (concepts x tokens x 2048) intermediate
-# stays small enough for the cache (measured best of 1, 2, 4, 8, all on 2 cores; benchmarks/README.md).
+# Concepts per decoder run in torch (ONNX Runtime's: onnx_runtime.ORT_DECODER_CHUNK): the MLP's (concepts x
+# tokens x 2048) intermediate stays small enough for the cache (measured best of 1, 2, 4, 8, all on 2 cores;
+# benchmarks/README.md).
 DECODER_CHUNK = 8
 
 
