@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from gcdtrav.service.backends.cpus import cpu_features, cpu_name
 from gcdtrav.service.backends.decoder import blocks_to_image
-from gcdtrav.service.backends.onnx_runtime import DECODER_INPUTS, DECODER_INT8, TRUNK_INT8
+from gcdtrav.service.backends.onnx_runtime import DECODER_INT8, REDUCTION, TRUNK_INT8
 
 CONCEPTS, CONDITIONAL_WIDTH, SIZE = 13, 512, 352
 
@@ -37,15 +37,21 @@ def _session(path: Path, threads: int) -> object:
 
 
 def frame_runner(directory: Path, chunk: int, threads: int) -> dict[str, Callable[[], object]]:
-    """The export's trunk and decoder as two callables on fixed random inputs."""
+    """The export's trunk and decoder as two callables on fixed random inputs. An export without a reduction
+    graph (before format 5) reduces inside the decoder: it is fed the trunk's outputs directly."""
     trunk, decoder = _session(directory / TRUNK_INT8, threads), _session(directory / DECODER_INT8, threads)
+    reduction = _session(directory / REDUCTION, threads) if (directory / REDUCTION).exists() else None
     rng = np.random.default_rng(0)
     pixels = rng.standard_normal((1, 3, SIZE, SIZE)).astype(np.float32)
     conditional = rng.standard_normal((CONCEPTS, CONDITIONAL_WIDTH)).astype(np.float32)
     activations = trunk.run(None, {"pixels": pixels})  # type: ignore[attr-defined]
 
     def decode() -> object:
-        feeds = dict(zip(DECODER_INPUTS, activations, strict=False))
+        inputs = activations
+        if reduction is not None:
+            names = [item.name for item in reduction.get_inputs()]  # type: ignore[attr-defined]
+            inputs = reduction.run(None, dict(zip(names, activations, strict=True)))  # type: ignore[attr-defined]
+        feeds = {item.name: value for item, value in zip(decoder.get_inputs(), inputs, strict=False)}  # type: ignore[attr-defined]
         chunks = []
         for start in range(0, CONCEPTS, chunk):
             feeds["conditional"] = conditional[start : start + chunk]

@@ -41,10 +41,13 @@ log = logging.getLogger(__name__)
 # the user set it. Every import of onnxruntime in gcdtrav goes through this module.
 os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
 
-EXPORT_FORMAT = 4  # bump when the exported graphs change
+EXPORT_FORMAT = 5  # bump when the exported graphs change
 TRUNK, TRUNK_INT8, DECODER, DECODER_INT8 = "trunk.onnx", "trunk-int8.onnx", "decoder.onnx", "decoder-int8.onnx"
-EXPORTED_FILES = (TRUNK, TRUNK_INT8, DECODER, DECODER_INT8)
-DECODER_INPUTS = ["first", "second", "third", "conditional"]
+REDUCTION = "reduction.onnx"
+EXPORTED_FILES = (TRUNK, TRUNK_INT8, REDUCTION, DECODER, DECODER_INT8)
+REDUCTION_INPUTS = ["first", "second", "third"]  # the trunk's outputs, in the order of the layers read
+REDUCED = ["reduced0", "reduced1", "reduced2"]  # in the decoder's order: the last layer read first
+DECODER_INPUTS = [*REDUCED, "conditional"]
 WEIGHT_FILES = ("*.safetensors", "*.bin", "config.json")
 # Concepts per decoder run in ONNX Runtime (torch's is decoder.DECODER_CHUNK): with the fused attention the
 # (concepts x tokens x 2048) MLP intermediate is what must stay in cache. Measured on a 2-core AVX512 EPYC,
@@ -189,17 +192,27 @@ def exported_model(
 
 def _export(vision: Any, decoder: Any, extract_layers: list[int], input_size: int, into: Path) -> None:
     import onnx
-    from gcdtrav.service.backends.onnx_graphs import DecoderGraph, TrunkGraph
+    from gcdtrav.service.backends.onnx_graphs import DecoderGraph, ReductionGraph, TrunkGraph
 
-    trunk, decoder_graph = TrunkGraph(vision, extract_layers).eval(), DecoderGraph(decoder).eval()
+    trunk, reduction = TrunkGraph(vision, extract_layers).eval(), ReductionGraph(decoder).eval()
     pixels = torch.zeros(1, 3, input_size, input_size)
     with torch.no_grad(), expected_torch_warnings(tracing=True):  # the export is checked against torch after
         activations = trunk(pixels)
+        reduced = reduction(*activations)
         conditional = torch.zeros(2, decoder.film_mul.in_features)
         torch.onnx.export(trunk, (pixels,), str(into / TRUNK), dynamo=False, opset_version=17, input_names=["pixels"])
         torch.onnx.export(
-            decoder_graph,
-            (*activations, conditional),
+            reduction,
+            tuple(activations),
+            str(into / REDUCTION),
+            dynamo=False,
+            opset_version=17,
+            input_names=REDUCTION_INPUTS,
+            output_names=REDUCED,
+        )
+        torch.onnx.export(
+            DecoderGraph(decoder).eval(),
+            (*reduced, conditional),
             str(into / DECODER),
             dynamo=False,
             opset_version=17,
@@ -253,6 +266,7 @@ class OrtCompute:
             )
             decoder = model.path(DECODER_INT8 if int8_decoder else DECODER)
             self.decoder = ort.InferenceSession(str(decoder), options, providers=providers)
+            self.reduction = ort.InferenceSession(str(model.path(REDUCTION)), options, providers=providers)
         except Exception as err:  # onnxruntime raises its own exception types
             raise ExportError(f"ONNX Runtime cannot load the export in {model.directory}: {err}") from err
         self.trunk_input = self.trunk.get_inputs()[0].name
@@ -266,7 +280,8 @@ class OrtCompute:
 
     def decode(self, activations: Sequence[torch.Tensor], conditional: torch.Tensor) -> torch.Tensor:
         """Chunks of concepts, as in torch: the MLP's intermediate stays in cache."""
-        feeds = dict(zip(DECODER_INPUTS, [a.float().numpy() for a in activations], strict=False))
+        trunk_outputs = dict(zip(REDUCTION_INPUTS, [a.float().numpy() for a in activations], strict=True))
+        feeds = dict(zip(REDUCED, self.reduction.run(None, trunk_outputs), strict=True))
         concepts = conditional.float().numpy()
         chunks = []
         for start in range(0, concepts.shape[0], ORT_DECODER_CHUNK):
