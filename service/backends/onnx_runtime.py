@@ -23,6 +23,7 @@ import shutil
 import tempfile
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -49,10 +50,13 @@ REDUCTION_INPUTS = ["first", "second", "third"]  # the trunk's outputs, in the o
 REDUCED = ["reduced0", "reduced1", "reduced2"]  # in the decoder's order: the last layer read first
 DECODER_INPUTS = [*REDUCED, "conditional"]
 WEIGHT_FILES = ("*.safetensors", "*.bin", "config.json")
-# Concepts per decoder run in ONNX Runtime (torch's is decoder.DECODER_CHUNK): with the fused attention the
-# (concepts x tokens x 2048) MLP intermediate is what must stay in cache. Measured on a 2-core AVX512 EPYC,
-# 13 concepts, the int8 decoder per frame: 2: 41.9 ms, 3-5: 39.6-39.7, 7: 41.3, 8: 43.8, all 13: 48.7.
-ORT_DECODER_CHUNK = 4
+# The decoder in ONNX Runtime: one one-thread session per thread, each running its share of the chunks of
+# concepts side by side, rather than one session spreading each of the decoder's many small nodes over the
+# threads and waiting for the slowest at every node. Measured on a 2-core AVX512 EPYC, 13 concepts, the int8
+# decoder a frame: one 2-thread session, 4 concepts a run, 45.4 ms; two 1-thread sessions side by side, 1, 2
+# or 3 concepts a run, 28.6, 28.6, 29.3 ms; one 1-thread session alone, 1, 2, 3, 4, 8 concepts a run: 52.5,
+# 52.9, 54.1, 56.7, 67.4 ms (the MLP's concepts x tokens x 2048 intermediate should stay in cache).
+ORT_DECODER_CHUNK = 2
 
 
 class ExportError(RuntimeError):
@@ -247,29 +251,40 @@ def _quantise(source: Path, target: Path, nodes: list[str] | None) -> None:
         root.level = level
 
 
+def _session_options(threads: int) -> Any:
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    # Each session has its own thread pool; spinning threads of the idle one would take the cores
+    # from the running one (measured on a 2-core EPYC: ort-int8 597 ms per frame spinning, 453 not).
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return options
+
+
 class OrtCompute:
-    """Trunk and decoder as two ONNX Runtime sessions; the same calls as the torch path."""
+    """The trunk and the reductions as one ONNX Runtime session each, the decoder as one one-thread session
+    per thread (``ORT_DECODER_CHUNK``); the same calls as the torch path."""
 
     def __init__(self, model: ExportedModel, int8_trunk: bool, int8_decoder: bool, threads: int) -> None:
         import onnxruntime as ort
 
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = max(1, threads)
-        options.inter_op_num_threads = 1
-        # Each session has its own thread pool; spinning threads of the idle one would take the cores
-        # from the running one (measured on a 2-core EPYC: ort-int8 597 ms per frame spinning, 453 not).
-        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        providers = ["CPUExecutionProvider"]
+        threads, providers = max(1, threads), ["CPUExecutionProvider"]
         try:
-            self.trunk = ort.InferenceSession(
-                str(model.path(TRUNK_INT8 if int8_trunk else TRUNK)), options, providers=providers
-            )
-            decoder = model.path(DECODER_INT8 if int8_decoder else DECODER)
-            self.decoder = ort.InferenceSession(str(decoder), options, providers=providers)
-            self.reduction = ort.InferenceSession(str(model.path(REDUCTION)), options, providers=providers)
+            trunk = model.path(TRUNK_INT8 if int8_trunk else TRUNK)
+            self.trunk = ort.InferenceSession(str(trunk), _session_options(threads), providers=providers)
+            reduction = model.path(REDUCTION)
+            self.reduction = ort.InferenceSession(str(reduction), _session_options(threads), providers=providers)
+            decoder = str(model.path(DECODER_INT8 if int8_decoder else DECODER))
+            self.decoders = [
+                ort.InferenceSession(decoder, _session_options(1), providers=providers) for _ in range(threads)
+            ]
         except Exception as err:  # onnxruntime raises its own exception types
             raise ExportError(f"ONNX Runtime cannot load the export in {model.directory}: {err}") from err
         self.trunk_input = self.trunk.get_inputs()[0].name
+        # The calling thread runs the first share; these run the others (their threads idle between frames).
+        self._helpers = ThreadPoolExecutor(threads - 1, "gcdtrav-decoder") if threads > 1 else None
 
     def activations(self, pixel_values: torch.Tensor) -> list[torch.Tensor]:
         expected = self.trunk.get_inputs()[0].shape
@@ -279,13 +294,22 @@ class OrtCompute:
         return [torch.from_numpy(np.asarray(output)) for output in outputs]
 
     def decode(self, activations: Sequence[torch.Tensor], conditional: torch.Tensor) -> torch.Tensor:
-        """Chunks of concepts, as in torch: the MLP's intermediate stays in cache."""
+        """Chunks of concepts, shared round-robin among the decoder sessions, which run side by side."""
         trunk_outputs = dict(zip(REDUCTION_INPUTS, [a.float().numpy() for a in activations], strict=True))
-        feeds = dict(zip(REDUCED, self.reduction.run(None, trunk_outputs), strict=True))
+        reduced = dict(zip(REDUCED, self.reduction.run(None, trunk_outputs), strict=True))
         concepts = conditional.float().numpy()
-        chunks = []
-        for start in range(0, concepts.shape[0], ORT_DECODER_CHUNK):
-            feeds["conditional"] = concepts[start : start + ORT_DECODER_CHUNK]
-            chunks.append(np.asarray(self.decoder.run(None, feeds)[0]))
+        starts = range(0, concepts.shape[0], ORT_DECODER_CHUNK)
+        sessions = len(self.decoders)
+
+        def share(index: int) -> list[Any]:
+            run = self.decoders[index].run
+            return [
+                run(None, {**reduced, "conditional": concepts[start : start + ORT_DECODER_CHUNK]})[0]
+                for start in starts[index::sessions]
+            ]
+
+        others = [self._helpers.submit(share, index) for index in range(1, sessions)] if self._helpers else []
+        shares = [share(0), *[other.result() for other in others]]
+        chunks = [shares[position % sessions][position // sessions] for position in range(len(starts))]
         logits = torch.from_numpy(np.concatenate(chunks))
         return logits if logits.dim() == 3 else blocks_to_image(logits).squeeze(1)
