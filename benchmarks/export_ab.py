@@ -1,12 +1,15 @@
-"""Two ONNX exports of the same checkpoint, int8 trunk and decoder, timed frame by frame in one process.
+"""An older ONNX export of the same checkpoint against this tree's, int8 trunk and decoder, frame by frame in
+one process.
 
-    python -m benchmarks.export_ab BEFORE_DIR AFTER_DIR [--before-chunk 8] [--after-chunk 4] [--rounds 15]
+    python -m benchmarks.export_ab BEFORE_DIR AFTER_DIR [--before-chunk 8] [--rounds 15]
 
-Each directory is an export as the service caches it (``<cache>/onnx/<key>/``, holding trunk-int8.onnx and
-decoder-int8.onnx), for example one made by an older commit in a worktree. A round runs one frame of each
-in turn (the trunk once, the decoder over 13 concepts in its chunks, logits put in image order as
-``OrtCompute.decode`` does), so drift of the machine hits both alike; the first round is a warm-up. The
-inputs are random: the cost does not depend on the values. Prints medians and the ratio after / before.
+Each directory is an export as the service caches it (``<cache>/onnx/<key>/``), BEFORE for example one made
+by an older commit in a worktree, AFTER one made by this tree. BEFORE runs as the older code ran it: one
+session for the trunk, one for the decoder over 13 concepts in chunks of ``--before-chunk`` (fed the
+trunk's outputs, or its reduction graph's where the export has one). AFTER runs as the service runs it now,
+through ``OrtCompute``. A round runs one frame of each in turn, so drift of the machine hits both alike; the
+first round is a warm-up. The inputs are random: the cost does not depend on the values. Prints medians and
+the ratio after / before.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import numpy as np
 import torch
 from gcdtrav.service.backends.cpus import cpu_features, cpu_name
 from gcdtrav.service.backends.decoder import blocks_to_image
-from gcdtrav.service.backends.onnx_runtime import DECODER_INT8, REDUCTION, TRUNK_INT8
+from gcdtrav.service.backends.onnx_runtime import DECODER_INT8, REDUCTION, TRUNK_INT8, ExportedModel, OrtCompute
 
 CONCEPTS, CONDITIONAL_WIDTH, SIZE = 13, 512, 352
 
@@ -36,9 +39,9 @@ def _session(path: Path, threads: int) -> object:
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
-def frame_runner(directory: Path, chunk: int, threads: int) -> dict[str, Callable[[], object]]:
-    """The export's trunk and decoder as two callables on fixed random inputs. An export without a reduction
-    graph (before format 5) reduces inside the decoder: it is fed the trunk's outputs directly."""
+def legacy_runner(directory: Path, chunk: int, threads: int) -> dict[str, Callable[[], object]]:
+    """The export's trunk and decoder as two callables on fixed random inputs, each one session. An export
+    without a reduction graph (before format 5) reduces inside the decoder: it is fed the trunk's outputs."""
     trunk, decoder = _session(directory / TRUNK_INT8, threads), _session(directory / DECODER_INT8, threads)
     reduction = _session(directory / REDUCTION, threads) if (directory / REDUCTION).exists() else None
     rng = np.random.default_rng(0)
@@ -62,19 +65,28 @@ def frame_runner(directory: Path, chunk: int, threads: int) -> dict[str, Callabl
     return {"trunk": lambda: trunk.run(None, {"pixels": pixels}), "decoder": decode}  # type: ignore[attr-defined]
 
 
+def product_runner(directory: Path, threads: int) -> dict[str, Callable[[], object]]:
+    """The export run by ``OrtCompute``, as the service runs ort-int8."""
+    compute = OrtCompute(ExportedModel(directory, {}), int8_trunk=True, int8_decoder=True, threads=threads)
+    rng = np.random.default_rng(0)
+    pixels = torch.from_numpy(rng.standard_normal((1, 3, SIZE, SIZE)).astype(np.float32))
+    conditional = torch.from_numpy(rng.standard_normal((CONCEPTS, CONDITIONAL_WIDTH)).astype(np.float32))
+    activations = compute.activations(pixels)
+    return {"trunk": lambda: compute.activations(pixels), "decoder": lambda: compute.decode(activations, conditional)}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("before", type=Path)
     parser.add_argument("after", type=Path)
     parser.add_argument("--before-chunk", type=int, default=8)
-    parser.add_argument("--after-chunk", type=int, default=4)
     parser.add_argument("--rounds", type=int, default=15)
     parser.add_argument("--threads", type=int, default=2)
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
     runners = {
-        "before": frame_runner(args.before, args.before_chunk, args.threads),
-        "after": frame_runner(args.after, args.after_chunk, args.threads),
+        "before": legacy_runner(args.before, args.before_chunk, args.threads),
+        "after": product_runner(args.after, args.threads),
     }
     times: dict[tuple[str, str], list[float]] = {}
     for round_index in range(args.rounds + 1):
