@@ -1,8 +1,9 @@
-"""The fast path on ONNX Runtime: exported once per checkpoint and CPU, cached on disk, run by two sessions.
+"""The fast path on ONNX Runtime: exported once per checkpoint and CPU, cached on disk, run by OrtCompute.
 
 Why ONNX Runtime: on AVX2-only x86 (no AVX-512, no AMX) its dynamic int8 matrix products run the ViT
 trunk at about twice torch's fp32 speed, and its fp32 decoder beats torch's by about a fifth, with the
-int8 trunk well inside the parity gate (benchmarks/README.md, "AVX2-only x86").
+int8 trunk well inside the parity gate (benchmarks/README.md, "AVX2-only x86"). On an AVX512-BF16 EPYC it
+is auto's pick too: 109 ms a frame against torch bf16's 196 (benchmarks/README.md, issue 60).
 
 The exported models live in ``<cache>/onnx/<key>/``; the key hashes the checkpoint's files, the input
 size, the layers read, the versions of torch, onnx and onnxruntime, and the CPU's features, so a new
