@@ -6,6 +6,7 @@ import threading
 from collections import OrderedDict, deque
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.service.runtime.errors import QueryError
@@ -66,8 +67,8 @@ class FrameHistory:
         with self._lock:
             seq = self._next_seq.get(source, 0)
             self._next_seq[source] = seq + 1
-        kept_match = match.astype(np.float16) if match is not None else None
-        record = FrameRecord(seq, stamp, frame_id, weights.astype(np.float16), anchors, image_size, kept_match)
+        kept_match = as_float16(match) if match is not None else None
+        record = FrameRecord(seq, stamp, frame_id, as_float16(weights), anchors, image_size, kept_match)
         self.add(source, record)
         return record
 
@@ -129,3 +130,18 @@ class FrameHistory:
                 return record
         kept = f"{frames[0].seq}..{frames[-1].seq}"
         raise QueryError(f"seq {seq} of '{source}' is not kept (kept: {kept}; the history keeps {self._limits()})")
+
+
+def as_float16(values: NDArray[np.floating]) -> NDArray[np.float16]:
+    """``values.astype(np.float16)``, bit for bit, by OpenCV's vectorised conversion: numpy's converts one
+    element at a time (a frame's 13 x 352 x 352 weights: 2.3 ms against 0.1-0.24 on a 2-core EPYC, on the
+    inference thread of every frame)."""
+    source = np.asarray(values, dtype=np.float32)
+    if source.ndim == 0 or source.size == 0:
+        return source.astype(np.float16)
+    matrix = np.ascontiguousarray(source).reshape(-1, source.shape[-1])
+    if hasattr(cv2, "convertFp16"):  # OpenCV 4: the half floats' bits, typed int16
+        rows = cv2.convertFp16(matrix).view(np.float16)
+    else:  # OpenCV 5 dropped it and computes in float16: adding -0.0 is the exact identity, -0.0 and NaN too
+        rows = cv2.add(matrix, -0.0, dtype=cv2.CV_16F)  # type: ignore[call-overload]  # stubs: no scalar operand
+    return np.asarray(rows, dtype=np.float16).reshape(source.shape)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.service.runtime.errors import QueryError
-from gcdtrav.service.runtime.history import FrameHistory
+from gcdtrav.service.runtime.history import FrameHistory, as_float16
 
 ANCHORS = default_anchor_set()
 FRAME_BYTES = len(ANCHORS) * 2 * 3 * 2  # n x 2 x 3 float16
@@ -58,3 +58,34 @@ def test_forgetting_a_source_frees_its_bytes_and_numbering(depth: int) -> None:
     with pytest.raises(QueryError, match="unknown source 'a'"):
         history.get("a", None)
     assert record(history, "a", 9.0) == 0
+
+
+EDGES = [0.0, -0.0, 1e-8, 6e-8, 1e-5, 0.1, 1 / 3, 1.0, 65504.0, 65519.0, 65520.0, 1e6, -1e6, np.inf, -np.inf, np.nan]
+
+
+@pytest.mark.parametrize(
+    "values",
+    [
+        np.array(EDGES, np.float32),  # rounding, subnormals, overflow to inf, signed zero, NaN
+        np.random.default_rng(3).random((13, 35, 37), dtype=np.float32),
+        np.random.default_rng(4).standard_normal((5, 6, 7))[:, ::2, 1:],  # float64, not contiguous
+        np.float32(0.25),  # 0-d
+        np.zeros((0, 4), np.float32),  # empty
+    ],
+    ids=["edges", "weights", "float64-strided", "scalar", "empty"],
+)
+def test_as_float16_is_numpys_cast_bit_for_bit(values: np.ndarray) -> None:
+    with np.errstate(over="ignore"):
+        expected = np.asarray(values).astype(np.float16)
+        got = as_float16(values)
+    assert got.dtype == np.float16 and got.shape == expected.shape
+    assert np.array_equal(got.view(np.uint16), expected.view(np.uint16))
+
+
+def test_a_recorded_frame_keeps_its_weights_and_match_as_float16() -> None:
+    weights = np.random.default_rng(5).dirichlet(np.ones(len(ANCHORS)), size=(3, 4)).transpose(2, 0, 1)
+    match = np.random.default_rng(6).random((3, 4))
+    kept = FrameHistory(2).record("r1", weights.astype(np.float32), ANCHORS, 1.0, "cam", (4, 3), match)
+    assert kept.weights.dtype == np.float16 and kept.match is not None and kept.match.dtype == np.float16
+    assert np.array_equal(kept.weights, weights.astype(np.float32).astype(np.float16))
+    assert np.array_equal(kept.match, match.astype(np.float16))
