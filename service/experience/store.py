@@ -21,7 +21,7 @@ import time
 from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TypeVar
+from typing import Any, TypeVar
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
@@ -320,15 +320,12 @@ def sampled_history(retained: PairColumns, sample: PairColumns, size: int) -> Pa
     }
     keep_sample = np.asarray([s in from_sample for s in sample.sources], bool)
     keep_retained = np.asarray([s not in from_sample for s in retained.sources], bool)
-    return PairColumns(
-        concepts=retained.concepts,
-        ids=np.concatenate([sample.ids[keep_sample], retained.ids[keep_retained]]),
-        weights=np.concatenate([sample.weights[keep_sample], retained.weights[keep_retained]]),
-        outcomes=np.concatenate([sample.outcomes[keep_sample], retained.outcomes[keep_retained]]),
-        stamps=np.concatenate([sample.stamps[keep_sample], retained.stamps[keep_retained]]),
-        kinds=np.concatenate([sample.kinds[keep_sample], retained.kinds[keep_retained]]),
-        versions=tuple(np.asarray(sample.versions, object)[keep_sample])
-        + tuple(np.asarray(retained.versions, object)[keep_retained]),
-        sources=tuple(np.asarray(sample.sources, object)[keep_sample])
-        + tuple(np.asarray(retained.sources, object)[keep_retained]),
-    )
+
+    def joined(column: str) -> Any:  # the sample's rows kept, then the retained ones
+        first, second = getattr(sample, column), getattr(retained, column)
+        if isinstance(first, tuple):  # versions and sources
+            return tuple(np.asarray(first, object)[keep_sample]) + tuple(np.asarray(second, object)[keep_retained])
+        return np.concatenate([first[keep_sample], second[keep_retained]])
+
+    columns = ("ids", "weights", "outcomes", "stamps", "kinds", "versions", "sources")
+    return PairColumns(retained.concepts, **{column: joined(column) for column in columns})
