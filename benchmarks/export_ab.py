@@ -20,23 +20,28 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 from gcdtrav.service.backends.cpus import cpu_features, cpu_name
-from gcdtrav.service.backends.decoder import blocks_to_image
-from gcdtrav.service.backends.onnx_runtime import DECODER_INT8, REDUCTION, TRUNK_INT8, ExportedModel, OrtCompute
+from gcdtrav.service.backends.onnx_runtime import (
+    DECODER_INT8,
+    REDUCTION,
+    TRUNK_INT8,
+    ExportedModel,
+    OrtCompute,
+    concept_logits,
+    session_options,
+)
 
 CONCEPTS, CONDITIONAL_WIDTH, SIZE = 13, 512, 352
 
 
-def _session(path: Path, threads: int) -> object:
+def _session(path: Path, threads: int) -> Any:
     import onnxruntime as ort
 
-    options = ort.SessionOptions()
-    options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
-    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    return ort.InferenceSession(str(path), session_options(threads), providers=["CPUExecutionProvider"])
 
 
 def legacy_runner(directory: Path, chunk: int, threads: int) -> dict[str, Callable[[], object]]:
@@ -47,22 +52,21 @@ def legacy_runner(directory: Path, chunk: int, threads: int) -> dict[str, Callab
     rng = np.random.default_rng(0)
     pixels = rng.standard_normal((1, 3, SIZE, SIZE)).astype(np.float32)
     conditional = rng.standard_normal((CONCEPTS, CONDITIONAL_WIDTH)).astype(np.float32)
-    activations = trunk.run(None, {"pixels": pixels})  # type: ignore[attr-defined]
+    activations = trunk.run(None, {"pixels": pixels})
 
     def decode() -> object:
         inputs = activations
         if reduction is not None:
-            names = [item.name for item in reduction.get_inputs()]  # type: ignore[attr-defined]
-            inputs = reduction.run(None, dict(zip(names, activations, strict=True)))  # type: ignore[attr-defined]
-        feeds = {item.name: value for item, value in zip(decoder.get_inputs(), inputs, strict=False)}  # type: ignore[attr-defined]
+            names = [item.name for item in reduction.get_inputs()]
+            inputs = reduction.run(None, dict(zip(names, activations, strict=True)))
+        feeds = {item.name: value for item, value in zip(decoder.get_inputs(), inputs, strict=False)}
         chunks = []
         for start in range(0, CONCEPTS, chunk):
             feeds["conditional"] = conditional[start : start + chunk]
-            chunks.append(decoder.run(None, feeds)[0])  # type: ignore[attr-defined]
-        logits = torch.from_numpy(np.concatenate(chunks))
-        return logits if logits.dim() == 3 else blocks_to_image(logits).squeeze(1)
+            chunks.append(decoder.run(None, feeds)[0])
+        return concept_logits(chunks)
 
-    return {"trunk": lambda: trunk.run(None, {"pixels": pixels}), "decoder": decode}  # type: ignore[attr-defined]
+    return {"trunk": lambda: trunk.run(None, {"pixels": pixels}), "decoder": decode}
 
 
 def product_runner(directory: Path, threads: int) -> dict[str, Callable[[], object]]:

@@ -255,7 +255,8 @@ def _quantise(source: Path, target: Path, nodes: list[str] | None) -> None:
         root.level = level
 
 
-def _session_options(threads: int) -> Any:
+def session_options(threads: int) -> Any:
+    """ONNX Runtime's options for a gcdtrav session of ``threads`` threads."""
     import onnxruntime as ort
 
     options = ort.SessionOptions()
@@ -277,12 +278,12 @@ class OrtCompute:
         threads, providers = max(1, threads), ["CPUExecutionProvider"]
         try:
             trunk = model.path(TRUNK_INT8 if int8_trunk else TRUNK)
-            self.trunk = ort.InferenceSession(str(trunk), _session_options(threads), providers=providers)
+            self.trunk = ort.InferenceSession(str(trunk), session_options(threads), providers=providers)
             reduction = model.path(REDUCTION)
-            self.reduction = ort.InferenceSession(str(reduction), _session_options(threads), providers=providers)
+            self.reduction = ort.InferenceSession(str(reduction), session_options(threads), providers=providers)
             decoder = str(model.path(DECODER_INT8 if int8_decoder else DECODER))
             sessions = min(threads, DECODER_SESSIONS_MAX)
-            each = _session_options(threads // sessions)
+            each = session_options(threads // sessions)
             self.decoders = [ort.InferenceSession(decoder, each, providers=providers) for _ in range(sessions)]
         except Exception as err:  # onnxruntime raises its own exception types
             raise ExportError(f"ONNX Runtime cannot load the export in {model.directory}: {err}") from err
@@ -315,6 +316,10 @@ class OrtCompute:
 
         others = [self._helpers.submit(share, index) for index in range(1, sessions)] if self._helpers else []
         shares = [share(0), *[other.result() for other in others]]
-        chunks = [shares[position % sessions][position // sessions] for position in range(len(starts))]
-        logits = torch.from_numpy(np.concatenate(chunks))
-        return logits if logits.dim() == 3 else blocks_to_image(logits).squeeze(1)
+        return concept_logits([shares[position % sessions][position // sessions] for position in range(len(starts))])
+
+
+def concept_logits(chunks: Sequence[Any]) -> torch.Tensor:
+    """The decoder runs' outputs, in concept order, as (n, S, S) logits: nested blocks put in image order once."""
+    logits = torch.from_numpy(np.concatenate(chunks))
+    return logits if logits.dim() == 3 else blocks_to_image(logits).squeeze(1)
