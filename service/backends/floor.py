@@ -1,12 +1,18 @@
-"""This machine's floor for a frame (issue 60): the matrix products of the ViT layers a frame runs, divided by the
-rate at which this machine multiplies matrices of the model's own shape, for each arithmetic it can run.
+"""This machine's floor for a frame (issue 60): the matrix products a frame runs, divided by the rate at which
+this machine multiplies matrices of the model's own shape, for each arithmetic it can run.
 
-The products are the trunk's: per layer the Q, K, V and output projections, the two MLP products and the
-attention's two token-by-token products, for the layers up to the last one the decoder reads (10 of 12 in
-rd64-refined). The decoder, the upsampling and the engine are left out: the floor is what no runtime can beat,
-not an estimate of a frame. A rate is measured on the MLP's first product (tokens x hidden x mlp), with the
-threads the caller set: fp32 and bf16 by torch, int8 by ONNX Runtime's MatMulInteger (the op its dynamic
-quantization runs). Medians of a few repeats: a floor, not a benchmark.
+The products are the model's, for one image and its concepts:
+- the ViT trunk's: per layer the Q, K, V and output projections, the two MLP products and the attention's two
+  token-by-token products, for the layers up to the last one the decoder reads (10 of 12 in rd64-refined);
+- the decoder's: its reductions of the layers read (once a frame), then per concept FiLM and, per decoder
+  layer, the same products at the decoder's width;
+- the upsampling's: the convolutions from the token grid to the image, per concept.
+The engine is left out (no matrix products), and so are normalisations, activations and the softmax: the floor
+is what no runtime can beat, not an estimate of a frame. Every product counts at the one rate measured on the
+ViT's MLP product (tokens x hidden x mlp), the best-shaped of them: the decoder's narrow products run slower on
+every runtime, so this floor is lower than a per-shape one. Rates with the threads the caller set: fp32 and
+bf16 by torch, int8 by ONNX Runtime's MatMulInteger (the op its dynamic quantization runs). Medians of a few
+repeats: a floor, not a benchmark.
 """
 
 from __future__ import annotations
@@ -45,13 +51,103 @@ def trunk_shape(config: Any, tokens: int) -> TrunkShape:
 
 
 @dataclass(frozen=True)
+class DecoderShape:
+    tokens: int
+    hidden: int  # the trunk's width, which the reductions take in
+    width: int  # the decoder's (reduce_dim)
+    mlp: int
+    layers: int  # one per trunk layer read
+    conditional: int  # FiLM's input: the text projection's width
+    upsampling_flops: float  # the convolutions from the token grid to the image, for one concept
+
+    def matmul_flops(self, concepts: int) -> float:
+        reductions = 2 * self.tokens * self.hidden * self.width * self.layers  # once a frame, shared by concepts
+        return reductions + concepts * (self.transformer_flops + self.upsampling_flops)
+
+    @property
+    def transformer_flops(self) -> float:
+        """FiLM and the decoder layers' products, for one concept."""
+        film = 2 * 2 * self.conditional * self.width  # a scale and a shift
+        projections = 2 * self.tokens * self.width * (4 * self.width + 2 * self.mlp)
+        attention = 2 * 2 * self.tokens * self.tokens * self.width
+        return float(film + self.layers * (projections + attention))
+
+
+@dataclass(frozen=True)
+class FrameShape:
+    """A frame's matrix products: the trunk, and the decoder and upsampling for ``concepts`` concepts."""
+
+    trunk: TrunkShape
+    decoder: DecoderShape
+    concepts: int
+
+    @property
+    def parts(self) -> dict[str, float]:
+        """FLOPs by stage, as ``gcdtrav bench`` names its stages."""
+        return {
+            "vision transformer": self.trunk.matmul_flops,
+            "decoder and upsampling": self.decoder.matmul_flops(self.concepts),
+        }
+
+    @property
+    def matmul_flops(self) -> float:
+        return sum(self.parts.values())
+
+
+def frame_shape(model: Any, tokens: int, concepts: int) -> FrameShape:
+    """The frame's shape from a CLIPSeg model (``transformers.CLIPSegForImageSegmentation``): its config, and
+    its upsampling convolutions as built (rd64-refined's three, or one)."""
+    config = model.config
+    decoder = DecoderShape(
+        tokens,
+        int(config.vision_config.hidden_size),
+        int(config.reduce_dim),
+        int(config.decoder_intermediate_size),
+        len(config.extract_layers),
+        int(config.projection_dim),
+        upsampling_flops(model.decoder.transposed_convolution, round((tokens - 1) ** 0.5)),
+    )
+    return FrameShape(trunk_shape(config, tokens), decoder, concepts)
+
+
+def upsampling_flops(upsampling: Any, side: int) -> float:
+    """FLOPs of a stack of ``Conv2d`` and ``ConvTranspose2d`` (other layers cost none here) on a ``side`` x
+    ``side`` grid, for one concept."""
+    import torch
+
+    flops, size = 0.0, side
+    for layer in upsampling.modules():
+        if not isinstance(layer, torch.nn.Conv2d | torch.nn.ConvTranspose2d):
+            continue
+        (kernel, _), (stride, _), (dilation, _) = layer.kernel_size, layer.stride, layer.dilation
+        padding = _padding(layer, kernel, dilation)
+        taps = layer.in_channels // layer.groups * layer.out_channels * kernel * kernel
+        if isinstance(layer, torch.nn.ConvTranspose2d):  # each input position spreads over a kernel of outputs
+            flops += 2.0 * size * size * taps
+            size = (size - 1) * stride - 2 * padding + dilation * (kernel - 1) + layer.output_padding[0] + 1
+        else:  # each output position gathers a kernel of inputs
+            size = (size + 2 * padding - dilation * (kernel - 1) - 1) // stride + 1
+            flops += 2.0 * size * size * taps
+    return flops
+
+
+def _padding(layer: Any, kernel: int, dilation: int) -> int:
+    if layer.padding == "same":  # Conv2d only, stride 1
+        return dilation * (kernel - 1) // 2
+    return 0 if layer.padding == "valid" else int(layer.padding[0])
+
+
+@dataclass(frozen=True)
 class Floor:
     arithmetic: Arithmetic
     runtime: str
     operations_per_s: float  # of the model's own product shape, on this machine's threads
 
-    def ms(self, shape: TrunkShape) -> float:
-        return 1000.0 * shape.matmul_flops / self.operations_per_s
+    def ms(self, shape: TrunkShape | FrameShape) -> float:
+        return self.ms_of(shape.matmul_flops)
+
+    def ms_of(self, flops: float) -> float:
+        return 1000.0 * flops / self.operations_per_s
 
 
 def _median_s(run: Callable[[], object]) -> float:

@@ -205,10 +205,11 @@ class Bench:
 
     def run_stages(self, precision: str) -> None:
         """One frame of ``precision`` in its stages, timed in turns (service/backends/timing.py), each with its
-        share of their sum, and the machine's floor for the frame's ViT products beside it (issue 60). The
-        decoder's row holds its upsampling: ONNX Runtime runs both in one graph."""
+        share of their sum, and the machine's floor for the frame's matrix products beside it (issue 60), whole
+        and for the two stages that have products. The decoder's row holds its upsampling: ONNX Runtime runs
+        both in one graph."""
         import torch
-        from gcdtrav.service.backends.floor import measure_floors, trunk_shape
+        from gcdtrav.service.backends.floor import frame_shape, measure_floors
 
         backend = self.backend(precision)
         prepared = backend.prepare(self.anchors.concepts)
@@ -229,10 +230,14 @@ class Bench:
         for name, stage_times in times.items():
             share = f"{100 * statistics.median(stage_times) / total:.0f} % of the frame's stages"
             self.add(make_row(f"{name} ({precision})", "stage", stage_times, rss.peak, share))
-        shape = trunk_shape(backend.model.config, backend.vision_tokens)
-        for floor in measure_floors(shape, {runtime_mode(precision).trunk}, torch.get_num_threads()):
-            note = f"{shape.matmul_flops / 1e9:.3g} GFLOP at {floor.operations_per_s / 1e9:,.0f} G/s ({floor.runtime})"
-            self.add(make_row(f"floor: ViT products in {floor.arithmetic}", "floor", [floor.ms(shape)], 0.0, note))
+        shape = frame_shape(backend.model, backend.vision_tokens, len(self.anchors.concepts))
+        for floor in measure_floors(shape.trunk, {runtime_mode(precision).trunk}, torch.get_num_threads()):
+            rate = f"{floor.operations_per_s / 1e9:,.0f} G/s ({floor.runtime})"
+            note = f"{shape.matmul_flops / 1e9:.3g} GFLOP at {rate}, {shape.concepts} anchors"
+            name = f"floor: the frame's products in {floor.arithmetic}"
+            self.add(make_row(name, "floor", [floor.ms(shape)], 0.0, note))
+            for stage, flops in shape.parts.items():
+                self.add(make_row(f"floor: {stage} in {floor.arithmetic}", "floor part", [floor.ms_of(flops)], 0.0))
 
     def fastest_within_parity(self) -> str:
         """What precision auto picks, from this run's rows: the fastest mode within the parity gate."""

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.service.backends import ModelUnavailableError, default_model
 from gcdtrav.service.backends.cpus import cpu_features, cpu_name, set_torch_threads, usable_cpus
 
@@ -123,21 +124,25 @@ def run(args: argparse.Namespace) -> int:
 
 
 def print_floor(backend: Any, modes: list[str]) -> float | None:
-    """Print this machine's floor for a frame's ViT products, per arithmetic the modes use; the lowest, ms."""
+    """Print this machine's floor for a frame's matrix products (the paper's anchors, as the modes were timed),
+    per arithmetic the modes use; the lowest, ms."""
     import torch
-    from gcdtrav.service.backends.floor import measure_floors, trunk_shape
+    from gcdtrav.service.backends.floor import frame_shape, measure_floors
     from gcdtrav.service.backends.modes import runtime_mode
 
-    shape = trunk_shape(backend.model.config, backend.vision_tokens)
-    floors = measure_floors(shape, {runtime_mode(mode).trunk for mode in modes}, torch.get_num_threads())
+    shape = frame_shape(backend.model, backend.vision_tokens, len(default_anchor_set().concepts))
+    trunk = shape.trunk
+    floors = measure_floors(trunk, {runtime_mode(mode).trunk for mode in modes}, torch.get_num_threads())
+    parts = ", ".join(f"{name} {flops / 1e9:.3g}" for name, flops in shape.parts.items())
     print(
-        f"\nfloor        {shape.matmul_flops / 1e9:.3g} GFLOP of ViT matrix products a frame ({shape.layers} layers, "
-        f"{shape.tokens} tokens),\n             at this machine's rate for the model's "
-        f"{shape.tokens}x{shape.hidden}x{shape.mlp} product ({torch.get_num_threads()} threads):"
+        f"\nfloor        {shape.matmul_flops / 1e9:.3g} GFLOP of matrix products a frame ({shape.concepts} anchors, "
+        f"{trunk.tokens} tokens: {parts}),\n             at this machine's rate for the ViT's "
+        f"{trunk.tokens}x{trunk.hidden}x{trunk.mlp} product ({torch.get_num_threads()} threads):"
     )
     for floor in floors:
         rate = f"{floor.operations_per_s / 1e9:,.0f} G{'OP' if floor.arithmetic == 'int8' else 'FLOP'}/s"
-        print(f"             {floor.arithmetic:<5} ({floor.runtime}) {rate} -> {floor.ms(shape):.3g} ms")
+        frame_ms, trunk_ms = floor.ms(shape), floor.ms(trunk)
+        print(f"             {floor.arithmetic:<5} ({floor.runtime}) {rate} -> {frame_ms:.3g} ms (ViT {trunk_ms:.3g})")
     lowest = min((floor.ms(shape) for floor in floors), default=None)
     if lowest is not None:
         print(f"             x floor below: a mode's frame over the lowest, {lowest:.3g} ms")

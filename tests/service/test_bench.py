@@ -85,6 +85,10 @@ def test_bench_breaks_a_frame_into_stages_and_names_the_floor(tiny_model_dir: Pa
     shares = [float(row["note"].split(" %")[0]) for row in stages]
     assert sum(shares) == pytest.approx(100, abs=len(shares))  # each rounded to a whole per cent
     (floor,) = [row for row in summary["rows"] if row["group"] == "floor"]
-    assert floor["name"].startswith("floor: ViT products in ") and floor["median_ms"] > 0
+    assert floor["name"].startswith("floor: the frame's products in ") and floor["median_ms"] > 0
+    parts = {row["name"].split(" in ")[0]: row["median_ms"] for row in summary["rows"] if row["group"] == "floor part"}
+    assert list(parts) == ["floor: vision transformer", "floor: decoder and upsampling"]  # the stages with products
+    assert sum(parts.values()) == pytest.approx(floor["median_ms"], abs=0.02)  # each row rounded to 0.01 ms
+    assert min(parts.values()) > 0
     fast = next(row for row in summary["rows"] if row["name"] == f"fast path {precision}")
     assert summary["default_vs_floor"] == pytest.approx(fast["median_ms"] / floor["median_ms"], rel=0.01)
