@@ -52,7 +52,7 @@ def torchao_trunks(backend: ClipSegBackend, pixels: torch.Tensor) -> dict[str, T
     from gcdtrav.service.backends.onnx_graphs import TrunkGraph
 
     inductor.freezing = True  # constant weights: oneDNN's packed int8 linears
-    graph = TrunkGraph(backend.model.clip.vision_model, backend.extract_layers).eval()
+    graph = TrunkGraph(backend.model.clip.vision_model, backend.extract_layers, pixels.shape[-1]).eval()
     generator = torch.Generator().manual_seed(0)
     calibration = [torch.randn(pixels.shape, generator=generator) for _ in range(4)]
     trunks: dict[str, Trunk] = {}

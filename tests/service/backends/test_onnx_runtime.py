@@ -62,6 +62,69 @@ def test_the_export_runs_each_attention_as_one_fused_node(tiny_model_dir: Path, 
     assert len(decoder_output.dim) > 3  # (concepts, h, w, kh1, kw1, ..., 1): nested blocks
 
 
+def test_the_patch_embedding_as_one_product_is_clips_embedding(tiny_backend) -> None:  # type: ignore[no-untyped-def]
+    """PatchEmbedding (the export's) against transformers' own embeddings at the input size, positions
+    interpolated; a size the patches do not tile is refused."""
+    import torch
+    from gcdtrav.service.backends.onnx_graphs import PatchEmbedding
+
+    embeddings = tiny_backend.model.clip.vision_model.embeddings
+    size, patch = tiny_backend.preprocess.size, embeddings.patch_embedding.kernel_size[0]
+    pixels = torch.randn(1, 3, size, size, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        expected = embeddings(pixels, interpolate_pos_encoding=True)
+        found = PatchEmbedding(embeddings, size)(pixels)
+    assert found.shape == expected.shape == (1, (size // patch) ** 2 + 1, embeddings.embed_dim)
+    torch.testing.assert_close(found, expected, atol=1e-5, rtol=1e-5)
+    with pytest.raises(ValueError, match="do not tile"):
+        PatchEmbedding(embeddings, size + 1)
+
+
+def test_sessions_run_without_ort_s_skip_layer_norm_fusion(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """ONNX Runtime's own optimiser fuses an Add and the LayerNormalization after it into SkipLayerNormalization
+    (a slower CPU kernel, onnx_runtime.DISABLED_OPTIMIZERS); gcdtrav's sessions keep them apart."""
+    import onnx
+    import onnxruntime as ort
+    from onnx import TensorProto, helper, numpy_helper
+
+    width = 8
+    norm = [numpy_helper.from_array(np.ones(width, np.float32), name) for name in ("scale", "bias")]
+    graph = helper.make_graph(
+        [
+            helper.make_node("Add", ["x", "skip"], ["sum"]),
+            helper.make_node("LayerNormalization", ["sum", "scale", "bias"], ["y"], axis=-1),
+        ],
+        "residual",
+        [helper.make_tensor_value_info(name, TensorProto.FLOAT, [1, 5, width]) for name in ("x", "skip")],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 5, width])],
+        norm,
+    )
+    model = tmp_path / "residual.onnx"
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8), str(model))
+
+    def optimised_ops(path: Path) -> list[str]:
+        return [node.op_type for node in onnx.load(str(path)).graph.node]
+
+    plain_options = onnx_runtime.session_options(1)
+    plain_options.optimized_model_filepath = str(tmp_path / "plain.onnx")
+    ort.InferenceSession(str(model), plain_options, providers=["CPUExecutionProvider"])
+    options_of = onnx_runtime.session_options
+
+    def writing_the_optimised_graph(threads: int) -> object:
+        options = options_of(threads)
+        options.optimized_model_filepath = str(tmp_path / "gcdtrav.onnx")
+        return options
+
+    monkeypatch.setattr(onnx_runtime, "session_options", writing_the_optimised_graph)
+    session = onnx_runtime.inference_session(model, 1)
+    assert optimised_ops(tmp_path / "plain.onnx") == ["SkipLayerNormalization"]  # the fusion applies here
+    assert optimised_ops(tmp_path / "gcdtrav.onnx") == ["Add", "LayerNormalization"]
+    x = np.arange(40, dtype=np.float32).reshape(1, 5, width)
+    (y,) = session.run(None, {"x": x, "skip": x})
+    centred = 2 * x - (2 * x).mean(axis=-1, keepdims=True)
+    np.testing.assert_allclose(y, centred / np.sqrt((centred**2).mean(axis=-1, keepdims=True) + 1e-5) + 1, atol=1e-5)
+
+
 @pytest.mark.parametrize("threads", [1, 3, 6])
 def test_the_decoder_sessions_side_by_side_keep_the_concepts_in_order(
     tiny_model_dir: Path, tmp_path: Path, threads: int
