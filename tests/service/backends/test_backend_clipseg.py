@@ -20,6 +20,21 @@ def assert_same_logits(fast: np.ndarray, reference: np.ndarray) -> None:
     assert float(np.abs(fast - reference).max()) <= 1e-6 * float(np.abs(reference).max())
 
 
+@pytest.mark.parametrize("shape", [(480, 640), (1, 1), (353, 17)])
+def test_preprocessing_is_the_normalised_resize_channel_first(shape: tuple[int, int]) -> None:
+    import cv2
+    from gcdtrav.service.backends.clipseg import Preprocessing
+
+    preprocess = Preprocessing(size=32, mean=(0.5, 0.25, 0.0), std=(0.5, 0.1, 2.0))
+    image = np.random.default_rng(1).integers(0, 256, (*shape, 3), dtype=np.uint8)
+    image[0, 0] = (0, 255, 128)  # both ends of the range, wherever the resize takes them
+    pixels = preprocess(image)
+    assert pixels.shape == (1, 3, 32, 32) and pixels.dtype == torch.float32 and pixels.is_contiguous()
+    resized = cv2.resize(image, (32, 32), interpolation=cv2.INTER_LINEAR).astype(np.float64)
+    expected = (resized / 255.0 - np.array(preprocess.mean)) / np.array(preprocess.std)
+    np.testing.assert_allclose(pixels[0].numpy(), expected.transpose(2, 0, 1), rtol=0, atol=1e-6)
+
+
 def test_loads_through_the_real_path_and_is_a_backend(tiny_backend: ClipSegBackend) -> None:
     assert isinstance(tiny_backend, SegmentationBackend)
     assert tiny_backend.preprocess.size == TINY_INPUT_SIZE  # read from preprocessor_config.json
