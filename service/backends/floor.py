@@ -1,24 +1,27 @@
-"""This machine's floor for a frame (issue 60): the matrix products a frame runs, divided by the rate at which
-this machine multiplies matrices of the model's own shape, for each arithmetic it can run.
+"""This machine's floor for a frame (issue 60): the matrix products a frame runs, each divided by the rate at which
+this machine runs a product of its shape, for each arithmetic it can run.
 
-The products are the model's, for one image and its concepts:
+The products are the model's, for one image and its concepts (``Product``):
 - the ViT trunk's: per layer the Q, K, V and output projections, the two MLP products and the attention's two
   token-by-token products, for the layers up to the last one the decoder reads (10 of 12 in rd64-refined);
-- the decoder's: its reductions of the layers read (once a frame), then per concept FiLM and, per decoder
-  layer, the same products at the decoder's width;
-- the upsampling's: the convolutions from the token grid to the image, per concept.
-The engine is left out (no matrix products), and so are normalisations, activations and the softmax: the floor
-is what no runtime can beat, not an estimate of a frame. Every product counts at the one rate measured on the
-ViT's MLP product (tokens x hidden x mlp), the best-shaped of them: the decoder's narrow products run slower on
-every runtime, so this floor is lower than a per-shape one. Rates with the threads the caller set: fp32 and
-bf16 by torch, int8 by ONNX Runtime's MatMulInteger (the op its dynamic quantization runs). Medians of a few
-repeats: a floor, not a benchmark.
+- the decoder's: its reductions of the layers read (once a frame), FiLM, and per decoder layer the same
+  products at the decoder's width, for every concept;
+- the upsampling's: the convolutions from the token grid to the image, as the matrix products they are.
+
+Each product with weights is timed at its own shape (the model's 485 x 768 x 3072 runs near this CPU's peak,
+the decoder's 64-wide ones well below it on any runtime): a lower bound for that product, not for a kernel
+that fuses it with the next. Attention's token-by-token products count at the best rate measured: timed alone,
+they would be bound by writing out the scores, which a fused kernel never does. The decoder's products are
+timed batched over all concepts, their best case. ``peak_ms`` counts every product at the best rate, the
+strictest floor. Normalisations, activations, softmax and the engine are left out: the floor is what no
+runtime can beat, not an estimate of a frame. Rates with the threads the caller set: fp32 and bf16 by torch,
+int8 by ONNX Runtime's MatMulInteger (the op its dynamic quantization runs). Medians of a few repeats.
 """
 
 from __future__ import annotations
 
 import statistics
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,6 +29,34 @@ from gcdtrav.service.backends.modes import Arithmetic
 from gcdtrav.service.backends.timing import interleaved_ms
 
 WARMUP, REPEATS = 2, 7
+VISION, DECODER = "vision transformer", "decoder and upsampling"  # as gcdtrav bench names its stages
+
+
+@dataclass(frozen=True)
+class Product:
+    """``count`` products of (m x k) by (k x n) a frame runs; ``weights``: the right factor is the model's
+    weights (else both are activations: attention's token-by-token products)."""
+
+    stage: str
+    name: str
+    m: int
+    k: int
+    n: int
+    count: int
+    weights: bool = True
+
+    @property
+    def flops(self) -> float:
+        """Floating-point operations: a multiply and an add each count one."""
+        return 2.0 * self.count * self.m * self.k * self.n
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        return self.m, self.k, self.n
+
+
+def total_flops(products: Iterable[Product]) -> float:
+    return sum(product.flops for product in products)
 
 
 @dataclass(frozen=True)
@@ -36,11 +67,18 @@ class TrunkShape:
     layers: int  # layers a frame runs: up to the last one the decoder reads
 
     @property
+    def products(self) -> list[Product]:
+        tokens, hidden, layers = self.tokens, self.hidden, self.layers
+        return [
+            Product(VISION, "Q, K, V and output projections", tokens, hidden, hidden, 4 * layers),
+            Product(VISION, "MLP in", tokens, hidden, self.mlp, layers),
+            Product(VISION, "MLP out", tokens, self.mlp, hidden, layers),
+            Product(VISION, "attention", tokens, hidden, tokens, 2 * layers, weights=False),  # all heads together
+        ]
+
+    @property
     def matmul_flops(self) -> float:
-        """Floating-point operations (a multiply and an add each count one) of the products of the layers run."""
-        projections = 2 * self.tokens * self.hidden * (4 * self.hidden + 2 * self.mlp)
-        attention = 2 * 2 * self.tokens * self.tokens * self.hidden  # scores and the weighted values
-        return float(self.layers * (projections + attention))
+        return total_flops(self.products)
 
 
 def trunk_shape(config: Any, tokens: int) -> TrunkShape:
@@ -58,19 +96,25 @@ class DecoderShape:
     mlp: int
     layers: int  # one per trunk layer read
     conditional: int  # FiLM's input: the text projection's width
-    upsampling_flops: float  # the convolutions from the token grid to the image, for one concept
+    upsampling: tuple[tuple[int, int, int], ...]  # (m, k, n) of each convolution's product, for one concept
+
+    def products(self, concepts: int) -> list[Product]:
+        """Batched over ``concepts``; the reductions run once a frame, shared by every concept."""
+        rows, width, layers = concepts * self.tokens, self.width, self.layers
+        products = [
+            Product(DECODER, "reductions", self.tokens, self.hidden, width, layers),
+            Product(DECODER, "FiLM", concepts, self.conditional, width, 2),
+            Product(DECODER, "Q, K, V and output projections", rows, width, width, 4 * layers),
+            Product(DECODER, "MLP in", rows, width, self.mlp, layers),
+            Product(DECODER, "MLP out", rows, self.mlp, width, layers),
+            Product(DECODER, "attention", self.tokens, width, self.tokens, 2 * layers * concepts, weights=False),
+        ]
+        for index, (m, k, n) in enumerate(self.upsampling):
+            products.append(Product(DECODER, f"upsampling {index + 1}", concepts * m, k, n, 1))
+        return [product for product in products if product.count and product.m]
 
     def matmul_flops(self, concepts: int) -> float:
-        reductions = 2 * self.tokens * self.hidden * self.width * self.layers  # once a frame, shared by concepts
-        return reductions + concepts * (self.transformer_flops + self.upsampling_flops)
-
-    @property
-    def transformer_flops(self) -> float:
-        """FiLM and the decoder layers' products, for one concept."""
-        film = 2 * 2 * self.conditional * self.width  # a scale and a shift
-        projections = 2 * self.tokens * self.width * (4 * self.width + 2 * self.mlp)
-        attention = 2 * 2 * self.tokens * self.tokens * self.width
-        return float(film + self.layers * (projections + attention))
+        return total_flops(self.products(concepts))
 
 
 @dataclass(frozen=True)
@@ -82,16 +126,17 @@ class FrameShape:
     concepts: int
 
     @property
+    def products(self) -> list[Product]:
+        return self.trunk.products + self.decoder.products(self.concepts)
+
+    @property
     def parts(self) -> dict[str, float]:
-        """FLOPs by stage, as ``gcdtrav bench`` names its stages."""
-        return {
-            "vision transformer": self.trunk.matmul_flops,
-            "decoder and upsampling": self.decoder.matmul_flops(self.concepts),
-        }
+        """FLOPs by stage."""
+        return {VISION: self.trunk.matmul_flops, DECODER: self.decoder.matmul_flops(self.concepts)}
 
     @property
     def matmul_flops(self) -> float:
-        return sum(self.parts.values())
+        return total_flops(self.products)
 
 
 def frame_shape(model: Any, tokens: int, concepts: int) -> FrameShape:
@@ -105,30 +150,31 @@ def frame_shape(model: Any, tokens: int, concepts: int) -> FrameShape:
         int(config.decoder_intermediate_size),
         len(config.extract_layers),
         int(config.projection_dim),
-        upsampling_flops(model.decoder.transposed_convolution, round((tokens - 1) ** 0.5)),
+        upsampling_products(model.decoder.transposed_convolution, round((tokens - 1) ** 0.5)),
     )
     return FrameShape(trunk_shape(config, tokens), decoder, concepts)
 
 
-def upsampling_flops(upsampling: Any, side: int) -> float:
-    """FLOPs of a stack of ``Conv2d`` and ``ConvTranspose2d`` (other layers cost none here) on a ``side`` x
-    ``side`` grid, for one concept."""
+def upsampling_products(upsampling: Any, side: int) -> tuple[tuple[int, int, int], ...]:
+    """The (m, k, n) product of each ``Conv2d`` and ``ConvTranspose2d`` in ``upsampling`` (other layers have
+    none) on a ``side`` x ``side`` grid, for one concept: a convolution gathers, for each output position, its
+    kernel's inputs (m outputs, k = in x kernel, n = out); a transposed one spreads each input position over a
+    kernel of outputs (m inputs, k = in, n = out x kernel)."""
     import torch
 
-    flops, size = 0.0, side
+    products, size = [], side
     for layer in upsampling.modules():
         if not isinstance(layer, torch.nn.Conv2d | torch.nn.ConvTranspose2d):
             continue
         (kernel, _), (stride, _), (dilation, _) = layer.kernel_size, layer.stride, layer.dilation
-        padding = _padding(layer, kernel, dilation)
-        taps = layer.in_channels // layer.groups * layer.out_channels * kernel * kernel
-        if isinstance(layer, torch.nn.ConvTranspose2d):  # each input position spreads over a kernel of outputs
-            flops += 2.0 * size * size * taps
+        padding, taps = _padding(layer, kernel, dilation), kernel * kernel
+        if isinstance(layer, torch.nn.ConvTranspose2d):
+            products.append((size * size, layer.in_channels // layer.groups, layer.out_channels * taps))
             size = (size - 1) * stride - 2 * padding + dilation * (kernel - 1) + layer.output_padding[0] + 1
-        else:  # each output position gathers a kernel of inputs
+        else:
             size = (size + 2 * padding - dilation * (kernel - 1) - 1) // stride + 1
-            flops += 2.0 * size * size * taps
-    return flops
+            products.append((size * size, layer.in_channels // layer.groups * taps, layer.out_channels))
+    return tuple(products)
 
 
 def _padding(layer: Any, kernel: int, dilation: int) -> int:
@@ -141,41 +187,53 @@ def _padding(layer: Any, kernel: int, dilation: int) -> int:
 class Floor:
     arithmetic: Arithmetic
     runtime: str
-    operations_per_s: float  # of the model's own product shape, on this machine's threads
+    rates: dict[tuple[int, int, int], float]  # operations per second, by the (m, k, n) of a product with weights
+
+    @property
+    def peak(self) -> float:
+        return max(self.rates.values())
+
+    def rate(self, product: Product) -> float:
+        return self.rates[product.shape] if product.weights else self.peak
 
     def ms(self, shape: TrunkShape | FrameShape) -> float:
-        return self.ms_of(shape.matmul_flops)
+        return sum(self.stage_ms(shape).values())
 
-    def ms_of(self, flops: float) -> float:
-        return 1000.0 * flops / self.operations_per_s
+    def stage_ms(self, shape: TrunkShape | FrameShape) -> dict[str, float]:
+        stages: dict[str, float] = {}
+        for product in shape.products:
+            stages[product.stage] = stages.get(product.stage, 0.0) + 1000.0 * product.flops / self.rate(product)
+        return stages
+
+    def peak_ms(self, shape: TrunkShape | FrameShape) -> float:
+        return 1000.0 * shape.matmul_flops / self.peak
 
 
 def _median_s(run: Callable[[], object]) -> float:
     return statistics.median(interleaved_ms({"product": run}, REPEATS, WARMUP)["product"]) / 1000.0
 
 
-def _torch_rate(shape: TrunkShape, dtype_name: str) -> float:
+def _torch_rate(m: int, k: int, n: int, dtype_name: str) -> float:
     import torch
 
     dtype = getattr(torch, dtype_name)
-    left = torch.randn(shape.tokens, shape.hidden, dtype=dtype)
-    right = torch.randn(shape.hidden, shape.mlp, dtype=dtype)
+    left, right = torch.randn(m, k, dtype=dtype), torch.randn(k, n, dtype=dtype)
     with torch.inference_mode():
         seconds = _median_s(lambda: torch.matmul(left, right))
-    return 2.0 * shape.tokens * shape.hidden * shape.mlp / seconds
+    return 2.0 * m * k * n / seconds
 
 
-def _onnx_int8_rate(shape: TrunkShape, threads: int) -> float:
+def _onnx_int8_rate(m: int, k: int, n: int, threads: int) -> float:
     import numpy as np
     import onnxruntime
     from onnx import TensorProto, helper, numpy_helper
 
-    weights = np.random.default_rng(0).integers(-127, 128, (shape.hidden, shape.mlp), dtype=np.int8)
+    weights = np.random.default_rng(0).integers(-127, 128, (k, n), dtype=np.int8)
     graph = helper.make_graph(
         [helper.make_node("MatMulInteger", ["a", "b", "a_zero"], ["y"])],
         "product",
-        [helper.make_tensor_value_info("a", TensorProto.UINT8, [shape.tokens, shape.hidden])],
-        [helper.make_tensor_value_info("y", TensorProto.INT32, [shape.tokens, shape.mlp])],
+        [helper.make_tensor_value_info("a", TensorProto.UINT8, [m, k])],
+        [helper.make_tensor_value_info("y", TensorProto.INT32, [m, n])],
         [numpy_helper.from_array(weights, "b"), numpy_helper.from_array(np.array(128, np.uint8), "a_zero")],
     )
     # IR version 8 (onnx 1.10), not the installed onnx's newest: an older onnxruntime refuses a newer IR
@@ -184,21 +242,24 @@ def _onnx_int8_rate(shape: TrunkShape, threads: int) -> float:
     options = onnxruntime.SessionOptions()
     options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
     session = onnxruntime.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
-    activations = np.random.default_rng(1).integers(0, 256, (shape.tokens, shape.hidden), dtype=np.uint8)
+    activations = np.random.default_rng(1).integers(0, 256, (m, k), dtype=np.uint8)
     seconds = _median_s(lambda: session.run(None, {"a": activations}))
-    return 2.0 * shape.tokens * shape.hidden * shape.mlp / seconds
+    return 2.0 * m * k * n / seconds
 
 
-def measure_floors(shape: TrunkShape, arithmetics: set[Arithmetic], threads: int) -> list[Floor]:
-    """One floor per arithmetic in ``arithmetics`` this machine can measure (int8 needs onnxruntime and onnx)."""
+def measure_floors(shape: TrunkShape | FrameShape, arithmetics: set[Arithmetic], threads: int) -> list[Floor]:
+    """One floor per arithmetic in ``arithmetics`` this machine can measure (int8 needs onnxruntime and onnx):
+    the rate of each shape of product with weights in ``shape``, timed one after another."""
+    shapes = sorted({product.shape for product in shape.products if product.weights})
     floors = []
     for arithmetic in sorted(arithmetics):
         if arithmetic == "int8":
             try:
-                floors.append(Floor("int8", "onnxruntime", _onnx_int8_rate(shape, threads)))
+                rates = {(m, k, n): _onnx_int8_rate(m, k, n, threads) for m, k, n in shapes}
             except ImportError:
                 continue
+            floors.append(Floor("int8", "onnxruntime", rates))
         else:
             dtype = "float32" if arithmetic == "fp32" else "bfloat16"
-            floors.append(Floor(arithmetic, "torch", _torch_rate(shape, dtype)))
+            floors.append(Floor(arithmetic, "torch", {(m, k, n): _torch_rate(m, k, n, dtype) for m, k, n in shapes}))
     return floors

@@ -130,19 +130,22 @@ def print_floor(backend: Any, modes: list[str]) -> float | None:
     from gcdtrav.service.backends.floor import frame_shape, measure_floors
     from gcdtrav.service.backends.modes import runtime_mode
 
+    threads = torch.get_num_threads()
     shape = frame_shape(backend.model, backend.vision_tokens, len(default_anchor_set().concepts))
-    trunk = shape.trunk
-    floors = measure_floors(trunk, {runtime_mode(mode).trunk for mode in modes}, torch.get_num_threads())
+    floors = measure_floors(shape, {runtime_mode(mode).trunk for mode in modes}, threads)
     parts = ", ".join(f"{name} {flops / 1e9:.3g}" for name, flops in shape.parts.items())
     print(
         f"\nfloor        {shape.matmul_flops / 1e9:.3g} GFLOP of matrix products a frame ({shape.concepts} anchors, "
-        f"{trunk.tokens} tokens: {parts}),\n             at this machine's rate for the ViT's "
-        f"{trunk.tokens}x{trunk.hidden}x{trunk.mlp} product ({torch.get_num_threads()} threads):"
+        f"{shape.trunk.tokens} tokens: {parts}),\n             each at this machine's rate for its shape "
+        f"({threads} threads; attention's at the best rate, as a fused kernel runs them):"
     )
     for floor in floors:
-        rate = f"{floor.operations_per_s / 1e9:,.0f} G{'OP' if floor.arithmetic == 'int8' else 'FLOP'}/s"
-        frame_ms, trunk_ms = floor.ms(shape), floor.ms(trunk)
-        print(f"             {floor.arithmetic:<5} ({floor.runtime}) {rate} -> {frame_ms:.3g} ms (ViT {trunk_ms:.3g})")
+        unit = "GOP/s" if floor.arithmetic == "int8" else "GFLOP/s"
+        stages = ", ".join(f"{name} {ms:.3g}" for name, ms in floor.stage_ms(shape).items())
+        print(
+            f"             {floor.arithmetic:<5} ({floor.runtime}) -> {floor.ms(shape):.3g} ms ({stages}); "
+            f"all at its best rate, {floor.peak / 1e9:,.0f} {unit}: {floor.peak_ms(shape):.3g} ms"
+        )
     lowest = min((floor.ms(shape) for floor in floors), default=None)
     if lowest is not None:
         print(f"             x floor below: a mode's frame over the lowest, {lowest:.3g} ms")

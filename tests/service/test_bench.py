@@ -90,5 +90,8 @@ def test_bench_breaks_a_frame_into_stages_and_names_the_floor(tiny_model_dir: Pa
     assert list(parts) == ["floor: vision transformer", "floor: decoder and upsampling"]  # the stages with products
     assert sum(parts.values()) == pytest.approx(floor["median_ms"], abs=0.02)  # each row rounded to 0.01 ms
     assert min(parts.values()) > 0
+    (peak,) = [row for row in summary["rows"] if row["group"] == "floor peak"]
+    assert 0 < peak["median_ms"] <= floor["median_ms"] + 0.01  # every product at the best rate: the lowest
     fast = next(row for row in summary["rows"] if row["name"] == f"fast path {precision}")
     assert summary["default_vs_floor"] == pytest.approx(fast["median_ms"] / floor["median_ms"], rel=0.01)
+    assert summary["default_vs_peak_floor"] == pytest.approx(fast["median_ms"] / peak["median_ms"], rel=0.01)

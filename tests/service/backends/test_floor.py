@@ -13,16 +13,28 @@ pytest.importorskip("torch")
 
 from gcdtrav.service.backends import precision_choice
 from gcdtrav.service.backends.floor import (
+    DECODER,
+    VISION,
     DecoderShape,
+    Floor,
     FrameShape,
+    Product,
     TrunkShape,
     frame_shape,
     measure_floors,
     trunk_shape,
-    upsampling_flops,
+    upsampling_products,
 )
 from gcdtrav.service.backends.precision_choice import ModeMeasurement
 from gcdtrav.service.commands import doctor
+
+# rd64-refined's upsampling on its 22 x 22 grid: a 3x3 convolution 64 -> 64, then two transposed 4x4 of stride 4
+RD64_UPSAMPLING = ((22 * 22, 64 * 9, 64), (22 * 22, 64, 32 * 16), (88 * 88, 32, 1 * 16))
+
+
+def rd64_refined(concepts: int = 13) -> FrameShape:
+    decoder = DecoderShape(485, 768, 64, 2048, 3, 512, RD64_UPSAMPLING)
+    return FrameShape(TrunkShape(tokens=485, hidden=768, mlp=3072, layers=10), decoder, concepts)
 
 
 def test_the_trunk_products_of_rd64_refined_are_the_issues_75_9_gflop() -> None:
@@ -33,25 +45,17 @@ def test_the_trunk_products_of_rd64_refined_are_the_issues_75_9_gflop() -> None:
     assert shape.matmul_flops / 1e9 == pytest.approx(75.9, abs=0.05)
 
 
-def test_the_shape_is_read_from_the_models_config_up_to_the_last_layer_the_decoder_reads(tiny_model_dir: Path) -> None:
-    from transformers import CLIPSegConfig
-
-    config = CLIPSegConfig.from_pretrained(tiny_model_dir)
-    shape = trunk_shape(config, tokens=17)
-    assert shape.layers == max(config.extract_layers) + 1
-    assert (shape.hidden, shape.mlp) == (config.vision_config.hidden_size, config.vision_config.intermediate_size)
-
-
 def test_the_decoder_products_of_rd64_refined_at_13_anchors() -> None:
     # width 64, MLP 2048, 3 layers, FiLM from the 512-wide text projection; 75.3 MFLOP of upsampling a concept
     upsampling = 2 * 22 * 22 * 64 * 64 * 9 + 2 * 22 * 22 * 64 * 32 * 16 + 2 * 88 * 88 * 32 * 1 * 16
-    decoder = DecoderShape(485, 768, 64, 2048, 3, 512, upsampling)
+    decoder = rd64_refined().decoder
     per_layer = 2 * 485 * 64 * (4 * 64 + 2 * 2048) + 2 * 2 * 485 * 485 * 64
     per_concept = 2 * 2 * 512 * 64 + 3 * per_layer + upsampling
     assert decoder.matmul_flops(13) == 2 * 485 * 768 * 64 * 3 + 13 * per_concept
     assert decoder.matmul_flops(13) / 1e9 == pytest.approx(14.0, abs=0.05)
-    frame = FrameShape(TrunkShape(485, 768, 3072, 10), decoder, concepts=13)
-    assert list(frame.parts) == ["vision transformer", "decoder and upsampling"]
+    frame = rd64_refined()
+    assert list(frame.parts) == [VISION, DECODER]
+    assert frame.matmul_flops == sum(frame.parts.values())
     assert frame.matmul_flops / 1e9 == pytest.approx(75.9 + 14.0, abs=0.1)
     # one concept and none: the reductions run once a frame whatever the anchors
     assert decoder.matmul_flops(0) == 2 * 485 * 768 * 64 * 3
@@ -59,11 +63,11 @@ def test_the_decoder_products_of_rd64_refined_at_13_anchors() -> None:
 
 
 @pytest.mark.parametrize("refined", [True, False])
-def test_the_upsampling_is_counted_as_the_layers_run_it(refined: bool) -> None:
+def test_the_upsampling_products_are_the_layers_as_run(refined: bool) -> None:
     """Against the shapes torch's own forward pass produces (hooks), for CLIPSeg's two upsamplings."""
     import torch
 
-    if refined:  # rd64-refined's: a 3x3 conv, then two transposed 4x4 of stride 4
+    if refined:
         stack = torch.nn.Sequential(
             torch.nn.Conv2d(64, 64, 3, padding=1),
             torch.nn.ReLU(),
@@ -73,25 +77,26 @@ def test_the_upsampling_is_counted_as_the_layers_run_it(refined: bool) -> None:
         )
     else:  # rd64's: one transposed 16x16 of stride 16
         stack = torch.nn.Sequential(torch.nn.ConvTranspose2d(64, 1, 16, stride=16))
-    counted: list[float] = []
+    seen: list[tuple[int, int, int]] = []
 
-    def count(layer: torch.nn.Module, inputs: tuple[torch.Tensor], output: torch.Tensor) -> None:
+    def record(layer: torch.nn.Module, inputs: tuple[torch.Tensor], output: torch.Tensor) -> None:
         assert isinstance(layer, torch.nn.Conv2d | torch.nn.ConvTranspose2d)
         kernel = layer.kernel_size[0] * layer.kernel_size[1]
-        positions = inputs[0].numel() // layer.in_channels if isinstance(layer, torch.nn.ConvTranspose2d) else None
-        if positions is None:  # a convolution: every output gathers in_channels x kernel
-            counted.append(2.0 * output.numel() * layer.in_channels * kernel)
-        else:  # a transposed one: every input spreads over out_channels x kernel
-            counted.append(2.0 * positions * layer.in_channels * layer.out_channels * kernel)
+        if isinstance(layer, torch.nn.ConvTranspose2d):  # every input position spreads over out x kernel
+            seen.append((inputs[0].shape[-2] * inputs[0].shape[-1], layer.in_channels, layer.out_channels * kernel))
+        else:  # every output position gathers in x kernel
+            seen.append((output.shape[-2] * output.shape[-1], layer.in_channels * kernel, layer.out_channels))
 
     for layer in stack:
         if isinstance(layer, torch.nn.Conv2d | torch.nn.ConvTranspose2d):
-            layer.register_forward_hook(count)
+            layer.register_forward_hook(record)
     with torch.no_grad():
         image = stack(torch.zeros(1, 64, 22, 22))
     assert image.shape[-2:] == (352, 352)
-    assert upsampling_flops(stack, 22) == pytest.approx(sum(counted), rel=1e-12)
-    assert upsampling_flops(torch.nn.Sequential(torch.nn.ReLU()), 22) == 0.0
+    assert upsampling_products(stack, 22) == tuple(seen)
+    if refined:
+        assert tuple(seen) == RD64_UPSAMPLING
+    assert upsampling_products(torch.nn.Sequential(torch.nn.ReLU()), 22) == ()
 
 
 def test_the_frame_shape_is_read_from_the_model(tiny_model_dir: Path) -> None:
@@ -101,14 +106,41 @@ def test_the_frame_shape_is_read_from_the_model(tiny_model_dir: Path) -> None:
     config = model.config
     shape = frame_shape(model, tokens=17, concepts=3)
     assert shape.trunk == trunk_shape(config, tokens=17)
+    assert shape.trunk.layers == max(config.extract_layers) + 1
+    assert (shape.trunk.hidden, shape.trunk.mlp) == (
+        config.vision_config.hidden_size,
+        config.vision_config.intermediate_size,
+    )
     decoder = shape.decoder
     assert (decoder.width, decoder.mlp, decoder.layers) == (
         config.reduce_dim,
         config.decoder_intermediate_size,
         len(config.extract_layers),
     )
-    assert decoder.upsampling_flops == upsampling_flops(model.decoder.transposed_convolution, 4) > 0
+    assert decoder.upsampling == upsampling_products(model.decoder.transposed_convolution, 4) != ()
     assert shape.matmul_flops == shape.trunk.matmul_flops + decoder.matmul_flops(3)
+
+
+def test_each_product_counts_at_its_shapes_rate_attention_at_the_best() -> None:
+    """The floor from given rates: each product with weights at its shape's rate, attention's at the best;
+    the floor at peak every product at the best; stages add up to the whole."""
+    shape = rd64_refined()
+    products = shape.products
+    shapes = {product.shape for product in products if product.weights}
+    slow = (13 * 485, 64, 2048)  # the decoder's MLP in, batched over 13 concepts
+    assert slow in shapes
+    rates = {each: 1e12 for each in shapes} | {slow: 2.5e11}
+    floor = Floor("int8", "onnxruntime", rates)
+    assert floor.peak == 1e12
+    by_hand = sum(p.flops / (2.5e11 if p.shape == slow and p.weights else 1e12) for p in products) * 1000
+    assert floor.ms(shape) == pytest.approx(by_hand, rel=1e-12)
+    assert floor.peak_ms(shape) == pytest.approx(1000 * shape.matmul_flops / 1e12, rel=1e-12)
+    assert floor.ms(shape) > floor.peak_ms(shape)
+    stages = floor.stage_ms(shape)
+    assert list(stages) == [VISION, DECODER] and sum(stages.values()) == pytest.approx(floor.ms(shape))
+    assert stages[VISION] == pytest.approx(1000 * shape.trunk.matmul_flops / 1e12)  # all its shapes at peak here
+    attention = [p for p in products if not p.weights]
+    assert {p.name for p in attention} == {"attention"} and all(floor.rate(p) == 1e12 for p in attention)
 
 
 def test_a_floor_for_each_arithmetic_asked_int8_only_with_onnxruntime() -> None:
@@ -117,9 +149,11 @@ def test_a_floor_for_each_arithmetic_asked_int8_only_with_onnxruntime() -> None:
     has_onnx = all(importlib.util.find_spec(name) for name in ("onnx", "onnxruntime"))
     assert [floor.arithmetic for floor in floors] == (["fp32", "int8"] if has_onnx else ["fp32"])
     for floor in floors:
-        assert floor.operations_per_s > 0
-        assert floor.ms(shape) == pytest.approx(1000 * shape.matmul_flops / floor.operations_per_s)
+        assert set(floor.rates) == {(33, 32, 32), (33, 32, 64), (33, 64, 32)}  # the shapes with weights
+        assert min(floor.rates.values()) > 0
+        assert floor.ms(shape) >= floor.peak_ms(shape) > 0
     assert measure_floors(shape, set(), threads=1) == []
+    assert Product(VISION, "empty", 0, 8, 8, 1).flops == 0.0
 
 
 def test_doctor_prints_the_floor_and_each_modes_multiple_of_it(
@@ -131,10 +165,13 @@ def test_doctor_prints_the_floor_and_each_modes_multiple_of_it(
     out = capsys.readouterr().out
     floor_line = re.search(r"floor +([\d.]+) GFLOP of matrix products a frame \(13 anchors, (\d+) tokens: ", out)
     assert floor_line, out
-    found = re.findall(r"^ +\w+ +\(\w+\) [\d,]+ G(?:FLOP|OP)/s -> ([\d.e+-]+) ms \(ViT ([\d.e+-]+)\)$", out, re.M)
+    line = r"^ +\w+ +\(\w+\) -> ([\d.e+-]+) ms \(vision transformer ([\d.e+-]+), decoder and upsampling ([\d.e+-]+)\); "
+    found = re.findall(line + r"all at its best rate, [\d,]+ G(?:FLOP|OP)/s: ([\d.e+-]+) ms$", out, re.M)
     assert found, out
-    floors_ms = [float(frame) for frame, _ in found]
-    assert all(float(frame) > float(vit) > 0 for frame, vit in found)  # the decoder's products add to the ViT's
+    floors_ms = [float(frame) for frame, *_ in found]
+    for frame, vision, decoder, peak in found:
+        assert float(frame) == pytest.approx(float(vision) + float(decoder), rel=0.01)
+        assert float(frame) >= float(peak) > 0
     assert "| mode | ms per frame | x floor |" in out
     rows = dict(re.findall(r"^\| (fp32|int8) \| \d+ \| ([\d.]+) \|", out, re.M))
     assert set(rows) == {"fp32", "int8"}
