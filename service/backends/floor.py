@@ -15,12 +15,12 @@ they would be bound by writing out the scores, which a fused kernel never does. 
 timed batched over all concepts, their best case. ``peak_ms`` counts every product at the best rate, the
 strictest floor. Normalisations, activations, softmax and the engine are left out: the floor is what no
 runtime can beat, not an estimate of a frame. Rates with the threads the caller set: fp32 and bf16 by torch,
-int8 by ONNX Runtime's MatMulInteger (the op its dynamic quantization runs). Medians of a few repeats.
+int8 by ONNX Runtime's MatMulInteger (the op its dynamic quantization runs); each shape at the fastest of a
+few repeats.
 """
 
 from __future__ import annotations
 
-import statistics
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -209,57 +209,75 @@ class Floor:
         return 1000.0 * shape.matmul_flops / self.peak
 
 
-def _median_s(run: Callable[[], object]) -> float:
-    return statistics.median(interleaved_ms({"product": run}, REPEATS, WARMUP)["product"]) / 1000.0
+def _products(
+    shapes: list[tuple[int, int, int]], product: Callable[[int, int, int], Callable[[], object]]
+) -> dict[tuple[int, int, int], float]:
+    """Operations per second of each shape, one shape after another (its operands stay in cache, as a kernel
+    would have them at best), each at the fastest of its repeats: noise only ever slows a product down, and
+    the floor is the machine's best."""
+    rates = {}
+    for m, k, n in shapes:
+        times = interleaved_ms({"product": product(m, k, n)}, REPEATS, WARMUP)["product"]
+        rates[(m, k, n)] = 2.0 * m * k * n / (min(times) / 1000.0)
+    return rates
 
 
-def _torch_rate(m: int, k: int, n: int, dtype_name: str) -> float:
+def _torch_product(dtype_name: str) -> Callable[[int, int, int], Callable[[], object]]:
     import torch
 
     dtype = getattr(torch, dtype_name)
-    left, right = torch.randn(m, k, dtype=dtype), torch.randn(k, n, dtype=dtype)
-    with torch.inference_mode():
-        seconds = _median_s(lambda: torch.matmul(left, right))
-    return 2.0 * m * k * n / seconds
+
+    def product(m: int, k: int, n: int) -> Callable[[], object]:
+        left, right = torch.randn(m, k, dtype=dtype), torch.randn(k, n, dtype=dtype)
+
+        def run() -> object:
+            with torch.inference_mode():
+                return torch.matmul(left, right)
+
+        return run
+
+    return product
 
 
-def _onnx_int8_rate(m: int, k: int, n: int, threads: int) -> float:
+def _onnx_int8_product(threads: int) -> Callable[[int, int, int], Callable[[], object]]:
     import numpy as np
     import onnxruntime
     from onnx import TensorProto, helper, numpy_helper
 
-    weights = np.random.default_rng(0).integers(-127, 128, (k, n), dtype=np.int8)
-    graph = helper.make_graph(
-        [helper.make_node("MatMulInteger", ["a", "b", "a_zero"], ["y"])],
-        "product",
-        [helper.make_tensor_value_info("a", TensorProto.UINT8, [m, k])],
-        [helper.make_tensor_value_info("y", TensorProto.INT32, [m, n])],
-        [numpy_helper.from_array(weights, "b"), numpy_helper.from_array(np.array(128, np.uint8), "a_zero")],
-    )
-    # IR version 8 (onnx 1.10), not the installed onnx's newest: an older onnxruntime refuses a newer IR
-    # ("Unsupported model IR version: 14, max supported IR version: 13": onnx 1.23 beside onnxruntime 1.30).
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)], ir_version=8)
-    options = onnxruntime.SessionOptions()
-    options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
-    session = onnxruntime.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
-    activations = np.random.default_rng(1).integers(0, 256, (m, k), dtype=np.uint8)
-    seconds = _median_s(lambda: session.run(None, {"a": activations}))
-    return 2.0 * m * k * n / seconds
+    def product(m: int, k: int, n: int) -> Callable[[], object]:
+        weights = np.random.default_rng(0).integers(-127, 128, (k, n), dtype=np.int8)
+        graph = helper.make_graph(
+            [helper.make_node("MatMulInteger", ["a", "b", "a_zero"], ["y"])],
+            "product",
+            [helper.make_tensor_value_info("a", TensorProto.UINT8, [m, k])],
+            [helper.make_tensor_value_info("y", TensorProto.INT32, [m, n])],
+            [numpy_helper.from_array(weights, "b"), numpy_helper.from_array(np.array(128, np.uint8), "a_zero")],
+        )
+        # IR version 8 (onnx 1.10), not the installed onnx's newest: an older onnxruntime refuses a newer IR
+        # ("Unsupported model IR version: 14, max supported IR version: 13": onnx 1.23 beside onnxruntime 1.30).
+        model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)], ir_version=8)
+        options = onnxruntime.SessionOptions()
+        options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
+        session = onnxruntime.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+        feeds = {"a": np.random.default_rng(1).integers(0, 256, (m, k), dtype=np.uint8)}
+        return lambda: session.run(None, feeds)
+
+    return product
 
 
 def measure_floors(shape: TrunkShape | FrameShape, arithmetics: set[Arithmetic], threads: int) -> list[Floor]:
     """One floor per arithmetic in ``arithmetics`` this machine can measure (int8 needs onnxruntime and onnx):
-    the rate of each shape of product with weights in ``shape``, timed one after another."""
+    the rate of each shape of product with weights in ``shape``."""
     shapes = sorted({product.shape for product in shape.products if product.weights})
     floors = []
     for arithmetic in sorted(arithmetics):
         if arithmetic == "int8":
             try:
-                rates = {(m, k, n): _onnx_int8_rate(m, k, n, threads) for m, k, n in shapes}
+                rates = _products(shapes, _onnx_int8_product(threads))
             except ImportError:
                 continue
             floors.append(Floor("int8", "onnxruntime", rates))
         else:
             dtype = "float32" if arithmetic == "fp32" else "bfloat16"
-            floors.append(Floor(arithmetic, "torch", {(m, k, n): _torch_rate(m, k, n, dtype) for m, k, n in shapes}))
+            floors.append(Floor(arithmetic, "torch", _products(shapes, _torch_product(dtype))))
     return floors
