@@ -29,7 +29,7 @@ from gcdtrav.service.backends.modes import Arithmetic
 from gcdtrav.service.backends.timing import interleaved_ms
 
 WARMUP, REPEATS = 2, 7
-VISION, DECODER = "vision transformer", "decoder and upsampling"  # as gcdtrav bench names its stages
+VISION, DECODER = "vision transformer", "decoder and upsampling"  # the stages with products (gcdtrav bench's names)
 
 
 @dataclass(frozen=True)

@@ -209,7 +209,7 @@ class Bench:
         and for the two stages that have products. The decoder's row holds its upsampling: ONNX Runtime runs
         both in one graph."""
         import torch
-        from gcdtrav.service.backends.floor import frame_shape, measure_floors
+        from gcdtrav.service.backends.floor import DECODER, VISION, frame_shape, measure_floors
 
         backend = self.backend(precision)
         prepared = backend.prepare(self.anchors.concepts)
@@ -219,8 +219,8 @@ class Bench:
         maps = compute_maps(logits, self.anchors, EngineSettings())
         stages: dict[str, Callable[[], object]] = {
             "preprocessing": lambda: backend.preprocess(self.image),
-            "vision transformer": lambda: backend.vision_activations(pixels),
-            "decoder and upsampling": lambda: backend.decode(activations, prepared),
+            VISION: lambda: backend.vision_activations(pixels),
+            DECODER: lambda: backend.decode(activations, prepared),
             "GCD engine (T and U)": lambda: compute_maps(logits, self.anchors, EngineSettings()),
             "encoding T and U (PNG)": lambda: encode_maps_png16(maps.traversability, maps.uncertainty),
         }
@@ -330,14 +330,15 @@ class Bench:
 
 
 def format_table(rows: list[Row]) -> str:
+    group, name = max([9, *(len(r.group) for r in rows)]), max([36, *(len(r.name) for r in rows)])
     header = (
-        f"| {'group':<9} | {'row':<36} | {'median ms':>9} | {'p95 ms':>9} | {'frames/s':>8} "
+        f"| {'group':<{group}} | {'row':<{name}} | {'median ms':>9} | {'p95 ms':>9} | {'frames/s':>8} "
         f"| {'peak RSS MB':>11} | note"
     )
     lines = [header, "|" + "---|" * 7]
     for r in rows:
         lines.append(
-            f"| {r.group:<9} | {r.name:<36} | {r.median_ms:>9.1f} | {r.p95_ms:>9.1f} | {r.fps:>8.2f} | "
+            f"| {r.group:<{group}} | {r.name:<{name}} | {r.median_ms:>9.1f} | {r.p95_ms:>9.1f} | {r.fps:>8.2f} | "
             f"{r.peak_rss_mb:>11.0f} | {r.note}"
         )
     return "\n".join(lines)

@@ -95,3 +95,16 @@ def test_bench_breaks_a_frame_into_stages_and_names_the_floor(tiny_model_dir: Pa
     fast = next(row for row in summary["rows"] if row["name"] == f"fast path {precision}")
     assert summary["default_vs_floor"] == pytest.approx(fast["median_ms"] / floor["median_ms"], rel=0.01)
     assert summary["default_vs_peak_floor"] == pytest.approx(fast["median_ms"] / peak["median_ms"], rel=0.01)
+
+
+def test_the_table_keeps_its_columns_for_long_groups_and_names() -> None:
+    from gcdtrav.service.commands.bench import format_table, make_row
+
+    rows = [
+        make_row("fast path int8", "mode", [10.0], 100.0),
+        make_row("floor: decoder and upsampling in int8, a long name", "floor part", [1.5], 0.0, "a note"),
+    ]
+    lines = format_table(rows).splitlines()
+    bars = [[i for i, char in enumerate(line) if char == "|"] for line in (lines[0], *lines[2:])]
+    assert len({tuple(positions[:7]) for positions in bars}) == 1  # every row's columns where the header's are
+    assert "floor part" in lines[3] and lines[3].endswith("| a note")
