@@ -14,9 +14,8 @@ that fuses it with the next. Attention's token-by-token products count at the be
 they would be bound by writing out the scores, which a fused kernel never does. The decoder's products are
 timed batched over all concepts, their best case. ``peak_ms`` counts every product at the best rate, the
 strictest floor. Normalisations, activations, softmax and the engine are left out: the floor is what no
-runtime can beat, not an estimate of a frame. Rates with the threads the caller set: fp32 and bf16 by torch,
-int8 by ONNX Runtime's MatMulInteger (the op its dynamic quantization runs); each shape at the fastest of a
-few repeats.
+runtime can beat, not an estimate of a frame. Rates with the threads the caller set (``measure_floors`` says
+which runtime for which arithmetic); each shape at the fastest of a few repeats.
 """
 
 from __future__ import annotations
@@ -28,7 +27,7 @@ from typing import Any
 from gcdtrav.service.backends.modes import Arithmetic
 from gcdtrav.service.backends.timing import interleaved_ms
 
-WARMUP, REPEATS = 2, 7
+WARMUP, REPEATS = 2, 15
 VISION, DECODER = "vision transformer", "decoder and upsampling"  # the stages with products (gcdtrav bench's names)
 
 
@@ -239,19 +238,34 @@ def _torch_product(dtype_name: str) -> Callable[[int, int, int], Callable[[], ob
     return product
 
 
-def _onnx_int8_product(threads: int) -> Callable[[int, int, int], Callable[[], object]]:
+def _onnx_product(threads: int, arithmetic: Arithmetic) -> Callable[[int, int, int], Callable[[], object]]:
+    """ONNX Runtime's product in int8 (MatMulInteger, the op its dynamic quantization runs) or fp32 (MatMul)."""
     import numpy as np
     import onnxruntime
     from onnx import TensorProto, helper, numpy_helper
 
+    int8 = arithmetic == "int8"
+
     def product(m: int, k: int, n: int) -> Callable[[], object]:
-        weights = np.random.default_rng(0).integers(-127, 128, (k, n), dtype=np.int8)
+        rng = np.random.default_rng(0)
+        if int8:
+            weights = rng.integers(-127, 128, (k, n), dtype=np.int8)
+            node = helper.make_node("MatMulInteger", ["a", "b", "a_zero"], ["y"])
+            constants = [
+                numpy_helper.from_array(weights, "b"),
+                numpy_helper.from_array(np.array(128, np.uint8), "a_zero"),
+            ]
+            activations = rng.integers(0, 256, (m, k), dtype=np.uint8)
+        else:
+            node = helper.make_node("MatMul", ["a", "b"], ["y"])
+            constants = [numpy_helper.from_array(rng.standard_normal((k, n)).astype(np.float32), "b")]
+            activations = rng.standard_normal((m, k)).astype(np.float32)
         graph = helper.make_graph(
-            [helper.make_node("MatMulInteger", ["a", "b", "a_zero"], ["y"])],
+            [node],
             "product",
-            [helper.make_tensor_value_info("a", TensorProto.UINT8, [m, k])],
-            [helper.make_tensor_value_info("y", TensorProto.INT32, [m, n])],
-            [numpy_helper.from_array(weights, "b"), numpy_helper.from_array(np.array(128, np.uint8), "a_zero")],
+            [helper.make_tensor_value_info("a", TensorProto.UINT8 if int8 else TensorProto.FLOAT, [m, k])],
+            [helper.make_tensor_value_info("y", TensorProto.INT32 if int8 else TensorProto.FLOAT, [m, n])],
+            constants,
         )
         # IR version 8 (onnx 1.10), not the installed onnx's newest: an older onnxruntime refuses a newer IR
         # ("Unsupported model IR version: 14, max supported IR version: 13": onnx 1.23 beside onnxruntime 1.30).
@@ -259,25 +273,31 @@ def _onnx_int8_product(threads: int) -> Callable[[int, int, int], Callable[[], o
         options = onnxruntime.SessionOptions()
         options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
         session = onnxruntime.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
-        feeds = {"a": np.random.default_rng(1).integers(0, 256, (m, k), dtype=np.uint8)}
-        return lambda: session.run(None, feeds)
+        return lambda: session.run(None, {"a": activations})
 
     return product
 
 
 def measure_floors(shape: TrunkShape | FrameShape, arithmetics: set[Arithmetic], threads: int) -> list[Floor]:
-    """One floor per arithmetic in ``arithmetics`` this machine can measure (int8 needs onnxruntime and onnx):
-    the rate of each shape of product with weights in ``shape``."""
+    """One floor per arithmetic in ``arithmetics`` this machine can measure, from the rate of each shape of
+    product with weights in ``shape``: int8 by ONNX Runtime (left out without onnxruntime and onnx), bf16 by
+    torch, fp32 by the faster of torch and ONNX Runtime for each shape (torch's MKL runs fp32 products at less
+    than half ONNX Runtime's rate on an AMD EPYC)."""
     shapes = sorted({product.shape for product in shape.products if product.weights})
     floors = []
     for arithmetic in sorted(arithmetics):
+        if arithmetic == "bf16":
+            floors.append(Floor("bf16", "torch", _products(shapes, _torch_product("bfloat16"))))
+            continue
+        try:
+            onnx_rates = _products(shapes, _onnx_product(threads, arithmetic))
+        except ImportError:
+            onnx_rates = {}
         if arithmetic == "int8":
-            try:
-                rates = _products(shapes, _onnx_int8_product(threads))
-            except ImportError:
-                continue
-            floors.append(Floor("int8", "onnxruntime", rates))
-        else:
-            dtype = "float32" if arithmetic == "fp32" else "bfloat16"
-            floors.append(Floor(arithmetic, "torch", _products(shapes, _torch_product(dtype))))
+            if onnx_rates:
+                floors.append(Floor("int8", "onnxruntime", onnx_rates))
+            continue
+        torch_rates = _products(shapes, _torch_product("float32"))
+        rates = {each: max(rate, onnx_rates.get(each, 0.0)) for each, rate in torch_rates.items()}
+        floors.append(Floor("fp32", "torch, onnxruntime" if onnx_rates else "torch", rates))
     return floors

@@ -148,12 +148,32 @@ def test_a_floor_for_each_arithmetic_asked_int8_only_with_onnxruntime() -> None:
     floors = measure_floors(shape, {"fp32", "int8"}, threads=1)
     has_onnx = all(importlib.util.find_spec(name) for name in ("onnx", "onnxruntime"))
     assert [floor.arithmetic for floor in floors] == (["fp32", "int8"] if has_onnx else ["fp32"])
+    if has_onnx:
+        assert floors[0].runtime == "torch, onnxruntime"
     for floor in floors:
         assert set(floor.rates) == {(33, 32, 32), (33, 32, 64), (33, 64, 32)}  # the shapes with weights
         assert min(floor.rates.values()) > 0
         assert floor.ms(shape) >= floor.peak_ms(shape) > 0
     assert measure_floors(shape, set(), threads=1) == []
     assert Product(VISION, "empty", 0, 8, 8, 1).flops == 0.0
+
+
+def test_fp32_takes_the_faster_runtime_for_each_shape(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Rates made up per runtime (each 'product' returns its rate): fp32 the larger per shape, bf16 torch's,
+    int8 ONNX Runtime's."""
+    from gcdtrav.service.backends import floor as floors_module
+
+    pytest.importorskip("onnxruntime")
+    torch_rates = {(33, 32, 32): 5.0, (33, 32, 64): 1.0, (33, 64, 32): 3.0}
+    onnx_rates = {(33, 32, 32): 2.0, (33, 32, 64): 4.0, (33, 64, 32): 3.0}
+    monkeypatch.setattr(floors_module, "_products", lambda shapes, product: {s: product(*s)() for s in shapes})
+    monkeypatch.setattr(floors_module, "_torch_product", lambda dtype: lambda *s: lambda: torch_rates[s])
+    monkeypatch.setattr(floors_module, "_onnx_product", lambda threads, arithmetic: lambda *s: lambda: onnx_rates[s])
+    shape = TrunkShape(tokens=33, hidden=32, mlp=64, layers=2)
+    floors = {floor.arithmetic: floor for floor in measure_floors(shape, {"fp32", "bf16", "int8"}, threads=1)}
+    fp32, bf16, int8 = floors["fp32"], floors["bf16"], floors["int8"]
+    assert fp32.rates == {(33, 32, 32): 5.0, (33, 32, 64): 4.0, (33, 64, 32): 3.0}
+    assert bf16.rates == torch_rates and int8.rates == onnx_rates
 
 
 def test_doctor_prints_the_floor_and_each_modes_multiple_of_it(
@@ -165,7 +185,7 @@ def test_doctor_prints_the_floor_and_each_modes_multiple_of_it(
     out = capsys.readouterr().out
     floor_line = re.search(r"floor +([\d.]+) GFLOP of matrix products a frame \(13 anchors, (\d+) tokens: ", out)
     assert floor_line, out
-    line = r"^ +\w+ +\(\w+\) -> ([\d.e+-]+) ms \(vision transformer ([\d.e+-]+), decoder and upsampling ([\d.e+-]+)\); "
+    line = r"^ +\w+ +\([\w, ]+\) -> ([\d.e+-]+) ms \(vision transformer ([\d.e+-]+), decoder and upsampling ([\d.e+-]+)\); "
     found = re.findall(line + r"all at its best rate, [\d,]+ G(?:FLOP|OP)/s: ([\d.e+-]+) ms$", out, re.M)
     assert found, out
     floors_ms = [float(frame) for frame, *_ in found]
