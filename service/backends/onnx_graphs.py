@@ -65,6 +65,7 @@ class PatchEmbedding(torch.nn.Module):
         if convolution.stride[0] != self.patch or size % self.patch:
             raise ValueError(f"patches of {self.patch} px, stride {convolution.stride[0]}, do not tile {size} px")
         self.grid = size // self.patch
+        self.constant: torch.Tensor  # a buffer, registered below
         self.project = torch.nn.Linear(channels * self.patch * self.patch, width, bias=False)
         with torch.no_grad():
             self.project.weight.copy_(convolution.weight.reshape(width, -1))
