@@ -62,8 +62,12 @@ class PatchEmbedding(torch.nn.Module):
         super().__init__()
         convolution = embeddings.patch_embedding
         self.patch, channels, width = convolution.kernel_size[0], convolution.in_channels, convolution.out_channels
-        if convolution.stride[0] != self.patch or size % self.patch:
-            raise ValueError(f"patches of {self.patch} px, stride {convolution.stride[0]}, do not tile {size} px")
+        tiles = tuple(convolution.stride) == tuple(convolution.kernel_size) == (self.patch, self.patch)
+        if not tiles or convolution.padding not in ((0, 0), "valid") or size % self.patch:
+            raise ValueError(
+                f"a convolution of kernel {convolution.kernel_size}, stride {convolution.stride} and padding "
+                f"{convolution.padding} does not tile {size} px into patches"
+            )
         self.grid = size // self.patch
         self.constant: torch.Tensor  # a buffer, registered below
         self.project = torch.nn.Linear(channels * self.patch * self.patch, width, bias=False)

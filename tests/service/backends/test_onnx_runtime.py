@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import logging
 from pathlib import Path
@@ -76,8 +77,12 @@ def test_the_patch_embedding_as_one_product_is_clips_embedding(tiny_backend) -> 
         found = PatchEmbedding(embeddings, size)(pixels)
     assert found.shape == expected.shape == (1, (size // patch) ** 2 + 1, embeddings.embed_dim)
     torch.testing.assert_close(found, expected, atol=1e-5, rtol=1e-5)
-    with pytest.raises(ValueError, match="do not tile"):
+    with pytest.raises(ValueError, match="does not tile"):
         PatchEmbedding(embeddings, size + 1)
+    padded = copy.deepcopy(embeddings)
+    padded.patch_embedding.padding = (1, 1)
+    with pytest.raises(ValueError, match="padding"):
+        PatchEmbedding(padded, size)
 
 
 def test_sessions_run_without_ort_s_skip_layer_norm_fusion(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
