@@ -20,6 +20,7 @@ which runtime for which arithmetic); each shape at the fastest of a few repeats.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
@@ -64,16 +65,19 @@ class TrunkShape:
     hidden: int
     mlp: int
     layers: int  # layers a frame runs: up to the last one the decoder reads
+    patch_values: int = 0  # channels x patch x patch: the patch embedding's input per patch (0: left out)
 
     @property
     def products(self) -> list[Product]:
         tokens, hidden, layers = self.tokens, self.hidden, self.layers
-        return [
+        products = [
+            Product(VISION, "patch embedding", tokens - 1, self.patch_values, hidden, 1),
             Product(VISION, "Q, K, V and output projections", tokens, hidden, hidden, 4 * layers),
             Product(VISION, "MLP in", tokens, hidden, self.mlp, layers),
             Product(VISION, "MLP out", tokens, self.mlp, hidden, layers),
             Product(VISION, "attention", tokens, hidden, tokens, 2 * layers, weights=False),  # all heads together
         ]
+        return [product for product in products if product.k]
 
     @property
     def matmul_flops(self) -> float:
@@ -84,7 +88,8 @@ def trunk_shape(config: Any, tokens: int) -> TrunkShape:
     """The trunk's shape from a CLIPSeg config (``transformers.CLIPSegConfig``) at ``tokens`` tokens."""
     vision = config.vision_config
     layers = max(config.extract_layers) + 1
-    return TrunkShape(tokens, int(vision.hidden_size), int(vision.intermediate_size), layers)
+    patch_values = int(vision.num_channels) * int(vision.patch_size) ** 2
+    return TrunkShape(tokens, int(vision.hidden_size), int(vision.intermediate_size), layers, patch_values)
 
 
 @dataclass(frozen=True)
@@ -96,10 +101,13 @@ class DecoderShape:
     layers: int  # one per trunk layer read
     conditional: int  # FiLM's input: the text projection's width
     upsampling: tuple[tuple[int, int, int], ...]  # (m, k, n) of each convolution's product, for one concept
+    concepts: int
 
-    def products(self, concepts: int) -> list[Product]:
-        """Batched over ``concepts``; the reductions run once a frame, shared by every concept."""
-        rows, width, layers = concepts * self.tokens, self.width, self.layers
+    @property
+    def products(self) -> list[Product]:
+        """Batched over the concepts; the reductions run once a frame, shared by every concept."""
+        concepts, width, layers = self.concepts, self.width, self.layers
+        rows = concepts * self.tokens
         products = [
             Product(DECODER, "reductions", self.tokens, self.hidden, width, layers),
             Product(DECODER, "FiLM", concepts, self.conditional, width, 2),
@@ -112,26 +120,30 @@ class DecoderShape:
             products.append(Product(DECODER, f"upsampling {index + 1}", concepts * m, k, n, 1))
         return [product for product in products if product.count and product.m]
 
-    def matmul_flops(self, concepts: int) -> float:
-        return total_flops(self.products(concepts))
+    @property
+    def matmul_flops(self) -> float:
+        return total_flops(self.products)
 
 
 @dataclass(frozen=True)
 class FrameShape:
-    """A frame's matrix products: the trunk, and the decoder and upsampling for ``concepts`` concepts."""
+    """A frame's matrix products: the trunk's, and the decoder's and the upsampling's for its concepts."""
 
     trunk: TrunkShape
     decoder: DecoderShape
-    concepts: int
+
+    @property
+    def concepts(self) -> int:
+        return self.decoder.concepts
 
     @property
     def products(self) -> list[Product]:
-        return self.trunk.products + self.decoder.products(self.concepts)
+        return self.trunk.products + self.decoder.products
 
     @property
     def parts(self) -> dict[str, float]:
         """FLOPs by stage."""
-        return {VISION: self.trunk.matmul_flops, DECODER: self.decoder.matmul_flops(self.concepts)}
+        return {VISION: self.trunk.matmul_flops, DECODER: self.decoder.matmul_flops}
 
     @property
     def matmul_flops(self) -> float:
@@ -140,8 +152,10 @@ class FrameShape:
 
 def frame_shape(model: Any, tokens: int, concepts: int) -> FrameShape:
     """The frame's shape from a CLIPSeg model (``transformers.CLIPSegForImageSegmentation``): its config, and
-    its upsampling convolutions as built (rd64-refined's three, or one)."""
+    its upsampling convolutions as built (rd64-refined's three, or rd64's one). The tokens but the class token
+    form a square grid, as CLIPSeg's decoder takes them."""
     config = model.config
+    grid = round((tokens - 1) ** 0.5)
     decoder = DecoderShape(
         tokens,
         int(config.vision_config.hidden_size),
@@ -149,37 +163,56 @@ def frame_shape(model: Any, tokens: int, concepts: int) -> FrameShape:
         int(config.decoder_intermediate_size),
         len(config.extract_layers),
         int(config.projection_dim),
-        upsampling_products(model.decoder.transposed_convolution, round((tokens - 1) ** 0.5)),
+        upsampling_products(model.decoder.transposed_convolution, (grid, grid)),
+        concepts,
     )
-    return FrameShape(trunk_shape(config, tokens), decoder, concepts)
+    return FrameShape(trunk_shape(config, tokens), decoder)
 
 
-def upsampling_products(upsampling: Any, side: int) -> tuple[tuple[int, int, int], ...]:
-    """The (m, k, n) product of each ``Conv2d`` and ``ConvTranspose2d`` in ``upsampling`` (other layers have
-    none) on a ``side`` x ``side`` grid, for one concept: a convolution gathers, for each output position, its
-    kernel's inputs (m outputs, k = in x kernel, n = out); a transposed one spreads each input position over a
-    kernel of outputs (m inputs, k = in, n = out x kernel)."""
+def upsampling_products(upsampling: Any, grid: tuple[int, int]) -> tuple[tuple[int, int, int], ...]:
+    """The (m, k, n) product of each ``Conv2d`` and ``ConvTranspose2d`` in ``upsampling`` (a module or a stack;
+    other layers have none) on a ``grid`` (height, width), for one concept: a convolution gathers, for each
+    output position, its kernel's inputs (m outputs, k = in x kernel, n = out); a transposed one spreads each
+    input position over a kernel of outputs (m inputs, k = in, n = out x kernel)."""
     import torch
 
-    products, size = [], side
+    products, size = [], grid
     for layer in upsampling.modules():
         if not isinstance(layer, torch.nn.Conv2d | torch.nn.ConvTranspose2d):
             continue
-        (kernel, _), (stride, _), (dilation, _) = layer.kernel_size, layer.stride, layer.dilation
-        padding, taps = _padding(layer, kernel, dilation), kernel * kernel
+        kernel, inputs = math.prod(layer.kernel_size), layer.in_channels // layer.groups
         if isinstance(layer, torch.nn.ConvTranspose2d):
-            products.append((size * size, layer.in_channels // layer.groups, layer.out_channels * taps))
-            size = (size - 1) * stride - 2 * padding + dilation * (kernel - 1) + layer.output_padding[0] + 1
+            products.append((math.prod(size), inputs, layer.out_channels * kernel))
+            size = _transposed_output(layer, size)
         else:
-            size = (size + 2 * padding - dilation * (kernel - 1) - 1) // stride + 1
-            products.append((size * size, layer.in_channels // layer.groups * taps, layer.out_channels))
+            size = _convolution_output(layer, size)
+            products.append((math.prod(size), inputs * kernel, layer.out_channels))
     return tuple(products)
 
 
-def _padding(layer: Any, kernel: int, dilation: int) -> int:
-    if layer.padding == "same":  # Conv2d only, stride 1
-        return dilation * (kernel - 1) // 2
-    return 0 if layer.padding == "valid" else int(layer.padding[0])
+def _convolution_output(layer: Any, size: tuple[int, int]) -> tuple[int, int]:
+    if layer.padding == "same":
+        return size
+    padding = (0, 0) if layer.padding == "valid" else layer.padding
+    height, width = (
+        (size[axis] + 2 * padding[axis] - layer.dilation[axis] * (layer.kernel_size[axis] - 1) - 1)
+        // layer.stride[axis]
+        + 1
+        for axis in (0, 1)
+    )
+    return height, width
+
+
+def _transposed_output(layer: Any, size: tuple[int, int]) -> tuple[int, int]:
+    height, width = (
+        (size[axis] - 1) * layer.stride[axis]
+        - 2 * layer.padding[axis]
+        + layer.dilation[axis] * (layer.kernel_size[axis] - 1)
+        + layer.output_padding[axis]
+        + 1
+        for axis in (0, 1)
+    )
+    return height, width
 
 
 @dataclass(frozen=True)
@@ -208,7 +241,7 @@ class Floor:
         return 1000.0 * shape.matmul_flops / self.peak
 
 
-def _products(
+def _rates(
     shapes: list[tuple[int, int, int]], product: Callable[[int, int, int], Callable[[], object]]
 ) -> dict[tuple[int, int, int], float]:
     """Operations per second of each shape, one shape after another (its operands stay in cache, as a kernel
@@ -282,22 +315,23 @@ def measure_floors(shape: TrunkShape | FrameShape, arithmetics: set[Arithmetic],
     """One floor per arithmetic in ``arithmetics`` this machine can measure, from the rate of each shape of
     product with weights in ``shape``: int8 by ONNX Runtime (left out without onnxruntime and onnx), bf16 by
     torch, fp32 by the faster of torch and ONNX Runtime for each shape (torch's MKL runs fp32 products at less
-    than half ONNX Runtime's rate on an AMD EPYC)."""
+    than half ONNX Runtime's rate on an AMD EPYC). ONNX Runtime runs ``threads`` threads, torch the number it
+    was set to (the caller sets both alike)."""
     shapes = sorted({product.shape for product in shape.products if product.weights})
     floors = []
     for arithmetic in sorted(arithmetics):
         if arithmetic == "bf16":
-            floors.append(Floor("bf16", "torch", _products(shapes, _torch_product("bfloat16"))))
+            floors.append(Floor("bf16", "torch", _rates(shapes, _torch_product("bfloat16"))))
             continue
         try:
-            onnx_rates = _products(shapes, _onnx_product(threads, arithmetic))
+            onnx_rates = _rates(shapes, _onnx_product(threads, arithmetic))
         except ImportError:
             onnx_rates = {}
         if arithmetic == "int8":
             if onnx_rates:
                 floors.append(Floor("int8", "onnxruntime", onnx_rates))
             continue
-        torch_rates = _products(shapes, _torch_product("float32"))
+        torch_rates = _rates(shapes, _torch_product("float32"))
         rates = {each: max(rate, onnx_rates.get(each, 0.0)) for each, rate in torch_rates.items()}
         floors.append(Floor("fp32", "torch, onnxruntime" if onnx_rates else "torch", rates))
     return floors

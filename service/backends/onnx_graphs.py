@@ -63,10 +63,12 @@ class PatchEmbedding(torch.nn.Module):
         convolution = embeddings.patch_embedding
         self.patch, channels, width = convolution.kernel_size[0], convolution.in_channels, convolution.out_channels
         tiles = tuple(convolution.stride) == tuple(convolution.kernel_size) == (self.patch, self.patch)
-        if not tiles or convolution.padding not in ((0, 0), "valid") or size % self.patch:
+        plain = convolution.padding in ((0, 0), "valid") and tuple(convolution.dilation) == (1, 1)
+        if not (tiles and plain and convolution.groups == 1) or size % self.patch:
             raise ValueError(
-                f"a convolution of kernel {convolution.kernel_size}, stride {convolution.stride} and padding "
-                f"{convolution.padding} does not tile {size} px into patches"
+                f"a convolution of kernel {convolution.kernel_size}, stride {convolution.stride}, padding "
+                f"{convolution.padding}, dilation {convolution.dilation} and {convolution.groups} group(s) does "
+                f"not tile {size} px into patches"
             )
         self.grid = size // self.patch
         self.constant: torch.Tensor  # a buffer, registered below

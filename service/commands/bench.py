@@ -3,7 +3,7 @@
 Rows: transformers' naive forward; the fast path in every precision this machine runs; attention and
 thread variants; cost against the number of anchors and the input size; one frame in its stages
 (preprocessing, vision transformer, decoder and upsampling, engine, encoding) with each one's share, and
-this machine's floor for the frame's ViT products; the GCD engine and map encoding alone. Parity of each
+this machine's floor for the frame's matrix products; the GCD engine and map encoding alone. Parity of each
 fast mode against fp32 is measured on logits brought to a trained model's scale (see ``parity``). The
 repository's ``benchmarks/bench.py`` runs the same on random weights of the real architecture and adds the
 service rows (zenoh on loopback, simulated robots)."""

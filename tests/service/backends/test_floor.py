@@ -3,16 +3,17 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib.util
 import re
 from pathlib import Path
 
 import pytest
 
-pytest.importorskip("torch")
+torch = pytest.importorskip("torch")
 
-from gcdtrav.service.backends import precision_choice
-from gcdtrav.service.backends.floor import (
+from gcdtrav.service.backends import precision_choice  # noqa: E402
+from gcdtrav.service.backends.floor import (  # noqa: E402
     DECODER,
     VISION,
     DecoderShape,
@@ -25,24 +26,26 @@ from gcdtrav.service.backends.floor import (
     trunk_shape,
     upsampling_products,
 )
-from gcdtrav.service.backends.precision_choice import ModeMeasurement
-from gcdtrav.service.commands import doctor
+from gcdtrav.service.backends.precision_choice import ModeMeasurement  # noqa: E402
+from gcdtrav.service.commands import doctor  # noqa: E402
 
 # rd64-refined's upsampling on its 22 x 22 grid: a 3x3 convolution 64 -> 64, then two transposed 4x4 of stride 4
 RD64_UPSAMPLING = ((22 * 22, 64 * 9, 64), (22 * 22, 64, 32 * 16), (88 * 88, 32, 1 * 16))
+# ViT-B/16 at 352 px: 22 x 22 patches + the class token; layers 3, 6 and 9 read, so 10 run; RGB patches of 16 x 16
+RD64_TRUNK = TrunkShape(tokens=485, hidden=768, mlp=3072, layers=10, patch_values=3 * 16 * 16)
 
 
 def rd64_refined(concepts: int = 13) -> FrameShape:
-    decoder = DecoderShape(485, 768, 64, 2048, 3, 512, RD64_UPSAMPLING)
-    return FrameShape(TrunkShape(tokens=485, hidden=768, mlp=3072, layers=10), decoder, concepts)
+    return FrameShape(RD64_TRUNK, DecoderShape(485, 768, 64, 2048, 3, 512, RD64_UPSAMPLING, concepts))
 
 
-def test_the_trunk_products_of_rd64_refined_are_the_issues_75_9_gflop() -> None:
-    # ViT-B/16 at 352 px: 22 x 22 patches + the class token; layers 3, 6 and 9 read, so 10 run
-    shape = TrunkShape(tokens=485, hidden=768, mlp=3072, layers=10)
+def test_the_trunk_products_of_rd64_refined_are_the_issues_75_9_gflop_and_the_patch_embedding() -> None:
     per_layer = 2 * 485 * 768 * (3 * 768 + 768 + 2 * 3072) + 2 * 2 * 485 * 485 * 768
-    assert shape.matmul_flops == 10 * per_layer
-    assert shape.matmul_flops / 1e9 == pytest.approx(75.9, abs=0.05)
+    layers_only = dataclasses.replace(RD64_TRUNK, patch_values=0)
+    assert layers_only.matmul_flops == 10 * per_layer
+    assert layers_only.matmul_flops / 1e9 == pytest.approx(75.9, abs=0.05)  # the issue's figure
+    assert RD64_TRUNK.matmul_flops == 10 * per_layer + 2 * 484 * 768 * 768  # one product per patch
+    assert RD64_TRUNK.products[0].name == "patch embedding"
 
 
 def test_the_decoder_products_of_rd64_refined_at_13_anchors() -> None:
@@ -51,52 +54,58 @@ def test_the_decoder_products_of_rd64_refined_at_13_anchors() -> None:
     decoder = rd64_refined().decoder
     per_layer = 2 * 485 * 64 * (4 * 64 + 2 * 2048) + 2 * 2 * 485 * 485 * 64
     per_concept = 2 * 2 * 512 * 64 + 3 * per_layer + upsampling
-    assert decoder.matmul_flops(13) == 2 * 485 * 768 * 64 * 3 + 13 * per_concept
-    assert decoder.matmul_flops(13) / 1e9 == pytest.approx(14.0, abs=0.05)
+    reductions = 2 * 485 * 768 * 64 * 3
+    assert decoder.matmul_flops == reductions + 13 * per_concept
+    assert decoder.matmul_flops / 1e9 == pytest.approx(14.0, abs=0.05)
     frame = rd64_refined()
-    assert list(frame.parts) == [VISION, DECODER]
+    assert frame.concepts == 13 and list(frame.parts) == [VISION, DECODER]
     assert frame.matmul_flops == sum(frame.parts.values())
-    assert frame.matmul_flops / 1e9 == pytest.approx(75.9 + 14.0, abs=0.1)
+    assert frame.matmul_flops / 1e9 == pytest.approx(76.45 + 14.0, abs=0.1)
     # one concept and none: the reductions run once a frame whatever the anchors
-    assert decoder.matmul_flops(0) == 2 * 485 * 768 * 64 * 3
-    assert decoder.matmul_flops(1) == decoder.matmul_flops(0) + per_concept
+    assert dataclasses.replace(decoder, concepts=0).matmul_flops == reductions
+    assert dataclasses.replace(decoder, concepts=1).matmul_flops == reductions + per_concept
 
 
-@pytest.mark.parametrize("refined", [True, False])
-def test_the_upsampling_products_are_the_layers_as_run(refined: bool) -> None:
-    """Against the shapes torch's own forward pass produces (hooks), for CLIPSeg's two upsamplings."""
-    import torch
-
-    if refined:
-        stack = torch.nn.Sequential(
-            torch.nn.Conv2d(64, 64, 3, padding=1),
-            torch.nn.ReLU(),
-            torch.nn.ConvTranspose2d(64, 32, 4, stride=4),
-            torch.nn.ReLU(),
-            torch.nn.ConvTranspose2d(32, 1, 4, stride=4),
-        )
-    else:  # rd64's: one transposed 16x16 of stride 16
-        stack = torch.nn.Sequential(torch.nn.ConvTranspose2d(64, 1, 16, stride=16))
+def record_products(stack: torch.nn.Module, grid: tuple[int, int]) -> list[tuple[int, int, int]]:
+    """The (m, k, n) of each convolution as torch's own forward pass shapes it (hooks)."""
     seen: list[tuple[int, int, int]] = []
 
     def record(layer: torch.nn.Module, inputs: tuple[torch.Tensor], output: torch.Tensor) -> None:
         assert isinstance(layer, torch.nn.Conv2d | torch.nn.ConvTranspose2d)
-        kernel = layer.kernel_size[0] * layer.kernel_size[1]
+        kernel, group = layer.kernel_size[0] * layer.kernel_size[1], layer.in_channels // layer.groups
         if isinstance(layer, torch.nn.ConvTranspose2d):  # every input position spreads over out x kernel
-            seen.append((inputs[0].shape[-2] * inputs[0].shape[-1], layer.in_channels, layer.out_channels * kernel))
-        else:  # every output position gathers in x kernel
-            seen.append((output.shape[-2] * output.shape[-1], layer.in_channels * kernel, layer.out_channels))
+            seen.append((inputs[0].shape[-2] * inputs[0].shape[-1], group, layer.out_channels * kernel))
+        else:  # every output position gathers its group's inputs x kernel
+            seen.append((output.shape[-2] * output.shape[-1], group * kernel, layer.out_channels))
 
-    for layer in stack:
+    for layer in stack.modules():
         if isinstance(layer, torch.nn.Conv2d | torch.nn.ConvTranspose2d):
             layer.register_forward_hook(record)
     with torch.no_grad():
-        image = stack(torch.zeros(1, 64, 22, 22))
-    assert image.shape[-2:] == (352, 352)
-    assert upsampling_products(stack, 22) == tuple(seen)
-    if refined:
-        assert tuple(seen) == RD64_UPSAMPLING
-    assert upsampling_products(torch.nn.Sequential(torch.nn.ReLU()), 22) == ()
+        stack(torch.zeros(1, 64, *grid))
+    return seen
+
+
+def test_the_upsampling_products_are_the_layers_as_run() -> None:
+    """CLIPSeg's two upsamplings (rd64-refined's stack, rd64's one bare module), a non-square one, 'same'
+    padding and an output padding, against the shapes torch's forward pass gives."""
+    refined = torch.nn.Sequential(
+        torch.nn.Conv2d(64, 64, 3, padding=1),
+        torch.nn.ReLU(),
+        torch.nn.ConvTranspose2d(64, 32, 4, stride=4),
+        torch.nn.ReLU(),
+        torch.nn.ConvTranspose2d(32, 1, 4, stride=4),
+    )
+    assert upsampling_products(refined, (22, 22)) == tuple(record_products(refined, (22, 22))) == RD64_UPSAMPLING
+    plain = torch.nn.ConvTranspose2d(64, 1, 16, stride=16)
+    assert upsampling_products(plain, (22, 22)) == ((484, 64, 256),) == tuple(record_products(plain, (22, 22)))
+    odd = torch.nn.Sequential(
+        torch.nn.Conv2d(64, 32, (3, 5), padding="same", dilation=(1, 2)),
+        torch.nn.Conv2d(32, 32, (3, 1), stride=(2, 1), padding=(1, 0), groups=4),
+        torch.nn.ConvTranspose2d(32, 8, (2, 3), stride=(2, 3), output_padding=(1, 0), dilation=1),
+    )
+    assert upsampling_products(odd, (9, 14)) == tuple(record_products(odd, (9, 14)))
+    assert upsampling_products(torch.nn.Sequential(torch.nn.ReLU()), (22, 22)) == ()
 
 
 def test_the_frame_shape_is_read_from_the_model(tiny_model_dir: Path) -> None:
@@ -107,18 +116,18 @@ def test_the_frame_shape_is_read_from_the_model(tiny_model_dir: Path) -> None:
     shape = frame_shape(model, tokens=17, concepts=3)
     assert shape.trunk == trunk_shape(config, tokens=17)
     assert shape.trunk.layers == max(config.extract_layers) + 1
-    assert (shape.trunk.hidden, shape.trunk.mlp) == (
-        config.vision_config.hidden_size,
-        config.vision_config.intermediate_size,
-    )
+    vision = config.vision_config
+    assert (shape.trunk.hidden, shape.trunk.mlp) == (vision.hidden_size, vision.intermediate_size)
+    assert shape.trunk.patch_values == vision.num_channels * vision.patch_size**2
     decoder = shape.decoder
-    assert (decoder.width, decoder.mlp, decoder.layers) == (
+    assert (decoder.width, decoder.mlp, decoder.layers, decoder.concepts) == (
         config.reduce_dim,
         config.decoder_intermediate_size,
         len(config.extract_layers),
+        3,
     )
-    assert decoder.upsampling == upsampling_products(model.decoder.transposed_convolution, 4) != ()
-    assert shape.matmul_flops == shape.trunk.matmul_flops + decoder.matmul_flops(3)
+    assert decoder.upsampling == upsampling_products(model.decoder.transposed_convolution, (4, 4)) != ()
+    assert shape.matmul_flops == shape.trunk.matmul_flops + decoder.matmul_flops
 
 
 def test_each_product_counts_at_its_shapes_rate_attention_at_the_best() -> None:
@@ -163,10 +172,9 @@ def test_fp32_takes_the_faster_runtime_for_each_shape(monkeypatch: pytest.Monkey
     int8 ONNX Runtime's."""
     from gcdtrav.service.backends import floor as floors_module
 
-    pytest.importorskip("onnxruntime")
     torch_rates = {(33, 32, 32): 5.0, (33, 32, 64): 1.0, (33, 64, 32): 3.0}
     onnx_rates = {(33, 32, 32): 2.0, (33, 32, 64): 4.0, (33, 64, 32): 3.0}
-    monkeypatch.setattr(floors_module, "_products", lambda shapes, product: {s: product(*s)() for s in shapes})
+    monkeypatch.setattr(floors_module, "_rates", lambda shapes, product: {s: product(*s)() for s in shapes})
     monkeypatch.setattr(floors_module, "_torch_product", lambda dtype: lambda *s: lambda: torch_rates[s])
     monkeypatch.setattr(floors_module, "_onnx_product", lambda threads, arithmetic: lambda *s: lambda: onnx_rates[s])
     shape = TrunkShape(tokens=33, hidden=32, mlp=64, layers=2)
@@ -185,8 +193,9 @@ def test_doctor_prints_the_floor_and_each_modes_multiple_of_it(
     out = capsys.readouterr().out
     floor_line = re.search(r"floor +([\d.]+) GFLOP of matrix products a frame \(13 anchors, (\d+) tokens: ", out)
     assert floor_line, out
-    line = r"^ +\w+ +\([\w, ]+\) -> ([\d.e+-]+) ms \(vision transformer ([\d.e+-]+), decoder and upsampling ([\d.e+-]+)\); "
-    found = re.findall(line + r"all at its best rate, [\d,]+ G(?:FLOP|OP)/s: ([\d.e+-]+) ms$", out, re.M)
+    number = r"([\d.e+-]+)"
+    line = rf"^ +\w+ +\([\w, ]+\) -> {number} ms \(vision transformer {number}, decoder and upsampling {number}\); "
+    found = re.findall(line + rf"all at its best rate, [\d,]+ G(?:FLOP|OP)/s: {number} ms$", out, re.M)
     assert found, out
     floors_ms = [float(frame) for frame, *_ in found]
     for frame, vision, decoder, peak in found:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import json
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -77,12 +78,13 @@ def test_the_patch_embedding_as_one_product_is_clips_embedding(tiny_backend) -> 
         found = PatchEmbedding(embeddings, size)(pixels)
     assert found.shape == expected.shape == (1, (size // patch) ** 2 + 1, embeddings.embed_dim)
     torch.testing.assert_close(found, expected, atol=1e-5, rtol=1e-5)
-    with pytest.raises(ValueError, match="does not tile"):
+    with pytest.raises(ValueError, match=f"not tile {size + 1} px"):
         PatchEmbedding(embeddings, size + 1)
-    padded = copy.deepcopy(embeddings)
-    padded.patch_embedding.padding = (1, 1)
-    with pytest.raises(ValueError, match="padding"):
-        PatchEmbedding(padded, size)
+    for setting, value, says in (("padding", (1, 1), "padding (1, 1)"), ("dilation", (2, 2), "dilation (2, 2)")):
+        changed = copy.deepcopy(embeddings)
+        setattr(changed.patch_embedding, setting, value)
+        with pytest.raises(ValueError, match=re.escape(says)):
+            PatchEmbedding(changed, size)
 
 
 def test_sessions_run_without_ort_s_skip_layer_norm_fusion(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
