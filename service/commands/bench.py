@@ -236,7 +236,8 @@ class Bench:
             note = f"{shape.matmul_flops / 1e9:.3g} GFLOP, {shape.concepts} anchors, each at its shape's rate"
             self.add(make_row(f"floor: the frame's products in {arithmetic}", "floor", [floor.ms(shape)], 0.0, note))
             for stage, ms in floor.stage_ms(shape).items():
-                self.add(make_row(f"floor: {stage} in {arithmetic}", "floor part", [ms], 0.0))
+                took = f"the stage took {statistics.median(times[stage]) / ms:.2f}x this"
+                self.add(make_row(f"floor: {stage} in {arithmetic}", "floor part", [ms], 0.0, took))
             note = f"every product at the best rate measured, {peak} ({floor.runtime})"
             at_peak = [floor.peak_ms(shape)]
             self.add(make_row(f"floor at peak: the frame in {arithmetic}", "floor peak", at_peak, 0.0, note))

@@ -89,6 +89,12 @@ def test_bench_breaks_a_frame_into_stages_and_names_the_floor(tiny_model_dir: Pa
     parts = {row["name"].split(" in ")[0]: row["median_ms"] for row in summary["rows"] if row["group"] == "floor part"}
     assert list(parts) == ["floor: vision transformer", "floor: decoder and upsampling"]  # the stages with products
     assert sum(parts.values()) == pytest.approx(floor["median_ms"], abs=0.02)  # each row rounded to 0.01 ms
+    stage_ms = {row["name"].removesuffix(f" ({precision})"): row["median_ms"] for row in stages}
+    for row in (row for row in summary["rows"] if row["group"] == "floor part"):
+        took, part = stage_ms[row["name"].removeprefix("floor: ").split(" in ")[0]], row["median_ms"]
+        multiple = float(row["note"].removeprefix("the stage took ").removesuffix("x this"))
+        # the rows hold medians rounded to 0.01 ms, the note the multiple of the unrounded ones to 0.01
+        assert (took - 0.005) / (part + 0.005) - 0.005 <= multiple <= (took + 0.005) / max(part - 0.005, 1e-9) + 0.005
     assert min(parts.values()) > 0
     (peak,) = [row for row in summary["rows"] if row["group"] == "floor peak"]
     assert 0 < peak["median_ms"] <= floor["median_ms"] + 0.01  # every product at the best rate: the lowest
