@@ -36,6 +36,34 @@ def cpu_features() -> list[str]:
     return sorted(flag for flag in flags if flag in KERNEL_FLAGS)
 
 
+# Linux x86-64 hands a process AMX's tile registers only on request, and only if the kernel (5.16 on) and, in a
+# VM, the hypervisor pass the tile state through: arch_prctl(ARCH_GET_XCOMP_SUPP) lists the state components
+# the kernel offers; XTILEDATA is component 18. Without it the amx_* flags are there and no AMX kernel can run.
+SYS_ARCH_PRCTL, ARCH_GET_XCOMP_SUPP, XFEATURE_XTILEDATA = 158, 0x1021, 18
+
+
+def amx_tiles_offered(flags: list[str] | None = None, supported: int | None = -1) -> bool | None:
+    """Whether the kernel offers this process AMX's tile state: None when the CPU has no AMX (``flags``, by
+    default this CPU's), True or False when it has. ``supported``: the kernel's mask of state components (by
+    default asked of the kernel; None where it cannot be asked: not Linux x86-64, or a kernel before 5.16)."""
+    if "amx_tile" not in (cpu_features() if flags is None else flags):
+        return None
+    mask = _xcomp_supported() if supported == -1 else supported
+    return mask is not None and bool(mask >> XFEATURE_XTILEDATA & 1)
+
+
+def _xcomp_supported() -> int | None:
+    if platform.system() != "Linux" or platform.machine() != "x86_64":
+        return None
+    import ctypes
+
+    mask = ctypes.c_uint64(0)
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.syscall(SYS_ARCH_PRCTL, ARCH_GET_XCOMP_SUPP, ctypes.byref(mask)) != 0:
+        return None  # EINVAL: a kernel that does not manage extended state components per process
+    return int(mask.value)
+
+
 def _read(path: Path) -> str | None:
     try:
         return path.read_text("utf-8").strip()

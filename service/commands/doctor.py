@@ -15,7 +15,7 @@ from typing import Any
 
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.service.backends import ModelUnavailableError, default_model
-from gcdtrav.service.backends.cpus import cpu_features, cpu_name, set_torch_threads, usable_cpus
+from gcdtrav.service.backends.cpus import amx_tiles_offered, cpu_features, cpu_name, set_torch_threads, usable_cpus
 
 EXIT_OK, EXIT_NO_WEIGHTS = 0, 1
 PACKAGES = ("torch", "transformers", "onnxruntime", "onnx", "eclipse-zenoh", "numpy", "opencv-python-headless")
@@ -60,6 +60,7 @@ def machine_info() -> dict[str, Any]:
         "usable_cores": usable_cpus(),
         "torch_threads": torch.get_num_threads(),
         "fast_bf16": cpu_has_fast_bf16(),
+        "amx_tiles": amx_tiles_offered(),  # None: no AMX
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
     }
 
@@ -67,13 +68,25 @@ def machine_info() -> dict[str, Any]:
 def machine_lines() -> list[str]:
     info = machine_info()
     bf16 = "yes (AVX512-BF16 or AMX)" if info["fast_bf16"] else "no: bf16 modes would be emulated"
-    return [
+    lines = [
         f"CPU          {info['cpu']} ({platform.machine()})",
         f"cores        {info['usable_cores']} usable by this process; torch threads {info['torch_threads']}",
         f"features     {' '.join(info['cpu_features']) or 'none of the ones that matter'}",
         f"native bf16  {bf16}",
-        "versions     " + ", ".join(f"{p} {version_of(p)}" for p in PACKAGES) + f", python {platform.python_version()}",
     ]
+    if info["amx_tiles"] is not None:
+        lines.append(f"AMX tiles    {AMX_TILES[info['amx_tiles']]}")
+    versions = ", ".join(f"{p} {version_of(p)}" for p in PACKAGES) + f", python {platform.python_version()}"
+    return [*lines, f"versions     {versions}"]
+
+
+AMX_TILES = {
+    True: "offered by the kernel: AMX kernels can run",
+    False: (
+        "NOT offered by the kernel (a kernel before 5.16, or a VM that does not pass AMX's tile state "
+        "through): no AMX kernel runs, bf16 and int8 fall back to AVX-512"
+    ),
+}
 
 
 def run(args: argparse.Namespace) -> int:

@@ -53,3 +53,49 @@ def test_service_threads_default_to_the_usable_cpus(tmp_path: Path) -> None:
     settings = with_torch_threads(ServiceSettings(state_dir=tmp_path))
     assert settings.threads == min(torch.get_num_threads(), usable_cpus())
     assert with_torch_threads(ServiceSettings(state_dir=tmp_path, threads=3)).threads == 3
+
+
+@pytest.mark.parametrize(
+    ("flags", "supported", "offered"),
+    [
+        (["avx512f"], 0b111 | 1 << 18, None),  # no AMX: nothing to offer, whatever the kernel says
+        (["amx_tile", "amx_bf16"], 0b11100111 | 0b11 << 17, True),  # tile config and data (17, 18)
+        (["amx_tile", "amx_bf16"], 0b11100111, False),  # a VM that keeps the tile state to itself
+        (["amx_tile"], None, False),  # a kernel that cannot be asked (before 5.16)
+    ],
+)
+def test_amx_tiles_are_usable_only_where_the_kernel_offers_their_state(
+    flags: list[str], supported: int | None, offered: bool | None
+) -> None:
+    from gcdtrav.service.backends.cpus import amx_tiles_offered
+
+    assert amx_tiles_offered(flags, supported) is offered
+
+
+def test_this_kernel_answers_which_state_it_offers() -> None:
+    """The real arch_prctl: a mask with x87 and SSE at least on Linux x86-64, None elsewhere; the answer for
+    this machine agrees with it."""
+    import platform
+
+    from gcdtrav.service.backends.cpus import XFEATURE_XTILEDATA, _xcomp_supported, amx_tiles_offered, cpu_features
+
+    mask = _xcomp_supported()
+    if platform.system() == "Linux" and platform.machine() == "x86_64" and mask is not None:
+        assert mask & 0b11 == 0b11  # every x86-64 kernel manages x87 and SSE state
+    offered = amx_tiles_offered()
+    if "amx_tile" not in cpu_features():
+        assert offered is None
+    else:
+        assert offered is (mask is not None and bool(mask >> XFEATURE_XTILEDATA & 1))
+
+
+def test_doctor_says_whether_amx_tiles_are_offered(monkeypatch: pytest.MonkeyPatch) -> None:
+    pytest.importorskip("torch")
+    from gcdtrav.service.commands import doctor
+
+    for offered, says in ((None, None), (True, "offered by the kernel"), (False, "NOT offered by the kernel")):
+        monkeypatch.setattr(doctor, "amx_tiles_offered", lambda offered=offered: offered)
+        lines = [line for line in doctor.machine_lines() if line.startswith("AMX tiles")]
+        assert lines == ([] if says is None else [f"AMX tiles    {doctor.AMX_TILES[offered]}"])
+        if says:
+            assert says in lines[0]
