@@ -42,17 +42,18 @@ def cpu_features() -> list[str]:
 SYS_ARCH_PRCTL, ARCH_GET_XCOMP_SUPP, XFEATURE_XTILEDATA = 158, 0x1021, 18
 
 
-def amx_tiles_offered(flags: list[str] | None = None, supported: int | None = -1) -> bool | None:
-    """Whether the kernel offers this process AMX's tile state: None when the CPU has no AMX (``flags``, by
-    default this CPU's), True or False when it has. ``supported``: the kernel's mask of state components (by
-    default asked of the kernel; None where it cannot be asked: not Linux x86-64, or a kernel before 5.16)."""
-    if "amx_tile" not in (cpu_features() if flags is None else flags):
+def amx_tiles_offered(flags: list[str], supported: int | None) -> bool | None:
+    """Whether the kernel offers AMX's tile state: None when the CPU has no AMX (its ``flags``, as
+    ``cpu_features`` lists them), True or False when it has. ``supported``: the kernel's mask of state
+    components (``xcomp_supported``)."""
+    if "amx_tile" not in flags:
         return None
-    mask = _xcomp_supported() if supported == -1 else supported
-    return mask is not None and bool(mask >> XFEATURE_XTILEDATA & 1)
+    return supported is not None and bool(supported >> XFEATURE_XTILEDATA & 1)
 
 
-def _xcomp_supported() -> int | None:
+def xcomp_supported() -> int | None:
+    """The kernel's mask of the extended state components it offers a process; None where it cannot be asked
+    (not Linux x86-64, or a kernel before 5.16)."""
     if platform.system() != "Linux" or platform.machine() != "x86_64":
         return None
     import ctypes

@@ -15,7 +15,14 @@ from typing import Any
 
 from gcdtrav.schemas.anchors import default_anchor_set
 from gcdtrav.service.backends import ModelUnavailableError, default_model
-from gcdtrav.service.backends.cpus import amx_tiles_offered, cpu_features, cpu_name, set_torch_threads, usable_cpus
+from gcdtrav.service.backends.cpus import (
+    amx_tiles_offered,
+    cpu_features,
+    cpu_name,
+    set_torch_threads,
+    usable_cpus,
+    xcomp_supported,
+)
 
 EXIT_OK, EXIT_NO_WEIGHTS = 0, 1
 PACKAGES = ("torch", "transformers", "onnxruntime", "onnx", "eclipse-zenoh", "numpy", "opencv-python-headless")
@@ -50,17 +57,18 @@ def machine_info() -> dict[str, Any]:
     import torch
     from gcdtrav.service.backends.machine import cpu_has_fast_bf16
 
+    features = cpu_features()
     return {
         "python": platform.python_version(),
         "torch": torch.__version__,
         "onnxruntime": version_of("onnxruntime"),
         "cpu": cpu_name(),
-        "cpu_features": cpu_features(),
+        "cpu_features": features,
         "cores": os.cpu_count(),
         "usable_cores": usable_cpus(),
         "torch_threads": torch.get_num_threads(),
         "fast_bf16": cpu_has_fast_bf16(),
-        "amx_tiles": amx_tiles_offered(),  # None: no AMX
+        "amx_tiles": amx_tiles_offered(features, xcomp_supported()),  # None: no AMX
         "date": time.strftime("%Y-%m-%d %H:%M:%S"),
     }
 
