@@ -71,8 +71,9 @@ EDGES = [0.0, -0.0, 1e-8, 6e-8, 1e-5, 0.1, 1 / 3, 1.0, 65504.0, 65519.0, 65520.0
         np.random.default_rng(4).standard_normal((5, 6, 7))[:, ::2, 1:],  # float64, not contiguous
         np.float32(0.25),  # 0-d
         np.zeros((0, 4), np.float32),  # empty
+        np.array([1 + 2**-11 + 2**-40, 2**-11 + 2**-30], np.float64),  # float64 halfway cases: rounded once
     ],
-    ids=["edges", "weights", "float64-strided", "scalar", "empty"],
+    ids=["edges", "weights", "float64-strided", "scalar", "empty", "float64-halfway"],
 )
 def test_as_float16_is_numpys_cast_bit_for_bit(values: np.ndarray) -> None:
     with np.errstate(over="ignore"):
