@@ -303,6 +303,7 @@ def _onnx_product(threads: int, arithmetic: Arithmetic) -> Callable[[int, int, i
         # IR version 8 (onnx 1.10), not the installed onnx's newest: an older onnxruntime refuses a newer IR
         # ("Unsupported model IR version: 14, max supported IR version: 13": onnx 1.23 beside onnxruntime 1.30).
         model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)], ir_version=8)
+        # Not onnx_runtime.session_options: a product timed alone keeps its threads spinning, the machine's best
         options = onnxruntime.SessionOptions()
         options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
         session = onnxruntime.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
