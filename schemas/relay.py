@@ -206,6 +206,13 @@ class RelayOutcomes(TrackingSettings):
     def _source_is_literal(cls, value: str | None) -> str | None:
         return None if value is None else _literal_key(value, "outcomes.source")
 
+    @field_validator("outcome")
+    @classmethod
+    def _outcome_is_a_key(cls, value: str | None) -> str | None:
+        if value is not None and value.startswith("/"):
+            raise ValueError(f"outcomes.outcome '{value}' must be a zenoh key: a TraversalOutcome has no ROS type")
+        return value
+
 
 class RelaySettings(StrictModel):
     cameras: list[RelayCamera] = Field(min_length=1, description="The robot's cameras, one source each.")

@@ -2,7 +2,7 @@
 both must agree): a ``nav_msgs/msg/OccupancyGrid`` written (the relay's safe speed mask) and its geometry read
 back; Nav2's speed filter info (``CostmapFilterInfo``); a stamped message's header restamped; the one rule from
 a ``nav_msgs/msg/Odometry`` to a pose (a grid's pose stream, the safe mask's centre) and its velocity (the
-outcomes); a ``geometry_msgs/msg/Twist`` or ``TwistStamped`` and a ``std_msgs/msg/Bool``.
+outcomes); a ``geometry_msgs/msg/Twist`` or ``TwistStamped``, a ``std_msgs/msg/Bool`` and a ``nav_msgs/msg/Path``.
 
 Plain CDR, little-endian, as schemas/ros_image.py reads it: a 4-byte encapsulation header, then each field
 aligned to its size from the end of that header. Checked against ROS 2's own serialiser
@@ -23,7 +23,10 @@ from numpy.typing import NDArray
 
 OCCUPANCY_GRID = "nav_msgs/msg/OccupancyGrid"
 ODOMETRY = "nav_msgs/msg/Odometry"
+PATH = "nav_msgs/msg/Path"
 TWIST, TWIST_STAMPED, BOOL = "geometry_msgs/msg/Twist", "geometry_msgs/msg/TwistStamped", "std_msgs/msg/Bool"
+# A PoseStamped's least CDR: a stamp (8 bytes), an empty frame id (4 + 1, then 3 of padding) and 7 doubles
+POSE_STAMPED_BYTES = 8 + 8 + 7 * 8
 COVARIANCE = 36  # doubles of a PoseWithCovariance's or TwistWithCovariance's covariance
 ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little-endian
 
@@ -228,3 +231,26 @@ def bool_value(payload: bytes) -> bool:
     if len(payload) < 5 or payload[:2] not in (b"\x00\x00", b"\x00\x01") or payload[4] > 1:
         raise RosNavError(f"not a {BOOL}: {payload[:8]!r}")
     return bool(payload[4])
+
+
+def path_points(payload: bytes) -> tuple[str, float, list[tuple[float, float]]]:
+    """A Path's CDR as the outcomes read it: its header's frame id and stamp, and its poses' (x, y) in order (the
+    poses' own headers are skipped: the path's frame is the grid's); RosNavError when it is not one."""
+    try:
+        reader = _Reader(payload)
+        sec, nanosec, frame_id = reader.number("i"), reader.number("I"), reader.string()
+        count = reader.number("I")
+        if count * POSE_STAMPED_BYTES > len(payload):  # a corrupt count must not loop for long
+            raise _Malformed(f"{count} poses in {len(payload)} bytes")
+        points = []
+        for _ in range(count):
+            reader.number("i"), reader.number("I"), reader.string()
+            x, y = _double(reader), _double(reader)
+            for _ in range(5):  # z and the orientation
+                _double(reader)
+            points.append((x, y))
+    except _Malformed as err:
+        raise RosNavError(f"not a {PATH}: {err}") from None
+    if not all(math.isfinite(x) and math.isfinite(y) for x, y in points):
+        raise RosNavError(f"a {PATH} with a position that is not finite")
+    return frame_id, seconds((sec, nanosec)), points

@@ -39,13 +39,18 @@ ROS_TYPES = {  # the rmw_zenoh key chunk of each type a zenoh relay reads as a R
     "cmd_vel_stamped": "geometry_msgs::msg::dds_::TwistStamped_",
     "odometry": "nav_msgs::msg::dds_::Odometry_",
     "contact": "std_msgs::msg::dds_::Bool_",
+    "planned_path": "nav_msgs::msg::dds_::Path_",
 }
 
 
 def robot_key(name: str, kind: str) -> str:
     """The key a zenoh relay reads an input on: a plain key as it is, a ROS topic ('/...') as its rmw_zenoh keys
-    (any domain, any type hash)."""
-    return name if not name.startswith("/") else f"*/{name.strip('/')}/{ROS_TYPES[kind]}/*"
+    (any domain, any type hash); ValueError for a topic of an input that has no ROS type (``outcome``)."""
+    if not name.startswith("/"):
+        return name
+    if kind not in ROS_TYPES:
+        raise ValueError(f"outcomes.{kind} '{name}' is a ROS topic, but {kind} is read from a zenoh key only")
+    return f"*/{name.strip('/')}/{ROS_TYPES[kind]}/*"
 
 
 INPUT_ERRORS = (MessageError,)  # a bad input of the outcomes (RosNavError is a MessageError)
@@ -96,12 +101,14 @@ class OutcomeLink:
     def on_path(self, frame_id: str, stamp: float, points: Sequence[tuple[float, float]]) -> None:
         """The robot's planned path (the grid's frame), shortened: kept to send if it changed (its nearer half left
         the last one sent: a new plan, or the robot drove half of it) or the last was sent ``path_renew_s`` ago
-        (the service forgets a path not renewed within its ask.path_timeout_s)."""
+        (the service forgets a path not renewed within its ask.path_timeout_s). MessageError for a path that is
+        not one the service takes (a frame id too long, a point out of reach)."""
         kept = shortened(points, self.settings.path_length_m)
+        path = PlannedPath.validated({"stamp": stamp, "frame_id": frame_id, "points": kept})
         with self._lock:
             due = self.clock() - self._path_sent_at >= self.settings.path_renew_s
             if due or not follows(kept, self._path_sent, self.settings.path_length_m / 2):
-                self._path = PlannedPath(stamp=stamp, frame_id=frame_id, points=kept)
+                self._path = path
 
     def _add(self, outcome: TraversalOutcome | None) -> None:
         if outcome is None:

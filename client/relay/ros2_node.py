@@ -72,6 +72,7 @@ from gcdtrav.schemas.ros_nav import (
     costmap_filter_info_cdr,
     occupancy_grid_geometry,
     odometry_motion,
+    path_points,
     restamped,
 )
 from gcdtrav.schemas.settings.ros import RosOutput as OutputTopics
@@ -104,10 +105,6 @@ PARKED = "gcdtrav/parked"  # std_msgs/Bool from the robot's software: the camera
 
 def ros_time(sec_nanosec: tuple[int, int]) -> Time:
     return Time(sec=sec_nanosec[0], nanosec=sec_nanosec[1])
-
-
-def stamp_seconds(stamp: Time) -> float:
-    return float(stamp.sec + stamp.nanosec * 1e-9)
 
 
 def nav2_messages() -> tuple[Any, Any, Any] | None:
@@ -354,11 +351,6 @@ def decoded(outcomes: OutcomeLink, handle: Callable[[bytes], None], data: bytes)
         outcomes.rejected += 1
 
 
-def feed_path(outcomes: OutcomeLink, path: Path) -> None:
-    points = [(pose.pose.position.x, pose.pose.position.y) for pose in path.poses]
-    outcomes.on_path(path.header.frame_id[:256], stamp_seconds(path.header.stamp), points)
-
-
 class RosRobotSide:
     """The robot's ROS 2 graph as the relay's robot side (``Relay(robot=...)``)."""
 
@@ -441,7 +433,8 @@ class RosRobotSide:
             contact = partial(decoded, outcomes, lambda data: outcomes.on_contact(decode_contact(data)))
             node.create_subscription(Bool, settings.contact, contact, SENSOR_QOS, raw=True)
         if settings.planned_path is not None:
-            node.create_subscription(Path, settings.planned_path, partial(feed_path, outcomes), IMAGE_QOS)
+            path = partial(decoded, outcomes, lambda data: outcomes.on_path(*path_points(data)))
+            node.create_subscription(Path, settings.planned_path, path, IMAGE_QOS, raw=True)
         if self.odometry is None:  # no pose to send: odometry read for the safe mask and the outcomes only
             self.odometry = OdometryLink(node, RelayOdometry(), self.link, self._on_pose)
         self.odometry.outcomes = outcomes

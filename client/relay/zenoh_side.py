@@ -27,7 +27,7 @@ from gcdtrav.schemas.experience import PlannedPath, TraversalOutcome
 from gcdtrav.schemas.messages import MessageError, Pose2D, RelayHealth
 from gcdtrav.schemas.outcomes import decode_command, decode_contact, decode_odometry
 from gcdtrav.schemas.relay import FORWARDABLE, RelayCamera
-from gcdtrav.schemas.ros_nav import odometry_pose, split_stamp
+from gcdtrav.schemas.ros_nav import odometry_pose, path_points, split_stamp
 
 log = logging.getLogger("gcdtrav.relay")
 
@@ -169,5 +169,9 @@ def _decoded(outcomes: OutcomeLink, handle: Callable[[bytes], None], sample: zen
 
 
 def _path_into(outcomes: OutcomeLink, payload: bytes) -> None:
+    """A nav_msgs/Path over rmw_zenoh (CDR: its first byte is zero) or a PlannedPath (msgpack or JSON)."""
+    if payload[:1] == b"\x00":
+        outcomes.on_path(*path_points(payload))
+        return
     path = PlannedPath.decode(payload, 256 * 1024)
     outcomes.on_path(path.frame_id, path.stamp, [(float(x), float(y)) for x, y in path.points])

@@ -203,7 +203,27 @@ def test_plain_inputs_and_what_is_refused() -> None:
         ("/cmd_vel", "cmd_vel", "*/cmd_vel/geometry_msgs::msg::dds_::Twist_/*"),
         ("/r1/odom", "odometry", "*/r1/odom/nav_msgs::msg::dds_::Odometry_/*"),
         ("/bumper", "contact", "*/bumper/std_msgs::msg::dds_::Bool_/*"),
+        ("/plan", "planned_path", "*/plan/nav_msgs::msg::dds_::Path_/*"),
+        ("robot/outcome", "outcome", "robot/outcome"),
     ],
 )
 def test_a_ros_topic_is_read_on_its_rmw_zenoh_keys(name: str, kind: str, key: str) -> None:
     assert robot_key(name, kind) == key
+
+
+def test_an_input_without_a_ros_type_is_not_read_as_a_topic() -> None:
+    with pytest.raises(ValueError, match="outcome '/robot/outcome' is a ROS topic, but outcome is read from a zenoh"):
+        robot_key("/robot/outcome", "outcome")
+    with pytest.raises(ValueError, match="a TraversalOutcome has no ROS type"):
+        RelayOutcomes(outcome="/robot/outcome")
+    assert RelayOutcomes(planned_path="/plan").planned_path == "/plan"  # docs/calibration.md's example
+
+
+def test_a_path_the_service_would_refuse_is_counted_by_the_robot_side_not_kept() -> None:
+    relay, _, paths, clock = link()
+    with pytest.raises(MessageError, match="PlannedPath"):
+        relay.on_path("odom", 1.0, [(0.0, 0.0), (1e12, 0.0)])  # out of any grid's reach
+    with pytest.raises(MessageError, match="PlannedPath"):
+        relay.on_path("f" * 300, 1.0, [(0.0, 0.0)])  # a frame id longer than a message takes
+    send_at(relay, clock, 0.0)
+    assert paths.payloads == []

@@ -1,7 +1,8 @@
 """Issue 56 with real ROS 2: a robot's own cmd_vel, odometry and bumper as rclpy nodes over Fast DDS, behind
 `gcdtrav relay --ros` (a child process), against a real `gcdtrav serve` (tiny random model, experience on,
 outcomes only from the bus): the outcomes measured on the robot become pairs in the fleet's store, `gcdtrav
-calibration` grades them, and a proposal is made from them."""
+calibration` grades them, and a proposal is made from them; its planned path (nav_msgs/Path) reaches the service
+as a PlannedPath."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ pytest.importorskip("torch")
 require_rclpy()
 
 from gcdtrav.client import QueryTimeout, ServiceError, TraversabilityClient  # noqa: E402
+from gcdtrav.schemas.experience import PlannedPath  # noqa: E402
 
 from tools.ros2_robot import (  # noqa: E402
     Camera,
@@ -54,7 +56,8 @@ def ros_domain() -> Iterator[int]:
 def test_outcomes_measured_behind_a_ros_relay_are_paired_graded_and_proposed_from(
     ros_domain: int, tiny_model_dir: Path, tmp_path: Path
 ) -> None:
-    from geometry_msgs.msg import Twist
+    from geometry_msgs.msg import PoseStamped, Twist
+    from nav_msgs.msg import Path as RosPath
     from std_msgs.msg import Bool
 
     settings = tmp_path / "service.yaml"
@@ -77,6 +80,13 @@ def test_outcomes_measured_behind_a_ros_relay_are_paired_graded_and_proposed_fro
         command.linear.x = 1.0  # told 1 m/s, doing 0.5: every velocity outcome scores 0.5
         robot.every(0.1, lambda: commands.publish(command))
         bumper = robot.publisher(Bool, "/r1/bumper")
+        plans, plan = robot.publisher(RosPath, "/r1/plan"), RosPath()
+        plan.header.frame_id = "odom"
+        for x in (0.0, 1.0, 2.0):
+            pose = PoseStamped()
+            pose.pose.position.x, pose.pose.position.y = x, x / 4
+            plan.poses.append(pose)
+        robot.every(0.5, lambda: plans.publish(plan))
         assert wait_until(lambda: listening(port), 60), service_log.text()
         relay = subprocess.Popen(
             relay_command(
@@ -85,12 +95,18 @@ def test_outcomes_measured_behind_a_ros_relay_are_paired_graded_and_proposed_fro
                 *("-p", "camera_info_key:=robot/r1/front/camera_info"),
                 *("-p", "odometry_topic:=/r1/odom", "-p", "odometry_key:=robot/r1/pose"),
                 *("-p", "cmd_vel_topic:=/r1/cmd_vel", "-p", "contact_topic:=/r1/bumper"),
+                *("-p", "planned_path_topic:=/r1/plan"),
             ),
             stdout=subprocess.DEVNULL,
             stderr=relay_log.handle,
         )
         logs = lambda: f"relay:\n{relay_log.text()[-3000:]}\nservice:\n{service_log.text()[-3000:]}"  # noqa: E731
         with TraversabilityClient(config=client_config(port), timeout=10.0) as client:
+            paths: list[PlannedPath] = []
+            client.session.declare_subscriber(
+                f"gcdtrav/in/{SOURCE}/planned_path",
+                lambda sample: paths.append(PlannedPath.unpack(sample.payload.to_bytes())),
+            )
 
             def counts() -> dict[str, int]:
                 try:
@@ -112,6 +128,8 @@ def test_outcomes_measured_behind_a_ros_relay_are_paired_graded_and_proposed_fro
             assert graded.returncode == 0 and f"calibration of {SOURCE}" in graded.stdout, graded.stdout + graded.stderr
             proposal = client.anchor_proposal()
             assert proposal.train_pairs + proposal.held_out_pairs > 0 and proposal.proposed_version
+            assert wait_until(lambda: len(paths) > 0, 30), logs()
+            assert paths[-1].frame_id == "odom" and paths[-1].points == [(0.0, 0.0), (1.0, 0.25), (2.0, 0.5)]
         camera.stop()
         odometry.stop()
     finally:

@@ -13,6 +13,7 @@ from gcdtrav.schemas.ros_nav import (
     occupancy_grid_cdr,
     occupancy_grid_geometry,
     odometry_pose,
+    path_points,
     split_stamp,
 )
 
@@ -98,3 +99,63 @@ def test_a_grid_whose_cells_do_not_match_its_size_is_refused() -> None:
 @pytest.mark.parametrize(("stamp", "split"), [(0.0, (0, 0)), (1.5, (1, 500_000_000)), (2.9999999999, (2, 999_999_999))])
 def test_split_stamp(stamp: float, split: tuple[int, int]) -> None:
     assert split_stamp(stamp) == split
+
+
+def rosbags_path(frame_id: str, points: list[tuple[float, float]], pose_frame: str) -> bytes:
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types = store.types
+    header, time = types["std_msgs/msg/Header"], types["builtin_interfaces/msg/Time"]
+    pose_stamped, pose = types["geometry_msgs/msg/PoseStamped"], types["geometry_msgs/msg/Pose"]
+    point, quaternion = types["geometry_msgs/msg/Point"], types["geometry_msgs/msg/Quaternion"]
+    poses = [
+        pose_stamped(
+            header=header(stamp=time(sec=3, nanosec=4), frame_id=pose_frame),
+            pose=pose(position=point(x=x, y=y, z=0.5), orientation=quaternion(x=0.0, y=0.0, z=0.6, w=0.8)),
+        )
+        for x, y in points
+    ]
+    path = types["nav_msgs/msg/Path"](header=header(stamp=time(sec=12, nanosec=345), frame_id=frame_id), poses=poses)
+    return bytes(store.serialize_cdr(path, "nav_msgs/msg/Path"))
+
+
+@pytest.mark.parametrize(
+    ("frame_id", "points", "pose_frame"),
+    [("odom", [(1.0, -2.0), (1.5, -2.25), (3.0, 4.0)], ""), ("map", [], "map"), ("", [(0.0, 0.0)], "odd_frame")],
+)
+def test_a_path_reads_as_rosbags_writes_it(frame_id: str, points: list[tuple[float, float]], pose_frame: str) -> None:
+    pytest.importorskip("rosbags")
+    assert path_points(rosbags_path(frame_id, points, pose_frame)) == (frame_id, pytest.approx(12.000000345), points)
+
+
+def test_a_path_as_ros2_serialises_it() -> None:
+    from real_components import require_rclpy
+
+    require_rclpy()
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Path
+    from rclpy.serialization import serialize_message
+
+    path = Path()
+    path.header.stamp.sec, path.header.frame_id = 9, "odom"
+    for x, y in [(0.25, 0.5), (-7.0, 8.125)]:
+        stamped = PoseStamped()
+        stamped.header.frame_id = "odom"
+        stamped.pose.position.x, stamped.pose.position.y = x, y
+        path.poses.append(stamped)
+    assert path_points(serialize_message(path)) == ("odom", 9.0, [(0.25, 0.5), (-7.0, 8.125)])
+
+
+def test_a_path_that_is_not_one_is_refused() -> None:
+    pytest.importorskip("rosbags")
+    written = rosbags_path("odom", [(1.0, 2.0), (3.0, 4.0)], "odom")
+    for payload in (b"", written[:-9], b"\x82\xa1x\x01"):
+        with pytest.raises(RosNavError, match="nav_msgs/msg/Path"):
+            path_points(payload)
+    count_at = written.index(struct.pack("<I", 2), 4 + 8 + 4 + 5)  # after the header: the poses' count
+    with pytest.raises(RosNavError, match="4000000000 poses"):
+        path_points(written[:count_at] + struct.pack("<I", 4_000_000_000) + written[count_at + 4 :])
+    not_finite = written.replace(struct.pack("<d", 3.0), struct.pack("<d", math.inf))
+    with pytest.raises(RosNavError, match="not finite"):
+        path_points(not_finite)
