@@ -89,10 +89,11 @@ class RosRobot:
         with self._lock:
             return self.node.create_publisher(msg_type, topic, qos)
 
-    def subscribe(self, msg_type: Any, topic: str, qos: Any = 10) -> tuple[Any, Received]:
+    def subscribe(self, msg_type: Any, topic: str, qos: Any = 10, raw: bool = False) -> tuple[Any, Received]:
+        """``raw``: each message as its CDR bytes."""
         received = Received()
         with self._lock:
-            subscription = self.node.create_subscription(msg_type, topic, received.add, qos)
+            subscription = self.node.create_subscription(msg_type, topic, received.add, qos, raw=raw)
         return subscription, received
 
     def destroy(self, entity: Any) -> None:

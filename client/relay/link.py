@@ -20,7 +20,8 @@ from gcdtrav.schemas.relay import RelaySettings
 log = logging.getLogger("gcdtrav.relay")
 MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
 STAMPED_OUTPUTS = ("maps", "maps8", "grid")  # their header's stamp is the capture stamp of the newest frame
-GRID_CDRS = ("speed_mask", "costmap", "nav2_costmap")  # the grid's CDRs, under {prefix}/out/{source}/grid/
+# the grid's CDRs, under {prefix}/out/{source}/grid/ (service/runtime/grids/outputs.py)
+GRID_CDRS = ("speed_mask", "speed_limit", "costmap", "nav2_costmap")
 OUTPUT_ENCODINGS = {
     "maps": MSGPACK,
     "maps8": MSGPACK,

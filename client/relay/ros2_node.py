@@ -285,15 +285,20 @@ class SpeedTopics:
             )
 
     def publish_mask(self, payload: bytes) -> float:
-        frame_id = occupancy_grid_geometry(payload).frame_id
-        if self.info is not None and frame_id != self._info_frame:
-            self._info_frame = frame_id
-            self.info.publish(costmap_filter_info_cdr(frame_id, self.mask_topic))
+        self._announce(occupancy_grid_geometry(payload).frame_id)
         return self._publish_mask(payload)
 
     def publish_safe(self, mask: SafeMask, now: tuple[int, int]) -> None:
-        """The relay's own safe mask (client/relay/mask_guard.py), where the live masks go."""
+        """The relay's own safe mask (client/relay/mask_guard.py), where the live masks go: announced first, as a
+        live one is, or a SpeedFilter that never saw a live mask (a service never heard) would not read it."""
+        self._announce(mask.frame_id)
         self.mask.publish(mask.cdr(now))
+
+    def _announce(self, frame_id: str) -> None:
+        """The CostmapFilterInfo naming the mask's topic, when the mask's frame changes (where nav2_msgs is)."""
+        if self.info is not None and frame_id != self._info_frame:
+            self._info_frame = frame_id
+            self.info.publish(costmap_filter_info_cdr(frame_id, self.mask_topic))
 
     def outputs(self, relay: Relay, source: str) -> list[RosOutput]:
         mask_publishers = [self.mask] if self.info is None else [self.mask, self.info]
