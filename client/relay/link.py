@@ -5,6 +5,7 @@ robot's side wants it, every arrival heard by the mask's guard, a late mask neve
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import threading
@@ -140,9 +141,11 @@ class OnDemand:
 
     def _arrived(self, sample: zenoh.Sample) -> None:
         self.relay.heard(self.source)
-        if self.kind == "speed_mask" and not self.relay.mask_arrived(self.source, sample.payload.to_bytes()):
-            return  # late, or not a mask: the guard's safe mask stays (or comes) instead
-        stamp = self.deliver(sample)
+        guard = self.relay.guards.get(self.source) if self.kind == "speed_mask" else None
+        with guard.turn if guard is not None else contextlib.nullcontext():
+            if self.kind == "speed_mask" and not self.relay.mask_arrived(self.source, sample.payload.to_bytes()):
+                return  # late, or not a mask: the guard's safe mask stays (or comes) instead
+            stamp = self.deliver(sample)
         self.downlink.add(len(sample.payload))
         if stamp is not None and math.isfinite(stamp):
             self.relay.observe_output(self.source, stamp)

@@ -87,6 +87,10 @@ class MaskGuard:
         self.late_masks = 0  # live masks not put in force: older than after_s when they arrived
         self.safe_masks = 0
         self._lock = threading.Lock()
+        # Held by whoever decides on a mask and puts it on the robot's side (a live mask's delivery, a safe mask's
+        # put), so the two happen as one step: a safe mask decided just before a fresh live mask arrives is never
+        # put after it (the robot would stay at the floor under a guard that says live).
+        self.turn = threading.Lock()
 
     # ---- what the relay sees -----------------------------------------------------------------------
     def heard(self) -> None:
@@ -119,16 +123,19 @@ class MaskGuard:
         """The safe mask to hand out now: the first of a silence, or a re-centred one; None otherwise."""
         with self._lock:
             quiet_s = self._clock() - self._heard_at
-            if self._late is None and quiet_s <= self.settings.after_s:
-                return None
+            quiet = quiet_s > self.settings.after_s
             handed, pose = self._handed, self._pose
-            if handed is not None and (pose is None or not self._near_rim(handed, pose)):
+            if handed is None:
+                if self._late is None and not quiet:
+                    return None
+            elif pose is None or not self._near_rim(handed, pose):
                 return None
+            # A safe mask in force is re-centred whatever keeps it in force: silence, or a service still heard
+            # whose masks all come late (the robot drives on under the floor either way).
             heard = "nothing" if not self._heard_ever else "no message"
-            reason = self._late or (
-                f"{heard} from the service about {self.source} for {quiet_s:.1f} s "
-                f"(safe after {self.settings.after_s:g} s)"
-            )
+            silence = f"{heard} from the service about {self.source} for {quiet_s:.1f} s"
+            reason = self._late or (f"{silence} (safe after {self.settings.after_s:g} s)" if quiet else self.reason)
+            assert reason is not None  # a safe mask in force has its reason
             mask = self._safe_mask(reason)
             if mask is None:
                 self.reason = f"{reason}; no safe mask: neither a pose nor a live mask gives its frame"

@@ -440,18 +440,21 @@ class Relay:
 
     def _guard(self) -> None:
         for guard in self.guards.values():
-            mask = guard.due()
-            if mask is None:
-                continue
-            if not self._told_safe.get(mask.source):
-                self._told_safe[mask.source] = True
-                log.warning(
-                    "%s: the safe speed mask (%d %% everywhere) is in force: %s", mask.source, mask.percent, mask.reason
-                )
-            try:
-                self.robot.publish_safe_mask(mask)
-            except zenoh.ZError as err:  # the robot's session is closing
-                log.debug("%s: the safe mask not put: %s", mask.source, err)
+            with guard.turn:  # decided and put as one step: never after a fresh live mask that came meanwhile
+                mask = guard.due()
+                if mask is not None:
+                    self._put_safe_mask(mask)
+
+    def _put_safe_mask(self, mask: SafeMask) -> None:
+        if not self._told_safe.get(mask.source):
+            self._told_safe[mask.source] = True
+            log.warning(
+                "%s: the safe speed mask (%d %% everywhere) is in force: %s", mask.source, mask.percent, mask.reason
+            )
+        try:
+            self.robot.publish_safe_mask(mask)
+        except zenoh.ZError as err:  # the robot's session is closing
+            log.debug("%s: the safe mask not put: %s", mask.source, err)
 
     def health(self, source: str) -> RelayHealth:
         downlink = sum(f.downlink.per_s() for f in self.forwarders if f.source == source)

@@ -64,6 +64,29 @@ def test_the_safe_mask_is_recentred_once_the_robot_came_halfway_to_its_rim() -> 
     assert mask_guard.safe_masks == 3
 
 
+def test_the_safe_mask_is_recentred_while_the_service_is_heard_but_every_mask_comes_late() -> None:
+    """A service too slow for after_s, or a grid that stopped fusing while credits and maps flow: before, the
+    guard stayed quiet after the first safe mask while the robot drove off it."""
+    mask_guard, clock = guard(after_s=1.0, max_speed_m_s=1.0, horizon_s=10.0, resolution_m=1.0)
+    mask_guard.pose(0.0, 0.0, "odom")
+    assert mask_guard.live_mask(LIVE_MASK, age_s=0.2)
+    assert not mask_guard.live_mask(LIVE_MASK, age_s=3.0)  # late: the safe mask at once
+    first = mask_guard.due()
+    assert first is not None and first.centre == pytest.approx((0.0, 0.0)) and mask_guard.state == SAFE
+    reason = mask_guard.reason
+    centres = []
+    for step in range(1, 301):  # 30 m at 1 m/s, a late mask and a credit every 0.1 s: never quiet
+        clock.now += 0.1
+        mask_guard.pose(0.1 * step, 0.0, "odom")
+        assert not mask_guard.live_mask(LIVE_MASK, age_s=3.0)
+        mask_guard.heard()
+        handed = mask_guard.due()
+        if handed is not None:
+            centres.append(handed.centre[0])
+    assert centres == pytest.approx([10.1, 20.2], abs=0.01)  # each time halfway to the rim (20 m across each way)
+    assert mask_guard.state == SAFE and mask_guard.reason == reason and mask_guard.late_masks == 301
+
+
 def test_a_fresh_mask_takes_over_at_once_and_a_late_one_never_does() -> None:
     mask_guard, clock = guard(after_s=2.0)
     mask_guard.pose(0.0, 0.0, "odom")
@@ -149,3 +172,76 @@ def test_a_cameras_own_guard_and_flags_on_top_of_the_files_section(tmp_path: obj
     assert settings.safe_mask_of(second).after_s == 5 and not second.frames and first.frames
     with pytest.raises(RelaySettingsError, match=r"safe_mask\.after_s"):
         load_relay_settings(file, {"safe_mask": {"after_s": -1}})
+
+
+def test_a_safe_mask_being_put_is_never_put_after_a_fresh_live_mask_that_came_meanwhile() -> None:
+    """The relay's thread decides on the safe mask and puts it; a fresh live mask arriving on zenoh's thread in
+    between waits its turn, so the robot ends with the live mask, as the guard says. Before, the live mask was
+    delivered first and the safe one overwrote it: the robot stayed at the floor under a guard saying live."""
+    import threading
+    import time
+    from dataclasses import dataclass
+
+    import zenoh
+    from gcdtrav.client.relay.link import OnDemand
+    from gcdtrav.client.relay.relay import Relay
+    from gcdtrav.client.session.zenoh_args import zenoh_config
+    from gcdtrav.schemas.relay import RelaySettings
+    from gcdtrav.schemas.ros_nav import occupancy_grid_cdr
+    from numpy import zeros
+
+    put: list[str] = []
+    putting, release = threading.Event(), threading.Event()
+
+    class SlowRobot:  # the robot side: its safe mask's put takes a while
+        def outputs(self, relay: object, source: str) -> list[object]:
+            return []
+
+        def publish_safe_mask(self, mask: object) -> None:
+            putting.set()
+            assert release.wait(10)
+            put.append("safe")
+
+    class MaskOutput(OnDemand):
+        def deliver(self, sample: object) -> float | None:
+            put.append("live")
+            return None
+
+    @dataclass
+    class Payload:
+        data: bytes
+
+        def to_bytes(self) -> bytes:
+            return self.data
+
+        def __len__(self) -> int:
+            return len(self.data)
+
+    @dataclass
+    class Sample:
+        payload: Payload
+
+    settings = RelaySettings.model_validate(
+        {"cameras": [{"camera": "robot/cam", "source": "r1/front"}], "safe_mask": {"after_s": 0.05}}
+    )
+    session = zenoh.open(zenoh_config(mode="peer", multicast_scouting=False))
+    try:
+        relay = Relay(settings, session, robot=SlowRobot())  # type: ignore[arg-type]
+        mask_guard = relay.guards["r1/front"]
+        mask_guard.pose(0.0, 0.0, "odom")
+        time.sleep(0.1)  # quiet for longer than after_s: the safe mask is due
+        deciding = threading.Thread(target=relay._guard)
+        deciding.start()
+        assert putting.wait(10)
+        fresh = occupancy_grid_cdr((int(time.time()), 0), "odom", 0.5, (0.0, 0.0), zeros((4, 4), "int8"))
+        arriving = threading.Thread(
+            target=MaskOutput(relay, "r1/front", "speed_mask")._arrived, args=[Sample(Payload(fresh))]
+        )
+        arriving.start()
+        arriving.join(0.3)  # it waits for the safe mask's put
+        release.set()
+        deciding.join(10)
+        arriving.join(10)
+        assert put == ["safe", "live"] and mask_guard.state == LIVE
+    finally:
+        session.close()
