@@ -112,7 +112,9 @@ class RelayCamera(StrictModel):
         "whose frames reach the service another way, e.g. rmw_zenoh straight to it).",
     )
     safe_mask: SafeMaskSettings | None = Field(
-        default=None, description="This camera's guard of the speed mask [the relay's safe_mask]."
+        default=None,
+        description="This camera's guard of the speed mask: the fields it sets replace the relay's safe_mask's "
+        "(with its flags and parameters), the others are the relay's [the relay's safe_mask].",
     )
 
     @field_validator("source")
@@ -301,12 +303,26 @@ class RelaySettings(StrictModel):
             raise ValueError(f"sources named twice: {', '.join(duplicates)}")
         return self
 
+    @model_validator(mode="after")
+    def _camera_guards_hold(self) -> RelaySettings:
+        for camera in self.cameras:  # each camera's own fields on top of the relay's: valid together
+            try:
+                self.safe_mask_of(camera)
+            except ValidationError as err:
+                raise ValueError(f"camera {camera.source}: {problems(err, most=3)}") from None
+        return self
+
     def outcome_source(self) -> str:
         """The grid the outcomes belong to."""
         return (self.outcomes.source if self.outcomes else None) or self.cameras[0].source
 
     def safe_mask_of(self, camera: RelayCamera) -> SafeMaskSettings:
-        return camera.safe_mask or self.safe_mask
+        """The camera's guard: the fields its own section sets, on top of the relay's section (a camera that sets
+        only after_s keeps the relay's floor and maximum speed, not the defaults)."""
+        if camera.safe_mask is None:
+            return self.safe_mask
+        own = camera.safe_mask.model_dump(exclude_unset=True)
+        return SafeMaskSettings.model_validate({**self.safe_mask.model_dump(), **own})
 
 
 def layered(below: dict[str, object], above: dict[str, object]) -> dict[str, object]:

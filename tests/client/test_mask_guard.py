@@ -169,9 +169,17 @@ def test_a_cameras_own_guard_and_flags_on_top_of_the_files_section(tmp_path: obj
     settings = load_relay_settings(file, {"safe_mask": {"after_s": 1.5}})
     first, second = settings.cameras
     assert settings.safe_mask_of(first) == SafeMaskSettings(after_s=1.5, floor=0.2, max_speed_m_s=2)
-    assert settings.safe_mask_of(second).after_s == 5 and not second.frames and first.frames
+    # the camera's own field on top of the relay's: before, its section replaced the relay's whole (floor 0.3)
+    assert settings.safe_mask_of(second) == SafeMaskSettings(after_s=5, floor=0.2, max_speed_m_s=2)
+    assert not second.frames and first.frames
     with pytest.raises(RelaySettingsError, match=r"safe_mask\.after_s"):
         load_relay_settings(file, {"safe_mask": {"after_s": -1}})
+    # valid alone, not on top of the relay's: said at load, naming the camera
+    file.write_text(
+        "cameras:\n  - {camera: b, source: r1/b, safe_mask: {horizon_s: 100}}\nsafe_mask: {max_speed_m_s: 10}\n"
+    )
+    with pytest.raises(RelaySettingsError, match=r"camera r1/b: .*cells a side"):
+        load_relay_settings(file, {})
 
 
 def test_a_safe_mask_being_put_is_never_put_after_a_fresh_live_mask_that_came_meanwhile() -> None:
