@@ -93,6 +93,11 @@ class Guarded:
         """A publisher's ``put``, unless undeclared; False if skipped."""
         return self.use(lambda publisher: publisher.put(payload, **options))
 
+    def matching(self) -> bool:
+        """A publisher's: whether any subscriber anywhere matches its key now (False once undeclared)."""
+        with self._lock:
+            return not self._undeclared and bool(self._entity.matching_status.matching)
+
     def undeclare(self) -> None:
         with self._lock:
             if self._undeclared:

@@ -12,6 +12,7 @@ shortened to ``path_length_m``. The service pairs them exactly as a robot's on i
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -32,6 +33,7 @@ from gcdtrav.schemas.messages import MessageError
 from gcdtrav.schemas.outcomes import ContactWatch, VelocityTracker
 from gcdtrav.schemas.relay import RelayOutcomes
 
+log = logging.getLogger("gcdtrav.relay")
 PATH_SPACING_M = 0.5  # the path's vertices sent at least this far apart (a few grid cells: segments between)
 PATH_TOLERANCE_M = 0.5  # a new path whose nearer half keeps this close to the last one sent is the same path
 ROS_TYPES = {  # the rmw_zenoh key chunk of each type a zenoh relay reads as a ROS topic
@@ -67,10 +69,12 @@ class OutcomeLink:
         publisher: Any,
         path_publisher: Any,
         clock: Callable[[], float] = time.monotonic,
+        receiving: Callable[[], bool] = lambda: True,
     ) -> None:
         """``publisher``, ``path_publisher``: the link's (Guarded) publishers of the grid ``source``'s outcomes and
-        planned path (``Keys.outcomes``, ``Keys.planned_path``); ``clock``: the relay's monotonic clock."""
-        self.settings, self.source, self.clock = settings, source, clock
+        planned path (``Keys.outcomes``, ``Keys.planned_path``); ``clock``: the relay's monotonic clock;
+        ``receiving``: whether anyone across the link subscribes to the outcomes now (zenoh's matching status)."""
+        self.settings, self.source, self.clock, self.receiving = settings, source, clock, receiving
         self.velocity, self.contacts = VelocityTracker(settings), ContactWatch(settings)
         self._publisher, self._path_publisher = publisher, path_publisher
         self._pending: list[TraversalOutcome] = []
@@ -82,6 +86,7 @@ class OutcomeLink:
         self._lock = threading.Lock()
         self.uplink = RateWindow()
         self.measured = self.sent = self.batches = self.bytes_sent = self.rejected = 0
+        self.holding = False  # nobody received at the last send: the outcomes wait (the newest MAX_BATCH_OUTCOMES)
 
     # ---- from the robot side ---------------------------------------------------------------------------
     def on_command(self, command: Twist2D) -> None:
@@ -122,17 +127,31 @@ class OutcomeLink:
 
     # ---- to the link -----------------------------------------------------------------------------------
     def send_due(self) -> float:
-        """Send what waits if ``batch_period_s`` has passed since the last send; when to be asked next (``clock``)."""
+        """Send what waits if ``batch_period_s`` has passed since the last send; when to be asked next (``clock``).
+        While nobody across the link receives (the link, its router or the service down: a put would be lost and
+        said sent), the outcomes and the newest path wait, the newest MAX_BATCH_OUTCOMES of them, the rest
+        counted dropped; they leave in the first batch once someone receives again."""
         now = self.clock()
+        if now < self._next_send:
+            return self._next_send
+        receiving = self._receiving()
         with self._lock:
-            if now < self._next_send:
+            self._next_send = now + self.settings.batch_period_s
+            if receiving == self.holding:
+                self.holding = not receiving
+                waiting = len(self._pending)
+                if self.holding:  # said loudly only with outcomes waiting: not at every start, before the link is up
+                    level = logging.WARNING if waiting else logging.INFO
+                    log.log(level, "nobody receives the outcomes of %s across the link: holding them", self.source)
+                else:
+                    log.info("the outcomes of %s are received again: sending the %d held", self.source, waiting)
+            if self.holding:
                 return self._next_send
             outcomes, self._pending, dropped, self._dropped = self._pending, [], self._dropped, 0
             path, self._path = self._path, None
             if path is not None:
                 self._path_sent = [(float(x), float(y)) for x, y in path.points]
                 self._path_sent_at = now
-            self._next_send = now + self.settings.batch_period_s
         if outcomes or dropped:
             payload = OutcomeBatch(outcomes=outcomes, sent_at=time.time(), dropped=dropped).pack()
             self._put(self._publisher, payload)
@@ -141,6 +160,12 @@ class OutcomeLink:
         if path is not None:
             self._put(self._path_publisher, path.pack())
         return self._next_send
+
+    def _receiving(self) -> bool:
+        try:
+            return bool(self.receiving())
+        except Exception:  # zenoh's own error types: a publisher closing receives nothing
+            return False
 
     def _put(self, publisher: Any, payload: bytes) -> None:
         publisher.put(payload)

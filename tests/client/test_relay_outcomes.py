@@ -110,6 +110,49 @@ def test_a_link_that_cannot_send_keeps_the_newest_and_says_how_many_it_dropped()
     assert len(batch.outcomes) == MAX_BATCH_OUTCOMES and batch.dropped == 5 and batch.outcomes[0].stamp == 5.0
 
 
+def test_while_nobody_receives_the_outcomes_wait_and_leave_in_the_first_batch_after() -> None:
+    """A put that no subscriber matches is lost (zenoh drops it at the writer) and was counted sent; now the
+    outcomes wait while nobody across the link receives, the newest MAX_BATCH_OUTCOMES, the rest dropped."""
+    receiving = [True]
+    outcomes, paths, clock = Publisher(), Publisher(), Clock()
+    relay = OutcomeLink(SETTINGS, "r1/front", outcomes, paths, clock, receiving=lambda: receiving[0])
+
+    def outcome(stamp: float) -> None:
+        relay.on_outcome(TraversalOutcome(stamp=stamp, x=0.0, y=0.0, score=1.0, kind="velocity"))
+
+    outcome(0.0)
+    send_at(relay, clock, 0.0)
+    assert len(outcomes.payloads) == 1 and not relay.holding
+    receiving[0] = False  # the service, its router or the link went away
+    for second in range(1, 4):
+        outcome(float(second))
+        relay.on_path("odom", float(second), [(0.0, 0.0), (float(second), 0.0)])
+        send_at(relay, clock, float(second))
+    assert len(outcomes.payloads) == 1 and paths.payloads == [] and relay.holding
+    assert relay.sent == 1 and relay.measured == 4
+    for index in range(MAX_BATCH_OUTCOMES):  # a long outage: more than a batch holds
+        outcome(10.0 + index)
+    send_at(relay, clock, 4.0)
+    receiving[0] = True
+    send_at(relay, clock, 5.0)
+    held = OutcomeBatch.unpack(outcomes.payloads[1])
+    assert len(held.outcomes) == MAX_BATCH_OUTCOMES and held.dropped == 3  # the oldest three gave way
+    assert held.outcomes[0].stamp == 10.0 and relay.sent == 1 + MAX_BATCH_OUTCOMES and not relay.holding
+    (path,) = paths.payloads
+    assert PlannedPath.unpack(path).points == [(0.0, 0.0), (3.0, 0.0)]  # the newest path, once
+
+
+def test_a_receiving_check_that_fails_holds() -> None:
+    def closed() -> bool:
+        raise RuntimeError("the session is closing")
+
+    outcomes, paths, clock = Publisher(), Publisher(), Clock()
+    relay = OutcomeLink(SETTINGS, "r1/front", outcomes, paths, clock, receiving=closed)
+    relay.on_outcome(TraversalOutcome(stamp=1.0, x=0.0, y=0.0, score=1.0, kind="velocity"))
+    send_at(relay, clock, 0.0)
+    assert outcomes.payloads == [] and relay.holding and relay.sent == 0
+
+
 def test_the_planned_path_is_sent_shortened_when_it_changes_and_renewed_before_the_service_forgets_it() -> None:
     relay, _, paths, clock = link()
     straight = [(0.1 * i, 0.0) for i in range(400)]  # 40 m, a vertex every 0.1 m
