@@ -126,13 +126,14 @@ class OutcomeLink:
                 self._dropped += 1
 
     # ---- to the link -----------------------------------------------------------------------------------
-    def send_due(self) -> float:
-        """Send what waits if ``batch_period_s`` has passed since the last send; when to be asked next (``clock``).
+    def send_due(self, force: bool = False) -> float:
+        """Send what waits if ``batch_period_s`` has passed since the last send (``force``: now, the relay stopping);
+        when to be asked next (``clock``).
         While nobody across the link receives (the link, its router or the service down: a put would be lost and
         said sent), the outcomes and the newest path wait, the newest MAX_BATCH_OUTCOMES of them, the rest
         counted dropped; they leave in the first batch once someone receives again."""
         now = self.clock()
-        if now < self._next_send:
+        if now < self._next_send and not force:
             return self._next_send
         receiving = self._receiving()
         with self._lock:

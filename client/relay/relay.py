@@ -541,6 +541,8 @@ class Relay:
         for camera in self.cameras:
             camera.stop()
         self._thread.join(5)
+        if self.outcomes is not None:
+            self.outcomes.send_due(force=True)  # what was measured since the last batch, not lost at a stop
         for forwarder in self.forwarders:
             forwarder.close()
         for entity in [*self._declared, *self._link_health.values()]:

@@ -63,3 +63,38 @@ def test_outcomes_measured_while_the_service_is_away_reach_it_once_it_is_back() 
         subscriber.undeclare()
         for session in (link, local, bus, up):
             session.close()
+
+
+def test_outcomes_measured_since_the_last_batch_leave_when_the_relay_stops() -> None:
+    port, robot_port = free_port(), free_port()
+    stamps: list[float] = []
+    service = zenoh.open(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"], multicast_scouting=False))
+    subscriber = service.declare_subscriber(
+        "gcdtrav/in/**/outcomes",
+        lambda sample: stamps.extend(o.stamp for o in OutcomeBatch.unpack(sample.payload.to_bytes()).outcomes),
+    )
+    bus = zenoh.open(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{robot_port}"], multicast_scouting=False))
+    local = zenoh.open(connecting_config(robot_port, mode="client"))
+    link = zenoh.open(connecting_config(port, mode="client"))
+    settings = RelaySettings.model_validate(
+        {
+            "cameras": [{"camera": "robot/unused", "source": SOURCE, "frames": False}],
+            "safe_mask": {"enabled": False},
+            "outcomes": {"cmd_vel": None, "outcome": OUTCOME_KEY, "batch_period_s": 60},
+        }
+    )
+    relay = Relay(settings, link, local).start()
+    try:
+        outcomes = relay.outcomes
+        assert outcomes is not None and subscribed_elsewhere(bus, OUTCOME_KEY, 30)
+        assert wait_until(lambda: outcomes.batches == 0 and outcomes.receiving(), 10)
+        for stamp in range(3):
+            bus.put(OUTCOME_KEY, TraversalOutcome(stamp=stamp, x=0.0, y=0.0, score=0.5, kind="velocity").pack())
+        assert wait_until(lambda: outcomes.measured == 3, 10)
+        relay.close()  # the next batch was due in a minute: before, the three were lost
+        assert wait_until(lambda: len(stamps) == 3, 10), stamps
+    finally:
+        relay.close()
+        subscriber.undeclare()
+        for session in (link, local, bus, service):
+            session.close()
