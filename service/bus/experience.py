@@ -161,6 +161,10 @@ class ExperienceBus:
     # ---- inputs --------------------------------------------------------------------------------------
     def _input_handler(self, handler: Callable[[bytes, float], None], reason: str) -> Callable[[zenoh.Sample], None]:
         def handle(sample: zenoh.Sample) -> None:
+            if not self.owns(self.experience.source):
+                # Another instance fuses the grid now: its snapshots, not this one's from before it moved, are the
+                # predictions to pair with, and it pairs the same commands and odometry (one pair per outcome).
+                return
             try:
                 handler(sample.payload.to_bytes(), time.time())
             except (MessageError, ValueError) as err:

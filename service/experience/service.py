@@ -24,7 +24,7 @@ from gcdtrav.schemas.experience import (
     OperatorQuestion,
     PlannedPath,
 )
-from gcdtrav.schemas.messages import ExperienceStatus, Pose2D, QuestionStatus
+from gcdtrav.schemas.messages import ExperienceStatus, MessageError, Pose2D, QuestionStatus
 from gcdtrav.schemas.outcomes import MAX_INPUT_BYTES, VelocityTracker, decode_command, decode_odometry
 from gcdtrav.schemas.settings import AskSettings, ExperienceSettings, ServiceSettings, SettingsError
 from gcdtrav.service.experience.ask import Crop, OperatorAsker
@@ -38,6 +38,7 @@ from gcdtrav.service.store.outbox import PairOutbox
 from numpy.typing import NDArray
 
 log = logging.getLogger("gcdtrav.service")
+MAX_PATH_SOURCES = 1024  # planned paths held at once (one per source)
 ExperienceInput = tuple[str, bool, Callable[[bytes, float], None], str]  # key or topic, is ROS, handler, reason
 # Counts a bad input (the service's ServiceStats.rejected): source or None, reason, detail, the error.
 Rejected = Callable[[str | None, str, str, BaseException | None], None]
@@ -148,12 +149,24 @@ class Experience:
 
     def on_planned_path(self, source: str, payload: bytes, received_at: float) -> None:
         """A planner's path ahead of ``source``: questions look along it (an empty one: the heading again).
-        MessageError for a bad one (the bus counts it)."""
+        MessageError for a bad one, or a new source's while MAX_PATH_SOURCES sources hold a path within
+        ``ask.path_timeout_s`` (the bus counts it): any name under {prefix}/in/ may send one, and each held path
+        costs up to MAX_INPUT_BYTES of memory."""
         path = PlannedPath.decode(payload, MAX_INPUT_BYTES)
         if len(path.points) < 2:
             self._paths.pop(source, None)
-        else:
-            self._paths[source] = (received_at, [(float(x), float(y)) for x, y in path.points])
+            return
+        if source not in self._paths and len(self._paths) >= MAX_PATH_SOURCES:
+            self._forget_lapsed_paths(received_at)
+            if len(self._paths) >= MAX_PATH_SOURCES:
+                raise MessageError(f"paths of {MAX_PATH_SOURCES} sources are held: no room for {source}'s")
+        self._paths[source] = (received_at, [(float(x), float(y)) for x, y in path.points])
+
+    def _forget_lapsed_paths(self, now: float) -> None:
+        """Drop the paths not renewed within ``ask.path_timeout_s``: ``path_ahead`` no longer uses them."""
+        for source, (received, _) in list(self._paths.items()):  # a copy: zenoh's callbacks may add meanwhile
+            if now - received > self.ask_settings.path_timeout_s:
+                self._paths.pop(source, None)
 
     def path_ahead(self, source: str) -> list[tuple[float, float]] | None:
         """The planner's path of ``source`` if renewed within ``ask.path_timeout_s``; None: look along the heading."""

@@ -122,6 +122,23 @@ def test_a_planners_path_steers_where_questions_look_until_it_lapses() -> None:
         experience.on_planned_path("cam", b"\x00garbage", received_at=now[0])
 
 
+def test_paths_are_held_for_so_many_sources_and_lapsed_ones_give_way(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Any name under {prefix}/in/ may send a path; before, every source's path was held for good."""
+    from gcdtrav.service.experience import service
+
+    monkeypatch.setattr(service, "MAX_PATH_SOURCES", 3)
+    ask = AskSettings(enabled=True, path_timeout_s=5.0)
+    experience = Experience(ExperienceSettings(enabled=True), ask, "cam", tau=0.3, outbox=outbox())
+    path = PlannedPath(stamp=0.0, points=[(0.0, 0.0), (1.0, 0.0)]).pack()
+    for index in range(3):
+        experience.on_planned_path(f"r{index}/cam", path, received_at=float(index))
+    with pytest.raises(MessageError, match="paths of 3 sources are held: no room for r3/cam's"):
+        experience.on_planned_path("r3/cam", path, received_at=5.0)  # r0's lapses only after 5.0
+    experience.on_planned_path("r0/cam", path, received_at=5.0)  # a held source renews whatever the count
+    experience.on_planned_path("r3/cam", path, received_at=6.5)  # r1's lapsed (received at 1.0): it gives way
+    assert sorted(experience._paths) == ["r0/cam", "r2/cam", "r3/cam"]
+
+
 def test_after_fusion_snapshots_the_grid_and_a_failure_is_counted_not_raised(tmp_path: Path) -> None:
     grid = {"source": "cam", "intrinsics": {"fx": 40, "fy": 40, "cx": 32, "cy": 24, "width": 64, "height": 48},
             "mount": {"z": 1.0, "pitch": 0.5}, "size_m": 6.0, "resolution_m": 0.5}  # fmt: skip
