@@ -21,6 +21,9 @@ class Pairs:
     stamps: NDArray[np.float64]  # (m,) the outcome's stamp
     kinds: NDArray[np.uint8]  # (m,) index into OUTCOME_KINDS
     versions: tuple[str, ...]  # (m,) the anchor-set version whose fusion made the prediction
+    # (m,) when each reached the store, on the service's clock (one for the fleet; 0: before store schema 4);
+    # None: the stamps are on one clock (a dataset)
+    arrivals: NDArray[np.float64] | None = None
 
     def __len__(self) -> int:
         return len(self.outcomes)
@@ -54,12 +57,16 @@ class Pairs:
             self.stamps[chosen],
             self.kinds[chosen],
             tuple(self.versions[i] for i in chosen),
+            None if self.arrivals is None else self.arrivals[chosen],
         )
 
     def time_split(self, held_out_fraction: float) -> tuple[Pairs, Pairs]:
-        """(train, held out): the held-out pairs are the latest ``held_out_fraction`` by stamp, a block in time,
-        so neighbouring cells of one drive never sit on both sides."""
-        order = np.argsort(self.stamps, kind="stable")
+        """(train, held out): the held-out pairs are the latest ``held_out_fraction`` by arrival at the store, a
+        block in time, so neighbouring cells of one drive never sit on both sides. Not by the outcomes' stamps:
+        each robot stamps by its own clock (an hour ahead, or a bag's sim time), and one robot whose clock runs
+        ahead would be most of the held-out pairs that judge a proposal. Pairs of equal arrival (stored before
+        schema 4: 0) keep their order, the store's append order."""
+        order = np.argsort(self.stamps if self.arrivals is None else self.arrivals, kind="stable")
         held = round(len(self) * held_out_fraction)
         cut = len(self) - held
         return self.select(order[:cut]), self.select(order[cut:])

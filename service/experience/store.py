@@ -80,7 +80,10 @@ def decode_outcomes(kind: type[Decoded], payload: bytes) -> Decoded:
 
 
 def as_pairs(columns: PairColumns) -> Pairs:
-    return Pairs(columns.concepts, columns.weights, columns.outcomes, columns.stamps, columns.kinds, columns.versions)
+    arrivals = columns.appended_at if columns.appended_at is not None else np.zeros(len(columns))  # append order
+    return Pairs(
+        columns.concepts, columns.weights, columns.outcomes, columns.stamps, columns.kinds, columns.versions, arrivals
+    )
 
 
 class ExperienceStore:

@@ -188,3 +188,36 @@ def test_a_set_already_judged_is_graded_once_and_a_fit_beating_every_baseline_st
     verdict = propose(synthetic_pairs(4000), FORCED_WORSE, options, baselines=baselines).judged()
     assert [(b.baseline, b.version, b.verdict) for b in verdict.against] == [(PAPER, paper_like.version, "better")]
     assert verdict.verdict == "better" and verdict.applicable
+
+
+def split_pairs(stamps: list[float], arrivals: list[float] | None) -> Pairs:
+    m = len(stamps)
+    return Pairs(
+        ("a", "b"),
+        np.full((m, 2), 0.5, np.float32),
+        np.linspace(0.0, 1.0, m),
+        np.asarray(stamps, np.float64),
+        np.zeros(m, np.uint8),
+        tuple("v" for _ in range(m)),
+        None if arrivals is None else np.asarray(arrivals, np.float64),
+    )
+
+
+def test_the_held_out_pairs_are_the_latest_to_arrive_whatever_each_robots_clock_says() -> None:
+    """Robots r1 and r2 drive at once, each pair arriving every second; r2's clock runs an hour ahead. Before,
+    the split sorted by the robots' stamps: every held-out pair was r2's."""
+    r1 = [100.0 + k for k in range(10)]
+    r2 = [3700.0 + k for k in range(10)]
+    stamps = [stamp for pair in zip(r1, r2, strict=True) for stamp in pair]  # arrived interleaved
+    arrivals = [1000.0 + k for k in range(20)]
+    train, held = split_pairs(stamps, arrivals).time_split(0.25)
+    assert len(held) == 5 and len(train) == 15
+    assert sorted(held.stamps) == [108.0, 109.0, 3707.0, 3708.0, 3709.0]  # the last five to arrive, both robots
+    assert held.arrivals is not None and min(held.arrivals) > max(train.arrivals)  # type: ignore[arg-type]
+
+
+def test_pairs_stored_before_arrivals_were_kept_split_in_the_stores_order_and_a_dataset_by_stamp() -> None:
+    _, held = split_pairs([5.0, 1.0, 9.0, 2.0], [0.0, 0.0, 0.0, 0.0]).time_split(0.5)
+    assert list(held.stamps) == [9.0, 2.0]  # equal arrivals: the store's append order
+    _, held = split_pairs([5.0, 1.0, 9.0, 2.0], None).time_split(0.5)
+    assert list(held.stamps) == [5.0, 9.0]  # one clock: by stamp
