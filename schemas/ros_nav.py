@@ -32,6 +32,7 @@ ENCAPSULATION = b"\x00\x01\x00\x00"  # CDR, little-endian
 
 
 COSTMAP_FILTER_INFO = "nav2_msgs/msg/CostmapFilterInfo"
+SPEED_LIMIT = "nav2_msgs/msg/SpeedLimit"
 SPEED_FILTER_PERCENT = 1  # CostmapFilterInfo.type: a mask value v is v percent of the maximum speed (filter_values.hpp)
 NO_LIMIT = 0  # a speed mask value (and SpeedLimit.speed_limit) Nav2 reads as "no limit"
 LOWEST_PERCENT, HIGHEST_PERCENT = 1, 100
@@ -130,6 +131,18 @@ def costmap_filter_info_cdr(frame_id: str, mask_topic: str) -> bytes:
     writer.string(mask_topic)
     writer.number("f", 0.0)  # base
     writer.number("f", 1.0)  # multiplier
+    return writer.done()
+
+
+def speed_limit_cdr(stamp: tuple[int, int], frame_id: str, percent: float) -> bytes:
+    """nav2_msgs/SpeedLimit in percent of the maximum speed (0: no limit): the relay's safe limit, which a
+    controller that takes the SpeedLimit directly (no SpeedFilter) reads as the safe mask's floor."""
+    writer = _Writer()
+    writer.number("i", stamp[0])
+    writer.number("I", stamp[1])
+    writer.string(frame_id)
+    writer.number("B", 1)  # percentage
+    writer.number("d", float(percent))
     return writer.done()
 
 

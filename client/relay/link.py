@@ -13,6 +13,7 @@ from collections.abc import Callable
 from typing import Any, Protocol
 
 import zenoh
+from gcdtrav.client.relay.mask_guard import SAFE
 from gcdtrav.client.relay.state import RateWindow
 from gcdtrav.schemas.keys import Keys
 from gcdtrav.schemas.messages import MSGPACK_ENCODING, MessageError, peek_fields
@@ -23,6 +24,7 @@ MSGPACK = zenoh.Encoding(MSGPACK_ENCODING)
 STAMPED_OUTPUTS = ("maps", "maps8", "grid")  # their header's stamp is the capture stamp of the newest frame
 # the grid's CDRs, under {prefix}/out/{source}/grid/ (service/runtime/grids/outputs.py)
 GRID_CDRS = ("speed_mask", "speed_limit", "costmap", "nav2_costmap")
+GUARDED = ("speed_mask", "speed_limit")  # what the mask's guard puts in force (client/relay/mask_guard.py)
 OUTPUT_ENCODINGS = {
     "maps": MSGPACK,
     "maps8": MSGPACK,
@@ -146,10 +148,12 @@ class OnDemand:
 
     def _arrived(self, sample: zenoh.Sample) -> None:
         self.relay.heard(self.source)
-        guard = self.relay.guards.get(self.source) if self.kind == "speed_mask" else None
+        guard = self.relay.guards.get(self.source) if self.kind in GUARDED else None
         with guard.turn if guard is not None else contextlib.nullcontext():
             if self.kind == "speed_mask" and not self.relay.mask_arrived(self.source, sample.payload.to_bytes()):
                 return  # late, or not a mask: the guard's safe mask stays (or comes) instead
+            if self.kind == "speed_limit" and guard is not None and guard.state == SAFE:
+                return  # the safe limit stays until a fresh mask is in force again
             stamp = self.deliver(sample)
         self.downlink.add(len(sample.payload))
         if stamp is not None and math.isfinite(stamp):

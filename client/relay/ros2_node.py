@@ -74,6 +74,7 @@ from gcdtrav.schemas.ros_nav import (
     odometry_motion,
     path_points,
     restamped,
+    speed_limit_cdr,
 )
 from gcdtrav.schemas.settings.ros import RosOutput as OutputTopics
 from gcdtrav.schemas.settings.ros import output_topic
@@ -290,9 +291,12 @@ class SpeedTopics:
 
     def publish_safe(self, mask: SafeMask, now: tuple[int, int]) -> None:
         """The relay's own safe mask (client/relay/mask_guard.py), where the live masks go: announced first, as a
-        live one is, or a SpeedFilter that never saw a live mask (a service never heard) would not read it."""
+        live one is, or a SpeedFilter that never saw a live mask (a service never heard) would not read it; and,
+        where nav2_msgs is, the floor as a SpeedLimit, for a controller that takes the SpeedLimit directly."""
         self._announce(mask.frame_id)
         self.mask.publish(mask.cdr(now))
+        if self.limit is not None:
+            self.limit.publish(speed_limit_cdr(now, mask.frame_id, mask.percent))
 
     def _announce(self, frame_id: str) -> None:
         """The CostmapFilterInfo naming the mask's topic, when the mask's frame changes (where nav2_msgs is)."""

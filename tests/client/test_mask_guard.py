@@ -253,3 +253,62 @@ def test_a_safe_mask_being_put_is_never_put_after_a_fresh_live_mask_that_came_me
         assert put == ["safe", "live"] and mask_guard.state == LIVE
     finally:
         session.close()
+
+
+def test_while_the_safe_mask_is_in_force_no_live_speed_limit_replaces_its_floor() -> None:
+    import time
+    from dataclasses import dataclass
+
+    import zenoh
+    from gcdtrav.client.relay.link import OnDemand
+    from gcdtrav.client.relay.relay import Relay
+    from gcdtrav.client.session.zenoh_args import zenoh_config
+    from gcdtrav.schemas.relay import RelaySettings
+    from gcdtrav.schemas.ros_nav import occupancy_grid_cdr, speed_limit_cdr
+    from numpy import zeros
+
+    put: list[str] = []
+
+    class Robot:
+        def outputs(self, relay: object, source: str) -> list[object]:
+            return []
+
+        def publish_safe_mask(self, mask: object) -> None:
+            put.append("safe")
+
+    class Output(OnDemand):
+        def deliver(self, sample: object) -> float | None:
+            put.append(self.kind)
+            return None
+
+    @dataclass
+    class Payload:
+        data: bytes
+
+        def to_bytes(self) -> bytes:
+            return self.data
+
+        def __len__(self) -> int:
+            return len(self.data)
+
+    @dataclass
+    class Sample:
+        payload: Payload
+
+    settings = RelaySettings.model_validate(
+        {"cameras": [{"camera": "robot/cam", "source": "r1/front"}], "safe_mask": {"after_s": 0.05}}
+    )
+    session = zenoh.open(zenoh_config(mode="peer", multicast_scouting=False))
+    try:
+        relay = Relay(settings, session, robot=Robot())  # type: ignore[arg-type]
+        relay.guards["r1/front"].pose(0.0, 0.0, "odom")
+        time.sleep(0.1)
+        relay._guard()
+        limit, mask = Output(relay, "r1/front", "speed_limit"), Output(relay, "r1/front", "speed_mask")
+        now = (int(time.time()), 0)
+        limit._arrived(Sample(Payload(speed_limit_cdr(now, "odom", 0.0))))  # "no limit": not while safe
+        mask._arrived(Sample(Payload(occupancy_grid_cdr(now, "odom", 0.5, (0.0, 0.0), zeros((4, 4), "int8")))))
+        limit._arrived(Sample(Payload(speed_limit_cdr(now, "odom", 0.0))))  # a fresh mask is in force: it flows
+        assert put == ["safe", "speed_mask", "speed_limit"] and relay.guards["r1/front"].state == LIVE
+    finally:
+        session.close()

@@ -42,9 +42,10 @@ def robot() -> Iterator[RosRobot]:
 @pytest.fixture
 def with_nav2(monkeypatch: pytest.MonkeyPatch) -> None:
     from nav_msgs.msg import OccupancyGrid
-    from std_msgs.msg import Bool, String
+    from std_msgs.msg import Header, String
 
-    monkeypatch.setattr(ros2_node, "nav2_messages", lambda: (String, Bool, OccupancyGrid))
+    # types of unbounded size, as nav2's are (a bounded type's publisher refuses a longer message)
+    monkeypatch.setattr(ros2_node, "nav2_messages", lambda: (String, Header, OccupancyGrid))
 
 
 @dataclass
@@ -86,3 +87,20 @@ def test_a_safe_mask_before_any_live_one_comes_with_its_filter_info(robot: RosRo
     assert wait_until(lambda: len(masks) == 2, 10)
     time.sleep(0.2)
     assert len(infos) == 1
+
+
+def test_a_safe_mask_comes_with_the_floor_as_a_speed_limit(robot: RosRobot, with_nav2: Any) -> None:
+    """For a controller that takes the SpeedLimit directly (docs/grid.md): before, it kept the last live limit,
+    0 (no limit) on clear ground, as long as the link was dead."""
+    pytest.importorskip("rosbags")
+    from gcdtrav.service.ros.cdr import speed_limit_cdr
+    from std_msgs.msg import Header
+
+    topics = ros2_node.SpeedTopics(robot.node, "/r2/front/image_raw", CameraStub())  # type: ignore[arg-type]
+    limit_topic = ros2_node.output_topic(ros2_node.NAMES.speed_limit_topic, "/r2/front/image_raw")
+    _, limits = robot.subscribe(Header, limit_topic, 10, raw=True)
+    assert wait_until(lambda: topics.limit.get_subscription_count() == 1, 10)  # volatile: subscribed first
+    mask = SafeMask(SOURCE, "odom", 1.0, 4, (-2.0, -2.0), 30, "the service went quiet")
+    topics.publish_safe(mask, (12, 345))
+    assert wait_until(lambda: len(limits) == 1, 10)
+    assert limits.last == speed_limit_cdr(12.000000345, "odom", 30.0)  # the service's own SpeedLimit, byte for byte
