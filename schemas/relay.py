@@ -113,8 +113,8 @@ class RelayCamera(StrictModel):
     )
     safe_mask: SafeMaskSettings | None = Field(
         default=None,
-        description="This camera's guard of the speed mask: the fields it sets replace the relay's safe_mask's "
-        "(with its flags and parameters), the others are the relay's [the relay's safe_mask].",
+        description="This camera's guard of the speed mask: the fields it sets replace those of the relay's "
+        "safe_mask (and of its flags and parameters); the others are the relay's [the relay's safe_mask].",
     )
 
     @field_validator("source")
