@@ -264,7 +264,8 @@ class RelaySettings(StrictModel):
     odometry: RelayOdometry | None = Field(default=None, description="ROS 2 node only: odometry to a pose key.")
     safe_mask: SafeMaskSettings = Field(
         default_factory=SafeMaskSettings,
-        description="The robot's own guard of the speed mask, for every camera without its own.",
+        description="The robot's own guard of the speed mask, every camera's (a camera's own section sets fields "
+        "on top of it).",
     )
     outcomes: RelayOutcomes | None = Field(
         default=None, description="Outcomes measured on the robot and sent to the service's experience; null: none."
