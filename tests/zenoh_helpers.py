@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import zenoh
 from gcdtrav.client.session.zenoh_args import zenoh_config
@@ -147,3 +148,26 @@ def frame_counted(client: object, source: str) -> bool:
     except QueryTimeout:  # no instance answered in time (a loaded host): not yet
         return False
     return any(source in s.sources and s.sources[source].processed > 0 for s in statuses)
+
+
+@dataclass
+class FakePayload:
+    data: bytes
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+
+@dataclass
+class FakeSample:
+    """What a zenoh callback reads of a sample, to call the callback directly."""
+
+    payload: FakePayload
+    key_expr: str = ""
+
+
+def fake_sample(data: bytes, key_expr: str = "") -> FakeSample:
+    return FakeSample(FakePayload(data), key_expr)

@@ -4,11 +4,21 @@ masks, re-centring, recovery, and each setting at its edges."""
 from __future__ import annotations
 
 import math
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 
+import numpy as np
 import pytest
+import zenoh
+from gcdtrav.client.relay.link import OnDemand
 from gcdtrav.client.relay.mask_guard import LIVE, SAFE, WAITING, MaskGuard, floor_percent
-from gcdtrav.schemas.relay import RelaySettingsError, SafeMaskSettings, load_relay_settings
-from gcdtrav.schemas.ros_nav import GridGeometry
+from gcdtrav.client.relay.relay import Relay
+from gcdtrav.client.session.zenoh_args import zenoh_config
+from gcdtrav.schemas.relay import RelaySettings, RelaySettingsError, SafeMaskSettings, load_relay_settings
+from gcdtrav.schemas.ros_nav import GridGeometry, occupancy_grid_cdr, speed_limit_cdr
+from zenoh_helpers import fake_sample
 
 LIVE_MASK = GridGeometry("odom", 0.25, 32, 32, (-4.0, -4.0), 100.0)
 
@@ -182,133 +192,79 @@ def test_a_cameras_own_guard_and_flags_on_top_of_the_files_section(tmp_path: obj
         load_relay_settings(file, {})
 
 
-def test_a_safe_mask_being_put_is_never_put_after_a_fresh_live_mask_that_came_meanwhile() -> None:
-    """The relay's thread decides on the safe mask and puts it; a fresh live mask arriving on zenoh's thread in
-    between waits its turn, so the robot ends with the live mask, as the guard says. Before, the live mask was
-    delivered first and the safe one overwrote it: the robot stayed at the floor under a guard saying live."""
-    import threading
-    import time
-    from dataclasses import dataclass
+class SafeMasksPut:
+    """The relay's robot side, recording what is put on it; a safe mask's put waits for ``release`` if given."""
 
-    import zenoh
-    from gcdtrav.client.relay.link import OnDemand
-    from gcdtrav.client.relay.relay import Relay
-    from gcdtrav.client.session.zenoh_args import zenoh_config
-    from gcdtrav.schemas.relay import RelaySettings
-    from gcdtrav.schemas.ros_nav import occupancy_grid_cdr
-    from numpy import zeros
+    def __init__(self, release: threading.Event | None = None) -> None:
+        self.put: list[str] = []
+        self.putting, self.release = threading.Event(), release
 
-    put: list[str] = []
-    putting, release = threading.Event(), threading.Event()
+    def outputs(self, relay: object, source: str) -> list[object]:
+        return []
 
-    class SlowRobot:  # the robot side: its safe mask's put takes a while
-        def outputs(self, relay: object, source: str) -> list[object]:
-            return []
+    def publish_safe_mask(self, mask: object) -> None:
+        self.putting.set()
+        if self.release is not None:
+            assert self.release.wait(10)
+        self.put.append("safe")
 
-        def publish_safe_mask(self, mask: object) -> None:
-            putting.set()
-            assert release.wait(10)
-            put.append("safe")
 
-    class MaskOutput(OnDemand):
-        def deliver(self, sample: object) -> float | None:
-            put.append("live")
-            return None
+class RecordedOutput(OnDemand):
+    """An output forwarded to the robot side: its deliveries recorded there."""
 
-    @dataclass
-    class Payload:
-        data: bytes
+    def deliver(self, sample: object) -> float | None:
+        robot = self.relay.robot  # type: ignore[attr-defined]
+        robot.put.append(self.kind)
+        return None
 
-        def to_bytes(self) -> bytes:
-            return self.data
 
-        def __len__(self) -> int:
-            return len(self.data)
-
-    @dataclass
-    class Sample:
-        payload: Payload
-
+@contextmanager
+def quiet_relay(robot: SafeMasksPut) -> Iterator[Relay]:
+    """A relay of one camera whose service has been quiet for longer than after_s (0.05 s): a safe mask is due."""
     settings = RelaySettings.model_validate(
         {"cameras": [{"camera": "robot/cam", "source": "r1/front"}], "safe_mask": {"after_s": 0.05}}
     )
     session = zenoh.open(zenoh_config(mode="peer", multicast_scouting=False))
     try:
-        relay = Relay(settings, session, robot=SlowRobot())  # type: ignore[arg-type]
-        mask_guard = relay.guards["r1/front"]
-        mask_guard.pose(0.0, 0.0, "odom")
-        time.sleep(0.1)  # quiet for longer than after_s: the safe mask is due
+        relay = Relay(settings, session, robot=robot)  # type: ignore[arg-type]
+        relay.guards["r1/front"].pose(0.0, 0.0, "odom")
+        time.sleep(0.1)
+        yield relay
+    finally:
+        session.close()
+
+
+def fresh_mask() -> bytes:
+    return occupancy_grid_cdr((int(time.time()), 0), "odom", 0.5, (0.0, 0.0), np.zeros((4, 4), np.int8))
+
+
+def test_a_safe_mask_being_put_is_never_put_after_a_fresh_live_mask_that_came_meanwhile() -> None:
+    """The relay's thread decides on the safe mask and puts it; a fresh live mask arriving on zenoh's thread in
+    between waits its turn, so the robot ends with the live mask, as the guard says. Before, the live mask was
+    delivered first and the safe one overwrote it: the robot stayed at the floor under a guard saying live."""
+    release = threading.Event()
+    robot = SafeMasksPut(release)
+    with quiet_relay(robot) as relay:
         deciding = threading.Thread(target=relay._guard)
         deciding.start()
-        assert putting.wait(10)
-        fresh = occupancy_grid_cdr((int(time.time()), 0), "odom", 0.5, (0.0, 0.0), zeros((4, 4), "int8"))
-        arriving = threading.Thread(
-            target=MaskOutput(relay, "r1/front", "speed_mask")._arrived, args=[Sample(Payload(fresh))]
-        )
+        assert robot.putting.wait(10)
+        output = RecordedOutput(relay, "r1/front", "speed_mask")
+        arriving = threading.Thread(target=output._arrived, args=[fake_sample(fresh_mask())])
         arriving.start()
         arriving.join(0.3)  # it waits for the safe mask's put
         release.set()
         deciding.join(10)
         arriving.join(10)
-        assert put == ["safe", "live"] and mask_guard.state == LIVE
-    finally:
-        session.close()
+        assert robot.put == ["safe", "speed_mask"] and relay.guards["r1/front"].state == LIVE
 
 
 def test_while_the_safe_mask_is_in_force_no_live_speed_limit_replaces_its_floor() -> None:
-    import time
-    from dataclasses import dataclass
-
-    import zenoh
-    from gcdtrav.client.relay.link import OnDemand
-    from gcdtrav.client.relay.relay import Relay
-    from gcdtrav.client.session.zenoh_args import zenoh_config
-    from gcdtrav.schemas.relay import RelaySettings
-    from gcdtrav.schemas.ros_nav import occupancy_grid_cdr, speed_limit_cdr
-    from numpy import zeros
-
-    put: list[str] = []
-
-    class Robot:
-        def outputs(self, relay: object, source: str) -> list[object]:
-            return []
-
-        def publish_safe_mask(self, mask: object) -> None:
-            put.append("safe")
-
-    class Output(OnDemand):
-        def deliver(self, sample: object) -> float | None:
-            put.append(self.kind)
-            return None
-
-    @dataclass
-    class Payload:
-        data: bytes
-
-        def to_bytes(self) -> bytes:
-            return self.data
-
-        def __len__(self) -> int:
-            return len(self.data)
-
-    @dataclass
-    class Sample:
-        payload: Payload
-
-    settings = RelaySettings.model_validate(
-        {"cameras": [{"camera": "robot/cam", "source": "r1/front"}], "safe_mask": {"after_s": 0.05}}
-    )
-    session = zenoh.open(zenoh_config(mode="peer", multicast_scouting=False))
-    try:
-        relay = Relay(settings, session, robot=Robot())  # type: ignore[arg-type]
-        relay.guards["r1/front"].pose(0.0, 0.0, "odom")
-        time.sleep(0.1)
+    robot = SafeMasksPut()
+    with quiet_relay(robot) as relay:
         relay._guard()
-        limit, mask = Output(relay, "r1/front", "speed_limit"), Output(relay, "r1/front", "speed_mask")
-        now = (int(time.time()), 0)
-        limit._arrived(Sample(Payload(speed_limit_cdr(now, "odom", 0.0))))  # "no limit": not while safe
-        mask._arrived(Sample(Payload(occupancy_grid_cdr(now, "odom", 0.5, (0.0, 0.0), zeros((4, 4), "int8")))))
-        limit._arrived(Sample(Payload(speed_limit_cdr(now, "odom", 0.0))))  # a fresh mask is in force: it flows
-        assert put == ["safe", "speed_mask", "speed_limit"] and relay.guards["r1/front"].state == LIVE
-    finally:
-        session.close()
+        limit, mask = RecordedOutput(relay, "r1/front", "speed_limit"), RecordedOutput(relay, "r1/front", "speed_mask")
+        no_limit = speed_limit_cdr((int(time.time()), 0), "odom", 0.0)
+        limit._arrived(fake_sample(no_limit))  # not while safe
+        mask._arrived(fake_sample(fresh_mask()))
+        limit._arrived(fake_sample(no_limit))  # a fresh mask is in force: it flows
+        assert robot.put == ["safe", "speed_mask", "speed_limit"] and relay.guards["r1/front"].state == LIVE

@@ -8,20 +8,7 @@ from dataclasses import dataclass, field
 
 from gcdtrav.schemas.settings import ServiceSettings
 from gcdtrav.service.bus.experience import ExperienceBus
-
-
-@dataclass
-class Payload:
-    data: bytes
-
-    def to_bytes(self) -> bytes:
-        return self.data
-
-
-@dataclass
-class Sample:
-    payload: Payload
-    key_expr: str = "robot/odom"
+from zenoh_helpers import fake_sample
 
 
 @dataclass
@@ -42,9 +29,9 @@ def test_commands_and_odometry_are_taken_only_while_this_instance_owns_the_grid(
     stats, taken = Stats(), []
     bus = ExperienceBus(None, ServiceSettings(), ExperienceStub(), stats, owned.__getitem__, None)  # type: ignore[arg-type]
     handle = bus._input_handler(lambda payload, received_at: taken.append(payload), "bad_odometry")
-    handle(Sample(Payload(b"first")))  # type: ignore[arg-type]
+    handle(fake_sample(b"first", "robot/odom"))  # type: ignore[arg-type]
     owned["r1/front"] = False  # the grid moved to another instance
-    handle(Sample(Payload(b"second")))  # type: ignore[arg-type]
+    handle(fake_sample(b"second", "robot/odom"))  # type: ignore[arg-type]
     owned["r1/front"] = True  # and back
-    handle(Sample(Payload(b"third")))  # type: ignore[arg-type]
+    handle(fake_sample(b"third", "robot/odom"))  # type: ignore[arg-type]
     assert taken == [b"first", b"third"] and stats.counted == []
