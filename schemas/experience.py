@@ -11,7 +11,7 @@ from typing import Literal
 
 from gcdtrav.schemas.anchors import AnchorSet
 from gcdtrav.schemas.limits import MAX_CONCEPT_CHARS, MAX_FRAME_ID_CHARS, Coordinate, FiniteFloat
-from gcdtrav.schemas.messages import Message
+from gcdtrav.schemas.messages import Message, MessageError
 from gcdtrav.schemas.strict import WireModel
 from pydantic import ConfigDict, Field, field_validator
 
@@ -70,6 +70,24 @@ class OutcomeBatch(Message):
     dropped: int = Field(
         default=0, ge=0, description="Outcomes the relay dropped since its last batch: more than a batch holds."
     )
+
+    @classmethod
+    def decode_each(cls, payload: bytes, max_bytes: int | None = None) -> tuple[OutcomeBatch, int]:
+        """The batch with each outcome validated alone, and how many were left out: an outcome this reader does
+        not take (a kind a newer relay added, a value out of range) costs only itself, not the batch's other
+        outcomes. MessageTooLarge, MessageError when the batch itself is not one (not a map, too many)."""
+        data = cls.fields(payload, max_bytes)
+        items = data.get("outcomes")
+        if not isinstance(items, list) or len(items) > MAX_BATCH_OUTCOMES:
+            return cls.validated(data), 0  # the batch's own error
+        batch = cls.validated({**data, "outcomes": []})
+        kept: list[TraversalOutcome] = []
+        for item in items:
+            try:
+                kept.append(TraversalOutcome.validated(item if isinstance(item, dict) else {}))
+            except MessageError:
+                continue
+        return batch.model_copy(update={"outcomes": kept}), len(items) - len(kept)
 
 
 class Twist2D(Message):

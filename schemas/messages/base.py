@@ -70,28 +70,37 @@ class Message(WireModel):
     @classmethod
     def unpack(cls: type[M], payload: bytes, max_bytes: int | None = None) -> M:
         check_size(cls.__name__, payload, max_bytes)
-        try:
-            data = msgpack.unpackb(payload, raw=False, strict_map_key=True)
-        except (ValueError, msgpack.UnpackException, TypeError) as err:
-            raise MessageError(f"not a msgpack {cls.__name__}: {err}") from None
-        if not isinstance(data, dict):
-            raise MessageError(f"a {cls.__name__} must be a msgpack map, got {type(data).__name__}")
-        return cls.validated(data)
+        return cls.validated(cls._msgpack_fields(payload))
 
     @classmethod
     def decode(cls: type[M], payload: bytes, max_bytes: int | None = None) -> M:
         """The message in msgpack, or in JSON (a payload starting with '{'), as a person or a script without
         msgpack sends it; MessageTooLarge over ``max_bytes``, MessageError naming what else is wrong."""
+        return cls.validated(cls.fields(payload, max_bytes))
+
+    @classmethod
+    def fields(cls, payload: bytes, max_bytes: int | None = None) -> dict[str, Any]:
+        """The payload's fields as ``decode`` reads them, not yet validated; the same errors otherwise."""
         check_size(cls.__name__, payload, max_bytes)
         if payload.lstrip()[:1] != b"{":
-            return cls.unpack(payload)
+            return cls._msgpack_fields(payload)
         try:
             data = json.loads(payload)
         except (ValueError, UnicodeDecodeError) as err:
             raise MessageError(f"not a JSON {cls.__name__}: {err}") from None
         if not isinstance(data, dict):
             raise MessageError(f"a {cls.__name__} must be a JSON object")
-        return cls.validated(data)
+        return data
+
+    @classmethod
+    def _msgpack_fields(cls, payload: bytes) -> dict[str, Any]:
+        try:
+            data = msgpack.unpackb(payload, raw=False, strict_map_key=True)
+        except (ValueError, msgpack.UnpackException, TypeError) as err:
+            raise MessageError(f"not a msgpack {cls.__name__}: {err}") from None
+        if not isinstance(data, dict):
+            raise MessageError(f"a {cls.__name__} must be a msgpack map, got {type(data).__name__}")
+        return data
 
     @classmethod
     def validated(cls: type[M], data: dict[str, Any]) -> M:

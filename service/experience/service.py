@@ -133,8 +133,12 @@ class Experience:
 
     def on_outcomes(self, payload: bytes) -> int:
         """A relay's batch of outcomes measured on the robot ({prefix}/in/{source}/outcomes), paired as outcomes
-        from the bus; OutcomeRejected (counted) for a bad batch."""
-        return self.store.ingest_batch(payload, self.ring)
+        from the bus; OutcomeRejected (counted) for a bad batch; one whose outcomes were not all taken is counted
+        once (bad_outcome), its others paired."""
+        pairs, left_out = self.store.ingest_batch(payload, self.ring)
+        if left_out:
+            self.rejected(None, "bad_outcome", f"{left_out} outcomes of a batch not taken (the rest paired)", None)
+        return pairs
 
     def on_answer(self, payload: bytes | OperatorAnswer, received_at: float) -> int:
         """An OperatorAnswer (msgpack or JSON, or decoded); the pairs its outcomes made. MessageError or ValueError

@@ -19,9 +19,10 @@ from __future__ import annotations
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 from gcdtrav.schemas.anchors import AnchorSet
@@ -59,24 +60,10 @@ MAX_BATCH_BYTES = 128 * MAX_BATCH_OUTCOMES  # an outcome packs to about 90 bytes
 READ_OWN_WRITES_S = 2.0  # a report waits this long at most for this instance's queued pairs to be written
 
 
-Decoded = TypeVar("Decoded", TraversalOutcome, OutcomeBatch)
-
-
 class OutcomeRejected(ValueError):
     def __init__(self, reason: str, detail: str) -> None:
         self.reason, self.detail = reason, detail
         super().__init__(f"{reason}: {detail}")
-
-
-def decode_outcomes(kind: type[Decoded], payload: bytes) -> Decoded:
-    """A TraversalOutcome or a relay's OutcomeBatch from msgpack or JSON (a payload starting with '{');
-    OutcomeRejected with the reason."""
-    try:
-        return kind.decode(payload, MAX_OUTCOME_BYTES if kind is TraversalOutcome else MAX_BATCH_BYTES)
-    except MessageTooLarge as err:
-        raise OutcomeRejected("oversized", str(err)) from None
-    except ValueError as err:  # MessageError, or whatever else a bad value raised
-        raise OutcomeRejected("bad_outcome", str(err)) from None
 
 
 def as_pairs(columns: PairColumns) -> Pairs:
@@ -121,26 +108,40 @@ class ExperienceStore:
 
     # ---- outcomes in -----------------------------------------------------------------------------------
     def ingest(self, payload: bytes, ring: SnapshotRing) -> int:
-        """Decode an outcome payload and pair it; OutcomeRejected (counted) for a bad one."""
-        return self.add(self._decoded(TraversalOutcome, payload), ring)
+        """Decode an outcome payload (msgpack or JSON) and pair it; OutcomeRejected (counted) for a bad one."""
+        with self._rejections():
+            outcome = TraversalOutcome.decode(payload, MAX_OUTCOME_BYTES)
+        return self.add(outcome, ring)
 
-    def ingest_batch(self, payload: bytes, ring: SnapshotRing) -> int:
-        """Decode a relay's batch and pair each of its outcomes as one from the bus; OutcomeRejected (counted) for a
-        bad batch. The outcomes the relay dropped are counted (``relay_dropped``)."""
-        batch = self._decoded(OutcomeBatch, payload)
+    def ingest_batch(self, payload: bytes, ring: SnapshotRing) -> tuple[int, int]:
+        """Decode a relay's batch and pair each of its outcomes as one from the bus: (pairs made, outcomes left
+        out); OutcomeRejected (counted) for a bad batch. An outcome of it this service does not take is left out
+        and counted (``rejected_bad_outcome``), the others paired; the outcomes the relay dropped are counted
+        (``relay_dropped``)."""
+        with self._rejections():
+            batch, left_out = OutcomeBatch.decode_each(payload, MAX_BATCH_BYTES)
         with self._lock:
             self._count("relayed_outcomes", len(batch.outcomes))
+            if left_out:
+                self._count("rejected_bad_outcome", left_out)
             if batch.dropped:
                 self._count("relay_dropped", batch.dropped)
-        return sum(self.add(outcome, ring) for outcome in batch.outcomes)
+        return sum(self.add(outcome, ring) for outcome in batch.outcomes), left_out
 
-    def _decoded(self, kind: type[Decoded], payload: bytes) -> Decoded:
+    @contextmanager
+    def _rejections(self) -> Iterator[None]:
+        """A payload decoded: too large, or not valid, is an OutcomeRejected counted by its reason."""
         try:
-            return decode_outcomes(kind, payload)
-        except OutcomeRejected as err:
-            with self._lock:
-                self._count(f"rejected_{err.reason}")
-            raise
+            yield
+        except MessageTooLarge as err:
+            raise self._rejected("oversized", str(err)) from None
+        except ValueError as err:  # MessageError, or whatever else a bad value raised
+            raise self._rejected("bad_outcome", str(err)) from None
+
+    def _rejected(self, reason: str, detail: str) -> OutcomeRejected:
+        with self._lock:
+            self._count(f"rejected_{reason}")
+        return OutcomeRejected(reason, detail)
 
     def add(self, outcome: TraversalOutcome, ring: SnapshotRing) -> int:
         """Pair the outcome with every known cell in its footprint as ``ring`` held it ``lookahead_s`` before;

@@ -268,3 +268,23 @@ def test_decode_reads_msgpack_or_json_and_refuses_what_is_over_its_limit_unread(
         with pytest.raises(m.MessageError, match=message) as err:
             e.Twist2D.decode(bad)
         assert not isinstance(err.value, m.MessageTooLarge)
+
+
+def test_an_outcome_a_newer_relay_sends_costs_only_itself_not_its_batch() -> None:
+    """A newer relay may add an outcome kind (a Literal here); before, the whole batch of up to 1,000 was refused
+    at an older service. The batch's other outcomes are taken, the others counted."""
+    good = e.TraversalOutcome(stamp=1.0, x=0.0, y=0.0, score=0.5, kind="velocity").model_dump(mode="python")
+    newer = {**good, "kind": "slip", "slip_ratio": 0.4}  # a kind and a field this reader does not know
+    out_of_range = {**good, "score": 2.0}
+    payload = msgpack.packb(
+        {"outcomes": [good, newer, out_of_range, "not a map", good], "sent_at": 3.0, "dropped": 2}, use_bin_type=True
+    )
+    with pytest.raises(m.MessageError):
+        e.OutcomeBatch.decode(payload)  # the whole batch, as a plain decode reads it
+    batch, left_out = e.OutcomeBatch.decode_each(payload)
+    assert len(batch.outcomes) == 2 and left_out == 3 and batch.dropped == 2 and batch.sent_at == 3.0
+    for bad_batch in (b"\x93\x01\x02\x03", msgpack.packb({"outcomes": [good] * 1001, "sent_at": 1.0})):
+        with pytest.raises(m.MessageError):  # not a batch, or more than a batch holds: the batch's own error
+            e.OutcomeBatch.decode_each(bad_batch)
+    with pytest.raises(m.MessageTooLarge):
+        e.OutcomeBatch.decode_each(payload, max_bytes=10)
