@@ -69,12 +69,11 @@ class OutcomeLink:
         publisher: Any,
         path_publisher: Any,
         clock: Callable[[], float] = time.monotonic,
-        receiving: Callable[[], bool] = lambda: True,
     ) -> None:
         """``publisher``, ``path_publisher``: the link's (Guarded) publishers of the grid ``source``'s outcomes and
-        planned path (``Keys.outcomes``, ``Keys.planned_path``); ``clock``: the relay's monotonic clock;
-        ``receiving``: whether anyone across the link subscribes to the outcomes now (zenoh's matching status)."""
-        self.settings, self.source, self.clock, self.receiving = settings, source, clock, receiving
+        planned path (``Keys.outcomes``, ``Keys.planned_path``), each with ``put`` and ``matching`` (whether anyone
+        across the link subscribes now); ``clock``: the relay's monotonic clock."""
+        self.settings, self.source, self.clock = settings, source, clock
         self.velocity, self.contacts = VelocityTracker(settings), ContactWatch(settings)
         self._publisher, self._path_publisher = publisher, path_publisher
         self._pending: list[TraversalOutcome] = []
@@ -128,29 +127,22 @@ class OutcomeLink:
     # ---- to the link -----------------------------------------------------------------------------------
     def send_due(self, force: bool = False) -> float:
         """Send what waits if ``batch_period_s`` has passed since the last send (``force``: now, the relay stopping);
-        when to be asked next (``clock``).
-        While nobody across the link receives (the link, its router or the service down: a put would be lost and
-        said sent), the outcomes and the newest path wait, the newest MAX_BATCH_OUTCOMES of them, the rest
-        counted dropped; they leave in the first batch once someone receives again."""
+        when to be asked next (``clock``). While nobody across the link receives the outcomes (the link, its router
+        or the service down: a put would be lost, and was counted sent), they wait, the newest MAX_BATCH_OUTCOMES,
+        the rest counted dropped, and leave in the first batch once someone receives again; the newest path waits
+        for its own receiver alike."""
         now = self.clock()
         if now < self._next_send and not force:
             return self._next_send
-        receiving = self._receiving()
+        outcomes_heard, path_heard = self.receiving(), receives(self._path_publisher)
         with self._lock:
             self._next_send = now + self.settings.batch_period_s
-            if receiving == self.holding:
-                self.holding = not receiving
-                waiting = len(self._pending)
-                if self.holding:  # said loudly only with outcomes waiting: not at every start, before the link is up
-                    level = logging.WARNING if waiting else logging.INFO
-                    log.log(level, "nobody receives the outcomes of %s across the link: holding them", self.source)
-                else:
-                    log.info("the outcomes of %s are received again: sending the %d held", self.source, waiting)
-            if self.holding:
-                return self._next_send
-            outcomes, self._pending, dropped, self._dropped = self._pending, [], self._dropped, 0
-            path, self._path = self._path, None
-            if path is not None:
+            self._hold(not outcomes_heard)
+            outcomes, dropped, path = [], 0, None
+            if outcomes_heard:
+                outcomes, self._pending, dropped, self._dropped = self._pending, [], self._dropped, 0
+            if path_heard and self._path is not None:
+                path, self._path = self._path, None
                 self._path_sent = [(float(x), float(y)) for x, y in path.points]
                 self._path_sent_at = now
         if outcomes or dropped:
@@ -162,16 +154,35 @@ class OutcomeLink:
             self._put(self._path_publisher, path.pack())
         return self._next_send
 
-    def _receiving(self) -> bool:
-        try:
-            return bool(self.receiving())
-        except Exception:  # zenoh's own error types: a publisher closing receives nothing
-            return False
+    def receiving(self) -> bool:
+        """Whether anyone across the link subscribes to the outcomes now."""
+        return receives(self._publisher)
+
+    def _hold(self, holding: bool) -> None:
+        """Under the lock: whether the outcomes wait now; a change said once (loudly only with outcomes waiting:
+        not at every start, before the link is up)."""
+        if holding == self.holding:
+            return
+        self.holding, waiting = holding, len(self._pending)
+        if holding:
+            level = logging.WARNING if waiting else logging.INFO
+            log.log(level, "nobody receives the outcomes of %s across the link: holding them", self.source)
+        else:
+            log.info("the outcomes of %s are received again: sending the %d held", self.source, waiting)
 
     def _put(self, publisher: Any, payload: bytes) -> None:
         publisher.put(payload)
         self.uplink.add(len(payload))
         self.bytes_sent += len(payload)
+
+
+def receives(publisher: Any) -> bool:
+    """Whether anyone across the link subscribes to what ``publisher`` puts (zenoh drops a put nobody matches, at
+    the writer); False when it cannot tell (closing)."""
+    try:
+        return bool(publisher.matching())
+    except Exception:  # zenoh's own error types
+        return False
 
 
 def follows(path: list[tuple[float, float]], sent: list[tuple[float, float]] | None, length_m: float) -> bool:

@@ -377,7 +377,7 @@ class Relay:
         source = self.settings.outcome_source()
         outcomes = Guarded(self.link.declare_publisher(self.keys.outcomes(source), encoding=MSGPACK))
         path = Guarded(self.link.declare_publisher(self.keys.planned_path(source), encoding=MSGPACK))
-        self.outcomes = OutcomeLink(settings, source, outcomes, path, receiving=outcomes.matching)
+        self.outcomes = OutcomeLink(settings, source, outcomes, path)
         self._declared += [outcomes, path, *self.robot.subscribe_outcomes(self.outcomes)]
         log.info("measuring outcomes of grid %s on the robot, sent every %g s at most", source, settings.batch_period_s)
 

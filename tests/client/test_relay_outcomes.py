@@ -29,9 +29,13 @@ SETTINGS = RelayOutcomes(batch_period_s=1.0)
 class Publisher:
     def __init__(self) -> None:
         self.payloads: list[bytes] = []
+        self.heard = True  # someone across the link subscribes
 
     def put(self, payload: bytes) -> None:
         self.payloads.append(payload)
+
+    def matching(self) -> bool:
+        return self.heard
 
 
 class Clock:
@@ -113,9 +117,7 @@ def test_a_link_that_cannot_send_keeps_the_newest_and_says_how_many_it_dropped()
 def test_while_nobody_receives_the_outcomes_wait_and_leave_in_the_first_batch_after() -> None:
     """A put that no subscriber matches is lost (zenoh drops it at the writer) and was counted sent; now the
     outcomes wait while nobody across the link receives, the newest MAX_BATCH_OUTCOMES, the rest dropped."""
-    receiving = [True]
-    outcomes, paths, clock = Publisher(), Publisher(), Clock()
-    relay = OutcomeLink(SETTINGS, "r1/front", outcomes, paths, clock, receiving=lambda: receiving[0])
+    relay, outcomes, paths, clock = link()
 
     def outcome(stamp: float) -> None:
         relay.on_outcome(TraversalOutcome(stamp=stamp, x=0.0, y=0.0, score=1.0, kind="velocity"))
@@ -123,7 +125,7 @@ def test_while_nobody_receives_the_outcomes_wait_and_leave_in_the_first_batch_af
     outcome(0.0)
     send_at(relay, clock, 0.0)
     assert len(outcomes.payloads) == 1 and not relay.holding
-    receiving[0] = False  # the service, its router or the link went away
+    outcomes.heard = paths.heard = False  # the service, its router or the link went away
     for second in range(1, 4):
         outcome(float(second))
         relay.on_path("odom", float(second), [(0.0, 0.0), (float(second), 0.0)])
@@ -133,7 +135,7 @@ def test_while_nobody_receives_the_outcomes_wait_and_leave_in_the_first_batch_af
     for index in range(MAX_BATCH_OUTCOMES):  # a long outage: more than a batch holds
         outcome(10.0 + index)
     send_at(relay, clock, 4.0)
-    receiving[0] = True
+    outcomes.heard = paths.heard = True
     send_at(relay, clock, 5.0)
     held = OutcomeBatch.unpack(outcomes.payloads[1])
     assert len(held.outcomes) == MAX_BATCH_OUTCOMES and held.dropped == 3  # the oldest three gave way
@@ -142,12 +144,22 @@ def test_while_nobody_receives_the_outcomes_wait_and_leave_in_the_first_batch_af
     assert PlannedPath.unpack(path).points == [(0.0, 0.0), (3.0, 0.0)]  # the newest path, once
 
 
-def test_a_receiving_check_that_fails_holds() -> None:
-    def closed() -> bool:
-        raise RuntimeError("the session is closing")
+def test_the_path_waits_for_its_own_receiver_and_the_outcomes_for_theirs() -> None:
+    relay, outcomes, paths, clock = link()
+    relay.on_outcome(TraversalOutcome(stamp=1.0, x=0.0, y=0.0, score=1.0, kind="velocity"))
+    relay.on_path("odom", 1.0, [(0.0, 0.0), (2.0, 0.0)])
+    outcomes.heard = False  # a planner's subscriber hears paths; nobody hears outcomes
+    send_at(relay, clock, 0.0)
+    assert outcomes.payloads == [] and len(paths.payloads) == 1 and relay.holding
 
-    outcomes, paths, clock = Publisher(), Publisher(), Clock()
-    relay = OutcomeLink(SETTINGS, "r1/front", outcomes, paths, clock, receiving=closed)
+
+def test_a_receiver_check_that_fails_holds() -> None:
+    class Closing(Publisher):
+        def matching(self) -> bool:
+            raise RuntimeError("the session is closing")
+
+    outcomes, paths, clock = Closing(), Publisher(), Clock()
+    relay = OutcomeLink(SETTINGS, "r1/front", outcomes, paths, clock)
     relay.on_outcome(TraversalOutcome(stamp=1.0, x=0.0, y=0.0, score=1.0, kind="velocity"))
     send_at(relay, clock, 0.0)
     assert outcomes.payloads == [] and relay.holding and relay.sent == 0
