@@ -48,6 +48,14 @@ DATA = ["put", "delete", "query", "reply"]
 # robot's own expression includes (the ACL tests inclusion). A robot so learns which expressions others
 # subscribe to, never their data: data (put, reply) is sent to it on its own keys only.
 DECLARATIONS = ["declare_subscriber", "declare_queryable"]
+# A robot's ROS rights are its namespace's keys, D/<name>/**: a robot named like a topic every robot shares
+# (/tf, /odom, ...) would get put rights on that topic for the whole fleet (rmw_zenoh's key of /tf is D/tf/...).
+SHARED_TOPICS = frozenset(
+    {
+        "tf", "tf_static", "rosout", "parameter_events", "clock", "diagnostics", "robot_description",
+        "joint_states", "map", "map_metadata", "odom", "cmd_vel", "scan", "plan", "goal_pose", "initialpose",
+    }
+)  # fmt: skip
 ROUTER_COMMON_NAME = "gcdtrav-router"  # the routers' certificate (deploy/kubernetes/tls/make-certificates.sh)
 # "**" does not include keys whose first chunk starts with "@" (rmw_zenoh's graph tokens): named on their own.
 EVERY_KEY = ["**", "@ros2_lv/**"]
@@ -79,6 +87,12 @@ class FleetIdentities(StrictModel):
             for name in self.names(role):
                 if not re.match(NAME_PATTERN, name):
                     raise ValueError(f"{role} name '{name}': letters, digits, '_', '.', '-' only (a key chunk)")
+        shared = sorted(SHARED_TOPICS.intersection(self.robots))
+        if shared:
+            raise ValueError(
+                f"robot name '{shared[0]}' is a ROS topic robots share: its rights on D/{shared[0]}/** would cover "
+                f"every robot's /{shared[0]}"
+            )
         common = [common_name(role, n) for role in ROLES for n in self.names(role)]
         if len(common) != len(set(common)):
             raise ValueError("an identity is listed twice")
