@@ -277,3 +277,15 @@ def test_bad_identities_are_refused_with_one_line(tmp_path: Path, capsys: pytest
     errors = capsys.readouterr().err.splitlines()
     assert len(errors) == 5 and all(line.startswith("gcdtrav identity: ") for line in errors), errors
     assert "robtos: Extra inputs are not permitted" in errors[-1]
+
+
+def test_a_robot_behind_its_acl_sees_whether_the_service_receives_its_outcomes(tmp_path: Path) -> None:
+    """The relay holds its outcomes while nobody receives them (zenoh's matching status, client/relay/outcomes.py):
+    behind the routers' rules the robot must still learn of the service's subscriber, and of its going."""
+    with fleet(tmp_path, per_identity=True) as built:
+        service, r7 = built.trusted(), built.user("robot", "r7")
+        outcomes = r7.declare_publisher("gcdtrav/in/r7/front/outcomes")
+        subscriber = service.declare_subscriber("gcdtrav/in/**/outcomes", lambda sample: None)
+        assert wait_until(lambda: outcomes.matching_status.matching, 15)
+        subscriber.undeclare()
+        assert wait_until(lambda: not outcomes.matching_status.matching, 15)
