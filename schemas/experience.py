@@ -84,7 +84,8 @@ class OutcomeBatch(Message):
         kept: list[TraversalOutcome] = []
         for item in items:
             try:
-                kept.append(TraversalOutcome.validated(item if isinstance(item, dict) else {}))
+                if isinstance(item, dict):
+                    kept.append(TraversalOutcome.validated(item))
             except MessageError:
                 continue
         return batch.model_copy(update={"outcomes": kept}), len(items) - len(kept)

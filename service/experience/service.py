@@ -169,13 +169,16 @@ class Experience:
     def _forget_lapsed_paths(self, now: float) -> None:
         """Drop the paths not renewed within ``ask.path_timeout_s``: ``path_ahead`` no longer uses them."""
         for source, (received, _) in list(self._paths.items()):  # a copy: zenoh's callbacks may add meanwhile
-            if now - received > self.ask_settings.path_timeout_s:
+            if self._lapsed(received, now):
                 self._paths.pop(source, None)
+
+    def _lapsed(self, received: float, now: float) -> bool:
+        return now - received > self.ask_settings.path_timeout_s
 
     def path_ahead(self, source: str) -> list[tuple[float, float]] | None:
         """The planner's path of ``source`` if renewed within ``ask.path_timeout_s``; None: look along the heading."""
         held = self._paths.get(source)
-        if held is None or self.clock() - held[0] > self.ask_settings.path_timeout_s:
+        if held is None or self._lapsed(held[0], self.clock()):
             return None
         return held[1]
 
